@@ -1,0 +1,637 @@
+"""The model description: segments, joints, markers and unknown parameters.
+
+A model is a tree of rigid segments. Each segment has one joint that attaches
+it to its parent (or to the ground for the root). A segment's frame has its
+origin at that joint's centre; the joint's ``position`` is the centre written
+in the parent's frame (in the world frame for the root). Markers sit at fixed
+positions in their segment's frame.
+
+A pose ``q`` stacks the coordinates of every joint, in segment order. Each joint
+is a short chain of elementary motions applied in the parent frame at the joint
+centre:
+
+==========  ====  ====================================================
+type        dim   elementary motions (in order)
+==========  ====  ====================================================
+free        2     translate x, translate y, rotate (about z)
+free        3     translate x, y, z, then rotate about z, x, y
+revolute    2     rotate (about z)
+hinge       3     rotate about ``axis``
+universal   3     rotate about ``axes[0]``, then about ``axes[1]``
+spherical   3     rotate about z, x, y (body-fixed; singular at x = ±90°)
+fixed       2, 3  none
+==========  ====  ====================================================
+
+The geometry vector ``g`` concatenates every joint's position in its parent's
+frame, then every marker's position in its segment's frame. Unknown parameters
+``theta (..., P)`` enter it linearly, ``g = g_base + theta @ A.T``:
+
+* ``length``: the distance from a segment's origin to the joint ``joint``
+  (the joint's position keeps its direction, its norm becomes ``theta``);
+* ``joint_position``: one coordinate (``axis`` x, y or z) of a joint centre in
+  its parent's frame;
+* ``marker_position``: one coordinate of a marker in its segment's frame.
+
+The model is frozen and hashable; algorithms take it first and never change it.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from skelid.errors import ModelError
+
+JOINT_TYPES = {
+    2: ("free", "revolute", "fixed"),
+    3: ("free", "hinge", "universal", "spherical", "fixed"),
+}
+PARAMETER_KINDS = ("length", "joint_position", "marker_position")
+PRIOR_KINDS = ("uniform", "normal", "lognormal")
+AXES = {"x": 0, "y": 1, "z": 2}
+UNITS = ("mm", "cm", "m")
+
+
+def _unit(v, where: str) -> tuple[float, ...]:
+    a = np.asarray(v, dtype=float)
+    n = float(np.linalg.norm(a))
+    if a.shape != (3,) or not np.isfinite(n) or n == 0:
+        raise ModelError(f"{where}: an axis must be three finite numbers, not all zero, got {v!r}")
+    return tuple(float(x) for x in a / n)
+
+
+# ----------------------------------------------------------------------------- parts
+@dataclass(frozen=True)
+class Prior:
+    """Prior of one scalar parameter.
+
+    ``uniform(lower, upper)``, ``normal(mean, sd)`` or ``lognormal(median, sd_log)``.
+    ``lower``/``upper`` always bound the search (grid) interval; for normal and
+    log-normal priors they default to five standard deviations either side.
+    """
+
+    kind: str
+    lower: float
+    upper: float
+    mean: float = math.nan
+    sd: float = math.nan
+
+    def log_pdf(self, x):
+        """Log density (up to a constant) at ``x``; ``-inf`` outside the bounds."""
+        x = np.asarray(x, dtype=float)
+        inside = (x >= self.lower) & (x <= self.upper)
+        if self.kind == "uniform":
+            lp = np.zeros_like(x)
+        elif self.kind == "normal":
+            lp = -0.5 * ((x - self.mean) / self.sd) ** 2
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lx = np.log(np.where(x > 0, x, np.nan))
+            lp = -0.5 * ((lx - math.log(self.mean)) / self.sd) ** 2 - lx
+        return np.where(inside, lp, -np.inf)
+
+    @property
+    def center(self) -> float:
+        return 0.5 * (self.lower + self.upper) if self.kind == "uniform" else self.mean
+
+    def to_dict(self) -> dict:
+        d = {"type": self.kind, "lower": self.lower, "upper": self.upper}
+        if self.kind == "normal":
+            d.update(mean=self.mean, sd=self.sd)
+        elif self.kind == "lognormal":
+            d.update(median=self.mean, sd_log=self.sd)
+        return d
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One unknown scalar of the model geometry.
+
+    Attributes
+    ----------
+    name : str
+    kind : {'length', 'joint_position', 'marker_position'}
+    target : str
+        The joint (``length``, ``joint_position``) or marker it moves.
+    axis : int or None
+        Coordinate index for the ``*_position`` kinds.
+    prior : Prior
+    grid_step : float
+        Spacing of the candidate grid used by grid filters.
+    """
+
+    name: str
+    kind: str
+    target: str
+    axis: int | None
+    prior: Prior
+    grid_step: float
+
+    @property
+    def grid(self) -> np.ndarray:
+        """(K,) float: candidate values ``lower, lower + step, ..., upper``."""
+        n = int(round((self.prior.upper - self.prior.lower) / self.grid_step)) + 1
+        return np.linspace(self.prior.lower, self.prior.lower + (n - 1) * self.grid_step, n)
+
+
+@dataclass(frozen=True)
+class Joint:
+    """The joint that attaches a segment to its parent."""
+
+    name: str
+    type: str
+    position: tuple[float, ...]
+    axes: tuple[tuple[float, ...], ...] = ()
+    range: tuple[tuple[float, float], ...] = ()  # degrees, per rotation; used to simulate
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A rigid segment; ``parent`` is None for the root (attached to the ground)."""
+
+    name: str
+    parent: str | None
+    joint: Joint
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A marker at ``position`` in ``segment``'s frame; ``label`` is its name in files."""
+
+    name: str
+    segment: str
+    position: tuple[float, ...]
+    label: str | None = None
+
+
+@dataclass(frozen=True)
+class Dof:
+    """One elementary motion of a joint (internal)."""
+
+    segment: int
+    kind: str  # "R" rotation or "T" translation
+    axis: tuple[float, ...]  # in the frame the joint acts in (after earlier motions)
+
+
+# ----------------------------------------------------------------------------- model
+@dataclass(frozen=True)
+class Model:
+    """A frozen articulated model.
+
+    Build it with :func:`load_model` (TOML) or :func:`model_from_dict`; the
+    constructor checks the tree and orders segments parents-first.
+    """
+
+    name: str
+    dim: int
+    units: str
+    segments: tuple[Segment, ...]
+    markers: tuple[Marker, ...]
+    parameters: tuple[Parameter, ...] = ()
+    description: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        if self.dim not in (2, 3):
+            raise ModelError(f"model {self.name!r}: dim must be 2 or 3, got {self.dim}")
+        if self.units not in UNITS:
+            raise ModelError(
+                f"model {self.name!r}: unknown units {self.units!r}", f"use one of {UNITS}"
+            )
+        seg_names = [s.name for s in self.segments]
+        if not seg_names:
+            raise ModelError(f"model {self.name!r} has no segments", "add a [[segments]] table")
+        for n in seg_names:
+            if seg_names.count(n) > 1:
+                raise ModelError(f"segment name {n!r} is used twice", "give each segment a unique name")
+        joint_names = [s.joint.name for s in self.segments]
+        for n in joint_names:
+            if joint_names.count(n) > 1:
+                raise ModelError(f"joint name {n!r} is used twice", "give each joint a unique name")
+        roots = [s for s in self.segments if s.parent is None]
+        if len(roots) != 1:
+            raise ModelError(
+                f"model {self.name!r} has {len(roots)} root segments (parent = 'ground')",
+                "exactly one segment must hang from the ground",
+            )
+        for s in self.segments:
+            if s.parent is not None and s.parent not in seg_names:
+                raise ModelError(
+                    f"segment {s.name!r} has parent {s.parent!r}, which is not a segment",
+                    f"use one of: ground, {', '.join(seg_names)}",
+                )
+            if s.joint.type not in JOINT_TYPES[self.dim]:
+                raise ModelError(
+                    f"joint {s.joint.name!r} has unknown type {s.joint.type!r} for a {self.dim}-D model",
+                    f"use one of: {', '.join(JOINT_TYPES[self.dim])}",
+                )
+            if s.joint.type == "free" and s.parent is not None:
+                raise ModelError(
+                    f"joint {s.joint.name!r}: only the root segment may have a free joint",
+                    "use revolute (2-D) or hinge/universal/spherical (3-D)",
+                )
+            if len(s.joint.position) != self.dim:
+                raise ModelError(
+                    f"joint {s.joint.name!r}: position needs {self.dim} coordinates, "
+                    f"got {len(s.joint.position)}"
+                )
+        # order parents first (and detect cycles)
+        ordered, placed = [], set()
+        pending = list(self.segments)
+        while pending:
+            ready = [s for s in pending if s.parent is None or s.parent in placed]
+            if not ready:
+                raise ModelError(
+                    f"segments {', '.join(s.name for s in pending)} form a cycle",
+                    "the segments must form a tree",
+                )
+            for s in ready:
+                ordered.append(s)
+                placed.add(s.name)
+                pending.remove(s)
+        object.__setattr__(self, "segments", tuple(ordered))
+        mnames = [m.name for m in self.markers]
+        for m in self.markers:
+            if mnames.count(m.name) > 1:
+                raise ModelError(f"marker name {m.name!r} is used twice")
+            if m.segment not in seg_names:
+                raise ModelError(
+                    f"marker {m.name!r} is on segment {m.segment!r}, which is not in the model",
+                    f"use one of: {', '.join(seg_names)}",
+                )
+            if len(m.position) != self.dim:
+                raise ModelError(
+                    f"marker {m.name!r}: position needs {self.dim} coordinates, got {len(m.position)}"
+                )
+        if not self.markers:
+            raise ModelError(f"model {self.name!r} has no markers", "add [[markers]] tables")
+        pnames = [p.name for p in self.parameters]
+        for p in self.parameters:
+            if pnames.count(p.name) > 1:
+                raise ModelError(f"parameter name {p.name!r} is used twice")
+            targets = joint_names if p.kind != "marker_position" else mnames
+            if p.target not in targets:
+                what = "marker" if p.kind == "marker_position" else "joint"
+                raise ModelError(
+                    f"parameter {p.name!r} refers to {what} {p.target!r}, which is not in the model",
+                    f"use one of: {', '.join(targets)}",
+                )
+            if p.kind == "length":
+                j = next(s.joint for s in self.segments if s.joint.name == p.target)
+                if np.linalg.norm(j.position) == 0:
+                    raise ModelError(
+                        f"parameter {p.name!r}: joint {p.target!r} sits at its parent's origin, "
+                        "so its length has no direction",
+                        "give the joint a nominal position along the segment",
+                    )
+            if p.axis is not None and p.axis >= self.dim:
+                raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
+
+    # ------------------------------------------------------------ names & sizes
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.markers)
+
+    @property
+    def marker_labels(self) -> dict[str, str]:
+        """Model marker name -> name in data files (where they differ)."""
+        return {m.name: m.label for m in self.markers if m.label and m.label != m.name}
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.parameters)
+
+    @property
+    def segment_index(self) -> dict[str, int]:
+        return {s.name: i for i, s in enumerate(self.segments)}
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(s.joint.name for s in self.segments)
+
+    def parameter(self, name: str) -> Parameter:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise ModelError(f"model {self.name!r} has no parameter {name!r}",
+                         f"use one of: {', '.join(self.parameter_names) or '(none)'}")
+
+    # --------------------------------------------------------------- compiled
+    @cached_property
+    def dofs(self) -> tuple[Dof, ...]:
+        """Elementary motions of all joints, in pose order."""
+        out = []
+        for i, s in enumerate(self.segments):
+            t = s.joint.type
+            if self.dim == 2:
+                if t == "free":
+                    out += [Dof(i, "T", (1.0, 0.0)), Dof(i, "T", (0.0, 1.0)), Dof(i, "R", ())]
+                elif t == "revolute":
+                    out.append(Dof(i, "R", ()))
+            else:
+                ex, ey, ez = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+                if t == "free":
+                    out += [Dof(i, "T", ex), Dof(i, "T", ey), Dof(i, "T", ez)]
+                    out += [Dof(i, "R", ez), Dof(i, "R", ex), Dof(i, "R", ey)]
+                elif t == "spherical":
+                    out += [Dof(i, "R", ez), Dof(i, "R", ex), Dof(i, "R", ey)]
+                elif t in ("hinge", "universal"):
+                    out += [Dof(i, "R", a) for a in s.joint.axes]
+        return tuple(out)
+
+    @property
+    def n_pose(self) -> int:
+        """Number of pose coordinates per frame."""
+        return len(self.dofs)
+
+    @cached_property
+    def parent_index(self) -> np.ndarray:
+        """(S,) int: index of each segment's parent, -1 for the root."""
+        idx = self.segment_index
+        return np.array([-1 if s.parent is None else idx[s.parent] for s in self.segments])
+
+    @cached_property
+    def marker_segment(self) -> np.ndarray:
+        """(M,) int: segment index of each marker."""
+        idx = self.segment_index
+        return np.array([idx[m.segment] for m in self.markers])
+
+    @cached_property
+    def ancestor(self) -> np.ndarray:
+        """(S, S) bool: ``ancestor[a, b]`` is True if a is b or an ancestor of b."""
+        S = len(self.segments)
+        anc = np.eye(S, dtype=bool)
+        for b in range(S):
+            a = self.parent_index[b]
+            while a >= 0:
+                anc[a, b] = True
+                a = self.parent_index[a]
+        return anc
+
+    @cached_property
+    def dof_moves_marker(self) -> np.ndarray:
+        """(Q, M) bool: pose coordinate k moves marker m."""
+        seg = np.array([d.segment for d in self.dofs], dtype=int)
+        return self.ancestor[seg][:, self.marker_segment]
+
+    @cached_property
+    def nominal_geometry(self) -> np.ndarray:
+        """(G,) float: joint positions then marker positions, as written in the model."""
+        return np.concatenate(
+            [np.ravel([s.joint.position for s in self.segments]),
+             np.ravel([m.position for m in self.markers])]
+        ).astype(float)
+
+    @cached_property
+    def geometry_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(g_base (G,), A (G, P))`` with ``g = g_base + theta @ A.T``."""
+        D, S = self.dim, len(self.segments)
+        g = self.nominal_geometry.copy()
+        A = np.zeros((g.size, self.n_params))
+        jidx = {s.joint.name: i for i, s in enumerate(self.segments)}
+        midx = {m.name: i for i, m in enumerate(self.markers)}
+        for k, p in enumerate(self.parameters):
+            if p.kind == "length":
+                sl = slice(jidx[p.target] * D, jidx[p.target] * D + D)
+                u = g[sl] / np.linalg.norm(self.nominal_geometry[sl])
+                g[sl] = 0.0
+                A[sl, k] = u
+            else:
+                base = jidx[p.target] * D if p.kind == "joint_position" else (S + midx[p.target]) * D
+                g[base + p.axis] = 0.0
+                A[base + p.axis, k] = 1.0
+        if np.any((A != 0).sum(axis=1) > 1):
+            raise ModelError(
+                f"model {self.name!r}: two parameters move the same coordinate",
+                "give each geometric quantity at most one parameter",
+            )
+        return g, A
+
+    @property
+    def theta_nominal(self) -> np.ndarray:
+        """(P,) float: the parameters' values implied by the model's nominal geometry."""
+        g0 = self.nominal_geometry
+        _, A = self.geometry_map
+        out = np.empty(self.n_params)
+        for k, p in enumerate(self.parameters):
+            col = A[:, k]
+            out[k] = g0[col != 0] @ col[col != 0] if p.kind == "length" else g0[col != 0][0]
+        return out
+
+    @property
+    def theta_center(self) -> np.ndarray:
+        """(P,) float: centre of each parameter's prior."""
+        return np.array([p.prior.center for p in self.parameters])
+
+    def log_prior(self, theta) -> np.ndarray:
+        """Log prior density of ``theta (..., P)`` -> ``(...)`` (independent parameters)."""
+        theta = np.asarray(theta, dtype=float)
+        out = np.zeros(theta.shape[:-1])
+        for k, p in enumerate(self.parameters):
+            out = out + p.prior.log_pdf(theta[..., k])
+        return out
+
+    # ---------------------------------------------------------------- export
+    def to_dict(self) -> dict:
+        """A dict that :func:`model_from_dict` turns back into an equal model."""
+        axis_name = "xyz"
+        d = {
+            "model": {"name": self.name, "dim": self.dim, "units": self.units},
+            "segments": [],
+            "markers": [],
+            "parameters": [],
+        }
+        if self.description:
+            d["model"]["description"] = self.description
+        for s in self.segments:
+            j = {"name": s.joint.name, "type": s.joint.type, "position": list(s.joint.position)}
+            if s.joint.type == "hinge":
+                j["axis"] = list(s.joint.axes[0])
+            elif s.joint.type == "universal":
+                j["axes"] = [list(a) for a in s.joint.axes]
+            if s.joint.range:
+                j["range"] = [list(r) for r in s.joint.range]
+            d["segments"].append({"name": s.name, "parent": s.parent or "ground", "joint": j})
+        for m in self.markers:
+            e = {"name": m.name, "segment": m.segment, "position": list(m.position)}
+            if m.label:
+                e["label"] = m.label
+            d["markers"].append(e)
+        for p in self.parameters:
+            e = {"name": p.name, "kind": p.kind}
+            e["marker" if p.kind == "marker_position" else "joint"] = p.target
+            if p.axis is not None:
+                e["axis"] = axis_name[p.axis]
+            e["prior"] = p.prior.to_dict()
+            e["grid_step"] = p.grid_step
+            d["parameters"].append(e)
+        return d
+
+    def with_parameters(self, names) -> Model:
+        """A copy of the model that keeps only the parameters ``names`` unknown."""
+        keep = tuple(self.parameter(n) for n in names)
+        return Model(self.name, self.dim, self.units, self.segments, self.markers, keep,
+                     self.description)
+
+
+# ----------------------------------------------------------------------------- loading
+def _num_list(v, n: int | None, where: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ModelError(f"{where}: expected a list of numbers, got {v!r}") from None
+    if n is not None and len(out) != n:
+        raise ModelError(f"{where}: expected {n} numbers, got {len(out)}")
+    if not all(math.isfinite(x) for x in out):
+        raise ModelError(f"{where}: numbers must be finite, got {v!r}")
+    return out
+
+
+def _prior(d, where: str) -> Prior:
+    if not isinstance(d, dict):
+        raise ModelError(f"{where}: prior must be a table like {{type = 'uniform', lower = .., upper = ..}}")
+    kind = d.get("type", "uniform")
+    if kind not in PRIOR_KINDS:
+        raise ModelError(f"{where}: unknown prior type {kind!r}", f"use one of: {', '.join(PRIOR_KINDS)}")
+    try:
+        if kind == "uniform":
+            lo, hi = float(d["lower"]), float(d["upper"])
+            mean = sd = math.nan
+        elif kind == "normal":
+            mean, sd = float(d["mean"]), float(d["sd"])
+            lo, hi = float(d.get("lower", mean - 5 * sd)), float(d.get("upper", mean + 5 * sd))
+        else:
+            mean, sd = float(d["median"]), float(d["sd_log"])
+            lo = float(d.get("lower", mean * math.exp(-5 * sd)))
+            hi = float(d.get("upper", mean * math.exp(5 * sd)))
+    except KeyError as exc:
+        raise ModelError(f"{where}: a {kind} prior needs {exc.args[0]!r}") from None
+    except (TypeError, ValueError):
+        raise ModelError(f"{where}: prior values must be numbers, got {d!r}") from None
+    if kind != "uniform" and not sd > 0:
+        raise ModelError(f"{where}: prior sd must be positive, got {sd}")
+    if kind == "lognormal" and not mean > 0:
+        raise ModelError(f"{where}: a log-normal prior needs a positive median, got {mean}")
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ModelError(f"{where}: prior bounds must satisfy lower < upper, got [{lo}, {hi}]")
+    return Prior(kind, lo, hi, mean, sd)
+
+
+def model_from_dict(d: dict, source: str = "model") -> Model:
+    """Build a :class:`Model` from the parsed TOML structure (see docs/model-format.md)."""
+    if not isinstance(d, dict):
+        raise ModelError(f"{source}: not a table")
+    known = {"model", "segments", "markers", "parameters", "aliases"}
+    extra = set(d) - known
+    if extra:
+        raise ModelError(f"{source}: unknown top-level key(s) {sorted(extra)}",
+                         f"use only {sorted(known)}")
+    head = d.get("model", {})
+    try:
+        dim = int(head.get("dim", 3))
+    except (TypeError, ValueError):
+        raise ModelError(f"{source}: [model] dim must be 2 or 3") from None
+    name = str(head.get("name", Path(source).stem))
+    units = str(head.get("units", "mm"))
+    segments = []
+    for i, s in enumerate(d.get("segments", [])):
+        where = f"{source}: segment {s.get('name', i + 1)!r}"
+        if "name" not in s:
+            raise ModelError(f"{source}: segment number {i + 1} has no name")
+        j = s.get("joint", {})
+        if not isinstance(j, dict) or "type" not in j:
+            raise ModelError(f"{where}: needs a joint table with a type, e.g. joint = {{type = 'revolute', position = [...]}}")
+        jtype = str(j["type"])
+        if jtype not in JOINT_TYPES.get(dim, ()):
+            raise ModelError(
+                f"{where}: unknown joint type {jtype!r} for a {dim}-D model",
+                f"use one of: {', '.join(JOINT_TYPES.get(dim, ()))}",
+            )
+        pos = _num_list(j.get("position", [0.0] * dim), dim, f"{where} joint position")
+        axes: tuple = ()
+        if jtype == "hinge":
+            axes = (_unit(j.get("axis", (0, 0, 1)), f"{where} joint axis"),)
+        elif jtype == "universal":
+            ax = j.get("axes")
+            if not isinstance(ax, list) or len(ax) != 2:
+                raise ModelError(f"{where}: a universal joint needs axes = [[..], [..]]")
+            axes = tuple(_unit(a, f"{where} joint axes") for a in ax)
+        parent = s.get("parent", "ground")
+        rng = j.get("range", ())
+        if rng and not isinstance(rng[0], list):
+            rng = [rng]
+        rng = tuple(_num_list(r, 2, f"{where} joint range") for r in rng)
+        segments.append(Segment(
+            str(s["name"]), None if parent in (None, "ground") else str(parent),
+            Joint(str(j.get("name", s["name"])), jtype, pos, axes, rng),
+        ))
+    aliases = d.get("aliases", {}) or {}
+    markers = []
+    for i, m in enumerate(d.get("markers", [])):
+        if "name" not in m or "segment" not in m:
+            raise ModelError(f"{source}: marker number {i + 1} needs a name and a segment")
+        pos = _num_list(m.get("position", [0.0] * dim), dim, f"{source}: marker {m['name']!r} position")
+        label = m.get("label", aliases.get(m["name"]))
+        markers.append(Marker(str(m["name"]), str(m["segment"]), pos, label))
+    params = []
+    for i, p in enumerate(d.get("parameters", [])):
+        where = f"{source}: parameter {p.get('name', i + 1)!r}"
+        kind = p.get("kind")
+        if kind not in PARAMETER_KINDS:
+            raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
+        target = p.get("marker" if kind == "marker_position" else "joint")
+        if target is None:
+            raise ModelError(f"{where}: needs {'marker' if kind == 'marker_position' else 'joint'} = '...'")
+        axis = None
+        if kind != "length":
+            ax = p.get("axis")
+            if ax not in AXES:
+                raise ModelError(f"{where}: needs axis = 'x', 'y' or 'z'")
+            axis = AXES[ax]
+        prior = _prior(p.get("prior", {}), where)
+        step = p.get("grid_step", (prior.upper - prior.lower) / 200)
+        try:
+            step = float(step)
+        except (TypeError, ValueError):
+            raise ModelError(f"{where}: grid_step must be a number") from None
+        if not step > 0:
+            raise ModelError(f"{where}: grid_step must be positive, got {step}")
+        params.append(Parameter(str(p.get("name", f"p{i}")), kind, str(target), axis, prior, step))
+    return Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
+                 str(head.get("description", "")))
+
+
+def load_model(path) -> Model:
+    """Read a model description from a TOML file.
+
+    Raises
+    ------
+    ModelError
+        With the file name, the problem and the fix, for any invalid content.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ModelError(f"model file {path} does not exist", "check the path") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ModelError(f"cannot read model file {path}: {exc}") from None
+    try:
+        d = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ModelError(f"{path}: not valid TOML ({exc})", "see docs/model-format.md") from None
+    try:
+        return model_from_dict(d, str(path))
+    except ModelError:
+        raise
+    except (TypeError, ValueError, AttributeError, KeyError) as exc:
+        raise ModelError(f"{path}: malformed model description ({exc})",
+                         "see docs/model-format.md") from None
