@@ -3,7 +3,7 @@
 For fixed parameters ``theta`` the pose of frame ``t`` minimises the marker
 residual over the markers present in that frame,
 
-.. math:: \\hat q_t(\\theta) = \\arg\\min_q \\sum_{m\\,\\in\\,\\text{present}(t)} \\lVert y_{tm} - x_m(q, \\theta)\\rVert^2 ,
+.. math:: \\hat q_t(\\theta) = \\arg\\min_q \\sum_{m \\in P(t)} \\lVert y_{tm} - x_m(q, \\theta)\\rVert^2 ,
 
 solved by Levenberg-Marquardt, batched over any leading axes (frames,
 hypotheses). A trial is tracked by warm-starting each frame from a linear

@@ -548,7 +548,8 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
             raise ModelError(f"{source}: segment number {i + 1} has no name")
         j = s.get("joint", {})
         if not isinstance(j, dict) or "type" not in j:
-            raise ModelError(f"{where}: needs a joint table with a type, e.g. joint = {{type = 'revolute', position = [...]}}")
+            raise ModelError(f"{where}: needs a joint table with a type",
+                             "write joint = {type = 'revolute', position = [...]}")
         jtype = str(j["type"])
         if jtype not in JOINT_TYPES.get(dim, ()):
             raise ModelError(
