@@ -35,10 +35,17 @@ def prepare(model: Model, data: MarkerData) -> np.ndarray:
         raise DataError(f"{data.source or 'the data'} has no frames", "check the file")
     sel = data.select(model.marker_names, model.marker_labels)
     y = sel.positions * unit_scale(data.units, model.units)
+    present = np.isfinite(y).all(axis=2)
+    never = [n for n, p in zip(model.marker_names, present.any(axis=0), strict=True) if not p]
+    if never:
+        raise DataError(
+            f"marker(s) {', '.join(never)} are missing in every frame of {data.source or 'the data'}",
+            "remove them from the model or use a trial in which they were tracked",
+        )
     if model.dim == 2 and y.shape[2] == 3:
-        z = y[..., 2]
-        spread = np.nanmax(np.abs(z - np.nanmean(z))) if np.isfinite(z).any() else 0.0
-        if spread > 1e-6 * max(np.nanmax(np.abs(y[..., :2])), 1.0):
+        z = y[..., 2][present]
+        spread = float(np.max(np.abs(z - z.mean())))
+        if spread > 1e-6 * max(float(np.abs(y[present][:, :2]).max()), 1.0):
             raise DataError(
                 f"{data.source or 'the data'} moves out of the x-y plane "
                 f"(z varies by {spread:.3g} {model.units}) but model {model.name!r} is planar",
@@ -48,13 +55,6 @@ def prepare(model: Model, data: MarkerData) -> np.ndarray:
     elif model.dim == 3 and y.shape[2] == 2:
         raise DataError(f"{data.source or 'the data'} is planar but model {model.name!r} is 3-D",
                         "use a model with dim = 2")
-    present = np.isfinite(y).all(axis=2)
-    never = [n for n, p in zip(model.marker_names, present.any(axis=0), strict=True) if not p]
-    if never:
-        raise DataError(
-            f"marker(s) {', '.join(never)} are missing in every frame of {data.source or 'the data'}",
-            "remove them from the model or use a trial in which they were tracked",
-        )
     if not present.any(axis=1).any():
         raise DataError(f"{data.source or 'the data'} has no frame with any marker present")
     return y

@@ -305,6 +305,10 @@ class PaperFilter:
         """Run the method on a whole trial."""
         y = prepare(self.model, data) if isinstance(data, MarkerData) else np.asarray(data, float)
         self.warnings_ = []
+        gaps = int((~np.isfinite(y).all(axis=(1, 2))).sum())
+        if gaps:
+            warn_once(f"{gaps} of {len(y)} frames have missing markers; the paper method uses "
+                      "only the equations whose markers are present", self.warnings_)
         measured = self.measure(y)
         post0 = self.init_state().posterior
         ll = self._loglik(measured)  # (F, K)

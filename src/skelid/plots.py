@@ -1,0 +1,103 @@
+"""Figures. matplotlib is imported only when a figure is drawn (Agg backend).
+
+Every function writes one PNG atomically and returns its path.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from skelid.io.atomic import atomic_write
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+    _plt().close(fig)
+    with atomic_write(path, "wb") as fh:
+        fh.write(buf.getvalue())
+    return path
+
+
+def trajectories(data, path, title: str = "Marker trajectories") -> Path:
+    """Marker paths in the x-y plane (2-D data) or coordinates against time (3-D)."""
+    plt = _plt()
+    pos = data.positions
+    if data.dim == 2:
+        fig, ax = plt.subplots(figsize=(6, 5))
+        for m, name in enumerate(data.names):
+            ax.plot(pos[:, m, 0], pos[:, m, 1], ".", ms=2, label=name)
+        ax.set_xlabel(f"x [{data.units}]")
+        ax.set_ylabel(f"y [{data.units}]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.legend(title="marker", markerscale=5, fontsize=8)
+    else:
+        fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+        t = data.time
+        for k, ax in enumerate(axes):
+            for m, name in enumerate(data.names[:12]):
+                ax.plot(t, pos[:, m, k], lw=0.8, label=name)
+            ax.set_ylabel(f"{'xyz'[k]} [{data.units}]")
+        axes[-1].set_xlabel("time [s]")
+        axes[0].legend(fontsize=6, ncol=4)
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def posterior_history(posterior, path, truth: float | None = None, units: str = "mm",
+                      title: str = "Posterior") -> Path:
+    """The marginal posterior of the first parameter at each stored step."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    x = posterior.axes[0]
+    h = x[1] - x[0] if x.size > 1 else 1.0
+    snaps = list(posterior.history) or [(posterior.n_updates, posterior.log_weights)]
+    for step, lw in snaps:
+        ax.plot(x, posterior.marginal(0, lw) / h, label=f"after {step} steps")
+    if truth is not None:
+        ax.axvline(truth, color="k", ls="--", lw=1, label=f"true value {truth:g} {units}")
+    ax.set_xlabel(f"{posterior.names[0]} [{units}]")
+    ax.set_ylabel(f"posterior density [1/{units}]")
+    ax.legend()
+    ax.set_title(title)
+    return _save(fig, path)
+
+
+def map_path(steps_map, path, truth: float | None = None, measured=None, name: str = "L2",
+             units: str = "mm", title: str = "Most likely value per step", extra: dict | None = None) -> Path:
+    """Most likely value after each step, the per-frame measurements and the truth."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    steps = np.arange(1, len(steps_map) + 1)
+    if measured is not None:
+        ax.plot(steps, measured, ".", ms=2, color="0.7", label="per-frame measured value")
+    ax.plot(steps, steps_map, lw=1.5, label="most likely value (paper)")
+    for label, series in (extra or {}).items():
+        ax.plot(np.arange(1, len(series) + 1), series, lw=1.5, label=label)
+    if truth is not None:
+        ax.axhline(truth, color="k", ls="--", lw=1, label=f"true value {truth:g} {units}")
+    ax.set_xlabel("step (frame)")
+    ax.set_ylabel(f"{name} [{units}]")
+    finite = np.asarray(steps_map)[np.isfinite(steps_map)]
+    if finite.size:
+        lo, hi = np.percentile(finite, [0, 100])
+        pad = max(hi - lo, 1.0)
+        if truth is not None:
+            lo, hi = min(lo, truth), max(hi, truth)
+        ax.set_ylim(lo - pad, hi + pad)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    return _save(fig, path)

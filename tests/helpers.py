@@ -1,0 +1,42 @@
+"""Models built in Python for tests."""
+
+from skelid.model import model_from_dict
+
+
+def tree_3d():
+    """A small 3-D tree with every joint type and every parameter kind."""
+    return model_from_dict({
+        "model": {"name": "tree3d", "dim": 3, "units": "mm"},
+        "segments": [
+            {"name": "pelvis", "parent": "ground", "joint": {"type": "free", "name": "root"}},
+            {"name": "thigh", "parent": "pelvis",
+             "joint": {"type": "spherical", "name": "hip", "position": [0, -80, -90]}},
+            {"name": "shank", "parent": "thigh",
+             "joint": {"type": "hinge", "name": "knee", "position": [0, -400, 0], "axis": [0, 0, 1]}},
+            {"name": "foot", "parent": "shank",
+             "joint": {"type": "universal", "name": "ankle", "position": [0, -380, 0],
+                       "axes": [[0, 0, 1], [1, 0, 0]]}},
+            {"name": "arm", "parent": "pelvis",
+             "joint": {"type": "fixed", "name": "weld", "position": [0, 300, 0]}},
+        ],
+        "markers": [
+            {"name": "p1", "segment": "pelvis", "position": [50, 0, 100]},
+            {"name": "p2", "segment": "pelvis", "position": [50, 0, -100]},
+            {"name": "p3", "segment": "pelvis", "position": [-80, 30, 0]},
+            {"name": "t1", "segment": "thigh", "position": [40, -150, 20]},
+            {"name": "t2", "segment": "thigh", "position": [-30, -250, 40]},
+            {"name": "s1", "segment": "shank", "position": [30, -100, 25]},
+            {"name": "s2", "segment": "shank", "position": [-20, -300, 30]},
+            {"name": "f1", "segment": "foot", "position": [120, -40, 0]},
+            {"name": "f2", "segment": "foot", "position": [-40, -50, 30]},
+            {"name": "a1", "segment": "arm", "position": [10, 20, 30]},
+        ],
+        "parameters": [
+            {"name": "thigh_length", "kind": "length", "joint": "knee",
+             "prior": {"type": "uniform", "lower": 300, "upper": 500}},
+            {"name": "hip_x", "kind": "joint_position", "joint": "hip", "axis": "x",
+             "prior": {"type": "normal", "mean": 0, "sd": 20}},
+            {"name": "s1_z", "kind": "marker_position", "marker": "s1", "axis": "z",
+             "prior": {"type": "lognormal", "median": 25, "sd_log": 0.3}},
+        ],
+    })

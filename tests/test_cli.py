@@ -1,0 +1,124 @@
+import json
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from skelid.cli import main
+from skelid.data import MarkerData
+from skelid.io import write_trc
+from skelid.simulate import builtin_model, simulate
+from tests.conftest import EXAMPLES
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_ok(path):
+    data = path.read_bytes()
+    assert data[:8] == PNG
+    w, h = struct.unpack(">II", data[16:24])
+    assert w > 100 and h > 100
+
+
+def test_demo_writes_figures_and_documented_json(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--frames", "150", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == {"case_a", "case_b"}
+    for case in summary.values():
+        assert case["truth"] == {"L2": 250.0}
+        assert case["frames_total"] == 150
+        paper = case["methods"]["paper"]
+        assert 0 < paper["frames_used"] <= 150
+        assert set(paper["L2"]) >= {"map", "mean", "sd", "ci95"}
+        assert len(paper["L2"]["ci95"]) == 2
+    for case in ("case_a", "case_b"):
+        for fig in ("trajectories", "posterior", "map_per_step"):
+            _png_ok(out / f"{case}_{fig}.png")
+    assert not list(out.glob("*.part"))
+
+
+def test_simulate_then_fit_json(tmp_path, capsys):
+    trc = tmp_path / "a.trc"
+    assert main(["simulate", "case-a", "--sigma", "5", "--frames", "120", "--seed", "1",
+                 "--out", str(trc)]) == 0
+    assert "true L2 = 250 mm" in capsys.readouterr().out
+    assert main(["fit", str(EXAMPLES / "case_a.toml"), str(trc), "--method", "paper", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["frames_total"] == 120
+    lo, hi = res["methods"]["paper"]["L2"]["ci95"]
+    assert 200 <= lo < hi <= 300
+    csv = tmp_path / "a.csv"
+    assert main(["simulate", "case-b", "--frames", "20", "--out", str(csv)]) == 0
+    assert csv.read_text().splitlines()[1].startswith("frame,time,A_x,A_y,B_x")
+
+
+def test_fit_help_shows_a_working_example(capsys):
+    with pytest.raises(SystemExit):
+        from skelid.cli import cli
+
+        cli.main(["fit", "--help"], prog_name="skelid")
+    assert "skelid fit examples/case_a.toml" in capsys.readouterr().out
+
+
+def _run(args, tmp_path):
+    """Run the installed CLI in a subprocess: exit code and stderr."""
+    p = subprocess.run([sys.executable, "-m", "skelid.cli", *args], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=120)
+    return p.returncode, p.stderr
+
+
+def _bad_inputs(tmp_path):
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=5.0, n_frames=30)
+    good = tmp_path / "good.trc"
+    write_trc(good, trial.data)
+    bad_model = tmp_path / "bad_joint.toml"
+    bad_model.write_text((EXAMPLES / "case_a.toml").read_text().replace('type = "revolute"', 'type = "ball"', 1))
+    missing = tmp_path / "missing.trc"
+    write_trc(missing, MarkerData(trial.data.positions[:, :2], ("A", "B"), 100.0))
+    allnan = tmp_path / "nan.trc"
+    write_trc(allnan, trial.data.replace(positions=np.full_like(trial.data.positions, np.nan)))
+    interval = tmp_path / "interval.toml"
+    interval.write_text((EXAMPLES / "case_a.toml").read_text().replace("lower = 200.0, upper = 300.0",
+                                                                       "lower = 400.0, upper = 450.0"))
+    clean = tmp_path / "clean.trc"
+    write_trc(clean, simulate(model, sigma=0.0, n_frames=30).data)
+    garbage = tmp_path / "garbage.trc"
+    garbage.write_bytes(bytes(range(256)) * 4)
+    notoml = tmp_path / "broken.toml"
+    notoml.write_text("[model\n")
+    return {
+        "unknown joint type": ([str(bad_model), str(good)], "unknown joint type 'ball'"),
+        "marker missing from file": ([str(EXAMPLES / "case_a.toml"), str(missing)], "marker(s) C"),
+        "all rows NaN": ([str(EXAMPLES / "case_a.toml"), str(allnan)], "missing in every frame"),
+        "no solution in interval": ([str(interval), str(clean)], "no solution inside the interval"),
+        "binary garbage": ([str(EXAMPLES / "case_a.toml"), str(garbage)], "not a text file"),
+        "broken toml": ([str(notoml), str(good)], "not valid TOML"),
+        "no such data file": ([str(EXAMPLES / "case_a.toml"), "nope.trc"], "does not exist"),
+        "unsupported extension": ([str(EXAMPLES / "case_a.toml"), str(bad_model)], "unsupported file type"),
+    }
+
+
+def test_bad_inputs_give_one_line_and_exit_2(tmp_path):
+    out = tmp_path / "out"
+    for label, (args, needle) in _bad_inputs(tmp_path).items():
+        code, err = _run(["fit", *args, "--out", str(out)], tmp_path)
+        assert code == 2, (label, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, (label, err)
+        assert "Traceback" not in err and needle in lines[0], (label, err)
+        assert not out.exists(), label  # nothing half-written
+
+
+def test_nan_rows_warn_once_and_still_fit(tmp_path):
+    trial = simulate(builtin_model("case-a"), sigma=3.0, n_frames=60)
+    y = np.array(trial.data.positions)
+    y[10:14] = np.nan
+    p = tmp_path / "gappy.trc"
+    write_trc(p, trial.data.replace(positions=y))
+    code, err = _run(["fit", str(EXAMPLES / "case_a.toml"), str(p), "--quiet"], tmp_path)
+    assert code == 0
+    assert err.count("4 of 60 frames have missing markers") == 1
