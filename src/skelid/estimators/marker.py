@@ -1,0 +1,266 @@
+"""The marker-space estimator: joint fit, bias removed, CRLB, sigma, honest interval.
+
+Steps (see :mod:`skelid.estimators.joint` for the equations):
+
+1. poses tracked at the prior centre, then joint least squares over ``theta``
+   and every pose (Levenberg-Marquardt with the Schur complement);
+2. noise level ``sigma^2 = RSS / (n_obs - Q T - P)`` with a chi-square interval,
+   or the user's value;
+3. second-order (Box) bias computed at the estimate and subtracted;
+4. covariance ``sigma^2 S^{-1}`` (the Cramér-Rao bound at the estimate), or,
+   when the residuals are serially correlated as soft-tissue artefact makes
+   them, a Newey-West covariance that is at least as wide;
+5. identifiability from the spectrum of the (prior-scaled) efficient information.
+
+A normal prior on a parameter is combined with the data's Gaussian
+approximation (precision-weighted); uniform priors only bound the search.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import chi2
+
+from skelid.data import MarkerData
+from skelid.errors import DataError, IdentifiabilityError
+from skelid.estimators.base import prepare, warn_once
+from skelid.estimators.joint import (
+    box_bias,
+    frame_scores,
+    joint_fit,
+    lag1_autocorrelation,
+    newey_west,
+)
+from skelid.estimators.pose import track_poses
+from skelid.estimators.posterior import GaussianPosterior
+from skelid.model.description import Model
+from skelid.model.kinematics import marker_positions
+
+STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
+
+
+def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9) -> dict:
+    """Which parameters (and combinations) the data inform.
+
+    Parameters are scaled by their prior width so that the spectrum is unit-free.
+    A direction whose scaled information is below ``rel_tol`` times the largest
+    is unidentifiable; a parameter whose bound exceeds a quarter of its prior
+    width is poorly identified.
+
+    Returns
+    -------
+    dict with ``table`` (one row per parameter) and ``null`` (unidentifiable
+    combinations as ``{name: coefficient}``).
+    """
+    width = np.array([p.prior.upper - p.prior.lower for p in model.parameters])
+    scaled = info * np.outer(width, width) / sigma**2
+    w, V = np.linalg.eigh(scaled)
+    top = max(w.max(), 1e-300)
+    null = []
+    for k in np.flatnonzero(w <= rel_tol * top):
+        v = V[:, k]
+        v = v / np.abs(v).max()
+        null.append({n: round(float(c), 3) for n, c in zip(model.parameter_names, v, strict=True)
+                     if abs(c) > 1e-3})
+    try:
+        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0, None)) * sigma if not null \
+            else np.full(model.n_params, np.nan)
+    except np.linalg.LinAlgError:
+        sd = np.full(model.n_params, np.nan)
+    in_null = np.zeros(model.n_params, bool)
+    for comb in null:
+        for n in comb:
+            in_null[model.parameter_names.index(n)] = True
+    table = []
+    for k, p in enumerate(model.parameters):
+        status = "unidentifiable" if in_null[k] else ("poor" if sd[k] > 0.25 * width[k] else "identified")
+        table.append({"parameter": p.name, "crlb_sd": None if not np.isfinite(sd[k]) else float(sd[k]),
+                      "status": status})
+    return {"table": table, "null": null}
+
+
+class MarkerEstimator:
+    """Bias-corrected joint estimate of the model's parameters from marker coordinates.
+
+    Parameters
+    ----------
+    model : Model
+    sigma : float, optional
+        Marker noise standard deviation (model units); estimated if not given.
+    bias_correction : bool
+        Subtract the second-order bias (default True). False gives the plain
+        profile (joint least-squares) estimate.
+    robust : {'auto', 'always', 'never'}
+        Use the Newey-West covariance when residuals look like soft-tissue
+        artefact ('auto'), always, or never.
+    rng : numpy.random.Generator, optional
+        For the random starts of the first frame's pose.
+
+    Attributes
+    ----------
+    posterior_ : GaussianPosterior
+    theta_ : (P,) float
+        Final (bias-corrected) estimate.
+    theta_profile_ : (P,) float
+        Joint least-squares estimate before correction.
+    bias_ : (P,) float
+        Estimated bias that was subtracted.
+    crlb_sd_ : (P,) float
+        Cramér-Rao bound (standard deviation) at the estimate.
+    sigma_ : float
+    sigma_ci_ : (2,) float
+    pose_ : (T, Q) float
+    residuals_ : (T, M) float
+        Residual distance of each marker in each frame (NaN where missing).
+    frames_used_ : (T,) bool
+    identifiability_ : dict
+    sta_score_ : float
+        Mean lag-1 autocorrelation of the residuals.
+    warnings_ : list of str
+    """
+
+    name = "marker"
+
+    def __init__(self, model: Model, sigma: float | None = None, bias_correction: bool = True,
+                 robust: str = "auto", rng: np.random.Generator | None = None, n_iter: int = 100):
+        self.model = model
+        self.sigma = sigma
+        self.bias_correction = bias_correction
+        self.robust = robust
+        self.rng = rng
+        self.n_iter = n_iter
+
+    def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
+        """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
+        model = self.model
+        if model.n_params == 0:
+            raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
+                                       "add a [[parameters]] table")
+        y = prepare(model, data) if isinstance(data, MarkerData) else np.asarray(data, float)
+        self.warnings_ = []
+        rng = self.rng if self.rng is not None else np.random.default_rng(0)
+        theta0 = model.theta_center if theta0 is None else np.asarray(theta0, float)
+        bounds = (np.array([p.prior.lower for p in model.parameters]),
+                  np.array([p.prior.upper for p in model.parameters]))
+        if pose0 is None:
+            first = int(np.argmax(np.isfinite(y).all(axis=(1, 2))))
+            q_first, _ = track_poses(model, theta0, y[first:first + 1], rng)
+            pose0, _ = track_poses(model, theta0, _fill_gaps(y), rng, q_first=q_first[0])
+        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds)
+        used = fit.frames_used
+        n_skip = int((~used).sum())
+        if used.sum() == 0:
+            raise DataError("no frame has enough markers to fix the pose",
+                            "check that the file holds the model's markers")
+        if n_skip:
+            warn_once(f"{n_skip} of {len(y)} frames have too few markers to fix the pose "
+                      "and were skipped", self.warnings_)
+        Q, P = model.n_pose, model.n_params
+        dof = fit.n_obs - Q * int(used.sum()) - P
+        if dof <= 0:
+            raise IdentifiabilityError(
+                f"{fit.n_obs} marker coordinates cannot inform {P} parameters and "
+                f"{Q} pose coordinates per frame (each frame must give more coordinates than pose "
+                "coordinates)", "add markers or remove parameters")
+        if self.sigma is None:
+            sigma2 = fit.rss / dof
+            self.sigma_ci_ = np.sqrt(fit.rss / chi2.ppf([0.975, 0.025], dof))
+        else:
+            sigma2 = float(self.sigma) ** 2
+            self.sigma_ci_ = np.array([self.sigma, self.sigma], float)
+        self.sigma_ = float(np.sqrt(sigma2))
+        ident = identifiability(model, fit.info, max(self.sigma_, 1e-300))
+        self.identifiability_ = ident
+        if ident["null"]:
+            combos = "; ".join(" + ".join(f"{c:g}*{n}" for n, c in comb.items()) for comb in ident["null"])
+            raise IdentifiabilityError(
+                f"the data cannot identify {combos} (no information about this combination "
+                "for this motion)", "fix one of these parameters or record more varied motion")
+        for row in ident["table"]:
+            if row["status"] == "poor":
+                warn_once(f"parameter {row['parameter']} is poorly identified for this motion "
+                          f"(Cramér-Rao sd {row['crlb_sd']:.3g} {model.units} is more than a quarter "
+                          "of its prior range)", self.warnings_)
+        info_inv = np.linalg.inv(fit.info)
+        self.theta_profile_ = fit.theta
+        self.bias_ = box_bias(model, y, fit.theta, fit.pose, sigma2) if self.bias_correction \
+            else np.zeros(P)
+        theta = fit.theta - self.bias_
+        cov = sigma2 * info_inv
+        self.crlb_sd_ = np.sqrt(np.diag(cov))
+        # residual structure: soft-tissue artefact shows as slow, correlated residuals
+        x = marker_positions(model, fit.theta, fit.pose)
+        resid = y - x
+        self.residuals_ = np.linalg.norm(resid, axis=-1)
+        self.sta_score_ = lag1_autocorrelation(resid, used)
+        flagged = self.sta_score_ > STA_AUTOCORRELATION
+        if flagged:
+            warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
+                      f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
+                      "interval was widened (Newey-West)", self.warnings_)
+        if self.robust == "always" or (self.robust == "auto" and flagged):
+            scores = frame_scores(model, y, fit.theta, fit.pose)[used]
+            lags = _bandwidth(self.sta_score_, len(scores))
+            cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
+            cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
+        theta, cov = _combine_normal_priors(model, theta, cov)
+        self.cov_ = cov
+        self.theta_ = theta
+        self.pose_ = fit.pose
+        self.frames_used_ = used
+        self.fit_info_ = fit
+        self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
+        if not fit.converged:
+            warn_once("the joint fit stopped before converging; the estimate may be off",
+                      self.warnings_)
+        for k, p in enumerate(model.parameters):
+            if not p.prior.lower <= theta[k] <= p.prior.upper:
+                warn_once(f"parameter {p.name} = {theta[k]:.4g} lies outside its prior bounds "
+                          f"[{p.prior.lower:g}, {p.prior.upper:g}]", self.warnings_)
+        return self
+
+    def result(self) -> dict:
+        """JSON-ready summary."""
+        out = {"frames_used": int(self.frames_used_.sum()),
+               "frames_dropped": int((~self.frames_used_).sum())}
+        summ = self.posterior_.summary()
+        for k, n in enumerate(self.model.parameter_names):
+            summ[n]["crlb_sd"] = float(self.crlb_sd_[k])
+            summ[n]["bias_removed"] = float(self.bias_[k])
+        out.update(summ)
+        out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
+                        "fixed": self.sigma is not None}
+        out["identifiability"] = self.identifiability_["table"]
+        out["residual_autocorrelation"] = self.sta_score_
+        out["warnings"] = list(self.warnings_)
+        return out
+
+
+def _bandwidth(rho: float, n: int) -> int:
+    """Newey-West lag window from the residual autocorrelation (Andrews' AR(1) rule)."""
+    rho = float(np.clip(rho, 0.0, 0.98))
+    alpha = 4 * rho**2 / (1 - rho) ** 4 if rho > 0 else 0.0
+    L = int(np.ceil(1.1447 * (alpha * n) ** (1 / 3)))
+    return int(np.clip(L, 1, max(n // 4, 1)))
+
+
+def _fill_gaps(y):
+    """Markers with gaps filled by the last seen position (only to start pose tracking)."""
+    out = np.array(y, float)
+    for t in range(1, len(out)):
+        miss = ~np.isfinite(out[t])
+        out[t][miss] = out[t - 1][miss]
+    return out
+
+
+def _combine_normal_priors(model: Model, theta, cov):
+    prec = np.zeros(model.n_params)
+    mean = np.zeros(model.n_params)
+    for k, p in enumerate(model.parameters):
+        if p.prior.kind == "normal":
+            prec[k], mean[k] = 1.0 / p.prior.sd**2, p.prior.mean
+    if not prec.any():
+        return theta, cov
+    A = np.linalg.inv(cov)
+    post_cov = np.linalg.inv(A + np.diag(prec))
+    return post_cov @ (A @ theta + prec * mean), post_cov
