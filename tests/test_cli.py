@@ -121,4 +121,4 @@ def test_nan_rows_warn_once_and_still_fit(tmp_path):
     write_trc(p, trial.data.replace(positions=y))
     code, err = _run(["fit", str(EXAMPLES / "case_a.toml"), str(p), "--quiet"], tmp_path)
     assert code == 0
-    assert err.count("4 of 60 frames have missing markers") == 1
+    assert err.count("4 of 60 frames have too few markers to fix the pose") == 1

@@ -58,7 +58,7 @@ def trajectories(data, path, title: str = "Marker trajectories") -> Path:
 
 
 def posterior_history(posterior, path, truth: float | None = None, units: str = "mm",
-                      title: str = "Posterior") -> Path:
+                      title: str = "Posterior", gaussians: dict | None = None) -> Path:
     """The marginal posterior of the first parameter at each stored step."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 4.5))
@@ -67,6 +67,10 @@ def posterior_history(posterior, path, truth: float | None = None, units: str = 
     snaps = list(posterior.history) or [(posterior.n_updates, posterior.log_weights)]
     for step, lw in snaps:
         ax.plot(x, posterior.marginal(0, lw) / h, label=f"after {step} steps")
+    for label, (mu, sd) in (gaussians or {}).items():
+        xx = np.linspace(x[0], x[-1], 2000)
+        ax.plot(xx, np.exp(-0.5 * ((xx - mu) / sd) ** 2) / (sd * np.sqrt(2 * np.pi)), "k-", lw=1.2,
+                label=label)
     if truth is not None:
         ax.axvline(truth, color="k", ls="--", lw=1, label=f"true value {truth:g} {units}")
     ax.set_xlabel(f"{posterior.names[0]} [{units}]")

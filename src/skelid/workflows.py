@@ -22,12 +22,15 @@ from skelid.model.description import Model
 
 def methods() -> dict:
     """Estimator classes by method name."""
+    from skelid.estimators.grid import MarkerGridFilter
+    from skelid.estimators.marker import MarkerEstimator
     from skelid.estimators.paper import PaperFilter
 
-    return {"paper": PaperFilter}
+    return {"marker": MarkerEstimator, "paper": PaperFilter, "marker-grid": MarkerGridFilter}
 
 
-DEFAULT_METHOD = "paper"
+DEFAULT_METHOD = "marker"
+DEMO_METHODS = ("paper", "marker")
 
 
 def make_estimator(name: str, model: Model, sigma: float | None = None,
@@ -58,7 +61,7 @@ def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None =
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
-            est.fit(y)
+            est.fit(data)
         res = est.result()
         res["seconds"] = round(time.perf_counter() - t0, 4)
         out["methods"][name] = res
@@ -93,11 +96,12 @@ def figures(model: Model, data: MarkerData, fitted: dict, out_dir, prefix: str =
     paths = [plots.trajectories(data, out_dir / f"{prefix}trajectories.png",
                                 title=f"{model.name}: marker trajectories")]
     main = fitted.get("paper") or next(iter(fitted.values()))
-    if hasattr(main, "posterior_") and getattr(main.posterior_, "history", None) is not None \
-            and hasattr(main.posterior_, "axes"):
+    gauss = {f"final posterior ({k} method)": (v.posterior_.mean[0], v.posterior_.sd[0])
+             for k, v in fitted.items() if v is not main and not hasattr(v.posterior_, "axes")}
+    if hasattr(main, "posterior_") and hasattr(main.posterior_, "axes"):
         paths.append(plots.posterior_history(
             main.posterior_, out_dir / f"{prefix}posterior.png", truth=tv, units=model.units,
-            title=f"{model.name}: posterior of {name} ({main.name} method)"))
+            title=f"{model.name}: posterior of {name} ({main.name} method)", gaussians=gauss))
     if hasattr(main, "map_path_"):
         extra = {f"most likely value ({k})": v.map_path_ for k, v in fitted.items()
                  if v is not main and hasattr(v, "map_path_")}
@@ -115,7 +119,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
 
     from skelid.simulate import builtin_model, simulate
 
-    method_names = list(method_names or methods())
+    method_names = list(method_names or DEMO_METHODS)
     out_dir = Path(out_dir)
     summary = {}
     cases = ("case-a", "case-b")

@@ -45,6 +45,30 @@ from skelid.model.description import Model
 from skelid.model.kinematics import marker_jacobian
 
 
+def pose_edf(Jq, R, chunk: int = 200) -> float:
+    """Effective number of pose parameters ``tr((H + R)^{-1} H)`` under the penalty ``R``.
+
+    ``H`` is block diagonal (per-frame ``J^T J``); the trace is taken over
+    diagonal blocks, solving for ``chunk`` frames' columns at a time.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    Hqq = pose_information(Jq)
+    T, Q = Hqq.shape[:2]
+    H = sp.block_diag(list(Hqq), format="csc")
+    lu = splu((H + R).tocsc())
+    total = 0.0
+    for a in range(0, T, chunk):
+        b = min(a + chunk, T)
+        rhs = np.zeros((T * Q, (b - a) * Q))
+        for k in range(b - a):
+            rhs[(a + k) * Q:(a + k + 1) * Q, k * Q:(k + 1) * Q] = Hqq[a + k]
+        X = lu.solve(rhs)
+        total += sum(np.trace(X[(a + k) * Q:(a + k + 1) * Q, k * Q:(k + 1) * Q]) for k in range(b - a))
+    return float(total)
+
+
 class JointFit(NamedTuple):
     theta: np.ndarray  # (P,)
     pose: np.ndarray  # (T, Q)
@@ -55,6 +79,7 @@ class JointFit(NamedTuple):
     frames_used: np.ndarray  # (T,) bool
     n_iter: int
     converged: bool
+    pose_dof: float  # pose parameters the fit used: T*Q, or the effective number under smoothing
 
 
 def usable_frames(model: Model, y) -> np.ndarray:
@@ -88,8 +113,56 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     return dtheta, dq
 
 
+def smoothing_penalty(model: Model, Hqq, rate: float, cutoff: float):
+    """Third-difference penalty on pose trajectories: a low-pass motion model.
+
+    The penalty ``sum_k w_k ||D3 q_k||^2`` makes the poses a Whittaker smoother
+    of the per-frame fits whose gain is 1/2 at ``cutoff`` Hz,
+    ``w_k = median_t H_{qq,t,kk} / (2 - 2 cos(2 pi cutoff / rate))^3``; its gain
+    ``1 / (1 + (f/f_c)^6)`` (roughly) leaves slower motion untouched and passes
+    quadratic trajectories exactly.
+
+    Returns
+    -------
+    R : scipy.sparse matrix (T*Q, T*Q), poses ordered frame-major.
+    """
+    import scipy.sparse as sp
+
+    T = Hqq.shape[0]
+    h = np.median(np.einsum("tii->ti", Hqq), axis=0)
+    gain = (2.0 - 2.0 * np.cos(2.0 * np.pi * min(cutoff / rate, 0.5))) ** 3
+    w = np.maximum(h, 1e-12 * max(h.max(), 1e-300)) / gain
+    D3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(max(T - 3, 0), T))
+    return sp.kron(D3.T @ D3, sp.diags(w)).tocsc()
+
+
+def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
+    """Like :func:`_schur_step` with the pose blocks coupled by the penalty ``R``."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    T, Q = gq.shape
+    P = Htt.shape[0]
+    dq_ = np.einsum("tii->ti", Hqq)
+    A = sp.block_diag(list(Hqq + (lam * dq_)[..., None] * np.eye(Q)), format="csc") + R
+    lu = splu(A.tocsc())
+    rhs_q = (gq.ravel() - R @ q.ravel()).reshape(T, Q)
+    sol = lu.solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).transpose(0, 1, 2)
+                   .reshape(T * Q, P + 1))
+    sol = sol.reshape(T, Q, P + 1)
+    G, u = sol[..., :P], sol[..., P]
+    dt_ = np.diag(Htt)
+    S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) \
+        - np.einsum("tip,tiq->pq", Hqt, G)
+    rhs = gt - np.einsum("tip,ti->p", Hqt, u)
+    dtheta = np.linalg.solve(S, rhs)
+    dq = u - np.einsum("tip,p->ti", G, dtheta)
+    return dtheta, dq, S
+
+
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12,
-              bounds: tuple | None = None) -> JointFit:
+              bounds: tuple | None = None, rate: float | None = None,
+              cutoff: float | None = None) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -101,6 +174,10 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
         Starting poses (e.g. from :func:`skelid.estimators.pose.track_poses`).
     bounds : (lower (P,), upper (P,)), optional
         Keep ``theta`` inside these bounds (steps are clipped).
+    rate, cutoff : float, optional
+        With both, poses follow the low-pass motion model of
+        :func:`smoothing_penalty` (cutoff in Hz); ``info`` is then the
+        information about ``theta`` given that motion model.
     """
     y = np.asarray(y, dtype=float)
     use = usable_frames(model, y)
@@ -108,15 +185,26 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
     theta = np.array(theta0, dtype=float)
     q = np.array(q0, dtype=float)
     r, Jq, Jt = frame_terms(model, theta, q, y)
-    cost = float(np.sum(r**2))
+    R = None
+    if cutoff is not None and rate is not None:
+        R = smoothing_penalty(model, pose_information(Jq), rate, cutoff)
+
+    def total(r_, q_):
+        c = float(np.sum(r_**2))
+        return c + float(q_.ravel() @ (R @ q_.ravel())) if R is not None else c
+
+    cost = total(r, q)
     lam = 1e-3
     converged = False
     it = 0
     for it in range(1, n_iter + 1):  # noqa: B007 - the count is reported
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
         try:
-            dtheta, dq = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
-        except np.linalg.LinAlgError:
+            if R is None:
+                dtheta, dq = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
+            else:
+                dtheta, dq, _ = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q)
+        except (np.linalg.LinAlgError, RuntimeError):
             lam *= 10.0
             continue
         theta_new = theta + dtheta
@@ -124,7 +212,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
             theta_new = np.clip(theta_new, bounds[0], bounds[1])
         q_new = q + dq
         r_new, Jq_new, Jt_new = frame_terms(model, theta_new, q_new, y)
-        cost_new = float(np.sum(r_new**2))
+        cost_new = total(r_new, q_new)
         if np.isfinite(cost_new) and cost_new <= cost:
             small = (cost - cost_new) <= tol * max(cost, 1e-300)
             theta, q, r, Jq, Jt, cost = theta_new, q_new, r_new, Jq_new, Jt_new, cost_new
@@ -137,10 +225,17 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
             if lam > 1e12:
                 converged = True  # no descent direction left: at a minimum to precision
                 break
-    Kp = projected_theta_jacobian(Jq, Jt)
-    info = np.einsum("tkp,tkq->pq", Kp, Kp)
-    return JointFit(theta, q, cost, np.sum(r**2, axis=1), info,
-                    int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged)
+    if R is None:
+        Kp = projected_theta_jacobian(Jq, Jt)
+        info = np.einsum("tkp,tkq->pq", Kp, Kp)
+        pose_dof = float(model.n_pose * use.sum())
+    else:
+        Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
+        *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q)
+        pose_dof = pose_edf(Jq[use], R if use.all() else smoothing_penalty(
+            model, pose_information(Jq[use]), rate, cutoff))
+    return JointFit(theta, q, float(np.sum(r**2)), np.sum(r**2, axis=1), info,
+                    int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof)
 
 
 def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4) -> np.ndarray:

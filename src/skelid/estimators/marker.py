@@ -121,18 +121,27 @@ class MarkerEstimator:
 
     name = "marker"
 
-    def __init__(self, model: Model, sigma: float | None = None, bias_correction: bool = True,
-                 robust: str = "auto", rng: np.random.Generator | None = None, n_iter: int = 100):
+    def __init__(self, model: Model, sigma: float | None = None, cutoff: float | None = 6.0,
+                 bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
+                 rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None):
         self.model = model
         self.sigma = sigma
+        self.cutoff = cutoff
         self.bias_correction = bias_correction
+        self.n_boot = n_boot
         self.robust = robust
         self.rng = rng
         self.n_iter = n_iter
+        self.rate = rate
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
         model = self.model
+        rate = data.rate if isinstance(data, MarkerData) else self.rate
+        cutoff = self.cutoff if (self.cutoff and rate) else None
+        if cutoff is not None and cutoff >= rate / 2:
+            cutoff = None  # no smoothing at or above the Nyquist frequency
+        self.cutoff_ = cutoff
         if model.n_params == 0:
             raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
                                        "add a [[parameters]] table")
@@ -145,9 +154,20 @@ class MarkerEstimator:
         if pose0 is None:
             first = int(np.argmax(np.isfinite(y).all(axis=(1, 2))))
             q_first, _ = track_poses(model, theta0, y[first:first + 1], rng)
-            pose0, _ = track_poses(model, theta0, _fill_gaps(y), rng, q_first=q_first[0])
-        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds)
+            stride = max(1, int(rate // 25)) if rate else 1
+            pose0, _ = track_poses(model, theta0, _fill_gaps(y), rng, q_first=q_first[0], stride=stride)
+        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, rate=rate,
+                        cutoff=cutoff)
         used = fit.frames_used
+        width = bounds[1] - bounds[0]
+        pinned = (fit.theta <= bounds[0] + 1e-6 * width) | (fit.theta >= bounds[1] - 1e-6 * width)
+        if pinned.any():
+            k = int(np.flatnonzero(pinned)[0])
+            p = model.parameters[k]
+            raise IdentifiabilityError(
+                f"no solution inside the interval [{p.prior.lower:g}, {p.prior.upper:g}] of parameter "
+                f"{p.name}: the best fit sits on the bound {fit.theta[k]:g} {model.units}",
+                "widen the parameter's prior bounds or check the model's marker positions")
         n_skip = int((~used).sum())
         if used.sum() == 0:
             raise DataError("no frame has enough markers to fix the pose",
@@ -156,7 +176,7 @@ class MarkerEstimator:
             warn_once(f"{n_skip} of {len(y)} frames have too few markers to fix the pose "
                       "and were skipped", self.warnings_)
         Q, P = model.n_pose, model.n_params
-        dof = fit.n_obs - Q * int(used.sum()) - P
+        dof = fit.n_obs - fit.pose_dof - P
         if dof <= 0:
             raise IdentifiabilityError(
                 f"{fit.n_obs} marker coordinates cannot inform {P} parameters and "
@@ -183,8 +203,18 @@ class MarkerEstimator:
                           "of its prior range)", self.warnings_)
         info_inv = np.linalg.inv(fit.info)
         self.theta_profile_ = fit.theta
-        self.bias_ = box_bias(model, y, fit.theta, fit.pose, sigma2) if self.bias_correction \
-            else np.zeros(P)
+        method = self.bias_correction
+        if method == "auto":
+            method = "box" if cutoff is None else "none"
+        if method == "box":
+            self.bias_ = box_bias(model, y, fit.theta, fit.pose, sigma2)
+        elif method == "bootstrap":
+            self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
+        elif method == "none":
+            self.bias_ = np.zeros(P)
+        else:
+            raise ValueError("bias_correction must be 'auto', 'box', 'bootstrap' or 'none'")
+        self.bias_method_ = method
         theta = fit.theta - self.bias_
         cov = sigma2 * info_inv
         self.crlb_sd_ = np.sqrt(np.diag(cov))
@@ -218,6 +248,19 @@ class MarkerEstimator:
                 warn_once(f"parameter {p.name} = {theta[k]:.4g} lies outside its prior bounds "
                           f"[{p.prior.lower:g}, {p.prior.upper:g}]", self.warnings_)
         return self
+
+    def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
+        """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate."""
+        clean = marker_positions(self.model, fit.theta, fit.pose)
+        miss = ~np.isfinite(y)
+        shifts = []
+        for _ in range(self.n_boot):
+            ys = clean + rng.normal(0.0, sigma, size=clean.shape)
+            ys[miss] = np.nan
+            f = joint_fit(self.model, ys, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
+                          rate=rate, cutoff=cutoff)
+            shifts.append(f.theta - fit.theta)
+        return np.mean(shifts, axis=0)
 
     def result(self) -> dict:
         """JSON-ready summary."""

@@ -139,7 +139,7 @@ def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_start
 
 
 def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
-                n_refine: int = 30):
+                n_refine: int = 30, stride: int = 1):
     """Poses of every frame of a trial for fixed ``theta``.
 
     Parameters
@@ -149,6 +149,9 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
         Markers, NaN where missing.
     q_first : (Q,) float, optional
         Pose of frame 0; found from random starts if not given.
+    stride : int
+        Track every ``stride``-th frame sequentially and start the frames in
+        between from linear interpolation (for densely sampled, smooth motion).
 
     Returns
     -------
@@ -162,9 +165,13 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
         q_first, _ = initial_pose(model, theta, y[0], rng)
     q[0] = q_first
     prev2 = prev = q_first
-    for t in range(1, F):  # cheap sequential predictor-corrector pass
+    keys = np.unique(np.r_[np.arange(0, F, max(int(stride), 1)), F - 1])
+    for t in keys[1:]:  # cheap sequential predictor-corrector pass over key frames
         pred = prev + 0.5 * (prev - prev2)
         qt, _ = fit_pose(model, theta, y[t], pred, n_iter=4)
         q[t] = qt
         prev2, prev = prev, qt
+    if len(keys) < F:
+        for k in range(model.n_pose):
+            q[:, k] = np.interp(np.arange(F), keys, q[keys, k])
     return fit_pose(model, theta, y, q, n_iter=n_refine)
