@@ -1,6 +1,6 @@
 """Readers that return one :class:`~skelid.data.MarkerData`, and writers.
 
-``read_markers(path)`` picks the reader from the file's content and extension.
+``read_markers(path)`` picks the reader from the file's extension.
 """
 
 from pathlib import Path
@@ -8,9 +8,10 @@ from pathlib import Path
 from skelid.data import MarkerData
 from skelid.errors import FormatError
 from skelid.io.atomic import atomic_write
+from skelid.io.c3d import check_c3d_header, read_c3d
 from skelid.io.trc import read_trc, write_csv, write_trc
 
-READERS = {".trc": read_trc}
+READERS = {".trc": read_trc, ".c3d": read_c3d}
 
 
 def read_markers(path) -> MarkerData:
@@ -27,4 +28,5 @@ def read_markers(path) -> MarkerData:
     return reader(path)
 
 
-__all__ = ["read_markers", "read_trc", "write_trc", "write_csv", "atomic_write", "READERS"]
+__all__ = ["read_markers", "read_trc", "read_c3d", "check_c3d_header", "write_trc", "write_csv", "atomic_write",
+           "READERS"]
