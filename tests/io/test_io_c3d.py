@@ -178,7 +178,7 @@ def test_runaway_allocation_is_stopped(tmp_path, data_dir):
     assert time.perf_counter() - t < 15
 
 
-def _later_content_wins_over_extension(tmp_path, data_dir):
+def test_content_wins_over_extension(tmp_path, data_dir):
     src = data_dir / "kineticstoolkit-tennis" / "kinematics_tennis_serve.c3d"
     lying = tmp_path / "serve.trc"
     shutil.copyfile(src, lying)
