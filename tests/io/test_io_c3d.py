@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import time
 import warnings
 
@@ -11,7 +10,7 @@ import pytest
 
 import skelid.io.c3d as c3d_module
 from skelid.errors import FormatError, SkelidWarning
-from skelid.io import check_c3d_header, read_c3d, read_markers
+from skelid.io import check_c3d_header, read_c3d
 
 ezc3d = pytest.importorskip("ezc3d")
 
@@ -177,10 +176,3 @@ def test_runaway_allocation_is_stopped(tmp_path, data_dir):
         read_c3d(path)
     assert time.perf_counter() - t < 15
 
-
-def test_content_wins_over_extension(tmp_path, data_dir):
-    src = data_dir / "kineticstoolkit-tennis" / "kinematics_tennis_serve.c3d"
-    lying = tmp_path / "serve.trc"
-    shutil.copyfile(src, lying)
-    d = read_markers(lying)
-    assert d.n_markers == 39 and d.meta["format"] == "c3d"

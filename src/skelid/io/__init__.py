@@ -20,6 +20,7 @@ neither a recognised content nor a marker-file extension (``.xml``,
 
 from __future__ import annotations
 
+import codecs
 from pathlib import Path
 
 from skelid.data import MarkerData
@@ -52,11 +53,14 @@ def sniff_format(path) -> str | None:
             head = fh.read(_SNIFF_BYTES)
     except OSError:
         return None
-    if len(head) >= 2 and head[1] == 0x50 and b"\x00" in head:
+    if head[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        text = head[: len(head) // 2 * 2].decode("utf-16", errors="replace")
+    elif len(head) >= 2 and head[1] == 0x50 and b"\x00" in head:
         return "c3d"
-    if b"\x00" in head:
+    elif b"\x00" in head:
         return None
-    text = head.decode("utf-8-sig", errors="replace")
+    else:
+        text = head.decode("utf-8-sig", errors="replace")
     lines = [line.strip() for line in text.replace("\r", "\n").split("\n")]
     first = next((line for line in lines if line), "")
     if first.startswith("PathFileType"):

@@ -7,6 +7,7 @@ header: tables are sized by the rows actually present.
 
 from __future__ import annotations
 
+import codecs
 import math
 import warnings
 from pathlib import Path
@@ -36,11 +37,18 @@ def read_bytes(path: Path, what: str) -> bytes:
 def read_text(path: Path, what: str) -> str:
     """Decode a text data file.
 
-    UTF-8 (with or without a byte-order mark) is tried first, then Windows-1252,
-    which older capture software writes for accented marker names. A file with
-    NUL bytes is binary and is refused.
+    UTF-16 is recognised by its byte-order mark. Otherwise UTF-8 (with or
+    without a byte-order mark) is tried first, then Windows-1252, which older
+    capture software writes for accented marker names. A file with NUL bytes
+    is binary and is refused.
     """
     raw = read_bytes(path, what)
+    if raw[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError:
+            raise FormatError(f"{path}: not valid UTF-16 text although it starts like it",
+                              "save the file again as UTF-8 text") from None
     if b"\x00" in raw:
         raise FormatError(f"{path}: binary content, not a {what} text file",
                           "check the file format or the file extension")

@@ -175,6 +175,9 @@ def _read_columns(path: Path, lines: list[str]) -> MarkerData:
             frame_col = c
             continue
         m = COORD_COLUMN.match(text)
+        if m is None and (TIME_COLUMN.match(text) or FRAME_COLUMN.match(text)):
+            raise FormatError(f"{path}: line {h + 1}, column {c + 1}: a second {text!r} column",
+                              "keep one time column and one frame column")
         if m is None:
             shown = text if len(text) <= 30 else text[:27] + "..."
             raise FormatError(f"{path}: line {h + 1}, column {c + 1}: {shown!r} is neither a time, a frame nor a "

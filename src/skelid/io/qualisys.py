@@ -81,10 +81,10 @@ def read_tsv(path) -> MarkerData:
             break
         if f[0]:
             header[f[0].upper()] = [v for v in f[1:] if v]
-    included = " ".join(header.get("DATA_INCLUDED", ["3D"])).upper()
-    if included != "3D":
-        raise FormatError(f"{path}: DATA_INCLUDED is {included!r}; only 3D marker data can be read",
-                          "export 3D marker trajectories from Qualisys")
+    included = {v.upper() for v in header.get("DATA_INCLUDED", [])}
+    if included - {"3D"}:
+        raise FormatError(f"{path}: DATA_INCLUDED is {' '.join(header['DATA_INCLUDED'])!r}; only 3D marker "
+                          "data can be read", "export 3D marker trajectories from Qualisys")
     if "FREQUENCY" not in header or not header["FREQUENCY"]:
         raise FormatError(f"{path}: no FREQUENCY line in the header", "add 'FREQUENCY<TAB><Hz>' to the header")
     rate = parse_rate(header["FREQUENCY"][0], path, "FREQUENCY")
