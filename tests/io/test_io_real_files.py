@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from skelid.data import MarkerData
-from skelid.errors import FormatError
+from skelid.errors import FormatError, SkelidWarning
 from skelid.io import read_c3d, read_csv, read_markers, read_trc, read_tsv, sniff_format
 
 # path, reader, frames, markers (measured), rate, units, missing fraction (over measured markers)
@@ -25,6 +25,7 @@ MARKER_FILES = [
     ("pyomeca-upperlimb/markers.trc", read_trc, 93, 51, 100, "mm", 0.0),
     ("hand-fingers/recording.tsv", read_tsv, 6000, 21, 100, "mm", 0.0049),
 ]
+pytestmark = pytest.mark.filterwarnings("ignore::skelid.errors.SkelidWarning")  # checked where expected
 NOT_MARKER_FILES = ["LICENSE", "LICENSE.txt", "LICENSE.md", "NOTICE", ".xml", ".osim"]
 
 
@@ -77,6 +78,13 @@ def test_trc_header_frame_counts_are_not_trusted(read_all):
     assert walk.meta["header"]["NumFrames"] == "900" and walk.n_frames == 73
     upper = read_all("pyomeca-upperlimb/markers.trc")
     assert upper.meta["header"]["NumFrames"] == "652" and upper.n_frames == 93
+
+
+def test_decimated_trc_keeps_its_data_rate_and_warns(data_dir):
+    path = data_dir / "opensim-gaps" / "std_walking2_markers.trc"
+    with pytest.warns(SkelidWarning, match="Time column advances 0.039936 s per row but DataRate says 250 Hz"):
+        d = read_trc(path)
+    assert d.rate == 250 and d.meta["time_step"] == pytest.approx(0.04, abs=1e-4)
 
 
 def test_blank_fields_are_missing_markers(read_all):

@@ -5,17 +5,22 @@ Layout: a ``PathFileType`` line, a line of header keys (``DataRate``,
 ``Frame# Time name1 <blank> <blank> name2 ...``, a line of ``X1 Y1 Z1 ...``
 labels, then one row per frame. Header counts are often wrong, so the reader
 trusts the rows and the name line; blank fields and ``NaN`` are missing markers.
+The sampling rate is ``DataRate``; where the ``Time`` column's mean step per row
+differs from ``1 / DataRate`` by more than 5 % (a decimated export), a
+:class:`~skelid.errors.SkelidWarning` says so; ``meta["time_step"]`` holds the
+step the Time column shows.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.errors import DataError, FormatError
+from skelid.errors import DataError, FormatError, SkelidWarning
 from skelid.io._common import (
     check_magnitude,
     normalise_units,
@@ -73,7 +78,7 @@ def read_trc(path) -> MarkerData:
     if not names:
         raise FormatError(f"{path}: line 4 names no markers")
     M = len(names)
-    rows = []
+    rows, times = [], []
     for i, line in enumerate(lines[5:], start=6):
         if not line.strip(sep + " \t"):
             continue
@@ -82,12 +87,29 @@ def read_trc(path) -> MarkerData:
             raise FormatError(f"{path}: line {i} has {len(f) - 2} coordinates for {M} markers",
                               "check that the marker-name line lists every marker")
         rows.append((i, f[2:2 + 3 * M]))
+        times.append(f[1] if len(f) > 1 else "")
     if not rows:
         raise FormatError(f"{path}: no data rows after the header", "check that the file is complete")
     pos = parse_table(rows, 3 * M, path).reshape(len(rows), M, 3)
     check_magnitude(pos, path, units)
+    step = _time_step(times)
+    if step is not None and abs(step * rate - 1.0) > 0.05:
+        warnings.warn(f"{path}: the Time column advances {step:.6g} s per row but DataRate says {rate:g} Hz "
+                      f"({1 / rate:.6g} s); using DataRate (the rows may be decimated)", SkelidWarning, stacklevel=2)
     return MarkerData(pos, tuple(names), rate, units, source=str(path),
-                      meta={"header": header, "format": "trc"})
+                      meta={"header": header, "format": "trc", "time_step": step})
+
+
+def _time_step(times: list[str]) -> float | None:
+    """Mean step of the Time column, or None if it is not a full increasing column of numbers."""
+    if len(times) < 2:
+        return None
+    try:
+        first, last = float(times[0]), float(times[-1])
+    except ValueError:
+        return None
+    step = (last - first) / (len(times) - 1)
+    return step if math.isfinite(step) and step > 0 else None
 
 
 def _number(x: float) -> str:
