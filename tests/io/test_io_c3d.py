@@ -156,6 +156,13 @@ def test_a_crash_in_the_child_is_a_format_error(monkeypatch, small, source, mess
     assert str(small[0]) in str(info.value)
 
 
+def test_without_a_child_process_the_read_falls_back_with_a_warning(monkeypatch, small):
+    monkeypatch.setattr(c3d_module.sys, "executable", str(small[0].parent / "no-such-python"))
+    with pytest.warns(SkelidWarning, match="unguarded"):
+        d = read_c3d(small[0])
+    assert d.names == ("A", "B", "C")
+
+
 def test_a_hang_in_the_child_is_a_format_error(monkeypatch, small):
     monkeypatch.setattr(c3d_module, "_CHILD_SOURCE", "import time; time.sleep(60)")
     t = time.perf_counter()

@@ -59,12 +59,13 @@ import struct
 import subprocess
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.errors import FormatError
+from skelid.errors import FormatError, SkelidWarning
 from skelid.io import _c3d_child
 from skelid.io._common import check_magnitude, guess_units, normalise_units, read_bytes
 
@@ -195,15 +196,15 @@ def read_c3d(path, *, isolate: bool = True, timeout: float | None = None) -> Mar
     path = Path(path)
     raw = read_bytes(path, "C3D")
     header = check_c3d_header(path, raw)
-    if isolate:
-        points, residuals, info = _extract_in_child(path, len(raw), timeout)
-    else:
+    extracted = _extract_in_child(path, len(raw), timeout) if isolate else None
+    if extracted is None:
         try:
-            points, residuals, info = _c3d_child.extract(str(path))
-        except (RuntimeError, OSError, ValueError, MemoryError, IndexError, UnicodeDecodeError) as exc:
+            extracted = _c3d_child.extract(str(path))
+        except (RuntimeError, OSError, ValueError, TypeError, KeyError, MemoryError, IndexError,
+                UnicodeDecodeError) as exc:
             raise FormatError(f"{path}: ezc3d cannot read the file ({' '.join(str(exc).split())[:200]})",
                               "check that the file is a valid C3D file") from None
-    return _to_marker_data(path, points, residuals, info, header)
+    return _to_marker_data(path, *extracted, header)
 
 
 _CHILD_SOURCE: str | None = None
@@ -217,6 +218,7 @@ def _child_source() -> str:
 
 
 def _extract_in_child(path: Path, size: int, timeout: float | None):
+    """``(points, residuals, info)`` read by ezc3d in a child process; None if no child can be started."""
     if timeout is None:
         timeout = 20.0 + 2.0 * size / 1e6
     limit = _MEMORY_FLOOR + _MEMORY_PER_BYTE * size
@@ -229,6 +231,10 @@ def _extract_in_child(path: Path, size: int, timeout: float | None):
         try:
             proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=timeout,
                                   env=env, cwd=tmp)
+        except OSError as exc:  # no interpreter to start (embedded Python, exhausted process table)
+            warnings.warn(f"{path}: cannot start a child process to read the C3D file ({exc}); reading it in "
+                          "this process, unguarded", SkelidWarning, stacklevel=3)
+            return None
         except subprocess.TimeoutExpired:
             raise FormatError(f"{path}: reading the C3D file took more than {timeout:.0f} s; the file is "
                               "probably corrupt (a wrong frame or point count)",
