@@ -112,6 +112,9 @@ def test_column_csv_guesses_units_and_warns_on_uneven_time(tmp_path):
 @pytest.mark.parametrize(("text", "message"), [
     ("A_x,A_y\n1,2\n", "no sampling rate"),
     ("t,A_x,A_y\n0,1,2\n0,1,2\n", "line 3: time 0 does not increase"),
+    ("t,A_x,A_y\n-1e308,1,2\n1e308,1,2\n", "time values too large"),
+    ("t,A_x,A_y\n1e308,1,2\n-1e308,1,2\n", "does not increase"),
+    ("t,A_x,A_y\n0,1e300,2\n1,1,2\n", "coordinates larger than 1e\\+12"),
     ("t,A_x (mm),A_y (m)\n0,1,2\n1,1,2\n", r"mixes units \['m', 'mm'\]"),
     ("t,A_x,B_y\n0,1,2\n1,1,2\n", "marker 'A' has columns X"),
     ("t,A_x,A_y,speed\n0,1,2,3\n", "'speed' is neither a time, a frame nor a coordinate"),

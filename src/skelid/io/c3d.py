@@ -247,9 +247,8 @@ def _extract_in_child(path: Path, size: int, timeout: float | None):
             raise FormatError(f"{path}: ezc3d crashed ({sig}) reading the file; the file is corrupt",
                               "re-export the file from the capture software")
         if proc.returncode != 0:
-            msg = " ".join(proc.stderr.decode("utf-8", "replace").split())
-            if proc.returncode == 3:
-                msg = msg.rsplit("\n", 1)[-1]
+            lines = [line for line in proc.stderr.decode("utf-8", "replace").splitlines() if line.strip()]
+            msg = " ".join(lines[-1].split()) if lines else ""  # the child's one-line report comes last
             if "bad_alloc" in msg or "MemoryError" in msg:
                 raise FormatError(f"{path}: the file declares more data than it can hold "
                                   "(ezc3d ran out of memory); the file is corrupt",
@@ -295,13 +294,13 @@ def _to_marker_data(path: Path, points, residuals, info: dict, header: dict) -> 
     positions = np.where(missing[..., None], np.nan, points)
 
     units = normalise_units(info.get("units"))
+    if units is not None and units not in ("mm", "cm", "m"):
+        raise FormatError(f"{path}: POINT:UNITS is {units!r}; only mm, cm and m are supported",
+                          "export the file in mm, cm or m")
+    check_magnitude(positions, path, units or "(file units)")
     guessed = units is None
     if guessed:
         units = guess_units(positions, path)
-    elif units not in ("mm", "cm", "m"):
-        raise FormatError(f"{path}: POINT:UNITS is {units!r}; only mm, cm and m are supported",
-                          "export the file in mm, cm or m")
-    check_magnitude(positions, path, units)
 
     in_groups = {_bare(n) for names in info.get("groups", {}).values() for n in names if n}
     computed = [i for i, n in enumerate(labels) if _bare(n) in in_groups or n in in_groups

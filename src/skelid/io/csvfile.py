@@ -139,10 +139,10 @@ def _read_vicon(path: Path, lines: list[str]) -> MarkerData:
     if not rows:
         raise FormatError(f"{path}: no data rows in the Trajectories section", "check that the file is complete")
     pos = parse_table(rows, 3 * M, path).reshape(len(rows), M, 3)
+    check_magnitude(pos, path, units or "(file units)")
     guessed = units is None
     if guessed:
         units = guess_units(pos, path)
-    check_magnitude(pos, path, units)
     return MarkerData(pos, tuple(names), rate, units, source=str(path),
                       meta={"format": "vicon-csv", "units_guessed": guessed})
 
@@ -217,12 +217,10 @@ def _read_columns(path: Path, lines: list[str]) -> MarkerData:
         raise FormatError(f"{path}: no data rows after the header", "check that the file is complete")
     pos = parse_table(rows, len(cols), path).reshape(len(rows), len(names), D)
     rate = _rate_of(path, comment, times)
-    if units is None:
+    check_magnitude(pos, path, units or "(file units)")
+    guessed = units is None
+    if guessed:
         units = guess_units(pos, path)
-        guessed = True
-    else:
-        guessed = False
-    check_magnitude(pos, path, units)
     return MarkerData(pos, tuple(names), rate, units, source=str(path),
                       meta={"format": "csv", "units_guessed": guessed, "comment": comment})
 
@@ -251,14 +249,15 @@ def _rate_of(path: Path, comment: dict, times: list[tuple[int, str]]) -> float:
                           f"{'only one row' if times else 'no time column'}",
                           "add a time column or a first line '# rate=<Hz>'")
     t = np.array([parse_number(v, path, f"the time on line {i}") for i, v in times])
-    dt = np.diff(t)
+    with np.errstate(over="ignore", invalid="ignore"):
+        dt = np.diff(t)
     if np.any(dt <= 0):
         k = int(np.argmax(dt <= 0))
         raise FormatError(f"{path}: line {times[k + 1][0]}: time {t[k + 1]:g} does not increase",
                           "sort the rows by time and remove repeated rows")
+    if not np.all(np.isfinite(dt)):
+        raise FormatError(f"{path}: time values too large to give a sampling rate", "check the time column")
     step = float(np.median(dt))
-    if not np.isfinite(step) or step <= 0:
-        raise FormatError(f"{path}: cannot derive a sampling rate from the time column")
     if np.max(np.abs(dt - step)) > 0.01 * step:
         warnings.warn(f"{path}: time steps are not uniform (from {dt.min():.6g} to {dt.max():.6g} s); "
                       f"rate taken from the median step", SkelidWarning, stacklevel=3)
