@@ -270,7 +270,7 @@ def _c3d_case(raw: bytes, kind: str, draw) -> bytes:
     return bytes(b)
 
 
-@settings(max_examples=80, **FUZZ)
+@settings(max_examples=60, **FUZZ)
 @given(data=st.data())
 def test_fuzz_c3d(sources, work, fuzz_counts, data):
     kind = data.draw(st.sampled_from(["header_word", "parameters", "parameters", "data", "truncate", "key",
