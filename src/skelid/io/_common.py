@@ -1,0 +1,191 @@
+"""Helpers shared by the text readers: decoding, line splitting, number tables.
+
+Every failure becomes a :class:`~skelid.errors.FormatError` naming the file
+and, where there is one, the line. Nothing here trusts a count written in a
+header: tables are sized by the rows actually present.
+"""
+
+from __future__ import annotations
+
+import codecs
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from skelid.errors import FormatError, SkelidWarning
+
+#: Coordinates beyond this size (in the file's units) mean a corrupt file.
+MAX_COORDINATE = 1e12
+
+
+def read_bytes(path: Path, what: str) -> bytes:
+    """The bytes of ``path``, or a FormatError naming it."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise FormatError(f"data file {path} does not exist", "check the path") from None
+    except IsADirectoryError:
+        raise FormatError(f"{path} is a folder, not a {what} file", "give the path of a file") from None
+    except MemoryError:
+        raise FormatError(f"{path}: too large to read into memory", "split the recording") from None
+    except OSError as exc:
+        raise FormatError(f"cannot read {path}: {exc.strerror or exc}") from None
+
+
+def read_text(path: Path, what: str) -> str:
+    """Decode a text data file.
+
+    UTF-16 is recognised by its byte-order mark. Otherwise UTF-8 (with or
+    without a byte-order mark) is tried first, then Windows-1252, which older
+    capture software writes for accented marker names. A file with NUL bytes
+    is binary and is refused.
+    """
+    raw = read_bytes(path, what)
+    if raw[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError:
+            raise FormatError(f"{path}: not valid UTF-16 text although it starts like it",
+                              "save the file again as UTF-8 text") from None
+    if b"\x00" in raw:
+        raise FormatError(f"{path}: binary content, not a {what} text file",
+                          "check the file format or the file extension")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("cp1252", errors="replace")
+
+
+def split_lines(text: str) -> list[str]:
+    """Lines without their end-of-line characters (``\\n``, ``\\r\\n`` or ``\\r``).
+
+    Unlike :meth:`str.splitlines`, form feeds and other control characters
+    inside a line do not start a new line, so line numbers match an editor's.
+    """
+    if "\n" not in text and "\r" in text:
+        return text.split("\r")
+    return [line[:-1] if line.endswith("\r") else line for line in text.split("\n")]
+
+
+def split_fields(line: str, sep: str) -> list[str]:
+    """Fields of one line, stripped of surrounding blanks."""
+    return [f.strip() for f in line.split(sep)]
+
+
+def sniff_separator(line: str) -> str:
+    """The field separator of a header line: tab, comma or semicolon."""
+    counts = {sep: line.count(sep) for sep in ("\t", ",", ";")}
+    return max(counts, key=lambda s: (counts[s], s == "\t"))
+
+
+def parse_number(text: str, path: Path, where: str) -> float:
+    """One finite number from a header field."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise FormatError(f"{path}: {where} should be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise FormatError(f"{path}: {where} should be a finite number, got {text!r}")
+    return value
+
+
+def parse_rate(text: str, path: Path, where: str) -> float:
+    """A sampling rate: a positive finite number of Hz."""
+    rate = parse_number(text, path, where)
+    if rate <= 0:
+        raise FormatError(f"{path}: {where} must be a positive sampling rate in Hz, got {text!r}")
+    return rate
+
+
+def parse_table(rows: list[tuple[int, list[str]]], n_cols: int, path: Path) -> np.ndarray:
+    """Numbers of a table; blank fields and ``NaN`` are missing.
+
+    Parameters
+    ----------
+    rows : list of (line number, fields)
+        Fields of each data row, already cut to the data columns; a short row
+        is padded with blanks (missing markers at the end of a row).
+    n_cols : int
+        Number of data columns.
+    path : Path
+        For messages.
+
+    Returns
+    -------
+    (R, n_cols) float
+    """
+    out = np.empty((len(rows), n_cols), dtype=float)
+    nan = math.nan
+    for k, (lineno, fields) in enumerate(rows):
+        if len(fields) < n_cols:
+            fields = fields + [""] * (n_cols - len(fields))
+        try:
+            out[k] = [float(v) if v else nan for v in fields[:n_cols]]
+        except ValueError:
+            out[k] = _parse_row_slowly(fields[:n_cols], lineno, path)
+    return out
+
+
+def _parse_row_slowly(fields: list[str], lineno: int, path: Path) -> list[float]:
+    values = []
+    for col, v in enumerate(fields):
+        v = v.strip()
+        if not v:
+            values.append(math.nan)
+            continue
+        try:
+            values.append(float(v))
+        except ValueError:
+            shown = v if len(v) <= 20 else v[:17] + "..."
+            raise FormatError(f"{path}: line {lineno}, data column {col + 1}: {shown!r} is not a number",
+                              "fix or blank the value (a blank field is a missing marker)") from None
+    return values
+
+
+def check_magnitude(positions: np.ndarray, path: Path, units: str) -> None:
+    """Refuse coordinates too large to be real (a corrupt file)."""
+    finite = positions[np.isfinite(positions)]
+    if finite.size and np.max(np.abs(finite)) > MAX_COORDINATE:
+        raise FormatError(f"{path}: coordinates larger than {MAX_COORDINATE:g} {units}; the file is corrupt",
+                          "re-export the file from the capture software")
+
+
+def guess_units(positions: np.ndarray, path: Path) -> str:
+    """Guess ``"m"`` or ``"mm"`` from the spread of the markers, with a warning.
+
+    A human-sized set of markers spans tenths of a metre to two metres: its
+    median distance from the per-frame centroid is below 5 if the unit is the
+    metre and far above it in millimetres. Centimetres cannot be told from
+    millimetres this way and are never guessed.
+    """
+    spread = np.nan
+    present = np.isfinite(positions).all(axis=-1)
+    if present.any():
+        counts = present.sum(axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            centre = np.where(present[..., None], positions, 0.0).sum(axis=1, keepdims=True) / counts[..., None]
+            dist = np.linalg.norm(positions - centre, axis=-1)
+        dist = dist[present & (counts > 1)]
+        if dist.size:
+            spread = float(np.median(dist))
+    units = "m" if np.isfinite(spread) and spread < 5.0 else "mm"
+    warnings.warn(f"{path}: no length unit in the file; units guessed as {units!r} "
+                  f"(median marker spread {spread:.3g})", SkelidWarning, stacklevel=3)
+    return units
+
+
+def normalise_units(text: str | None) -> str | None:
+    """``"mm"``, ``"cm"`` or ``"m"`` for the usual spellings; None if blank; else the text."""
+    if text is None:
+        return None
+    t = text.strip().strip("()[]").strip().lower()
+    if not t:
+        return None
+    aliases = {
+        "mm": "mm", "millimeter": "mm", "millimeters": "mm", "millimetre": "mm", "millimetres": "mm",
+        "cm": "cm", "centimeter": "cm", "centimeters": "cm", "centimetre": "cm", "centimetres": "cm",
+        "m": "m", "meter": "m", "meters": "m", "metre": "m", "metres": "m",
+    }
+    return aliases.get(t, text.strip())
