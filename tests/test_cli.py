@@ -95,7 +95,7 @@ def _bad_inputs(tmp_path):
         "marker missing from file": ([str(EXAMPLES / "case_a.toml"), str(missing)], "marker(s) C"),
         "all rows NaN": ([str(EXAMPLES / "case_a.toml"), str(allnan)], "missing in every frame"),
         "no solution in interval": ([str(interval), str(clean)], "no solution inside the interval"),
-        "binary garbage": ([str(EXAMPLES / "case_a.toml"), str(garbage)], "not a text file"),
+        "binary garbage": ([str(EXAMPLES / "case_a.toml"), str(garbage)], "binary content"),
         "broken toml": ([str(notoml), str(good)], "not valid TOML"),
         "no such data file": ([str(EXAMPLES / "case_a.toml"), "nope.trc"], "does not exist"),
         "unsupported extension": ([str(EXAMPLES / "case_a.toml"), str(bad_model)], "unsupported file type"),
