@@ -80,6 +80,7 @@ class JointFit(NamedTuple):
     n_iter: int
     converged: bool
     pose_dof: float  # pose parameters the fit used: T*Q, or the effective number under smoothing
+    penalty: object = None  # the motion-model penalty (sparse, frame-major) or None
 
 
 def usable_frames(model: Model, y) -> np.ndarray:
@@ -235,7 +236,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
         pose_dof = pose_edf(Jq[use], R if use.all() else smoothing_penalty(
             model, pose_information(Jq[use]), rate, cutoff))
     return JointFit(theta, q, float(np.sum(r**2)), np.sum(r**2, axis=1), info,
-                    int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof)
+                    int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 
 
 def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4) -> np.ndarray:
@@ -314,3 +315,107 @@ def lag1_autocorrelation(resid, used) -> float:
     den = np.nansum(r**2, axis=0)
     ok = den > 0
     return float(np.mean(num[ok] / den[ok])) if ok.any() else 0.0
+
+
+def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
+                  max_frames: int = 600) -> np.ndarray:
+    """Second-order bias ``b_theta`` (P,) of the joint fit under the motion-model penalty ``R``.
+
+    For ``min ||y - f(beta)||^2 + beta^T R beta`` (``R`` acts on the poses) the
+    expansion of the estimating equation to second order in the noise gives
+
+    .. math:: b = \\sigma^2 C\\,\\big(-\\tfrac12 J^\\top d + \\textstyle\\sum_i \\nabla^2 f_i\\, v_i\\big),
+              \\quad C = (J^\\top J + R)^{-1},
+
+    with ``d_i = tr(C J^T J C \\nabla^2 f_i)`` and ``v_i = (C R C J^T)_{:, i}``;
+    without a penalty it is Box's formula. The regularisation bias
+    ``-C R beta`` of a motion that is not exactly smooth is not included. Long
+    trials are cut into pieces of ``max_frames`` whose biases are averaged with
+    their information as weights.
+    """
+    T = len(q)
+    if T > max_frames:
+        n = int(np.ceil(T / max_frames))
+        edges = np.linspace(0, T, n + 1).astype(int)
+        num, den = 0.0, 0.0
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
+            bb, S = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step)
+            num = num + S @ bb
+            den = den + S
+        return np.linalg.solve(den, num)
+    return _smoothed_bias_dense(model, y, theta, q, sigma2, R, step)[0]
+
+
+def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
+    """The part of a frame-major penalty ``R`` that couples frames ``a..b-1`` only."""
+    return R[a * Q:b * Q, a * Q:b * Q]
+
+
+def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step):
+    P, Q = model.n_params, model.n_pose
+    T = len(q)
+    _, Jq, Jt = frame_terms(model, theta, q, y)
+    m = Jq.shape[1]
+    n = P + T * Q
+    N = np.zeros((n, n))
+    N[:P, :P] = np.einsum("tkp,tkq->pq", Jt, Jt)
+    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
+    for t in range(T):  # block assembly; T blocks of (Q, Q) and (Q, P)
+        s = slice(P + t * Q, P + (t + 1) * Q)
+        N[s, s] = Jq[t].T @ Jq[t]
+        N[s, :P] = Hqt[t]
+        N[:P, s] = Hqt[t].T
+    N[P:, P:] += R.toarray()
+    C = np.linalg.inv(N)
+    C = 0.5 * (C + C.T)
+    X = np.zeros_like(C)
+    X[P:] = R @ C[P:]
+    # (theta, q_t) index sets for every frame
+    idx = np.concatenate([np.broadcast_to(np.arange(P), (T, P)),
+                          P + np.arange(T)[:, None] * Q + np.arange(Q)], axis=1)  # (T, P+Q)
+    Cb = C[:, idx]  # (n, T, P+Q)
+    Xb = X[:, idx]
+    CRC = np.einsum("ntk,ntl->tkl", Cb, Xb)  # diagonal blocks of C R C
+    Cdiag = C[idx[:, :, None], idx[:, None, :]]  # (T, P+Q, P+Q)
+    Sig = Cdiag - CRC  # blocks of C J^T J C (unit noise)
+    w_, V = np.linalg.eigh(0.5 * (Sig + np.swapaxes(Sig, 1, 2)))
+    L = V * np.sqrt(np.clip(w_, 0.0, None))[:, None, :]  # (T, P+Q, K)
+    mask = np.isfinite(y).all(axis=-1)
+    wmask = np.repeat(mask, model.dim, axis=1).astype(float)  # (T, m)
+
+    def jac_full(th, qq):
+        _, a, b = marker_jacobian(model, th, qq)
+        return np.concatenate([b, a], axis=-1).reshape(th.shape[:-1] + (m, P + Q))
+
+    def second(dirs):
+        """Directional derivative of the Jacobian rows along ``dirs (T, K, P+Q)``: (T, K, m, P+Q)."""
+        nrm = np.linalg.norm(dirs, axis=-1, keepdims=True)
+        h = step / np.maximum(nrm, 1e-300)
+        th = theta[None, None, :] + h * dirs[..., :P]
+        qq = q[:, None, :] + h * dirs[..., P:]
+        Jp = jac_full(th, qq)
+        th = theta[None, None, :] - h * dirs[..., :P]
+        qq = q[:, None, :] - h * dirs[..., P:]
+        Jm = jac_full(th, qq)
+        return (Jp - Jm) / (2.0 * h[..., None])
+
+    dirs = np.swapaxes(L, 1, 2)  # (T, K, P+Q)
+    DJ = second(dirs)  # (T, K, m, P+Q): row i is (H_i l_k)^T
+    d = np.einsum("tkij,tkj->ti", DJ, dirs) * wmask  # (T, m)
+    Jfull = np.concatenate([Jt, Jq], axis=-1)  # (T, m, P+Q)
+    v = np.einsum("tkl,til->tik", CRC, Jfull)  # (T, m, P+Q): v_i restricted to the frame block
+    Hv = _diag_rows(second(v))  # (T, m, P+Q): H_i v_i
+    u = np.einsum("tij,ti->tj", Hv, wmask)  # sum_i H_i v_i per frame block
+    wvec = -0.5 * np.einsum("tij,ti->tj", Jfull, d) + u  # (T, P+Q)
+    full = np.zeros(n)
+    full[:P] = wvec[:, :P].sum(axis=0)
+    full[P:] = wvec[:, P:].ravel()
+    b = sigma2 * (C[:P] @ full)
+    return b, np.linalg.inv(C[:P, :P])
+
+
+def _diag_rows(DJ):
+    """From ``(T, m, m, P+Q)`` (direction i, row j) keep row j = i: ``(T, m, P+Q)``."""
+    m = DJ.shape[1]
+    return DJ[:, np.arange(m), np.arange(m), :]

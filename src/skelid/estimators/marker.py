@@ -30,6 +30,7 @@ from skelid.estimators.joint import (
     joint_fit,
     lag1_autocorrelation,
     newey_west,
+    smoothed_bias,
 )
 from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
@@ -205,9 +206,12 @@ class MarkerEstimator:
         self.theta_profile_ = fit.theta
         method = self.bias_correction
         if method == "auto":
-            method = "box" if cutoff is None else "none"
-        if method == "box":
+            method = "box"
+        if method == "box" and fit.penalty is None:
             self.bias_ = box_bias(model, y, fit.theta, fit.pose, sigma2)
+        elif method == "box":
+            self.bias_ = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta,
+                                       fit.pose, sigma2, fit.penalty)
         elif method == "bootstrap":
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
         elif method == "none":
