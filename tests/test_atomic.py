@@ -2,14 +2,21 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from skelid.errors import SkelidError
 from skelid.io.atomic import atomic_dir, atomic_write, sweep_stale
+from skelid.io.trc import write_trc
+from skelid.simulate import builtin_model, simulate
+from tests.conftest import EXAMPLES
+
+PNG = b"\x89PNG\r\n\x1a\n"
 
 
 def _siblings(path: Path) -> list[Path]:
@@ -81,3 +88,83 @@ def test_stale_folders_of_dead_runs_are_swept(tmp_path):
     alive.mkdir()
     assert sweep_stale(out) == [stale]
     assert not stale.exists() and alive.exists()
+
+
+# ----------------------------------------------------------------------------- killed runs
+def _start(args, cwd):
+    """The CLI in a subprocess with Ctrl-C delivered as KeyboardInterrupt, as in a terminal."""
+    return subprocess.Popen([sys.executable, "-m", "skelid.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def _assert_complete_or_absent(out: Path, index: str):
+    """No partial file under ``out``: either no folder, or every file in it is whole."""
+    if not out.exists():
+        return
+    names = [p.name for p in out.iterdir()]
+    assert not [n for n in names if n.endswith(".part") or n.startswith(".")], names
+    assert index in names, names
+    json.loads((out / index).read_text())
+    for p in out.glob("*.png"):
+        data = p.read_bytes()
+        assert data[:8] == PNG and data.rstrip().endswith(b"IEND\xaeB`\x82"), p
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_interrupted_demo_leaves_nothing(tmp_path, sig, code):
+    out = tmp_path / "demo"
+    p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
+    time.sleep(2.5)  # well inside the fit of case A
+    assert p.poll() is None, p.communicate()
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == code, err
+    assert "Traceback" not in err
+    assert not out.exists() and not _siblings(out)
+
+
+def test_interrupt_keeps_the_previous_output(tmp_path):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "summary.json").write_text('{"previous": true}\n')
+    p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
+    time.sleep(2.5)
+    p.send_signal(signal.SIGINT)
+    p.communicate(timeout=60)
+    assert p.returncode == 130
+    assert [q.name for q in out.iterdir()] == ["summary.json"]
+    assert json.loads((out / "summary.json").read_text()) == {"previous": True}
+    assert not _siblings(out)
+
+
+def test_sigkill_while_writing_leaves_no_partial_file(tmp_path):
+    """SIGKILL cannot be caught: kill the moment the output is being written, then check."""
+    trc = tmp_path / "long.trc"
+    write_trc(trc, simulate(builtin_model("case-a"), n_frames=1500, sigma=5.0).data)
+    out = tmp_path / "fit"
+    p = _start(["fit", str(EXAMPLES / "case_a.toml"), str(trc), "--out", str(out), "--quiet"], tmp_path)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and p.poll() is None:
+        tmp = _siblings(out)
+        if tmp and tmp[0].is_dir() and any(tmp[0].iterdir()):
+            break  # the figures are being written
+        time.sleep(0.005)
+    p.kill()
+    p.communicate(timeout=30)
+    _assert_complete_or_absent(out, "result.json")
+    leftovers = _siblings(out)
+    assert all(q.is_dir() and q.name.endswith(".part") for q in leftovers), leftovers
+    with atomic_dir(out) as tmp:  # the next run removes what the killed one left
+        (tmp / "result.json").write_text("{}")
+    assert not _siblings(out)
+
+
+def test_sigkill_mid_run_keeps_previous_output(tmp_path):
+    out = tmp_path / "demo"
+    p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
+    time.sleep(2.5)
+    p.kill()
+    p.communicate(timeout=30)
+    assert not out.exists()
+    assert not list(tmp_path.rglob("*.json")) and not list(tmp_path.rglob("*.png"))
