@@ -72,6 +72,11 @@ BAD = {
     "simulate to an unknown file type": ("simulate case-a --out {out}.txt", "end the file name with .trc or .csv"),
     "simulate an unknown model": ("simulate case-z --out {out}.trc", "does not exist"),
     "demo into an existing file": ("demo --out {a_file} --frames 10", "is an existing file"),
+    "report of a missing folder": ("report {dir}/nope", "does not exist"),
+    "report of a folder without result.json": ("report {no_result} --out {out}.html", "has no result.json"),
+    "report of a damaged result.json": ("report {broken_result} --out {out}.html", "is not valid JSON"),
+    "report over its own input": ("report {ok_result} --out {ok_result}/result.json", "would overwrite the input"),
+    "report into a folder": ("report {ok_result} --out {dir}", "is a folder"),
 }
 
 
@@ -164,7 +169,7 @@ def test_fit_help_example_runs_as_written(tmp_path, capfd, monkeypatch):
     assert main(["fit", "--help"]) == 0
     text = capfd.readouterr().out
     commands = [ln.strip() for ln in text.splitlines() if ln.strip().startswith("skelid ")]
-    assert [c.split()[1] for c in commands] == ["simulate", "fit"]
+    assert [c.split()[1] for c in commands] == ["simulate", "fit", "report"]
     (tmp_path / "examples").symlink_to(ROOT / "examples")
     monkeypatch.chdir(tmp_path)
     for cmd in commands:
@@ -173,3 +178,4 @@ def test_fit_help_example_runs_as_written(tmp_path, capfd, monkeypatch):
             argv[argv.index("--frames") + 1] = "60"  # the same command, shorter
         assert main(argv) == 0, (cmd, capfd.readouterr().err)
     assert (tmp_path / "arm-fit" / "result.json").is_file()
+    assert (tmp_path / "arm-report.html").is_file()

@@ -28,7 +28,8 @@ from skelid.errors import SkelidError, SkelidWarning
 
 FIT_EXAMPLE = """\b
     skelid simulate case-a --frames 300 --seed 0 --out arm.trc
-    skelid fit examples/case_a.toml arm.trc --method paper --out arm-fit"""
+    skelid fit examples/case_a.toml arm.trc --method paper --out arm-fit
+    skelid report arm-fit --out arm-report.html"""
 
 EXAMPLES_EPILOG = f"Example (from the skelid repository root):\n\n{FIT_EXAMPLE}"
 
@@ -165,7 +166,26 @@ def fit(ctx, model_path, data_path, method_names, sigma, as_json, out_dir, seed,
     elif not quiet:
         click.echo(workflows.table(result))
         if out_dir:
-            click.echo(f"result.json, arrays.npz and figures written to {out_dir}")
+            click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
+                       f"next: skelid report {out_dir}")
+
+
+@cli.command(epilog=EXAMPLES_EPILOG)
+@click.argument("result_dir")
+@click.option("--out", "out_path", default=None,
+              help="HTML file to write. Default: RESULT_DIR/report.html.")
+@click.option("--json", "as_json", is_flag=True, help="Print the report's path as JSON.")
+@click.option("--quiet", is_flag=True, help="No progress bar, no message.")
+def report(result_dir, out_path, as_json, quiet):
+    """Write one self-contained HTML report of the fit in RESULT_DIR (from 'skelid fit --out')."""
+    from skelid.report import write_report
+
+    path, notes = write_report(result_dir, out_path, progress=not quiet)
+    _echo_warnings(notes)
+    if as_json:
+        _echo_json({"report": str(path)})
+    elif not quiet:
+        click.echo(f"report written to {path}")
 
 
 @contextlib.contextmanager
