@@ -98,6 +98,24 @@ def _start(args, cwd):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
+def _wait_busy(p, cpu_seconds: float = 1.5, timeout: float = 60.0):
+    """Wait until the child has done real work (past its imports), then return."""
+    stat = Path(f"/proc/{p.pid}/stat")
+    if not stat.exists():  # not Linux: a fixed wait well inside the run
+        time.sleep(2.5)
+        return
+    tick = os.sysconf("SC_CLK_TCK")
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and p.poll() is None:
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # it has just exited
+            return
+        if (int(fields[11]) + int(fields[12])) / tick >= cpu_seconds:  # utime + stime
+            return
+        time.sleep(0.05)
+
+
 def _assert_complete_or_absent(out: Path, index: str):
     """No partial file under ``out``: either no folder, or every file in it is whole."""
     if not out.exists():
@@ -115,7 +133,7 @@ def _assert_complete_or_absent(out: Path, index: str):
 def test_interrupted_demo_leaves_nothing(tmp_path, sig, code):
     out = tmp_path / "demo"
     p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
-    time.sleep(2.5)  # well inside the fit of case A
+    _wait_busy(p)  # well inside the fit of case A
     assert p.poll() is None, p.communicate()
     p.send_signal(sig)
     _, err = p.communicate(timeout=60)
@@ -129,7 +147,7 @@ def test_interrupt_keeps_the_previous_output(tmp_path):
     out.mkdir()
     (out / "summary.json").write_text('{"previous": true}\n')
     p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
-    time.sleep(2.5)
+    _wait_busy(p)
     p.send_signal(signal.SIGINT)
     p.communicate(timeout=60)
     assert p.returncode == 130
@@ -163,7 +181,7 @@ def test_sigkill_while_writing_leaves_no_partial_file(tmp_path):
 def test_sigkill_mid_run_keeps_previous_output(tmp_path):
     out = tmp_path / "demo"
     p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
-    time.sleep(2.5)
+    _wait_busy(p)
     p.kill()
     p.communicate(timeout=30)
     assert not out.exists()
