@@ -567,8 +567,10 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     check_output_dir(out_dir)
     summary, drawn = {}, []
     cases = ("case-a", "case-b")
-    bar_on = progress and sys.stderr.isatty()
-    for k, case in enumerate(tqdm(cases, desc="demo", disable=not bar_on, unit="case", file=sys.stderr)):
+    bar = tqdm(total=len(cases) + 1, desc="demo", unit="step", file=sys.stderr,
+               disable=not progress or not sys.stderr.isatty())
+    for k, case in enumerate(cases):
+        bar.set_postfix_str(case)
         model = builtin_model(case)
         trial = simulate(model, n_frames=n_frames, sigma=sigma,
                          rng=np.random.default_rng([seed, k]))
@@ -577,10 +579,13 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
         drawn.append((model, trial, fitted, key))
         summary[key] = {"truth": trial.truth, "sigma_noise": sigma, "frames_total": res["frames_total"],
                         "methods": res["methods"]}
-    with atomic_dir(out_dir) as tmp:
+        bar.update(1)
+    bar.set_postfix_str("figures")
+    with bar, atomic_dir(out_dir) as tmp:
         for model, trial, fitted, key in drawn:
             figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
         write_json(tmp / "summary.json", summary)
+        bar.update(1)
     return summary
 
 
