@@ -1,12 +1,22 @@
 """Command line: parse, load, call the library, write. No maths here.
 
-A :class:`~skelid.errors.SkelidError` becomes one line on stderr and exit
-status 2; any other exception is a bug and keeps its traceback (status 1).
+A :class:`~skelid.errors.SkelidError` or a usage mistake becomes one line on
+stderr (``skelid: error: ...``) and exit status 2; Ctrl-C or SIGTERM exit with
+130 or 143 after removing any partial output; any other exception is a bug and
+keeps its traceback (status 1). Warnings are printed once each as
+``skelid: warning: ...`` and recorded in the JSON results. ``--json`` puts
+only JSON on stdout; progress bars go to stderr and only to a terminal.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
+import math
+import signal
 import sys
+import threading
+import traceback
 import warnings
 from pathlib import Path
 
@@ -16,15 +26,46 @@ import numpy as np
 from skelid import __version__
 from skelid.errors import SkelidError, SkelidWarning
 
-FIT_EXAMPLE = "skelid fit examples/case_a.toml data.trc --method marker --json"
+FIT_EXAMPLE = """\b
+    skelid simulate case-a --frames 300 --seed 0 --out arm.trc
+    skelid fit examples/case_a.toml arm.trc --method marker --out arm-fit
+    skelid report arm-fit --out arm-report.html"""
+
+EXAMPLES_EPILOG = f"Example (from the skelid repository root):\n\n{FIT_EXAMPLE}"
+
+SEED = click.IntRange(min=0)
 
 
 def _warning_line(message, category, filename, lineno, file=None, line=None):
-    """Show a SkelidWarning as one line, once."""
+    """Show a SkelidWarning as one line."""
     if issubclass(category, SkelidWarning):
         click.echo(f"skelid: warning: {message}", err=True)
     else:  # pragma: no cover - library warnings keep their usual form
         sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
+def _command(ctx: click.Context) -> list[str]:
+    obj = ctx.find_root().obj
+    if isinstance(obj, dict) and "argv" in obj:
+        return list(obj["argv"])
+    return ["skelid", *sys.argv[1:]]
+
+
+def _echo_warnings(messages) -> None:
+    for w in dict.fromkeys(messages):  # each once, in order
+        click.echo(f"skelid: warning: {w}", err=True)
+
+
+def _echo_json(obj) -> None:
+    from skelid.workflows import _json_default
+
+    click.echo(json.dumps(obj, indent=2, default=_json_default))
+
+
+def _finite(name: str, value):
+    if value is not None and not math.isfinite(value):
+        raise SkelidError(f"{name} must be a finite number, got {value}", f"give {name} a number such as 15")
+    return value
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -34,111 +75,167 @@ def cli():
     warnings.showwarning = _warning_line
 
 
-@cli.command()
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="demo-output",
-              show_default=True, help="Folder for figures and summary.json.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@cli.command(epilog="Example:\n\n\b\n    skelid demo --out demo-output --frames 500")
+@click.option("--out", "out_dir", default="demo-output", show_default=True,
+              help="Folder for figures and summary.json (appears only when complete).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 @click.option("--frames", type=click.IntRange(min=10), default=500, show_default=True)
 @click.option("--sigma", type=click.FloatRange(min=0.0), default=15.0, show_default=True,
               help="Marker noise in mm.")
+@click.option("--json", "as_json", is_flag=True, help="Print summary.json on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no table.")
-def demo(out_dir, seed, frames, sigma, quiet):
+def demo(out_dir, seed, frames, sigma, as_json, quiet):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
 
+    _finite("--sigma", sigma)
     summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet)
-    if not quiet:
+    if as_json:
+        _echo_json(summary)
+    elif not quiet:
         click.echo(workflows.table(summary))
         click.echo(f"figures and summary.json written to {out_dir}")
 
 
-@cli.command()
+@cli.command(epilog="Example:\n\n\b\n    skelid simulate case-a --sigma 15 --frames 500 --seed 0 --out data.trc")
 @click.argument("model_name")
 @click.option("--sigma", type=click.FloatRange(min=0.0), default=15.0, show_default=True,
               help="Marker noise standard deviation in model units.")
 @click.option("--frames", type=click.IntRange(min=1), default=500, show_default=True)
 @click.option("--rate", type=click.FloatRange(min=0.0, min_open=True), default=100.0, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--hard-poses", is_flag=True, help="Make joints pass through straight positions.")
 @click.option("--noise", type=click.Choice(["iid", "sta"]), default="iid", show_default=True,
               help="i.i.d. Gaussian noise, or that plus soft-tissue artefact.")
 @click.option("--sta-amplitude", type=click.FloatRange(min=0.0), default=10.0, show_default=True)
-@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True,
-              help="Output file: .trc or .csv.")
-def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path):
-    """Simulate a trial of MODEL_NAME (case-a, case-b or a model .toml) and write it.
-
-    Example: skelid simulate case-a --sigma 15 --frames 500 --seed 0 --out data.trc
-    """
+@click.option("--out", "out_path", required=True, help="Output file: .trc or .csv.")
+@click.option("--json", "as_json", is_flag=True, help="Print what was written and the truth as JSON.")
+def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json):
+    """Simulate a trial of MODEL_NAME (case-a, case-b or a model .toml) and write it."""
     from skelid import io
-    from skelid.simulate import resolve_model
+    from skelid.simulate import BUILTIN_MODELS, resolve_model
     from skelid.simulate import simulate as run
+    from skelid.workflows import check_input_file
 
+    for name, v in (("--sigma", sigma), ("--rate", rate), ("--sta-amplitude", sta_amplitude)):
+        _finite(name, v)
+    suffix = Path(out_path).suffix.lower()
+    if Path(out_path).is_dir():
+        raise SkelidError(f"--out {out_path} is a folder", "give the name of the file to write, e.g. data.trc")
+    if suffix not in (".trc", ".csv"):
+        raise SkelidError(f"--out {out_path}: unsupported output type {suffix or '(none)'!r}",
+                          "end the file name with .trc or .csv")
+    if str(model_name).lower().replace("_", "-") not in BUILTIN_MODELS:
+        check_input_file(model_name, "model file")
     model = resolve_model(model_name)
     trial = run(model, n_frames=frames, rate=rate, sigma=sigma, rng=np.random.default_rng(seed),
                 hard_poses=hard_poses, noise=noise, sta_amplitude=sta_amplitude)
-    suffix = Path(out_path).suffix.lower()
-    if suffix == ".csv":
-        io.write_csv(out_path, trial.data)
-    elif suffix == ".trc":
-        io.write_trc(out_path, trial.data)
-    else:
-        raise click.BadParameter(f"unsupported output type {suffix!r}; use .trc or .csv",
-                                 param_hint="--out")
+    (io.write_csv if suffix == ".csv" else io.write_trc)(out_path, trial.data)
+    if as_json:
+        _echo_json({"out": out_path, "frames": trial.data.n_frames, "markers": list(trial.data.names),
+                    "units": model.units, "truth": trial.truth})
+        return
     click.echo(f"wrote {trial.data.n_frames} frames of {trial.data.n_markers} markers to {out_path}")
     for name, value in trial.truth.items():
         click.echo(f"true {name} = {value:g} {model.units}")
 
 
-@cli.command(epilog=f"Example:\n\n    {FIT_EXAMPLE}")
+@cli.command(epilog=EXAMPLES_EPILOG)
 @click.argument("model_path")
-@click.argument("data_path", type=click.Path(dir_okay=False))
+@click.argument("data_path")
 @click.option("--method", "method_names", multiple=True,
               help="Estimator (repeat for several): marker (default), paper, marker-grid.")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Marker noise in model units (default 15 mm for the paper method).")
-@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
-              help="Folder for result.json and figures.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--quiet", is_flag=True, help="No table: only warnings and errors (and JSON with --json).")
-def fit(model_path, data_path, method_names, sigma, as_json, out_dir, seed, quiet):
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout, nothing else.")
+@click.option("--out", "out_dir", default=None,
+              help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
+@click.option("--seed", type=SEED, default=0, show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
+@click.pass_context
+def fit(ctx, model_path, data_path, method_names, sigma, as_json, out_dir, seed, quiet):
     """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
-    import json
+    from skelid import workflows
 
-    from skelid import io, workflows
-    from skelid.simulate import resolve_model
-
-    model = resolve_model(model_path)
-    data = io.read_markers(data_path)
-    names = list(method_names) or [workflows.DEFAULT_METHOD]
-    result, fitted = workflows.fit_file(model, data, names, sigma=sigma, seed=seed)
-    if out_dir:
-        workflows.figures(model, data, fitted, out_dir)
-        workflows.write_json(Path(out_dir) / "result.json", result)
-    for w in sorted({w for m in result["methods"].values() for w in m.get("warnings", [])}):
-        click.echo(f"skelid: warning: {w}", err=True)
+    _finite("--sigma", sigma)
+    result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
+                               out_dir=out_dir, command=_command(ctx), progress=not quiet)
+    _echo_warnings(result["warnings"])
     if as_json:
-        click.echo(json.dumps(result, indent=2, default=workflows._json_default))
+        _echo_json(result)
     elif not quiet:
         click.echo(workflows.table(result))
+        if out_dir:
+            click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
+                       f"next: skelid report {out_dir}")
+
+
+@cli.command(epilog=EXAMPLES_EPILOG)
+@click.argument("result_dir")
+@click.option("--out", "out_path", default=None,
+              help="HTML file to write. Default: RESULT_DIR/report.html.")
+@click.option("--json", "as_json", is_flag=True, help="Print the report's path as JSON.")
+@click.option("--quiet", is_flag=True, help="No progress bar, no message.")
+def report(result_dir, out_path, as_json, quiet):
+    """Write one self-contained HTML report of the fit in RESULT_DIR (from 'skelid fit --out')."""
+    from skelid.report import write_report
+
+    path, notes = write_report(result_dir, out_path, progress=not quiet)
+    _echo_warnings(notes)
+    if as_json:
+        _echo_json({"report": str(path)})
+    elif not quiet:
+        click.echo(f"report written to {path}")
+
+
+@contextlib.contextmanager
+def _sigterm_as_exit():
+    """Turn SIGTERM into SystemExit(143) so partial outputs are removed on the way out."""
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
 
 
 def main(argv=None) -> int:
     """Entry point: run the CLI, turning user errors into one line and exit status 2."""
+    args = list(sys.argv[1:] if argv is None else argv)
     try:
-        cli.main(args=argv, prog_name="skelid", standalone_mode=False)
+        with _sigterm_as_exit():
+            cli.main(args=args, prog_name="skelid", standalone_mode=False, obj={"argv": ["skelid", *args]})
     except SkelidError as exc:
         click.echo(f"skelid: error: {exc.one_line()}", err=True)
         return 2
-    except click.exceptions.Abort:
-        click.echo("skelid: interrupted", err=True)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        click.echo("skelid: interrupted; no partial output was left", err=True)
         return 130
+    except click.UsageError as exc:
+        where = exc.ctx.command_path if exc.ctx is not None else "skelid"
+        click.echo(f"skelid: error: {_one_line(exc.format_message())} (fix: see '{where} --help')", err=True)
+        return 2
     except click.ClickException as exc:
-        exc.show()
-        return exc.exit_code
+        click.echo(f"skelid: error: {_one_line(exc.format_message())}", err=True)
+        return 2
     except click.exceptions.Exit as exc:
         return exc.exit_code
+    except Exception:
+        traceback.print_exc()
+        click.echo("skelid: internal error: the traceback above is a bug in skelid, not a problem with "
+                   "your input; please report it with the command you ran", err=True)
+        return 1
     return 0
 
 

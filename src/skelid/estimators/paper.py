@@ -286,11 +286,16 @@ class PaperFilter:
                           state.n_frames + 1, state.n_used + ok, measured)
 
     # ------------------------------------------------------------------ batch
-    def measure(self, y) -> np.ndarray:
-        """Per-frame measured lengths ``(F,)`` (NaN where dropped): the sequential solve."""
+    def measure(self, y, progress=None) -> np.ndarray:
+        """Per-frame measured lengths ``(F,)`` (NaN where dropped): the sequential solve.
+
+        ``progress``, if given, is called with 1 after each frame (a progress bar's ``update``).
+        """
         out = np.full(len(y), np.nan)
         x = None
         for t, frame in enumerate(y):
+            if progress is not None:
+                progress(1)
             if x is None:
                 if not np.isfinite(frame).all():
                     continue
@@ -301,15 +306,15 @@ class PaperFilter:
                 x = xt
         return out
 
-    def fit(self, data: MarkerData | np.ndarray) -> PaperFilter:
-        """Run the method on a whole trial."""
+    def fit(self, data: MarkerData | np.ndarray, progress=None) -> PaperFilter:
+        """Run the method on a whole trial (``progress``: see :meth:`measure`)."""
         y = prepare(self.model, data) if isinstance(data, MarkerData) else np.asarray(data, float)
         self.warnings_ = []
         gaps = int((~np.isfinite(y).all(axis=(1, 2))).sum())
         if gaps:
             warn_once(f"{gaps} of {len(y)} frames have missing markers; the paper method uses "
                       "only the equations whose markers are present", self.warnings_)
-        measured = self.measure(y)
+        measured = self.measure(y, progress)
         post0 = self.init_state().posterior
         ll = self._loglik(measured)  # (F, K)
         cum = post0.log_weights + np.cumsum(ll, axis=0)

@@ -623,8 +623,12 @@ def load_model(path) -> Model:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ModelError(f"model file {path} does not exist", "check the path") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ModelError(f"cannot read model file {path}: {exc}") from None
+    except UnicodeDecodeError:
+        raise ModelError(f"model file {path} is not text",
+                         "a model file is a UTF-8 TOML text file; see docs/model-format.md") from None
+    except OSError as exc:
+        raise ModelError(f"cannot read model file {path}: {exc.strerror or exc}",
+                         "check the path and the file's permissions") from None
     try:
         d = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -1,0 +1,665 @@
+"""One self-contained HTML report of a fit.
+
+``write_report(result_dir)`` reads what ``skelid fit --out RESULT_DIR`` wrote
+(``result.json`` and, if present, ``arrays.npz``) and writes one HTML file with
+every figure embedded as a base64 PNG: no scripts, no external links, so that
+it opens from disk or travels by mail. Sections:
+
+1. Data overview: file, format, frames, rate, units, and the gaps of each marker.
+2. Marker trajectories of the model's markers, and when they are missing.
+3. Posterior evolution: the marginal posterior after successive frames and the
+   most likely value per step.
+4. Final posterior: MAP, mean, sd, 95 % interval and Cramér–Rao bound of each
+   parameter, the marker noise σ, and a figure of each marginal.
+5. Residuals per marker over time (where soft-tissue artefact shows).
+6. Identifiability: the Cramér–Rao bound and status of each parameter.
+7. Warnings.
+8. How the result was made: the exact command and the versions.
+
+A section whose data a method does not provide says "not available for this
+method" rather than disappearing. matplotlib is imported only when a figure
+is drawn, with the Agg backend.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime
+import html
+import io
+import json
+import math
+import sys
+import zipfile
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from skelid.errors import SkelidError
+from skelid.io.atomic import atomic_write, ensure_parent
+
+NOT_AVAILABLE = "not available for this method"
+
+SECTIONS = (
+    ("overview", "Data overview"),
+    ("trajectories", "Marker trajectories"),
+    ("evolution", "Posterior evolution"),
+    ("posterior", "Final posterior"),
+    ("residuals", "Residuals per marker"),
+    ("identifiability", "Identifiability"),
+    ("warnings", "Warnings"),
+    ("provenance", "How this result was made"),
+)
+
+CSS = """
+body { font-family: system-ui, -apple-system, 'Segoe UI', sans-serif; max-width: 1100px; margin: 2em auto;
+       padding: 0 1em; color: #222; line-height: 1.45; }
+h1 { font-size: 1.6em; } h2 { border-bottom: 2px solid #ccc; padding-bottom: .2em; margin-top: 2em; }
+table { border-collapse: collapse; margin: .8em 0; font-size: .92em; }
+th, td { border: 1px solid #ccc; padding: .25em .6em; text-align: right; }
+th { background: #f0f0f0; } td.l, th.l { text-align: left; }
+tr.gap td { background: #fff4e0; }
+img { max-width: 100%; border: 1px solid #eee; margin: .5em 0; }
+pre { background: #f6f6f6; padding: .6em; overflow-x: auto; white-space: pre-wrap; }
+.na { color: #777; font-style: italic; }
+.warn { color: #8a4b00; }
+nav ol { columns: 2; }
+"""
+
+
+# ----------------------------------------------------------------------------- reading
+def load_result_dir(result_dir) -> tuple[dict, dict, list[str]]:
+    """``(result, arrays, notes)`` from a folder written by ``skelid fit --out``.
+
+    Raises
+    ------
+    SkelidError
+        The folder, its ``result.json`` or its ``arrays.npz`` is missing or unreadable.
+    """
+    d = Path(result_dir)
+    fix = f"run 'skelid fit MODEL DATA --out {d}' first"
+    if not d.exists():
+        raise SkelidError(f"result folder {d} does not exist", fix)
+    if not d.is_dir():
+        raise SkelidError(f"{d} is a file, not a result folder", f"give the folder that holds result.json; {fix}")
+    path = d / "result.json"
+    if not path.is_file():
+        hint = " (it holds demo output, which has no single fit)" if (d / "summary.json").exists() else ""
+        raise SkelidError(f"{d} has no result.json{hint}", fix)
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise SkelidError(f"cannot read {path}: {exc.strerror or exc}", "check the file's permissions") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SkelidError(f"{path} is not valid JSON ({exc})", f"the file is damaged; {fix}") from None
+    if not isinstance(result, dict) or not isinstance(result.get("methods"), dict):
+        raise SkelidError(f"{path} is not a skelid fit result (no 'methods' table)", fix)
+    notes = []
+    arrays = {}
+    npz = d / "arrays.npz"
+    if npz.is_file():
+        try:
+            with np.load(npz, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise SkelidError(f"{npz} is unreadable ({exc})", f"the file is damaged; {fix}") from None
+    else:
+        notes.append(f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
+                     "residual figures (rerun skelid fit with --out to get them)")
+    return result, arrays, notes
+
+
+# ----------------------------------------------------------------------------- helpers
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _fmt(x, digits: int = 4) -> str:
+    if x is None:
+        return "–"
+    if isinstance(x, bool):
+        return "yes" if x else "no"
+    if isinstance(x, int | np.integer):
+        return str(int(x))
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return _e(x)
+    if not math.isfinite(v):
+        return "–"
+    return f"{v:.{digits}g}"
+
+
+def _interval(ci) -> str:
+    if not isinstance(ci, list | tuple) or len(ci) != 2:
+        return "–"
+    return f"[{_fmt(ci[0])}, {_fmt(ci[1])}]"
+
+
+def _table(head, rows, left=(0,), row_class=None) -> str:
+    th = "".join(f'<th class="{"l" if i in left else ""}">{_e(h)}</th>' for i, h in enumerate(head))
+    body = []
+    for r, row in enumerate(rows):
+        cls = f' class="{row_class[r]}"' if row_class and row_class[r] else ""
+        tds = "".join(f'<td class="{"l" if i in left else ""}">{c}</td>' for i, c in enumerate(row))
+        body.append(f"<tr{cls}>{tds}</tr>")
+    return f"<table><thead><tr>{th}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _na(what: str = "") -> str:
+    return f'<p class="na">{_e(what + ": " if what else "")}{NOT_AVAILABLE}.</p>'
+
+
+def _img(png: bytes, alt: str) -> str:
+    return f'<img alt="{_e(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">'
+
+
+def _param_entries(m: dict) -> dict:
+    return {k: v for k, v in m.items() if isinstance(v, dict) and "map" in v and "ci95" in v}
+
+
+def _method_arrays(arrays: dict, method: str) -> dict:
+    pre = f"{method}."
+    return {k[len(pre):]: v for k, v in arrays.items() if k.startswith(pre)}
+
+
+# ----------------------------------------------------------------------------- figures
+def _plt():
+    from skelid.plots import _plt as get
+
+    return get()
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    _plt().close(fig)
+    return buf.getvalue()
+
+
+def _ref_lines(ax, refs: dict, vertical: bool = True):
+    styles = {"true value": dict(color="k", ls="--", lw=1.2),
+              "nominal (model file)": dict(color="0.45", ls=":", lw=1.2)}
+    for label, v in refs.items():
+        if v is None or not math.isfinite(v):
+            continue
+        kw = styles.get(label, dict(color="k", ls="--", lw=1))
+        (ax.axvline if vertical else ax.axhline)(v, label=f"{label} {v:.4g}", **kw)
+
+
+def _zoom(ax, axis, weights, extra=()):
+    """Limit the x axis to where the posterior mass is (and the reference values)."""
+    los, his = [], []
+    for w in weights:
+        w = np.asarray(w, float)
+        if not np.isfinite(w).all() or w.sum() <= 0:
+            continue
+        c = np.cumsum(w) / w.sum()
+        los.append(axis[min(np.searchsorted(c, 0.0005), axis.size - 1)])
+        his.append(axis[min(np.searchsorted(c, 0.9995), axis.size - 1)])
+    if not los:
+        return
+    vals = [v for v in extra if v is not None and math.isfinite(v)]
+    lo, hi = min(los + vals), max(his + vals)
+    pad = max(0.25 * (hi - lo), 2 * float(axis[1] - axis[0]) if axis.size > 1 else 1.0)
+    ax.set_xlim(max(lo - pad, float(axis[0])), min(hi + pad, float(axis[-1])))
+
+
+def fig_trajectories(markers, names, rate, units) -> bytes:
+    plt = _plt()
+    F, M, D = markers.shape
+    t = np.arange(F) / rate
+    fig, axes = plt.subplots(D, 1, figsize=(9, 2.3 * D + 0.8), sharex=True, squeeze=False)
+    for k, ax in enumerate(axes[:, 0]):
+        for m in range(M):
+            ax.plot(t, markers[:, m, k], lw=0.9, label=names[m])
+        ax.set_ylabel(f"{'xyz'[k]} [{units}]")
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[0, 0].legend(fontsize=7, ncol=min(M, 6), loc="upper left", bbox_to_anchor=(0, 1.35))
+    fig.suptitle("Marker trajectories (model markers, model units; gaps are missing frames)", y=1.02)
+    return _png(fig)
+
+
+def fig_missing(markers, names, rate) -> bytes:
+    plt = _plt()
+    F, M, _ = markers.shape
+    missing = ~np.isfinite(markers).all(axis=2)
+    fig, ax = plt.subplots(figsize=(9, 0.35 * M + 1.2))
+    for m in range(M):
+        x = np.concatenate([[False], missing[:, m], [False]]).astype(int)
+        starts = np.flatnonzero(np.diff(x) == 1)
+        stops = np.flatnonzero(np.diff(x) == -1)
+        ax.broken_barh([(s / rate, (e - s) / rate) for s, e in zip(starts, stops, strict=True)],
+                       (m - 0.4, 0.8), color="tab:red")
+    ax.set_yticks(range(M), names)
+    ax.set_ylim(-0.6, M - 0.4)
+    ax.set_xlim(0, F / rate)
+    ax.set_xlabel("time [s]")
+    ax.set_title("Missing markers (red: frames where the marker is missing)")
+    ax.grid(axis="x", alpha=0.3)
+    return _png(fig)
+
+
+def fig_history(axis, snaps, steps, final, name, units, refs, method) -> bytes:
+    plt = _plt()
+    h = float(axis[1] - axis[0]) if axis.size > 1 else 1.0
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    for s, w in zip(steps, snaps, strict=True):
+        ax.plot(axis, w / h, lw=1.2, label=f"after {int(s)} frames")
+    if final is not None:
+        ax.plot(axis, final / h, lw=2, color="k", alpha=0.7, label="final")
+    _ref_lines(ax, refs)
+    _zoom(ax, axis, [*snaps, *([] if final is None else [final])], refs.values())
+    ax.set_xlabel(f"{name} [{units}]")
+    ax.set_ylabel(f"posterior density [1/{units}]")
+    ax.set_title(f"Posterior of {name} as frames accumulate ({method} method)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _png(fig)
+
+
+def fig_gaussian_history(steps, means, sds, name, units, refs, method) -> bytes:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    ax.plot(steps, means, lw=1.5, label="posterior mean")
+    ax.fill_between(steps, means - 1.96 * sds, means + 1.96 * sds, alpha=0.25, label="95 % interval")
+    _ref_lines(ax, refs, vertical=False)
+    ax.set_xlabel("frames used")
+    ax.set_ylabel(f"{name} [{units}]")
+    ax.set_title(f"Posterior of {name} as frames accumulate ({method} method)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _png(fig)
+
+
+def fig_map_path(map_path, measured, name, units, refs, method) -> bytes:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    steps = np.arange(1, len(map_path) + 1)
+    map_path = np.asarray(map_path, float)
+    if measured is not None and np.isfinite(measured).any():
+        first = int(np.argmax(np.isfinite(measured)))  # before it the "most likely value" is only the prior's
+        map_path = np.where(steps > first, map_path, np.nan)
+    if measured is not None:
+        ax.plot(steps, measured, ".", ms=2.5, color="0.6", label="per-frame measured value")
+    ax.plot(steps, map_path, lw=1.5, label="most likely value so far")
+    _ref_lines(ax, refs, vertical=False)
+    finite = np.asarray(map_path)[np.isfinite(map_path)]
+    if finite.size:
+        lo, hi = float(finite.min()), float(finite.max())
+        vals = [v for v in refs.values() if v is not None and math.isfinite(v)]
+        lo, hi = min([lo, *vals]), max([hi, *vals])
+        pad = max(hi - lo, 1e-9 + 0.02 * max(abs(hi), 1.0))
+        ax.set_ylim(lo - pad, hi + pad)
+    ax.set_xlabel("frame")
+    ax.set_ylabel(f"{name} [{units}]")
+    ax.set_title(f"Most likely {name} after each frame ({method} method)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _png(fig)
+
+
+def fig_final(panels, units, method) -> bytes:
+    """One panel per parameter: the final marginal, its 95 % interval, the Cramér–Rao bound."""
+    from matplotlib.ticker import MaxNLocator
+    from scipy.stats import norm
+
+    plt = _plt()
+    n = len(panels)
+    ncol = min(n, 3)
+    nrow = math.ceil(n / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.3 * nrow), squeeze=False)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    for ax, p in zip(axes.ravel(), panels, strict=False):
+        mean, sd, ci = p["mean"], p["sd"], p["ci95"]
+        if p.get("axis") is not None:
+            x, w = p["axis"], p["marginal"]
+            h = float(x[1] - x[0]) if x.size > 1 else 1.0
+            ax.plot(x, w / h, lw=1.5, label="posterior")
+            _zoom(ax, x, [w], [*p["refs"].values(), *(ci or [])])
+        else:
+            s = sd if sd and sd > 0 else 1.0
+            x = np.linspace(mean - 4.5 * s, mean + 4.5 * s, 301)
+            ax.plot(x, norm.pdf(x, mean, s), lw=1.5, label=p.get("kind_label", "posterior (normal)"))
+        if ci and all(c is not None and math.isfinite(c) for c in ci):
+            ax.axvspan(ci[0], ci[1], alpha=0.15, color="tab:blue", label="95 % interval")
+        crlb = p.get("crlb_sd")
+        if crlb is not None and math.isfinite(crlb) and crlb > 0:
+            xc = np.linspace(mean - 4.5 * crlb, mean + 4.5 * crlb, 301)
+            ax.plot(xc, norm.pdf(xc, mean, crlb), "--", color="tab:orange", lw=1.2,
+                    label=f"Cramér–Rao bound (sd {crlb:.3g})")
+        _ref_lines(ax, p["refs"])
+        ax.set_xlabel(f"{p['name']} [{units}]")
+        ax.set_ylabel(f"density [1/{units}]")
+        ax.xaxis.set_major_locator(MaxNLocator(5))
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Final posterior of each parameter ({method} method)")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def fig_residuals(residuals, names, rate, units, sigma, method) -> bytes:
+    plt = _plt()
+    F, M = residuals.shape
+    t = np.arange(F) / rate
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for m in range(M):
+        ax.plot(t, residuals[:, m], lw=0.8, label=names[m] if m < len(names) else f"marker {m}")
+    if sigma is not None and math.isfinite(sigma):
+        ax.axhline(sigma, color="k", ls="--", lw=1, label=f"noise σ = {sigma:.3g} {units}")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(f"residual distance [{units}]")
+    ax.set_title(f"Residual of each marker over time ({method} method); slow drifts suggest soft-tissue artefact")
+    ax.legend(fontsize=7, ncol=min(M + 1, 5))
+    ax.grid(alpha=0.3)
+    return _png(fig)
+
+
+# ----------------------------------------------------------------------------- sections
+class _Builder:
+    """Collects HTML parts and figure jobs; figures are drawn later, under one progress bar."""
+
+    def __init__(self):
+        self.parts: list = []
+
+    def add(self, text: str):
+        self.parts.append(text)
+
+    def figure(self, job, alt: str):
+        self.parts.append((job, alt))
+
+    def n_figures(self) -> int:
+        return sum(isinstance(p, tuple) for p in self.parts)
+
+    def render(self, progress: bool) -> str:
+        from tqdm import tqdm
+
+        bar = tqdm(total=self.n_figures(), desc="report", unit="figure", leave=False, file=sys.stderr,
+                   disable=not progress or not sys.stderr.isatty())
+        out = []
+        with bar:
+            for p in self.parts:
+                if isinstance(p, tuple):
+                    job, alt = p
+                    out.append(_img(job(), alt))
+                    bar.update(1)
+                else:
+                    out.append(p)
+        return "\n".join(out)
+
+
+def _refs(result: dict, pname: str) -> dict:
+    refs = {}
+    truth = result.get("truth") or {}
+    if isinstance(truth, dict) and pname in truth:
+        refs["true value"] = float(truth[pname])
+    mp = (result.get("model_parameters") or {}).get(pname) or {}
+    if "nominal" in mp and "true value" not in refs:
+        refs["nominal (model file)"] = float(mp["nominal"])
+    return refs
+
+
+def _overview(b: _Builder, result: dict):
+    ov = result.get("data_overview")
+    if not isinstance(ov, dict):
+        b.add(_na("data overview (result.json has no data_overview)"))
+        return
+    rows = [("data file", _e(ov.get("source", result.get("data", "")))),
+            ("format", _e(ov.get("format", "–"))),
+            ("frames", _fmt(ov.get("n_frames"))),
+            ("markers in the file", _fmt(ov.get("n_markers"))),
+            ("sampling rate", f"{_fmt(ov.get('rate_hz'))} Hz"),
+            ("duration", f"{_fmt(ov.get('duration_s'))} s"),
+            ("units in the file", _e(ov.get("units", "–"))),
+            ("model", _e(result.get("model", "–"))),
+            ("model units (results are in these)", _e(result.get("units", "–")))]
+    b.add(_table(["", ""], rows, left=(0, 1)))
+    used = ov.get("model_markers") or {}
+    if used:
+        b.add("<p>Model markers and their names in the file: "
+              + ", ".join(f"{_e(k)} → {_e(v)}" for k, v in used.items()) + ".</p>")
+    markers = ov.get("markers") or []
+    if markers:
+        markers = sorted(markers, key=lambda m: (not m.get("used_by_model"), 0))
+        rows = [(_e(m["name"]), _fmt(bool(m.get("used_by_model"))), _fmt(m.get("frames_missing")),
+                 _fmt(m.get("gaps")), _fmt(m.get("longest_gap"))) for m in markers]
+        cls = ["gap" if m.get("frames_missing") else "" for m in markers]
+        b.add("<h3>Gaps per marker</h3>")
+        b.add(_table(["marker", "used by the model", "frames missing", "gaps", "longest gap [frames]"],
+                     rows, row_class=cls))
+
+
+def _trajectories(b: _Builder, arrays: dict):
+    if "markers" not in arrays:
+        b.add(_na("marker trajectories (no arrays.npz)"))
+        return
+    y = np.asarray(arrays["markers"], float)
+    names = [str(n) for n in arrays.get("marker_names", [f"m{i}" for i in range(y.shape[1])])]
+    rate = float(arrays.get("rate", 1.0))
+    units = str(arrays.get("units", ""))
+    b.figure(partial(fig_trajectories, y, names, rate, units), "marker trajectories")
+    if not np.isfinite(y).all():
+        b.figure(partial(fig_missing, y, names, rate), "missing markers over time")
+    else:
+        b.add("<p>No marker of the model is missing in any frame.</p>")
+
+
+def _evolution(b: _Builder, result: dict, arrays: dict, units: str):
+    for method, m in result["methods"].items():
+        b.add(f"<h3>Method: {_e(method)}</h3>")
+        a = _method_arrays(arrays, method)
+        names = [str(n) for n in a.get("posterior.names", list(_param_entries(m)))]
+        shown = False
+        steps = a.get("posterior.history_steps")
+        if str(a.get("posterior.kind", "")) == "grid" and steps is not None and len(steps):
+            for k, name in enumerate(names):
+                if f"posterior.history.{k}" not in a:
+                    continue
+                axis, hist = a[f"posterior.axis.{k}"], a[f"posterior.history.{k}"]
+                final = a.get(f"posterior.marginal.{k}")
+                refs = _refs(result, name)
+                b.figure(partial(fig_history, axis, hist, steps, final, name, units, refs, method),
+                         f"posterior of {name} as frames accumulate")
+                shown = True
+        elif "posterior.history_mean" in a and steps is not None and len(steps):
+            means, covs = a["posterior.history_mean"], a["posterior.history_cov"]
+            for k, name in enumerate(names):
+                sds = np.sqrt(np.clip(covs[:, k, k], 0, None))
+                refs = _refs(result, name)
+                b.figure(partial(fig_gaussian_history, steps, means[:, k], sds, name, units, refs, method),
+                         f"posterior of {name} as frames accumulate")
+                shown = True
+        if "map_path" in a and names:
+            refs = _refs(result, names[0])
+            b.figure(partial(fig_map_path, a["map_path"], a.get("measured"), names[0], units, refs, method),
+                     f"most likely {names[0]} per frame")
+            shown = True
+        if not shown:
+            b.add(_na("posterior evolution"))
+
+
+def _final(b: _Builder, result: dict, arrays: dict, units: str):
+    mpars = result.get("model_parameters") or {}
+    truth = result.get("truth") or {}
+    for method, m in result["methods"].items():
+        b.add(f"<h3>Method: {_e(method)}</h3>")
+        params = _param_entries(m)
+        if not params:
+            b.add(_na("parameter estimates"))
+            continue
+        a = _method_arrays(arrays, method)
+        crlb_arr = a.get("crlb_sd")
+        post_names = [str(n) for n in a.get("posterior.names", [])]
+        rows, panels = [], []
+        for i, (name, v) in enumerate(params.items()):
+            crlb = v.get("crlb_sd")
+            if crlb is None and crlb_arr is not None and i < len(crlb_arr):
+                crlb = float(crlb_arr[i])
+            prior = (mpars.get(name) or {}).get("prior") or {}
+            ref = truth.get(name, (mpars.get(name) or {}).get("nominal"))
+            rows.append((_e(name), _fmt(v.get("map")), _fmt(v.get("mean")), _fmt(v.get("sd")),
+                         _interval(v.get("ci95")),
+                         _fmt(crlb) if crlb is not None else f'<span class="na">{NOT_AVAILABLE}</span>',
+                         _interval([prior.get("lower"), prior.get("upper")]) if prior else "–",
+                         _fmt(ref)))
+            panel = {"name": name, "mean": float(v.get("mean", v["map"])), "sd": float(v.get("sd") or 0.0),
+                     "ci95": v.get("ci95"), "crlb_sd": None if crlb is None else float(crlb),
+                     "refs": _refs(result, name)}
+            k = post_names.index(name) if name in post_names else None
+            if k is not None and f"posterior.axis.{k}" in a:
+                panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
+            elif k is not None and "posterior.cov" in a:
+                panel.update(mean=float(a["posterior.mean"][k]), sd=float(np.sqrt(max(a["posterior.cov"][k, k], 0))),
+                             kind_label="posterior (Gaussian)")
+            else:
+                panel["kind_label"] = "normal with the posterior mean and sd"
+            panels.append(panel)
+        ref_head = "true value" if truth else "nominal (model file)"
+        b.add(_table(["parameter", f"MAP [{units}]", f"mean [{units}]", f"sd [{units}]", "95 % interval",
+                      f"Cramér–Rao sd [{units}]", "prior interval", ref_head], rows))
+        sig = m.get("sigma")
+        if isinstance(sig, dict) and "value" in sig:
+            how = "fixed, not estimated" if sig.get("fixed") else "estimated"
+            ci = f", 95 % interval {_interval(sig.get('ci95'))} {_e(units)}" if sig.get("ci95") else ""
+            b.add(f"<p>Marker noise σ = {_fmt(sig['value'])} {_e(units)} ({how}){ci}.</p>")
+        else:
+            b.add(_na("marker noise σ"))
+        if "frames_used" in m:
+            dropped = f", {_fmt(m['frames_dropped'])} dropped" if "frames_dropped" in m else ""
+            b.add(f"<p>Frames used: {_fmt(m['frames_used'])} of {_fmt(result.get('frames_total'))}{dropped}.</p>")
+        if "seconds" in m:
+            b.add(f"<p>The fit took {_fmt(m['seconds'], 3)} s.</p>")
+        b.figure(partial(fig_final, panels, units, method),
+                 f"final posterior of each parameter ({method})")
+
+
+def _residuals(b: _Builder, result: dict, arrays: dict, units: str):
+    from skelid.workflows import lag1_autocorrelation
+
+    names = [str(n) for n in arrays.get("marker_names", [])]
+    rate = float(arrays.get("rate", 1.0))
+    for method, m in result["methods"].items():
+        b.add(f"<h3>Method: {_e(method)}</h3>")
+        r = _method_arrays(arrays, method).get("residuals")
+        if r is None or np.asarray(r).ndim != 2:
+            b.add(_na("per-marker residuals"))
+            continue
+        r = np.asarray(r, float)
+        sig = m.get("sigma") if isinstance(m.get("sigma"), dict) else {}
+        sigma = sig.get("value")
+        b.figure(partial(fig_residuals, r, names, rate, units, sigma, method),
+                 f"residuals per marker ({method})")
+        rows = []
+        with np.errstate(invalid="ignore"):
+            for k in range(r.shape[1]):
+                col = r[:, k]
+                fin = col[np.isfinite(col)]
+                rows.append((_e(names[k] if k < len(names) else f"marker {k}"),
+                             _fmt(np.sqrt(np.mean(fin ** 2)) if fin.size else None),
+                             _fmt(fin.max() if fin.size else None), _fmt(lag1_autocorrelation(col), 2)))
+        b.add(_table(["marker", f"rms [{units}]", f"max [{units}]", "lag-1 autocorrelation"], rows))
+        b.add("<p>Measurement noise gives residuals that change from frame to frame (autocorrelation near 0); "
+              "soft-tissue artefact gives slow drifts (autocorrelation near 1) that follow the motion.</p>")
+
+
+def _identifiability(b: _Builder, result: dict, units: str):
+    for method, m in result["methods"].items():
+        b.add(f"<h3>Method: {_e(method)}</h3>")
+        rows = m.get("identifiability")
+        if not isinstance(rows, list) or not rows:
+            b.add(_na("identifiability table"))
+            continue
+        b.add(_table(["parameter", f"Cramér–Rao sd [{units}]", "status"],
+                     [(_e(r.get("parameter", "")), _fmt(r.get("crlb_sd")), _e(r.get("status", "")))
+                      for r in rows], left=(0, 2)))
+
+
+def _warnings(b: _Builder, result: dict, notes: list[str]):
+    items = list(result.get("warnings") or [])
+    for m in result["methods"].values():
+        items += [w for w in m.get("warnings", []) or [] if w not in items]
+    items += [n for n in notes if n not in items]
+    if items:
+        b.add("<ul>" + "".join(f'<li class="warn">{_e(w)}</li>' for w in items) + "</ul>")
+    else:
+        b.add("<p>No warnings.</p>")
+
+
+def _provenance(b: _Builder, result: dict):
+    from skelid.workflows import versions
+
+    cmd = result.get("command")
+    if cmd:
+        import shlex
+
+        text = shlex.join(str(c) for c in cmd) if isinstance(cmd, list) else str(cmd)
+        b.add(f"<p>Command (run in <code>{_e(result.get('cwd', '?'))}</code>"
+              f"{', on ' + _e(result['created']) if result.get('created') else ''}):</p><pre>{_e(text)}</pre>")
+    else:
+        b.add(_na("the command (result.json does not record it)"))
+    vers = result.get("versions")
+    if isinstance(vers, dict) and vers:
+        b.add(_table(["package", "version"], [(_e(k), _e(v)) for k, v in vers.items()], left=(0, 1)))
+    else:
+        b.add(_na("versions (result.json does not record them)"))
+    now = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+    b.add(f"<p>This report was written on {_e(now)} by skelid {_e(versions()['skelid'])}.</p>")
+
+
+def build_html(result: dict, arrays: dict, notes=(), progress: bool = False) -> str:
+    """The report as one HTML string (figures embedded)."""
+    units = str(result.get("units") or arrays.get("units", ""))
+    b = _Builder()
+    title = f"skelid report: {result.get('model', 'model')} on {Path(str(result.get('data', ''))).name or 'data'}"
+    b.add(f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_e(title)}</title>\n'
+          f"<style>{CSS}</style>\n</head>\n<body>\n<h1>{_e(title)}</h1>")
+    methods = ", ".join(result["methods"]) or "none"
+    b.add(f"<p>Methods: {_e(methods)}. All lengths are in {_e(units)}.</p>")
+    b.add("<nav><ol>" + "".join(f'<li><a href="#{k}">{_e(t)}</a></li>' for k, t in SECTIONS) + "</ol></nav>")
+    for key, heading in SECTIONS:
+        b.add(f'<h2 id="{key}">{_e(heading)}</h2>')
+        if key == "overview":
+            _overview(b, result)
+        elif key == "trajectories":
+            _trajectories(b, arrays)
+        elif key == "evolution":
+            _evolution(b, result, arrays, units)
+        elif key == "posterior":
+            _final(b, result, arrays, units)
+        elif key == "residuals":
+            _residuals(b, result, arrays, units)
+        elif key == "identifiability":
+            _identifiability(b, result, units)
+        elif key == "warnings":
+            _warnings(b, result, list(notes))
+        else:
+            _provenance(b, result)
+    b.add("</body>\n</html>")
+    return b.render(progress) + "\n"
+
+
+def write_report(result_dir, out=None, progress: bool = False) -> tuple[Path, list[str]]:
+    """Write the HTML report of ``result_dir`` to ``out`` (default ``result_dir/report.html``).
+
+    Returns
+    -------
+    path : Path
+    notes : list of str
+        What the report could not include, for the user to read.
+    """
+    result, arrays, notes = load_result_dir(result_dir)
+    out = Path(out) if out is not None else Path(result_dir) / "report.html"
+    inputs = {(Path(result_dir) / n).resolve() for n in ("result.json", "arrays.npz")}
+    if out.resolve() in inputs:
+        raise SkelidError(f"--out {out} would overwrite the input {out.name}", "choose another file name")
+    if out.is_dir():
+        raise SkelidError(f"--out {out} is a folder", "give the name of the HTML file to write, e.g. report.html")
+    ensure_parent(out)
+    text = build_html(result, arrays, notes, progress)
+    with atomic_write(out, newline="\n") as fh:
+        fh.write(text)
+    return out, notes
