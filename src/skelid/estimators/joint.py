@@ -45,26 +45,46 @@ from skelid.model.description import Model
 from skelid.model.kinematics import marker_jacobian
 
 
+def _banded(Hqq, R):
+    """Upper banded form (for ``scipy.linalg.cholesky_banded``) of ``blockdiag(Hqq) + R``."""
+    T, Q = Hqq.shape[:2]
+    coo = R.tocoo()
+    u = max(Q - 1, int(np.max(coo.col - coo.row)) if coo.nnz else 0)
+    n = T * Q
+    ab = np.zeros((u + 1, n))
+    keep = coo.row <= coo.col
+    np.add.at(ab, (u + coo.row[keep] - coo.col[keep], coo.col[keep]), coo.data[keep])
+    base = np.arange(T)[:, None] * Q
+    for off in range(Q):
+        b = np.arange(off, Q)
+        ab[u - off, (base + b).ravel()] += Hqq[:, b - off, b].ravel()
+    return ab
+
+
+def _banded_solver(Hqq, R):
+    """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    cb = cholesky_banded(_banded(Hqq, R), lower=False, check_finite=False)
+    return lambda rhs: cho_solve_banded((cb, False), rhs, check_finite=False)
+
+
 def pose_edf(Jq, R, chunk: int = 200) -> float:
     """Effective number of pose parameters ``tr((H + R)^{-1} H)`` under the penalty ``R``.
 
     ``H`` is block diagonal (per-frame ``J^T J``); the trace is taken over
     diagonal blocks, solving for ``chunk`` frames' columns at a time.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
     Hqq = pose_information(Jq)
     T, Q = Hqq.shape[:2]
-    H = sp.block_diag(list(Hqq), format="csc")
-    lu = splu((H + R).tocsc())
+    solve = _banded_solver(Hqq, R)
     total = 0.0
     for a in range(0, T, chunk):
         b = min(a + chunk, T)
         rhs = np.zeros((T * Q, (b - a) * Q))
         for k in range(b - a):
             rhs[(a + k) * Q:(a + k + 1) * Q, k * Q:(k + 1) * Q] = Hqq[a + k]
-        X = lu.solve(rhs)
+        X = solve(rhs)
         total += sum(np.trace(X[(a + k) * Q:(a + k + 1) * Q, k * Q:(k + 1) * Q]) for k in range(b - a))
     return float(total)
 
@@ -139,17 +159,12 @@ def smoothing_penalty(model: Model, Hqq, rate: float, cutoff: float):
 
 def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
     """Like :func:`_schur_step` with the pose blocks coupled by the penalty ``R``."""
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
     T, Q = gq.shape
     P = Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
-    A = sp.block_diag(list(Hqq + (lam * dq_)[..., None] * np.eye(Q)), format="csc") + R
-    lu = splu(A.tocsc())
+    solve = _banded_solver(Hqq + (lam * dq_)[..., None] * np.eye(Q), R)
     rhs_q = (gq.ravel() - R @ q.ravel()).reshape(T, Q)
-    sol = lu.solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).transpose(0, 1, 2)
-                   .reshape(T * Q, P + 1))
+    sol = solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).reshape(T * Q, P + 1))
     sol = sol.reshape(T, Q, P + 1)
     G, u = sol[..., :P], sol[..., P]
     dt_ = np.diag(Htt)
@@ -161,7 +176,7 @@ def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
     return dtheta, dq, S
 
 
-def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12,
+def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
               cutoff: float | None = None) -> JointFit:
     """Least squares over ``theta`` and all poses.
@@ -205,7 +220,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
                 dtheta, dq = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
             else:
                 dtheta, dq, _ = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q)
-        except (np.linalg.LinAlgError, RuntimeError):
+        except (np.linalg.LinAlgError, RuntimeError, ValueError):
             lam *= 10.0
             continue
         theta_new = theta + dtheta
@@ -318,7 +333,7 @@ def lag1_autocorrelation(resid, used) -> float:
 
 
 def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
-                  max_frames: int = 600) -> np.ndarray:
+                  max_frames: int | None = None) -> np.ndarray:
     """Second-order bias ``b_theta`` (P,) of the joint fit under the motion-model penalty ``R``.
 
     For ``min ||y - f(beta)||^2 + beta^T R beta`` (``R`` acts on the poses) the
@@ -330,10 +345,12 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
     with ``d_i = tr(C J^T J C \\nabla^2 f_i)`` and ``v_i = (C R C J^T)_{:, i}``;
     without a penalty it is Box's formula. The regularisation bias
     ``-C R beta`` of a motion that is not exactly smooth is not included. Long
-    trials are cut into pieces of ``max_frames`` whose biases are averaged with
-    their information as weights.
+    trials are cut into pieces of ``max_frames`` (default: 2400 pose
+    coordinates' worth) whose biases are averaged with their information as weights.
     """
     T = len(q)
+    if max_frames is None:
+        max_frames = max(50, 2400 // model.n_pose)
     if T > max_frames:
         n = int(np.ceil(T / max_frames))
         edges = np.linspace(0, T, n + 1).astype(int)

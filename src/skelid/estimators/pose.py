@@ -66,9 +66,14 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
         JtJ = np.einsum("...ki,...kj->...ij", J, J)
         Jtr = np.einsum("...ki,...k->...i", J, rv)
         dg = np.einsum("...ii->...i", JtJ)
-        A = JtJ + lam[..., None, None] * (dg[..., None, :] * eye + 1e-9 * eye)
+        ridge = 1e-9 * np.maximum(dg.mean(axis=-1), 1e-300)
+        A = JtJ + lam[..., None, None] * dg[..., None, :] * eye + ridge[..., None, None] * eye
+        bad = ~np.isfinite(A).all(axis=(-2, -1)) | ~np.isfinite(Jtr).all(axis=-1)
+        if bad.any():  # a batch element that went astray stays where it is
+            A = np.where(bad[..., None, None], eye, A)
+            Jtr = np.where(bad[..., None], 0.0, Jtr)
         step = np.linalg.solve(A, Jtr[..., None])[..., 0]
-        q_new = q + step
+        q_new = q + np.where(np.isfinite(step), step, 0.0)
         kin_new, r_new = _residual(model, theta, q_new, y0, mask)
         cost_new = np.sum(r_new**2, axis=(-2, -1))
         ok = cost_new <= cost
