@@ -122,3 +122,15 @@ def test_nan_rows_warn_once_and_still_fit(tmp_path):
     code, err = _run(["fit", str(EXAMPLES / "case_a.toml"), str(p), "--quiet"], tmp_path)
     assert code == 0
     assert err.count("4 of 60 frames have too few markers to fix the pose") == 1
+
+
+def test_cutoff_option_sets_the_motion_model(tmp_path, capsys):
+    trc = tmp_path / "b.trc"
+    assert main(["simulate", "case-b", "--sigma", "2", "--frames", "80", "--out", str(trc)]) == 0
+    capsys.readouterr()
+    for cutoff in ("0", "4"):
+        assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--cutoff", cutoff, "--json"]) == 0
+        res = json.loads(capsys.readouterr().out)
+        lo, hi = res["methods"]["marker"]["L2"]["ci95"]
+        assert lo < 250.0 < hi
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--cutoff", "-1"]) == 2

@@ -150,16 +150,21 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout, nothing else.")
 @click.option("--out", "out_dir", default=None,
               help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
+@click.option("--cutoff", type=float, default=None,
+              help="Motion model of the marker method: poses are smoothed above this frequency "
+                   "(Hz; default 6, 0 = none).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.pass_context
-def fit(ctx, model_path, data_path, method_names, sigma, as_json, out_dir, seed, quiet):
+def fit(ctx, model_path, data_path, method_names, sigma, cutoff, as_json, out_dir, seed, quiet):
     """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
+    _finite("--cutoff", cutoff)
     result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
-                               out_dir=out_dir, command=_command(ctx), progress=not quiet)
+                               out_dir=out_dir, command=_command(ctx), progress=not quiet,
+                               cutoff=cutoff)
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)

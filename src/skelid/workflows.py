@@ -69,7 +69,7 @@ DEMO_METHODS = ("paper", "marker")
 
 
 def make_estimator(name: str, model: Model, sigma: float | None = None,
-                   rng: np.random.Generator | None = None):
+                   rng: np.random.Generator | None = None, cutoff: float | None = None):
     table = methods()
     if name not in table:
         raise ModelError(f"unknown method {name!r}", f"use one of: {', '.join(table)}")
@@ -83,6 +83,11 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
                               f"(size {size:g} {model.units})",
                               f"give the marker noise in {model.units}; markers are rarely better than "
                               f"{0.1 * unit_scale('mm', model.units):g} {model.units}")
+    if cutoff is not None and name == "marker":
+        if not (math.isfinite(cutoff) and cutoff >= 0):
+            raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
+                              "use 0 for no motion model, or e.g. --cutoff 6")
+        return table[name](model, sigma=sigma, rng=rng, cutoff=cutoff or None)
     return table[name](model, sigma=sigma, rng=rng)
 
 
@@ -371,7 +376,7 @@ def _progress_bar(total: int, desc: str, enabled: bool):
 
 
 def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None = None,
-             seed: int = 0, progress: bool = False) -> tuple[dict, dict]:
+             seed: int = 0, progress: bool = False, cutoff: float | None = None) -> tuple[dict, dict]:
     """Fit ``model`` to ``data`` with each method.
 
     Returns
@@ -381,7 +386,8 @@ def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None =
     fitted : dict
         The fitted estimators by name (for figures).
     """
-    estimators = {name: make_estimator(name, model, sigma=sigma, rng=np.random.default_rng(seed))
+    estimators = {name: make_estimator(name, model, sigma=sigma, rng=np.random.default_rng(seed),
+                                       cutoff=cutoff)
                   for name in method_names}  # unknown methods fail before any work
     y = prepare(model, data)
     out = {"model": model.name, "data": data.source, "units": model.units,
@@ -486,7 +492,7 @@ def _json_default(o):
 
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
-            out_dir=None, command=None, progress: bool = False) -> dict:
+            out_dir=None, command=None, progress: bool = False, cutoff: float | None = None) -> dict:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
 
     Returns
@@ -505,12 +511,13 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     check_input_file(data_path, "data file")
     names = list(method_names) or [DEFAULT_METHOD]
     for n in names:
-        make_estimator(n, model, sigma)  # an unknown method or a bad sigma fails before reading
+        make_estimator(n, model, sigma, cutoff=cutoff)  # an unknown method or a bad sigma fails before reading
     with collect_warnings() as read_warnings:
         data = read_markers(data_path)
         check_units(model, data)
     overview = data_overview(data, model)
-    result, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress)
+    result, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
+                              cutoff=cutoff)
     extra = []
     for name, est in fitted.items():
         extra += fit_warnings(model, name, result["methods"][name], est)
