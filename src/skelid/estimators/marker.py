@@ -94,7 +94,7 @@ class MarkerEstimator:
         Use the Newey-West covariance when residuals look like soft-tissue
         artefact ('auto'), always, or never.
     rng : numpy.random.Generator, optional
-        For the random starts of the first frame's pose.
+        For the random starts of poses that rigid fits of the segments do not give.
 
     Attributes
     ----------
@@ -143,9 +143,7 @@ class MarkerEstimator:
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
         if pose0 is None:
-            first = int(np.argmax(np.isfinite(y).all(axis=(1, 2))))
-            q_first, _ = track_poses(model, theta0, y[first:first + 1], rng)
-            pose0, _ = track_poses(model, theta0, _fill_gaps(y), rng, q_first=q_first[0])
+            pose0, _ = track_poses(model, theta0, y, rng)
         fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds)
         used = fit.frames_used
         n_skip = int((~used).sum())
@@ -242,15 +240,6 @@ def _bandwidth(rho: float, n: int) -> int:
     alpha = 4 * rho**2 / (1 - rho) ** 4 if rho > 0 else 0.0
     L = int(np.ceil(1.1447 * (alpha * n) ** (1 / 3)))
     return int(np.clip(L, 1, max(n // 4, 1)))
-
-
-def _fill_gaps(y):
-    """Markers with gaps filled by the last seen position (only to start pose tracking)."""
-    out = np.array(y, float)
-    for t in range(1, len(out)):
-        miss = ~np.isfinite(out[t])
-        out[t][miss] = out[t - 1][miss]
-    return out
 
 
 def _combine_normal_priors(model: Model, theta, cov):
