@@ -47,9 +47,9 @@ from skelid.model.kinematics import marker_jacobian
 
 class JointFit(NamedTuple):
     theta: np.ndarray  # (P,)
-    pose: np.ndarray  # (T, Q)
+    pose: np.ndarray  # (T, Q); frames not used keep their starting pose
     rss: float
-    rss_frame: np.ndarray  # (T,)
+    rss_frame: np.ndarray  # (T,); zero for frames not used
     info: np.ndarray  # (P, P) S = sum_t K_perp^T K_perp (unit noise)
     n_obs: int  # coordinates used
     frames_used: np.ndarray  # (T,) bool
@@ -89,7 +89,7 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
 
 
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12,
-              bounds: tuple | None = None) -> JointFit:
+              bounds: tuple | None = None, frames=None) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -101,12 +101,18 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
         Starting poses (e.g. from :func:`skelid.estimators.pose.track_poses`).
     bounds : (lower (P,), upper (P,)), optional
         Keep ``theta`` inside these bounds (steps are clipped).
+    frames : (T,) bool, optional
+        Frames allowed into the fit (others are skipped), on top of the count
+        of :func:`usable_frames`.
     """
     y = np.asarray(y, dtype=float)
     use = usable_frames(model, y)
-    y = np.where(use[:, None, None], y, np.nan)
+    if frames is not None:
+        use &= np.asarray(frames, dtype=bool)
+    q_all = np.array(q0, dtype=float)
+    y = y[use]  # skipped frames take no part (not even as zero rows)
     theta = np.array(theta0, dtype=float)
-    q = np.array(q0, dtype=float)
+    q = q_all[use]
     r, Jq, Jt = frame_terms(model, theta, q, y)
     cost = float(np.sum(r**2))
     lam = 1e-3
@@ -139,7 +145,10 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
                 break
     Kp = projected_theta_jacobian(Jq, Jt)
     info = np.einsum("tkp,tkq->pq", Kp, Kp)
-    return JointFit(theta, q, cost, np.sum(r**2, axis=1), info,
+    q_all[use] = q
+    rss_frame = np.zeros(len(use))
+    rss_frame[use] = np.sum(r**2, axis=1)
+    return JointFit(theta, q_all, cost, rss_frame, info,
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged)
 
 

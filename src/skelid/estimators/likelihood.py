@@ -64,6 +64,21 @@ def pose_information(J_pose) -> np.ndarray:
     return np.einsum("...ki,...kj->...ij", J_pose, J_pose)
 
 
+def pose_fixed(J_pose, rel_tol: float = 1e-8) -> np.ndarray:
+    """Whether the markers present fix every pose coordinate: ``(...)`` bool.
+
+    The pose information ``J^T J`` is scaled to unit diagonal (so that
+    translations and rotations compare); the pose is fixed when no coordinate
+    has a zero column and the smallest eigenvalue exceeds ``rel_tol``.
+    """
+    H = pose_information(J_pose)
+    d = np.einsum("...ii->...i", H)
+    good = (d > 0).all(axis=-1)
+    s = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))
+    lam = np.linalg.eigvalsh(H * s[..., :, None] * s[..., None, :])[..., 0]
+    return good & (lam > rel_tol)
+
+
 def log_det_pose_information(J_pose) -> np.ndarray:
     """``log det(J^T J)`` per frame ``(...)``; ``-inf`` where the pose is not determined."""
     sign, logdet = np.linalg.slogdet(pose_information(J_pose))

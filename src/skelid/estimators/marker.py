@@ -30,16 +30,73 @@ from skelid.estimators.joint import (
     joint_fit,
     lag1_autocorrelation,
     newey_west,
+    usable_frames,
 )
+from skelid.estimators.likelihood import frame_terms, pose_fixed
 from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
-from skelid.model.kinematics import marker_positions
+from skelid.model.kinematics import joint_distances, marker_positions
 
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 
 
-def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9) -> dict:
+def frame_counts(model: Model, y, used=None) -> dict:
+    """Per-frame counting: independent coordinates against pose coordinates.
+
+    A frame with ``m`` markers present gives ``m D`` coordinates and costs ``Q``
+    pose coordinates; only the surplus ``m D - Q`` can inform ``theta``. Over
+    the trial the surplus must exceed ``P``.
+
+    Parameters
+    ----------
+    y : (T, M, D) float
+        Markers, NaN where missing.
+    used : (T,) bool, optional
+        Frames that entered the fit.
+    """
+    n = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
+    used = n > model.n_pose if used is None else np.asarray(used, bool)
+    surplus = n - model.n_pose
+
+    def stats(v):
+        return {"min": int(v.min()), "median": float(np.median(v)), "max": int(v.max())} if v.size \
+            else {"min": 0, "median": 0.0, "max": 0}
+
+    return {
+        "pose_coordinates_per_frame": model.n_pose,
+        "marker_coordinates_per_frame": stats(n),
+        "surplus_per_frame": stats(surplus),
+        "frames_with_no_surplus": int((surplus <= 0).sum()),
+        "frames_used": int(used.sum()),
+        "surplus_total": int(surplus[used].sum()),
+        "parameters": model.n_params,
+    }
+
+
+def joint_motion(model: Model, pose, used=None) -> dict:
+    """Range (degrees, max - min over the frames used) of every joint rotation but the root's.
+
+    Functional information about a joint (its centre, its axis) comes only
+    from the joint moving; a range of a few degrees means little information.
+    """
+    pose = np.asarray(pose, float)
+    if used is not None:
+        pose = pose[np.asarray(used, bool)]
+    out = {}
+    for s, seg in enumerate(model.segments):
+        if seg.parent is None:
+            continue
+        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
+        if not ks or len(pose) == 0:
+            continue
+        ang = np.unwrap(pose[:, ks], axis=0)
+        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(np.ptp(ang, axis=0))]
+    return out
+
+
+def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9,
+                    y=None, pose=None, used=None) -> dict:
     """Which parameters (and combinations) the data inform.
 
     Parameters are scaled by their prior width so that the spectrum is unit-free.
@@ -47,13 +104,27 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
     is unidentifiable; a parameter whose bound exceeds a quarter of its prior
     width is poorly identified.
 
+    Parameters
+    ----------
+    info : (P, P) float
+        Efficient information for unit noise.
+    sigma : float
+        Noise standard deviation.
+    y : (T, M, D) float, optional
+        Markers, for the per-frame counting.
+    pose : (T, Q) float, optional
+        Fitted poses, for the joints' range of motion.
+    used : (T,) bool, optional
+        Frames that entered the fit.
+
     Returns
     -------
-    dict with ``table`` (one row per parameter) and ``null`` (unidentifiable
-    combinations as ``{name: coefficient}``).
+    dict with ``table`` (one row per parameter), ``null`` (unidentifiable
+    combinations as ``{name: coefficient}``), and with ``y``/``pose`` given,
+    ``counting`` (:func:`frame_counts`) and ``joint_range_deg`` (:func:`joint_motion`).
     """
     width = np.array([p.prior.upper - p.prior.lower for p in model.parameters])
-    scaled = info * np.outer(width, width) / sigma**2
+    scaled = info * np.outer(width, width)
     w, V = np.linalg.eigh(scaled)
     top = max(w.max(), 1e-300)
     null = []
@@ -62,11 +133,12 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
         v = v / np.abs(v).max()
         null.append({n: round(float(c), 3) for n, c in zip(model.parameter_names, v, strict=True)
                      if abs(c) > 1e-3})
-    try:
-        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0, None)) * sigma if not null \
-            else np.full(model.n_params, np.nan)
-    except np.linalg.LinAlgError:
-        sd = np.full(model.n_params, np.nan)
+    sd = np.full(model.n_params, np.nan)
+    if not null:
+        try:
+            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0, None)) * sigma
+        except np.linalg.LinAlgError:
+            pass
     in_null = np.zeros(model.n_params, bool)
     for comb in null:
         for n in comb:
@@ -76,7 +148,24 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
         status = "unidentifiable" if in_null[k] else ("poor" if sd[k] > 0.25 * width[k] else "identified")
         table.append({"parameter": p.name, "crlb_sd": None if not np.isfinite(sd[k]) else float(sd[k]),
                       "status": status})
-    return {"table": table, "null": null}
+    out = {"table": table, "null": null,
+           "condition": float(w.max() / max(w.min(), 1e-300)) if w.size else 1.0}
+    if y is not None:
+        out["counting"] = frame_counts(model, y, used)
+    if pose is not None:
+        out["joint_range_deg"] = joint_motion(model, pose, used)
+    return out
+
+
+def null_message(model: Model, null: list[dict]) -> str:
+    """The unidentifiable combinations in words."""
+    parts = []
+    for comb in null:
+        if len(comb) == 1:
+            parts.append(f"{next(iter(comb))} (no information about it at all)")
+        else:
+            parts.append(" + ".join(f"{c:g}*{n}" for n, c in comb.items()))
+    return "; ".join(parts)
 
 
 class MarkerEstimator:
@@ -111,7 +200,11 @@ class MarkerEstimator:
     sigma_ci_ : (2,) float
     pose_ : (T, Q) float
     residuals_ : (T, M) float
-        Residual distance of each marker in each frame (NaN where missing).
+        Residual distance of each marker in each frame (NaN where missing and
+        in frames skipped).
+    frames_skipped_ : dict
+        Frames left out because they have no more coordinates than pose
+        coordinates, or because their markers do not fix every pose coordinate.
     frames_used_ : (T,) bool
     identifiability_ : dict
     sta_score_ : float
@@ -144,9 +237,14 @@ class MarkerEstimator:
                   np.array([p.prior.upper for p in model.parameters]))
         if pose0 is None:
             pose0, _ = track_poses(model, theta0, y, rng)
-        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds)
+        # a frame whose markers do not fix every pose coordinate is skipped (and counted)
+        _, Jq0, _ = frame_terms(model, theta0, pose0, y)
+        fixed = pose_fixed(Jq0)
+        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed)
         used = fit.frames_used
         n_skip = int((~used).sum())
+        self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
+                                "pose_not_fixed": int((usable_frames(model, y) & ~fixed).sum())}
         if used.sum() == 0:
             raise DataError("no frame has enough markers to fix the pose",
                             "check that the file holds the model's markers")
@@ -167,13 +265,13 @@ class MarkerEstimator:
             sigma2 = float(self.sigma) ** 2
             self.sigma_ci_ = np.array([self.sigma, self.sigma], float)
         self.sigma_ = float(np.sqrt(sigma2))
-        ident = identifiability(model, fit.info, max(self.sigma_, 1e-300))
+        ident = identifiability(model, fit.info, self.sigma_, y=y, pose=fit.pose, used=used)
         self.identifiability_ = ident
         if ident["null"]:
-            combos = "; ".join(" + ".join(f"{c:g}*{n}" for n, c in comb.items()) for comb in ident["null"])
             raise IdentifiabilityError(
-                f"the data cannot identify {combos} (no information about this combination "
-                "for this motion)", "fix one of these parameters or record more varied motion")
+                f"the data cannot identify {null_message(model, ident['null'])} (no information "
+                "about this for this motion and these markers)",
+                "fix one of these parameters (remove it from [[parameters]]) or record more varied motion")
         for row in ident["table"]:
             if row["status"] == "poor":
                 warn_once(f"parameter {row['parameter']} is poorly identified for this motion "
@@ -181,15 +279,15 @@ class MarkerEstimator:
                           "of its prior range)", self.warnings_)
         info_inv = np.linalg.inv(fit.info)
         self.theta_profile_ = fit.theta
-        self.bias_ = box_bias(model, y, fit.theta, fit.pose, sigma2) if self.bias_correction \
-            else np.zeros(P)
+        self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2) \
+            if self.bias_correction else np.zeros(P)
         theta = fit.theta - self.bias_
         cov = sigma2 * info_inv
         self.crlb_sd_ = np.sqrt(np.diag(cov))
         # residual structure: soft-tissue artefact shows as slow, correlated residuals
         x = marker_positions(model, fit.theta, fit.pose)
         resid = y - x
-        self.residuals_ = np.linalg.norm(resid, axis=-1)
+        self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
         self.sta_score_ = lag1_autocorrelation(resid, used)
         flagged = self.sta_score_ > STA_AUTOCORRELATION
         if flagged:
@@ -197,7 +295,7 @@ class MarkerEstimator:
                       f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
                       "interval was widened (Newey-West)", self.warnings_)
         if self.robust == "always" or (self.robust == "auto" and flagged):
-            scores = frame_scores(model, y, fit.theta, fit.pose)[used]
+            scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
@@ -208,6 +306,11 @@ class MarkerEstimator:
         self.frames_used_ = used
         self.fit_info_ = fit
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
+        lengths, grad = joint_distances(model, theta)
+        sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
+        self.lengths_ = {name: {"value": float(v), "sd": float(e),
+                                "ci95": [float(v - 1.959964 * e), float(v + 1.959964 * e)]}
+                         for (name, _), v, e in zip(model.derived_lengths, lengths, sd_len, strict=True)}
         if not fit.converged:
             warn_once("the joint fit stopped before converging; the estimate may be off",
                       self.warnings_)
@@ -220,7 +323,8 @@ class MarkerEstimator:
     def result(self) -> dict:
         """JSON-ready summary."""
         out = {"frames_used": int(self.frames_used_.sum()),
-               "frames_dropped": int((~self.frames_used_).sum())}
+               "frames_dropped": int((~self.frames_used_).sum()),
+               "frames_skipped": dict(self.frames_skipped_)}
         summ = self.posterior_.summary()
         for k, n in enumerate(self.model.parameter_names):
             summ[n]["crlb_sd"] = float(self.crlb_sd_[k])
@@ -228,7 +332,11 @@ class MarkerEstimator:
         out.update(summ)
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
                         "fixed": self.sigma is not None}
+        if self.lengths_:
+            out["lengths"] = self.lengths_
         out["identifiability"] = self.identifiability_["table"]
+        out["counting"] = self.identifiability_.get("counting")
+        out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
         out["residual_autocorrelation"] = self.sta_score_
         out["warnings"] = list(self.warnings_)
         return out

@@ -374,7 +374,7 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
             q[t], _ = initial_pose(model, theta, y[t], rng, n_starts, q[t], known[t])
         else:
             pred = prev if prev2 is None else prev + 0.5 * (prev - prev2)
-            q[t], _ = fit_pose(model, theta, y[t], np.where(known[t], q[t], pred), n_iter=10)
+            q[t], _ = fit_pose(model, theta, y[t], np.where(known[t], q[t], pred), n_iter=5)
         prev2, prev = prev, q[t]
     q, rss = fit_pose(model, theta, y, q, n_iter=n_refine)
     # frames that ended in a poor local minimum: random restarts (batched over those frames)

@@ -87,8 +87,19 @@ def _rotation(dim: int, axis, angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     if dim == 2:
         return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    K = _skew(axis)
-    return np.eye(3) + s[..., None, None] * K + (1.0 - c)[..., None, None] * (K @ K)
+    axis = np.asarray(axis, dtype=float)
+    if axis.ndim == 1:
+        K = _SKEW_CACHE.get(axis.tobytes())
+        if K is None:
+            K = _SKEW_CACHE.setdefault(axis.tobytes(), (_skew(axis), _skew(axis) @ _skew(axis)))
+        K, K2 = K
+    else:
+        K = _skew(axis)
+        K2 = K @ K
+    return np.eye(3) + s[..., None, None] * K + (1.0 - c)[..., None, None] * K2
+
+
+_SKEW_CACHE: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
 
 def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
@@ -204,6 +215,33 @@ def forward_kinematics(model: Model, theta, pose) -> Kinematics:
     ms = model.marker_segment
     x = p[..., ms, :] + np.einsum("...mij,...mj->...mi", R[..., ms, :, :], r_marker)
     return Kinematics(R, p, Rpar, axis, pivot, x, g, omega)
+
+
+def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
+    """The model's derived lengths and their gradients.
+
+    Parameters
+    ----------
+    theta : (..., P) float
+
+    Returns
+    -------
+    lengths : (..., K) float
+        ``|o_s(theta)|`` for each entry of :attr:`Model.derived_lengths`.
+    grad : (..., K, P) float
+        ``d lengths / d theta``.
+    """
+    D = model.dim
+    g_base, A = model.geometry_map
+    segs = [s for _, s in model.derived_lengths]
+    theta = np.asarray(theta, dtype=float)
+    if not segs:
+        return np.zeros(theta.shape[:-1] + (0,)), np.zeros(theta.shape[:-1] + (0, model.n_params))
+    rows = np.array([[s * D + d for d in range(D)] for s in segs])  # (K, D)
+    o = g_base[rows] + np.einsum("kdp,...p->...kd", A[rows], theta)
+    n = np.linalg.norm(o, axis=-1)
+    grad = np.einsum("...kd,kdp->...kp", o / np.maximum(n, 1e-300)[..., None], A[rows])
+    return n, grad
 
 
 def marker_positions(model: Model, theta, pose) -> np.ndarray:
