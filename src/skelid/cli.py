@@ -94,7 +94,7 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.argument("model_path")
 @click.argument("data_path", type=click.Path(dir_okay=False))
 @click.option("--method", "method_names", multiple=True,
-              help="Estimator (repeat for several): paper. Default: the best available.")
+              help="Estimator (repeat for several): paper, marker. Default: the best available.")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Marker noise in model units (default 15 mm for the paper method).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout.")

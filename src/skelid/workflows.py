@@ -22,9 +22,10 @@ from skelid.model.description import Model
 
 def methods() -> dict:
     """Estimator classes by method name."""
+    from skelid.estimators.marker import MarkerEstimator
     from skelid.estimators.paper import PaperFilter
 
-    return {"paper": PaperFilter}
+    return {"paper": PaperFilter, "marker": MarkerEstimator}
 
 
 DEFAULT_METHOD = "paper"

@@ -58,3 +58,10 @@ def test_tracking_finds_the_global_minimum_on_a_fast_3d_trial():
     trial = simulate(model, n_frames=60, rate=20.0, sigma=0.0, rng=np.random.default_rng(7))
     q, rss = track_poses(model, trial.theta, trial.data.positions, np.random.default_rng(0))
     assert rss.max() < 1e-8
+
+
+def test_tracking_with_a_stride_reaches_the_same_poses():
+    model = tree_3d()
+    trial = simulate(model, n_frames=120, rate=100.0, sigma=0.0, rng=np.random.default_rng(8))
+    q, rss = track_poses(model, trial.theta, trial.data.positions, np.random.default_rng(0), stride=4)
+    assert rss.max() < 1e-8

@@ -75,7 +75,8 @@ def _normal_blocks(r, Jq, Jt):
 def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     Q, P = Hqq.shape[-1], Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
-    scale = np.maximum(dq_.mean(axis=1), 1e-300)
+    # ridge relative to the frame's own scale, or to the trial's for a frame with no rows
+    scale = np.maximum(dq_.mean(axis=1), max(dq_.mean(), 1e-300))
     A = Hqq + (lam * dq_)[..., None] * np.eye(Q) + 1e-12 * scale[:, None, None] * np.eye(Q)
     sol = np.linalg.solve(A, np.concatenate([Hqt, gq[..., None]], axis=-1))
     G, u = sol[..., :P], sol[..., P]
@@ -109,10 +110,9 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
     use = usable_frames(model, y)
     if frames is not None:
         use &= np.asarray(frames, dtype=bool)
-    q_all = np.array(q0, dtype=float)
-    y = y[use]  # skipped frames take no part (not even as zero rows)
+    y = np.where(use[:, None, None], y, np.nan)  # skipped frames give zero rows: no part in the fit
     theta = np.array(theta0, dtype=float)
-    q = q_all[use]
+    q = np.array(q0, dtype=float)
     r, Jq, Jt = frame_terms(model, theta, q, y)
     cost = float(np.sum(r**2))
     lam = 1e-3
@@ -145,10 +145,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-12
                 break
     Kp = projected_theta_jacobian(Jq, Jt)
     info = np.einsum("tkp,tkq->pq", Kp, Kp)
-    q_all[use] = q
-    rss_frame = np.zeros(len(use))
-    rss_frame[use] = np.sum(r**2, axis=1)
-    return JointFit(theta, q_all, cost, rss_frame, info,
+    return JointFit(theta, q, cost, np.sum(r**2, axis=1), info,
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged)
 
 

@@ -94,7 +94,9 @@ def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12):
     """
     H = pose_information(J_pose)
     Q = H.shape[-1]
-    scale = np.maximum(np.einsum("...ii->...", H) / max(Q, 1), 1e-300)
+    tr = np.einsum("...ii->...", H) / max(Q, 1)
+    # a frame without rows (skipped) gets the mean scale, so that its projection is 0, not NaN
+    scale = np.maximum(tr, max(float(np.mean(tr)) if tr.size else 0.0, 1e-300))
     G = np.linalg.solve(H + ridge * scale[..., None, None] * np.eye(Q),
                         np.einsum("...ki,...kp->...ip", J_pose, J_theta))
     return J_theta - J_pose @ G

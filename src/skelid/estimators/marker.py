@@ -236,7 +236,9 @@ class MarkerEstimator:
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
         if pose0 is None:
-            pose0, _ = track_poses(model, theta0, y, rng)
+            rate = data.rate if isinstance(data, MarkerData) else None
+            stride = max(1, int(rate // 25)) if rate else 1
+            pose0, _ = track_poses(model, theta0, y, rng, stride=stride)
         # a frame whose markers do not fix every pose coordinate is skipped (and counted)
         _, Jq0, _ = frame_terms(model, theta0, pose0, y)
         fixed = pose_fixed(Jq0)

@@ -334,7 +334,7 @@ def pose_determined(model: Model, y) -> np.ndarray:
 
 
 def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
-                n_refine: int = 30, n_starts: int = 64):
+                n_refine: int = 30, n_starts: int = 64, stride: int = 1):
     """Poses of every frame of a trial for fixed ``theta``.
 
     Rigid fits and inverse kinematics give every coordinate they can, in all
@@ -350,6 +350,10 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
         Markers, NaN where missing.
     q_first : (Q,) float, optional
         Pose of frame 0, if known.
+    stride : int
+        Of the frames that rigid fits do not settle, track only every
+        ``stride``-th sequentially and start the others from linear
+        interpolation between resolved frames (for densely sampled, smooth motion).
 
     Returns
     -------
@@ -364,6 +368,13 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
     todo = ~known.all(axis=1) & enough
     if q_first is not None:
         q[0], known[0], todo[0] = q_first, True, False
+    stride = max(int(stride), 1)
+    later = np.zeros(F, dtype=bool)
+    if stride > 1:
+        pos = np.cumsum(todo) - 1  # rank among the frames to track
+        later = todo & (pos % stride != 0)
+        later[np.flatnonzero(todo)[-1:]] = False  # the last one is tracked
+        todo &= ~later
     prev2 = prev = None
     for t in range(F):  # only frames that rigid fits do not settle
         if not todo[t]:
@@ -376,6 +387,13 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
             pred = prev if prev2 is None else prev + 0.5 * (prev - prev2)
             q[t], _ = fit_pose(model, theta, y[t], np.where(known[t], q[t], pred), n_iter=5)
         prev2, prev = prev, q[t]
+    if later.any():
+        anchors = np.flatnonzero(enough & ~later)
+        if anchors.size:
+            qa = np.unwrap(q[anchors], axis=0)
+            interp = np.stack([np.interp(np.flatnonzero(later), anchors, qa[:, k])
+                               for k in range(model.n_pose)], axis=-1)
+            q[later] = np.where(known[later], q[later], interp)
     q, rss = fit_pose(model, theta, y, q, n_iter=n_refine)
     # frames that ended in a poor local minimum: random restarts (batched over those frames)
     ok = enough & np.isfinite(rss)
