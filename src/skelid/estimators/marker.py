@@ -39,6 +39,7 @@ from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
 
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
+STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 
 
 def frame_counts(model: Model, y, used=None) -> dict:
@@ -274,10 +275,10 @@ class MarkerEstimator:
                 f"the data cannot identify {null_message(model, ident['null'])} (no information "
                 "about this for this motion and these markers)",
                 "fix one of these parameters (remove it from [[parameters]]) or record more varied motion")
-        for row in ident["table"]:
+        for k, row in enumerate(ident["table"]):
             if row["status"] == "poor":
                 warn_once(f"parameter {row['parameter']} is poorly identified for this motion "
-                          f"(Cramér-Rao sd {row['crlb_sd']:.3g} {model.units} is more than a quarter "
+                          f"(Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than a quarter "
                           "of its prior range)", self.warnings_)
         info_inv = np.linalg.inv(fit.info)
         self.theta_profile_ = fit.theta
@@ -308,6 +309,23 @@ class MarkerEstimator:
         self.frames_used_ = used
         self.fit_info_ = fit
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
+        # the final interval (widened for correlated residuals) also decides "poor"
+        sd_post = self.posterior_.sd
+        for k, row in enumerate(ident["table"]):
+            p = model.parameters[k]
+            row["sd"] = float(sd_post[k])
+            if row["status"] == "identified" and sd_post[k] > 0.25 * (p.prior.upper - p.prior.lower):
+                row["status"] = "poor"
+                warn_once(f"parameter {p.name} is poorly identified for this motion (sd "
+                          f"{sd_post[k]:.3g} {_unit(model, k)} is more than a quarter of its prior range)",
+                          self.warnings_)
+        functional = {p.target for p in model.parameters if p.kind in ("joint_centre", "axis_direction")}
+        still = [j for j, r in ident.get("joint_range_deg", {}).items()
+                 if j in functional and max(r) < STILL_JOINT_DEG]
+        if still:
+            warn_once(f"joint(s) {', '.join(still)} moved less than {STILL_JOINT_DEG:g} degrees: their "
+                      "centres and axes are informed only by tiny motions (a static trial cannot "
+                      "locate a joint functionally)", self.warnings_)
         lengths, grad = joint_distances(model, theta)
         sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
         self.lengths_ = {name: {"value": float(v), "sd": float(e),
@@ -342,6 +360,11 @@ class MarkerEstimator:
         out["residual_autocorrelation"] = self.sta_score_
         out["warnings"] = list(self.warnings_)
         return out
+
+
+def _unit(model: Model, k: int) -> str:
+    """Unit of parameter ``k``: degrees for axis tilts, the model's length unit otherwise."""
+    return "deg" if model.parameters[k].kind == "axis_direction" else model.units
 
 
 def _bandwidth(rho: float, n: int) -> int:
