@@ -79,3 +79,18 @@ def test_gaps_use_present_markers_and_skip_frames_that_cannot_fix_the_pose():
     ref = _fit(model, trial.data.replace(positions=y[keep]))
     np.testing.assert_allclose(est.theta_, ref.theta_, atol=1e-6)
     np.testing.assert_allclose(est.posterior_.sd, ref.posterior_.sd, rtol=1e-6)
+
+
+def test_glitched_marker_positions_are_left_out_and_counted():
+    model = tree_3d()
+    trial = simulate(model, n_frames=80, sigma=1.0, rng=np.random.default_rng(6))
+    y = trial.data.positions.copy()
+    bad = [(10, 3), (11, 3), (40, 7), (60, 0)]
+    for t, m in bad:
+        y[t, m] += [150.0, -80.0, 60.0]  # a swapped or glitched label
+    est = _fit(model, trial.data.replace(positions=y))
+    assert sorted(zip(*np.nonzero(est.outliers_), strict=True)) == bad
+    clean = _fit(model, trial.data)
+    assert not clean.outliers_.any()
+    np.testing.assert_allclose(est.theta_, clean.theta_, atol=0.5 * clean.posterior_.sd.max())
+    assert est.result()["outlying_marker_positions"] == 4

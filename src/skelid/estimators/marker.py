@@ -33,7 +33,7 @@ from skelid.estimators.joint import (
     usable_frames,
 )
 from skelid.estimators.likelihood import frame_terms, pose_fixed
-from skelid.estimators.pose import track_poses
+from skelid.estimators.pose import fit_pose, track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
@@ -76,7 +76,10 @@ def frame_counts(model: Model, y, used=None) -> dict:
 
 
 def joint_motion(model: Model, pose, used=None) -> dict:
-    """Range (degrees, max - min over the frames used) of every joint rotation but the root's.
+    """Range of every joint rotation but the root's (degrees; central 95 % of the frames).
+
+    Angles are taken about their circular mean; the 2.5 and 97.5 percentiles
+    keep a few badly fitted frames from inflating the range.
 
     Functional information about a joint (its centre, its axis) comes only
     from the joint moving; a range of a few degrees means little information.
@@ -91,8 +94,10 @@ def joint_motion(model: Model, pose, used=None) -> dict:
         ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
         if not ks or len(pose) == 0:
             continue
-        ang = np.unwrap(pose[:, ks], axis=0)
-        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(np.ptp(ang, axis=0))]
+        z = np.exp(1j * pose[:, ks])
+        ang = np.angle(z * np.conj(z.mean(axis=0)))  # about the circular mean, in (-pi, pi]
+        lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
+        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
     return out
 
 
@@ -185,6 +190,10 @@ class MarkerEstimator:
         artefact ('auto'), always, or never.
     rng : numpy.random.Generator, optional
         For the random starts of poses that rigid fits of the segments do not give.
+    outlier_threshold : float or None
+        Marker positions whose residual distance after a first fit exceeds this
+        many robust standard deviations are left out and the fit repeated
+        (None: keep every position).
 
     Attributes
     ----------
@@ -203,6 +212,9 @@ class MarkerEstimator:
     residuals_ : (T, M) float
         Residual distance of each marker in each frame (NaN where missing and
         in frames skipped).
+    outliers_ : (T, M) bool
+        Marker positions left out as outliers (residual distance beyond
+        ``outlier_threshold`` robust standard deviations after a first fit).
     frames_skipped_ : dict
         Frames left out because they have no more coordinates than pose
         coordinates, or because their markers do not fix every pose coordinate.
@@ -216,13 +228,15 @@ class MarkerEstimator:
     name = "marker"
 
     def __init__(self, model: Model, sigma: float | None = None, bias_correction: bool = True,
-                 robust: str = "auto", rng: np.random.Generator | None = None, n_iter: int = 100):
+                 robust: str = "auto", rng: np.random.Generator | None = None, n_iter: int = 100,
+                 outlier_threshold: float | None = 8.0):
         self.model = model
         self.sigma = sigma
         self.bias_correction = bias_correction
         self.robust = robust
         self.rng = rng
         self.n_iter = n_iter
+        self.outlier_threshold = outlier_threshold
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
@@ -238,12 +252,25 @@ class MarkerEstimator:
                   np.array([p.prior.upper for p in model.parameters]))
         if pose0 is None:
             rate = data.rate if isinstance(data, MarkerData) else None
-            stride = max(1, int(rate // 25)) if rate else 1
+            stride = max(1, int(rate // 50)) if rate else 1  # track at about 50 Hz
             pose0, _ = track_poses(model, theta0, y, rng, stride=stride)
         # a frame whose markers do not fix every pose coordinate is skipped (and counted)
         _, Jq0, _ = frame_terms(model, theta0, pose0, y)
         fixed = pose_fixed(Jq0)
         fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed)
+        self.outliers_ = np.zeros(y.shape[:2], dtype=bool)
+        if self.outlier_threshold is not None:
+            out = _outlying_markers(model, y, fit, self.outlier_threshold)
+            if out.any():  # drop them (they become missing, not replaced) and fit again
+                self.outliers_ = out
+                y = np.where(out[..., None], np.nan, y)
+                _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y)
+                fixed = pose_fixed(Jq0)
+                fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
+                                frames=fixed)
+                warn_once(f"{int(out.sum())} marker positions in {int(out.any(axis=1).sum())} frames lie "
+                          f"more than {self.outlier_threshold:g} robust standard deviations from the "
+                          "fitted model (mislabelled or glitched markers?) and were left out", self.warnings_)
         used = fit.frames_used
         n_skip = int((~used).sum())
         self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
@@ -344,7 +371,8 @@ class MarkerEstimator:
         """JSON-ready summary."""
         out = {"frames_used": int(self.frames_used_.sum()),
                "frames_dropped": int((~self.frames_used_).sum()),
-               "frames_skipped": dict(self.frames_skipped_)}
+               "frames_skipped": dict(self.frames_skipped_),
+               "outlying_marker_positions": int(self.outliers_.sum())}
         summ = self.posterior_.summary()
         for k, n in enumerate(self.model.parameter_names):
             summ[n]["crlb_sd"] = float(self.crlb_sd_[k])
@@ -360,6 +388,40 @@ class MarkerEstimator:
         out["residual_autocorrelation"] = self.sta_score_
         out["warnings"] = list(self.warnings_)
         return out
+
+
+def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
+    """(T, M) bool: marker positions whose residual distance is an outlier.
+
+    With Gaussian noise the residual distance is ``sigma`` times a chi variable
+    with ``D`` degrees of freedom; ``sigma`` is estimated robustly from the
+    median distance. One glitched marker also drags its frame's pose, so in
+    each round only the worst marker of a frame is flagged, if beyond
+    ``threshold * sigma``, and that frame's pose refitted without it.
+    """
+    from scipy.stats import chi
+
+    used = fit.frames_used
+    out = np.zeros(y.shape[:2], dtype=bool)
+    pose = fit.pose.copy()
+    d = np.linalg.norm(y - marker_positions(model, fit.theta, pose), axis=-1)
+    d = np.where(used[:, None], d, np.nan)
+    if not np.isfinite(d).any():
+        return out
+    floor = 1e-6 * float(np.abs(model.nominal_geometry).max())  # numerical noise of exact data
+    limit = threshold * np.nanmedian(d) / chi.median(model.dim) + floor
+    for _ in range(n_rounds):
+        dd = np.where(np.isfinite(d), d, -1.0)
+        worst = np.argmax(dd, axis=1)
+        flag = used & (dd[np.arange(len(dd)), worst] > limit)
+        if not flag.any():
+            break
+        out[flag, worst[flag]] = True
+        yy = np.where(out[flag][..., None], np.nan, y[flag])
+        pose[flag], _ = fit_pose(model, fit.theta, yy, pose[flag], n_iter=20)
+        d[flag] = np.where(out[flag], np.nan,
+                           np.linalg.norm(yy - marker_positions(model, fit.theta, pose[flag]), axis=-1))
+    return out
 
 
 def _unit(model: Model, k: int) -> str:

@@ -45,7 +45,7 @@ def _residual(model, theta, q, y0, mask):
     return kin, r
 
 
-def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
+def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3):
     """Least-squares pose for each frame (and hypothesis).
 
     Parameters
@@ -60,6 +60,9 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
         Maximum Levenberg-Marquardt iterations.
     tol : float
         Relative decrease of the residual sum of squares that stops the iteration.
+    damping : float
+        Initial Levenberg-Marquardt damping; a larger value keeps the first
+        steps short (tracking from a good prediction).
 
     Returns
     -------
@@ -76,7 +79,7 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
     q = np.broadcast_to(q, batch + q.shape[-1:]).copy()
     kin, r = _residual(model, theta, q, y0, mask)
     cost = np.sum(r**2, axis=(-2, -1))
-    lam = np.full(batch, 1e-3)
+    lam = np.full(batch, float(damping))
     Q = model.n_pose
     eye = np.eye(Q)
     for _ in range(n_iter):
@@ -390,7 +393,8 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
     if later.any():
         anchors = np.flatnonzero(enough & ~later)
         if anchors.size:
-            qa = np.unwrap(q[anchors], axis=0)
+            rot = np.array([d.kind == "R" for d in model.dofs])
+            qa = np.where(rot, np.unwrap(q[anchors], axis=0), q[anchors])
             interp = np.stack([np.interp(np.flatnonzero(later), anchors, qa[:, k])
                                for k in range(model.n_pose)], axis=-1)
             q[later] = np.where(known[later], q[later], interp)
