@@ -80,7 +80,9 @@ def _unit(v, where: str) -> tuple[float, ...]:
     n = float(np.linalg.norm(a))
     if a.shape != (3,) or not np.isfinite(n) or n == 0:
         raise ModelError(f"{where}: an axis must be three finite numbers, not all zero, got {v!r}")
-    return tuple(float(x) for x in a / n)
+    if abs(n - 1.0) > 1e-12:  # leave unit vectors alone, so that a model written out reads back equal
+        a = a / n
+    return tuple(float(x) for x in a)
 
 
 def tilt_basis(axis) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
