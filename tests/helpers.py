@@ -40,3 +40,21 @@ def tree_3d():
              "prior": {"type": "lognormal", "median": 25, "sd_log": 0.3}},
         ],
     })
+
+
+def tree_3d_functional():
+    """The 3-D test tree with vector, joint-centre and hinge-axis parameters."""
+    d = tree_3d().to_dict()
+    d["parameters"] = [
+        {"name": "hip", "kind": "joint_centre", "joint": "hip", "axes": ["x", "y", "z"],
+         "prior": {"type": "uniform", "lower": -40, "upper": 40}},
+        {"name": "knee", "kind": "joint_centre", "joint": "knee", "axes": ["x", "y"],
+         "prior": {"type": "normal", "sd": 15}},
+        {"name": "knee_axis", "kind": "axis_direction", "joint": "knee", "axes": ["u", "v"],
+         "prior": {"type": "uniform", "lower": -20, "upper": 20}},
+        {"name": "f1", "kind": "marker_position", "marker": "f1", "axes": ["x", "z"],
+         "prior": [{"type": "normal", "sd": 10}, {"type": "uniform", "lower": -30, "upper": 30}]},
+        {"name": "arm_offset", "kind": "length", "joint": "weld",
+         "prior": {"type": "uniform", "lower": 250, "upper": 350}},
+    ]
+    return model_from_dict(d, "tree3d_functional")

@@ -24,7 +24,7 @@ def tennis(shared_data):
 
 
 def test_tennis_arm_model_fits_the_recording(tennis):
-    model = load_model(EXAMPLES / "tennis_arm.toml")
+    model = load_model(EXAMPLES / "tennis_forearm.toml")
     assert (model.dim, model.units, model.parameter_names) == (3, "m", ("forearm_length",))
     check_units(model, tennis)  # no error: the model's distances are the data's
     y = tennis.select(model.marker_names, model.marker_labels).positions

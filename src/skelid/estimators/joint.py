@@ -65,7 +65,10 @@ def _banded_solver(Hqq, R):
     """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky."""
     from scipy.linalg import cho_solve_banded, cholesky_banded
 
-    cb = cholesky_banded(_banded(Hqq, R), lower=False, check_finite=False)
+    ab = _banded(Hqq, R)
+    u = ab.shape[0] - 1
+    ab[u] += 1e-10 * max(float(np.mean(ab[u])), 1e-300)  # frames without markers: keep it definite
+    cb = cholesky_banded(ab, lower=False, check_finite=False)
     return lambda rhs: cho_solve_banded((cb, False), rhs, check_finite=False)
 
 
@@ -91,9 +94,9 @@ def pose_edf(Jq, R, chunk: int = 200) -> float:
 
 class JointFit(NamedTuple):
     theta: np.ndarray  # (P,)
-    pose: np.ndarray  # (T, Q)
+    pose: np.ndarray  # (T, Q); frames not used keep their starting pose
     rss: float
-    rss_frame: np.ndarray  # (T,)
+    rss_frame: np.ndarray  # (T,); zero for frames not used
     info: np.ndarray  # (P, P) S = sum_t K_perp^T K_perp (unit noise)
     n_obs: int  # coordinates used
     frames_used: np.ndarray  # (T,) bool
@@ -121,7 +124,8 @@ def _normal_blocks(r, Jq, Jt):
 def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     Q, P = Hqq.shape[-1], Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
-    scale = np.maximum(dq_.mean(axis=1), 1e-300)
+    # ridge relative to the frame's own scale, or to the trial's for a frame with no rows
+    scale = np.maximum(dq_.mean(axis=1), max(dq_.mean(), 1e-300))
     A = Hqq + (lam * dq_)[..., None] * np.eye(Q) + 1e-12 * scale[:, None, None] * np.eye(Q)
     sol = np.linalg.solve(A, np.concatenate([Hqt, gq[..., None]], axis=-1))
     G, u = sol[..., :P], sol[..., P]
@@ -176,9 +180,21 @@ def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
     return dtheta, dq, S
 
 
+def _continuous_poses(model: Model, q, use):
+    """Starting poses fit for a motion model: angles unwrapped, skipped frames interpolated."""
+    q = np.array(q, dtype=float)
+    idx = np.flatnonzero(use)
+    if idx.size == 0:
+        return q
+    rot = np.array([d.kind == "R" for d in model.dofs])
+    qa = np.where(rot, np.unwrap(q[idx], axis=0), q[idx])
+    t = np.arange(len(q))
+    return np.stack([np.interp(t, idx, qa[:, k]) for k in range(q.shape[1])], axis=-1)
+
+
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
-              cutoff: float | None = None) -> JointFit:
+              cutoff: float | None = None, frames=None) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -194,16 +210,24 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         With both, poses follow the low-pass motion model of
         :func:`smoothing_penalty` (cutoff in Hz); ``info`` is then the
         information about ``theta`` given that motion model.
+    frames : (T,) bool, optional
+        Frames allowed into the fit (others are skipped), on top of the count
+        of :func:`usable_frames`.
     """
     y = np.asarray(y, dtype=float)
     use = usable_frames(model, y)
-    y = np.where(use[:, None, None], y, np.nan)
+    if frames is not None:
+        use &= np.asarray(frames, dtype=bool)
+    y = np.where(use[:, None, None], y, np.nan)  # skipped frames give zero rows: no part in the fit
     theta = np.array(theta0, dtype=float)
     q = np.array(q0, dtype=float)
-    r, Jq, Jt = frame_terms(model, theta, q, y)
     R = None
     if cutoff is not None and rate is not None:
+        q = _continuous_poses(model, q, use)
+        r, Jq, Jt = frame_terms(model, theta, q, y)
         R = smoothing_penalty(model, pose_information(Jq), rate, cutoff)
+    else:
+        r, Jq, Jt = frame_terms(model, theta, q, y)
 
     def total(r_, q_):
         c = float(np.sum(r_**2))

@@ -64,6 +64,21 @@ def pose_information(J_pose) -> np.ndarray:
     return np.einsum("...ki,...kj->...ij", J_pose, J_pose)
 
 
+def pose_fixed(J_pose, rel_tol: float = 1e-8) -> np.ndarray:
+    """Whether the markers present fix every pose coordinate: ``(...)`` bool.
+
+    The pose information ``J^T J`` is scaled to unit diagonal (so that
+    translations and rotations compare); the pose is fixed when no coordinate
+    has a zero column and the smallest eigenvalue exceeds ``rel_tol``.
+    """
+    H = pose_information(J_pose)
+    d = np.einsum("...ii->...i", H)
+    good = (d > 0).all(axis=-1)
+    s = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))
+    lam = np.linalg.eigvalsh(H * s[..., :, None] * s[..., None, :])[..., 0]
+    return good & (lam > rel_tol)
+
+
 def log_det_pose_information(J_pose) -> np.ndarray:
     """``log det(J^T J)`` per frame ``(...)``; ``-inf`` where the pose is not determined."""
     sign, logdet = np.linalg.slogdet(pose_information(J_pose))
@@ -79,7 +94,9 @@ def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12):
     """
     H = pose_information(J_pose)
     Q = H.shape[-1]
-    scale = np.maximum(np.einsum("...ii->...", H) / max(Q, 1), 1e-300)
+    tr = np.einsum("...ii->...", H) / max(Q, 1)
+    # a frame without rows (skipped) gets the mean scale, so that its projection is 0, not NaN
+    scale = np.maximum(tr, max(float(np.mean(tr)) if tr.size else 0.0, 1e-300))
     G = np.linalg.solve(H + ridge * scale[..., None, None] * np.eye(Q),
                         np.einsum("...ki,...kp->...ip", J_pose, J_theta))
     return J_theta - J_pose @ G

@@ -31,16 +31,79 @@ from skelid.estimators.joint import (
     lag1_autocorrelation,
     newey_west,
     smoothed_bias,
+    usable_frames,
 )
-from skelid.estimators.pose import track_poses
+from skelid.estimators.likelihood import frame_terms, pose_fixed
+from skelid.estimators.pose import fit_pose, track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
-from skelid.model.kinematics import marker_positions
+from skelid.model.kinematics import joint_distances, marker_positions
 
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
+STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 
 
-def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9) -> dict:
+def frame_counts(model: Model, y, used=None) -> dict:
+    """Per-frame counting: independent coordinates against pose coordinates.
+
+    A frame with ``m`` markers present gives ``m D`` coordinates and costs ``Q``
+    pose coordinates; only the surplus ``m D - Q`` can inform ``theta``. Over
+    the trial the surplus must exceed ``P``.
+
+    Parameters
+    ----------
+    y : (T, M, D) float
+        Markers, NaN where missing.
+    used : (T,) bool, optional
+        Frames that entered the fit.
+    """
+    n = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
+    used = n > model.n_pose if used is None else np.asarray(used, bool)
+    surplus = n - model.n_pose
+
+    def stats(v):
+        return {"min": int(v.min()), "median": float(np.median(v)), "max": int(v.max())} if v.size \
+            else {"min": 0, "median": 0.0, "max": 0}
+
+    return {
+        "pose_coordinates_per_frame": model.n_pose,
+        "marker_coordinates_per_frame": stats(n),
+        "surplus_per_frame": stats(surplus),
+        "frames_with_no_surplus": int((surplus <= 0).sum()),
+        "frames_used": int(used.sum()),
+        "surplus_total": int(surplus[used].sum()),
+        "parameters": model.n_params,
+    }
+
+
+def joint_motion(model: Model, pose, used=None) -> dict:
+    """Range of every joint rotation but the root's (degrees; central 95 % of the frames).
+
+    Angles are taken about their circular mean; the 2.5 and 97.5 percentiles
+    keep a few badly fitted frames from inflating the range.
+
+    Functional information about a joint (its centre, its axis) comes only
+    from the joint moving; a range of a few degrees means little information.
+    """
+    pose = np.asarray(pose, float)
+    if used is not None:
+        pose = pose[np.asarray(used, bool)]
+    out = {}
+    for s, seg in enumerate(model.segments):
+        if seg.parent is None:
+            continue
+        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
+        if not ks or len(pose) == 0:
+            continue
+        z = np.exp(1j * pose[:, ks])
+        ang = np.angle(z * np.conj(z.mean(axis=0)))  # about the circular mean, in (-pi, pi]
+        lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
+        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
+    return out
+
+
+def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9,
+                    y=None, pose=None, used=None) -> dict:
     """Which parameters (and combinations) the data inform.
 
     Parameters are scaled by their prior width so that the spectrum is unit-free.
@@ -48,13 +111,27 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
     is unidentifiable; a parameter whose bound exceeds a quarter of its prior
     width is poorly identified.
 
+    Parameters
+    ----------
+    info : (P, P) float
+        Efficient information for unit noise.
+    sigma : float
+        Noise standard deviation.
+    y : (T, M, D) float, optional
+        Markers, for the per-frame counting.
+    pose : (T, Q) float, optional
+        Fitted poses, for the joints' range of motion.
+    used : (T,) bool, optional
+        Frames that entered the fit.
+
     Returns
     -------
-    dict with ``table`` (one row per parameter) and ``null`` (unidentifiable
-    combinations as ``{name: coefficient}``).
+    dict with ``table`` (one row per parameter), ``null`` (unidentifiable
+    combinations as ``{name: coefficient}``), and with ``y``/``pose`` given,
+    ``counting`` (:func:`frame_counts`) and ``joint_range_deg`` (:func:`joint_motion`).
     """
     width = np.array([p.prior.upper - p.prior.lower for p in model.parameters])
-    scaled = info * np.outer(width, width) / sigma**2
+    scaled = info * np.outer(width, width)
     w, V = np.linalg.eigh(scaled)
     top = max(w.max(), 1e-300)
     null = []
@@ -63,11 +140,12 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
         v = v / np.abs(v).max()
         null.append({n: round(float(c), 3) for n, c in zip(model.parameter_names, v, strict=True)
                      if abs(c) > 1e-3})
-    try:
-        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0, None)) * sigma if not null \
-            else np.full(model.n_params, np.nan)
-    except np.linalg.LinAlgError:
-        sd = np.full(model.n_params, np.nan)
+    sd = np.full(model.n_params, np.nan)
+    if not null:
+        try:
+            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0, None)) * sigma
+        except np.linalg.LinAlgError:
+            pass
     in_null = np.zeros(model.n_params, bool)
     for comb in null:
         for n in comb:
@@ -77,7 +155,24 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
         status = "unidentifiable" if in_null[k] else ("poor" if sd[k] > 0.25 * width[k] else "identified")
         table.append({"parameter": p.name, "crlb_sd": None if not np.isfinite(sd[k]) else float(sd[k]),
                       "status": status})
-    return {"table": table, "null": null}
+    out = {"table": table, "null": null,
+           "condition": float(w.max() / max(w.min(), 1e-300)) if w.size else 1.0}
+    if y is not None:
+        out["counting"] = frame_counts(model, y, used)
+    if pose is not None:
+        out["joint_range_deg"] = joint_motion(model, pose, used)
+    return out
+
+
+def null_message(model: Model, null: list[dict]) -> str:
+    """The unidentifiable combinations in words."""
+    parts = []
+    for comb in null:
+        if len(comb) == 1:
+            parts.append(f"{next(iter(comb))} (no information about it at all)")
+        else:
+            parts.append(" + ".join(f"{c:g}*{n}" for n, c in comb.items()))
+    return "; ".join(parts)
 
 
 class MarkerEstimator:
@@ -95,7 +190,11 @@ class MarkerEstimator:
         Use the Newey-West covariance when residuals look like soft-tissue
         artefact ('auto'), always, or never.
     rng : numpy.random.Generator, optional
-        For the random starts of the first frame's pose.
+        For the random starts of poses that rigid fits of the segments do not give.
+    outlier_threshold : float or None
+        Marker positions whose residual distance after a first fit exceeds this
+        many robust standard deviations are left out and the fit repeated
+        (None: keep every position).
 
     Attributes
     ----------
@@ -112,7 +211,14 @@ class MarkerEstimator:
     sigma_ci_ : (2,) float
     pose_ : (T, Q) float
     residuals_ : (T, M) float
-        Residual distance of each marker in each frame (NaN where missing).
+        Residual distance of each marker in each frame (NaN where missing and
+        in frames skipped).
+    outliers_ : (T, M) bool
+        Marker positions left out as outliers (residual distance beyond
+        ``outlier_threshold`` robust standard deviations after a first fit).
+    frames_skipped_ : dict
+        Frames left out because they have no more coordinates than pose
+        coordinates, or because their markers do not fix every pose coordinate.
     frames_used_ : (T,) bool
     identifiability_ : dict
     sta_score_ : float
@@ -124,7 +230,8 @@ class MarkerEstimator:
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | None = 6.0,
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
-                 rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None):
+                 rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
+                 outlier_threshold: float | None = 8.0):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -134,6 +241,7 @@ class MarkerEstimator:
         self.rng = rng
         self.n_iter = n_iter
         self.rate = rate
+        self.outlier_threshold = outlier_threshold
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
@@ -153,23 +261,30 @@ class MarkerEstimator:
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
         if pose0 is None:
-            first = int(np.argmax(np.isfinite(y).all(axis=(1, 2))))
-            q_first, _ = track_poses(model, theta0, y[first:first + 1], rng)
-            stride = max(1, int(rate // 25)) if rate else 1
-            pose0, _ = track_poses(model, theta0, _fill_gaps(y), rng, q_first=q_first[0], stride=stride)
-        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, rate=rate,
-                        cutoff=cutoff)
+            stride = max(1, int(rate // 25)) if rate else 1  # track at about 25 Hz, interpolate between
+            pose0, _ = track_poses(model, theta0, y, rng, stride=stride)
+        # a frame whose markers do not fix every pose coordinate is skipped (and counted)
+        _, Jq0, _ = frame_terms(model, theta0, pose0, y)
+        fixed = pose_fixed(Jq0)
+        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed,
+                        rate=rate, cutoff=cutoff)
+        self.outliers_ = np.zeros(y.shape[:2], dtype=bool)
+        if self.outlier_threshold is not None:
+            out = _outlying_markers(model, y, fit, self.outlier_threshold)
+            if out.any():  # drop them (they become missing, not replaced) and fit again
+                self.outliers_ = out
+                y = np.where(out[..., None], np.nan, y)
+                _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y)
+                fixed = pose_fixed(Jq0)
+                fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
+                                frames=fixed, rate=rate, cutoff=cutoff)
+                warn_once(f"{int(out.sum())} marker positions in {int(out.any(axis=1).sum())} frames lie "
+                          f"more than {self.outlier_threshold:g} robust standard deviations from the "
+                          "fitted model (mislabelled or glitched markers?) and were left out", self.warnings_)
         used = fit.frames_used
-        width = bounds[1] - bounds[0]
-        pinned = (fit.theta <= bounds[0] + 1e-6 * width) | (fit.theta >= bounds[1] - 1e-6 * width)
-        if pinned.any():
-            k = int(np.flatnonzero(pinned)[0])
-            p = model.parameters[k]
-            raise IdentifiabilityError(
-                f"no solution inside the interval [{p.prior.lower:g}, {p.prior.upper:g}] of parameter "
-                f"{p.name}: the best fit sits on the bound {fit.theta[k]:g} {model.units}",
-                "widen the parameter's prior bounds or check the model's marker positions")
         n_skip = int((~used).sum())
+        self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
+                                "pose_not_fixed": int((usable_frames(model, y) & ~fixed).sum())}
         if used.sum() == 0:
             raise DataError("no frame has enough markers to fix the pose",
                             "check that the file holds the model's markers")
@@ -190,31 +305,43 @@ class MarkerEstimator:
             sigma2 = float(self.sigma) ** 2
             self.sigma_ci_ = np.array([self.sigma, self.sigma], float)
         self.sigma_ = float(np.sqrt(sigma2))
-        ident = identifiability(model, fit.info, max(self.sigma_, 1e-300))
+        ident = identifiability(model, fit.info, self.sigma_, y=y, pose=fit.pose, used=used)
         self.identifiability_ = ident
         if ident["null"]:
-            combos = "; ".join(" + ".join(f"{c:g}*{n}" for n, c in comb.items()) for comb in ident["null"])
             raise IdentifiabilityError(
-                f"the data cannot identify {combos} (no information about this combination "
-                "for this motion)", "fix one of these parameters or record more varied motion")
-        for row in ident["table"]:
+                f"the data cannot identify {null_message(model, ident['null'])} (no information "
+                "about this for this motion and these markers)",
+                "fix one of these parameters (remove it from [[parameters]]) or record more varied motion")
+        width = bounds[1] - bounds[0]
+        pinned = (fit.theta <= bounds[0] + 1e-6 * width) | (fit.theta >= bounds[1] - 1e-6 * width)
+        if pinned.any() and model.n_params > 1:
+            warn_once(f"parameter(s) {', '.join(np.array(model.parameter_names)[pinned])} ended on a "
+                      "bound of their prior interval: the data do not pin them inside it", self.warnings_)
+        elif pinned.any():
+            k = int(np.flatnonzero(pinned)[0])
+            p = model.parameters[k]
+            raise IdentifiabilityError(
+                f"no solution inside the interval [{p.prior.lower:g}, {p.prior.upper:g}] of parameter "
+                f"{p.name}: the best fit sits on the bound {fit.theta[k]:g} {model.units}",
+                "widen the parameter's prior bounds or check the model's marker positions")
+        for k, row in enumerate(ident["table"]):
             if row["status"] == "poor":
                 warn_once(f"parameter {row['parameter']} is poorly identified for this motion "
-                          f"(Cramér-Rao sd {row['crlb_sd']:.3g} {model.units} is more than a quarter "
+                          f"(Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than a quarter "
                           "of its prior range)", self.warnings_)
         info_inv = np.linalg.inv(fit.info)
         self.theta_profile_ = fit.theta
         method = self.bias_correction
-        if method == "auto":
+        if method is True or method == "auto":
             method = "box"
         if method == "box" and fit.penalty is None:
-            self.bias_ = box_bias(model, y, fit.theta, fit.pose, sigma2)
+            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2)
         elif method == "box":
             self.bias_ = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta,
                                        fit.pose, sigma2, fit.penalty)
         elif method == "bootstrap":
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
-        elif method == "none":
+        elif method is False or method == "none":
             self.bias_ = np.zeros(P)
         else:
             raise ValueError("bias_correction must be 'auto', 'box', 'bootstrap' or 'none'")
@@ -225,7 +352,7 @@ class MarkerEstimator:
         # residual structure: soft-tissue artefact shows as slow, correlated residuals
         x = marker_positions(model, fit.theta, fit.pose)
         resid = y - x
-        self.residuals_ = np.linalg.norm(resid, axis=-1)
+        self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
         self.sta_score_ = lag1_autocorrelation(resid, used)
         flagged = self.sta_score_ > STA_AUTOCORRELATION
         if flagged:
@@ -233,7 +360,7 @@ class MarkerEstimator:
                       f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
                       "interval was widened (Newey-West)", self.warnings_)
         if self.robust == "always" or (self.robust == "auto" and flagged):
-            scores = frame_scores(model, y, fit.theta, fit.pose)[used]
+            scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
@@ -244,6 +371,28 @@ class MarkerEstimator:
         self.frames_used_ = used
         self.fit_info_ = fit
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
+        # the final interval (widened for correlated residuals) also decides "poor"
+        sd_post = self.posterior_.sd
+        for k, row in enumerate(ident["table"]):
+            p = model.parameters[k]
+            row["sd"] = float(sd_post[k])
+            if row["status"] == "identified" and sd_post[k] > 0.25 * (p.prior.upper - p.prior.lower):
+                row["status"] = "poor"
+                warn_once(f"parameter {p.name} is poorly identified for this motion (sd "
+                          f"{sd_post[k]:.3g} {_unit(model, k)} is more than a quarter of its prior range)",
+                          self.warnings_)
+        functional = {p.target for p in model.parameters if p.kind in ("joint_centre", "axis_direction")}
+        still = [j for j, r in ident.get("joint_range_deg", {}).items()
+                 if j in functional and max(r) < STILL_JOINT_DEG]
+        if still:
+            warn_once(f"joint(s) {', '.join(still)} moved less than {STILL_JOINT_DEG:g} degrees: their "
+                      "centres and axes are informed only by tiny motions (a static trial cannot "
+                      "locate a joint functionally)", self.warnings_)
+        lengths, grad = joint_distances(model, theta)
+        sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
+        self.lengths_ = {name: {"value": float(v), "sd": float(e),
+                                "ci95": [float(v - 1.959964 * e), float(v + 1.959964 * e)]}
+                         for (name, _), v, e in zip(model.derived_lengths, lengths, sd_len, strict=True)}
         if not fit.converged:
             warn_once("the joint fit stopped before converging; the estimate may be off",
                       self.warnings_)
@@ -269,7 +418,9 @@ class MarkerEstimator:
     def result(self) -> dict:
         """JSON-ready summary."""
         out = {"frames_used": int(self.frames_used_.sum()),
-               "frames_dropped": int((~self.frames_used_).sum())}
+               "frames_dropped": int((~self.frames_used_).sum()),
+               "frames_skipped": dict(self.frames_skipped_),
+               "outlying_marker_positions": int(self.outliers_.sum())}
         summ = self.posterior_.summary()
         for k, n in enumerate(self.model.parameter_names):
             summ[n]["crlb_sd"] = float(self.crlb_sd_[k])
@@ -277,10 +428,55 @@ class MarkerEstimator:
         out.update(summ)
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
                         "fixed": self.sigma is not None}
+        if self.lengths_:
+            out["lengths"] = self.lengths_
         out["identifiability"] = self.identifiability_["table"]
+        out["counting"] = self.identifiability_.get("counting")
+        out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
         out["residual_autocorrelation"] = self.sta_score_
         out["warnings"] = list(self.warnings_)
         return out
+
+
+def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
+    """(T, M) bool: marker positions whose residual distance is an outlier.
+
+    With Gaussian noise the residual distance is ``sigma`` times a chi variable
+    with ``D`` degrees of freedom; ``sigma`` is estimated robustly from the
+    median distance. One glitched marker also drags its frame's pose, so in
+    each round only the worst marker of a frame is flagged, if beyond
+    ``threshold * sigma``, and that frame's pose refitted without it.
+    """
+    from scipy.stats import chi
+
+    used = fit.frames_used
+    out = np.zeros(y.shape[:2], dtype=bool)
+    # per-frame poses (no motion model), so that a glitch does not spread to its neighbours
+    pose, _ = fit_pose(model, fit.theta, y, fit.pose, n_iter=20)
+    pose = np.where(used[:, None], pose, fit.pose)
+    d = np.linalg.norm(y - marker_positions(model, fit.theta, pose), axis=-1)
+    d = np.where(used[:, None], d, np.nan)
+    if not np.isfinite(d).any():
+        return out
+    floor = 1e-3 * float(np.abs(model.nominal_geometry).max())  # below this a deviation is irrelevant
+    limit = threshold * np.nanmedian(d) / chi.median(model.dim) + floor
+    for _ in range(n_rounds):
+        dd = np.where(np.isfinite(d), d, -1.0)
+        worst = np.argmax(dd, axis=1)
+        flag = used & (dd[np.arange(len(dd)), worst] > limit)
+        if not flag.any():
+            break
+        out[flag, worst[flag]] = True
+        yy = np.where(out[flag][..., None], np.nan, y[flag])
+        pose[flag], _ = fit_pose(model, fit.theta, yy, pose[flag], n_iter=20)
+        d[flag] = np.where(out[flag], np.nan,
+                           np.linalg.norm(yy - marker_positions(model, fit.theta, pose[flag]), axis=-1))
+    return out
+
+
+def _unit(model: Model, k: int) -> str:
+    """Unit of parameter ``k``: degrees for axis tilts, the model's length unit otherwise."""
+    return "deg" if model.parameters[k].kind == "axis_direction" else model.units
 
 
 def _bandwidth(rho: float, n: int) -> int:
@@ -289,15 +485,6 @@ def _bandwidth(rho: float, n: int) -> int:
     alpha = 4 * rho**2 / (1 - rho) ** 4 if rho > 0 else 0.0
     L = int(np.ceil(1.1447 * (alpha * n) ** (1 / 3)))
     return int(np.clip(L, 1, max(n // 4, 1)))
-
-
-def _fill_gaps(y):
-    """Markers with gaps filled by the last seen position (only to start pose tracking)."""
-    out = np.array(y, float)
-    for t in range(1, len(out)):
-        miss = ~np.isfinite(out[t])
-        out[t][miss] = out[t - 1][miss]
-    return out
 
 
 def _combine_normal_priors(model: Model, theta, cov):

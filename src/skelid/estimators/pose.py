@@ -6,9 +6,29 @@ residual over the markers present in that frame,
 .. math:: \\hat q_t(\\theta) = \\arg\\min_q \\sum_{m \\in P(t)} \\lVert y_{tm} - x_m(q, \\theta)\\rVert^2 ,
 
 solved by Levenberg-Marquardt, batched over any leading axes (frames,
-hypotheses). A trial is tracked by warm-starting each frame from a linear
-prediction of the previous two (one short sequential pass, the only loop over
-frames), then refined for all frames at once.
+hypotheses).
+
+**Starting poses.** Least squares over a tree of joints has many local minima,
+so the start matters. Every segment that shows at least three non-collinear
+markers in a frame gets its placement from a rigid fit of its model markers
+``r`` to the observed ``y`` (Kabsch): with weights ``w`` (1 if present),
+centroids ``\\bar r, \\bar y`` and ``H = \\sum w (r - \\bar r)(y - \\bar y)^\\top = U S V^\\top``,
+
+.. math:: R = V \\,\\mathrm{diag}(1, \\dots, \\det V U^\\top)\\, U^\\top, \\qquad p = \\bar y - R \\bar r .
+
+Joint coordinates then follow by inverse kinematics of the relative rotation
+``R_{rel} = R_{parent}^\\top R_{segment}``: Euler angles z-x-y for ``free`` and
+``spherical`` joints, ``atan2(a\\cdot\\mathrm{vee}(R-R^\\top), \\mathrm{tr}R - a^\\top R a)``
+for a hinge about ``a`` (the best rotation about ``a`` in the Frobenius sense),
+and the first axis from where ``R_{rel}`` takes the second, then the second as a
+hinge, for ``universal`` joints. This is done for all frames at once.
+
+Coordinates that no rigid fit determines (a segment with fewer than three
+markers, or whose parent has none) start from the previous frame's pose (a
+linear prediction from the previous two), or, in the first frame, from the best
+of many random starts; Levenberg-Marquardt then polishes every coordinate. Only
+frames with such coordinates go through this sequential pass (the one loop over
+frames); the final refinement is batched over all frames.
 """
 
 from __future__ import annotations
@@ -16,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from skelid.model.description import Model
-from skelid.model.kinematics import forward_kinematics, pose_jacobian
+from skelid.model.kinematics import _rotation, forward_kinematics, geometry, pose_jacobian, tilted_axes
 
 
 def _residual(model, theta, q, y0, mask):
@@ -25,7 +45,7 @@ def _residual(model, theta, q, y0, mask):
     return kin, r
 
 
-def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
+def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3):
     """Least-squares pose for each frame (and hypothesis).
 
     Parameters
@@ -40,6 +60,9 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
         Maximum Levenberg-Marquardt iterations.
     tol : float
         Relative decrease of the residual sum of squares that stops the iteration.
+    damping : float
+        Initial Levenberg-Marquardt damping; a larger value keeps the first
+        steps short (tracking from a good prediction).
 
     Returns
     -------
@@ -56,7 +79,7 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10):
     q = np.broadcast_to(q, batch + q.shape[-1:]).copy()
     kin, r = _residual(model, theta, q, y0, mask)
     cost = np.sum(r**2, axis=(-2, -1))
-    lam = np.full(batch, 1e-3)
+    lam = np.full(batch, float(damping))
     Q = model.n_pose
     eye = np.eye(Q)
     for _ in range(n_iter):
@@ -94,17 +117,32 @@ def _bmask(ok, a, batch):
 
 
 def random_poses(model: Model, y_frame, rng: np.random.Generator, n: int) -> np.ndarray:
-    """(n, Q) float: random starting poses around the markers of one frame."""
+    """Random starting poses around the markers of a frame.
+
+    Parameters
+    ----------
+    y_frame : (..., M, D) float
+        One frame (or a batch of frames), NaN where missing.
+
+    Returns
+    -------
+    q : (..., n, Q) float
+    """
+    y_frame = np.asarray(y_frame, dtype=float)
+    batch = y_frame.shape[:-2]
     present = np.isfinite(y_frame).all(axis=-1)
-    centre = y_frame[present].mean(axis=0) if present.any() else np.zeros(model.dim)
-    q = np.empty((n, model.n_pose))
+    cnt = present.sum(axis=-1)[..., None]
+    centre = np.where(cnt > 0, np.where(present[..., None], y_frame, 0.0).sum(axis=-2)
+                      / np.maximum(cnt, 1), 0.0)  # (..., D)
+    q = np.empty(batch + (n, model.n_pose))
     ranges = _rotation_ranges(model)
     for k, d in enumerate(model.dofs):
         if d.kind == "T":
-            q[:, k] = centre @ np.asarray(d.axis) + rng.normal(0.0, 1.0, n) * _model_size(model) * 0.2
+            q[..., k] = (centre @ np.asarray(d.axis))[..., None] \
+                + rng.normal(0.0, 1.0, batch + (n,)) * _model_size(model) * 0.2
         else:
             lo, hi = ranges[k]
-            q[:, k] = rng.uniform(lo, hi, n)
+            q[..., k] = rng.uniform(lo, hi, batch + (n,))
     return q
 
 
@@ -129,8 +167,159 @@ def _rotation_ranges(model: Model) -> dict[int, tuple[float, float]]:
     return out
 
 
-def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_starts: int = 64):
+def segment_placements(model: Model, theta, y, min_markers: int = 3, flat_tol: float = 1e-3):
+    """Rigid (Kabsch) fit of every segment's model markers to each frame.
+
+    Parameters
+    ----------
+    theta : (P,) float
+    y : (F, M, D) float
+        Markers, NaN where missing.
+    min_markers : int
+        Fewest present markers that place a segment (at least ``D``).
+    flat_tol : float
+        A segment whose present markers lie within ``flat_tol`` times their
+        spread of a line (3-D) or a point (2-D) is not placed.
+
+    Returns
+    -------
+    R_world_seg : (F, S, D, D) float
+    p_world_seg : (F, S, D) float
+        Origin of each segment's frame.
+    placed : (F, S) bool
+        Whether the segment was placed in that frame.
+    """
+    D, S, M = model.dim, len(model.segments), len(model.markers)
+    y = np.asarray(y, dtype=float)
+    F = y.shape[0]
+    g = geometry(model, theta)
+    r_all = g[S * D:].reshape(M, D)
+    R = np.broadcast_to(np.eye(D), (F, S, D, D)).copy()
+    p = np.zeros((F, S, D))
+    placed = np.zeros((F, S), dtype=bool)
+    present = np.isfinite(y).all(axis=-1)
+    for s in range(S):  # the tree's segments: the only loop
+        idx = np.flatnonzero(model.marker_segment == s)
+        if idx.size < max(min_markers, D):
+            continue
+        w = present[:, idx].astype(float)  # (F, n)
+        n = w.sum(axis=1)
+        ok = n >= max(min_markers, D)
+        if not ok.any():
+            continue
+        ys = np.where(present[:, idx, None], y[:, idx], 0.0)
+        r = r_all[idx]
+        nn = np.maximum(n, 1.0)[:, None]
+        rbar = (w @ r) / nn  # (F, D)
+        ybar = np.einsum("fn,fnd->fd", w, ys) / nn
+        rc = r[None] - rbar[:, None]
+        yc = ys - ybar[:, None]
+        H = np.einsum("fn,fni,fnj->fij", w, rc, yc)
+        Crr = np.einsum("fn,fni,fnj->fij", w, rc, rc)
+        lam = np.linalg.eigvalsh(Crr)  # ascending
+        spread = lam[:, -1] if D == 2 else lam[:, -2]
+        ok &= spread > flat_tol**2 * np.maximum(lam[:, -1], 1e-300)
+        U, _, Vt = np.linalg.svd(H)
+        V = np.swapaxes(Vt, -1, -2)
+        d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))
+        d = np.where(d == 0, 1.0, d)
+        fix = np.ones((F, D))
+        fix[:, -1] = d
+        Rs = np.einsum("fij,fj,fkj->fik", V, fix, U)
+        R[ok, s] = Rs[ok]
+        p[ok, s] = (ybar - np.einsum("fij,fj->fi", Rs, rbar))[ok]
+        placed[:, s] = ok
+    return R, p, placed
+
+
+def _hinge_angle(R_rel, a) -> np.ndarray:
+    """Angle (...) of the rotation about unit ``a (..., 3)`` closest to ``R_rel (..., 3, 3)``."""
+    vee = np.stack([R_rel[..., 2, 1] - R_rel[..., 1, 2], R_rel[..., 0, 2] - R_rel[..., 2, 0],
+                    R_rel[..., 1, 0] - R_rel[..., 0, 1]], -1)
+    tr = np.einsum("...ii->...", R_rel)
+    return np.arctan2(np.sum(a * vee, -1), tr - np.einsum("...i,...ij,...j->...", a, R_rel, a))
+
+
+def _euler_zxy(R_rel) -> np.ndarray:
+    """Angles (..., 3) with ``R_rel = Rz(a) Rx(b) Ry(c)``."""
+    a = np.arctan2(-R_rel[..., 0, 1], R_rel[..., 1, 1])
+    b = np.arctan2(R_rel[..., 2, 1], np.hypot(R_rel[..., 0, 1], R_rel[..., 1, 1]))
+    c = np.arctan2(-R_rel[..., 2, 0], R_rel[..., 2, 2])
+    return np.stack([a, b, c], -1)
+
+
+def rigid_poses(model: Model, theta, y):
+    """Pose coordinates from per-segment rigid fits and inverse kinematics.
+
+    Parameters
+    ----------
+    theta : (P,) float
+    y : (F, M, D) float
+        Markers, NaN where missing.
+
+    Returns
+    -------
+    q : (F, Q) float
+        Coordinates found (zero where ``known`` is False).
+    known : (F, Q) bool
+        Coordinates determined by the rigid fits of the segment and its parent.
+    """
+    D, S, Q = model.dim, len(model.segments), model.n_pose
+    theta = np.asarray(theta, dtype=float)
+    y = np.asarray(y, dtype=float)
+    F = y.shape[0]
+    R, p, placed = segment_placements(model, theta, y)
+    g = geometry(model, theta)
+    offsets = g[: S * D].reshape(S, D)
+    t_axis, _ = tilted_axes(model, theta)
+    local_axis = {k: t_axis[j] for j, (k, *_rest) in enumerate(model.axis_tilts)}
+    q = np.zeros((F, Q))
+    known = np.zeros((F, Q), dtype=bool)
+    ks_of = [[k for k, d in enumerate(model.dofs) if d.segment == s] for s in range(S)]
+    for s, seg in enumerate(model.segments):
+        ks = ks_of[s]
+        if not ks:
+            continue
+        par = model.parent_index[s]
+        Rp = np.eye(D) if par < 0 else R[:, par]
+        ok = placed[:, s] & (True if par < 0 else placed[:, par])
+        R_rel = np.swapaxes(Rp, -1, -2) @ R[:, s]
+        kind = seg.joint.type
+        if D == 2:
+            ang = np.arctan2(R_rel[:, 1, 0], R_rel[:, 0, 0])
+            vals = [ang] if kind == "revolute" else \
+                [*np.moveaxis(p[:, s] - offsets[s], -1, 0), ang]  # free root: parent is the world
+        elif kind in ("free", "spherical"):
+            eul = np.moveaxis(_euler_zxy(R_rel), -1, 0)
+            vals = list(eul) if kind == "spherical" else \
+                [*np.moveaxis(p[:, s] - offsets[s], -1, 0), *eul]
+        elif kind == "hinge":
+            a = local_axis.get(ks[0], np.asarray(model.dofs[ks[0]].axis))
+            vals = [_hinge_angle(R_rel, np.broadcast_to(a, (F, 3)))]
+        else:  # universal
+            a1, a2 = (np.asarray(model.dofs[k].axis) for k in ks)
+            b = R_rel @ a2
+            u = a2 - (a1 @ a2) * a1
+            v = b - (b @ a1)[:, None] * a1
+            t1 = np.arctan2(np.cross(u, v) @ a1, v @ u)
+            R2 = np.swapaxes(_rotation(3, a1, t1), -1, -2) @ R_rel
+            vals = [t1, _hinge_angle(R2, np.broadcast_to(a2, (F, 3)))]
+        for k, v in zip(ks, vals, strict=True):
+            q[:, k] = np.where(ok, v, 0.0)
+            known[:, k] = ok
+    return q, known
+
+
+def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_starts: int = 64,
+                 q_known=None, known=None):
     """Best pose of one frame from many random starts.
+
+    Parameters
+    ----------
+    q_known : (Q,) float, optional
+    known : (Q,) bool, optional
+        Coordinates already determined (by rigid fits): every start uses them
+        and only the others are drawn at random.
 
     Returns
     -------
@@ -138,14 +327,29 @@ def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_start
     rss : float
     """
     q0 = random_poses(model, y_frame, rng, n_starts)
+    if known is not None:
+        q0 = np.where(known, q_known, q0)
+        q0[0] = np.where(known, q_known, 0.0)  # and one start at the reference pose
     q, cost = fit_pose(model, np.asarray(theta)[None], y_frame[None], q0, n_iter=60)
     best = int(np.nanargmin(cost))
     return q[best], float(cost[best])
 
 
+def pose_determined(model: Model, y) -> np.ndarray:
+    """(F,) bool: frames with more marker coordinates than pose coordinates."""
+    n = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
+    return n > model.n_pose
+
+
 def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
-                n_refine: int = 30, stride: int = 1):
+                n_refine: int = 30, n_starts: int = 64, stride: int = 1):
     """Poses of every frame of a trial for fixed ``theta``.
+
+    Rigid fits and inverse kinematics give every coordinate they can, in all
+    frames at once; the rest come from the previous frame (or random starts in
+    the first frame) and Levenberg-Marquardt, frame by frame; then all frames
+    are refined together. Frames that end far worse than the typical frame are
+    tried again from random starts.
 
     Parameters
     ----------
@@ -153,10 +357,11 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
     y : (F, M, D) float
         Markers, NaN where missing.
     q_first : (Q,) float, optional
-        Pose of frame 0; found from random starts if not given.
+        Pose of frame 0, if known.
     stride : int
-        Track every ``stride``-th frame sequentially and start the frames in
-        between from linear interpolation (for densely sampled, smooth motion).
+        Of the frames that rigid fits do not settle, track only every
+        ``stride``-th sequentially and start the others from linear
+        interpolation between resolved frames (for densely sampled, smooth motion).
 
     Returns
     -------
@@ -164,19 +369,55 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
     rss : (F,) float
     """
     theta = np.asarray(theta, dtype=float)
+    y = np.asarray(y, dtype=float)
     F = y.shape[0]
-    q = np.empty((F, model.n_pose))
-    if q_first is None:
-        q_first, _ = initial_pose(model, theta, y[0], rng)
-    q[0] = q_first
-    prev2 = prev = q_first
-    keys = np.unique(np.r_[np.arange(0, F, max(int(stride), 1)), F - 1])
-    for t in keys[1:]:  # cheap sequential predictor-corrector pass over key frames
-        pred = prev + 0.5 * (prev - prev2)
-        qt, _ = fit_pose(model, theta, y[t], pred, n_iter=4)
-        q[t] = qt
-        prev2, prev = prev, qt
-    if len(keys) < F:
-        for k in range(model.n_pose):
-            q[:, k] = np.interp(np.arange(F), keys, q[keys, k])
-    return fit_pose(model, theta, y, q, n_iter=n_refine)
+    q, known = rigid_poses(model, theta, y)
+    enough = pose_determined(model, y)
+    todo = ~known.all(axis=1) & enough
+    if q_first is not None:
+        q[0], known[0], todo[0] = q_first, True, False
+    stride = max(int(stride), 1)
+    later = np.zeros(F, dtype=bool)
+    if stride > 1:
+        pos = np.cumsum(todo) - 1  # rank among the frames to track
+        later = todo & (pos % stride != 0)
+        later[np.flatnonzero(todo)[-1:]] = False  # the last one is tracked
+        todo &= ~later
+    prev2 = prev = None
+    for t in range(F):  # only frames that rigid fits do not settle
+        if not todo[t]:
+            if enough[t] and not later[t]:
+                prev2, prev = prev, q[t]
+            continue
+        if prev is None:
+            q[t], _ = initial_pose(model, theta, y[t], rng, n_starts, q[t], known[t])
+        else:
+            pred = prev if prev2 is None else prev + 0.5 * (prev - prev2)
+            q[t], _ = fit_pose(model, theta, y[t], np.where(known[t], q[t], pred), n_iter=5)
+        prev2, prev = prev, q[t]
+    if later.any():
+        anchors = np.flatnonzero(enough & ~later)
+        if anchors.size:
+            rot = np.array([d.kind == "R" for d in model.dofs])
+            qa = np.where(rot, np.unwrap(q[anchors], axis=0), q[anchors])
+            interp = np.stack([np.interp(np.flatnonzero(later), anchors, qa[:, k])
+                               for k in range(model.n_pose)], axis=-1)
+            q[later] = np.where(known[later], q[later], interp)
+    q, rss = fit_pose(model, theta, y, q, n_iter=n_refine)
+    # frames that ended in a poor local minimum: random restarts (batched over those frames)
+    ok = enough & np.isfinite(rss)
+    if ok.sum() >= 3:
+        typical = np.median(rss[ok])
+        n_obs = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
+        floor = 1e-12 * max(float(np.nanmax(np.abs(y))), 1.0) ** 2 * n_obs
+        bad = np.flatnonzero(ok & (rss > 25.0 * typical + floor))
+        if bad.size:
+            starts = random_poses(model, y[bad], rng, n_starts)  # (B, n, Q)
+            starts = np.where(known[bad, None], q[bad, None], starts)
+            starts[:, 0] = q[bad]
+            qb, cb = fit_pose(model, theta, y[bad, None], starts, n_iter=60)
+            best = np.argmin(cb, axis=1)
+            better = cb[np.arange(bad.size), best] < rss[bad]
+            q[bad[better]] = qb[np.arange(bad.size), best][better]
+            rss[bad[better]] = cb[np.arange(bad.size), best][better]
+    return q, rss

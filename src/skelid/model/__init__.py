@@ -14,6 +14,7 @@ from skelid.model.description import (
 from skelid.model.kinematics import (
     forward_kinematics,
     geometry,
+    joint_distances,
     joint_positions,
     marker_jacobian,
     marker_positions,
@@ -21,6 +22,6 @@ from skelid.model.kinematics import (
 
 __all__ = [
     "JOINT_TYPES", "Joint", "Marker", "Model", "Parameter", "Prior", "Segment",
-    "load_model", "model_from_dict", "forward_kinematics", "geometry", "joint_positions",
+    "load_model", "model_from_dict", "forward_kinematics", "geometry", "joint_distances", "joint_positions",
     "marker_jacobian", "marker_positions",
 ]

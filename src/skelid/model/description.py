@@ -30,7 +30,23 @@ frame, then every marker's position in its segment's frame. Unknown parameters
   (the joint's position keeps its direction, its norm becomes ``theta``);
 * ``joint_position``: one coordinate (``axis`` x, y or z) of a joint centre in
   its parent's frame;
-* ``marker_position``: one coordinate of a marker in its segment's frame.
+* ``marker_position``: one coordinate of a marker in its segment's frame;
+* ``joint_centre``: a shift ``delta`` (one coordinate, parent frame) of a
+  joint centre *relative to both segments it joins*: the joint's position
+  gains ``delta`` while the child's markers and the child's own joints lose it,
+  so that in the reference pose (every joint coordinate zero) no marker moves.
+  Only relative motion at the joint informs it (a functional joint centre).
+
+One kind enters nonlinearly and is handled by the kinematics:
+
+* ``axis_direction``: a tilt (degrees) of a hinge axis away from its nominal
+  direction ``e``. With ``u`` the parent-frame coordinate axis most
+  perpendicular to ``e`` (made orthogonal to it) and ``v = e x u``, the tilts
+  ``(alpha, beta)`` give the axis
+  ``a = cos(alpha) cos(beta) e + sin(alpha) cos(beta) u + sin(beta) v``.
+
+A parameter table with ``axes = [...]`` declares a vector: one scalar
+parameter per listed axis, named ``<name>_<axis>``.
 
 The model is frozen and hashable; algorithms take it first and never change it.
 """
@@ -51,9 +67,11 @@ JOINT_TYPES = {
     2: ("free", "revolute", "fixed"),
     3: ("free", "hinge", "universal", "spherical", "fixed"),
 }
-PARAMETER_KINDS = ("length", "joint_position", "marker_position")
+PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre", "axis_direction")
+LINEAR_SETTING_KINDS = ("length", "joint_position", "marker_position")  # replace a coordinate
 PRIOR_KINDS = ("uniform", "normal", "lognormal")
 AXES = {"x": 0, "y": 1, "z": 2}
+TILT_AXES = {"u": 0, "v": 1}
 UNITS = ("mm", "cm", "m")
 
 
@@ -62,7 +80,24 @@ def _unit(v, where: str) -> tuple[float, ...]:
     n = float(np.linalg.norm(a))
     if a.shape != (3,) or not np.isfinite(n) or n == 0:
         raise ModelError(f"{where}: an axis must be three finite numbers, not all zero, got {v!r}")
-    return tuple(float(x) for x in a / n)
+    if abs(n - 1.0) > 1e-12:  # leave unit vectors alone, so that a model written out reads back equal
+        a = a / n
+    return tuple(float(x) for x in a)
+
+
+def tilt_basis(axis) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+    """``(e, u, v)``: a hinge's nominal unit axis and the two directions it tilts towards.
+
+    ``u`` is the coordinate axis (x, then y, then z on ties) most perpendicular
+    to ``e``, made orthogonal to it; ``v = e x u``.
+    """
+    e = np.asarray(axis, dtype=float)
+    e = e / np.linalg.norm(e)
+    c = int(np.argmin(np.abs(e)))
+    u = np.eye(3)[c] - e[c] * e
+    u = u / np.linalg.norm(u)
+    v = np.cross(e, u)
+    return tuple(map(float, e)), tuple(map(float, u)), tuple(map(float, v))
 
 
 # ----------------------------------------------------------------------------- parts
@@ -115,11 +150,12 @@ class Parameter:
     Attributes
     ----------
     name : str
-    kind : {'length', 'joint_position', 'marker_position'}
+    kind : {'length', 'joint_position', 'marker_position', 'joint_centre', 'axis_direction'}
     target : str
-        The joint (``length``, ``joint_position``) or marker it moves.
+        The joint (every kind but ``marker_position``) or marker it moves.
     axis : int or None
-        Coordinate index for the ``*_position`` kinds.
+        Coordinate index (x, y, z) for the position kinds and ``joint_centre``;
+        tilt index (u, v) for ``axis_direction``; None for ``length``.
     prior : Prior
     grid_step : float
         Spacing of the candidate grid used by grid filters.
@@ -288,8 +324,36 @@ class Model:
                         "so its length has no direction",
                         "give the joint a nominal position along the segment",
                     )
-            if p.axis is not None and p.axis >= self.dim:
+            if p.kind in ("joint_position", "marker_position", "joint_centre") and p.axis is not None \
+                    and p.axis >= self.dim:
                 raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
+            if p.kind == "joint_centre":
+                seg = next(s for s in self.segments if s.joint.name == p.target)
+                if seg.parent is None:
+                    raise ModelError(
+                        f"parameter {p.name!r}: joint {p.target!r} attaches the root to the ground, "
+                        "so no relative motion defines its centre",
+                        "put joint_centre parameters on joints between two segments")
+                children = {c.joint.name for c in self.segments if c.parent == seg.name}
+                clash = [q.name for q in self.parameters
+                         if q.kind == "length" and (q.target == p.target or q.target in children)]
+                if clash:
+                    raise ModelError(
+                        f"parameter {p.name!r}: the joint centre {p.target!r} is an end of length "
+                        f"parameter {clash[0]!r}, whose meaning would then be unclear",
+                        "drop the length parameter: the distance between joint centres is "
+                        "reported as a derived length")
+            if p.kind == "axis_direction":
+                j = next(s.joint for s in self.segments if s.joint.name == p.target)
+                if j.type != "hinge":
+                    raise ModelError(
+                        f"parameter {p.name!r}: axis_direction needs a hinge joint, "
+                        f"{p.target!r} is {j.type}", "point it at a hinge joint")
+        tilts = [(p.target, p.axis) for p in self.parameters if p.kind == "axis_direction"]
+        for t in tilts:
+            if tilts.count(t) > 1:
+                raise ModelError(f"joint {t[0]!r} has two axis_direction parameters for tilt "
+                                 f"{'uv'[t[1]]!r}", "give each tilt at most one parameter")
 
     # ------------------------------------------------------------ names & sizes
     @property
@@ -392,10 +456,15 @@ class Model:
 
     @cached_property
     def geometry_map(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(g_base (G,), A (G, P))`` with ``g = g_base + theta @ A.T``."""
+        """``(g_base (G,), A (G, P))`` with ``g = g_base + theta @ A.T``.
+
+        Columns of ``axis_direction`` parameters are zero: they act on the
+        joint axes, not on the geometry vector (see :attr:`axis_tilts`).
+        """
         D, S = self.dim, len(self.segments)
         g = self.nominal_geometry.copy()
         A = np.zeros((g.size, self.n_params))
+        setting = np.zeros((g.size, self.n_params), dtype=bool)
         jidx = {s.joint.name: i for i, s in enumerate(self.segments)}
         midx = {m.name: i for i, m in enumerate(self.markers)}
         for k, p in enumerate(self.parameters):
@@ -404,26 +473,86 @@ class Model:
                 u = g[sl] / np.linalg.norm(self.nominal_geometry[sl])
                 g[sl] = 0.0
                 A[sl, k] = u
-            else:
+                setting[sl, k] = u != 0
+            elif p.kind in ("joint_position", "marker_position"):
                 base = jidx[p.target] * D if p.kind == "joint_position" else (S + midx[p.target]) * D
                 g[base + p.axis] = 0.0
                 A[base + p.axis, k] = 1.0
-        if np.any((A != 0).sum(axis=1) > 1):
+                setting[base + p.axis, k] = True
+            elif p.kind == "joint_centre":
+                s = jidx[p.target]
+                A[s * D + p.axis, k] += 1.0
+                for m in np.flatnonzero(self.marker_segment == s):
+                    A[(S + m) * D + p.axis, k] -= 1.0
+                for c in np.flatnonzero(self.parent_index == s):
+                    A[c * D + p.axis, k] -= 1.0
+        if np.any(setting.sum(axis=1) > 1):
             raise ModelError(
-                f"model {self.name!r}: two parameters move the same coordinate",
-                "give each geometric quantity at most one parameter",
+                f"model {self.name!r}: two parameters set the same coordinate",
+                "give each geometric quantity at most one length/joint_position/marker_position parameter",
             )
         return g, A
 
+    @cached_property
+    def axis_tilts(self) -> tuple[tuple[int, int, int, tuple, tuple, tuple], ...]:
+        """Hinge axes with ``axis_direction`` parameters.
+
+        One entry per such hinge: ``(dof index, parameter index of tilt u or -1,
+        parameter index of tilt v or -1, e, u, v)`` with the unit vectors of the
+        nominal axis and the two tilt directions (see the module docstring).
+        """
+        out = []
+        dof_of = {self.segments[d.segment].joint.name: k for k, d in enumerate(self.dofs)
+                  if d.kind == "R"}
+        by_joint: dict[str, list[int]] = {}
+        for k, p in enumerate(self.parameters):
+            if p.kind == "axis_direction":
+                by_joint.setdefault(p.target, [-1, -1])[p.axis] = k
+        for joint, (ku, kv) in by_joint.items():
+            k = dof_of[joint]
+            e, u, v = tilt_basis(self.dofs[k].axis)
+            out.append((k, ku, kv, e, u, v))
+        return tuple(out)
+
+    @cached_property
+    def derived_lengths(self) -> tuple[tuple[str, int], ...]:
+        """Distances between joint centres that depend on the parameters.
+
+        ``(name, segment index)``: the distance from the segment's parent's
+        origin to the segment's joint centre, ``|o_s(theta)|``, named
+        ``"<parent joint>-<joint>"``. A joint whose only parameter is its own
+        ``length`` is left out (that parameter is the distance).
+        """
+        D = self.dim
+        _, A = self.geometry_map
+        out = []
+        for s, seg in enumerate(self.segments):
+            if seg.parent is None:
+                continue
+            cols = np.flatnonzero(np.abs(A[s * D:(s + 1) * D]).sum(axis=0))
+            if cols.size == 0:
+                continue
+            if cols.size == 1 and self.parameters[cols[0]].kind == "length":
+                continue
+            parent_joint = self.segments[self.parent_index[s]].joint.name
+            out.append((f"{parent_joint}-{seg.joint.name}", s))
+        return tuple(out)
+
     @property
     def theta_nominal(self) -> np.ndarray:
-        """(P,) float: the parameters' values implied by the model's nominal geometry."""
+        """(P,) float: the parameters' values implied by the model's nominal geometry.
+
+        Zero for ``joint_centre`` shifts and ``axis_direction`` tilts.
+        """
         g0 = self.nominal_geometry
         _, A = self.geometry_map
-        out = np.empty(self.n_params)
+        out = np.zeros(self.n_params)
         for k, p in enumerate(self.parameters):
             col = A[:, k]
-            out[k] = g0[col != 0] @ col[col != 0] if p.kind == "length" else g0[col != 0][0]
+            if p.kind == "length":
+                out[k] = g0[col != 0] @ col[col != 0]
+            elif p.kind in ("joint_position", "marker_position"):
+                out[k] = g0[col != 0][0]
         return out
 
     @property
@@ -469,7 +598,7 @@ class Model:
             e = {"name": p.name, "kind": p.kind}
             e["marker" if p.kind == "marker_position" else "joint"] = p.target
             if p.axis is not None:
-                e["axis"] = axis_name[p.axis]
+                e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
             e["prior"] = p.prior.to_dict()
             e["grid_step"] = p.grid_step
             d["parameters"].append(e)
@@ -495,7 +624,7 @@ def _num_list(v, n: int | None, where: str) -> tuple[float, ...]:
     return out
 
 
-def _prior(d, where: str) -> Prior:
+def _prior(d, where: str, nominal: float = math.nan) -> Prior:
     if not isinstance(d, dict):
         raise ModelError(f"{where}: prior must be a table like {{type = 'uniform', lower = .., upper = ..}}")
     kind = d.get("type", "uniform")
@@ -506,10 +635,14 @@ def _prior(d, where: str) -> Prior:
             lo, hi = float(d["lower"]), float(d["upper"])
             mean = sd = math.nan
         elif kind == "normal":
-            mean, sd = float(d["mean"]), float(d["sd"])
+            mean, sd = float(d.get("mean", nominal)), float(d["sd"])
+            if not math.isfinite(mean):
+                raise KeyError("mean")
             lo, hi = float(d.get("lower", mean - 5 * sd)), float(d.get("upper", mean + 5 * sd))
         else:
-            mean, sd = float(d["median"]), float(d["sd_log"])
+            mean, sd = float(d.get("median", nominal)), float(d["sd_log"])
+            if not math.isfinite(mean):
+                raise KeyError("median")
             lo = float(d.get("lower", mean * math.exp(-5 * sd)))
             hi = float(d.get("upper", mean * math.exp(5 * sd)))
     except KeyError as exc:
@@ -523,6 +656,76 @@ def _prior(d, where: str) -> Prior:
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise ModelError(f"{where}: prior bounds must satisfy lower < upper, got [{lo}, {hi}]")
     return Prior(kind, lo, hi, mean, sd)
+
+
+def _nominal(kind: str, target: str, axis, segments, markers) -> float:
+    """Nominal value of a scalar parameter from the parsed geometry (NaN if the target is unknown)."""
+    if kind in ("joint_centre", "axis_direction"):
+        return 0.0
+    if kind == "marker_position":
+        pos = next((m.position for m in markers if m.name == target), None)
+    else:
+        pos = next((s.joint.position for s in segments if s.joint.name == target), None)
+    if pos is None:
+        return math.nan
+    if kind == "length":
+        return float(np.linalg.norm(pos))
+    return float(pos[axis]) if axis < len(pos) else math.nan
+
+
+def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
+    """One ``[[parameters]]`` table -> its scalar parameters (several with ``axes = [...]``)."""
+    if not isinstance(p, dict):
+        raise ModelError(f"{source}: parameter number {i + 1} must be a table")
+    name = str(p.get("name", f"p{i}"))
+    where = f"{source}: parameter {name!r}"
+    kind = p.get("kind")
+    if kind not in PARAMETER_KINDS:
+        raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
+    target_key = "marker" if kind == "marker_position" else "joint"
+    target = p.get(target_key)
+    if target is None:
+        raise ModelError(f"{where}: needs {target_key} = '...'")
+    names = AXES if kind != "axis_direction" else TILT_AXES
+    hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
+    if kind == "length":
+        if "axis" in p or "axes" in p:
+            raise ModelError(f"{where}: a length has no axis", "remove axis/axes")
+        comps = [(name, None)]
+    elif "axes" in p:
+        if "axis" in p:
+            raise ModelError(f"{where}: give either axis or axes, not both")
+        axes = p["axes"]
+        if not isinstance(axes, list) or not axes or any(a not in names for a in axes) \
+                or len(set(axes)) != len(axes):
+            raise ModelError(f"{where}: axes must be a list of distinct {hint}, got {axes!r}")
+        comps = [(f"{name}_{a}", names[a]) for a in axes]
+    else:
+        ax = p.get("axis")
+        if ax not in names:
+            raise ModelError(f"{where}: needs axis = {hint} (or axes = [...] for several)")
+        comps = [(name, names[ax])]
+    priors = p.get("prior", {})
+    if isinstance(priors, list):
+        if len(priors) != len(comps):
+            raise ModelError(f"{where}: {len(priors)} priors for {len(comps)} axes",
+                             "give one prior table, or one per axis")
+    else:
+        priors = [priors] * len(comps)
+    steps = p.get("grid_step")
+    out = []
+    for (pname, axis), prior_d in zip(comps, priors, strict=True):
+        pwhere = f"{source}: parameter {pname!r}"
+        prior = _prior(prior_d, pwhere, _nominal(kind, str(target), axis, segments, markers))
+        step = steps if steps is not None else (prior.upper - prior.lower) / 200
+        try:
+            step = float(step)
+        except (TypeError, ValueError):
+            raise ModelError(f"{pwhere}: grid_step must be a number") from None
+        if not step > 0:
+            raise ModelError(f"{pwhere}: grid_step must be positive, got {step}")
+        out.append(Parameter(pname, kind, str(target), axis, prior, step))
+    return out
 
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
@@ -584,28 +787,7 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
         markers.append(Marker(str(m["name"]), str(m["segment"]), pos, label))
     params = []
     for i, p in enumerate(d.get("parameters", [])):
-        where = f"{source}: parameter {p.get('name', i + 1)!r}"
-        kind = p.get("kind")
-        if kind not in PARAMETER_KINDS:
-            raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
-        target = p.get("marker" if kind == "marker_position" else "joint")
-        if target is None:
-            raise ModelError(f"{where}: needs {'marker' if kind == 'marker_position' else 'joint'} = '...'")
-        axis = None
-        if kind != "length":
-            ax = p.get("axis")
-            if ax not in AXES:
-                raise ModelError(f"{where}: needs axis = 'x', 'y' or 'z'")
-            axis = AXES[ax]
-        prior = _prior(p.get("prior", {}), where)
-        step = p.get("grid_step", (prior.upper - prior.lower) / 200)
-        try:
-            step = float(step)
-        except (TypeError, ValueError):
-            raise ModelError(f"{where}: grid_step must be a number") from None
-        if not step > 0:
-            raise ModelError(f"{where}: grid_step must be positive, got {step}")
-        params.append(Parameter(str(p.get("name", f"p{i}")), kind, str(target), axis, prior, step))
+        params += _parameters(p, i, source, segments, markers)
     return Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
                  str(head.get("description", "")))
 
