@@ -75,7 +75,16 @@ def posterior_history(posterior, path, truth: float | None = None, units: str = 
         ax.axvline(truth, color="k", ls="--", lw=1, label=f"true value {truth:g} {units}")
     ax.set_xlabel(f"{posterior.names[0]} [{units}]")
     ax.set_ylabel(f"posterior density [1/{units}]")
-    ax.legend()
+    mass = np.max([posterior.marginal(0, lw) for _, lw in snaps], axis=0)
+    shown = x[mass > 1e-4 * mass.max()]
+    lo, hi = shown.min(), shown.max()
+    for mu, sd in (gaussians or {}).values():
+        lo, hi = min(lo, mu - 4 * sd), max(hi, mu + 4 * sd)
+    if truth is not None:
+        lo, hi = min(lo, truth), max(hi, truth)
+    pad = 0.15 * max(hi - lo, h)
+    ax.set_xlim(max(x[0], lo - pad), min(x[-1], hi + pad))
+    ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title)
     return _save(fig, path)
 
