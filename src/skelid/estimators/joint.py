@@ -272,8 +272,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
     else:
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
         *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q)
-        pose_dof = pose_edf(Jq[use], R if use.all() else smoothing_penalty(
-            model, pose_information(Jq[use]), rate, cutoff))
+        pose_dof = pose_edf(Jq, R)  # skipped frames have no rows: they add nothing
     return JointFit(theta, q, float(np.sum(r**2)), np.sum(r**2, axis=1), info,
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 
@@ -331,6 +330,23 @@ def frame_scores(model: Model, y, theta, q) -> np.ndarray:
     """Per-frame scores ``((I-P_t)K_t)^T r_t``: ``(T, P)``."""
     r, Jq, Jt = frame_terms(model, theta, q, y)
     return np.einsum("tkp,tk->tp", projected_theta_jacobian(Jq, Jt), r)
+
+
+def smoothed_frame_scores(model: Model, y, theta, q, R) -> np.ndarray:
+    """Per-frame scores ``(T, P)`` of the motion-model fit that sum to its reduced gradient.
+
+    With ``A = blockdiag(J_t^T J_t) + R`` and ``G = A^{-1} H_{q theta}``,
+    ``g_t = (K_t - J_t G_t)^T r_t + G_t^T (R q)_t``; their sum is the gradient in
+    ``theta`` after the poses are eliminated (zero at the optimum), so their
+    long-run covariance goes with the information ``S`` of :func:`joint_fit`.
+    """
+    r, Jq, Jt = frame_terms(model, theta, q, y)
+    T, Q = q.shape
+    P = Jt.shape[-1]
+    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
+    G = _banded_solver(pose_information(Jq), R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
+    Rq = (R @ q.ravel()).reshape(T, Q)
+    return np.einsum("tkp,tk->tp", Jt - Jq @ G, r) + np.einsum("tqp,tq->tp", G, Rq)
 
 
 def newey_west(scores, lags: int) -> np.ndarray:

@@ -31,9 +31,10 @@ from skelid.estimators.joint import (
     lag1_autocorrelation,
     newey_west,
     smoothed_bias,
+    smoothed_frame_scores,
     usable_frames,
 )
-from skelid.estimators.likelihood import frame_terms, pose_fixed
+from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
 from skelid.estimators.pose import fit_pose, track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
@@ -266,6 +267,11 @@ class MarkerEstimator:
         # a frame whose markers do not fix every pose coordinate is skipped (and counted)
         _, Jq0, _ = frame_terms(model, theta0, pose0, y)
         fixed = pose_fixed(Jq0)
+        if not fixed.any():
+            raise IdentifiabilityError(
+                f"no frame's markers fix the pose of model {model.name!r}: "
+                f"{_undetermined(model, Jq0, y)} cannot be seen from the markers",
+                "add a marker on that segment or use a joint with fewer axes (hinge, universal)")
         fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed,
                         rate=rate, cutoff=cutoff)
         self.outliers_ = np.zeros(y.shape[:2], dtype=bool)
@@ -348,7 +354,10 @@ class MarkerEstimator:
         self.bias_method_ = method
         theta = fit.theta - self.bias_
         cov = sigma2 * info_inv
-        self.crlb_sd_ = np.sqrt(np.diag(cov))
+        self.crlb_motion_sd_ = np.sqrt(np.diag(cov))
+        # the bound with every pose a free unknown (no motion model), at the estimate
+        _, Jq_u, Jt_u = frame_terms(model, fit.theta, fit.pose[used], y[used])
+        self.crlb_sd_ = crlb_sd(efficient_information(Jq_u, Jt_u, self.sigma_))
         # residual structure: soft-tissue artefact shows as slow, correlated residuals
         x = marker_positions(model, fit.theta, fit.pose)
         resid = y - x
@@ -360,7 +369,11 @@ class MarkerEstimator:
                       f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
                       "interval was widened (Newey-West)", self.warnings_)
         if self.robust == "always" or (self.robust == "auto" and flagged):
-            scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
+            if fit.penalty is None:
+                scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
+            else:
+                scores = smoothed_frame_scores(model, np.where(used[:, None, None], y, np.nan),
+                                               fit.theta, fit.pose, fit.penalty)[used]
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
@@ -424,6 +437,7 @@ class MarkerEstimator:
         summ = self.posterior_.summary()
         for k, n in enumerate(self.model.parameter_names):
             summ[n]["crlb_sd"] = float(self.crlb_sd_[k])
+            summ[n]["crlb_sd_motion_model"] = float(self.crlb_motion_sd_[k])
             summ[n]["bias_removed"] = float(self.bias_[k])
         out.update(summ)
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
@@ -477,6 +491,22 @@ def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4)
 def _unit(model: Model, k: int) -> str:
     """Unit of parameter ``k``: degrees for axis tilts, the model's length unit otherwise."""
     return "deg" if model.parameters[k].kind == "axis_direction" else model.units
+
+
+def _undetermined(model: Model, Jq, y) -> str:
+    """Names of the pose coordinates that the markers of the best-observed frame do not fix."""
+    t = int(np.argmax(np.isfinite(y).all(axis=-1).sum(axis=-1)))
+    H = Jq[t].T @ Jq[t]
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    w, V = np.linalg.eigh(H / np.outer(d, d))
+    weak = np.abs(V[:, 0]) > 0.3
+    names = []
+    for k in np.flatnonzero(weak):
+        dof = model.dofs[k]
+        joint = model.segments[dof.segment].joint
+        j = sum(1 for i in range(k) if model.dofs[i].segment == dof.segment)
+        names.append(f"{'rotation' if dof.kind == 'R' else 'translation'} {j + 1} of joint {joint.name!r}")
+    return ", ".join(names) or "a combination of pose coordinates"
 
 
 def _bandwidth(rho: float, n: int) -> int:
