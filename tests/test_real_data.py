@@ -59,7 +59,7 @@ def test_pendulum_length_is_exact_on_the_noise_free_file_and_covered_with_noise(
 def test_static_trial_cannot_locate_joints_and_says_so(shared_data):
     model = load_model(EXAMPLES / "lower_limb.toml")
     data = read(shared_data / "opensim-subject01" / "subject01_static.trc")
-    est = _fit(model, data.replace(positions=data.positions[::10]))
+    est = _fit(model, data.replace(positions=data.positions[::10]), n_iter=25)  # it cannot converge: no motion
     ranges = est.identifiability_["joint_range_deg"]
     assert max(max(r) for r in ranges.values()) < 5.0  # standing still
     assert any("moved less than 5 degrees" in w for w in est.warnings_)

@@ -63,11 +63,20 @@ def _banded(Hqq, R):
 
 def _banded_solver(Hqq, R):
     """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky."""
-    from scipy.linalg import cho_solve_banded, cholesky_banded
+    from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
     ab = _banded(Hqq, R)
     u = ab.shape[0] - 1
     ab[u] += 1e-10 * max(float(np.mean(ab[u])), 1e-300)  # frames without markers: keep it definite
+    n = ab.shape[1]
+    if n <= 1500:  # small systems: dense LAPACK beats the banded routine
+        A = np.zeros((n, n))
+        for k in range(u + 1):
+            i = np.arange(n - (u - k))
+            A[i, i + (u - k)] = ab[k, u - k:]
+        A = A + np.triu(A, 1).T
+        cf = cho_factor(A, lower=False, check_finite=False)
+        return lambda rhs: cho_solve(cf, rhs, check_finite=False)
     cb = cholesky_banded(ab, lower=False, check_finite=False)
     return lambda rhs: cho_solve_banded((cb, False), rhs, check_finite=False)
 
