@@ -254,12 +254,23 @@ def report(res: dict) -> str:
           "C3D frame); C3D and TRC estimates differ by less than 1.96 sd of their difference: "
           f"{all(ul['agree']['trc'].values())} "
           f"(otherwise: {[k for k, v in ul['agree']['trc'].items() if not v] or 'none'}). All three read by "
-          "skelid.io.read_markers. Seconds: {ul['c3d']['seconds']}, {ul['csv']['seconds']}, "
+          f"skelid.io.read_markers. Seconds: {ul['c3d']['seconds']}, {ul['csv']['seconds']}, "
           f"{ul['trc']['seconds']}.", ""]
     return "\n".join(L)
 
 
+def render(res: dict) -> str:
+    """The Markdown page for a results dict (also used to re-render saved results)."""
+    return "# Real-data acceptance (benchmarks/real_data.py)\n\n" + report(res) + \
+        f"\nTotal {res['machine']['total_seconds']} s on {res['machine']['processor']}, Python " \
+        f"{res['machine']['python']}, numpy {res['machine']['numpy']}.\n"
+
+
 def main():
+    if len(sys.argv) > 1 and sys.argv[1] == "--render":  # re-render the saved JSON
+        res = json.loads((RESULTS / "real_data.json").read_text())
+        (RESULTS / "real_data.md").write_text(render(res))
+        return 0
     if not DATA.is_dir():
         print(f"shared data folder {DATA} is absent; nothing to do")
         return 1
@@ -269,9 +280,7 @@ def main():
     res["machine"] = {"python": platform.python_version(), "numpy": np.__version__,
                       "processor": platform.processor() or platform.machine(),
                       "total_seconds": round(time.perf_counter() - t0, 1)}
-    text = "# Real-data acceptance (benchmarks/real_data.py)\n\n" + report(res) + \
-        f"\nTotal {res['machine']['total_seconds']} s on {res['machine']['processor']}, Python " \
-        f"{res['machine']['python']}, numpy {res['machine']['numpy']}.\n"
+    text = render(res)
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "real_data.md").write_text(text)

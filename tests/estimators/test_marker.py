@@ -109,3 +109,27 @@ def test_joint_fit_uses_the_motion_model_information():
     smooth = joint_fit(model, y, trial.theta, trial.pose, rate=100.0, cutoff=6.0)
     assert smooth.info[0, 0] > plain.info[0, 0]  # a motion model adds information
     assert smooth.pose_dof < plain.pose_dof
+
+
+def test_cutoffs_follow_the_motion():
+    from skelid.estimators.joint import choose_cutoffs
+
+    model = builtin_model("case-a")
+    rng = np.random.default_rng(0)
+    t = np.arange(1000) / 100.0
+    slow = np.sin(2 * np.pi * 0.5 * t)
+    fast = np.sin(2 * np.pi * 5.0 * t)
+    q = np.zeros((1000, model.n_pose))
+    q[:, 3] = slow + rng.normal(0, 0.05, 1000)
+    q[:, 4] = fast + rng.normal(0, 0.05, 1000)
+    fc = choose_cutoffs(model, q, np.ones(1000, bool), 100.0)
+    assert fc[3] <= 3.0 < 6.0 <= fc[4]  # slow motion is smoothed more than fast motion
+    assert np.all(fc <= 50.0)
+
+
+def test_automatic_cutoff_is_recorded():
+    model = builtin_model("case-b")
+    trial = simulate(model, sigma=5.0, n_frames=200, rng=np.random.default_rng(9))
+    est = MarkerEstimator(model).fit(trial.data)
+    assert np.shape(est.cutoff_) == (model.n_pose,)
+    assert "cutoff_hz" in est.result()

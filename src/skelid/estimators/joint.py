@@ -147,14 +147,66 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     return dtheta, dq
 
 
-def smoothing_penalty(model: Model, Hqq, rate: float, cutoff: float):
+UNDERSMOOTH = 2.0
+CUTOFF_CANDIDATES = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)  # Hz
+
+
+def _gain(cutoff, rate):
+    return (2.0 - 2.0 * np.cos(2.0 * np.pi * np.minimum(np.asarray(cutoff, float) / rate, 0.5))) ** 3
+
+
+def choose_cutoffs(model: Model, q, used, rate: float) -> np.ndarray:
+    """Cutoff frequency (Hz) for each pose coordinate by generalised cross-validation.
+
+    Each coordinate's per-frame track ``z`` (angles unwrapped, skipped frames
+    interpolated) is smoothed by the third-difference Whittaker smoother for each
+    candidate cutoff, and the cutoff minimising
+    ``GCV = T ||z - z_hat||^2 / (T - tr H)^2`` (``tr H`` from the smoother's
+    frequency response) is doubled: a nuisance curve smoothed for its own best
+    error would bias the parameter, so it is undersmoothed. Slow motion gets a
+    low cutoff (more smoothing, less incidental-parameter bias); fast motion
+    keeps a high one.
+
+    Returns
+    -------
+    (Q,) float
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    z = _continuous_poses(model, q, used)
+    T, Q = z.shape
+    if T < 8:
+        return np.full(Q, rate / 2.0)
+    D3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(T - 3, T))
+    P = (D3.T @ D3).tocsc()
+    omega = 2.0 * np.pi * np.arange(T) / T
+    resp = (2.0 - 2.0 * np.cos(omega)) ** 3
+    best = np.full(Q, np.nan)
+    score = np.full(Q, np.inf)
+    eye = sp.identity(T, format="csc")
+    for fc in CUTOFF_CANDIDATES:
+        if fc >= rate / 2.0:
+            break
+        lam = 1.0 / _gain(fc, rate)
+        zh = splu((eye + lam * P).tocsc()).solve(z)
+        trace = float(np.sum(1.0 / (1.0 + lam * resp)))
+        g = T * np.sum((z - zh) ** 2, axis=0) / max(T - trace, 1.0) ** 2
+        better = g < score
+        score[better], best[better] = g[better], fc
+    # undersmooth: the cutoff that is best for the poses leaves a pose bias that would
+    # bias theta; twice that cutoff passes the motion the data resolve almost untouched
+    return np.where(np.isfinite(best), np.minimum(UNDERSMOOTH * best, rate / 2.0), rate / 2.0)
+
+
+def smoothing_penalty(model: Model, Hqq, rate: float, cutoff):
     """Third-difference penalty on pose trajectories: a low-pass motion model.
 
     The penalty ``sum_k w_k ||D3 q_k||^2`` makes the poses a Whittaker smoother
-    of the per-frame fits whose gain is 1/2 at ``cutoff`` Hz,
-    ``w_k = median_t H_{qq,t,kk} / (2 - 2 cos(2 pi cutoff / rate))^3``; its gain
-    ``1 / (1 + (f/f_c)^6)`` (roughly) leaves slower motion untouched and passes
-    quadratic trajectories exactly.
+    of the per-frame fits whose gain is 1/2 at the cutoff (Hz; one value, or one
+    per pose coordinate), ``w_k = median_t H_{qq,t,kk} / (2 - 2 cos(2 pi f_k / rate))^3``;
+    its gain ``1 / (1 + (f/f_k)^6)`` (roughly) leaves slower motion untouched
+    and passes quadratic trajectories exactly.
 
     Returns
     -------
@@ -164,8 +216,7 @@ def smoothing_penalty(model: Model, Hqq, rate: float, cutoff: float):
 
     T = Hqq.shape[0]
     h = np.median(np.einsum("tii->ti", Hqq), axis=0)
-    gain = (2.0 - 2.0 * np.cos(2.0 * np.pi * min(cutoff / rate, 0.5))) ** 3
-    w = np.maximum(h, 1e-12 * max(h.max(), 1e-300)) / gain
+    w = np.maximum(h, 1e-12 * max(h.max(), 1e-300)) / _gain(np.broadcast_to(cutoff, h.shape), rate)
     D3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(max(T - 3, 0), T))
     return sp.kron(D3.T @ D3, sp.diags(w)).tocsc()
 

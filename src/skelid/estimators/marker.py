@@ -26,6 +26,7 @@ from skelid.errors import DataError, IdentifiabilityError
 from skelid.estimators.base import prepare, warn_once
 from skelid.estimators.joint import (
     box_bias,
+    choose_cutoffs,
     frame_scores,
     joint_fit,
     lag1_autocorrelation,
@@ -229,7 +230,7 @@ class MarkerEstimator:
 
     name = "marker"
 
-    def __init__(self, model: Model, sigma: float | None = None, cutoff: float | None = 6.0,
+    def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0):
@@ -249,9 +250,8 @@ class MarkerEstimator:
         model = self.model
         rate = data.rate if isinstance(data, MarkerData) else self.rate
         cutoff = self.cutoff if (self.cutoff and rate) else None
-        if cutoff is not None and cutoff >= rate / 2:
+        if isinstance(cutoff, int | float) and cutoff >= rate / 2:
             cutoff = None  # no smoothing at or above the Nyquist frequency
-        self.cutoff_ = cutoff
         if model.n_params == 0:
             raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
                                        "add a [[parameters]] table")
@@ -267,6 +267,9 @@ class MarkerEstimator:
         # a frame whose markers do not fix every pose coordinate is skipped (and counted)
         _, Jq0, _ = frame_terms(model, theta0, pose0, y)
         fixed = pose_fixed(Jq0)
+        if isinstance(cutoff, str) and fixed.any():  # "auto": per-coordinate cutoffs from the motion
+            cutoff = choose_cutoffs(model, pose0, fixed & usable_frames(model, y), rate)
+        self.cutoff_ = cutoff
         if not fixed.any():
             raise IdentifiabilityError(
                 f"no frame's markers fix the pose of model {model.name!r}: "
@@ -444,6 +447,7 @@ class MarkerEstimator:
                         "fixed": self.sigma is not None}
         if self.lengths_:
             out["lengths"] = self.lengths_
+        out["cutoff_hz"] = None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist()
         out["identifiability"] = self.identifiability_["table"]
         out["counting"] = self.identifiability_.get("counting")
         out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
