@@ -175,6 +175,37 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, as_json, out_di
                        f"next: skelid report {out_dir}")
 
 
+@cli.command(epilog="Example:\n\n\b\n"
+             "    skelid batch examples/case_a.toml 'trials/*.trc' --out results.parquet --workers 4")
+@click.argument("model_path")
+@click.argument("pattern")
+@click.option("--out", "out_path", required=True, help="Table to write: .parquet or .csv (rows already "
+              "there are kept and their trials skipped).")
+@click.option("--method", default="marker", show_default=True, help="Estimator: marker, paper, marker-grid.")
+@click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Marker noise in model units (default: estimated, or 15 mm for the paper method).")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker processes of the local Dask cluster (default: one per CPU).")
+@click.option("--scheduler", default=None, help="Address of an existing Dask scheduler (tcp://host:8786).")
+@click.option("--seed", type=SEED, default=0, show_default=True)
+@click.option("--retry-failed", is_flag=True, help="Fit again the trials whose rows hold an error.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
+@click.option("--quiet", is_flag=True, help="No progress bar, no summary line.")
+def batch(model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, as_json,
+          quiet):
+    """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out."""
+    from skelid.batch import run_batch
+
+    _finite("--sigma", sigma)
+    summary = run_batch(model_path, pattern, out_path, method=method, sigma=sigma, seed=seed, workers=workers,
+                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet)
+    if as_json:
+        _echo_json(summary)
+    elif not quiet:
+        click.echo(f"{summary['trials']} trials: {summary['fitted']} fitted, {summary['failed']} failed, "
+                   f"{summary['skipped']} already in {summary['out']} ({summary['seconds']:g} s)")
+
+
 @cli.command(epilog=EXAMPLES_EPILOG)
 @click.argument("result_dir")
 @click.option("--out", "out_path", default=None,

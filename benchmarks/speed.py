@@ -1,0 +1,534 @@
+"""Speed study: online update latency, batch fits, a scipy peer, memory on long trials, Dask batches.
+
+Writes ``benchmarks/results/speed.json`` and ``speed.md``. Every measurement
+runs on one core (``OMP_NUM_THREADS=1`` and friends are set before numpy is
+imported) except the Dask batch, which uses a two-process local cluster. The
+machine may be shared: every time is a median over repeats, and the load
+average before and after is recorded.
+
+    python benchmarks/speed.py                 # everything (about 15 minutes)
+    python benchmarks/speed.py --only online   # one section (results merged into speed.json)
+
+Sections
+--------
+online      per-frame update of the grid filter, case A, 256 hypotheses (compiled and numpy paths)
+fit         MarkerEstimator (posterior included) on a 500-frame case-A trial
+peer        scipy.optimize.least_squares (trf, analytic sparse Jacobian) on theta + all poses, 20 trials
+lower_limb  the 3-D model examples/lower_limb.toml on the OpenSim walk, or tests.helpers.tree_3d
+rss         peak resident memory of the grid filter and the paper method on 10^5 frames
+batch       32 simulated trials through skelid batch (2 workers) against one after another
+scaling     time against frames, hypotheses and markers
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+           "VECLIB_MAXIMUM_THREADS"):
+    os.environ[_v] = "1"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SHARED = ROOT.parent / "shared" / "data"
+sys.path.insert(0, str(ROOT))  # tests.helpers
+
+TARGETS = {  # key: (limit, "<=" or ">=", what)
+    "online_update_ms_median": (0.2, "<="),
+    "online_update_ms_p99": (1.0, "<="),
+    "fit_case_a_s": (0.3, "<="),
+    "ratio_vs_least_squares": (0.5, "<="),
+    "lower_limb_fit_s": (2.0, "<="),
+    "peak_rss_mb_1e5_frames": (1024.0, "<="),
+}
+
+
+def _quiet():
+    warnings.simplefilter("ignore")
+
+
+def _median(xs) -> float:
+    return float(statistics.median(xs))
+
+
+def _update_latencies(model, n_hyp: int, n_frames: int, seed: int = 0):
+    """Wall and CPU time (ms) of each update after the first (which finds the first pose)."""
+    from skelid.estimators.grid import MarkerGridFilter
+    from skelid.simulate import simulate
+
+    trial = simulate(model, sigma=15.0, n_frames=n_frames + 1, rng=np.random.default_rng(seed))
+    y = trial.data.positions[..., : model.dim]
+    lo, hi = model.parameters[0].prior.lower, model.parameters[0].prior.upper
+    f = MarkerGridFilter(model, axes=(np.linspace(lo, hi, n_hyp),))
+    state = f.update(f.init_state(), y[0])
+    state = f.update(state, y[1])  # buffers allocated, kernel loaded
+    wall, cpu = [], []
+    for frame in y[2:]:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        state = f.update(state, frame)
+        cpu.append(time.thread_time() - c0)
+        wall.append(time.perf_counter() - t0)
+    return np.array(wall) * 1e3, np.array(cpu) * 1e3
+
+
+# --------------------------------------------------------------------------- sections
+def section_online(args) -> dict:
+    from skelid.simulate import builtin_model
+
+    try:  # the optional compiled pose kernel
+        from skelid.estimators import _lm_kernel
+        compiled = _lm_kernel.AVAILABLE
+    except ImportError:
+        compiled = False
+
+    _quiet()
+    model = builtin_model("case-a")
+    runs = []
+    for rep in range(args.repeats):
+        wall, cpu = _update_latencies(model, 256, args.online_frames, seed=rep)
+        runs.append({"median": float(np.median(wall)), "p99": float(np.percentile(wall, 99)),
+                     "cpu_median": float(np.median(cpu)), "cpu_p99": float(np.percentile(cpu, 99))})
+    out = {"online_update_ms_median": _median(r["median"] for r in runs),
+           "online_update_ms_p99": _median(r["p99"] for r in runs),
+           "online_runs": runs, "online_compiled": compiled}
+    if compiled:  # the numpy path, for comparison
+        res = _child("online_numpy", args, env={"SKELID_NUMBA": "0"})
+        out.update(res)
+    return out
+
+
+def section_online_numpy(args) -> dict:
+    from skelid.simulate import builtin_model
+
+    _quiet()
+    wall, cpu = _update_latencies(builtin_model("case-a"), 256, 300)
+    return {"online_numpy_update_ms_median": float(np.median(wall)),
+            "online_numpy_update_ms_p99": float(np.percentile(wall, 99))}
+
+
+def section_fit(args) -> dict:
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.simulate import builtin_model, simulate
+
+    _quiet()
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=15.0, n_frames=500, rng=np.random.default_rng(0))
+    MarkerEstimator(model).fit(trial.data)  # warm up
+    times = []
+    for _ in range(max(args.repeats, 3)):
+        t0 = time.perf_counter()
+        MarkerEstimator(model).fit(trial.data)
+        times.append(time.perf_counter() - t0)
+    return {"fit_case_a_s": _median(times), "fit_case_a_runs_s": times}
+
+
+def peer_least_squares(model, y, rng):
+    """Joint least squares over theta and every pose with scipy: what a careful user would write.
+
+    Poses start from the same tracking at the prior centre as skelid's; the
+    Jacobian is analytic and sparse (theta columns, then one block per frame).
+    """
+    import scipy.sparse as sp
+    from scipy.optimize import least_squares
+
+    from skelid.estimators.pose import track_poses
+    from skelid.model import marker_jacobian, marker_positions
+
+    T, M, D = y.shape
+    P, Q = model.n_params, model.n_pose
+    present = np.repeat(np.isfinite(y).all(-1)[..., None], D, axis=-1)
+    theta0 = model.theta_center
+    q1, _ = track_poses(model, theta0, y[:1], rng)
+    q0, _ = track_poses(model, theta0, y, rng, q_first=q1[0], stride=4)
+    n_res = int(present.sum())
+    t_of_row = np.broadcast_to(np.arange(T)[:, None, None], (T, M, D))[present]
+    r = np.arange(n_res)
+    rows = np.concatenate([np.repeat(r, P), np.repeat(r, Q)])
+    cols = np.concatenate([np.tile(np.arange(P), n_res), (P + t_of_row[:, None] * Q + np.arange(Q)).ravel()])
+
+    def fun(x):
+        return (marker_positions(model, x[:P], x[P:].reshape(T, Q)) - y)[present]
+
+    def jac(x):
+        _, Jq, Jt = marker_jacobian(model, x[:P], x[P:].reshape(T, Q))
+        data = np.concatenate([Jt[present].ravel(), Jq[present].ravel()])
+        return sp.csr_matrix((data, (rows, cols)), shape=(n_res, P + T * Q))
+
+    lo, hi = np.full(P + T * Q, -np.inf), np.full(P + T * Q, np.inf)
+    lo[:P] = [p.prior.lower for p in model.parameters]
+    hi[:P] = [p.prior.upper for p in model.parameters]
+    res = least_squares(fun, np.concatenate([theta0, q0.ravel()]), jac=jac, bounds=(lo, hi), method="trf",
+                        x_scale="jac")
+    return res.x[:P], res
+
+
+def section_peer(args) -> dict:
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.simulate import builtin_model, simulate
+
+    _quiet()
+    model = builtin_model("case-a")
+    rows = []
+    for seed in range(args.peer_trials):
+        trial = simulate(model, sigma=15.0, n_frames=500, rng=np.random.default_rng(1000 + seed))
+        y = trial.data.positions[..., :2]
+        t0 = time.perf_counter()
+        est = MarkerEstimator(model).fit(trial.data)
+        t_sk = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        theta_ls, res = peer_least_squares(model, y, np.random.default_rng(0))
+        t_ls = time.perf_counter() - t0
+        rows.append({"seed": 1000 + seed, "truth": float(trial.theta[0]), "skelid": float(est.theta_[0]),
+                     "skelid_s": t_sk, "least_squares": float(theta_ls[0]), "least_squares_s": t_ls,
+                     "least_squares_nfev": int(res.nfev)})
+    err_sk = np.array([r["skelid"] - r["truth"] for r in rows])
+    err_ls = np.array([r["least_squares"] - r["truth"] for r in rows])
+    t_sk = _median(r["skelid_s"] for r in rows)
+    t_ls = _median(r["least_squares_s"] for r in rows)
+    return {"least_squares_s": t_ls, "skelid_peer_fit_s": t_sk, "ratio_vs_least_squares": t_sk / t_ls,
+            "skelid_rmse": float(np.sqrt(np.mean(err_sk**2))),
+            "least_squares_rmse": float(np.sqrt(np.mean(err_ls**2))),
+            "skelid_bias": float(err_sk.mean()), "least_squares_bias": float(err_ls.mean()),
+            "peer_trials": rows}
+
+
+def section_lower_limb(args) -> dict:
+    from skelid.estimators.marker import MarkerEstimator
+
+    _quiet()
+    model_path = ROOT / "examples" / "lower_limb.toml"
+    data_path = SHARED / "opensim-subject01" / "subject01_walk1.trc"
+    if model_path.exists() and data_path.exists():
+        from skelid.io import read_markers
+        from skelid.model import load_model
+
+        model, data = load_model(model_path), read_markers(data_path)
+        note = f"{model_path.relative_to(ROOT)} on {data_path.name} ({data.n_frames} frames)"
+    else:
+        from skelid.simulate import simulate
+        from tests.helpers import tree_3d
+
+        model = tree_3d()
+        data = simulate(model, sigma=3.0, n_frames=151, rng=np.random.default_rng(0)).data
+        note = ("examples/lower_limb.toml is absent on this branch: measured on tests/helpers.py::tree_3d "
+                f"(3-D, {model.n_pose} pose coordinates, {len(model.markers)} markers, {model.n_params} "
+                "parameters) with a simulated 151-frame trial, sigma 3 mm")
+    MarkerEstimator(model).fit(data)
+    times = []
+    for _ in range(max(args.repeats, 3)):
+        t0 = time.perf_counter()
+        MarkerEstimator(model).fit(data)
+        times.append(time.perf_counter() - t0)
+    return {"lower_limb_fit_s": _median(times), "lower_limb_note": note}
+
+
+def section_rss_child(args) -> dict:
+    """One long-trial run in this process: ``--method`` and ``--mode`` (stream or fit)."""
+    _quiet()
+    from skelid.simulate import builtin_model
+
+    model = builtin_model("case-a")
+    if args.method == "paper":
+        from skelid.estimators.paper import PaperFilter
+
+        est = PaperFilter(model)
+    else:
+        from skelid.estimators.grid import MarkerGridFilter
+
+        est = MarkerGridFilter(model, axes=(np.linspace(200, 300, 256),))
+    t0 = time.perf_counter()
+    if args.mode == "stream":
+        from skelid.streaming import fit_online, iter_trc
+
+        res = fit_online(est, iter_trc(args.trc, chunk_frames=10_000))
+        n, summ = res.n_frames, res.posterior.summary()
+    else:
+        from skelid.io import read_markers
+
+        data = read_markers(args.trc)
+        est.fit(data)
+        n, summ = data.n_frames, est.posterior_.summary()
+    secs = time.perf_counter() - t0
+    return {"frames": n, "seconds": secs, "peak_rss_mb": _peak_rss_mb(), "L2_mean": summ["L2"]["mean"]}
+
+
+def _peak_rss_mb() -> float:
+    """High-water mark of this process's resident memory (VmHWM; ru_maxrss survives exec on Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def section_rss(args) -> dict:
+    from skelid.io import write_trc
+    from skelid.simulate import builtin_model, simulate
+
+    model = builtin_model("case-a")
+    with tempfile.TemporaryDirectory() as tmp:
+        trc = Path(tmp) / "long.trc"
+        trial = simulate(model, sigma=15.0, n_frames=args.long_frames, rng=np.random.default_rng(7))
+        write_trc(trc, trial.data)
+        del trial
+        runs = {}
+        for method in ("grid", "paper"):
+            for mode in ("stream", "fit"):
+                runs[f"{method}-{mode}"] = _child("rss_child", args,
+                                                  extra=["--method", method, "--mode", mode, "--trc", str(trc)])
+    return {"peak_rss_mb_1e5_frames": max(r["peak_rss_mb"] for r in runs.values()), "long_trial_runs": runs,
+            "long_trial_frames": args.long_frames}
+
+
+def section_batch(args) -> dict:
+    _quiet()
+    from skelid.batch import fit_trial, run_batch
+    from skelid.io import write_trc
+    from skelid.simulate import builtin_model, simulate
+
+    model = builtin_model("case-a")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for k in range(32):
+            trial = simulate(model, sigma=15.0, n_frames=args.batch_frames, rng=np.random.default_rng(k))
+            write_trc(tmp / f"trial{k:02d}.trc", trial.data)
+        t0 = time.perf_counter()
+        summary = run_batch("case-a", str(tmp / "*.trc"), tmp / "out.parquet", workers=2)
+        wall = time.perf_counter() - t0
+        files = sorted(str(p.resolve()) for p in tmp.glob("*.trc"))
+        fit_trial(files[0], model)  # warm up
+        t0 = time.perf_counter()
+        per = []
+        for f in files:
+            row = fit_trial(f, model)
+            per.append(row["seconds"])
+        serial = time.perf_counter() - t0
+    return {"batch_32_wall_s": wall, "batch_32_serial_s": serial, "batch_per_trial_parallel_s": wall / 32,
+            "batch_per_trial_serial_s": serial / 32, "batch_trial_frames": args.batch_frames,
+            "batch_failed": summary["failed"], "batch_median_trial_fit_s": _median(per)}
+
+
+def _planar_chain(n_markers: int):
+    """Case A with ``n_markers`` markers spread over its three segments."""
+    from skelid.model import model_from_dict
+    from skelid.simulate import builtin_model
+
+    d = builtin_model("case-a").to_dict()
+    segs = [s["name"] for s in d["segments"]]
+    base = {m["segment"]: m["position"] for m in d["markers"]}
+    rng = np.random.default_rng(n_markers)
+    markers = []
+    for k in range(n_markers):
+        seg = segs[k % len(segs)]
+        x, yy = base[seg]
+        markers.append({"name": f"m{k}", "segment": seg,
+                        "position": [float(x + rng.uniform(-60, 60)), float(yy + rng.uniform(-15, 15))]})
+    d["markers"] = markers
+    return model_from_dict(d)
+
+
+def section_scaling(args) -> dict:
+    _quiet()
+    from skelid.estimators.grid import MarkerGridFilter
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.paper import PaperFilter
+    from skelid.simulate import builtin_model, simulate
+
+    model = builtin_model("case-a")
+    frames = {}
+    for F in args.scaling_frames:
+        trial = simulate(model, sigma=15.0, n_frames=F, rng=np.random.default_rng(F))
+        row = {}
+        for name, make in (("grid_256", lambda: MarkerGridFilter(model, axes=(np.linspace(200, 300, 256),))),
+                           ("paper", lambda: PaperFilter(model)), ("marker", lambda: MarkerEstimator(model))):
+            if name == "marker" and F > args.marker_max_frames:
+                continue
+            t0 = time.perf_counter()
+            make().fit(trial.data)
+            row[name] = time.perf_counter() - t0
+        frames[str(F)] = row
+    hyps = {}
+    for K in (16, 64, 256, 1024, 4096):
+        wall, _ = _update_latencies(model, K, 200 if K <= 1024 else 60)
+        hyps[str(K)] = float(np.median(wall))
+    marks = {}
+    for M in (3, 6, 12, 24, 48):
+        wall, _ = _update_latencies(_planar_chain(M), 256, 200)
+        marks[str(M)] = float(np.median(wall))
+    return {"scaling": {"frames_s": frames, "hypotheses_update_ms": hyps, "markers_update_ms": marks}}
+
+
+SECTIONS = {"online": section_online, "fit": section_fit, "peer": section_peer, "lower_limb": section_lower_limb,
+            "rss": section_rss, "batch": section_batch, "scaling": section_scaling}
+CHILD_SECTIONS = {"online_numpy": section_online_numpy, "rss_child": section_rss_child}
+
+
+def _child(section: str, args, env=None, extra=()) -> dict:
+    """Run a section in a fresh interpreter (its own memory high-water mark and environment)."""
+    with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as fh:
+        out = fh.name
+    cmd = [sys.executable, __file__, "--child", section, "--child-out", out, *extra]
+    subprocess.run(cmd, check=True, env={**os.environ, **(env or {})}, cwd=ROOT)
+    try:
+        return json.loads(Path(out).read_text())
+    finally:
+        Path(out).unlink(missing_ok=True)
+
+
+def environment() -> dict:
+    import numpy
+    import scipy
+
+    try:
+        import numba
+
+        nb = numba.__version__
+    except ImportError:
+        nb = None
+    cpu = platform.processor() or platform.machine()
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                   if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"python": platform.python_version(), "numpy": numpy.__version__, "scipy": scipy.__version__,
+            "numba": nb, "cpu": cpu, "cpus": os.cpu_count(), "threads_per_measurement": 1}
+
+
+def verdicts(res: dict) -> dict:
+    out = {}
+    for key, (limit, op) in TARGETS.items():
+        if key in res:
+            v = res[key]
+            met = v <= limit if op == "<=" else v >= limit
+            out[key] = {"value": v, "target": f"{op} {limit:g}", "met": bool(met)}
+    if {"skelid_rmse", "least_squares_rmse"} <= res.keys() and "ratio_vs_least_squares" in out:
+        out["ratio_vs_least_squares"]["equal_or_better_error"] = res["skelid_rmse"] <= res["least_squares_rmse"]
+    return out
+
+
+def write_markdown(res: dict, path: Path) -> None:
+    v = verdicts(res)
+    lines = ["# Speed benchmark", "",
+             f"Written by `benchmarks/speed.py` on {res.get('date', '?')}; one core per measurement "
+             "(OMP/BLAS threads = 1) except the Dask batch (2 worker processes). "
+             f"Load average before / after: {res.get('load_before')} / {res.get('load_after')} "
+             f"on {res['environment']['cpus']} CPUs ({res['environment']['cpu']}); numba "
+             f"{res['environment']['numba'] or 'not installed'}. Times are medians over repeats.", "",
+             "| key | value | target | met |", "|---|---:|---|---|"]
+    keys = ["online_update_ms_median", "online_update_ms_p99", "fit_case_a_s", "least_squares_s",
+            "ratio_vs_least_squares", "skelid_rmse", "least_squares_rmse", "lower_limb_fit_s",
+            "peak_rss_mb_1e5_frames", "batch_32_wall_s", "batch_32_serial_s"]
+    for k in keys:
+        if k not in res:
+            lines.append(f"| {k} | (not measured) | | |")
+            continue
+        t = v.get(k)
+        lines.append(f"| {k} | {res[k]:.4g} | {t['target'] if t else ''} | "
+                     f"{('yes' if t['met'] else 'no') if t else ''} |")
+    lines.append("")
+    if "online_numpy_update_ms_median" in res:
+        lines.append(f"Online update without numba (numpy path): median "
+                     f"{res['online_numpy_update_ms_median']:.3f} ms, p99 {res['online_numpy_update_ms_p99']:.3f} ms.")
+    if "skelid_peer_fit_s" in res:
+        lines.append(f"Peer comparison over {len(res['peer_trials'])} trials (case A, 500 frames, sigma 15 mm): "
+                     f"skelid {res['skelid_peer_fit_s']:.3f} s per trial (bias {res['skelid_bias']:+.2f} mm, RMSE "
+                     f"{res['skelid_rmse']:.2f} mm), least_squares {res['least_squares_s']:.3f} s (bias "
+                     f"{res['least_squares_bias']:+.2f} mm, RMSE {res['least_squares_rmse']:.2f} mm). The peer solves "
+                     "plain joint least squares (no motion model, no bias correction) from the same tracked "
+                     "starting poses.")
+    if "lower_limb_note" in res:
+        lines.append(f"3-D: {res['lower_limb_note']}.")
+    if "long_trial_runs" in res:
+        lines += ["", f"Long trial ({res['long_trial_frames']} frames, case A; grid filter with 256 hypotheses; "
+                  "each run in a fresh process, peak RSS from VmHWM):", "",
+                  "| method | mode | seconds | peak RSS (MB) |", "|---|---|---:|---:|"]
+        for name, r in res["long_trial_runs"].items():
+            m, mode = name.split("-")
+            lines.append(f"| {m} | {'streamed in 10^4-frame chunks' if mode == 'stream' else 'fit() in memory'} | "
+                         f"{r['seconds']:.1f} | {r['peak_rss_mb']:.0f} |")
+    if "batch_32_wall_s" in res:
+        lines.append("")
+        lines.append(f"Batch: 32 trials of {res['batch_trial_frames']} frames (marker method): "
+                     f"{res['batch_32_wall_s']:.1f} s on a 2-worker local cluster "
+                     f"({res['batch_per_trial_parallel_s']:.2f} s per trial, cluster start included) against "
+                     f"{res['batch_32_serial_s']:.1f} s one after another ({res['batch_per_trial_serial_s']:.2f} s "
+                     "per trial).")
+    sc = res.get("scaling")
+    if sc:
+        lines += ["", "## Scaling", "", "Whole-trial time (s) against frames (case A; the grid filter with 256 "
+                  "hypotheses, the seed (paper) method, the marker method):", "",
+                  "| frames | grid (256) | paper | marker |", "|---:|---:|---:|---:|"]
+        for F, row in sc["frames_s"].items():
+            lines.append(f"| {F} | {row.get('grid_256', float('nan')):.3g} | {row.get('paper', float('nan')):.3g} | "
+                         f"{row['marker']:.3g} |" if "marker" in row else
+                         f"| {F} | {row.get('grid_256', float('nan')):.3g} | {row.get('paper', float('nan')):.3g} | |")
+        if "long_trial_runs" in res:
+            r = res["long_trial_runs"]
+            lines.append(f"| {res['long_trial_frames']} (streamed) | {r['grid-stream']['seconds']:.3g} | "
+                         f"{r['paper-stream']['seconds']:.3g} | |")
+        lines += ["", "Online update (ms, median) against hypotheses (case A) and markers (planar 3-segment "
+                  "chain, 256 hypotheses):", "", "| hypotheses | ms |", "|---:|---:|"]
+        lines += [f"| {k} | {x:.3f} |" for k, x in sc["hypotheses_update_ms"].items()]
+        lines += ["", "| markers | ms |", "|---:|---:|"]
+        lines += [f"| {k} | {x:.3f} |" for k, x in sc["markers_update_ms"].items()]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--only", nargs="*", choices=sorted(SECTIONS), help="Sections to run (default: all).")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--online-frames", type=int, default=3000)
+    ap.add_argument("--peer-trials", type=int, default=20)
+    ap.add_argument("--long-frames", type=int, default=100_000)
+    ap.add_argument("--batch-frames", type=int, default=300)
+    ap.add_argument("--scaling-frames", type=int, nargs="*", default=[100, 1000, 10_000])
+    ap.add_argument("--marker-max-frames", type=int, default=1000)
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--method", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--mode", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--trc", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        Path(args.child_out).write_text(json.dumps(CHILD_SECTIONS[args.child](args)))
+        return
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    json_path = RESULTS / "speed.json"
+    res = json.loads(json_path.read_text()) if json_path.exists() and args.only else {}
+    res["load_before"] = round(os.getloadavg()[0], 2)
+    for name in args.only or SECTIONS:
+        t0 = time.perf_counter()
+        print(f"[speed] {name} ...", flush=True)
+        res.update(SECTIONS[name](args))
+        print(f"[speed] {name} done in {time.perf_counter() - t0:.0f} s", flush=True)
+        json_path.write_text(json.dumps(res, indent=2) + "\n")
+    res["load_after"] = round(os.getloadavg()[0], 2)
+    res["date"] = time.strftime("%Y-%m-%d %H:%M")
+    res["environment"] = environment()
+    res["targets"] = verdicts(res)
+    json_path.write_text(json.dumps(res, indent=2) + "\n")
+    write_markdown(res, RESULTS / "speed.md")
+    for k, t in res["targets"].items():
+        print(f"{k:28s} {t['value']:10.4g}  target {t['target']:8s} {'met' if t['met'] else 'MISSED'}")
+
+
+if __name__ == "__main__":
+    main()

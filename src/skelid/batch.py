@@ -1,0 +1,323 @@
+"""Many trials on a Dask cluster: one row per trial in a Parquet or CSV table.
+
+``skelid batch MODEL 'DIR/*.trc' --out results.parquet`` fits every matching
+file with one method on a ``dask.distributed`` cluster (a local one with one
+single-threaded process per worker by default, or an existing one given by
+its scheduler address) and writes one row per trial:
+
+========================  ====================================================
+column                    meaning
+========================  ====================================================
+``file``                  the trial's absolute path
+``method``                the estimator
+``n_frames``              frames in the file
+``frames_used``           frames the method used
+``<param>``               the estimate (posterior mean) of each parameter
+``<param>_sd``            its posterior standard deviation
+``<param>_ci_low/high``   its 95 % interval
+``sigma``                 marker noise (estimated, or as given)
+``seconds``               time to read and fit the trial
+``error``                 one line saying why the trial failed, or null
+``warnings``              the method's warnings, joined by `` | ``, or null
+========================  ====================================================
+
+A trial that fails (an unreadable file, a missing marker, no solution) becomes
+a row with its error and never stops the batch. The table is rewritten
+atomically as trials finish, so an interrupted batch leaves a valid table, and
+a re-run fits only the files that are not in it yet (``retry_failed`` fits
+the failed ones again). ``dask[distributed]`` and ``pyarrow`` come with the
+``[dask]`` extra.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import io
+import math
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from skelid.errors import SkelidError, SkelidWarning
+
+#: columns before and after the per-parameter ones
+HEAD = ("file", "method", "n_frames", "frames_used")
+TAIL = ("sigma", "seconds", "error", "warnings")
+PARAM_SUFFIXES = ("", "_sd", "_ci_low", "_ci_high")
+#: rewrite the table at most this often while trials finish (seconds)
+WRITE_INTERVAL = 2.0
+
+
+def require_dask(parquet: bool = True) -> None:
+    """A one-line error unless the ``[dask]`` extra is installed."""
+    missing = []
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        missing.append("dask[distributed]")
+    if parquet:
+        try:
+            import pyarrow  # noqa: F401
+        except ImportError:
+            missing.append("pyarrow")
+    if missing:
+        raise SkelidError(f"skelid batch needs {' and '.join(missing)}, which are not installed",
+                          "pip install 'skelid[dask]'")
+
+
+def columns(model) -> list[str]:
+    """The table's columns for ``model``, in order."""
+    return [*HEAD, *(f"{p}{s}" for p in model.parameter_names for s in PARAM_SUFFIXES), *TAIL]
+
+
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def fit_trial(path: str, model, method: str = "marker", sigma: float | None = None, seed: int = 0) -> dict:
+    """Read and fit one trial; never raises for the trial's own problems.
+
+    Returns
+    -------
+    dict
+        One row (see the module docstring); ``error`` says what went wrong.
+    """
+    import numpy as np
+
+    from skelid.io import read_markers
+    from skelid.workflows import check_input_file, check_units, make_estimator
+
+    t0 = time.perf_counter()
+    row = dict.fromkeys(columns(model))
+    row.update(file=str(path), method=method)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", SkelidWarning)
+            est = make_estimator(method, model, sigma=sigma, rng=np.random.default_rng(seed))
+            check_input_file(path)
+            data = read_markers(path)
+            check_units(model, data)
+            row["n_frames"] = int(data.n_frames)
+            est.fit(data)
+            res = est.result()
+        row["frames_used"] = int(res.get("frames_used", 0))
+        for name in model.parameter_names:
+            v = res[name]
+            row[name], row[f"{name}_sd"] = float(v["mean"]), float(v["sd"])
+            row[f"{name}_ci_low"], row[f"{name}_ci_high"] = (float(c) for c in v["ci95"])
+            if not all(math.isfinite(row[f"{name}{s}"]) for s in PARAM_SUFFIXES):
+                raise FloatingPointError(f"non-finite estimate of {name}: {v}")
+        sig = res.get("sigma", {})
+        row["sigma"] = float(sig["value"]) if isinstance(sig, dict) and sig.get("value") is not None else None
+        notes = list(dict.fromkeys([*res.get("warnings", []),
+                                    *(str(w.message) for w in caught if issubclass(w.category, SkelidWarning))]))
+        row["warnings"] = " | ".join(_one_line(w) for w in notes) or None
+    except SkelidError as exc:
+        row["error"] = exc.one_line()
+    except Exception as exc:  # a bug or a broken file: recorded, the batch goes on
+        row["error"] = _one_line(f"internal error {type(exc).__name__}: {exc}")
+    for name in model.parameter_names:  # a failed trial has no estimate at all
+        if row["error"] is not None:
+            for s in PARAM_SUFFIXES:
+                row[f"{name}{s}"] = None
+    row["seconds"] = round(time.perf_counter() - t0, 4)
+    return row
+
+
+# --------------------------------------------------------------------------- the table
+def _fmt(out: Path) -> str:
+    suffix = out.suffix.lower()
+    if suffix == ".parquet":
+        return "parquet"
+    if suffix == ".csv":
+        return "csv"
+    raise SkelidError(f"--out {out}: unsupported table type {suffix or '(none)'!r}",
+                      "end the file name with .parquet or .csv")
+
+
+def _schema(cols):
+    import pyarrow as pa
+
+    kinds = {"file": pa.string(), "method": pa.string(), "error": pa.string(), "warnings": pa.string(),
+             "n_frames": pa.int64(), "frames_used": pa.int64()}
+    return pa.schema([(c, kinds.get(c, pa.float64())) for c in cols])
+
+
+def read_table(out: Path, cols) -> list[dict]:
+    """Rows already in ``out`` (none if it does not exist); an error if its columns differ."""
+    if not out.exists():
+        return []
+    fmt = _fmt(out)
+    try:
+        if fmt == "parquet":
+            import pyarrow.parquet as pq
+
+            table = pq.read_table(out)
+            names, rows = table.column_names, table.to_pylist()
+        else:
+            with open(out, newline="", encoding="utf-8") as fh:
+                reader = csv.DictReader(fh)
+                names = list(reader.fieldnames or [])
+                rows = [{k: _from_csv(k, v) for k, v in r.items()} for r in reader]
+    except SkelidError:
+        raise
+    except Exception as exc:
+        raise SkelidError(f"cannot read the existing table {out}: {_one_line(exc)}",
+                          "remove it or choose another --out file") from None
+    if names != list(cols):
+        raise SkelidError(f"{out} has columns {', '.join(names)}, not those of this model and method",
+                          "choose another --out file for this model")
+    return rows
+
+
+def _from_csv(col: str, text: str | None):
+    if text is None or text == "":
+        return None
+    if col in ("file", "method", "error", "warnings"):
+        return text
+    if col in ("n_frames", "frames_used"):
+        return int(text)
+    return float(text)
+
+
+def write_table(out: Path, rows: list[dict], cols) -> None:
+    """Write ``rows`` to ``out`` atomically (a reader sees the old or the new table, never half)."""
+    from skelid.io.atomic import atomic_write
+
+    rows = sorted(rows, key=lambda r: r["file"])
+    if _fmt(out) == "parquet":
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.Table.from_pylist([{c: r.get(c) for c in cols} for r in rows], schema=_schema(cols))
+        with atomic_write(out, "wb") as fh:
+            pq.write_table(table, fh)
+        return
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(cols)
+    for r in rows:
+        w.writerow(["" if r.get(c) is None else r.get(c) for c in cols])
+    with atomic_write(out, newline="") as fh:
+        fh.write(buf.getvalue())
+
+
+# --------------------------------------------------------------------------- the run
+def find_trials(pattern: str) -> list[str]:
+    """Absolute paths of the files matching ``pattern`` (a glob, a folder, or a file), sorted."""
+    p = Path(pattern)
+    if p.is_dir():
+        hits = [str(q) for q in p.iterdir() if q.is_file()]
+    else:
+        hits = [h for h in glob.glob(pattern, recursive=True) if Path(h).is_file()]
+    if not hits:
+        raise SkelidError(f"no file matches {pattern!r}", "check the pattern; quote it so that the shell "
+                          "does not expand it, e.g. 'trials/*.trc'")
+    return sorted({str(Path(h).resolve()) for h in hits})
+
+
+def _client(workers: int | None, scheduler: str | None):
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    for name in ("distributed", "distributed.worker", "distributed.nanny", "distributed.scheduler"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    if scheduler:
+        try:
+            return Client(scheduler, timeout="10s"), None
+        except (OSError, TimeoutError) as exc:
+            raise SkelidError(f"cannot reach the Dask scheduler at {scheduler}: {_one_line(exc)}",
+                              "check the address (e.g. tcp://host:8786) and that the scheduler runs") from None
+    n = workers or max(1, os.cpu_count() or 1)
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                           silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: float | None = None,
+              seed: int = 0, workers: int | None = None, scheduler: str | None = None,
+              retry_failed: bool = False, progress: bool = False) -> dict:
+    """Fit every trial matching ``pattern`` and add their rows to the table ``out``.
+
+    Parameters
+    ----------
+    model_path : str
+        A model TOML file or a built-in model name.
+    pattern : str
+        Glob of the trial files (or a folder).
+    out : path-like
+        ``.parquet`` or ``.csv`` table; rows already there are kept and their
+        trials skipped.
+    workers : int, optional
+        Worker processes of the local cluster (default: one per CPU).
+    scheduler : str, optional
+        Address of an existing Dask scheduler to use instead.
+    retry_failed : bool
+        Fit again the trials whose rows hold an error.
+
+    Returns
+    -------
+    dict
+        ``{"out", "trials", "fitted", "failed", "skipped", "seconds"}``.
+    """
+    from skelid.simulate import BUILTIN_MODELS, resolve_model
+    from skelid.workflows import check_input_file, make_estimator
+
+    out = Path(out)
+    parquet = _fmt(out) == "parquet"
+    require_dask(parquet)
+    if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
+        check_input_file(model_path, "model file")
+    model = resolve_model(model_path)
+    make_estimator(method, model, sigma)  # an unknown method or a bad sigma fails before any work
+    cols = columns(model)
+    files = find_trials(pattern)
+    rows = {r["file"]: r for r in read_table(out, cols)}
+    todo = [f for f in files if f not in rows or (retry_failed and rows[f].get("error") is not None)]
+    summary = {"out": str(out), "trials": len(files), "fitted": 0, "failed": 0,
+               "skipped": len(files) - len(todo), "seconds": 0.0}
+    if not todo:
+        return summary
+    t0 = time.perf_counter()
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    client, cluster = _client(workers, scheduler)
+    unsaved = False
+    try:
+        futures = [client.submit(fit_trial, f, model, method, sigma, seed, key=f"skelid-fit-{i}-{f}",
+                                 pure=False) for i, f in enumerate(todo)]
+        path_of = {fut.key: f for fut, f in zip(futures, todo, strict=True)}
+        bar = tqdm(total=len(todo), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,
+                   disable=not progress or not sys.stderr.isatty())
+        last = time.monotonic()
+        unsaved = False
+        with bar:
+            for fut in as_completed(futures):
+                try:
+                    row = fut.result()
+                except Exception as exc:  # the worker died or the task could not run
+                    row = dict.fromkeys(cols)
+                    row.update(file=path_of[fut.key], method=method,
+                               error=_one_line(f"worker failed on this trial: {type(exc).__name__}: {exc}"))
+                rows[row["file"]] = row
+                unsaved = True
+                summary["failed" if row["error"] is not None else "fitted"] += 1
+                bar.update(1)
+                if time.monotonic() - last > WRITE_INTERVAL:
+                    write_table(out, list(rows.values()), cols)
+                    unsaved, last = False, time.monotonic()
+        write_table(out, list(rows.values()), cols)
+        unsaved = False
+    finally:
+        if unsaved:  # interrupted: keep what finished, so that a re-run resumes from there
+            write_table(out, list(rows.values()), cols)
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return summary

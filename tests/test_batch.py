@@ -1,0 +1,78 @@
+"""skelid batch: one row per trial on a local Dask cluster, failures as rows, resumable."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from skelid.batch import columns, read_table, write_table
+from skelid.cli import main
+from skelid.io import write_trc
+from skelid.simulate import builtin_model, simulate
+from tests.conftest import EXAMPLES
+
+pq = pytest.importorskip("pyarrow.parquet", reason="the [dask] extra (pyarrow) is not installed")
+pytest.importorskip("distributed", reason="the [dask] extra (dask[distributed]) is not installed")
+
+
+@pytest.mark.dask  # about 10 s: a two-process local cluster, four 100-frame trials
+def test_batch_writes_one_row_per_trial_records_failures_and_resumes(tmp_path, capsys):
+    model = builtin_model("case-a")
+    trials = tmp_path / "trials"
+    trials.mkdir()
+    for k in range(3):
+        trial = simulate(model, sigma=5.0, n_frames=100, rng=np.random.default_rng(k))
+        write_trc(trials / f"t{k}.trc", trial.data)
+    (trials / "t3.trc").write_text("PathFileType\t4\t(X/Y/Z)\tbroken.trc\nnot a trc file\n")
+    out = tmp_path / "results.parquet"
+    args = ["batch", str(EXAMPLES / "case_a.toml"), str(trials / "*.trc"), "--out", str(out),
+            "--method", "paper", "--workers", "2", "--quiet", "--json"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary == {**summary, "trials": 4, "fitted": 3, "failed": 1, "skipped": 0}
+    rows = pq.read_table(out).to_pylist()
+    assert [r["file"].rsplit("/", 1)[-1] for r in rows] == ["t0.trc", "t1.trc", "t2.trc", "t3.trc"]
+    for r in rows[:3]:
+        assert r["error"] is None and r["n_frames"] == 100 and r["frames_used"] > 50
+        assert r["L2_ci_low"] < r["L2"] < r["L2_ci_high"] and 230 < r["L2"] < 270
+        assert r["method"] == "paper" and r["sigma"] == 15.0 and r["seconds"] > 0
+    bad = rows[3]
+    assert bad["error"] and "\n" not in bad["error"] and "t3.trc" in bad["error"]
+    assert bad["L2"] is None
+    # a re-run finds every trial in the table and adds nothing
+    assert main(args) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["skipped"] == 4 and again["fitted"] == again["failed"] == 0
+    assert pq.read_table(out).to_pylist() == rows
+
+
+def test_batch_csv_and_bad_arguments_are_one_line_errors(tmp_path, capsys):
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r.csv")]) == 2
+    assert "no file matches" in capsys.readouterr().err
+    trial = simulate(builtin_model("case-a"), sigma=5.0, n_frames=30)
+    write_trc(tmp_path / "a.trc", trial.data)
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r.xlsx")]) == 2
+    assert "unsupported table type" in capsys.readouterr().err
+    (tmp_path / "r.csv").write_text("file,other\nx,1\n")
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r.csv")]) == 2
+    assert "not those of this model" in capsys.readouterr().err
+
+
+def test_csv_table_round_trip(tmp_path):
+    model = builtin_model("case-a")
+    cols = columns(model)
+    rows = [dict.fromkeys(cols) | {"file": "/b.trc", "method": "paper", "n_frames": 10, "frames_used": 9,
+                                   "L2": 250.5, "L2_sd": 1.25, "L2_ci_low": 248.0, "L2_ci_high": 253.0,
+                                   "sigma": 15.0, "seconds": 0.5},
+            dict.fromkeys(cols) | {"file": "/a.trc", "method": "paper", "error": "a, \"quoted\" problem"}]
+    out = tmp_path / "r.csv"
+    write_table(out, rows, cols)
+    assert read_table(out, cols) == sorted(rows, key=lambda r: r["file"])
+
+
+def test_missing_extra_is_one_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r.parquet")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "dask[distributed]" in err[0] and "pip install" in err[0]
