@@ -99,9 +99,9 @@ def test_glitched_marker_positions_are_left_out_and_counted():
     bad = [(10, 3), (11, 3), (40, 7), (60, 0)]
     for t, m in bad:
         y[t, m] += [150.0, -80.0, 60.0]  # a swapped or glitched label
-    est = _fit(model, trial.data.replace(positions=y))
+    est = _fit(model, trial.data.replace(positions=y), cutoff=6.0)  # one motion model for both fits
     assert sorted(zip(*np.nonzero(est.outliers_), strict=True)) == bad
-    clean = _fit(model, trial.data)
+    clean = _fit(model, trial.data, cutoff=6.0)
     assert not clean.outliers_.any()
     np.testing.assert_allclose(est.theta_, clean.theta_, atol=0.5 * clean.posterior_.sd.max())
     assert est.result()["outlying_marker_positions"] == 4

@@ -267,16 +267,14 @@ class MarkerEstimator:
         # a frame whose markers do not fix every pose coordinate is skipped (and counted)
         _, Jq0, _ = frame_terms(model, theta0, pose0, y)
         fixed = pose_fixed(Jq0)
-        if isinstance(cutoff, str) and fixed.any():  # "auto": per-coordinate cutoffs from the motion
-            cutoff = choose_cutoffs(model, pose0, fixed & usable_frames(model, y), rate)
-        self.cutoff_ = cutoff
         if not fixed.any():
             raise IdentifiabilityError(
                 f"no frame's markers fix the pose of model {model.name!r}: "
                 f"{_undetermined(model, Jq0, y)} cannot be seen from the markers",
                 "add a marker on that segment or use a joint with fewer axes (hinge, universal)")
-        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed,
-                        rate=rate, cutoff=cutoff)
+        # a first fit without motion model screens glitched markers (a smoother would spread a
+        # glitch over its neighbours) and gives the per-frame poses that set the cutoffs
+        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed)
         self.outliers_ = np.zeros(y.shape[:2], dtype=bool)
         if self.outlier_threshold is not None:
             out = _outlying_markers(model, y, fit, self.outlier_threshold)
@@ -286,10 +284,16 @@ class MarkerEstimator:
                 _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y)
                 fixed = pose_fixed(Jq0)
                 fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
-                                frames=fixed, rate=rate, cutoff=cutoff)
+                                frames=fixed)
                 warn_once(f"{int(out.sum())} marker positions in {int(out.any(axis=1).sum())} frames lie "
                           f"more than {self.outlier_threshold:g} robust standard deviations from the "
                           "fitted model (mislabelled or glitched markers?) and were left out", self.warnings_)
+        if isinstance(cutoff, str):  # "auto": per-coordinate cutoffs from the motion
+            cutoff = choose_cutoffs(model, fit.pose, fit.frames_used, rate)
+        self.cutoff_ = cutoff
+        if cutoff is not None:
+            fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds, frames=fixed,
+                            rate=rate, cutoff=cutoff)
         used = fit.frames_used
         n_skip = int((~used).sum())
         self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
@@ -340,14 +344,26 @@ class MarkerEstimator:
                           "of its prior range)", self.warnings_)
         info_inv = np.linalg.inv(fit.info)
         self.theta_profile_ = fit.theta
+        # residual structure: soft-tissue artefact shows as slow, correlated residuals
+        x = marker_positions(model, fit.theta, fit.pose)
+        resid = y - x
+        self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
+        self.sta_score_ = lag1_autocorrelation(resid, used)
+        flagged = self.sta_score_ > STA_AUTOCORRELATION
+        # the noise that drives the second-order bias is the white part of the residuals:
+        # with slow, correlated residuals (soft-tissue artefact, model misfit) it is
+        # estimated from frame-to-frame differences, which a slow drift barely touches
+        dr = np.diff(resid, axis=0)[used[1:] & used[:-1]]
+        self.sigma_white_ = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else self.sigma_
+        sigma2_bias = min(sigma2, self.sigma_white_**2) if flagged else sigma2
         method = self.bias_correction
         if method is True or method == "auto":
             method = "box"
         if method == "box" and fit.penalty is None:
-            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2)
+            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias)
         elif method == "box":
             self.bias_ = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta,
-                                       fit.pose, sigma2, fit.penalty)
+                                       fit.pose, sigma2_bias, fit.penalty)
         elif method == "bootstrap":
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
         elif method is False or method == "none":
@@ -361,12 +377,6 @@ class MarkerEstimator:
         # the bound with every pose a free unknown (no motion model), at the estimate
         _, Jq_u, Jt_u = frame_terms(model, fit.theta, fit.pose[used], y[used])
         self.crlb_sd_ = crlb_sd(efficient_information(Jq_u, Jt_u, self.sigma_))
-        # residual structure: soft-tissue artefact shows as slow, correlated residuals
-        x = marker_positions(model, fit.theta, fit.pose)
-        resid = y - x
-        self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
-        self.sta_score_ = lag1_autocorrelation(resid, used)
-        flagged = self.sta_score_ > STA_AUTOCORRELATION
         if flagged:
             warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
                       f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
@@ -444,7 +454,7 @@ class MarkerEstimator:
             summ[n]["bias_removed"] = float(self.bias_[k])
         out.update(summ)
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
-                        "fixed": self.sigma is not None}
+                        "fixed": self.sigma is not None, "white": self.sigma_white_}
         if self.lengths_:
             out["lengths"] = self.lengths_
         out["cutoff_hz"] = None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist()
