@@ -69,7 +69,8 @@ def one_trial(args):
                 centre = float(est.theta_[0])
             elif name == "laplace":
                 half = 8 * max(bound, 0.5)
-                axes = (np.linspace(centre - half, centre + half, 41),)
+                axes = (np.linspace(centre - half, centre + half, 41),) if "profile" in out \
+                    and "est" in out["profile"] else None  # no profile estimate: the whole prior grid
                 est = MarkerGridFilter(model, axes=axes, likelihood="laplace").fit(trial.data)
                 post, dropped = est.posterior_, int((~est.frames_used_).sum())
             else:

@@ -42,6 +42,7 @@ from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
 
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
+MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 
 
@@ -288,11 +289,12 @@ class MarkerEstimator:
                 warn_once(f"{int(out.sum())} marker positions in {int(out.any(axis=1).sum())} frames lie "
                           f"more than {self.outlier_threshold:g} robust standard deviations from the "
                           "fitted model (mislabelled or glitched markers?) and were left out", self.warnings_)
-        if isinstance(cutoff, str):  # "auto": per-coordinate cutoffs from the motion
-            cutoff = choose_cutoffs(model, fit.pose, fit.frames_used, rate)
+        if isinstance(cutoff, str):  # "auto": per-coordinate cutoffs from the motion, at least 6 Hz
+            cutoff = np.maximum(choose_cutoffs(model, fit.pose, fit.frames_used, rate),
+                                min(MIN_AUTO_CUTOFF, rate / 2))
         self.cutoff_ = cutoff
-        if cutoff is not None:
-            fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds, frames=fixed,
+        if cutoff is not None:  # from the tracked start: the screening fit's poses chase the noise
+            fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed,
                             rate=rate, cutoff=cutoff)
         used = fit.frames_used
         n_skip = int((~used).sum())
