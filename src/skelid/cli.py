@@ -152,7 +152,7 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
 @click.option("--cutoff", type=float, default=None,
               help="Motion model of the marker method: poses are smoothed above this frequency "
-                   "(Hz; default 6, 0 = none).")
+                   "(Hz; default: chosen per pose coordinate from the motion, at least 6; 0 = none).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.pass_context
