@@ -314,10 +314,23 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         r_new, Jq_new, Jt_new = frame_terms(model, theta_new, q_new, y)
         cost_new = total(r_new, q_new)
         if np.isfinite(cost_new) and cost_new <= cost:
+            # along a long curved valley Gauss-Newton steps come out short: extrapolate while it pays
+            mult = 1.0
+            while mult < 16.0:
+                th2 = theta + 2.0 * mult * dtheta
+                if bounds is not None:
+                    th2 = np.clip(th2, bounds[0], bounds[1])
+                q2 = q + 2.0 * mult * dq
+                r2, Jq2, Jt2 = frame_terms(model, th2, q2, y)
+                c2 = total(r2, q2)
+                if not (np.isfinite(c2) and c2 < cost_new):
+                    break
+                theta_new, q_new, r_new, Jq_new, Jt_new, cost_new = th2, q2, r2, Jq2, Jt2, c2
+                mult *= 2.0
             small = (cost - cost_new) <= tol * max(cost, 1e-300)
             theta, q, r, Jq, Jt, cost = theta_new, q_new, r_new, Jq_new, Jt_new, cost_new
             lam = max(lam * 0.3, 1e-12)
-            if small:
+            if small and lam <= 1e-4:  # a damped step's small gain says nothing about convergence
                 converged = True
                 break
         else:

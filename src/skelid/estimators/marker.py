@@ -293,9 +293,13 @@ class MarkerEstimator:
             cutoff = np.maximum(choose_cutoffs(model, fit.pose, fit.frames_used, rate),
                                 min(MIN_AUTO_CUTOFF, rate / 2))
         self.cutoff_ = cutoff
-        if cutoff is not None:  # from the tracked start: the screening fit's poses chase the noise
-            fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed,
-                            rate=rate, cutoff=cutoff)
+        if cutoff is not None:
+            # the motion model makes pose branches stick: start from the tracked poses and from the
+            # screening fit, and keep the lower penalised cost
+            fits = [joint_fit(model, y, th, qq, n_iter=self.n_iter, bounds=bounds, frames=fixed,
+                              rate=rate, cutoff=cutoff)
+                    for th, qq in ((theta0, pose0), (fit.theta, fit.pose))]
+            fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
         used = fit.frames_used
         n_skip = int((~used).sum())
         self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
