@@ -130,6 +130,16 @@ def _normal_blocks(r, Jq, Jt):
     return Hqq, Hqt, Htt, gq, gt
 
 
+def _reduce_to_theta(Hqt, Htt, gt, G, u, lam):
+    """Schur complement in theta given ``G = A^{-1} H_{q theta}`` and ``u = A^{-1} g_q``."""
+    P = Htt.shape[0]
+    dt_ = np.diag(Htt)
+    S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) \
+        - np.einsum("tip,tiq->pq", Hqt, G)
+    dtheta = np.linalg.solve(S, gt - np.einsum("tip,ti->p", Hqt, u))
+    return dtheta, u - np.einsum("tip,p->ti", G, dtheta), S
+
+
 def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     Q, P = Hqq.shape[-1], Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
@@ -138,12 +148,7 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     A = Hqq + (lam * dq_)[..., None] * np.eye(Q) + 1e-12 * scale[:, None, None] * np.eye(Q)
     sol = np.linalg.solve(A, np.concatenate([Hqt, gq[..., None]], axis=-1))
     G, u = sol[..., :P], sol[..., P]
-    dt_ = np.diag(Htt)
-    S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) \
-        - np.einsum("tip,tiq->pq", Hqt, G)
-    rhs = gt - np.einsum("tip,ti->p", Hqt, u)
-    dtheta = np.linalg.solve(S, rhs)
-    dq = u - np.einsum("tip,p->ti", G, dtheta)
+    dtheta, dq, _ = _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
     return dtheta, dq
 
 
@@ -231,13 +236,7 @@ def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
     sol = solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).reshape(T * Q, P + 1))
     sol = sol.reshape(T, Q, P + 1)
     G, u = sol[..., :P], sol[..., P]
-    dt_ = np.diag(Htt)
-    S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) \
-        - np.einsum("tip,tiq->pq", Hqt, G)
-    rhs = gt - np.einsum("tip,ti->p", Hqt, u)
-    dtheta = np.linalg.solve(S, rhs)
-    dq = u - np.einsum("tip,p->ti", G, dtheta)
-    return dtheta, dq, S
+    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
 
 
 def _continuous_poses(model: Model, q, use):
