@@ -31,7 +31,8 @@ import numpy as np
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError
 from skelid.estimators.base import prepare
-from skelid.io._common import normalise_units, parse_rate, parse_table, split_fields
+from skelid.io._common import parse_table, split_fields
+from skelid.io.trc import trc_header
 
 
 class OnlineFit(NamedTuple):
@@ -76,16 +77,7 @@ def iter_trc(path, chunk_frames: int = 10_000) -> Iterator[MarkerData]:
         if not head[0].lstrip().startswith("PathFileType"):
             raise FormatError(f"{path}: line 1 does not start with 'PathFileType'; not a TRC file",
                               "check the file format or the file extension")
-        sep = "\t" if "\t" in head[0] else ","
-        header = {k: v for k, v in zip(split_fields(head[1], sep), split_fields(head[2], sep), strict=False) if k}
-        rate_text = header.get("DataRate") or header.get("CameraRate")
-        if rate_text is None:
-            raise FormatError(f"{path}: line 2 has no DataRate key", "put the sampling rate in Hz under DataRate")
-        rate = parse_rate(rate_text, path, "DataRate on line 3")
-        units = normalise_units(header.get("Units"))
-        if units not in ("mm", "m", "cm"):
-            raise FormatError(f"{path}: line 3 gives units {header.get('Units')!r}; expected mm, cm or m",
-                              "set Units in the header")
+        sep, header, rate, units = trc_header(head, path)
         names = tuple(n for n in split_fields(head[3], sep)[2:] if n)
         if not names:
             raise FormatError(f"{path}: line 4 names no markers")

@@ -33,6 +33,22 @@ from skelid.io._common import (
 from skelid.io.atomic import atomic_write
 
 
+def trc_header(lines: list[str], path: Path) -> tuple[str, dict, float, str]:
+    """Separator, header keys and values, rate and units from a TRC file's first three lines."""
+    sep = "\t" if "\t" in lines[0] else ","
+    keys, vals = split_fields(lines[1], sep), split_fields(lines[2], sep)
+    header = {k: v for k, v in zip(keys, vals, strict=False) if k}
+    rate_text = header.get("DataRate") or header.get("CameraRate")
+    if rate_text is None:
+        raise FormatError(f"{path}: line 2 has no DataRate key", "put the sampling rate in Hz under DataRate")
+    rate = parse_rate(rate_text, path, "DataRate on line 3")
+    units = normalise_units(header.get("Units"))
+    if units not in ("mm", "m", "cm"):
+        raise FormatError(f"{path}: line 3 gives units {header.get('Units')!r}; expected mm, cm or m",
+                          "set Units in the header")
+    return sep, header, rate, units
+
+
 def read_trc(path) -> MarkerData:
     """Read a TRC file.
 
@@ -59,17 +75,7 @@ def read_trc(path) -> MarkerData:
     if len(lines) < 5:
         raise FormatError(f"{path}: only {len(lines)} lines; a TRC file has 5 header lines before the data",
                           "check that the file is complete")
-    sep = "\t" if "\t" in lines[0] else ","
-    keys, vals = split_fields(lines[1], sep), split_fields(lines[2], sep)
-    header = {k: v for k, v in zip(keys, vals, strict=False) if k}
-    rate_text = header.get("DataRate") or header.get("CameraRate")
-    if rate_text is None:
-        raise FormatError(f"{path}: line 2 has no DataRate key", "put the sampling rate in Hz under DataRate")
-    rate = parse_rate(rate_text, path, "DataRate on line 3")
-    units = normalise_units(header.get("Units"))
-    if units not in ("mm", "m", "cm"):
-        raise FormatError(f"{path}: line 3 gives units {header.get('Units')!r}; expected mm, cm or m",
-                          "set Units in the header")
+    sep, header, rate, units = trc_header(lines, path)
     name_fields = split_fields(lines[3], sep)
     if len(name_fields) < 3 or name_fields[0].lower() not in ("frame#", "frame"):
         raise FormatError(f"{path}: line 4 should be 'Frame#, Time, marker names...'",
