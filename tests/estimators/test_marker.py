@@ -133,3 +133,27 @@ def test_automatic_cutoff_is_recorded():
     est = MarkerEstimator(model).fit(trial.data)
     assert np.shape(est.cutoff_) == (model.n_pose,)
     assert "cutoff_hz" in est.result()
+
+
+@pytest.mark.parametrize("n_frames", [30, 400])  # the dense path and the banded sweep
+def test_selected_inverse_blocks_equal_the_dense_inverse(n_frames):
+    import scipy.sparse as sp
+
+    from skelid.estimators.joint import _banded_system, band_inverse_blocks, pose_edf
+
+    rng = np.random.default_rng(5)
+    Q = 4
+    Jq = rng.normal(size=(n_frames, 6, Q))
+    Jq[3] = 0.0  # a frame without markers: only the penalty holds it
+    H = np.einsum("tki,tkj->tij", Jq, Jq)
+    D3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(n_frames - 3, n_frames))
+    R = sp.kron(D3.T @ D3, sp.diags(rng.uniform(1.0, 50.0, Q))).tocsc()
+    ab = _banded_system(H, R)
+    A = sp.block_diag(list(H)).toarray() + R.toarray()
+    A[np.diag_indices_from(A)] += ab[-1] - np.diag(A)  # the same ridge
+    Z = np.linalg.inv(A)
+    idx = np.arange(n_frames)[:, None] * Q + np.arange(Q)
+    ref = Z[idx[:, :, None], idx[:, None, :]]
+    got = band_inverse_blocks(ab, Q)
+    assert np.allclose(got, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+    assert pose_edf(Jq, R) == pytest.approx(np.trace(Z @ sp.block_diag(list(H)).toarray()), rel=1e-9)
