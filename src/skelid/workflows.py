@@ -53,6 +53,7 @@ POOR_FRACTION = 0.5
 STA_AUTOCORR = 0.7
 #: the same for the per-frame measured values of a one-parameter method
 MEASURED_AUTOCORR = 0.5
+NUMERICAL_RESIDUAL = 1e-6  # relative to the model's size
 
 
 def methods() -> dict:
@@ -281,10 +282,12 @@ def fit_warnings(model: Model, name: str, res: dict, est) -> list[str]:
     r = getattr(est, "residuals_", None)
     if r is not None and np.ndim(r) == 2:
         r = np.asarray(r, float)
+        # residuals at the level of the file's rounding (noise-free data) say nothing about tissue
+        floor = NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
         for m, mname in enumerate(model.marker_names[: r.shape[1]]):
             rho = lag1_autocorrelation(r[:, m])
-            if rho > STA_AUTOCORR:
-                rms = float(np.sqrt(np.nanmean(r[:, m] ** 2)))
+            rms = float(np.sqrt(np.nanmean(r[:, m] ** 2))) if np.isfinite(r[:, m]).any() else 0.0
+            if rho > STA_AUTOCORR and rms > floor:
                 out.append(f"residuals of marker {mname} ({name} method, rms {rms:.3g} {model.units}) are "
                            f"correlated in time (lag-1 autocorrelation {rho:.2f}): this looks like "
                            "soft-tissue artefact, not measurement noise")

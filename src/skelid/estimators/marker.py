@@ -355,7 +355,9 @@ class MarkerEstimator:
         resid = y - x
         self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
         self.sta_score_ = lag1_autocorrelation(resid, used)
-        flagged = self.sta_score_ > STA_AUTOCORRELATION
+        # residuals at the file's rounding level (noise-free data) are not soft-tissue artefact
+        numerical = self.sigma_ <= 1e-6 * float(np.abs(model.nominal_geometry).max())
+        flagged = self.sta_score_ > STA_AUTOCORRELATION and not numerical
         # the noise that drives the second-order bias is the white part of the residuals:
         # with slow, correlated residuals (soft-tissue artefact, model misfit) it is
         # estimated from frame-to-frame differences, which a slow drift barely touches
