@@ -27,6 +27,13 @@ marker's position in its segment. The Jacobians are
 Every function broadcasts over any leading batch axes shared by ``theta``
 ``(..., P)`` and ``pose (..., Q)``, typically ``(frames, hypotheses)``. The only
 Python loop runs over the model's segments (the depth of the tree).
+
+Planar models take a shorter path: every rotation is about ``z``, so a
+segment's orientation is one angle, the sum of the rotation coordinates along
+its chain, and ``R_{ws} = R(\\phi_s)`` needs one cosine and one sine per
+segment instead of a product of matrices. What does not depend on the pose
+(index tables, the parts of ``A`` that move joints and markers, which hinges
+are tilted) is compiled once per model by :func:`kinematics_plan`.
 """
 
 from __future__ import annotations
@@ -49,6 +56,88 @@ class Kinematics(NamedTuple):
     markers: np.ndarray  # (..., M, D)
     g: np.ndarray  # (..., G)
     tilt_omega: np.ndarray  # (..., T, 2, D) world d(rotation)/d(tilt) of each tilted hinge, per degree
+
+
+class KinematicsPlan(NamedTuple):
+    """What the kinematics of a model need that does not depend on ``theta`` or the pose."""
+
+    dim: int
+    n_segments: int
+    n_markers: int
+    n_pose: int
+    n_params: int
+    parent: tuple  # (S,) parent index, -1 for the root
+    g_base: np.ndarray  # (G,)
+    A: np.ndarray  # (G, P)
+    dof_segment: np.ndarray  # (Q,) int
+    dof_is_t: np.ndarray  # (Q,) bool
+    dof_axis: np.ndarray  # (Q, D) nominal axis in the frame the joint acts in (2-D rotation: 0)
+    dof_skew: np.ndarray  # (Q, 3, 3) cross-product matrix of a 3-D rotation axis
+    dof_skew2: np.ndarray  # (Q, 3, 3) its square
+    segment_dofs: tuple  # per segment, the indices of its pose coordinates
+    segment_rot: tuple  # per segment, the indices of its rotation coordinates
+    segment_trans: tuple  # per segment, the indices of its translation coordinates
+    marker_segment: np.ndarray  # (M,) int
+    moves: np.ndarray  # (Q, M) float: 1 where pose coordinate k moves marker m
+    rot_dofs: np.ndarray  # (n_R,) int
+    trans_dofs: np.ndarray  # (n_T,) int
+    used_joints: np.ndarray  # segments whose joint position depends on theta
+    A_joint: np.ndarray  # (n_used_joints, D, P)
+    ancestor_markers: np.ndarray  # (n_used_joints, M) float: joint moves marker
+    used_markers: np.ndarray  # markers whose position depends on theta
+    A_marker: np.ndarray  # (n_used_markers, D, P)
+    dof_tilt: np.ndarray  # (Q,) int: slot of the hinge in Model.axis_tilts, -1 if its axis is fixed
+    n_tilts: int
+    planar: bool  # 2-D, no tilted axis, every joint's translations before its rotation
+
+
+def kinematics_plan(model: Model) -> KinematicsPlan:
+    """The pose-independent tables of ``model``, built on first use and kept with the model.
+
+    The model stays frozen: like its ``cached_property`` attributes, the plan is
+    derived data stored beside the fields, never compared or hashed.
+    """
+    plan = model.__dict__.get("_kinematics_plan")
+    if plan is None:
+        plan = _build_plan(model)
+        model.__dict__["_kinematics_plan"] = plan
+    return plan
+
+
+def _build_plan(model: Model) -> KinematicsPlan:
+    D, S, M = model.dim, len(model.segments), len(model.markers)
+    dofs = model.dofs
+    Q = len(dofs)
+    g_base, A = model.geometry_map
+    P = A.shape[1]
+    dof_segment = np.array([d.segment for d in dofs], dtype=int)
+    is_t = np.array([d.kind == "T" for d in dofs], dtype=bool)
+    axis = np.zeros((Q, D))
+    skew = np.zeros((Q, 3, 3))
+    for k, d in enumerate(dofs):
+        if d.kind == "T" or D == 3:
+            axis[k] = d.axis
+        if d.kind == "R" and D == 3:
+            skew[k] = _skew(np.asarray(d.axis, float))
+    dof_tilt = np.full(Q, -1, dtype=int)
+    for j, t in enumerate(model.axis_tilts):
+        dof_tilt[t[0]] = j
+    seg_dofs = tuple(tuple(int(k) for k in np.flatnonzero(dof_segment == i)) for i in range(S))
+    seg_rot = tuple(tuple(k for k in ks if not is_t[k]) for ks in seg_dofs)
+    seg_trans = tuple(tuple(k for k in ks if is_t[k]) for ks in seg_dofs)
+    planar = D == 2 and not model.axis_tilts and all(
+        max(t, default=-1) < min(r, default=Q) for t, r in zip(seg_trans, seg_rot, strict=True))
+    ms = np.asarray(model.marker_segment, dtype=int)
+    A_joint = A[: S * D].reshape(S, D, P)
+    A_mark = A[S * D:].reshape(M, D, P)
+    used_j = np.flatnonzero(np.abs(A_joint).sum(axis=(1, 2)))
+    used_m = np.flatnonzero(np.abs(A_mark).sum(axis=(1, 2)))
+    return KinematicsPlan(
+        D, S, M, Q, P, tuple(int(i) for i in model.parent_index), g_base, A, dof_segment, is_t, axis,
+        skew, skew @ skew, seg_dofs, seg_rot, seg_trans, ms,
+        np.asarray(model.dof_moves_marker, dtype=float), np.flatnonzero(~is_t), np.flatnonzero(is_t),
+        used_j, A_joint[used_j], model.ancestor[used_j][:, ms].astype(float), used_m, A_mark[used_m],
+        dof_tilt, len(model.axis_tilts), planar)
 
 
 def geometry(model: Model, theta) -> np.ndarray:
@@ -138,9 +227,46 @@ def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
     return axis, d_axis
 
 
-def _perp(v: np.ndarray) -> np.ndarray:
-    """2-D cross product of the unit z axis with ``v (..., 2)``."""
-    return np.stack([-v[..., 1], v[..., 0]], -1)
+def _axis_cross(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``w x v`` for ``w (..., 1, 3)`` and ``v (..., M, 3)`` (what ``np.cross`` computes, with less overhead)."""
+    out = np.empty(np.broadcast_shapes(w.shape, v.shape))
+    w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    out[..., 0] = w1 * v2 - w2 * v1
+    out[..., 1] = w2 * v0 - w0 * v2
+    out[..., 2] = w0 * v1 - w1 * v0
+    return out
+
+
+def _rotation_2d(c: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``(..., 2, 2)`` rotation matrices from cosines and sines ``(...)``."""
+    R = np.empty(c.shape + (2, 2))
+    R[..., 0, 0] = c
+    R[..., 0, 1] = -s
+    R[..., 1, 0] = s
+    R[..., 1, 1] = c
+    return R
+
+
+class TiltTables(NamedTuple):
+    """The tilted hinge axes of a batch of ``theta`` (see :func:`tilt_tables`)."""
+
+    axis: np.ndarray  # (..., T, 3) unit axis in the frame the hinge acts in
+    d_axis: np.ndarray  # (..., T, 2, 3) its derivatives per degree of tilt
+    skew: np.ndarray  # (..., T, 3, 3) cross-product matrix of the axis
+    skew2: np.ndarray  # (..., T, 3, 3) its square
+
+
+def tilt_tables(model: Model, theta) -> TiltTables | None:
+    """Axes of the tilted hinges for ``theta (..., P)`` and their cross-product matrices.
+
+    ``None`` when the model has no ``axis_direction`` parameter.
+    """
+    if not model.axis_tilts:
+        return None
+    axis, d_axis = tilted_axes(model, theta)
+    K = _skew(axis)
+    return TiltTables(axis, d_axis, K, K @ K)
 
 
 def forward_kinematics(model: Model, theta, pose) -> Kinematics:
@@ -157,64 +283,134 @@ def forward_kinematics(model: Model, theta, pose) -> Kinematics:
     Returns
     -------
     Kinematics
+        The orientation arrays of a planar model are read-only views (shared
+        across batch axes that only ``theta`` spans).
     """
-    D, S, M = model.dim, len(model.segments), len(model.markers)
+    plan = kinematics_plan(model)
     g = geometry(model, theta)
     pose = np.asarray(pose, dtype=float)
-    if pose.shape[-1:] != (model.n_pose,):
-        raise ValueError(f"pose must end in {model.n_pose} coordinates, got shape {pose.shape}")
+    if pose.shape[-1:] != (plan.n_pose,):
+        raise ValueError(f"pose must end in {plan.n_pose} coordinates, got shape {pose.shape}")
+    if plan.planar:
+        return _forward_planar(plan, g, pose)
+    return _forward_general(plan, g, pose, tilt_tables(model, theta))
+
+
+def _forward_planar(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray) -> Kinematics:
+    """:func:`forward_kinematics` for a planar model: one angle per segment."""
+    S, M = plan.n_segments, plan.n_markers
     batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1])
-    g = np.broadcast_to(g, batch + g.shape[-1:])
-    offsets = g[..., : S * D].reshape(batch + (S, D))
-    r_marker = g[..., S * D :].reshape(batch + (M, D))
-    eye = np.broadcast_to(np.eye(D), batch + (D, D))
+    gb = g.shape[:-1]
+    offsets = g[..., : S * 2].reshape(gb + (S, 2))
+    r_marker = g[..., S * 2:].reshape(gb + (M, 2))
+    # segment angles along the tree; column S stays 0 and serves as the root's parent
+    phi = np.zeros(pose.shape[:-1] + (S + 1,))
+    u = np.empty(batch + (S, 2))  # joint offset plus translations, in the parent's frame
+    u[...] = offsets
+    for i in range(S):
+        a = phi[..., plan.parent[i]]
+        for k in plan.segment_rot[i]:
+            a = a + pose[..., k]
+        phi[..., i] = a
+        for k in plan.segment_trans[i]:
+            u[..., i, :] += plan.dof_axis[k] * pose[..., k, None]
+    c, s = np.cos(phi), np.sin(phi)
+    par = np.asarray(plan.parent)
+    cp, sp = c[..., par], s[..., par]
+    v = np.empty(batch + (S, 2))
+    v[..., 0] = cp * u[..., 0] - sp * u[..., 1]
+    v[..., 1] = sp * u[..., 0] + cp * u[..., 1]
+    p = np.zeros(batch + (S + 1, 2))
+    for i in range(S):
+        p[..., i, :] = p[..., plan.parent[i], :] + v[..., i, :]
+    p = p[..., :S, :]
+    ms = plan.marker_segment
+    cm, sm = c[..., ms], s[..., ms]
+    x = np.empty(batch + (M, 2))
+    x[..., 0] = p[..., ms, 0] + (cm * r_marker[..., 0] - sm * r_marker[..., 1])
+    x[..., 1] = p[..., ms, 1] + (sm * r_marker[..., 0] + cm * r_marker[..., 1])
+    Q = plan.n_pose
+    axis = np.zeros(batch + (Q, 2))
+    pivot = np.zeros(batch + (Q, 2))
+    seg = plan.dof_segment
+    cp, sp = np.broadcast_to(cp, batch + (S,)), np.broadcast_to(sp, batch + (S,))
+    if plan.trans_dofs.size:
+        t = plan.trans_dofs
+        at = plan.dof_axis[t]
+        ct, st = cp[..., seg[t]], sp[..., seg[t]]
+        axis[..., t, 0] = ct * at[:, 0] - st * at[:, 1]
+        axis[..., t, 1] = st * at[:, 0] + ct * at[:, 1]
+    if plan.rot_dofs.size:
+        pivot[..., plan.rot_dofs, :] = p[..., seg[plan.rot_dofs], :]
+    # orientations depend on the pose only: shared (read-only) across the other batch axes
+    R = np.broadcast_to(_rotation_2d(c[..., :S], s[..., :S]), batch + (S, 2, 2))
+    Rpar = np.broadcast_to(_rotation_2d(cp, sp), batch + (S, 2, 2))
+    return Kinematics(R, p, Rpar, axis, pivot, x, np.broadcast_to(g, batch + g.shape[-1:]),
+                      np.zeros(batch + (0, 2, 2)))
+
+
+def _forward_general(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray, tilt: TiltTables | None = None,
+                     want_omega: bool = True) -> Kinematics:
+    """:func:`forward_kinematics` for any model: products of elementary rotations.
+
+    ``tilt`` (from :func:`tilt_tables`, batch axes broadcasting with ``g``) is
+    required when the model has tilted hinges; ``want_omega=False`` leaves
+    ``tilt_omega`` zero (a pose fit does not need it).
+    """
+    D, S, M, Q = plan.dim, plan.n_segments, plan.n_markers, plan.n_pose
+    if plan.n_tilts and tilt is None:
+        raise ValueError("a model with tilted hinge axes needs its tilt tables")
+    batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1])
+    if plan.n_tilts:
+        batch = np.broadcast_shapes(batch, tilt.axis.shape[:-2])
+    gb = g.shape[:-1]
+    offsets = g[..., : S * D].reshape(gb + (S, D))
+    r_marker = g[..., S * D:].reshape(gb + (M, D))
+    eye = np.eye(D)
     R = np.empty(batch + (S, D, D))
     p = np.empty(batch + (S, D))
     Rpar = np.empty(batch + (S, D, D))
-    Q = model.n_pose
     axis = np.zeros(batch + (Q, D))
     pivot = np.zeros(batch + (Q, D))
-    tilt_slot = {t[0]: j for j, t in enumerate(model.axis_tilts)}
-    if tilt_slot:
-        t_axis, t_daxis = tilted_axes(model, np.broadcast_to(np.asarray(theta, float),
-                                                             batch + (model.n_params,)))
-    omega = np.zeros(batch + (len(tilt_slot), 2, D))
-    k = 0
+    omega = np.zeros(batch + (plan.n_tilts, 2, D))
     for i in range(S):
-        par = model.parent_index[i]
+        par = plan.parent[i]
         Rp = eye if par < 0 else R[..., par, :, :]
-        pp = np.zeros(batch + (D,)) if par < 0 else p[..., par, :]
+        pp = 0.0 if par < 0 else p[..., par, :]
         Ri = Rp
-        pi = pp + np.einsum("...ij,...j->...i", Rp, offsets[..., i, :])
-        while k < Q and model.dofs[k].segment == i:
-            dof = model.dofs[k]
+        pi = pp + np.matmul(Rp, offsets[..., i, :, None])[..., 0]
+        for k in plan.segment_dofs[i]:
             qk = pose[..., k]
-            if dof.kind == "T":
-                w = Ri @ np.asarray(dof.axis)
+            j = plan.dof_tilt[k]
+            if plan.dof_is_t[k]:
+                w = Ri @ plan.dof_axis[k]
                 axis[..., k, :] = w
                 pi = pi + w * qk[..., None]
-            elif k in tilt_slot:
-                j = tilt_slot[k]
-                a_loc = t_axis[..., j, :]
-                w = np.einsum("...ij,...j->...i", Ri, a_loc)
-                dw = np.einsum("...ij,...tj->...ti", Ri, t_daxis[..., j, :, :])
-                omega[..., j, :, :] = np.sin(qk)[..., None, None] * dw \
-                    + (1.0 - np.cos(qk))[..., None, None] * np.cross(w[..., None, :], dw)
+            elif j >= 0:  # a hinge whose axis depends on theta
+                w = np.matmul(Ri, tilt.axis[..., j, :, None])[..., 0]
                 axis[..., k, :] = w
                 pivot[..., k, :] = pi
-                Ri = Ri @ _rotation(D, a_loc, qk)
+                if want_omega:
+                    dw = np.matmul(Ri[..., None, :, :], tilt.d_axis[..., j, :, :, None])[..., 0]
+                    omega[..., j, :, :] = np.sin(qk)[..., None, None] * dw \
+                        + (1.0 - np.cos(qk))[..., None, None] * _axis_cross(w[..., None, :], dw)
+                Ri = Ri @ (eye + np.sin(qk)[..., None, None] * tilt.skew[..., j, :, :]
+                           + (1.0 - np.cos(qk))[..., None, None] * tilt.skew2[..., j, :, :])
             else:
                 if D == 3:
-                    axis[..., k, :] = Ri @ np.asarray(dof.axis)
+                    axis[..., k, :] = Ri @ plan.dof_axis[k]
                 pivot[..., k, :] = pi
-                Ri = Ri @ _rotation(D, dof.axis, qk)
-            k += 1
+                if D == 2:
+                    Ri = Ri @ _rotation(2, None, qk)
+                else:
+                    Ri = Ri @ (eye + np.sin(qk)[..., None, None] * plan.dof_skew[k]
+                               + (1.0 - np.cos(qk))[..., None, None] * plan.dof_skew2[k])
         R[..., i, :, :] = Ri
         p[..., i, :] = pi
         Rpar[..., i, :, :] = Rp
-    ms = model.marker_segment
-    x = p[..., ms, :] + np.einsum("...mij,...mj->...mi", R[..., ms, :, :], r_marker)
-    return Kinematics(R, p, Rpar, axis, pivot, x, g, omega)
+    ms = plan.marker_segment
+    x = p[..., ms, :] + np.matmul(R[..., ms, :, :], r_marker[..., None])[..., 0]
+    return Kinematics(R, p, Rpar, axis, pivot, x, np.broadcast_to(g, batch + g.shape[-1:]), omega)
 
 
 def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
@@ -256,42 +452,41 @@ def joint_positions(model: Model, theta, pose) -> np.ndarray:
 
 def pose_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     """``dx/dq`` as ``(..., M, D, Q)`` from a :class:`Kinematics`."""
+    plan = kinematics_plan(model)
     x = kin.markers  # (..., M, D)
     rel = x[..., None, :, :] - kin.dof_pivot[..., :, None, :]  # (..., Q, M, D)
-    if model.dim == 2:
-        rot = _perp(rel)
+    if plan.dim == 2:
+        cols = np.empty_like(rel)
+        cols[..., 0] = -rel[..., 1]
+        cols[..., 1] = rel[..., 0]
     else:
-        rot = np.cross(kin.dof_axis[..., :, None, :], rel)
-    is_t = np.array([d.kind == "T" for d in model.dofs], dtype=bool)
-    cols = np.where(is_t[:, None, None], kin.dof_axis[..., :, None, :], rot)
-    cols = cols * model.dof_moves_marker[..., None]
+        cols = _axis_cross(kin.dof_axis[..., :, None, :], rel)
+    if plan.trans_dofs.size:
+        t = plan.trans_dofs
+        cols[..., t, :, :] = kin.dof_axis[..., t, None, :]
+    cols *= plan.moves[..., None]
     return np.moveaxis(cols, -3, -1)
 
 
 def theta_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     """``dx/dtheta`` as ``(..., M, D, P)`` from a :class:`Kinematics`."""
-    D, S = model.dim, len(model.segments)
-    _, A = model.geometry_map
-    P = A.shape[1]
-    A_joint = A[: S * D].reshape(S, D, P)
-    A_mark = A[S * D :].reshape(-1, D, P)
-    ms = model.marker_segment
-    J = np.zeros(kin.markers.shape + (P,))
-    used_j = np.flatnonzero(np.abs(A_joint).sum(axis=(1, 2)))
+    plan = kinematics_plan(model)
+    J = np.zeros(kin.markers.shape + (plan.n_params,))
+    used_j = plan.used_joints
     if used_j.size:
-        RA = np.einsum("...sij,sjp->...sip", kin.R_world_parent[..., used_j, :, :], A_joint[used_j])
-        J = J + np.einsum("...sip,sm->...mip", RA, model.ancestor[used_j][:, ms].astype(float))
-    used_m = np.flatnonzero(np.abs(A_mark).sum(axis=(1, 2)))
+        RA = np.einsum("...sij,sjp->...sip", kin.R_world_parent[..., used_j, :, :], plan.A_joint)
+        J += np.einsum("...sip,sm->...mip", RA, plan.ancestor_markers)
+    used_m = plan.used_markers
     if used_m.size:
         J[..., used_m, :, :] += np.einsum(
-            "...mij,mjp->...mip", kin.R_world_seg[..., ms[used_m], :, :], A_mark[used_m]
+            "...mij,mjp->...mip", kin.R_world_seg[..., plan.marker_segment[used_m], :, :], plan.A_marker
         )
     for j, (k, ku, kv, *_) in enumerate(model.axis_tilts):
-        moved = model.dof_moves_marker[k][:, None]
+        moved = plan.moves[k][:, None]
         rel = kin.markers - kin.dof_pivot[..., k, None, :]
         for c, kp in enumerate((ku, kv)):
             if kp >= 0:
-                J[..., kp] += np.cross(kin.tilt_omega[..., j, c, None, :], rel) * moved
+                J[..., kp] += _axis_cross(kin.tilt_omega[..., j, c, None, :], rel) * moved
     return J
 
 
