@@ -35,14 +35,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from skelid.estimators import _lm_kernel
 from skelid.model.description import Model
-from skelid.model.kinematics import _rotation, forward_kinematics, geometry, pose_jacobian, tilted_axes
-
-
-def _residual(model, theta, q, y0, mask):
-    kin = forward_kinematics(model, theta, q)
-    r = (y0 - kin.markers) * mask[..., None]
-    return kin, r
+from skelid.model.kinematics import (
+    _axis_cross,
+    _forward_general,
+    _forward_planar,
+    _rotation,
+    geometry,
+    kinematics_plan,
+    tilt_tables,
+    tilted_axes,
+)
 
 
 def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3):
@@ -70,50 +74,223 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, d
         Fitted poses.
     rss : (...) float
         Residual sum of squares at ``q``.
+
+    Notes
+    -----
+    Each iteration solves
+    ``(J^T J + \\lambda\\,\\mathrm{diag}(J^T J) + \\rho I)\\,\\delta = J^T r`` with
+    ``\\rho = 10^{-9}`` times the mean of ``\\mathrm{diag}(J^T J)``, for every batch
+    element; a step that does not lower the element's RSS is rejected and its
+    ``\\lambda`` multiplied by 10 (by 0.3 on success). An element whose normal
+    equations are not finite (it went astray) takes no step. All elements
+    iterate together until every one has stopped improving (relative decrease
+    below ``tol``) or is stuck (``\\lambda > 10^8``). With numba installed a
+    compiled kernel runs the same iteration (see
+    :mod:`skelid.estimators._lm_kernel`); set ``SKELID_NUMBA=0`` to use numpy.
     """
-    y = np.asarray(y, dtype=float)
-    mask = np.isfinite(y).all(axis=-1)
-    y0 = np.where(mask[..., None], y, 0.0)
-    q = np.array(q0, dtype=float)
-    batch = np.broadcast_shapes(q.shape[:-1], y.shape[:-2], np.shape(theta)[:-1])
-    q = np.broadcast_to(q, batch + q.shape[-1:]).copy()
-    kin, r = _residual(model, theta, q, y0, mask)
-    cost = np.sum(r**2, axis=(-2, -1))
-    lam = np.full(batch, float(damping))
-    Q = model.n_pose
-    eye = np.eye(Q)
-    for _ in range(n_iter):
-        J = pose_jacobian(model, kin) * mask[..., None, None]
-        J = J.reshape(batch + (-1, Q))
-        rv = r.reshape(batch + (-1,))
-        JtJ = np.einsum("...ki,...kj->...ij", J, J)
-        Jtr = np.einsum("...ki,...k->...i", J, rv)
-        dg = np.einsum("...ii->...i", JtJ)
-        ridge = 1e-9 * np.maximum(dg.mean(axis=-1), 1e-300)
-        A = JtJ + lam[..., None, None] * dg[..., None, :] * eye + ridge[..., None, None] * eye
-        bad = ~np.isfinite(A).all(axis=(-2, -1)) | ~np.isfinite(Jtr).all(axis=-1)
-        if bad.any():  # a batch element that went astray stays where it is
-            A = np.where(bad[..., None, None], eye, A)
-            Jtr = np.where(bad[..., None], 0.0, Jtr)
-        step = np.linalg.solve(A, Jtr[..., None])[..., 0]
-        q_new = q + np.where(np.isfinite(step), step, 0.0)
-        kin_new, r_new = _residual(model, theta, q_new, y0, mask)
-        cost_new = np.sum(r_new**2, axis=(-2, -1))
-        ok = cost_new <= cost
-        q = np.where(ok[..., None], q_new, q)
-        r = np.where(ok[..., None, None], r_new, r)
-        kin = kin.__class__(*[np.where(_bmask(ok, a, batch), an, a) for a, an in zip(kin, kin_new, strict=True)])
-        improve = np.where(ok, cost - cost_new, 0.0)
-        cost = np.where(ok, cost_new, cost)
-        lam = np.where(ok, lam * 0.3, lam * 10.0)
-        if np.all(improve <= tol * (cost + 1e-30)) and np.all(ok | (lam > 1e8)):
-            break
+    q, cost, _ = _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet=False)
     return q, cost
 
 
-def _bmask(ok, a, batch):
-    """Broadcast a batch mask onto an array with extra trailing axes."""
-    return ok.reshape(ok.shape + (1,) * (a.ndim - len(batch)))
+def fit_pose_logdet(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3):
+    """:func:`fit_pose` plus ``log det J^T J`` at the fitted pose.
+
+    Returns
+    -------
+    q : (..., Q) float
+    rss : (...) float
+    logdet : (...) float
+        ``log det J^T J`` of the pose Jacobian (missing markers give zero rows);
+        ``-inf`` where it is not positive (the pose is not determined).
+    """
+    return _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet=True)
+
+
+def _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet):
+    y = np.asarray(y, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    mask = np.isfinite(y).all(axis=-1)
+    y0 = np.where(mask[..., None], y, 0.0)
+    q = np.array(q0, dtype=float)
+    batch = np.broadcast_shapes(q.shape[:-1], y.shape[:-2], theta.shape[:-1])
+    plan = kinematics_plan(model)
+    g = geometry(model, theta)
+    tilt = tilt_tables(model, theta)
+    tables = _kernel_tables(model, plan)
+    if tables is not None:
+        return _fit_compiled(plan, tables, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet)
+    return _fit_numpy(plan, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet)
+
+
+def _kernel_tables(model, plan) -> tuple | None:
+    """The compiled kernel's model tables (kept with the model like its plan); None without the kernel."""
+    if not _lm_kernel.AVAILABLE:
+        return None
+    tables = model.__dict__.get("_lm_kernel_tables", False)
+    if tables is False:
+        tables = model.__dict__["_lm_kernel_tables"] = _lm_kernel.plan_arrays(plan)
+    return tables
+
+
+def _batch_last(a, batch, tail) -> np.ndarray:
+    """``a (..., *tail)`` broadcast to ``batch + tail`` and stored as ``tail + (B,)``, contiguous."""
+    B = int(np.prod(batch))
+    out = np.empty(tail + (B,))
+    out.reshape(tail + batch)[...] = np.moveaxis(np.broadcast_to(a, batch + tail),
+                                                 tuple(range(len(batch))), tuple(range(-len(batch), 0)))
+    return out
+
+
+def _tilts_batch_last(tilt, batch) -> tuple:
+    if tilt is None:
+        return _lm_kernel.no_tilts(int(np.prod(batch)))
+    T = tilt.axis.shape[-2]
+    return (_batch_last(tilt.axis, batch, (T, 3)), _batch_last(tilt.skew, batch, (T, 3, 3)),
+            _batch_last(tilt.skew2, batch, (T, 3, 3)))
+
+
+def _fit_compiled(plan, tables, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet):
+    Q, M, D = plan.n_pose, plan.n_markers, plan.dim
+    gT = _batch_last(g, batch, g.shape[-1:])
+    yT = _batch_last(y0, batch, (M, D))
+    wT = _batch_last(mask, batch, (M,))
+    qT = _batch_last(q, batch, (Q,))  # the kernel writes the fitted poses into it
+    cost, logdet = _lm_kernel.lm_fit(gT, yT, wT, qT, int(n_iter), float(tol), float(damping), bool(want_logdet),
+                                     D, plan.n_segments, M, _tilts_batch_last(tilt, batch), *tables)
+    return (np.moveaxis(qT.reshape((Q,) + batch), 0, -1), cost.reshape(batch),
+            logdet.reshape(batch) if want_logdet else None)
+
+
+class FramePoseFitter:
+    """Fit one frame's pose for each of K fixed hypotheses, frame after frame.
+
+    The online grid filter calls this once per frame: the geometry (and the
+    tilted hinge axes) of every hypothesis is computed once, and with the
+    compiled kernel the arrays are kept in the kernel's batch-last layout.
+
+    Parameters
+    ----------
+    model : Model
+    theta : (K, P) float
+        The hypotheses.
+    """
+
+    def __init__(self, model: Model, theta):
+        self.model = model
+        self.plan = kinematics_plan(model)
+        self.theta = np.asarray(theta, dtype=float)
+        self.g = geometry(model, self.theta)  # (K, G)
+        self.tilt = tilt_tables(model, self.theta)
+        self.n = self.g.shape[0]
+        self.tables = _kernel_tables(model, self.plan)
+        if self.tables is not None:
+            self.gT = np.ascontiguousarray(self.g.T)
+            self.tiltT = _tilts_batch_last(self.tilt, (self.n,))
+            self.yT = np.empty((self.plan.n_markers, self.plan.dim, self.n))
+            self.wT = np.empty((self.plan.n_markers, self.n))
+
+    def fit(self, y, q0, n_iter: int = 8, tol: float = 1e-10, damping: float = 1e-3):
+        """Poses of one frame ``y (M, D)`` (NaN where missing) from ``q0 (K, Q)`` or ``(Q,)``.
+
+        The same iteration as :func:`fit_pose_logdet` for ``theta (K, P)``, ``y[None]``.
+
+        Returns
+        -------
+        q : (K, Q) float
+        rss : (K,) float
+        logdet : (K,) float
+            ``log det J^T J`` at ``q``; ``-inf`` where not positive.
+        """
+        y = np.asarray(y, dtype=float)
+        present = np.isfinite(y).all(axis=-1)
+        y0 = np.where(present[:, None], y, 0.0)
+        if self.tables is None:
+            q = np.array(np.broadcast_to(q0, (self.n, self.plan.n_pose)), dtype=float)
+            return _fit_numpy(self.plan, self.g, self.tilt, y0, present, q, (self.n,), n_iter, tol, damping, True)
+        self.yT[...] = y0[..., None]
+        self.wT[...] = present[:, None]
+        qT = np.empty((self.plan.n_pose, self.n))  # the kernel writes the fitted poses into it
+        qT[...] = np.asarray(q0, dtype=float).T if np.ndim(q0) == 2 else np.asarray(q0, dtype=float)[:, None]
+        cost, logdet = _lm_kernel.lm_fit(self.gT, self.yT, self.wT, qT, int(n_iter), float(tol), float(damping),
+                                         True, self.plan.dim, self.plan.n_segments, self.plan.n_markers,
+                                         self.tiltT, *self.tables)
+        return qT.T, cost, logdet
+
+
+def _normal_equations(plan, kin, r, mask, batch):
+    """``J^T J (..., Q, Q)`` and ``J^T r (..., Q)`` with missing markers' rows zeroed."""
+    Q = plan.n_pose
+    J = _pose_jacobian_masked(plan, kin, mask).reshape(batch + (-1, Q))
+    Jt = np.swapaxes(J, -1, -2)
+    return Jt @ J, (Jt @ r.reshape(batch + (-1, 1)))[..., 0]
+
+
+def _pose_jacobian_masked(plan, kin, mask):
+    """:func:`skelid.model.kinematics.pose_jacobian` with the rows of missing markers zeroed."""
+    x = kin.markers
+    rel = x[..., None, :, :] - kin.dof_pivot[..., :, None, :]  # (..., Q, M, D)
+    if plan.dim == 2:
+        cols = np.empty_like(rel)
+        cols[..., 0] = -rel[..., 1]
+        cols[..., 1] = rel[..., 0]
+    else:
+        cols = _axis_cross(kin.dof_axis[..., :, None, :], rel)
+    if plan.trans_dofs.size:
+        t = plan.trans_dofs
+        cols[..., t, :, :] = kin.dof_axis[..., t, None, :]
+    cols *= (plan.moves * mask[..., None, :])[..., None]
+    return np.moveaxis(cols, -3, -1)
+
+
+def _fit_numpy(plan, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet):
+    q = np.broadcast_to(q, batch + q.shape[-1:]).copy()
+
+    def residual(q_):
+        if plan.planar:
+            kin_ = _forward_planar(plan, g, q_)
+        else:
+            kin_ = _forward_general(plan, g, q_, tilt, want_omega=False)
+        r_ = (y0 - kin_.markers) * mask[..., None]
+        return kin_, r_, np.sum(r_**2, axis=(-2, -1))
+
+    kin, r, cost = residual(q)
+    JtJ, Jtr = _normal_equations(plan, kin, r, mask, batch)
+    lam = np.full(batch, float(damping))
+    Q = plan.n_pose
+    eye = np.eye(Q)
+    diag = np.arange(Q)
+    for it in range(n_iter):
+        dg = JtJ[..., diag, diag]
+        ridge = 1e-9 * np.maximum(dg.mean(axis=-1), 1e-300)
+        A = JtJ.copy()
+        A[..., diag, diag] = (dg + lam[..., None] * dg) + ridge[..., None]
+        rhs = Jtr
+        bad = ~np.isfinite(A).all(axis=(-2, -1)) | ~np.isfinite(Jtr).all(axis=-1)
+        if bad.any():  # a batch element that went astray stays where it is
+            A = np.where(bad[..., None, None], eye, A)
+            rhs = np.where(bad[..., None], 0.0, Jtr)
+        step = np.linalg.solve(A, rhs[..., None])[..., 0]
+        q_new = q + np.where(np.isfinite(step), step, 0.0)
+        kin_new, r_new, cost_new = residual(q_new)
+        ok = cost_new <= cost
+        q = np.where(ok[..., None], q_new, q)
+        improve = np.where(ok, cost - cost_new, 0.0)
+        cost = np.where(ok, cost_new, cost)
+        lam = np.where(ok, lam * 0.3, lam * 10.0)
+        done = np.all(improve <= tol * (cost + 1e-30)) and np.all(ok | (lam > 1e8))
+        if (done or it == n_iter - 1) and not want_logdet:
+            break
+        if ok.any():  # normal equations where the step was taken; the others keep theirs
+            JtJ_new, Jtr_new = _normal_equations(plan, kin_new, r_new, mask, batch)
+            JtJ = np.where(ok[..., None, None], JtJ_new, JtJ)
+            Jtr = np.where(ok[..., None], Jtr_new, Jtr)
+        if done:
+            break
+    logdet = None
+    if want_logdet:
+        sign, logdet = np.linalg.slogdet(JtJ)
+        logdet = np.where(sign > 0, logdet, -np.inf)
+    return q, cost, logdet
 
 
 def random_poses(model: Model, y_frame, rng: np.random.Generator, n: int) -> np.ndarray:
