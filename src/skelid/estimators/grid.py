@@ -34,8 +34,7 @@ import numpy as np
 from skelid.data import MarkerData
 from skelid.errors import ModelError
 from skelid.estimators.base import prepare, warn_once
-from skelid.estimators.likelihood import frame_terms, log_det_pose_information
-from skelid.estimators.pose import fit_pose, initial_pose
+from skelid.estimators.pose import FramePoseFitter, initial_pose
 from skelid.estimators.posterior import GridPosterior
 from skelid.model.description import Model
 
@@ -103,10 +102,22 @@ class MarkerGridFilter:
             return tuple(np.asarray(a, float) for a in self.axes)
         return tuple(p.grid for p in self.model.parameters)
 
-    def _points(self):
+    def _grid(self):
+        """``(axes, points (K, n_params), log prior (K,))``, built once per model and axes."""
+        cached = self.__dict__.get("_grid_cache")
+        if cached is not None and cached[0] is self.model and cached[1] is self.axes:
+            return cached[2]
         axes = self._axes()
         mesh = np.meshgrid(*axes, indexing="ij")
-        return axes, np.stack([m.ravel() for m in mesh], axis=-1)
+        pts = np.stack([m.ravel() for m in mesh], axis=-1)
+        log_prior = self.model.log_prior(pts)
+        pts.flags.writeable = False
+        log_prior.flags.writeable = False
+        self._grid_cache = (self.model, self.axes, (axes, pts, log_prior))
+        return axes, pts, log_prior
+
+    def _points(self):
+        return self._grid()[:2]
 
     def _dof_sigma2(self, rss_min, n_obs, n_used):
         if self.sigma is not None:
@@ -115,9 +126,8 @@ class MarkerGridFilter:
         return float(rss_min / dof) if dof > 0 and rss_min > 0 else np.nan
 
     def _log_weights(self, rss, logdet, n_obs, n_used):
-        axes, pts = self._points()
+        axes, _, lw = self._grid()
         s2 = self._dof_sigma2(np.min(rss), n_obs, n_used)
-        lw = self.model.log_prior(pts)
         if np.isfinite(s2):
             lw = lw - rss / (2.0 * s2)
             if self.likelihood == "laplace":
@@ -125,11 +135,17 @@ class MarkerGridFilter:
         lw = lw.reshape(tuple(a.size for a in axes))
         return lw - np.logaddexp.reduce(lw.ravel())
 
+    def _fitter(self, pts) -> FramePoseFitter:
+        """The per-frame pose fitter of the grid points (built once per model and grid)."""
+        cached = self.__dict__.get("_fitter_cache")
+        if cached is None or cached[0] is not pts:
+            cached = (pts, FramePoseFitter(self.model, pts))
+            self._fitter_cache = cached
+        return cached[1]
+
     def _frame_loglik_terms(self, pts, q, y):
-        """Fit poses of frames ``y (..., M, D)`` for every hypothesis; RSS and log det."""
-        q, rss = fit_pose(self.model, pts, y, q, n_iter=self.n_iter)
-        _, Jq, _ = frame_terms(self.model, pts, q, y)
-        return q, rss, log_det_pose_information(Jq)
+        """Fit the poses of one frame ``y (M, D)`` for every hypothesis; RSS and log det."""
+        return self._fitter(pts).fit(y, q, n_iter=self.n_iter)
 
     # -------------------------------------------------------------- online
     def init_state(self) -> GridState:
@@ -149,7 +165,7 @@ class MarkerGridFilter:
             q0, _ = initial_pose(self.model, self.model.theta_center, frame, rng)
             q = np.broadcast_to(q0, (len(pts), self.model.n_pose))
         if usable:
-            q, rss, logdet = self._frame_loglik_terms(pts, q, frame[None])
+            q, rss, logdet = self._frame_loglik_terms(pts, q, frame)
             state = GridState(state.rss + rss, state.logdet + logdet, q, state.n_obs + n_coord,
                               step, state.n_used + 1, state.history)
         else:
