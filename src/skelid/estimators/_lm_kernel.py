@@ -321,15 +321,19 @@ if AVAILABLE:  # pragma: no branch
                         JtJ[j, i, b] = v
 
     @_inline
-    def _cholesky(A, lam, ridge, Q, L, dinv, bad):
+    def _cholesky(A, lam, ridge, Q, L, dinv, bad, chk):
         """Lower Cholesky factors ``L (Q, Q, B)`` of ``A + lam diag(A) + ridge I`` and ``dinv = 1 / diag(L)``.
 
         ``bad[b]`` is set where the matrix is not positive definite (its factors are then meaningless).
+        ``chk[b]`` gains ``v * 0`` for every entry ``v`` of the lower triangle of the damped matrix:
+        it stays finite only where they all are (``A`` is symmetric).
         """
         B = A.shape[2]
         for j in range(Q):
             for b in range(B):
-                L[j, j, b] = (A[j, j, b] + lam[b] * A[j, j, b]) + ridge[b]
+                v = (A[j, j, b] + lam[b] * A[j, j, b]) + ridge[b]
+                L[j, j, b] = v
+                chk[b] += v * 0.0
             for c in range(j):
                 for b in range(B):
                     L[j, j, b] -= L[j, c, b] * L[j, c, b]
@@ -343,7 +347,9 @@ if AVAILABLE:  # pragma: no branch
                 dinv[j, b] = 1.0 / d
             for i in range(j + 1, Q):
                 for b in range(B):
-                    L[i, j, b] = A[i, j, b]
+                    v = A[i, j, b]
+                    L[i, j, b] = v
+                    chk[b] += v * 0.0
                 for c in range(j):
                     for b in range(B):
                         L[i, j, b] -= L[i, c, b] * L[j, c, b]
@@ -409,7 +415,7 @@ if AVAILABLE:  # pragma: no branch
         return total if sign > 0 else -np.inf
 
     @_inline
-    def _step(JtJ, Jtr, lam, Q, L, dinv, bad, A1, r1, s1, step, ridge, nf):
+    def _step(JtJ, Jtr, lam, Q, L, dinv, bad, A1, r1, s1, step, ridge, nf, chk):
         """Solve ``(J^T J + lam diag(J^T J) + ridge I) step = J^T r`` for the whole batch.
 
         ``ridge = 1e-9 mean(diag(J^T J))``. An element whose damped matrix or
@@ -419,28 +425,20 @@ if AVAILABLE:  # pragma: no branch
         B = Jtr.shape[1]
         for b in range(B):
             bad[b] = False
-            nf[b] = False
             ridge[b] = 0.0
         for j in range(Q):
             for b in range(B):
                 ridge[b] += JtJ[j, j, b]
         for b in range(B):
             ridge[b] = 1e-9 * max(ridge[b] / Q, 1e-300)
-        for i in range(Q):
-            for b in range(B):
-                if not np.isfinite(Jtr[i, b]):
-                    nf[b] = True
-            for j in range(Q):
-                for b in range(B):
-                    v = JtJ[i, j, b]
-                    if i == j:
-                        v = (v + lam[b] * v) + ridge[b]
-                    if not np.isfinite(v):
-                        nf[b] = True
-        _cholesky(JtJ, lam, ridge, Q, L, dinv, bad)
+        # v * 0 is 0 for finite v and NaN otherwise: one sum per element finds them without branches
+        for b in range(B):
+            chk[b] = 0.0
+        _cholesky(JtJ, lam, ridge, Q, L, dinv, bad, chk)
         for i in range(Q):
             for b in range(B):
                 step[i, b] = Jtr[i, b]
+                chk[b] += Jtr[i, b] * 0.0
             for c in range(i):
                 for b in range(B):
                     step[i, b] -= L[i, c, b] * step[c, b]
@@ -453,6 +451,8 @@ if AVAILABLE:  # pragma: no branch
             for b in range(B):
                 step[i, b] *= dinv[i, b]
         for b in range(B):
+            nf[b] = chk[b] != chk[b]
+        for b in range(B):
             if bad[b] and not nf[b]:
                 for i in range(Q):
                     r1[i] = Jtr[i, b]
@@ -464,29 +464,41 @@ if AVAILABLE:  # pragma: no branch
                     step[i, b] = s1[i]
         for i in range(Q):
             for b in range(B):
-                if nf[b] or not np.isfinite(step[i, b]):
-                    step[i, b] = 0.0
+                v = step[i, b]
+                step[i, b] = 0.0 if nf[b] or v - v != 0.0 else v
 
     @_inline
-    def _workspace(Q, B, S, M, D, damping):
-        """Every array one fit needs, allocated once."""
+    def _workspace(Q, B, S, M, D, damping, spatial):
+        """Every array one fit needs, allocated once.
+
+        Only what is read before it is written is initialised: the ground's row
+        ``S`` of the frames, angles and origins. ``J``, ``w`` and ``pivot`` are
+        written wherever :func:`_normal` reads them. The planar kinematics use
+        no rotation matrices (``R``, ``Ri``, ``E`` get a token size).
+        """
         n = M * D
-        R = np.zeros((S + 1, 3, 3, B))
-        for a in range(3):
-            R[S, a, a, :] = 1.0  # the ground's orientation
+        Bm = B if spatial else 1
+        R = np.empty((S + 1 if spatial else 1, 3, 3, Bm))
+        if spatial:
+            R[S] = 0.0
+            for a in range(3):
+                R[S, a, a, :] = 1.0  # the ground's orientation
+        p = np.empty((S + 1, 3, B))
+        p[S] = 0.0  # the ground's origin
         return (np.empty(B), np.empty(B), np.full(B, damping), np.ones(B, dtype=np.bool_),
                 np.zeros(B, dtype=np.bool_), np.empty((Q, Q, B)), np.empty((Q, B)), np.empty((Q, Q, B)),
-                np.empty((Q, B)), np.empty((Q, B)), np.empty((Q, B)), R, np.empty((3, 3, B)),
-                np.empty((3, 3, B)), np.zeros((S + 1, B)), np.ones((S + 1, B)), np.zeros((S + 1, B)),
-                np.zeros((S + 1, 3, B)), np.zeros((Q, 3, B)), np.zeros((Q, 3, B)), np.empty((M, D, B)),
-                np.empty((n, B)), np.zeros((n, Q, B)), np.empty(B), np.empty(B), np.empty(B),
-                np.empty((Q, Q)), np.empty(Q), np.empty(Q), np.empty(B), np.zeros(B, dtype=np.bool_))
+                np.empty((Q, B)), np.empty((Q, B)), np.empty((Q, B)), R, np.empty((3, 3, Bm)),
+                np.empty((3, 3, Bm)), np.zeros((S + 1, B)), np.ones((S + 1, B)), np.zeros((S + 1, B)),
+                p, np.empty((Q, 3, B)), np.empty((Q, 3, B)), np.empty((M, D, B)),
+                np.empty((n, B)), np.empty((n, Q, B)), np.empty(B), np.empty(B), np.empty(B),
+                np.empty((Q, Q)), np.empty(Q), np.empty(Q), np.empty(B), np.zeros(B, dtype=np.bool_),
+                np.empty(B))
 
     @_inline
-    def _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf):
+    def _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf, chk):
         """The trial poses ``qn = q + step`` of one iteration."""
         B = q.shape[1]
-        _step(JtJ, Jtr, lam, Q, L, dinv, bad, A1, r1, s1, step, ridge, nf)
+        _step(JtJ, Jtr, lam, Q, L, dinv, bad, A1, r1, s1, step, ridge, nf, chk)
         for i in range(Q):
             for b in range(B):
                 qn[i, b] = q[i, b] + step[i, b]
@@ -530,7 +542,7 @@ if AVAILABLE:  # pragma: no branch
             bad[b] = False
             lam[b] = 0.0
             ridge[b] = 0.0
-        _cholesky(JtJ, lam, ridge, Q, L, dinv, bad)
+        _cholesky(JtJ, lam, ridge, Q, L, dinv, bad, acc)
         for b in range(B):
             acc[b] = 1.0
         for j in range(Q):
@@ -558,13 +570,13 @@ if AVAILABLE:  # pragma: no branch
                    skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2):
         Q, B = q.shape
         (cost, cost_new, lam, ok, bad, JtJ, Jtr, L, dinv, step, qn, R, Ri, E, ang, cs, sn, p, w, pivot, x, r,
-         J, acc, ux, uy, A1, r1, s1, ridge, nf) = _workspace(Q, B, S, M, D, damping)
+         J, acc, ux, uy, A1, r1, s1, ridge, nf, chk) = _workspace(Q, B, S, M, D, damping, False)
         _kinematics_planar(g, q, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang, cs,
                            sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
         _residual(y0, mask, x, D, M, r, cost)
         _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr)
         for it in range(n_iter):
-            _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf)
+            _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf, chk)
             _kinematics_planar(g, qn, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang,
                                cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
             _residual(y0, mask, x, D, M, r, cost_new)
@@ -580,13 +592,13 @@ if AVAILABLE:  # pragma: no branch
                     skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2):
         Q, B = q.shape
         (cost, cost_new, lam, ok, bad, JtJ, Jtr, L, dinv, step, qn, R, Ri, E, ang, cs, sn, p, w, pivot, x, r,
-         J, acc, ux, uy, A1, r1, s1, ridge, nf) = _workspace(Q, B, S, M, D, damping)
+         J, acc, ux, uy, A1, r1, s1, ridge, nf, chk) = _workspace(Q, B, S, M, D, damping, True)
         _kinematics_spatial(g, q, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang, cs,
                             sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
         _residual(y0, mask, x, D, M, r, cost)
         _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr)
         for it in range(n_iter):
-            _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf)
+            _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf, chk)
             _kinematics_spatial(g, qn, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang,
                                 cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
             _residual(y0, mask, x, D, M, r, cost_new)
