@@ -61,7 +61,8 @@ def frame_terms(model: Model, theta, q, y):
 
 def pose_information(J_pose) -> np.ndarray:
     """``J^T J`` per frame: ``(..., Q, Q)``."""
-    return np.einsum("...ki,...kj->...ij", J_pose, J_pose)
+    J_pose = np.asarray(J_pose)
+    return np.matmul(np.swapaxes(J_pose, -1, -2), J_pose)
 
 
 def pose_fixed(J_pose, rel_tol: float = 1e-8) -> np.ndarray:
@@ -98,7 +99,7 @@ def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12):
     # a frame without rows (skipped) gets the mean scale, so that its projection is 0, not NaN
     scale = np.maximum(tr, max(float(np.mean(tr)) if tr.size else 0.0, 1e-300))
     G = np.linalg.solve(H + ridge * scale[..., None, None] * np.eye(Q),
-                        np.einsum("...ki,...kp->...ip", J_pose, J_theta))
+                        np.matmul(np.swapaxes(J_pose, -1, -2), J_theta))
     return J_theta - J_pose @ G
 
 
