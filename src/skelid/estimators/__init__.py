@@ -9,7 +9,7 @@
 from skelid.estimators.grid import MarkerGridFilter
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.paper import ConstraintSystem, PaperFilter
-from skelid.estimators.posterior import GaussianPosterior, GridPosterior
+from skelid.estimators.posterior import GaussianPosterior, GridPosterior, SamplePosterior
 
 __all__ = ["ConstraintSystem", "PaperFilter", "MarkerEstimator", "MarkerGridFilter", "GridPosterior",
-           "GaussianPosterior"]
+           "GaussianPosterior", "SamplePosterior"]

@@ -6,9 +6,13 @@ parameters, kept as normalised log weights. Bayes' rule for one frame is
 .. math:: \\log w_k \\leftarrow \\log w_k + \\ell_t(\\theta_k) - \\log\\sum_j \\exp(\\log w_j + \\ell_t(\\theta_j))
 
 so products of many small likelihoods never underflow. :class:`GaussianPosterior`
-is a multivariate normal (a Laplace approximation around a batch estimate). Both
-offer ``map``, ``mean``, ``sd``, ``credible_interval(level)`` and ``samples(n, rng)``
-and are immutable: an update returns a new object.
+is a multivariate normal (a Laplace approximation around a batch estimate).
+:class:`SamplePosterior` is a cloud of weighted draws ``(theta_i, W_i)`` (from a
+sampler such as :mod:`skelid.estimators.smc`): expectations are weighted sums,
+``E f(theta) ~ sum_i W_i f(theta_i)``, so it can hold any shape (skewed, bounded,
+curved). All three offer ``map``, ``mean``, ``sd``, ``credible_interval(level)``,
+``samples(n, rng)`` and ``summary()`` and are immutable: an update returns a new
+object.
 """
 
 from __future__ import annotations
@@ -171,6 +175,187 @@ class GaussianPosterior:
         ci = self.credible_interval(level)
         return {
             n: {"map": float(self.mean[k]), "mean": float(self.mean[k]), "sd": float(self.sd[k]),
+                "ci95": [float(ci[k, 0]), float(ci[k, 1])]}
+            for k, n in enumerate(self.names)
+        }
+
+
+def weighted_quantiles(x: np.ndarray, w: np.ndarray, q) -> np.ndarray:
+    """Quantiles of the weighted sample ``x (N,)`` with weights ``w (N,)`` (summing to 1).
+
+    The empirical distribution function is taken at the middle of each
+    sample's mass, ``F(x_(i)) = sum_{j<i} w_(j) + w_(i) / 2`` over the sorted
+    sample, and interpolated linearly between samples (clamped to the smallest
+    and largest sample). With equal weights this is the usual ``(i - 1/2) / N``
+    plotting position.
+
+    Parameters
+    ----------
+    x : (N,) float
+    w : (N,) float
+    q : float or (K,) float
+        Probabilities in [0, 1].
+
+    Returns
+    -------
+    (K,) float (or a scalar for a scalar ``q``)
+    """
+    keep = w > 0
+    order = np.argsort(x[keep], kind="stable")
+    xs, ws = x[keep][order], w[keep][order]
+    cdf = np.cumsum(ws) - 0.5 * ws
+    cdf /= max(float(ws.sum()), 1e-300)
+    return np.interp(q, cdf, xs)
+
+
+@dataclass(frozen=True, eq=False)
+class SamplePosterior:
+    """Posterior held as weighted samples ``theta_i`` with normalised weights ``W_i``.
+
+    Parameters
+    ----------
+    names : tuple of str, length P
+    points : (N, P) float
+        The samples.
+    log_weights : (N,) float, optional
+        Log weights (any constant); equal weights if not given. They are
+        normalised on construction, ``sum_i exp(log_weights_i) = 1``.
+    log_target : (N,) float, optional
+        Unnormalised log posterior density at each sample; gives :attr:`map`.
+    ess : float, optional
+        Effective sample size, when the producer knows better than the
+        weights (draws moved by MCMC are correlated); by default Kish's
+        ``1 / sum_i W_i^2``.
+    history : tuple
+        Kept for the interface the other posteriors share (empty).
+
+    Notes
+    -----
+    The arrays are copied and made read-only, so that the object is immutable.
+    ``mean = sum_i W_i theta_i``; ``cov = sum_i W_i (theta_i - mean)(theta_i -
+    mean)^T / (1 - sum_i W_i^2)`` (unbiased for independent draws);
+    credible intervals are equal-tailed weighted quantiles
+    (:func:`weighted_quantiles`) and so stay inside the support of the samples,
+    e.g. inside a prior's bounds.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> post = SamplePosterior(("a",), rng.normal(2.0, 0.5, size=(4000, 1)))
+    >>> round(float(post.mean[0]), 1), round(float(post.sd[0]), 1)
+    (2.0, 0.5)
+    """
+
+    names: tuple[str, ...]
+    points: np.ndarray
+    log_weights: np.ndarray | None = None
+    log_target: np.ndarray | None = None
+    ess: float | None = None
+    history: tuple = field(default=())
+
+    def __post_init__(self):
+        pts = np.array(self.points, dtype=float, ndmin=2)
+        if pts.ndim != 2 or pts.shape[0] == 0:
+            raise ValueError(f"points must be (N, P) with N > 0, got shape {np.shape(self.points)}")
+        if pts.shape[1] != len(self.names):
+            raise ValueError(f"{pts.shape[1]} columns of points for {len(self.names)} names")
+        n = pts.shape[0]
+        lw = np.zeros(n) if self.log_weights is None else np.array(self.log_weights, dtype=float)
+        if lw.shape != (n,):
+            raise ValueError(f"log_weights must be ({n},), got {lw.shape}")
+        z = logsumexp(lw)
+        if not np.isfinite(z):
+            raise ValueError("the weights are all zero (or not finite)")
+        lw = lw - z
+        lt = None if self.log_target is None else np.array(self.log_target, dtype=float)
+        if lt is not None and lt.shape != (n,):
+            raise ValueError(f"log_target must be ({n},), got {lt.shape}")
+        ess = float(1.0 / np.sum(np.exp(2.0 * lw))) if self.ess is None else float(self.ess)
+        for a in (pts, lw, lt):
+            if a is not None:
+                a.flags.writeable = False
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "points", pts)
+        object.__setattr__(self, "log_weights", lw)
+        object.__setattr__(self, "log_target", lt)
+        object.__setattr__(self, "ess", ess)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(N,) float: normalised weights."""
+        return np.exp(self.log_weights)
+
+    @property
+    def n_samples(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def map(self) -> np.ndarray:
+        """(P,) float: the sample with the highest ``log_target``.
+
+        Without ``log_target``, the sample of highest density under a weighted
+        Gaussian kernel density estimate (Scott's bandwidth, the samples'
+        covariance) stands in; the density is evaluated at up to 512 of the
+        samples (evenly spaced in their order), so the cost stays ``O(512 N)``.
+        """
+        if self.log_target is not None and np.isfinite(self.log_target).any():
+            return self.points[int(np.argmax(np.where(np.isfinite(self.log_target),
+                                                      self.log_target, -np.inf)))].copy()
+        cand = np.unique(np.linspace(0, self.n_samples - 1, min(self.n_samples, 512)).astype(int))
+        cand = cand[self.log_weights[cand] > -np.inf]
+        if cand.size == 0:  # the evenly spaced ones carry no weight: take the heaviest
+            cand = np.argsort(-self.log_weights)[:512]
+        return self.points[cand[int(np.argmax(self._kde_log_density(self.points[cand])))]].copy()
+
+    def _kde_log_density(self, at: np.ndarray, chunk: int = 256) -> np.ndarray:
+        """(K,) float: log density (unnormalised) of the weighted Gaussian KDE at ``at (K, P)``."""
+        x = self.points
+        p = x.shape[1]
+        h2 = (self.ess ** (-1.0 / (p + 4))) ** 2  # Scott's factor, squared
+        c = np.atleast_2d(self.cov)
+        L = np.linalg.cholesky(c * h2 + 1e-12 * max(float(np.abs(c).max()), 1e-300) * np.eye(p))
+        z = np.linalg.solve(L, x.T).T
+        za = np.linalg.solve(L, np.asarray(at, float).T).T
+        out = np.empty(len(za))
+        for a in range(0, len(za), chunk):
+            d2 = np.sum((za[a:a + chunk, None, :] - z[None, :, :]) ** 2, axis=-1)
+            out[a:a + chunk] = logsumexp(-0.5 * d2 + self.log_weights[None, :], axis=1)
+        return out
+
+    @property
+    def mean(self) -> np.ndarray:
+        """(P,) float: weighted mean."""
+        return self.weights @ self.points
+
+    @property
+    def cov(self) -> np.ndarray:
+        """(P, P) float: weighted covariance (unbiased for independent draws)."""
+        w = self.weights
+        d = self.points - self.mean
+        c = (d * w[:, None]).T @ d
+        return c / max(1.0 - float(w @ w), 1e-12)
+
+    @property
+    def sd(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+
+    def credible_interval(self, level: float = 0.95) -> np.ndarray:
+        """(P, 2) float: equal-tailed marginal intervals from weighted quantiles."""
+        a = (1.0 - level) / 2.0
+        w = self.weights
+        return np.array([weighted_quantiles(self.points[:, k], w, [a, 1.0 - a])
+                         for k in range(self.points.shape[1])])
+
+    def samples(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """(n, P) float: draws by multinomial resampling of the weighted samples."""
+        idx = rng.choice(self.n_samples, size=n, p=self.weights)
+        return self.points[idx].copy()
+
+    def summary(self, level: float = 0.95) -> dict:
+        ci = self.credible_interval(level)
+        m, mean, sd = self.map, self.mean, self.sd
+        return {
+            n: {"map": float(m[k]), "mean": float(mean[k]), "sd": float(sd[k]),
                 "ci95": [float(ci[k, 0]), float(ci[k, 1])]}
             for k, n in enumerate(self.names)
         }
