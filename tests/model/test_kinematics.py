@@ -3,7 +3,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from skelid.model import marker_jacobian, marker_positions
+from skelid.model import forward_kinematics, marker_jacobian, marker_positions
+from skelid.model.kinematics import pose_gradient
 from skelid.simulate import builtin_model
 from tests.helpers import tree_3d
 
@@ -29,6 +30,18 @@ def test_jacobians_equal_central_differences(name):
         dt[k] = h
         fd = (marker_positions(model, theta + dt, q) - marker_positions(model, theta - dt, q)) / (2 * h)
         np.testing.assert_allclose(Jt[..., k], fd, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_pose_gradient_equals_the_jacobian_transpose_times_residuals(name):
+    model = MODELS[name]()
+    rng = np.random.default_rng(2)
+    theta = model.theta_nominal + rng.normal(0, 5, size=(3, 1, model.n_params))
+    q = rng.normal(0, 0.7, size=(3, 4, model.n_pose))
+    r = rng.normal(0, 2.0, size=(3, 4, len(model.markers), model.dim))
+    _, Jq, _ = marker_jacobian(model, theta, q)
+    g = pose_gradient(model, forward_kinematics(model, theta, q), r)
+    np.testing.assert_allclose(g, np.einsum("...mdk,...md->...k", Jq, r), rtol=1e-10, atol=1e-8)
 
 
 def test_batch_axes_broadcast():

@@ -5,7 +5,7 @@ import pytest
 
 from skelid.errors import ModelError
 from skelid.model import marker_jacobian, marker_positions, model_from_dict
-from skelid.model.kinematics import forward_kinematics
+from skelid.model.kinematics import forward_kinematics, pose_gradient
 from tests.helpers import tree_3d, tree_3d_functional
 
 
@@ -38,6 +38,9 @@ def test_jacobians_with_every_parameter_kind_equal_central_differences():
         dq[k] = h
         fd = (marker_positions(m, theta, q + dq) - marker_positions(m, theta, q - dq)) / (2 * h)
         np.testing.assert_allclose(Jq[..., k], fd, atol=2e-5)
+    r = rng.normal(0, 2.0, size=(3, len(m.markers), 3))  # J^T r without J, tilted hinge included
+    np.testing.assert_allclose(pose_gradient(m, forward_kinematics(m, theta, q), r),
+                               np.einsum("...mdk,...md->...k", Jq, r), rtol=1e-10, atol=1e-8)
 
 
 def test_joint_centre_moves_no_marker_in_the_reference_pose():

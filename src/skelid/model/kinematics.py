@@ -468,6 +468,47 @@ def pose_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     return np.moveaxis(cols, -3, -1)
 
 
+def pose_gradient(model: Model, kin: Kinematics, r) -> np.ndarray:
+    """``J_pose^T r`` as ``(..., Q)`` without forming the Jacobian.
+
+    With ``w_{km}`` = 1 if pose coordinate ``k`` moves marker ``m``, a
+    rotation about the world axis ``a_k`` through ``p_k`` has column
+    ``a_k x (x_m - p_k)``, so by the triple product
+
+    .. math:: g_k = a_k \\cdot \\Big(\\sum_m w_{km}\\, x_m \\times r_m
+              - p_k \\times \\sum_m w_{km}\\, r_m\\Big)
+
+    (the z component of the planar cross products in 2-D), and a translation
+    along ``a_k`` has ``g_k = a_k . sum_m w_km r_m``. The cost is
+    ``O(Q M)`` per frame with no ``(Q, M, D)`` array.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        Only ``dof_axis``, ``dof_pivot`` and ``markers`` are read.
+    r : (..., M, D) float
+        Residuals (zero where a marker is missing).
+
+    Returns
+    -------
+    (..., Q) float
+    """
+    W = model.dof_moves_marker.astype(float)  # (Q, M)
+    x = kin.markers
+    r = np.asarray(r, float)
+    s = np.einsum("km,...md->...kd", W, r)  # sum_m w r_m
+    axis, pivot = kin.dof_axis, kin.dof_pivot
+    if model.dim == 3:
+        rot = np.einsum("km,...md->...kd", W, np.cross(x, r)) - np.cross(pivot, s)
+        g_rot = np.einsum("...kd,...kd->...k", axis, rot)
+    else:
+        c = x[..., 0] * r[..., 1] - x[..., 1] * r[..., 0]
+        g_rot = np.einsum("km,...m->...k", W, c) - (pivot[..., 0] * s[..., 1] - pivot[..., 1] * s[..., 0])
+    g_trans = np.einsum("...kd,...kd->...k", axis, s)
+    is_t = np.array([d.kind == "T" for d in model.dofs], dtype=bool)
+    return np.where(is_t, g_trans, g_rot)
+
+
 def theta_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     """``dx/dtheta`` as ``(..., M, D, P)`` from a :class:`Kinematics`."""
     plan = kinematics_plan(model)
