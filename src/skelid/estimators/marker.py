@@ -226,6 +226,18 @@ class MarkerEstimator:
     identifiability_ : dict
     sta_score_ : float
         Mean lag-1 autocorrelation of the residuals.
+    cov_plain_ : (P, P) float
+        ``sigma^2 S^{-1}``: the data's covariance for white noise.
+    cov_data_ : (P, P) float
+        The data's covariance used (``cov_plain_``, or the Newey-West one when
+        ``widened_``), before any normal prior is combined with it.
+    widened_ : bool
+        Whether the Newey-West covariance was used.
+    cov_ : (P, P) float
+        Posterior covariance (``cov_data_`` combined with normal priors).
+    y_ : (T, M, D) float
+        The markers the final fit used (model order and units; outliers and
+        skipped frames NaN).
     warnings_ : list of str
     """
 
@@ -389,7 +401,9 @@ class MarkerEstimator:
             warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
                       f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
                       "interval was widened (Newey-West)", self.warnings_)
-        if self.robust == "always" or (self.robust == "auto" and flagged):
+        self.cov_plain_ = cov
+        self.widened_ = self.robust == "always" or (self.robust == "auto" and flagged)
+        if self.widened_:
             if fit.penalty is None:
                 scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
             else:
@@ -398,10 +412,12 @@ class MarkerEstimator:
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
+        self.cov_data_ = cov
         theta, cov = _combine_normal_priors(model, theta, cov)
         self.cov_ = cov
         self.theta_ = theta
         self.pose_ = fit.pose
+        self.y_ = np.where(used[:, None, None], y, np.nan)
         self.frames_used_ = used
         self.fit_info_ = fit
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
