@@ -242,6 +242,9 @@ class MarkerEstimator:
     """
 
     name = "marker"
+    #: a one-parameter fit that ends on a prior bound is an error (its normal posterior would
+    #: straddle the bound); an estimator that can represent a posterior against a bound turns it off
+    bound_is_error = True
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
@@ -348,6 +351,9 @@ class MarkerEstimator:
         if pinned.any() and model.n_params > 1:
             warn_once(f"parameter(s) {', '.join(np.array(model.parameter_names)[pinned])} ended on a "
                       "bound of their prior interval: the data do not pin them inside it", self.warnings_)
+        elif pinned.any() and not self.bound_is_error:
+            warn_once(f"parameter {model.parameter_names[0]} ended on a bound of its prior interval: the "
+                      "data do not pin it inside it", self.warnings_)
         elif pinned.any():
             k = int(np.flatnonzero(pinned)[0])
             p = model.parameters[k]
