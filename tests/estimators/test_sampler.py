@@ -1,0 +1,112 @@
+"""The marker-smc estimator: profile likelihood, agreement with the normal posterior, bounds."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from skelid.errors import IdentifiabilityError, SkelidWarning
+from skelid.estimators.marker import MarkerEstimator
+from skelid.estimators.posterior import SamplePosterior
+from skelid.estimators.sampler import ProfileLikelihood, SamplerEstimator, sample_prior
+from skelid.model import model_from_dict
+from skelid.simulate import builtin_model, simulate
+
+
+@pytest.fixture(scope="module")
+def case_a_fit():
+    """Case A, 150 frames at 5 mm: a posterior the normal approximation describes well."""
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[250.0], n_frames=150, sigma=5.0, rng=np.random.default_rng(11))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkelidWarning)
+        est = SamplerEstimator(model, rng=np.random.default_rng(0), n_particles=300).fit(trial.data)
+    return model, trial, est
+
+
+def test_profile_likelihood_has_the_curvature_of_the_normal_posterior(case_a_fit):
+    # deterministic: l(theta_ + k sd) = -k^2/2 to within the curvature the Gauss-Newton information misses
+    model, _, est = case_a_fit
+    fit = est.fit_info_
+    like = ProfileLikelihood(model, est.y_, fit.theta, fit.pose, fit.penalty, est.sigma_**2, est.bias_,
+                             scale=est.crlb_motion_sd_)
+    sd = est.gaussian_posterior_.sd[0]
+    k = np.array([-3.0, -1.0, 0.0, 1.0, 3.0])
+    theta = est.gaussian_posterior_.mean[0] + k[:, None] * sd
+    ll, carry = like(theta, like.initial_carry(len(k)))
+    assert np.all(np.abs(ll + 0.5 * k**2) <= 0.1 * 0.5 * k**2 + 1e-6), ll
+    assert ll[2] == pytest.approx(0.0, abs=1e-6)  # the maximum is the bias-corrected estimate
+    # near the fit the value does not depend on where the particle came from
+    ll2, _ = like(theta, carry[::-1])
+    np.testing.assert_allclose(ll2, ll, atol=1e-9)
+
+
+def test_sampler_agrees_with_the_normal_posterior_when_that_is_accurate(case_a_fit):
+    _, _, est = case_a_fit
+    g, s = est.gaussian_posterior_, est.posterior_
+    assert isinstance(s, SamplePosterior)
+    # Monte Carlo error with ~300 particles: over seeds 0-7 the means differ by at most 0.15 sd
+    # and the sds by at most 11 %
+    assert abs(s.mean[0] - g.mean[0]) < 0.25 * g.sd[0]
+    assert s.sd[0] == pytest.approx(g.sd[0], rel=0.2)
+    lo, hi = s.credible_interval(0.95)[0]
+    # the tails of 300 particles: within 0.2-0.4 sd over seeds 0-7
+    assert lo == pytest.approx(g.credible_interval(0.95)[0, 0], abs=0.6 * g.sd[0])
+    assert hi == pytest.approx(g.credible_interval(0.95)[0, 1], abs=0.6 * g.sd[0])
+    assert est.theta_[0] == pytest.approx(s.mean[0])
+    res = est.smc_
+    assert res.temperatures[-1] == 1.0 and res.completed
+    assert 0.1 < res.acceptance[-1] < 0.9
+
+
+def test_result_has_the_default_keys_and_the_sampler(case_a_fit):
+    model, trial, est = case_a_fit
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkelidWarning)
+        ref = MarkerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data).result()
+    out = est.result()
+    assert set(out) == set(ref) | {"sampler"}
+    assert set(out["L2"]) == set(ref["L2"])
+    assert set(out["sampler"]) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
+    assert out["sampler"]["particles"] == 300 and 0 < out["sampler"]["ess"] <= 300
+    assert np.isfinite(out["sampler"]["log_evidence"])
+    json.dumps(out)
+
+
+def test_posterior_against_a_prior_bound_stays_inside_it():
+    # 40 noisy frames of a forearm whose length (295 mm) is near the prior's upper bound (300 mm):
+    # the joint fit ends on the bound, the normal interval spills past it, the samples cannot
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[295.0], n_frames=40, sigma=15.0, rng=np.random.default_rng(3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkelidWarning)
+        with pytest.raises(IdentifiabilityError):
+            MarkerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data)
+        est = SamplerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data)
+    g_lo, g_hi = est.gaussian_posterior_.credible_interval(0.95)[0]
+    lo, hi = est.posterior_.credible_interval(0.95)[0]
+    assert g_hi > 305.0  # the normal interval reaches well past the bound
+    assert 200.0 <= est.posterior_.points.min() and est.posterior_.points.max() <= 300.0
+    assert hi <= 300.0 and lo > g_lo
+    mean = est.posterior_.mean[0]
+    assert hi - mean < mean - lo  # skewed away from the bound
+    assert any("reaches a bound of its prior" in w for w in est.warnings_)
+
+
+def test_normal_and_lognormal_priors_are_drawn_inside_their_bounds():
+    model = model_from_dict({
+        "model": {"dim": 2, "units": "mm"},
+        "segments": [{"name": "arm", "parent": "ground", "joint": {"type": "revolute", "position": [0, 0]}}],
+        "markers": [{"name": "a", "segment": "arm", "position": [100.0, 0.0]},
+                    {"name": "b", "segment": "arm", "position": [50.0, 10.0]}],
+        "parameters": [
+            {"name": "ax", "kind": "marker_position", "marker": "a", "axis": "x",
+             "prior": {"type": "normal", "mean": 100.0, "sd": 5.0, "lower": 95.0, "upper": 120.0}},
+            {"name": "bx", "kind": "marker_position", "marker": "b", "axis": "x",
+             "prior": {"type": "lognormal", "median": 50.0, "sd_log": 0.1}}]})
+    x = sample_prior(model, 20000, np.random.default_rng(0))
+    assert np.isfinite(model.log_prior(x)).all()
+    assert x[:, 0].min() >= 95.0 and x[:, 0].max() <= 120.0
+    assert np.median(np.log(x[:, 1])) == pytest.approx(np.log(50.0), abs=0.01)
+    assert np.std(np.log(x[:, 1])) == pytest.approx(0.1, rel=0.05)
