@@ -144,14 +144,14 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.argument("model_path")
 @click.argument("data_path")
 @click.option("--method", "method_names", multiple=True,
-              help="Estimator (repeat for several): marker (default), paper, marker-grid.")
+              help="Estimator (repeat for several): marker (default), paper, marker-grid, marker-smc.")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Marker noise in model units (default 15 mm for the paper method).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout, nothing else.")
 @click.option("--out", "out_dir", default=None,
               help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
 @click.option("--cutoff", type=float, default=None,
-              help="Motion model of the marker method: poses are smoothed above this frequency "
+              help="Motion model of the marker methods: poses are smoothed above this frequency "
                    "(Hz; default: chosen per pose coordinate from the motion, at least 6; 0 = none).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
@@ -181,7 +181,8 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, as_json, out_di
 @click.argument("pattern")
 @click.option("--out", "out_path", required=True, help="Table to write: .parquet or .csv (rows already "
               "there are kept and their trials skipped).")
-@click.option("--method", default="marker", show_default=True, help="Estimator: marker, paper, marker-grid.")
+@click.option("--method", default="marker", show_default=True,
+              help="Estimator: marker, paper, marker-grid, marker-smc.")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Marker noise in model units (default: estimated, or 15 mm for the paper method).")
 @click.option("--workers", type=click.IntRange(min=1), default=None,

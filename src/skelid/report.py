@@ -482,6 +482,18 @@ def _evolution(b: _Builder, result: dict, arrays: dict, units: str):
             b.add(_na("posterior evolution"))
 
 
+def _histogram(x, w=None) -> dict:
+    """Weighted histogram of posterior samples as a marginal on equal cells (``axis``, ``marginal``)."""
+    x = np.asarray(x, float)
+    w = np.full(x.size, 1.0 / max(x.size, 1)) if w is None else np.asarray(w, float)
+    n = int(np.clip(np.sqrt(x.size), 10, 60))
+    lo, hi = float(x.min()), float(x.max())
+    if not hi > lo:
+        hi = lo + max(abs(lo), 1.0) * 1e-6
+    mass, edges = np.histogram(x, bins=n, range=(lo, hi), weights=w)
+    return {"axis": 0.5 * (edges[:-1] + edges[1:]), "marginal": mass / max(mass.sum(), 1e-300)}
+
+
 def _final(b: _Builder, result: dict, arrays: dict, units: str):
     mpars = result.get("model_parameters") or {}
     truth = result.get("truth") or {}
@@ -512,6 +524,8 @@ def _final(b: _Builder, result: dict, arrays: dict, units: str):
             k = post_names.index(name) if name in post_names else None
             if k is not None and f"posterior.axis.{k}" in a:
                 panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
+            elif k is not None and "posterior.points" in a:
+                panel.update(_histogram(a["posterior.points"][:, k], a.get("posterior.weights")))
             elif k is not None and "posterior.cov" in a:
                 panel.update(mean=float(a["posterior.mean"][k]), sd=float(np.sqrt(max(a["posterior.cov"][k, k], 0))),
                              kind_label="posterior (Gaussian)")

@@ -16,8 +16,8 @@ temporary sibling and moved in when complete (:func:`skelid.io.atomic.atomic_dir
     What is not JSON-friendly (:func:`fit_arrays`): ``markers (F, M, D)`` in
     model units, ``marker_names``, ``rate``, ``units``, and per method ``NAME.*``
     entries: posterior grid axes, final marginals and their history, Gaussian
-    mean and covariance, per-frame measured values, ``residuals (F, M)``,
-    ``crlb_sd (P,)``.
+    mean and covariance, posterior samples and their weights, per-frame
+    measured values, ``residuals (F, M)``, ``crlb_sd (P,)``.
 ``*.png``
     The seed paper's figures.
 """
@@ -61,8 +61,10 @@ def methods() -> dict:
     from skelid.estimators.grid import MarkerGridFilter
     from skelid.estimators.marker import MarkerEstimator
     from skelid.estimators.paper import PaperFilter
+    from skelid.estimators.sampler import SamplerEstimator
 
-    return {"marker": MarkerEstimator, "paper": PaperFilter, "marker-grid": MarkerGridFilter}
+    return {"marker": MarkerEstimator, "paper": PaperFilter, "marker-grid": MarkerGridFilter,
+            "marker-smc": SamplerEstimator}
 
 
 DEFAULT_METHOD = "marker"
@@ -84,7 +86,7 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
                               f"(size {size:g} {model.units})",
                               f"give the marker noise in {model.units}; markers are rarely better than "
                               f"{0.1 * unit_scale('mm', model.units):g} {model.units}")
-    if cutoff is not None and name == "marker":
+    if cutoff is not None and name in ("marker", "marker-smc"):
         if not (math.isfinite(cutoff) and cutoff >= 0):
             raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
                               "use 0 for no motion model, or e.g. --cutoff 6")
@@ -435,9 +437,10 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
     """Posterior grid, history, Gaussian moments, residuals and bounds of a fitted estimator.
 
     Works on any estimator by the attributes it has: ``posterior_`` (a grid
-    posterior with ``axes``, ``history``, ``marginal(k, lw)``, or a Gaussian with
-    ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``, ``measured_
-    (F,)``, ``map_path_ (F,)``.
+    posterior with ``axes``, ``history``, ``marginal(k, lw)``; weighted samples
+    with ``points``, ``weights``, whose mean and covariance are stored too; or a
+    Gaussian with ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``,
+    ``measured_ (F,)``, ``map_path_ (F,)``.
     """
     out: dict[str, np.ndarray] = {}
     post = getattr(est, "posterior_", None)
@@ -453,6 +456,12 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
                 out[f"posterior.marginal.{k}"] = np.asarray(post.marginal(k), float)
                 if steps:
                     out[f"posterior.history.{k}"] = np.stack([post.marginal(k, h[1]) for h in history])
+        elif hasattr(post, "points") and hasattr(post, "weights"):
+            out["posterior.kind"] = np.array("samples")
+            out["posterior.points"] = np.asarray(post.points, float)
+            out["posterior.weights"] = np.asarray(post.weights, float)
+            out["posterior.mean"] = np.asarray(post.mean, float)
+            out["posterior.cov"] = np.atleast_2d(np.asarray(post.cov, float))
         elif hasattr(post, "cov"):
             out["posterior.kind"] = np.array("gaussian")
             out["posterior.mean"] = np.asarray(post.mean, float)

@@ -6,12 +6,15 @@ import warnings
 import numpy as np
 import pytest
 
+from skelid.cli import main
 from skelid.errors import IdentifiabilityError, SkelidWarning
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.posterior import SamplePosterior
 from skelid.estimators.sampler import ProfileLikelihood, SamplerEstimator, sample_prior
 from skelid.model import model_from_dict
 from skelid.simulate import builtin_model, simulate
+from skelid.workflows import methods
+from tests.conftest import EXAMPLES
 
 
 @pytest.fixture(scope="module")
@@ -110,3 +113,23 @@ def test_normal_and_lognormal_priors_are_drawn_inside_their_bounds():
     assert x[:, 0].min() >= 95.0 and x[:, 0].max() <= 120.0
     assert np.median(np.log(x[:, 1])) == pytest.approx(np.log(50.0), abs=0.01)
     assert np.std(np.log(x[:, 1])) == pytest.approx(0.1, rel=0.05)
+
+
+def test_fit_from_the_command_line(tmp_path, capsys):
+    assert methods()["marker-smc"] is SamplerEstimator
+    trc = tmp_path / "a.trc"
+    assert main(["simulate", "case-a", "--sigma", "5", "--frames", "80", "--seed", "2", "--out", str(trc)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["fit", str(EXAMPLES / "case_a.toml"), str(trc), "--method", "marker-smc", "--json",
+                 "--out", str(out)]) == 0
+    res = json.loads(capsys.readouterr().out)["methods"]["marker-smc"]
+    assert set(res["L2"]) >= {"map", "mean", "sd", "ci95", "crlb_sd", "bias_removed"}
+    assert set(res["sampler"]) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
+    assert 200 <= res["L2"]["ci95"][0] < res["L2"]["ci95"][1] <= 300
+    arrays = np.load(out / "arrays.npz")
+    assert str(arrays["marker-smc.posterior.kind"]) == "samples"
+    assert arrays["marker-smc.posterior.points"].shape == (res["sampler"]["particles"], 1)
+    assert main(["report", str(out)]) == 0
+    html = (out / "report.html").read_text()
+    assert "marker-smc" in html
