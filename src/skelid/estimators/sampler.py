@@ -76,14 +76,15 @@ history, and iterates until a step gains less than
 likelihood is one function of ``theta``, accurate to about ``10^-3``, and one
 or two iterations suffice.
 
-*Farther out* (where the early, hot stages of the sampler roam and the final
-posterior has no mass unless the normal approximation is badly off) a
-proposal starts from its parent's poses, moved by ``G (theta - theta_p)`` if
-that fits better, and takes one step: a cheap lower bound of ``l``. It only
-tilts the intermediate distributions away from the far region. Final
-particles still outside the near region are solved to the near tolerance and
-their weights multiplied by ``exp(l_exact - l_bound) >= 1`` (importance
-sampling), so the final sample targets the exact posterior.
+*Farther out* a proposal starts from its parent's poses, moved by
+``G (theta - theta_p)`` if that fits better. While the sampler is hot
+(temperature below 0.1: the early stages, whose particles roam the prior
+and whose target is flat) such a point takes a single step: a cheap lower
+bound of ``l`` that only tilts those intermediate distributions away from
+the far region. From temperature 0.1 on it is solved to the same tolerance
+as near the fit. Final particles outside the near region are solved again to
+that tolerance and their weights multiplied by ``exp(l_solved - l_before) >=
+1`` (importance sampling), so no rough value is left in the final sample.
 
 **Sampler.** Tempered SMC from the prior (:mod:`skelid.estimators.smc`):
 adaptive temperatures keeping half the effective sample size, systematic
@@ -129,8 +130,10 @@ from skelid.model.kinematics import (
 #: so what is left is smaller still
 INNER_TOL = 1e-2
 INNER_RTOL = 1e-2
-#: outside the near region (where the posterior is not, unless the fit's normal approximation is
-#: far off) the solve stops after this many iterations; particles still there at the end are refined
+#: outside the near region, while the sampler's temperature is below HOT (the early stages, whose
+#: particles roam the prior), the solve stops after FAR_ITER iterations; final particles that
+#: were evaluated so are solved again with REFINE_ITER iterations at most
+HOT = 0.1
 FAR_ITER = 1
 REFINE_ITER = 30
 #: the quadratic model of the poses is trusted this many finite-difference steps from the fit
@@ -385,9 +388,9 @@ class ProfileLikelihood:
     history, so that the likelihood there is one function of ``theta``, and is
     solved to ``INNER_TOL``. Farther out the quadratic model extrapolates
     badly: a proposal made from a particle at ``theta_p`` starts from that
-    particle's poses, moved by ``G (theta - theta_p)`` if that fits better, and
-    takes ``FAR_ITER`` step(s) (a lower bound of the likelihood; see
-    :meth:`refine`).
+    particle's poses, moved by ``G (theta - theta_p)`` if that fits better; while
+    the temperature (:meth:`set_temperature`) is below ``HOT`` it takes only
+    ``FAR_ITER`` step(s), a lower bound of the likelihood (see :meth:`refine`).
     """
 
     def __init__(self, model: Model, y, theta_fit, pose_fit, R, sigma2: float, bias, tau: float = 1.0,
@@ -411,6 +414,7 @@ class ProfileLikelihood:
         self.step = np.where(np.isfinite(h) & (h > 0), h, 1.0)
         self.n_inner = 0
         self.n_calls = 0
+        self.temperature = 1.0
         self.cost_fit, self.response, self.curvature = self._quadratic_response(gn)
 
     def _gauss_newton_response(self, Hqq, Hqt) -> np.ndarray:
@@ -482,8 +486,12 @@ class ProfileLikelihood:
         at = theta + self.bias
         near = self.near(at)
         s2 = 2.0 * self.sigma2 / self.tau  # one unit of log-likelihood in cost units
-        n_iter = np.where(near, self.n_iter, FAR_ITER)
+        n_iter = np.where(near | (self.temperature >= HOT), self.n_iter, FAR_ITER)
         return self._solve(at, self.start(at, carry), INNER_TOL * s2, INNER_RTOL, n_iter)
+
+    def set_temperature(self, beta: float) -> None:
+        """The sampler's temperature: below ``HOT``, far points get a rough solve."""
+        self.temperature = float(beta)
 
     def refine(self, theta, carry):
         """Like calling it, but to the tolerance of the near region wherever ``theta`` is.
@@ -594,10 +602,11 @@ class SamplerEstimator(MarkerEstimator):
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
         like = ProfileLikelihood(model, self.y_, fit.theta, fit.pose, fit.penalty, self.sigma_**2, self.bias_,
-                                 tau=tau, scale=self.crlb_motion_sd_, bounds=bounds, n_iter=self.inner_iter)
+                                 tau=tau, scale=np.sqrt(np.diag(self.cov_data_)), bounds=bounds, n_iter=self.inner_iter)
         init = sample_prior(model, self.n_particles, rng)
         res = tempered_smc(like, model.log_prior, init, rng, n_moves=self.n_moves,
-                           ess_fraction=self.ess_fraction, carry=like.initial_carry(self.n_particles))
+                           ess_fraction=self.ess_fraction, carry=like.initial_carry(self.n_particles),
+                           on_stage=like.set_temperature)
         # particles outside the near region had a looser solve: refine them, and correct their
         # weights by importance sampling (the refined likelihood is never lower)
         ll, log_w = res.log_likelihood.copy(), res.log_weights.copy()

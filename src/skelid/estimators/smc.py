@@ -174,7 +174,7 @@ def _take(carry, idx):
 
 def tempered_smc(log_likelihood: Callable, log_prior: Callable, initial, rng: np.random.Generator, *,
                  n_moves: int = 3, ess_fraction: float = 0.5, max_stages: int = 200,
-                 resampling: str = "systematic", carry=None) -> SMCResult:
+                 resampling: str = "systematic", carry=None, on_stage: Callable | None = None) -> SMCResult:
     """Sample ``p(theta) L(theta)`` by tempered SMC from draws of the prior.
 
     Parameters
@@ -200,6 +200,11 @@ def tempered_smc(log_likelihood: Callable, log_prior: Callable, initial, rng: np
     resampling : {'systematic', 'multinomial'}
     carry : array with leading axis N, optional
         Starting state of a stateful likelihood, one per particle.
+    on_stage : callable, optional
+        Called with the temperature before the likelihood is evaluated for
+        it (0 for the initial draws, then each stage's ``beta_k`` before its
+        moves): a likelihood computed to a temperature-dependent accuracy
+        (rougher while the target is flat) can adapt.
 
     Returns
     -------
@@ -237,6 +242,8 @@ def tempered_smc(log_likelihood: Callable, log_prior: Callable, initial, rng: np
     lp = np.asarray(log_prior(theta), dtype=float)
     if not np.isfinite(lp).all():
         raise ValueError("some initial particles lie outside the prior's support")
+    if on_stage is not None:
+        on_stage(0.0)
     ll, carry = loglik(theta, carry)
     log_w = np.full(N, -np.log(N))
     beta, log_z = 0.0, 0.0
@@ -256,6 +263,8 @@ def tempered_smc(log_likelihood: Callable, log_prior: Callable, initial, rng: np
         log_w -= logsumexp(log_w)
         beta = new_beta
         betas.append(beta)
+        if on_stage is not None:
+            on_stage(beta)
         esss.append(kish_ess(log_w))
         # resample, then move with a kernel that leaves pi_beta invariant
         idx = resample(log_w, rng, resampling)
