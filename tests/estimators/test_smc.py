@@ -104,8 +104,10 @@ def test_carried_state_follows_its_particle():
 
     rng = np.random.default_rng(5)
     init = rng.uniform(-1, 1, size=(300, 2))
+    temps = []
     res = tempered_smc(log_lik, lambda t: np.where(np.all(np.abs(t) <= 1, axis=1), 0.0, -np.inf),
-                       init, rng, carry=init.copy())
+                       init, rng, carry=init.copy(), on_stage=temps.append)
     np.testing.assert_array_equal(res.carry, res.particles)
+    assert temps == list(res.temperatures)  # told each temperature before evaluating for it
     assert res.n_evaluations == sum(calls)
     np.testing.assert_allclose(res.log_likelihood, -0.5 * np.sum(res.particles**2, axis=1) / 0.01)
