@@ -564,6 +564,8 @@ class SamplerEstimator(MarkerEstimator):
         over the samples.
     smc_ : SMCResult
         The sampler's record (temperatures, ESS, acceptance, evidence).
+    refined_ : int
+        Final particles outside the near region, solved again and reweighted.
     likelihood_tau_ : float
         The curvature adjustment ``tau``.
     sampler_seconds_ : float
@@ -591,10 +593,9 @@ class SamplerEstimator(MarkerEstimator):
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
-        if self.rng is None:
-            self.rng = np.random.default_rng(0)
         super().fit(data, theta0=theta0, pose0=pose0)
-        model, rng = self.model, self.rng
+        model = self.model
+        rng = self.rng if self.rng is not None else np.random.default_rng(0)
         t0 = time.perf_counter()
         P = model.n_params
         fit = self.fit_info_
@@ -680,7 +681,7 @@ class SamplerEstimator(MarkerEstimator):
         res = self.smc_
         out["sampler"] = {
             "particles": int(len(res.particles)),
-            "ess": float(res.ess[-1]),
+            "ess": float(self.posterior_.ess),
             "stages": int(len(res.ess)),
             "acceptance": float(res.acceptance[-1]),
             "log_evidence": float(res.log_evidence),
