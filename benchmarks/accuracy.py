@@ -7,7 +7,10 @@ frames. Methods:
 * ``paper``   the seed method (per-frame Newton-Raphson + grid Bayes filter);
 * ``profile`` joint least squares over L2 and every pose, no motion model, no correction;
 * ``laplace`` grid filter with the Laplace-marginal likelihood (poses integrated out);
-* ``final``   the default ``marker`` estimator (motion model, noise level estimated).
+* ``final``   the default ``marker`` estimator (motion model, noise level estimated);
+* ``final-artefact`` the same with the soft-tissue artefact's size stated
+  (``artefact_rms``: the simulator's expected rms displacement of a marker
+  coordinate, :func:`skelid.simulate.sta_rms`); soft-tissue cells only.
 
 ``crlb`` is the Cramér-Rao bound with every pose unknown, at the true poses and
 the true sigma. Results are written cell by cell to
@@ -35,6 +38,7 @@ SIGMAS = (5.0, 15.0)
 TRUTHS = (210.0, 250.0, 290.0)
 NOISES = ("iid", "sta")
 METHODS = ("paper", "profile", "laplace", "final")
+EXTRA_METHODS = ("final-artefact",)
 
 
 def one_trial(args):
@@ -46,7 +50,7 @@ def one_trial(args):
     from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms
     from skelid.estimators.marker import MarkerEstimator
     from skelid.estimators.paper import PaperFilter
-    from skelid.simulate import builtin_model, simulate
+    from skelid.simulate import builtin_model, simulate, sta_rms
 
     model = builtin_model(case)
     seed = [CASES.index(case), int(sigma), int(truth), NOISES.index(noise), rep]
@@ -72,6 +76,10 @@ def one_trial(args):
                 axes = (np.linspace(centre - half, centre + half, 41),) if "profile" in out \
                     and "est" in out["profile"] else None  # no profile estimate: the whole prior grid
                 est = MarkerGridFilter(model, axes=axes, likelihood="laplace").fit(trial.data)
+                post, dropped = est.posterior_, int((~est.frames_used_).sum())
+            elif name == "final-artefact":
+                rms = sta_rms(model, 10.0) if noise == "sta" else 0.0
+                est = MarkerEstimator(model, artefact_rms=rms or None).fit(trial.data)
                 post, dropped = est.posterior_, int((~est.frames_used_).sum())
             else:
                 est = MarkerEstimator(model).fit(trial.data)
@@ -108,6 +116,8 @@ def summarise(case, sigma, truth, noise, trials, methods):
 
 
 def write(rows):
+    order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
+    rows = sorted(rows, key=lambda r: (r["case"], r["noise"], r["sigma"], r["truth"], order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
     from skelid.io.atomic import atomic_write
 
@@ -171,7 +181,7 @@ def main():
     ap.add_argument("--sigmas", nargs="*", type=float, default=list(SIGMAS))
     ap.add_argument("--noises", nargs="*", default=list(NOISES))
     ap.add_argument("--truths", nargs="*", type=float, default=list(TRUTHS))
-    ap.add_argument("--methods", nargs="*", default=list(METHODS))
+    ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS + EXTRA_METHODS)
     ap.add_argument("--fresh", action="store_true", help="ignore results already written")
     ap.add_argument("--frames-study", action="store_true")
     a = ap.parse_args()
@@ -180,18 +190,19 @@ def main():
         return
     path = RESULTS / "accuracy.json"
     rows = [] if a.fresh or not path.exists() else json.loads(path.read_text())
-    done = {(r["case"], r["sigma"], r["truth"], r["noise"]) for r in rows}
+    done = {(r["case"], r["sigma"], r["truth"], r["noise"], r["method"]) for r in rows}
     for case in a.cases:
         for sigma in a.sigmas:
             for noise in a.noises:
                 for truth in a.truths:
-                    if (case, sigma, truth, noise) in done:
+                    todo = tuple(m for m in a.methods if (case, sigma, truth, noise, m) not in done)
+                    if not todo:
                         continue
                     t0 = time.time()
-                    tasks = [(case, sigma, truth, noise, r, a.frames, tuple(a.methods)) for r in range(a.reps)]
+                    tasks = [(case, sigma, truth, noise, r, a.frames, todo) for r in range(a.reps)]
                     with ProcessPoolExecutor(a.jobs) as pool:
                         trials = list(pool.map(one_trial, tasks))
-                    cell = summarise(case, sigma, truth, noise, trials, a.methods)
+                    cell = summarise(case, sigma, truth, noise, trials, todo)
                     rows.extend(cell)
                     write(rows)
                     for r in cell:

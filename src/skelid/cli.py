@@ -153,18 +153,23 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--cutoff", type=float, default=None,
               help="Motion model of the marker methods: poses are smoothed above this frequency "
                    "(Hz; default: chosen per pose coordinate from the motion, at least 6; 0 = none).")
+@click.option("--artefact-rms", type=float, default=None,
+              help="Soft-tissue artefact of the marker method: root-mean-square displacement of a marker "
+                   "coordinate against its bone (model units); its effect on the estimate widens the "
+                   "interval (default: none).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.pass_context
-def fit(ctx, model_path, data_path, method_names, sigma, cutoff, as_json, out_dir, seed, quiet):
+def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet):
     """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
+    _finite("--artefact-rms", artefact_rms)
     result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
                                out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff)
+                               cutoff=cutoff, artefact_rms=artefact_rms)
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)

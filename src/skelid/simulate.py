@@ -131,6 +131,16 @@ def soft_tissue_artefact(model: Model, pose: np.ndarray, amplitude: float, rate:
     return angle_part + s
 
 
+def sta_rms(model: Model, amplitude: float) -> float:
+    """Expected root-mean-square displacement of one marker coordinate under :func:`soft_tissue_artefact`.
+
+    The angle part ``sum_j b_mj sin(q_j + psi_mj)`` has ``E ||b_m||^2 = amplitude^2`` spread over
+    ``D`` coordinates and ``E sin^2 = 1/2``; the Gauss-Markov part has standard deviation
+    ``amplitude / 3``: ``rms = amplitude * sqrt(1 / (2 D) + 1 / 9)``.
+    """
+    return float(amplitude * np.sqrt(1.0 / (2.0 * model.dim) + 1.0 / 9.0))
+
+
 def simulate(model: Model, theta=None, n_frames: int = 500, rate: float = 100.0,
              sigma: float = 15.0, rng: np.random.Generator | None = None,
              hard_poses: bool = False, noise: str = "iid", sta_amplitude: float = 10.0) -> Trial:

@@ -72,7 +72,8 @@ DEMO_METHODS = ("paper", "marker")
 
 
 def make_estimator(name: str, model: Model, sigma: float | None = None,
-                   rng: np.random.Generator | None = None, cutoff: float | None = None):
+                   rng: np.random.Generator | None = None, cutoff: float | None = None,
+                   artefact_rms: float | None = None):
     table = methods()
     if name not in table:
         raise ModelError(f"unknown method {name!r}", f"use one of: {', '.join(table)}")
@@ -86,12 +87,19 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
                               f"(size {size:g} {model.units})",
                               f"give the marker noise in {model.units}; markers are rarely better than "
                               f"{0.1 * unit_scale('mm', model.units):g} {model.units}")
+    extra = {}
+    if artefact_rms is not None:
+        if not (math.isfinite(artefact_rms) and artefact_rms >= 0):
+            raise SkelidError(f"--artefact-rms must be a distance >= 0 {model.units}, got {artefact_rms}",
+                              f"give the soft-tissue artefact's rms displacement in {model.units}, or 0 for none")
+        if name == "marker":
+            extra["artefact_rms"] = artefact_rms or None
     if cutoff is not None and name in ("marker", "marker-smc"):
         if not (math.isfinite(cutoff) and cutoff >= 0):
             raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
                               "use 0 for no motion model, or e.g. --cutoff 6")
-        return table[name](model, sigma=sigma, rng=rng, cutoff=cutoff or None)
-    return table[name](model, sigma=sigma, rng=rng)
+        return table[name](model, sigma=sigma, rng=rng, cutoff=cutoff or None, **extra)
+    return table[name](model, sigma=sigma, rng=rng, **extra)
 
 
 # --------------------------------------------------------------------------- checks
@@ -381,7 +389,8 @@ def _progress_bar(total: int, desc: str, enabled: bool):
 
 
 def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None = None,
-             seed: int = 0, progress: bool = False, cutoff: float | None = None) -> tuple[dict, dict]:
+             seed: int = 0, progress: bool = False, cutoff: float | None = None,
+             artefact_rms: float | None = None) -> tuple[dict, dict]:
     """Fit ``model`` to ``data`` with each method.
 
     Returns
@@ -392,7 +401,7 @@ def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None =
         The fitted estimators by name (for figures).
     """
     estimators = {name: make_estimator(name, model, sigma=sigma, rng=np.random.default_rng(seed),
-                                       cutoff=cutoff)
+                                       cutoff=cutoff, artefact_rms=artefact_rms)
                   for name in method_names}  # unknown methods fail before any work
     y = prepare(model, data)
     out = {"model": model.name, "data": data.source, "units": model.units,
@@ -504,7 +513,8 @@ def _json_default(o):
 
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
-            out_dir=None, command=None, progress: bool = False, cutoff: float | None = None) -> dict:
+            out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
+            artefact_rms: float | None = None) -> dict:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
 
     Returns
@@ -523,13 +533,14 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     check_input_file(data_path, "data file")
     names = list(method_names) or [DEFAULT_METHOD]
     for n in names:
-        make_estimator(n, model, sigma, cutoff=cutoff)  # an unknown method or a bad sigma fails before reading
+        # an unknown method or a bad setting fails before reading
+        make_estimator(n, model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
     with collect_warnings() as read_warnings:
         data = read_markers(data_path)
         check_units(model, data)
     overview = data_overview(data, model)
     result, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
-                              cutoff=cutoff)
+                              cutoff=cutoff, artefact_rms=artefact_rms)
     extra = []
     for name, est in fitted.items():
         extra += fit_warnings(model, name, result["methods"][name], est)

@@ -157,3 +157,25 @@ def test_selected_inverse_blocks_equal_the_dense_inverse(n_frames):
     got = band_inverse_blocks(ab, Q)
     assert np.allclose(got, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
     assert pose_edf(Jq, R) == pytest.approx(np.trace(Z @ sp.block_diag(list(H)).toarray()), rel=1e-9)
+
+
+def test_artefact_influence_predicts_the_shift_of_a_refit():
+    from skelid.estimators.artefact import artefact_basis, artefact_influence
+
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[250.0], n_frames=300, sigma=0.0, rng=np.random.default_rng(4))
+    settings = dict(sigma=1.0, cutoff=6.0, bias_correction="none", robust="never", outlier_threshold=None)
+    base = MarkerEstimator(model, **settings).fit(trial.data)
+    used = base.frames_used_
+    y = np.where(used[:, None, None], trial.data.positions, np.nan)
+    g, owner = artefact_influence(model, y, base.fit_info_.theta, base.pose_, base.fit_info_.penalty, used)
+    basis = artefact_basis(model, base.pose_, used)
+    k = int(np.argmax(np.abs(g[0])))  # the basis function that moves L2 most
+    h = 0.5  # mm: small enough for the linearisation
+    moved = MarkerEstimator(model, **settings).fit(trial.data.replace(positions=trial.data.positions + h * basis[..., k]))
+    assert abs(g[0, k]) > 0.1  # a real effect, not a vanishing one
+    assert moved.theta_[0] - base.theta_[0] == pytest.approx(h * g[0, k], rel=0.05)
+    # a stated artefact widens the interval by exactly that term
+    wide = MarkerEstimator(model, artefact_rms=3.0, **settings).fit(trial.data)
+    assert wide.cov_[0, 0] == pytest.approx(base.cov_[0, 0] + wide.cov_artefact_[0, 0], rel=1e-9)
+    assert np.sqrt(wide.cov_artefact_[0, 0]) > 0.3

@@ -23,6 +23,7 @@ from scipy.stats import chi2
 
 from skelid.data import MarkerData
 from skelid.errors import DataError, IdentifiabilityError
+from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import prepare, warn_once
 from skelid.estimators.joint import (
     box_bias,
@@ -194,6 +195,11 @@ class MarkerEstimator:
         artefact ('auto'), always, or never.
     rng : numpy.random.Generator, optional
         For the random starts of poses that rigid fits of the segments do not give.
+    artefact_rms : float, optional
+        Stated root-mean-square soft-tissue artefact of a marker coordinate (model
+        units). The covariance it adds to the estimate (the part of the artefact that
+        mimics a geometry change, see :mod:`skelid.estimators.artefact`) widens the
+        interval. None: no artefact term.
     outlier_threshold : float or None
         Marker positions whose residual distance after a first fit exceeds this
         many robust standard deviations are left out and the fit repeated
@@ -249,7 +255,7 @@ class MarkerEstimator:
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
-                 outlier_threshold: float | None = 8.0):
+                 outlier_threshold: float | None = 8.0, artefact_rms: float | None = None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -260,6 +266,7 @@ class MarkerEstimator:
         self.n_iter = n_iter
         self.rate = rate
         self.outlier_threshold = outlier_threshold
+        self.artefact_rms = artefact_rms
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
@@ -418,6 +425,14 @@ class MarkerEstimator:
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
+        # the part of a soft-tissue artefact that mimics a geometry change leaves no residual: with its
+        # size stated, its effect on the estimate is added (a random-effect model of the artefact)
+        self.cov_artefact_ = np.zeros((P, P))
+        if self.artefact_rms:
+            self.cov_artefact_ = artefact_covariance(
+                model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose, fit.penalty,
+                float(self.artefact_rms), used)
+            cov = cov + self.cov_artefact_
         self.cov_data_ = cov
         theta, cov = _combine_normal_priors(model, theta, cov)
         self.cov_ = cov
@@ -492,6 +507,9 @@ class MarkerEstimator:
         out["counting"] = self.identifiability_.get("counting")
         out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
         out["residual_autocorrelation"] = self.sta_score_
+        if self.artefact_rms:
+            out["artefact"] = {"rms": float(self.artefact_rms),
+                               "sd_added": [float(v) for v in np.sqrt(np.diag(self.cov_artefact_))]}
         out["warnings"] = list(self.warnings_)
         return out
 

@@ -1,0 +1,119 @@
+"""Soft-tissue artefact as a random effect of stated size: how much it can move the estimate.
+
+A skin marker slides against the bone by an amount that follows the angles of
+the joints next to its segment. Part of that slide looks exactly like a change
+of geometry, so no residual can reveal it, and residual-based intervals
+(Newey-West included) claim a precision the data do not have. Following the
+modal description of soft-tissue artefact (marker displacement as a smooth
+function of the adjacent joint angles), each marker coordinate gets
+
+.. math:: \\delta_{m}(t) = \\sum_k c_{mk}\\, \\phi_{mk}(t), \\qquad c_{mk} \\sim N(0, a^2 / K_m),
+
+with ``K_m`` basis functions ``phi`` per coordinate of marker ``m``: a constant,
+and the first and second powers of each adjacent joint angle (centred, scaled to
+unit root-mean-square over the trial), so that ``a`` is the root-mean-square
+displacement of a marker coordinate, which the user states (skin markers on the
+thigh: 10-30 mm; on the forearm or hand: a few mm). Linearising the fit, a
+marker perturbation ``delta`` moves the estimate by
+``sum_t S^{-1} (K_t - J_t G_t)^T delta_t`` (the influence rows of the
+motion-model fit, see :func:`skelid.estimators.joint.smoothed_frame_scores`), so
+the artefact adds
+
+.. math:: \\Sigma_{art} = g\\, \\mathrm{diag}(a^2/K_m)\\, g^\\top, \\qquad
+          g = S^{-1} \\textstyle\\sum_t (K_t - J_t G_t)^\\top B_t,
+
+to the covariance of the estimate (``B_t``: the basis at frame ``t``). This is a
+statement about what the data cannot tell apart, not an estimate from them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from skelid.estimators.likelihood import frame_terms, pose_information
+from skelid.model.description import Model
+
+
+def artefact_basis(model: Model, pose, used) -> np.ndarray:
+    """Basis of marker displacements ``(T, M, D, K)`` driven by adjacent joint angles.
+
+    For marker ``m`` on segment ``s``, the adjacent angles are the rotational
+    coordinates of the joint of ``s`` and of its children's joints (a free
+    root's coordinates are not joint angles and are left out). Each marker
+    coordinate gets a constant, and ``u`` and ``u^2 - mean`` for every adjacent
+    angle ``u`` (centred and scaled over the frames used).
+    """
+    T = pose.shape[0]
+    M, D = len(model.markers), model.dim
+    seg_of_dof = np.array([d.segment for d in model.dofs])
+    rot = np.array([d.kind == "R" and model.segments[d.segment].joint.type != "free" for d in model.dofs])
+    parent = model.parent_index
+    cols = []
+    for m, s in enumerate(model.marker_segment):
+        near = np.flatnonzero(rot & ((seg_of_dof == s) | (parent[seg_of_dof] == s)))
+        funcs = [np.ones(T)]
+        for k in near:
+            u = pose[:, k] - pose[used, k].mean()
+            u = u / max(np.sqrt(np.mean(u[used] ** 2)), 1e-12)
+            u2 = u**2 - np.mean(u[used] ** 2)
+            u2 = u2 / max(np.sqrt(np.mean(u2[used] ** 2)), 1e-12)
+            funcs += [u, u2]
+        for f in funcs:
+            for d in range(D):
+                col = np.zeros((T, M, D))
+                col[:, m, d] = f
+                cols.append(col)
+    return np.stack(cols, axis=-1)
+
+
+def artefact_influence(model: Model, y, theta, pose, R, used):
+    """How each artefact basis function moves the estimate, to first order.
+
+    Returns
+    -------
+    g : (P, K) float
+        Change of ``theta`` per unit coefficient of each basis function.
+    owner : (K,) int
+        The marker coordinate (``m * D + d``) each basis function moves.
+    """
+    from skelid.estimators.joint import _banded_solver
+
+    _, Jq, Jt = frame_terms(model, theta, pose, y)
+    T, m, Q = Jq.shape
+    P = Jt.shape[-1]
+    basis = artefact_basis(model, pose, used)  # (T, M, D, K)
+    K = basis.shape[-1]
+    owner = np.argmax(np.abs(basis).sum(axis=0).reshape(m, K), axis=0)
+    mask = np.repeat(np.isfinite(y).all(axis=-1), model.dim, axis=1)  # (T, m)
+    B = basis.reshape(T, m, K) * mask[..., None]
+    Hqq = pose_information(Jq)
+    Hqt = Jq.transpose(0, 2, 1) @ Jt  # (T, Q, P)
+    if R is None:
+        G = np.linalg.pinv(Hqq, hermitian=True) @ Hqt
+    else:
+        G = _banded_solver(Hqq, R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
+    A = Jt - Jq @ G  # (T, m, P): influence rows of the fit
+    S = np.einsum("tkp,tkq->pq", Jt, A)
+    return np.linalg.pinv(S) @ np.einsum("tkp,tkj->pj", A, B), owner
+
+
+def artefact_covariance(model: Model, y, theta, pose, R, rms: float, used) -> np.ndarray:
+    """Covariance ``(P, P)`` that a soft-tissue artefact of root-mean-square ``rms`` adds to ``theta``.
+
+    Parameters
+    ----------
+    y : (T, M, D) float
+        Markers, NaN where missing or not used (only the pattern is used).
+    theta : (P,) float
+    pose : (T, Q) float
+        The fit's poses.
+    R : sparse (T*Q, T*Q) or None
+        The fit's motion-model penalty (None: poses free per frame).
+    rms : float
+        Root-mean-square artefact displacement of a marker coordinate (model units).
+    used : (T,) bool
+        Frames in the fit.
+    """
+    g, owner = artefact_influence(model, y, theta, pose, R, used)
+    var = rms**2 / np.bincount(owner)[owner]  # the coordinate's rms shared by its basis functions
+    return (g * var) @ g.T
