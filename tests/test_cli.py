@@ -134,3 +134,21 @@ def test_cutoff_option_sets_the_motion_model(tmp_path, capsys):
         lo, hi = res["methods"]["marker"]["L2"]["ci95"]
         assert lo < 250.0 < hi
     assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--cutoff", "-1"]) == 2
+
+
+def test_artefact_option_widens_the_interval(tmp_path, capsys):
+    trc = tmp_path / "b.trc"
+    assert main(["simulate", "case-b", "--sigma", "2", "--frames", "80", "--out", str(trc)]) == 0
+    capsys.readouterr()
+    widths = []
+    for rms in ("0", "5"):
+        assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", rms, "--json"]) == 0
+        res = json.loads(capsys.readouterr().out)["methods"]["marker"]
+        widths.append(res["L2"]["ci95"][1] - res["L2"]["ci95"][0])
+        assert ("artefact" in res) == (rms != "0")
+    assert widths[1] > 1.5 * widths[0]
+    assert res["artefact"]["rms"] == 5.0 and res["artefact"]["sd_added"][0] > 0
+    for bad in ("-1", "nan"):
+        assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--artefact-rms" in err

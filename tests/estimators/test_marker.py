@@ -172,7 +172,8 @@ def test_artefact_influence_predicts_the_shift_of_a_refit():
     basis = artefact_basis(model, base.pose_, used)
     k = int(np.argmax(np.abs(g[0])))  # the basis function that moves L2 most
     h = 0.5  # mm: small enough for the linearisation
-    moved = MarkerEstimator(model, **settings).fit(trial.data.replace(positions=trial.data.positions + h * basis[..., k]))
+    shifted = trial.data.replace(positions=trial.data.positions + h * basis[..., k])
+    moved = MarkerEstimator(model, **settings).fit(shifted)
     assert abs(g[0, k]) > 0.1  # a real effect, not a vanishing one
     assert moved.theta_[0] - base.theta_[0] == pytest.approx(h * g[0, k], rel=0.05)
     # a stated artefact widens the interval by exactly that term
