@@ -38,12 +38,12 @@ import numpy as np
 from skelid.estimators import _lm_kernel
 from skelid.model.description import Model
 from skelid.model.kinematics import (
-    _axis_cross,
     _forward_general,
     _forward_planar,
     _rotation,
     geometry,
     kinematics_plan,
+    pose_jacobian_from_plan,
     tilt_tables,
     tilted_axes,
 )
@@ -220,26 +220,9 @@ class FramePoseFitter:
 def _normal_equations(plan, kin, r, mask, batch):
     """``J^T J (..., Q, Q)`` and ``J^T r (..., Q)`` with missing markers' rows zeroed."""
     Q = plan.n_pose
-    J = _pose_jacobian_masked(plan, kin, mask).reshape(batch + (-1, Q))
+    J = pose_jacobian_from_plan(plan, kin, mask).reshape(batch + (-1, Q))
     Jt = np.swapaxes(J, -1, -2)
     return Jt @ J, (Jt @ r.reshape(batch + (-1, 1)))[..., 0]
-
-
-def _pose_jacobian_masked(plan, kin, mask):
-    """:func:`skelid.model.kinematics.pose_jacobian` with the rows of missing markers zeroed."""
-    x = kin.markers
-    rel = x[..., None, :, :] - kin.dof_pivot[..., :, None, :]  # (..., Q, M, D)
-    if plan.dim == 2:
-        cols = np.empty_like(rel)
-        cols[..., 0] = -rel[..., 1]
-        cols[..., 1] = rel[..., 0]
-    else:
-        cols = _axis_cross(kin.dof_axis[..., :, None, :], rel)
-    if plan.trans_dofs.size:
-        t = plan.trans_dofs
-        cols[..., t, :, :] = kin.dof_axis[..., t, None, :]
-    cols *= (plan.moves * mask[..., None, :])[..., None]
-    return np.moveaxis(cols, -3, -1)
 
 
 def _fit_numpy(plan, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet):

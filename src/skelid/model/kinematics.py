@@ -452,7 +452,14 @@ def joint_positions(model: Model, theta, pose) -> np.ndarray:
 
 def pose_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     """``dx/dq`` as ``(..., M, D, Q)`` from a :class:`Kinematics`."""
-    plan = kinematics_plan(model)
+    return pose_jacobian_from_plan(kinematics_plan(model), kin)
+
+
+def pose_jacobian_from_plan(plan, kin: Kinematics, mask=None) -> np.ndarray:
+    """:func:`pose_jacobian` from the model's :func:`kinematics_plan`.
+
+    ``mask`` ``(..., M)``, optional: the rows of markers where it is 0 (missing) are zeroed.
+    """
     x = kin.markers  # (..., M, D)
     rel = x[..., None, :, :] - kin.dof_pivot[..., :, None, :]  # (..., Q, M, D)
     if plan.dim == 2:
@@ -464,7 +471,7 @@ def pose_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     if plan.trans_dofs.size:
         t = plan.trans_dofs
         cols[..., t, :, :] = kin.dof_axis[..., t, None, :]
-    cols *= plan.moves[..., None]
+    cols *= (plan.moves if mask is None else plan.moves * mask[..., None, :])[..., None]
     return np.moveaxis(cols, -3, -1)
 
 
