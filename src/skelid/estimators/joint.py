@@ -579,8 +579,7 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step):
     CRC = np.einsum("ntk,ntl->tkl", Cb, Xb)  # diagonal blocks of C R C
     Cdiag = C[idx[:, :, None], idx[:, None, :]]  # (T, P+Q, P+Q)
     Sig = Cdiag - CRC  # blocks of C J^T J C (unit noise)
-    w_, V = np.linalg.eigh(0.5 * (Sig + np.swapaxes(Sig, 1, 2)))
-    L = V * np.sqrt(np.clip(w_, 0.0, None))[:, None, :]  # (T, P+Q, K)
+    Sig = 0.5 * (Sig + np.swapaxes(Sig, 1, 2))
     mask = np.isfinite(y).all(axis=-1)
     wmask = np.repeat(mask, model.dim, axis=1).astype(float)  # (T, m)
 
@@ -588,34 +587,20 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step):
         _, a, b = marker_jacobian(model, th, qq)
         return np.concatenate([b, a], axis=-1).reshape(th.shape[:-1] + (m, P + Q))
 
-    def second(dirs):
-        """Directional derivative of the Jacobian rows along ``dirs (T, K, P+Q)``: (T, K, m, P+Q)."""
-        nrm = np.linalg.norm(dirs, axis=-1, keepdims=True)
-        h = step / np.maximum(nrm, 1e-300)
-        th = theta[None, None, :] + h * dirs[..., :P]
-        qq = q[:, None, :] + h * dirs[..., P:]
-        Jp = jac_full(th, qq)
-        th = theta[None, None, :] - h * dirs[..., :P]
-        qq = q[:, None, :] - h * dirs[..., P:]
-        Jm = jac_full(th, qq)
-        return (Jp - Jm) / (2.0 * h[..., None])
-
-    dirs = np.swapaxes(L, 1, 2)  # (T, K, P+Q)
-    DJ = second(dirs)  # (T, K, m, P+Q): row i is (H_i l_k)^T
-    d = np.einsum("tkij,tkj->ti", DJ, dirs) * wmask  # (T, m)
+    # one central difference of the Jacobian along each coordinate of (theta, q_t) gives every
+    # second derivative the formula needs: DJ[t, j, i, l] = d^2 f_i / d beta_j d beta_l
+    eye = np.eye(P + Q)
+    shape = (T, P + Q, P)
+    Jp = jac_full(np.broadcast_to(theta + step * eye[:, :P], shape), q[:, None, :] + step * eye[None, :, P:])
+    Jm = jac_full(np.broadcast_to(theta - step * eye[:, :P], shape), q[:, None, :] - step * eye[None, :, P:])
+    DJ = (Jp - Jm) / (2.0 * step)  # (T, P+Q, m, P+Q)
+    d = np.einsum("tjil,tlj->ti", DJ, Sig) * wmask  # d_i = tr(Sig H_i), (T, m)
     Jfull = np.concatenate([Jt, Jq], axis=-1)  # (T, m, P+Q)
     v = np.einsum("tkl,til->tik", CRC, Jfull)  # (T, m, P+Q): v_i restricted to the frame block
-    Hv = _diag_rows(second(v))  # (T, m, P+Q): H_i v_i
-    u = np.einsum("tij,ti->tj", Hv, wmask)  # sum_i H_i v_i per frame block
+    u = np.einsum("tjil,til->tj", DJ, v * wmask[..., None])  # sum_i H_i v_i per frame block
     wvec = -0.5 * np.einsum("tij,ti->tj", Jfull, d) + u  # (T, P+Q)
     full = np.zeros(n)
     full[:P] = wvec[:, :P].sum(axis=0)
     full[P:] = wvec[:, P:].ravel()
     b = sigma2 * (C[:P] @ full)
     return b, np.linalg.inv(C[:P, :P])
-
-
-def _diag_rows(DJ):
-    """From ``(T, m, m, P+Q)`` (direction i, row j) keep row j = i: ``(T, m, P+Q)``."""
-    m = DJ.shape[1]
-    return DJ[:, np.arange(m), np.arange(m), :]
