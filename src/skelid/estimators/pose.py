@@ -576,8 +576,15 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
             starts = np.where(known[bad, None], q[bad, None], starts)
             starts[:, 0] = q[bad]
             qb, cb = fit_pose(model, theta, y[bad, None], starts, n_iter=60)
-            best = np.argmin(cb, axis=1)
-            better = cb[np.arange(bad.size), best] < rss[bad]
-            q[bad[better]] = qb[np.arange(bad.size), best][better]
+            # of the starts that reach the lowest cost (to rounding), keep the one nearest the tracked
+            # pose: equal-cost poses on another angle branch would break the trial's continuity
+            low = cb <= np.nanmin(cb, axis=1, keepdims=True) * (1.0 + 1e-6) + floor[bad, None]
+            rot = np.array([d.kind == "R" for d in model.dofs])
+            dq = qb - q[bad, None]
+            dq = np.where(rot, (dq + np.pi) % (2.0 * np.pi) - np.pi, dq)
+            best = np.argmin(np.where(low, np.sum(dq**2, axis=-1), np.inf), axis=1)
+            better = cb[np.arange(bad.size), best] < rss[bad] * (1.0 - 1e-6)
+            chosen = q[bad] + dq[np.arange(bad.size), best]  # angles on the tracked pose's branch
+            q[bad[better]] = chosen[better]
             rss[bad[better]] = cb[np.arange(bad.size), best][better]
     return q, rss
