@@ -42,6 +42,7 @@ import numpy as np
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, ModelError, SkelidError, SkelidWarning
 from skelid.estimators.base import prepare
+from skelid.estimators.marker import NUMERICAL_RESIDUAL
 from skelid.io.atomic import atomic_dir, atomic_write, check_output_dir
 from skelid.model.description import Model
 
@@ -53,7 +54,6 @@ POOR_FRACTION = 0.5
 STA_AUTOCORR = 0.7
 #: the same for the per-frame measured values of a one-parameter method
 MEASURED_AUTOCORR = 0.5
-NUMERICAL_RESIDUAL = 1e-6  # relative to the model's size
 
 
 def methods() -> dict:

@@ -169,10 +169,12 @@ def test_artefact_influence_predicts_the_shift_of_a_refit():
     used = base.frames_used_
     y = np.where(used[:, None, None], trial.data.positions, np.nan)
     g, owner = artefact_influence(model, y, base.fit_info_.theta, base.pose_, base.fit_info_.penalty, used)
-    basis = artefact_basis(model, base.pose_, used)
+    funcs, owner_ = artefact_basis(model, base.pose_, used)
     k = int(np.argmax(np.abs(g[0])))  # the basis function that moves L2 most
     h = 0.5  # mm: small enough for the linearisation
-    shifted = trial.data.replace(positions=trial.data.positions + h * basis[..., k])
+    bump = np.zeros(trial.data.positions.shape)
+    bump[:, owner_[k] // model.dim, owner_[k] % model.dim] = funcs[:, k]
+    shifted = trial.data.replace(positions=trial.data.positions + h * bump)
     moved = MarkerEstimator(model, **settings).fit(shifted)
     assert abs(g[0, k]) > 0.1  # a real effect, not a vanishing one
     assert moved.theta_[0] - base.theta_[0] == pytest.approx(h * g[0, k], rel=0.05)

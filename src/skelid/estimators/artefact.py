@@ -30,40 +30,46 @@ from __future__ import annotations
 
 import numpy as np
 
-from skelid.estimators.likelihood import frame_terms, pose_information
+from skelid.estimators.likelihood import frame_terms
 from skelid.model.description import Model
 
 
-def artefact_basis(model: Model, pose, used) -> np.ndarray:
-    """Basis of marker displacements ``(T, M, D, K)`` driven by adjacent joint angles.
+def artefact_basis(model: Model, pose, used) -> tuple[np.ndarray, np.ndarray]:
+    """Basis of marker displacements driven by adjacent joint angles.
 
     For marker ``m`` on segment ``s``, the adjacent angles are the rotational
     coordinates of the joint of ``s`` and of its children's joints (a free
     root's coordinates are not joint angles and are left out). Each marker
     coordinate gets a constant, and ``u`` and ``u^2 - mean`` for every adjacent
     angle ``u`` (centred and scaled over the frames used).
+
+    Returns
+    -------
+    funcs : (T, K) float
+        Each basis function over the frames.
+    owner : (K,) int
+        The marker coordinate (``m * D + d``) each one moves; the displacement of
+        basis function ``k`` is ``funcs[:, k]`` on that coordinate and 0 elsewhere.
     """
-    T = pose.shape[0]
-    M, D = len(model.markers), model.dim
+    D = model.dim
     seg_of_dof = np.array([d.segment for d in model.dofs])
     rot = np.array([d.kind == "R" and model.segments[d.segment].joint.type != "free" for d in model.dofs])
-    parent = model.parent_index
-    cols = []
-    for m, s in enumerate(model.marker_segment):
-        near = np.flatnonzero(rot & ((seg_of_dof == s) | (parent[seg_of_dof] == s)))
-        funcs = [np.ones(T)]
-        for k in near:
-            u = pose[:, k] - pose[used, k].mean()
-            u = u / max(np.sqrt(np.mean(u[used] ** 2)), 1e-12)
-            u2 = u**2 - np.mean(u[used] ** 2)
-            u2 = u2 / max(np.sqrt(np.mean(u2[used] ** 2)), 1e-12)
-            funcs += [u, u2]
-        for f in funcs:
-            for d in range(D):
-                col = np.zeros((T, M, D))
-                col[:, m, d] = f
-                cols.append(col)
-    return np.stack(cols, axis=-1)
+    u = pose[:, rot] - pose[used][:, rot].mean(axis=0)
+    u = u / np.maximum(np.sqrt(np.mean(u[used] ** 2, axis=0)), 1e-12)
+    u2 = u**2 - np.mean(u[used] ** 2, axis=0)
+    u2 = u2 / np.maximum(np.sqrt(np.mean(u2[used] ** 2, axis=0)), 1e-12)
+    table = np.concatenate([np.ones((len(pose), 1)), u, u2], axis=1)  # constant, angles, squares
+    dof_col = np.full(len(rot), -1)
+    dof_col[rot] = np.arange(rot.sum())
+    seg_s = model.marker_segment[:, None]
+    near = rot & ((seg_of_dof == seg_s) | (model.parent_index[seg_of_dof] == seg_s))  # (M, Q)
+    cols, owner = [], []
+    for m in range(len(model.markers)):  # which functions each marker gets: model structure only
+        k = dof_col[near[m]]
+        per_marker = np.concatenate([[0], 1 + k, 1 + rot.sum() + k])
+        cols += [per_marker] * D
+        owner += [np.full(per_marker.size, m * D + d) for d in range(D)]
+    return table[:, np.concatenate(cols)], np.concatenate(owner)
 
 
 def artefact_influence(model: Model, y, theta, pose, R, used):
@@ -76,25 +82,13 @@ def artefact_influence(model: Model, y, theta, pose, R, used):
     owner : (K,) int
         The marker coordinate (``m * D + d``) each basis function moves.
     """
-    from skelid.estimators.joint import _banded_solver
+    from skelid.estimators.joint import influence_rows
 
     _, Jq, Jt = frame_terms(model, theta, pose, y)
-    T, m, Q = Jq.shape
-    P = Jt.shape[-1]
-    basis = artefact_basis(model, pose, used)  # (T, M, D, K)
-    K = basis.shape[-1]
-    owner = np.argmax(np.abs(basis).sum(axis=0).reshape(m, K), axis=0)
-    mask = np.repeat(np.isfinite(y).all(axis=-1), model.dim, axis=1)  # (T, m)
-    B = basis.reshape(T, m, K) * mask[..., None]
-    Hqq = pose_information(Jq)
-    Hqt = Jq.transpose(0, 2, 1) @ Jt  # (T, Q, P)
-    if R is None:
-        G = np.linalg.pinv(Hqq, hermitian=True) @ Hqt
-    else:
-        G = _banded_solver(Hqq, R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
-    A = Jt - Jq @ G  # (T, m, P): influence rows of the fit
+    A, _ = influence_rows(Jq, Jt, R)  # (T, m, P); rows of missing markers are zero
+    funcs, owner = artefact_basis(model, pose, used)
     S = np.einsum("tkp,tkq->pq", Jt, A)
-    return np.linalg.pinv(S) @ np.einsum("tkp,tkj->pj", A, B), owner
+    return np.linalg.pinv(S) @ np.einsum("tjp,tj->pj", A[:, owner, :], funcs), owner
 
 
 def artefact_covariance(model: Model, y, theta, pose, R, rms: float, used) -> np.ndarray:

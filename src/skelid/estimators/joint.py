@@ -485,12 +485,38 @@ def smoothed_frame_scores(model: Model, y, theta, q, R) -> np.ndarray:
     long-run covariance goes with the information ``S`` of :func:`joint_fit`.
     """
     r, Jq, Jt = frame_terms(model, theta, q, y)
-    T, Q = q.shape
+    A, G = influence_rows(Jq, Jt, R)
+    Rq = (R @ q.ravel()).reshape(q.shape)
+    return np.einsum("tkp,tk->tp", A, r) + np.einsum("tqp,tq->tp", G, Rq)
+
+
+def influence_rows(Jq, Jt, R=None):
+    """Rows ``A_t = K_t - J_t G_t`` through which the markers move the fit's ``theta``.
+
+    ``G = (blockdiag(J_t^T J_t) + R)^{-1} H_{q theta}`` (per frame when ``R`` is
+    None). To first order a marker perturbation ``delta`` moves the estimate by
+    ``S^{-1} sum_t A_t^T delta_t`` with ``S = sum_t K_t^T A_t``.
+
+    Parameters
+    ----------
+    Jq : (T, m, Q) float
+    Jt : (T, m, P) float
+    R : sparse (T*Q, T*Q), optional
+
+    Returns
+    -------
+    A : (T, m, P) float
+    G : (T, Q, P) float
+    """
+    T, _, Q = Jq.shape
     P = Jt.shape[-1]
+    Hqq = pose_information(Jq)
     Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    G = _banded_solver(pose_information(Jq), R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
-    Rq = (R @ q.ravel()).reshape(T, Q)
-    return np.einsum("tkp,tk->tp", Jt - Jq @ G, r) + np.einsum("tqp,tq->tp", G, Rq)
+    if R is None:
+        G = np.linalg.pinv(Hqq, hermitian=True) @ Hqt
+    else:
+        G = _banded_solver(Hqq, R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
+    return Jt - Jq @ G, G
 
 
 def newey_west(scores, lags: int) -> np.ndarray:

@@ -42,6 +42,7 @@ from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
 
+NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
@@ -381,7 +382,7 @@ class MarkerEstimator:
         self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
         self.sta_score_ = lag1_autocorrelation(resid, used)
         # residuals at the file's rounding level (noise-free data) are not soft-tissue artefact
-        numerical = self.sigma_ <= 1e-6 * float(np.abs(model.nominal_geometry).max())
+        numerical = self.sigma_ <= NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
         flagged = self.sta_score_ > STA_AUTOCORRELATION and not numerical
         # the noise that drives the second-order bias is the white part of the residuals:
         # with slow, correlated residuals (soft-tissue artefact, model misfit) it is
