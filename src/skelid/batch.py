@@ -104,6 +104,7 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             data = read_markers(path)
             check_units(model, data)
             row["n_frames"] = int(data.n_frames)
+            check_data(model, prepare(model, data), [method], str(path))
             check_cost(model, method, data.n_frames, limits)
             est.fit(data)
             res = est.result()

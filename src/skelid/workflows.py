@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skelid import resources
+from skelid import checks, resources
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, ModelError, SkelidError, SkelidWarning
 from skelid.estimators.base import prepare
@@ -106,12 +106,11 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
 # --------------------------------------------------------------------------- checks
 def check_input_file(path, what: str = "data file") -> Path:
     """An existing, readable, non-empty regular file, or a one-line error naming it."""
+    from skelid.io._common import check_regular_file
+
     path = Path(path)
     cls = ModelError if what.startswith("model") else FormatError
-    if not path.exists():
-        raise cls(f"{what} {path} does not exist", "check the path")
-    if path.is_dir():
-        raise cls(f"{what} {path} is a folder, not a file", f"give the path of the {what} itself")
+    check_regular_file(path, what, cls)
     try:
         with open(path, "rb") as fh:
             head = fh.read(1)
@@ -559,6 +558,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     with collect_warnings() as read_warnings:
         data = read_markers(data_path)
         check_units(model, data)
+    checks.check_data(model, prepare(model, data), names, data.source or str(data_path))
     cost = [check_cost(model, n, data.n_frames, limits) for n in names]
     if progress and sys.stderr.isatty() and sum(c.seconds for c in cost) > 30:
         sys.stderr.write(f"skelid: this fit may take about {resources.format_seconds(sum(c.seconds for c in cost))} "

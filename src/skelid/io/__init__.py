@@ -101,11 +101,9 @@ def read_markers(path) -> MarkerData:
         One line naming the file: it does not exist, is not a marker file, or
         is malformed.
     """
-    path = Path(path)
-    if not path.exists():
-        raise FormatError(f"data file {path} does not exist", "check the path")
-    if path.is_dir():
-        raise FormatError(f"{path} is a folder, not a marker file", "give the path of a marker file")
+    from skelid.io._common import check_regular_file
+
+    path = check_regular_file(path, "data file")
     fmt = sniff_format(path)
     if fmt is not None:
         return FORMAT_READERS[fmt](path)
