@@ -89,6 +89,8 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
     import numpy as np
 
     from skelid import resources
+    from skelid.checks import check_data
+    from skelid.estimators.base import prepare
     from skelid.io import read_markers
     from skelid.workflows import check_cost, check_input_file, check_units, make_estimator
 

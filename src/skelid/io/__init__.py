@@ -21,7 +21,6 @@ neither a recognised content nor a marker-file extension (``.xml``,
 from __future__ import annotations
 
 import codecs
-from pathlib import Path
 
 from skelid.data import MarkerData
 from skelid.errors import FormatError
