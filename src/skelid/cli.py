@@ -93,21 +93,24 @@ def cli():
 
 @cli.command(epilog="Example:\n\n\b\n    skelid demo --out demo-output --frames 500")
 @click.option("--out", "out_dir", default="demo-output", show_default=True,
-              help="Folder for figures and summary.json (appears only when complete).")
+              help="Folder for figures and summary.json (appears only when complete; must be new, "
+                   "or see --overwrite).")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 @click.option("--frames", type=click.IntRange(min=10), default=500, show_default=True)
 @click.option("--sigma", type=click.FloatRange(min=0.0), default=15.0, show_default=True,
               help="Marker noise in mm.")
 @click.option("--json", "as_json", is_flag=True, help="Print summary.json on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no table.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
+              "are removed).")
 @_limit_options
-def demo(out_dir, seed, frames, sigma, as_json, quiet, max_memory, max_time):
+def demo(out_dir, seed, frames, sigma, as_json, quiet, overwrite, max_memory, max_time):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
     summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
-                             limits=_limits(max_memory, max_time))
+                             limits=_limits(max_memory, max_time), overwrite=overwrite)
     if as_json:
         _echo_json(summary)
     elif not quiet:
@@ -173,7 +176,8 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Marker noise in model units (default 15 mm for the paper method).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout, nothing else.")
 @click.option("--out", "out_dir", default=None,
-              help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
+              help="Folder for result.json, arrays.npz and figures (read by 'skelid report'); must be new, "
+                   "or see --overwrite.")
 @click.option("--cutoff", type=float, default=None,
               help="Motion model of the marker methods: poses are smoothed above this frequency "
                    "(Hz; default: chosen per pose coordinate from the motion, at least 6; 0 = none).")
@@ -183,10 +187,12 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
                    "interval (default: none).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
+              "are removed).")
 @_limit_options
 @click.pass_context
 def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet,
-        max_memory, max_time):
+        overwrite, max_memory, max_time):
     """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
     from skelid import workflows
 
@@ -195,7 +201,8 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, a
     _finite("--artefact-rms", artefact_rms)
     result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
                                out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time))
+                               cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time),
+                               overwrite=overwrite)
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)

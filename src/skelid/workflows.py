@@ -524,8 +524,10 @@ def _json_default(o):
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
             out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
-            artefact_rms: float | None = None, limits=None) -> dict:
+            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> dict:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
+
+    An existing ``out_dir`` is refused unless ``overwrite``, which replaces it whole.
 
     ``limits`` (:class:`skelid.resources.Limits`, default from the environment)
     bounds the memory and time the fit is estimated to need: beyond them it is
@@ -540,7 +542,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     from skelid.simulate import BUILTIN_MODELS, resolve_model
 
     if out_dir is not None:
-        check_output_dir(out_dir)
+        check_output_dir(out_dir, overwrite)
     if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_path, "model file")
     model = resolve_model(model_path)
@@ -576,7 +578,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     result["model_parameters"] = model_parameters(model)
     if out_dir is not None:
         y = prepare(model, data)
-        with atomic_dir(out_dir, protect=[model_path, data_path]) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, data_path], overwrite=overwrite) as tmp:
             figures(model, data, fitted, tmp)
             write_npz(tmp / "arrays.npz", fit_arrays(model, y, data.rate, fitted))
             write_json(tmp / "result.json", result)
@@ -611,7 +613,7 @@ def figures(model: Model, data: MarkerData, fitted: dict, out_dir, prefix: str =
 
 
 def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
-         method_names=None, progress: bool = True, limits=None) -> dict:
+         method_names=None, progress: bool = True, limits=None, overwrite: bool = False) -> dict:
     """Simulate cases A and B with the seed paper's settings, fit, draw, summarise.
 
     Nothing appears in ``out_dir`` until every figure and ``summary.json`` are complete.
@@ -623,7 +625,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     if not (math.isfinite(sigma) and sigma >= 0):
         raise SkelidError(f"--sigma must be a finite number >= 0 (mm), got {sigma}", "e.g. --sigma 15")
     method_names = list(method_names or DEMO_METHODS)
-    check_output_dir(out_dir)
+    check_output_dir(out_dir, overwrite)
     for case in ("case-a", "case-b"):
         for n in method_names:
             check_cost(builtin_model(case), n, n_frames, limits)
@@ -643,7 +645,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
                         "methods": res["methods"]}
         bar.update(1)
     bar.set_postfix_str("figures")
-    with bar, atomic_dir(out_dir) as tmp:
+    with bar, atomic_dir(out_dir, overwrite=overwrite) as tmp:
         for model, trial, fitted, key in drawn:
             figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
         write_json(tmp / "summary.json", summary)
