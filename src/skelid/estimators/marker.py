@@ -37,7 +37,7 @@ from skelid.estimators.joint import (
     usable_frames,
 )
 from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
-from skelid.estimators.pose import fit_pose, track_poses
+from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
@@ -516,39 +516,13 @@ class MarkerEstimator:
 
 
 def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
-    """(T, M) bool: marker positions whose residual distance is an outlier.
+    """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
-    With Gaussian noise the residual distance is ``sigma`` times a chi variable
-    with ``D`` degrees of freedom; ``sigma`` is estimated robustly from the
-    median distance. One glitched marker also drags its frame's pose, so in
-    each round only the worst marker of a frame is flagged, if beyond
-    ``threshold * sigma``, and that frame's pose refitted without it.
+    See :func:`skelid.estimators.screen.outlying_markers`.
     """
-    from scipy.stats import chi
+    from skelid.estimators.screen import outlying_markers
 
-    used = fit.frames_used
-    out = np.zeros(y.shape[:2], dtype=bool)
-    # per-frame poses (no motion model), so that a glitch does not spread to its neighbours
-    pose, _ = fit_pose(model, fit.theta, y, fit.pose, n_iter=20)
-    pose = np.where(used[:, None], pose, fit.pose)
-    d = np.linalg.norm(y - marker_positions(model, fit.theta, pose), axis=-1)
-    d = np.where(used[:, None], d, np.nan)
-    if not np.isfinite(d).any():
-        return out
-    floor = 1e-3 * float(np.abs(model.nominal_geometry).max())  # below this a deviation is irrelevant
-    limit = threshold * np.nanmedian(d) / chi.median(model.dim) + floor
-    for _ in range(n_rounds):
-        dd = np.where(np.isfinite(d), d, -1.0)
-        worst = np.argmax(dd, axis=1)
-        flag = used & (dd[np.arange(len(dd)), worst] > limit)
-        if not flag.any():
-            break
-        out[flag, worst[flag]] = True
-        yy = np.where(out[flag][..., None], np.nan, y[flag])
-        pose[flag], _ = fit_pose(model, fit.theta, yy, pose[flag], n_iter=20)
-        d[flag] = np.where(out[flag], np.nan,
-                           np.linalg.norm(yy - marker_positions(model, fit.theta, pose[flag]), axis=-1))
-    return out
+    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds)
 
 
 def _unit(model: Model, k: int) -> str:
