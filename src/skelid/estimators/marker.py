@@ -84,27 +84,16 @@ def frame_counts(model: Model, y, used=None) -> dict:
 def joint_motion(model: Model, pose, used=None) -> dict:
     """Range of every joint rotation but the root's (degrees; central 95 % of the frames).
 
-    Angles are taken about their circular mean; the 2.5 and 97.5 percentiles
-    keep a few badly fitted frames from inflating the range.
+    One-axis joints: the angle about its circular mean (2.5 to 97.5 percentile);
+    multi-axis joints of a 3-D model: the rotation angle from the mean rotation
+    (:func:`skelid.estimators.checks.joint_ranges`), free of gimbal artefacts.
 
     Functional information about a joint (its centre, its axis) comes only
     from the joint moving; a range of a few degrees means little information.
     """
-    pose = np.asarray(pose, float)
-    if used is not None:
-        pose = pose[np.asarray(used, bool)]
-    out = {}
-    for s, seg in enumerate(model.segments):
-        if seg.parent is None:
-            continue
-        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
-        if not ks or len(pose) == 0:
-            continue
-        z = np.exp(1j * pose[:, ks])
-        ang = np.angle(z * np.conj(z.mean(axis=0)))  # about the circular mean, in (-pi, pi]
-        lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
-        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
-    return out
+    from skelid.estimators.checks import joint_ranges
+
+    return joint_ranges(model, pose, used)
 
 
 def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9,
