@@ -64,13 +64,15 @@ def main():
     summary = {"case": "case-a", "sigma": 15.0, "frames": a.frames, "reps": a.reps,
                "trials_without_drop": int((new == 0).sum()), "positions_dropped_total": int(new.sum()),
                "trials_without_drop_plain_rule": int((old == 0).sum()),
-               "positions_dropped_total_plain_rule_first_round": int(old.sum()), "target": ">= 95 % of trials without drop",
+               "positions_dropped_total_plain_rule_first_round": int(old.sum()),
+               "target": ">= 95 % of trials without drop",
                "trials": rows}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "outlier_screen.json").write_text(json.dumps(summary, indent=1))
     md = (f"# Outlier screen on clean case-A trials\n\n`python benchmarks/outlier_screen.py --reps {a.reps}`"
-          f" ({a.frames} frames, sigma 15 mm, i.i.d. Gaussian)\n\n| screen | trials without a drop | positions dropped |\n"
-          f"|---|---|---|\n| leverage-corrected (used) | {summary['trials_without_drop']} / {a.reps} | {int(new.sum())} |\n"
+          f" ({a.frames} frames, sigma 15 mm, i.i.d. Gaussian)\n\n"
+          "| screen | trials without a drop | positions dropped |\n|---|---|---|\n"
+          f"| leverage-corrected (used) | {summary['trials_without_drop']} / {a.reps} | {int(new.sum())} |\n"
           f"| plain distance (previous, first round) | {summary['trials_without_drop_plain_rule']} / {a.reps} | "
           f">= {int(old.sum())} |\n")
     (RESULTS / "outlier_screen.md").write_text(md)

@@ -62,7 +62,7 @@ def test_rotation_angle_range_has_no_gimbal_swing():
     euler_span = np.degrees(np.ptp(np.unwrap(q[:, wrist], axis=0), axis=0)).max()
     assert euler_span > 90.0  # the Euler angles swing although the wrist barely moves
     (rng_deg,) = joint_ranges(model, q)["wrist"]
-    # reference (rounded to 0.01 deg): twice the 95 % quantile of the angle from the true rotation about which it wobbles
+    # reference (rounded to 0.01 deg): twice the 95 % quantile of the angle from the mean rotation
     ref = 2 * np.degrees(np.quantile((R.mean().inv() * R).magnitude(), 0.95))
     assert abs(rng_deg - ref) < 0.006 and rng_deg < 12.0
 
