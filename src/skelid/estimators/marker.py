@@ -37,7 +37,7 @@ from skelid.estimators.joint import (
     usable_frames,
 )
 from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
-from skelid.estimators.pose import fit_pose, track_poses
+from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
@@ -84,27 +84,16 @@ def frame_counts(model: Model, y, used=None) -> dict:
 def joint_motion(model: Model, pose, used=None) -> dict:
     """Range of every joint rotation but the root's (degrees; central 95 % of the frames).
 
-    Angles are taken about their circular mean; the 2.5 and 97.5 percentiles
-    keep a few badly fitted frames from inflating the range.
+    One-axis joints: the angle about its circular mean (2.5 to 97.5 percentile);
+    multi-axis joints of a 3-D model: the rotation angle from the mean rotation
+    (:func:`skelid.estimators.checks.joint_ranges`), free of gimbal artefacts.
 
     Functional information about a joint (its centre, its axis) comes only
     from the joint moving; a range of a few degrees means little information.
     """
-    pose = np.asarray(pose, float)
-    if used is not None:
-        pose = pose[np.asarray(used, bool)]
-    out = {}
-    for s, seg in enumerate(model.segments):
-        if seg.parent is None:
-            continue
-        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
-        if not ks or len(pose) == 0:
-            continue
-        z = np.exp(1j * pose[:, ks])
-        ang = np.angle(z * np.conj(z.mean(axis=0)))  # about the circular mean, in (-pi, pi]
-        lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
-        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
-    return out
+    from skelid.estimators.checks import joint_ranges
+
+    return joint_ranges(model, pose, used)
 
 
 def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9,
@@ -516,39 +505,13 @@ class MarkerEstimator:
 
 
 def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
-    """(T, M) bool: marker positions whose residual distance is an outlier.
+    """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
-    With Gaussian noise the residual distance is ``sigma`` times a chi variable
-    with ``D`` degrees of freedom; ``sigma`` is estimated robustly from the
-    median distance. One glitched marker also drags its frame's pose, so in
-    each round only the worst marker of a frame is flagged, if beyond
-    ``threshold * sigma``, and that frame's pose refitted without it.
+    See :func:`skelid.estimators.screen.outlying_markers`.
     """
-    from scipy.stats import chi
+    from skelid.estimators.screen import outlying_markers
 
-    used = fit.frames_used
-    out = np.zeros(y.shape[:2], dtype=bool)
-    # per-frame poses (no motion model), so that a glitch does not spread to its neighbours
-    pose, _ = fit_pose(model, fit.theta, y, fit.pose, n_iter=20)
-    pose = np.where(used[:, None], pose, fit.pose)
-    d = np.linalg.norm(y - marker_positions(model, fit.theta, pose), axis=-1)
-    d = np.where(used[:, None], d, np.nan)
-    if not np.isfinite(d).any():
-        return out
-    floor = 1e-3 * float(np.abs(model.nominal_geometry).max())  # below this a deviation is irrelevant
-    limit = threshold * np.nanmedian(d) / chi.median(model.dim) + floor
-    for _ in range(n_rounds):
-        dd = np.where(np.isfinite(d), d, -1.0)
-        worst = np.argmax(dd, axis=1)
-        flag = used & (dd[np.arange(len(dd)), worst] > limit)
-        if not flag.any():
-            break
-        out[flag, worst[flag]] = True
-        yy = np.where(out[flag][..., None], np.nan, y[flag])
-        pose[flag], _ = fit_pose(model, fit.theta, yy, pose[flag], n_iter=20)
-        d[flag] = np.where(out[flag], np.nan,
-                           np.linalg.norm(yy - marker_positions(model, fit.theta, pose[flag]), axis=-1))
-    return out
+    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds)
 
 
 def _unit(model: Model, k: int) -> str:
