@@ -571,6 +571,8 @@ class Model:
     # ---------------------------------------------------------------- export
     def to_dict(self) -> dict:
         """A dict that :func:`model_from_dict` turns back into an equal model."""
+        from skelid.model.schema import PARAMETER_TARGET
+
         axis_name = "xyz"
         d = {
             "model": {"name": self.name, "dim": self.dim, "units": self.units},
@@ -596,7 +598,7 @@ class Model:
             d["markers"].append(e)
         for p in self.parameters:
             e = {"name": p.name, "kind": p.kind}
-            e["marker" if p.kind == "marker_position" else "joint"] = p.target
+            e[PARAMETER_TARGET.get(p.kind, "joint")] = p.target
             if p.axis is not None:
                 e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
             e["prior"] = p.prior.to_dict()
@@ -682,7 +684,9 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
     kind = p.get("kind")
     if kind not in PARAMETER_KINDS:
         raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
-    target_key = "marker" if kind == "marker_position" else "joint"
+    from skelid.model.schema import PARAMETER_TARGET
+
+    target_key = PARAMETER_TARGET.get(kind, "joint")
     target = p.get(target_key)
     if target is None:
         raise ModelError(f"{where}: needs {target_key} = '...'")
@@ -730,13 +734,9 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
     """Build a :class:`Model` from the parsed TOML structure (see docs/model-format.md)."""
-    if not isinstance(d, dict):
-        raise ModelError(f"{source}: not a table")
-    known = {"model", "segments", "markers", "parameters", "aliases"}
-    extra = set(d) - known
-    if extra:
-        raise ModelError(f"{source}: unknown top-level key(s) {sorted(extra)}",
-                         f"use only {sorted(known)}")
+    from skelid.model.schema import check_built, validate
+
+    validate(d, source)  # keys, types and ranges, with key paths; what follows builds the model
     head = d.get("model", {})
     try:
         dim = int(head.get("dim", 3))
@@ -788,8 +788,10 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
     params = []
     for i, p in enumerate(d.get("parameters", [])):
         params += _parameters(p, i, source, segments, markers)
-    return Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
-                 str(head.get("description", "")))
+    model = Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
+                  str(head.get("description", "")))
+    check_built(model, d, source)
+    return model
 
 
 def load_model(path) -> Model:
