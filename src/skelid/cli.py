@@ -68,6 +68,22 @@ def _finite(name: str, value):
     return value
 
 
+def _limit_options(f):
+    """``--max-memory`` and ``--max-time``: the limits a job's estimated cost must stay under."""
+    f = click.option("--max-time", default=None, metavar="DURATION",
+                     help="Refuse a job estimated to take longer (e.g. 2h, 90m; default 1h or "
+                          "$SKELID_MAX_TIME).")(f)
+    return click.option("--max-memory", default=None, metavar="SIZE",
+                        help="Refuse a job estimated to need more memory (e.g. 8G, 512M; default 4G or "
+                             "$SKELID_MAX_MEMORY).")(f)
+
+
+def _limits(max_memory, max_time):
+    from skelid.resources import Limits
+
+    return Limits.from_settings(max_memory, max_time)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="skelid")
 def cli():
@@ -84,12 +100,14 @@ def cli():
               help="Marker noise in mm.")
 @click.option("--json", "as_json", is_flag=True, help="Print summary.json on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no table.")
-def demo(out_dir, seed, frames, sigma, as_json, quiet):
+@_limit_options
+def demo(out_dir, seed, frames, sigma, as_json, quiet, max_memory, max_time):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
-    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet)
+    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
+                             limits=_limits(max_memory, max_time))
     if as_json:
         _echo_json(summary)
     elif not quiet:
@@ -110,7 +128,9 @@ def demo(out_dir, seed, frames, sigma, as_json, quiet):
 @click.option("--sta-amplitude", type=click.FloatRange(min=0.0), default=10.0, show_default=True)
 @click.option("--out", "out_path", required=True, help="Output file: .trc or .csv.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written and the truth as JSON.")
-def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json):
+@_limit_options
+def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json,
+             max_memory, max_time):
     """Simulate a trial of MODEL_NAME (case-a, case-b or a model .toml) and write it."""
     from skelid import io
     from skelid.simulate import BUILTIN_MODELS, resolve_model
@@ -128,6 +148,10 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
     if str(model_name).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_name, "model file")
     model = resolve_model(model_name)
+    from skelid import resources
+
+    resources.check(resources.simulate_cost(model, frames), _limits(max_memory, max_time),
+                    f"simulating {frames} frames")
     trial = run(model, n_frames=frames, rate=rate, sigma=sigma, rng=np.random.default_rng(seed),
                 hard_poses=hard_poses, noise=noise, sta_amplitude=sta_amplitude)
     (io.write_csv if suffix == ".csv" else io.write_trc)(out_path, trial.data)
@@ -159,8 +183,10 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
                    "interval (default: none).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
+@_limit_options
 @click.pass_context
-def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet):
+def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet,
+        max_memory, max_time):
     """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
     from skelid import workflows
 
@@ -169,7 +195,7 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, a
     _finite("--artefact-rms", artefact_rms)
     result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
                                out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff, artefact_rms=artefact_rms)
+                               cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time))
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)
@@ -197,14 +223,16 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, a
 @click.option("--retry-failed", is_flag=True, help="Fit again the trials whose rows hold an error.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no summary line.")
+@_limit_options
 def batch(model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, as_json,
-          quiet):
+          quiet, max_memory, max_time):
     """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out."""
     from skelid.batch import run_batch
 
     _finite("--sigma", sigma)
     summary = run_batch(model_path, pattern, out_path, method=method, sigma=sigma, seed=seed, workers=workers,
-                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet)
+                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet,
+                        limits=_limits(max_memory, max_time))
     if as_json:
         _echo_json(summary)
     elif not quiet:

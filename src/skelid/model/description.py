@@ -173,7 +173,13 @@ class Parameter:
     @property
     def grid(self) -> np.ndarray:
         """(K,) float: candidate values ``lower, lower + step, ..., upper``."""
-        n = int(round((self.prior.upper - self.prior.lower) / self.grid_step)) + 1
+        from skelid.resources import MAX_GRID_POINTS
+
+        n = (self.prior.upper - self.prior.lower) / self.grid_step
+        if not n + 1 <= MAX_GRID_POINTS:
+            raise ModelError(f"parameter {self.name!r}: a grid_step of {self.grid_step:g} makes {n + 1:.3g} grid "
+                             "points", "use a coarser grid_step (or narrower prior bounds) in the model file")
+        n = int(round(n)) + 1
         return np.linspace(self.prior.lower, self.prior.lower + (n - 1) * self.grid_step, n)
 
 
