@@ -15,7 +15,7 @@ from skelid.simulate import builtin_model, simulate
 from tests.helpers import tree_3d, tree_3d_functional
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-needs_numba = pytest.mark.skipif(not _lm_kernel.AVAILABLE, reason="numba is not installed")
+needs_numba = pytest.mark.skipif(not _lm_kernel.AVAILABLE, reason="the compiled kernel is turned off (SKELID_NUMBA=0)")
 MODELS = {"case-a": lambda: builtin_model("case-a"), "case-b": lambda: builtin_model("case-b"),
           "tree3d": tree_3d, "tree3d_functional": tree_3d_functional,
           "lower_limb": lambda: load_model(EXAMPLES / "lower_limb.toml")}
