@@ -61,7 +61,7 @@ def plan_arrays(plan) -> tuple | None:
     """
     S, Q, D = plan.n_segments, plan.n_pose, plan.dim
     order = [k for ks in plan.segment_dofs for k in ks]
-    if order != list(range(Q)):
+    if order != list(range(Q)) or plan.has_custom:  # custom (coupled) joints: numpy path
         return None
     dof_start = np.zeros(S + 1, dtype=np.int64)
     dof_start[1:] = np.cumsum([len(ks) for ks in plan.segment_dofs])

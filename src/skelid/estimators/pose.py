@@ -366,7 +366,7 @@ def segment_placements(model: Model, theta, y, min_markers: int = 3, flat_tol: f
     y = np.asarray(y, dtype=float)
     F = y.shape[0]
     g = geometry(model, theta)
-    r_all = g[S * D:].reshape(M, D)
+    r_all = g[S * D:(S + M) * D].reshape(M, D)
     R = np.broadcast_to(np.eye(D), (F, S, D, D)).copy()
     p = np.zeros((F, S, D))
     placed = np.zeros((F, S), dtype=bool)
@@ -466,6 +466,10 @@ def rigid_poses(model: Model, theta, y):
             eul = np.moveaxis(_euler_zxy(R_rel), -1, 0)
             vals = list(eul) if kind == "spherical" else \
                 [*np.moveaxis(p[:, s] - offsets[s], -1, 0), *eul]
+        elif kind == "custom":
+            vals = custom_joint_coordinates(model, s, R_rel, p[:, s] - offsets[s] if par < 0 else None)
+            if vals is None:
+                continue
         elif kind == "hinge":
             a = local_axis.get(ks[0], np.asarray(model.dofs[ks[0]].axis))
             vals = [_hinge_angle(R_rel, np.broadcast_to(a, (F, 3)))]
@@ -481,6 +485,52 @@ def rigid_poses(model: Model, theta, y):
             q[:, k] = np.where(ok, v, 0.0)
             known[:, k] = ok
     return q, known
+
+
+def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None):
+    """Coordinates of custom joint ``s`` from its relative rotation, or None if not plain.
+
+    Handled: every coordinate drives one motion as itself; the rotations, one
+    to three, about mutually perpendicular axes; translations (of the root,
+    ``shift (F, 3)`` in the world) along independent axes.
+    """
+    from skelid.model.kinematics import kinematics_plan
+
+    plan = kinematics_plan(model)
+    rows = plan.custom[s]
+    if any(k >= 0 and not f.is_identity for _t, _a, k, f, _s in rows) \
+            or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, _s in rows):
+        return None
+    if plan.orientation[s] is not None:
+        R_rel = R_rel @ plan.orientation[s].T
+    rot = [(a, k) for t, a, k, _f, _s in rows if not t and k >= 0]
+    trans = [(a, k) for t, a, k, _f, _s in rows if t and k >= 0]
+    if trans and shift is None:
+        return None
+    ax = np.array([a for a, _ in rot])
+    if len(rot) > 1 and np.abs(ax @ ax.T - np.eye(len(rot))).max() > 1e-9:
+        return None
+    F = R_rel.shape[0]
+    if len(rot) == 1:
+        ang = [_hinge_angle(R_rel, np.broadcast_to(ax[0], (F, 3)))]
+    elif len(rot) >= 2:
+        B = np.array(ax.T) if len(rot) == 3 else np.stack([ax[0], ax[1], np.cross(ax[0], ax[1])], -1)
+        sgn = np.sign(np.linalg.det(B))
+        B[:, 2] *= sgn  # a proper rotation; the third angle changes sign with it
+        Rb = B.T @ R_rel @ B  # = Rx(a) Ry(b) Rz(c)
+        a = np.arctan2(-Rb[:, 1, 2], Rb[:, 2, 2])
+        b = np.arcsin(np.clip(Rb[:, 0, 2], -1.0, 1.0))
+        c = np.arctan2(-Rb[:, 0, 1], Rb[:, 0, 0])
+        ang = [a, b, sgn * c][:len(rot)]
+    else:
+        ang = []
+    tv = []
+    if trans:
+        T = np.array([a for a, _ in trans]).T  # (3, n)
+        tv = list(np.linalg.lstsq(T, shift.T, rcond=None)[0])
+    out = dict(zip([k for _, k in rot], ang, strict=True)) | dict(zip([k for _, k in trans], tv, strict=True))
+    seg_dofs = [k for k, d in enumerate(model.dofs) if d.segment == s]
+    return [out[k] for k in seg_dofs]
 
 
 def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_starts: int = 64,
