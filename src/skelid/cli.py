@@ -142,7 +142,7 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 
 @cli.command(epilog=EXAMPLES_EPILOG)
 @click.argument("model_path")
-@click.argument("data_path")
+@click.argument("data_paths", nargs=-1, required=True)
 @click.option("--method", "method_names", multiple=True,
               help="Estimator (repeat for several): marker (default), paper, marker-grid, marker-smc.")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
@@ -157,19 +157,38 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Soft-tissue artefact of the marker method: root-mean-square displacement of a marker "
                    "coordinate against its bone (model units); its effect on the estimate widens the "
                    "interval (default: none).")
+@click.option("--noise", type=click.Choice(["pooled", "per-marker"]), default="pooled", show_default=True,
+              help="Marker method: one noise level for all markers, or each marker its own (estimated, "
+                   "used as weights).")
+@click.option("--alternative", "alternatives", multiple=True,
+              help="Another model of the same body (repeat for several): the data are refitted under "
+                   "each and the spread of the shared quantities is reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.pass_context
-def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet):
-    """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
+def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
+        out_dir, seed, quiet):
+    """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATHS.
+
+    Several files are trials of one body: one geometry is fitted to all of them, with each
+    trial's own estimate and a consistency test beside it.
+    """
     from skelid import workflows
 
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
-    result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
-                               out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff, artefact_rms=artefact_rms)
+    if len(data_paths) > 1 or alternatives or noise != "pooled":
+        from skelid.sensitivity import run_fit_trials
+
+        result = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
+                                out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
+                                artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
+                                alternatives=alternatives)
+    else:
+        result = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
+                                   out_dir=out_dir, command=_command(ctx), progress=not quiet,
+                                   cutoff=cutoff, artefact_rms=artefact_rms)
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)
