@@ -181,6 +181,12 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Soft-tissue artefact of the marker method: root-mean-square displacement of a marker "
                    "coordinate against its bone (model units); its effect on the estimate widens the "
                    "interval (default: none).")
+@click.option("--noise", type=click.Choice(["pooled", "per-marker"]), default="pooled", show_default=True,
+              help="Marker method: one noise level for all markers, or each marker its own (estimated, "
+                   "used as weights).")
+@click.option("--alternative", "alternatives", multiple=True,
+              help="Another model of the same body (repeat for several): the data are refitted under "
+                   "each and the spread of the shared quantities is reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "none"]), default="bodies",
@@ -191,13 +197,14 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
 @_limit_options
 @click.pass_context
-def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet,
-        scale_kind, marker_kind, marker_set, max_memory, max_time):
+def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
+        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, max_memory, max_time):
     """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
 
-    With an .osim model, every trial (a static one and movements) informs one
-    set of body scales and marker offsets, and --out receives the scaled .osim,
-    its ScaleSet and scaling.json with the intervals.
+    Several files are trials of one body: one geometry is fitted to all of them, with each
+    trial's own estimate and a consistency test beside it. With an .osim model, every trial
+    (a static one and movements) informs one set of body scales and marker offsets, and --out
+    receives the scaled .osim, its ScaleSet and scaling.json with the intervals.
     """
     from skelid import workflows
 
@@ -205,16 +212,20 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet)
         return
-    if len(data_paths) > 1:
-        raise click.UsageError("several data files are fitted together only with an .osim model; "
-                               "fit a .toml model to one file at a time")
-    data_path = data_paths[0]
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
-    result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
-                               out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time))
+    if len(data_paths) > 1 or alternatives or noise != "pooled":
+        from skelid.sensitivity import run_fit_trials
+
+        result = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
+                                out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
+                                artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
+                                alternatives=alternatives)
+    else:
+        result = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
+                                   out_dir=out_dir, command=_command(ctx), progress=not quiet,
+                                   cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time))
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)
