@@ -11,13 +11,14 @@ temporary sibling and moved in when complete (:func:`skelid.io.atomic.atomic_dir
 
 ``result.json``
     The summary (:func:`fit_file`) plus ``command``, ``cwd``, ``versions``,
-    ``data_overview``, ``model_parameters`` and ``warnings``.
+    ``data_overview``, ``model_parameters``, ``model_description`` (the model as a
+    dict, for the report's view of the fitted body) and ``warnings``.
 ``arrays.npz``
     What is not JSON-friendly (:func:`fit_arrays`): ``markers (F, M, D)`` in
     model units, ``marker_names``, ``rate``, ``units``, and per method ``NAME.*``
     entries: posterior grid axes, final marginals and their history, Gaussian
     mean and covariance, posterior samples and their weights, per-frame
-    measured values, ``residuals (F, M)``, ``crlb_sd (P,)``.
+    measured values, ``residuals (F, M)``, ``crlb_sd (P,)``, ``pose (F, Q)``.
 ``*.png``
     The seed paper's figures.
 """
@@ -459,7 +460,7 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
     posterior with ``axes``, ``history``, ``marginal(k, lw)``; weighted samples
     with ``points``, ``weights``, whose mean and covariance are stored too; or a
     Gaussian with ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``,
-    ``measured_ (F,)``, ``map_path_ (F,)``.
+    ``measured_ (F,)``, ``map_path_ (F,)``, ``pose_ (F, Q)`` (stored as ``pose``).
     """
     out: dict[str, np.ndarray] = {}
     post = getattr(est, "posterior_", None)
@@ -490,7 +491,7 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
                 out["posterior.history_steps"] = np.array([int(h[0]) for h in hist])
                 out["posterior.history_mean"] = np.stack([np.asarray(h[1], float) for h in hist])
                 out["posterior.history_cov"] = np.stack([np.asarray(h[2], float) for h in hist])
-    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_"):
+    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_", "pose_"):
         v = getattr(est, attr, None)
         if v is not None:
             out[attr.rstrip("_")] = np.asarray(v, float)
@@ -576,6 +577,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     result.update(provenance(command))
     result["data_overview"] = overview
     result["model_parameters"] = model_parameters(model)
+    result["model_description"] = model.to_dict()
     if out_dir is not None:
         y = prepare(model, data)
         with atomic_dir(out_dir, protect=[model_path, data_path], overwrite=overwrite) as tmp:

@@ -323,7 +323,7 @@ JOINT_KEYS: dict[str, dict[str, Key]] = {
 }
 
 #: the key naming what a parameter moves, by parameter kind (default: ``joint``)
-PARAMETER_TARGET: dict[str, str] = {"marker_position": "marker"}
+PARAMETER_TARGET: dict[str, str] = {"marker_position": "marker", "marker_offset": "marker", "scale": "segment"}
 
 #: axis names a parameter kind takes (default: x, y, z); None: no axis
 PARAMETER_AXES: dict[str, tuple[str, ...] | None] = {"length": None, "axis_direction": ("u", "v")}
