@@ -511,7 +511,8 @@ def _to_model(rd: _Reader, keep: str, name: str) -> tuple[Model, OsimInfo]:
                 if f.is_constant:  # a fixed offset: part of the joint position
                     o = o + np.asarray(a) * f.coefficients[0] * f.scale
                     continue
-            motions.append(Motion(kind, a, cmap.get(ci, -1), f))
+            motions.append(Motion(kind, a, cmap.get(ci, -1), f,
+                                  tuple(float(v) for v in axis) if kind == "T" else ()))
         for ci, (_cname, rng, _locked, _d, _mt) in enumerate(j.coordinates):
             if ci in cmap and any(m.kind == "R" and m.coordinate == cmap[ci] for m in motions):
                 ranges.append(tuple(float(np.degrees(v)) for v in rng))
@@ -729,7 +730,7 @@ def write_scaled_osim(src, out, model: Model, info: OsimInfo, theta, marker_set=
                 continue
             a = np.asarray(_floats(_text(ta, "axis"), 3, "axis"))
             a = a / np.linalg.norm(a)
-            factor = float((a**2) @ sc(parent))
+            factor = float(a @ sc(parent))  # OpenSim: the axis (in the joint's parent frame) . scale factors
             holder = ta.find("function")
             if holder is None:
                 holder = ta
