@@ -970,7 +970,9 @@ def load_model(path) -> Model:
     ModelError
         With the file name, the problem and the fix, for any invalid content.
     """
-    path = Path(path)
+    from skelid.io._common import check_regular_file
+
+    path = check_regular_file(path, "model file", ModelError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
