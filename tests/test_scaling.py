@@ -137,3 +137,56 @@ def test_no_model_marker_in_the_data_is_one_line(leg):
     other = MarkerData(np.ones((5, 2, 3)), ("X", "Y"), 60.0, "mm")
     with pytest.raises(DataError, match="none of the 12 markers"):
         fit_osim(leg, [other])
+
+
+def test_cli_fit_osim_writes_the_scaled_model(leg, tmp_path, capsys):
+    from skelid.cli import main
+    from skelid.io import write_trc
+
+    static, move = _trials(leg, {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0})
+    write_trc(tmp_path / "static.trc", static)
+    write_trc(tmp_path / "move.trc", move)
+    out = tmp_path / "fit"
+    rc = main(["fit", str(leg), str(tmp_path / "static.trc"), str(tmp_path / "move.trc"), "--out", str(out),
+               "--json", "--quiet"])
+    assert rc == 0
+    table = json.loads(capsys.readouterr().out)
+    assert table["scales"]["thigh"]["xyz"]["value"] == pytest.approx(1.1, abs=1e-3)
+    assert {p.name for p in out.iterdir()} >= {"scaled.osim", "scaled_scale_set.xml", "scaled_scaling.json",
+                                               "result.json"}
+
+
+@pytest.mark.parametrize("text,words", [
+    ("<OpenSimDocument><Model", "malformed XML"),
+    (MODEL.replace("BallJoint", "EllipsoidJoint").format(markers=""), "EllipsoidJoint"),
+    (MODEL.format(markers='<Marker name="x"><socket_parent_frame>/bodyset/arm</socket_parent_frame>'
+                          '<location>0 0 0</location></Marker>'), "arm"),
+])
+def test_cli_bad_osim_exits_2_with_one_line(tmp_path, capsys, text, words):
+    from skelid.cli import main
+
+    bad = tmp_path / "bad.osim"
+    bad.write_text(text)
+    trc = tmp_path / "t.trc"
+    from skelid.io import write_trc
+
+    write_trc(trc, MarkerData(np.ones((3, 1, 3)), ("x",), 60.0, "mm"))
+    for argv in (["fit", str(bad), str(trc), "--out", str(tmp_path / "o")],
+                 ["model", "import", str(bad), "--out", str(tmp_path / "m.toml")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and len(err.splitlines()) == 1
+        assert not (tmp_path / "o").exists() and not (tmp_path / "m.toml").exists()
+
+
+def test_cli_model_import_writes_a_model_that_loads(leg, tmp_path):
+    from skelid.cli import main
+    from skelid.model import load_model
+
+    out = tmp_path / "leg.toml"
+    assert main(["model", "import", str(leg), "--out", str(out), "--scale", "bodies"]) == 0
+    model = load_model(out)
+    base, _ = read_osim(leg)
+    q = np.linspace(-0.5, 0.3, base.n_pose)
+    np.testing.assert_allclose(marker_positions(model, model.theta_nominal, q),
+                               marker_positions(base, np.zeros(0), q), atol=1e-9)
