@@ -77,7 +77,8 @@ def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
-def fit_trial(path: str, model, method: str = "marker", sigma: float | None = None, seed: int = 0) -> dict:
+def fit_trial(path: str, model, method: str = "marker", sigma: float | None = None, seed: int = 0,
+              limits=None) -> dict:
     """Read and fit one trial; never raises for the trial's own problems.
 
     Returns
@@ -87,8 +88,9 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
     """
     import numpy as np
 
+    from skelid import resources
     from skelid.io import read_markers
-    from skelid.workflows import check_input_file, check_units, make_estimator
+    from skelid.workflows import check_cost, check_input_file, check_units, make_estimator
 
     t0 = time.perf_counter()
     row = dict.fromkeys(columns(model))
@@ -98,9 +100,11 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             warnings.simplefilter("always", SkelidWarning)
             est = make_estimator(method, model, sigma=sigma, rng=np.random.default_rng(seed))
             check_input_file(path)
+            resources.check(resources.read_cost(path), limits, f"reading {path}")
             data = read_markers(path)
             check_units(model, data)
             row["n_frames"] = int(data.n_frames)
+            check_cost(model, method, data.n_frames, limits)
             est.fit(data)
             res = est.result()
         row["frames_used"] = int(res.get("frames_used", 0))
@@ -240,7 +244,7 @@ def _client(workers: int | None, scheduler: str | None):
 
 def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: float | None = None,
               seed: int = 0, workers: int | None = None, scheduler: str | None = None,
-              retry_failed: bool = False, progress: bool = False) -> dict:
+              retry_failed: bool = False, progress: bool = False, limits=None) -> dict:
     """Fit every trial matching ``pattern`` and add their rows to the table ``out``.
 
     Parameters
@@ -265,7 +269,7 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
         ``{"out", "trials", "fitted", "failed", "skipped", "seconds"}``.
     """
     from skelid.simulate import BUILTIN_MODELS, resolve_model
-    from skelid.workflows import check_input_file, make_estimator
+    from skelid.workflows import check_cost, check_input_file, make_estimator
 
     out = Path(out)
     parquet = _fmt(out) == "parquet"
@@ -274,6 +278,7 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
         check_input_file(model_path, "model file")
     model = resolve_model(model_path)
     make_estimator(method, model, sigma)  # an unknown method or a bad sigma fails before any work
+    check_cost(model, method, 1, limits)  # a grid too large for any trial
     cols = columns(model)
     files = find_trials(pattern)
     rows = {r["file"]: r for r in read_table(out, cols)}
@@ -289,7 +294,7 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     client, cluster = _client(workers, scheduler)
     unsaved = False
     try:
-        futures = [client.submit(fit_trial, f, model, method, sigma, seed, key=f"skelid-fit-{i}-{f}",
+        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, key=f"skelid-fit-{i}-{f}",
                                  pure=False) for i, f in enumerate(todo)]
         path_of = {fut.key: f for fut, f in zip(futures, todo, strict=True)}
         bar = tqdm(total=len(todo), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,

@@ -68,6 +68,22 @@ def _finite(name: str, value):
     return value
 
 
+def _limit_options(f):
+    """``--max-memory`` and ``--max-time``: the limits a job's estimated cost must stay under."""
+    f = click.option("--max-time", default=None, metavar="DURATION",
+                     help="Refuse a job estimated to take longer (e.g. 2h, 90m; default 1h or "
+                          "$SKELID_MAX_TIME).")(f)
+    return click.option("--max-memory", default=None, metavar="SIZE",
+                        help="Refuse a job estimated to need more memory (e.g. 8G, 512M; default 4G or "
+                             "$SKELID_MAX_MEMORY).")(f)
+
+
+def _limits(max_memory, max_time):
+    from skelid.resources import Limits
+
+    return Limits.from_settings(max_memory, max_time)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="skelid")
 def cli():
@@ -84,12 +100,14 @@ def cli():
               help="Marker noise in mm.")
 @click.option("--json", "as_json", is_flag=True, help="Print summary.json on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no table.")
-def demo(out_dir, seed, frames, sigma, as_json, quiet):
+@_limit_options
+def demo(out_dir, seed, frames, sigma, as_json, quiet, max_memory, max_time):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
-    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet)
+    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
+                             limits=_limits(max_memory, max_time))
     if as_json:
         _echo_json(summary)
     elif not quiet:
@@ -110,7 +128,9 @@ def demo(out_dir, seed, frames, sigma, as_json, quiet):
 @click.option("--sta-amplitude", type=click.FloatRange(min=0.0), default=10.0, show_default=True)
 @click.option("--out", "out_path", required=True, help="Output file: .trc or .csv.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written and the truth as JSON.")
-def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json):
+@_limit_options
+def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json,
+             max_memory, max_time):
     """Simulate a trial of MODEL_NAME (case-a, case-b or a model .toml) and write it."""
     from skelid import io
     from skelid.simulate import BUILTIN_MODELS, resolve_model
@@ -128,6 +148,10 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
     if str(model_name).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_name, "model file")
     model = resolve_model(model_name)
+    from skelid import resources
+
+    resources.check(resources.simulate_cost(model, frames), _limits(max_memory, max_time),
+                    f"simulating {frames} frames")
     trial = run(model, n_frames=frames, rate=rate, sigma=sigma, rng=np.random.default_rng(seed),
                 hard_poses=hard_poses, noise=noise, sta_amplitude=sta_amplitude)
     (io.write_csv if suffix == ".csv" else io.write_trc)(out_path, trial.data)
@@ -157,6 +181,12 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Soft-tissue artefact of the marker method: root-mean-square displacement of a marker "
                    "coordinate against its bone (model units); its effect on the estimate widens the "
                    "interval (default: none).")
+@click.option("--noise", type=click.Choice(["pooled", "per-marker"]), default="pooled", show_default=True,
+              help="Marker method: one noise level for all markers, or each marker its own (estimated, "
+                   "used as weights).")
+@click.option("--alternative", "alternatives", multiple=True,
+              help="Another model of the same body (repeat for several): the data are refitted under "
+                   "each and the spread of the shared quantities is reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "none"]), default="bodies",
@@ -165,14 +195,16 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--markers", "marker_kind", type=click.Choice(["offsets", "none"]), default="offsets",
               show_default=True, help="OpenSim models: fit an offset of every free marker, or none.")
 @click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
+@_limit_options
 @click.pass_context
-def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet,
-        scale_kind, marker_kind, marker_set):
+def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
+        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, max_memory, max_time):
     """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
 
-    With an .osim model, every trial (a static one and movements) informs one
-    set of body scales and marker offsets, and --out receives the scaled .osim,
-    its ScaleSet and scaling.json with the intervals.
+    Several files are trials of one body: one geometry is fitted to all of them, with each
+    trial's own estimate and a consistency test beside it. With an .osim model, every trial
+    (a static one and movements) informs one set of body scales and marker offsets, and --out
+    receives the scaled .osim, its ScaleSet and scaling.json with the intervals.
     """
     from skelid import workflows
 
@@ -180,16 +212,20 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet)
         return
-    if len(data_paths) > 1:
-        raise click.UsageError("several data files are fitted together only with an .osim model; "
-                               "fit a .toml model to one file at a time")
-    data_path = data_paths[0]
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
-    result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
-                               out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff, artefact_rms=artefact_rms)
+    if len(data_paths) > 1 or alternatives or noise != "pooled":
+        from skelid.sensitivity import run_fit_trials
+
+        result = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
+                                out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
+                                artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
+                                alternatives=alternatives)
+    else:
+        result = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
+                                   out_dir=out_dir, command=_command(ctx), progress=not quiet,
+                                   cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time))
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)
@@ -292,14 +328,16 @@ def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_b
 @click.option("--retry-failed", is_flag=True, help="Fit again the trials whose rows hold an error.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no summary line.")
+@_limit_options
 def batch(model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, as_json,
-          quiet):
+          quiet, max_memory, max_time):
     """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out."""
     from skelid.batch import run_batch
 
     _finite("--sigma", sigma)
     summary = run_batch(model_path, pattern, out_path, method=method, sigma=sigma, seed=seed, workers=workers,
-                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet)
+                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet,
+                        limits=_limits(max_memory, max_time))
     if as_json:
         _echo_json(summary)
     elif not quiet:

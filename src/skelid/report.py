@@ -1,24 +1,34 @@
-"""One self-contained HTML report of a fit.
+"""One self-contained HTML report of a fit, answering first.
 
 ``write_report(result_dir)`` reads what ``skelid fit --out RESULT_DIR`` wrote
-(``result.json`` and, if present, ``arrays.npz``) and writes one HTML file with
-every figure embedded as a base64 PNG: no scripts, no external links, so that
-it opens from disk or travels by mail. Sections:
+(``result.json`` and, if present, ``arrays.npz``) and writes one HTML file that
+opens from disk or travels by mail: figures are embedded as base64 PNGs and
+the interactive view's library (plotly.js) is inlined, so nothing is fetched.
+Sections:
 
-1. Data overview: file, format, frames, rate, units, and the gaps of each marker.
-2. Marker trajectories of the model's markers, and when they are missing.
-3. Posterior evolution: the marginal posterior after successive frames and the
+1. Summary: each parameter's estimate, 95 % interval, Cramér–Rao bound and
+   status, with the warnings that concern it beside it (a fit that did not
+   converge or whose approximation broke is shown there, in red), the derived
+   lengths and the marker noise; then every other warning.
+2. The fitted body: an interactive view (:mod:`skelid.viewer`) of the fitted
+   skeleton (segments, joint centres, model markers) against the measured
+   markers over time, 3-D or planar, with a frame slider and a play button.
+3. Data overview: file, format, frames, rate, units, and the gaps of the
+   model's markers (the file's other markers in one line).
+4. Marker trajectories of the model's markers, and when they are missing.
+5. Posterior evolution: the marginal posterior after successive frames and the
    most likely value per step.
-4. Final posterior: MAP, mean, sd, 95 % interval and Cramér–Rao bound of each
+6. Final posterior: MAP, mean, sd, 95 % interval and Cramér–Rao bound of each
    parameter, the marker noise σ, and a figure of each marginal.
-5. Residuals per marker over time (where soft-tissue artefact shows).
-6. Identifiability: the Cramér–Rao bound and status of each parameter.
-7. Warnings.
-8. How the result was made: the exact command and the versions.
+7. Residuals per marker over time (where soft-tissue artefact shows).
+8. Identifiability: the Cramér–Rao bound and status of each parameter.
+9. Warnings, all of them.
+10. How the result was made: the exact command and the versions.
 
 A section whose data a method does not provide says "not available for this
-method" rather than disappearing. matplotlib is imported only when a figure
-is drawn, with the Agg backend.
+method" rather than disappearing. Names from the model or the data file are
+shown as written (escaped in HTML, in figures and in the view; no mathtext).
+matplotlib is imported only when a figure is drawn, with the Agg backend.
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ import html
 import io
 import json
 import math
+import re
 import sys
 import zipfile
 from functools import partial
@@ -42,6 +53,8 @@ from skelid.io.atomic import atomic_write, ensure_parent
 NOT_AVAILABLE = "not available for this method"
 
 SECTIONS = (
+    ("summary", "Summary"),
+    ("body", "The fitted body"),
     ("overview", "Data overview"),
     ("trajectories", "Marker trajectories"),
     ("evolution", "Posterior evolution"),
@@ -64,6 +77,13 @@ img { max-width: 100%; border: 1px solid #eee; margin: .5em 0; }
 pre { background: #f6f6f6; padding: .6em; overflow-x: auto; white-space: pre-wrap; }
 .na { color: #777; font-style: italic; }
 .warn { color: #8a4b00; }
+.severe { color: #b00000; font-weight: 600; }
+td.w { text-align: left; font-size: .9em; max-width: 32em; }
+td.w ul, ul.w { margin: 0; padding-left: 1.1em; }
+tr.fit td { background: #fff0f0; }
+.status-poor, .status-unidentified { color: #8a4b00; font-weight: 600; }
+.status-prior { color: #777; }
+.viewer { width: 100%; min-height: 620px; border: 1px solid #eee; }
 nav ol { columns: 2; }
 """
 
@@ -137,12 +157,14 @@ def _interval(ci) -> str:
     return f"[{_fmt(ci[0])}, {_fmt(ci[1])}]"
 
 
-def _table(head, rows, left=(0,), row_class=None) -> str:
+def _table(head, rows, left=(0,), row_class=None, cell_class=None) -> str:
     th = "".join(f'<th class="{"l" if i in left else ""}">{_e(h)}</th>' for i, h in enumerate(head))
+    cell_class = cell_class or {}
     body = []
     for r, row in enumerate(rows):
         cls = f' class="{row_class[r]}"' if row_class and row_class[r] else ""
-        tds = "".join(f'<td class="{"l" if i in left else ""}">{c}</td>' for i, c in enumerate(row))
+        tds = "".join(f'<td class="{cell_class.get(i, "l" if i in left else "")}">{c}</td>'
+                      for i, c in enumerate(row))
         body.append(f"<tr{cls}>{tds}</tr>")
     return f"<table><thead><tr>{th}</tr></thead><tbody>{''.join(body)}</tbody></table>"
 
@@ -365,6 +387,7 @@ class _Builder:
 
     def __init__(self):
         self.parts: list = []
+        self.uses_plotly = False
 
     def add(self, text: str):
         self.parts.append(text)
@@ -381,7 +404,8 @@ class _Builder:
         bar = tqdm(total=self.n_figures(), desc="report", unit="figure", leave=False, file=sys.stderr,
                    disable=not progress or not sys.stderr.isatty())
         out = []
-        with bar:
+        # names from files are text, not mathtext: '$\\alpha$' is drawn as written
+        with bar, _plt().rc_context({"text.parse_math": False}):
             for p in self.parts:
                 if isinstance(p, tuple):
                     job, alt = p
@@ -424,13 +448,19 @@ def _overview(b: _Builder, result: dict):
               + ", ".join(f"{_e(k)} → {_e(v)}" for k, v in used.items()) + ".</p>")
     markers = ov.get("markers") or []
     if markers:
-        markers = sorted(markers, key=lambda m: (not m.get("used_by_model"), 0))
-        rows = [(_e(m["name"]), _fmt(bool(m.get("used_by_model"))), _fmt(m.get("frames_missing")),
-                 _fmt(m.get("gaps")), _fmt(m.get("longest_gap"))) for m in markers]
-        cls = ["gap" if m.get("frames_missing") else "" for m in markers]
-        b.add("<h3>Gaps per marker</h3>")
-        b.add(_table(["marker", "used by the model", "frames missing", "gaps", "longest gap [frames]"],
-                     rows, row_class=cls))
+        mine = [m for m in markers if m.get("used_by_model")]
+        others = [m for m in markers if not m.get("used_by_model")]
+        rows = [(_e(m["name"]), _fmt(m.get("frames_missing")), _fmt(m.get("gaps")), _fmt(m.get("longest_gap")))
+                for m in mine]
+        cls = ["gap" if m.get("frames_missing") else "" for m in mine]
+        if others:
+            gappy = sum(1 for m in others if m.get("frames_missing"))
+            names = ", ".join(_e(m["name"]) for m in others)
+            rows.append((f"<details><summary>{len(others)} other markers in the file, not used by the model "
+                         f"({gappy} with gaps)</summary>{names}</details>", "–", "–", "–"))
+            cls.append("")
+        b.add("<h3>Gaps of the model's markers</h3>")
+        b.add(_table(["marker", "frames missing", "gaps", "longest gap [frames]"], rows, row_class=cls))
 
 
 def _trajectories(b: _Builder, arrays: dict):
@@ -624,19 +654,203 @@ def _provenance(b: _Builder, result: dict):
     b.add(f"<p>This report was written on {_e(now)} by skelid {_e(versions()['skelid'])}.</p>")
 
 
+# ----------------------------------------------------------------------------- summary
+#: warning codes that say the numbers themselves may be wrong (shown in red)
+SEVERE_CODES = frozenset({"not-converged", "approximation-broken", "broken-approximation", "unreliable-fit",
+                          "sampler-not-mixed", "sampler-stage-limit", "fallback"})
+_SEVERE_TEXT = re.compile(r"converg|approximation|not have mixed|jumped to the posterior|unreliable", re.I)
+
+
+def _is_severe(code: str, message: str) -> bool:
+    return code in SEVERE_CODES or bool(_SEVERE_TEXT.search(message))
+
+
+def _mentions(message: str, name: str) -> bool:
+    """Whether a warning's text names parameter ``name`` (as a whole token)."""
+    return re.search(rf"(?<![\w.]){re.escape(name)}(?![\w])", message) is not None
+
+
+def _method_warnings(result: dict, method: str) -> list[dict]:
+    """The warnings of one method as ``{code, message, parameters, severe}``.
+
+    Structured warnings (with ``code`` and ``parameters``) are taken as they are;
+    a plain message concerns the parameters it names.
+    """
+    m = result["methods"][method]
+    names = list(_param_entries(m))
+    others = [k for k in result["methods"] if k != method]
+    items = list(m.get("warnings") or [])
+    for w in result.get("warnings") or []:  # run-level: this method's, or no method's
+        text = w.get("message", "") if isinstance(w, dict) else str(w)
+        if f"{method} method" in text or not any(f"{o} method" in text for o in others):
+            items.append(w)
+    out, seen = [], set()
+    for w in items:
+        if isinstance(w, dict):
+            code, text, params = str(w.get("code", "")), str(w.get("message", "")), list(w.get("parameters") or [])
+        else:
+            code, text = "", str(w)
+            params = [n for n in names if "parameter" in text.lower() and _mentions(text, n)]
+        if text in seen:
+            continue
+        seen.add(text)
+        out.append({"code": code, "message": text, "parameters": params, "severe": _is_severe(code, text)})
+    return out
+
+
+def _warning_list(items: list[dict], cls: str = "w", show: int = 6) -> str:
+    """Warnings as a list, severe ones first and in red; beyond ``show`` of them the rest fold away."""
+    items = sorted(items, key=lambda w: not w["severe"])
+
+    def li(ws):
+        return "".join(f'<li class="{"severe" if w["severe"] else "warn"}">{_e(w["message"])}</li>' for w in ws)
+
+    if not items:
+        return ""
+    if len(items) <= show:
+        return f'<ul class="{cls}">{li(items)}</ul>'
+    return (f'<ul class="{cls}">{li(items[:show - 1])}</ul><details><summary>{len(items) - show + 1} more '
+            f'warnings</summary><ul class="{cls}">{li(items[show - 1:])}</ul></details>')
+
+
+def _status_cell(status) -> str:
+    if not status:
+        return "–"
+    s = str(status)
+    key = "poor" if s.lower().startswith("poor") else s.lower()
+    return f'<span class="status-{_e(key)}">{_e(s)}</span>'
+
+
+def _summary(b: _Builder, result: dict, arrays: dict, units: str, notes: list[str]):
+    """The answer: every estimate with its interval, bound, status and warnings; then the other warnings."""
+    for method, m in result["methods"].items():
+        b.add(f"<h3>Method: {_e(method)}</h3>")
+        params = _param_entries(m)
+        warns = _method_warnings(result, method)
+        status = {str(r.get("parameter")): r.get("status") for r in m.get("identifiability") or []
+                  if isinstance(r, dict)}
+        crlb_arr = _method_arrays(arrays, method).get("crlb_sd")
+        rows, cls = [], []
+        fit_wide = [w for w in warns if not w["parameters"] and w["severe"]]
+        if fit_wide:
+            rows.append(("<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)))
+            cls.append("fit")
+        for i, (name, v) in enumerate(params.items()):
+            crlb = v.get("crlb_sd")
+            if crlb is None and crlb_arr is not None and i < len(crlb_arr):
+                crlb = float(crlb_arr[i])
+            mine = [w for w in warns if name in w["parameters"]]
+            rows.append((_e(name), _fmt(v.get("mean", v.get("map"))), _interval(v.get("ci95")),
+                         _fmt(crlb) if crlb is not None else '<span class="na">–</span>',
+                         _status_cell(status.get(name)), _warning_list(mine)))
+            cls.append("")
+        for name, v in (m.get("lengths") or {}).items():
+            if isinstance(v, dict):
+                rows.append((f"{_e(name)} <small>(derived length)</small>", _fmt(v.get("value")),
+                             _interval(v.get("ci95")), "–", "–", ""))
+                cls.append("")
+        sig = m.get("sigma")
+        if isinstance(sig, dict) and "value" in sig:
+            rows.append(("marker noise σ" + (" <small>(fixed)</small>" if sig.get("fixed") else ""),
+                         _fmt(sig["value"]), _interval(sig.get("ci95")), "–", "–", ""))
+            cls.append("")
+        if not rows:
+            b.add(_na("parameter estimates"))
+            continue
+        b.add(_table(["parameter", f"estimate [{units}]", "95 % interval", f"Cramér–Rao sd [{units}]", "status",
+                      "warnings"], rows, left=(0, 5), row_class=cls, cell_class={5: "w"}))
+        used = {t for w in warns for t in ([w["message"]] if w["parameters"] or w["severe"] else [])}
+        rest = [w for w in warns if w["message"] not in used]
+        if rest:
+            b.add(f"<p>Other warnings about this fit:</p>{_warning_list(rest)}")
+    if notes:
+        b.add(_warning_list([{"message": n, "severe": False} for n in notes]))
+
+
+# ----------------------------------------------------------------------------- the fitted body
+def _model_of(result: dict):
+    """The fitted model from ``result.json`` (``model_description``), or None."""
+    desc = result.get("model_description")
+    if not isinstance(desc, dict):
+        return None
+    from skelid.model import model_from_dict
+
+    try:
+        return model_from_dict(desc, str(result.get("model", "model")))
+    except (SkelidError, KeyError, TypeError, ValueError):
+        return None
+
+
+def _body(b: _Builder, result: dict, arrays: dict, units: str):
+    """The interactive view of the first method's fitted body over the trial."""
+    from skelid import viewer
+
+    model = _model_of(result)
+    if model is None:
+        b.add(_na("the view of the fitted body (result.json has no model description; "
+                  "rerun skelid fit to get it)"))
+        return
+    if "markers" not in arrays:
+        b.add(_na("the view of the fitted body (no arrays.npz)"))
+        return
+    method = next((k for k, m in result["methods"].items() if _param_entries(m)), None)
+    if method is None:
+        b.add(_na("the view of the fitted body (no estimates)"))
+        return
+    est = _param_entries(result["methods"][method])
+    theta = np.array([float(est[n].get("mean", est[n]["map"])) if n in est else float(v)
+                      for n, v in zip(model.parameter_names, model.theta_nominal, strict=True)])
+    y = np.asarray(arrays["markers"], float)
+    a = _method_arrays(arrays, method)
+    pose = a.get("pose", a.get("poses"))
+    keep, stride = viewer.decimation(len(y))
+    if pose is not None and np.shape(pose) == (len(y), model.n_pose):
+        pose = np.array(pose, float)
+        r = a.get("residuals")
+        if r is not None and np.shape(r)[0] == len(y):  # frames the fit skipped have no pose
+            pose[~np.isfinite(np.asarray(r, float)).any(axis=1)] = np.nan
+        how = f"the poses the {_e(method)} method estimated"
+    else:
+        from skelid.estimators.pose import pose_determined, track_poses
+
+        q, _ = track_poses(model, theta, y[keep], np.random.default_rng(0))
+        q[~pose_determined(model, y[keep])] = np.nan
+        pose = np.full((len(y), model.n_pose), np.nan)
+        pose[keep] = q
+        how = (f"poses fitted to the shown frames at the {_e(method)} method's estimate "
+               "(the method estimates no poses)")
+    rate = float(arrays.get("rate", 1.0))
+    spec = viewer.figure_spec(model, theta, pose, y, rate=rate, units=units,
+                              title=f"{model.name}: fitted body ({method} method) and measured markers")
+    meta = spec["meta"]
+    shown = (f"all {meta['frames_total']} frames" if meta["stride"] == 1 else
+             f"every {meta['stride']}-th frame of {meta['frames_total']} ({meta['frames_shown']} frames)")
+    b.add(f"<p>The {_e(method)} method's estimate of the geometry in {how}: segments (dark lines between joint "
+          f"centres), joint centres (green), model markers (orange) and the measured markers (blue), the "
+          f"residual between them in red. Drag to rotate, scroll to zoom; the slider picks the frame "
+          f"({shown}; at most {viewer.MAX_FRAMES} frames are put in the page).</p>")
+    b.add(viewer.viewer_html(spec))
+    b.uses_plotly = True
+
+
 def build_html(result: dict, arrays: dict, notes=(), progress: bool = False) -> str:
     """The report as one HTML string (figures embedded)."""
     units = str(result.get("units") or arrays.get("units", ""))
     b = _Builder()
     title = f"skelid report: {result.get('model', 'model')} on {Path(str(result.get('data', ''))).name or 'data'}"
-    b.add(f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_e(title)}</title>\n'
-          f"<style>{CSS}</style>\n</head>\n<body>\n<h1>{_e(title)}</h1>")
+    head = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_e(title)}</title>\n'
+            f"<style>{CSS}</style>\n")
+    b.add("</head>\n<body>\n" f"<h1>{_e(title)}</h1>")
     methods = ", ".join(result["methods"]) or "none"
     b.add(f"<p>Methods: {_e(methods)}. All lengths are in {_e(units)}.</p>")
     b.add("<nav><ol>" + "".join(f'<li><a href="#{k}">{_e(t)}</a></li>' for k, t in SECTIONS) + "</ol></nav>")
     for key, heading in SECTIONS:
         b.add(f'<h2 id="{key}">{_e(heading)}</h2>')
-        if key == "overview":
+        if key == "summary":
+            _summary(b, result, arrays, units, list(notes))
+        elif key == "body":
+            _body(b, result, arrays, units)
+        elif key == "overview":
             _overview(b, result)
         elif key == "trajectories":
             _trajectories(b, arrays)
@@ -653,7 +867,12 @@ def build_html(result: dict, arrays: dict, notes=(), progress: bool = False) -> 
         else:
             _provenance(b, result)
     b.add("</body>\n</html>")
-    return b.render(progress) + "\n"
+    body = b.render(progress)
+    if b.uses_plotly:
+        from skelid.viewer import plotly_script
+
+        head += plotly_script() + "\n"
+    return head + body + "\n"
 
 
 def write_report(result_dir, out=None, progress: bool = False) -> tuple[Path, list[str]]:

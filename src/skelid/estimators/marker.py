@@ -32,12 +32,15 @@ from skelid.estimators.joint import (
     joint_fit,
     lag1_autocorrelation,
     newey_west,
+    row_weights,
     smoothed_bias,
     smoothed_frame_scores,
     usable_frames,
+    weighted_terms,
 )
 from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
-from skelid.estimators.pose import fit_pose, track_poses
+from skelid.estimators.noise import marker_groups, per_marker_fit
+from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
@@ -84,27 +87,16 @@ def frame_counts(model: Model, y, used=None) -> dict:
 def joint_motion(model: Model, pose, used=None) -> dict:
     """Range of every joint rotation but the root's (degrees; central 95 % of the frames).
 
-    Angles are taken about their circular mean; the 2.5 and 97.5 percentiles
-    keep a few badly fitted frames from inflating the range.
+    One-axis joints: the angle about its circular mean (2.5 to 97.5 percentile);
+    multi-axis joints of a 3-D model: the rotation angle from the mean rotation
+    (:func:`skelid.estimators.checks.joint_ranges`), free of gimbal artefacts.
 
     Functional information about a joint (its centre, its axis) comes only
     from the joint moving; a range of a few degrees means little information.
     """
-    pose = np.asarray(pose, float)
-    if used is not None:
-        pose = pose[np.asarray(used, bool)]
-    out = {}
-    for s, seg in enumerate(model.segments):
-        if seg.parent is None:
-            continue
-        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
-        if not ks or len(pose) == 0:
-            continue
-        z = np.exp(1j * pose[:, ks])
-        ang = np.angle(z * np.conj(z.mean(axis=0)))  # about the circular mean, in (-pi, pi]
-        lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
-        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
-    return out
+    from skelid.estimators.checks import joint_ranges
+
+    return joint_ranges(model, pose, used)
 
 
 def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9,
@@ -205,6 +197,12 @@ class MarkerEstimator:
         Marker positions whose residual distance after a first fit exceeds this
         many robust standard deviations are left out and the fit repeated
         (None: keep every position).
+    noise : {'pooled', 'per_marker'}
+        One noise level for every marker, or each marker (or declared group) its
+        own, estimated from its residuals and used as weights in the fit
+        (see :mod:`skelid.estimators.noise`).
+    marker_groups : dict of str to list of str, optional
+        With ``noise='per_marker'``: markers that share one noise level.
 
     Attributes
     ----------
@@ -245,6 +243,10 @@ class MarkerEstimator:
     y_ : (T, M, D) float
         The markers the final fit used (model order and units; outliers and
         skipped frames NaN).
+    marker_sigma_ : (M,) float or None
+        Each marker's noise level with ``noise='per_marker'`` (NaN without data).
+    marker_weights_ : (M,) float or None
+        The weights of the fit (``sigma_^2 / marker_sigma_^2`` up to rounding).
     warnings_ : list of str
     """
 
@@ -256,7 +258,8 @@ class MarkerEstimator:
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
-                 outlier_threshold: float | None = 8.0, artefact_rms: float | None = None):
+                 outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
+                 noise: str = "pooled", marker_groups: dict | None = None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -268,6 +271,8 @@ class MarkerEstimator:
         self.rate = rate
         self.outlier_threshold = outlier_threshold
         self.artefact_rms = artefact_rms
+        self.noise = noise
+        self.marker_groups = marker_groups
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
@@ -323,6 +328,7 @@ class MarkerEstimator:
                               rate=rate, cutoff=cutoff)
                     for th, qq in ((theta0, pose0), (fit.theta, fit.pose))]
             fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
+        fit, w = self._noise_levels(y, fit, bounds, fixed, rate, cutoff)
         used = fit.frames_used
         n_skip = int((~used).sum())
         self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
@@ -387,17 +393,17 @@ class MarkerEstimator:
         # the noise that drives the second-order bias is the white part of the residuals:
         # with slow, correlated residuals (soft-tissue artefact, model misfit) it is
         # estimated from frame-to-frame differences, which a slow drift barely touches
-        dr = np.diff(resid, axis=0)[used[1:] & used[:-1]]
+        dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
         self.sigma_white_ = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else self.sigma_
         sigma2_bias = min(sigma2, self.sigma_white_**2) if flagged else sigma2
         method = self.bias_correction
         if method is True or method == "auto":
             method = "box"
         if method == "box" and fit.penalty is None:
-            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias)
+            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w)
         elif method == "box":
             self.bias_ = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta,
-                                       fit.pose, sigma2_bias, fit.penalty)
+                                       fit.pose, sigma2_bias, fit.penalty, weights=w)
         elif method == "bootstrap":
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
         elif method is False or method == "none":
@@ -409,7 +415,7 @@ class MarkerEstimator:
         cov = sigma2 * info_inv
         self.crlb_motion_sd_ = np.sqrt(np.diag(cov))
         # the bound with every pose a free unknown (no motion model), at the estimate
-        _, Jq_u, Jt_u = frame_terms(model, fit.theta, fit.pose[used], y[used])
+        _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
         self.crlb_sd_ = crlb_sd(efficient_information(Jq_u, Jt_u, self.sigma_))
         if flagged:
             warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
@@ -419,10 +425,10 @@ class MarkerEstimator:
         self.widened_ = self.robust == "always" or (self.robust == "auto" and flagged)
         if self.widened_:
             if fit.penalty is None:
-                scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
+                scores = frame_scores(model, y[used], fit.theta, fit.pose[used], weights=w)
             else:
                 scores = smoothed_frame_scores(model, np.where(used[:, None, None], y, np.nan),
-                                               fit.theta, fit.pose, fit.penalty)[used]
+                                               fit.theta, fit.pose, fit.penalty, weights=w)[used]
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
@@ -474,6 +480,24 @@ class MarkerEstimator:
                           f"[{p.prior.lower:g}, {p.prior.upper:g}]", self.warnings_)
         return self
 
+    def _noise_levels(self, y, fit, bounds, fixed, rate, cutoff):
+        """Per-marker noise levels and the weighted fit (``noise='per_marker'``), or the fit as it is."""
+        self.marker_sigma_ = self.marker_weights_ = self.marker_dof_ = None
+        if self.noise == "pooled":
+            return fit, None
+        if self.noise != "per_marker":
+            raise ValueError("noise must be 'pooled' or 'per_marker'")
+        model = self.model
+
+        def refit(weights, prev):
+            return joint_fit(model, y, prev.theta, prev.pose, n_iter=self.n_iter, bounds=bounds,
+                             frames=fixed, rate=rate, cutoff=cutoff, weights=weights)
+
+        groups = marker_groups(model.marker_names, self.marker_groups)
+        fit, w, sig, dof, _ = per_marker_fit(model, y, refit, fit, groups)
+        self.marker_sigma_, self.marker_weights_, self.marker_dof_ = sig, w, dof
+        return fit, w
+
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
         """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate."""
         clean = marker_positions(self.model, fit.theta, fit.pose)
@@ -501,6 +525,11 @@ class MarkerEstimator:
         out.update(summ)
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
                         "fixed": self.sigma is not None, "white": self.sigma_white_}
+        if self.marker_sigma_ is not None:
+            out["sigma"]["per_marker"] = {
+                n: {"value": None if not np.isfinite(v) else float(v),
+                    "dof": None if not np.isfinite(d) else float(d)}
+                for n, v, d in zip(self.model.marker_names, self.marker_sigma_, self.marker_dof_, strict=True)}
         if self.lengths_:
             out["lengths"] = self.lengths_
         out["cutoff_hz"] = None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist()
@@ -516,39 +545,13 @@ class MarkerEstimator:
 
 
 def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
-    """(T, M) bool: marker positions whose residual distance is an outlier.
+    """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
-    With Gaussian noise the residual distance is ``sigma`` times a chi variable
-    with ``D`` degrees of freedom; ``sigma`` is estimated robustly from the
-    median distance. One glitched marker also drags its frame's pose, so in
-    each round only the worst marker of a frame is flagged, if beyond
-    ``threshold * sigma``, and that frame's pose refitted without it.
+    See :func:`skelid.estimators.screen.outlying_markers`.
     """
-    from scipy.stats import chi
+    from skelid.estimators.screen import outlying_markers
 
-    used = fit.frames_used
-    out = np.zeros(y.shape[:2], dtype=bool)
-    # per-frame poses (no motion model), so that a glitch does not spread to its neighbours
-    pose, _ = fit_pose(model, fit.theta, y, fit.pose, n_iter=20)
-    pose = np.where(used[:, None], pose, fit.pose)
-    d = np.linalg.norm(y - marker_positions(model, fit.theta, pose), axis=-1)
-    d = np.where(used[:, None], d, np.nan)
-    if not np.isfinite(d).any():
-        return out
-    floor = 1e-3 * float(np.abs(model.nominal_geometry).max())  # below this a deviation is irrelevant
-    limit = threshold * np.nanmedian(d) / chi.median(model.dim) + floor
-    for _ in range(n_rounds):
-        dd = np.where(np.isfinite(d), d, -1.0)
-        worst = np.argmax(dd, axis=1)
-        flag = used & (dd[np.arange(len(dd)), worst] > limit)
-        if not flag.any():
-            break
-        out[flag, worst[flag]] = True
-        yy = np.where(out[flag][..., None], np.nan, y[flag])
-        pose[flag], _ = fit_pose(model, fit.theta, yy, pose[flag], n_iter=20)
-        d[flag] = np.where(out[flag], np.nan,
-                           np.linalg.norm(yy - marker_positions(model, fit.theta, pose[flag]), axis=-1))
-    return out
+    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds)
 
 
 def _unit(model: Model, k: int) -> str:

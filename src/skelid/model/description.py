@@ -173,7 +173,13 @@ class Parameter:
     @property
     def grid(self) -> np.ndarray:
         """(K,) float: candidate values ``lower, lower + step, ..., upper``."""
-        n = int(round((self.prior.upper - self.prior.lower) / self.grid_step)) + 1
+        from skelid.resources import MAX_GRID_POINTS
+
+        n = (self.prior.upper - self.prior.lower) / self.grid_step
+        if not n + 1 <= MAX_GRID_POINTS:
+            raise ModelError(f"parameter {self.name!r}: a grid_step of {self.grid_step:g} makes {n + 1:.3g} grid "
+                             "points", "use a coarser grid_step (or narrower prior bounds) in the model file")
+        n = int(round(n)) + 1
         return np.linspace(self.prior.lower, self.prior.lower + (n - 1) * self.grid_step, n)
 
 
@@ -659,6 +665,8 @@ class Model:
     # ---------------------------------------------------------------- export
     def to_dict(self) -> dict:
         """A dict that :func:`model_from_dict` turns back into an equal model."""
+        from skelid.model.schema import PARAMETER_TARGET
+
         axis_name = "xyz"
         d = {
             "model": {"name": self.name, "dim": self.dim, "units": self.units},
@@ -693,7 +701,7 @@ class Model:
             d["markers"].append(e)
         for p in self.parameters:
             e = {"name": p.name, "kind": p.kind}
-            e[_target_key(p.kind)] = p.target
+            e[PARAMETER_TARGET.get(p.kind, "joint")] = p.target
             if p.axis is not None:
                 e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
             e["prior"] = p.prior.to_dict()
@@ -709,11 +717,6 @@ class Model:
 
 
 # ----------------------------------------------------------------------------- custom joints
-def _target_key(kind: str) -> str:
-    """The key that names a parameter's target in a model file."""
-    return "marker" if kind in ("marker_position", "marker_offset") else "segment" if kind == "scale" else "joint"
-
-
 def _check_custom(j: Joint) -> None:
     if not j.motions:
         raise ModelError(f"joint {j.name!r}: a custom joint needs at least one motion",
@@ -848,7 +851,9 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
     kind = p.get("kind")
     if kind not in PARAMETER_KINDS:
         raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
-    target_key = _target_key(kind)
+    from skelid.model.schema import PARAMETER_TARGET
+
+    target_key = PARAMETER_TARGET.get(kind, "joint")
     target = p.get(target_key)
     if target is None:
         raise ModelError(f"{where}: needs {target_key} = '...'")
@@ -896,13 +901,9 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
     """Build a :class:`Model` from the parsed TOML structure (see docs/model-format.md)."""
-    if not isinstance(d, dict):
-        raise ModelError(f"{source}: not a table")
-    known = {"model", "segments", "markers", "parameters", "aliases"}
-    extra = set(d) - known
-    if extra:
-        raise ModelError(f"{source}: unknown top-level key(s) {sorted(extra)}",
-                         f"use only {sorted(known)}")
+    from skelid.model.schema import check_built, validate
+
+    validate(d, source)  # keys, types and ranges, with key paths; what follows builds the model
     head = d.get("model", {})
     try:
         dim = int(head.get("dim", 3))
@@ -955,8 +956,10 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
     params = []
     for i, p in enumerate(d.get("parameters", [])):
         params += _parameters(p, i, source, segments, markers)
-    return Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
-                 str(head.get("description", "")))
+    model = Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
+                  str(head.get("description", "")))
+    check_built(model, d, source)
+    return model
 
 
 def load_model(path) -> Model:
