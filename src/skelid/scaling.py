@@ -41,6 +41,7 @@ from skelid.errors import DataError
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
+    keep_markers,
     marker_locations,
     osim_parameters,
     read_osim,
@@ -154,7 +155,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                         f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(data.names[:4])} ...)",
                         "rename the markers in the model's MarkerSet or in the data so that they match")
     base, info = read_osim(osim_path, marker_set)
-    base = _only(base, present)
+    base = keep_markers(base, present)
     model = osim_parameters(base, info, scale, "none", present)
     dropped = tuple(n for n in full.marker_names if n not in present)
     sub = MarkerData(data.positions[:, [data.names.index(n) for n in model.marker_names]],
@@ -239,20 +240,6 @@ def place_markers(model: Model, theta, pose, y, frames, movable) -> tuple[np.nda
     sd = np.sqrt(var / n_eff[:, None])
     movable = np.asarray(movable, bool) & (n > 0)
     return np.where(movable[:, None], mean, 0.0), np.where(movable[:, None], sd, 0.0), n_eff
-
-
-def _only(model: Model, names) -> Model:
-    """The model with only the markers ``names`` and the bodies they need."""
-    names = set(names)
-    mk = tuple(m for m in model.markers if m.name in names)
-    idx = {s.name: s for s in model.segments}
-    need = set()
-    for m in mk:
-        b = m.segment
-        while b is not None and b not in need:
-            need.add(b)
-            b = idx[b].parent
-    return Model(model.name, 3, model.units, tuple(s for s in model.segments if s.name in need), mk)
 
 
 def scaling_table(fit: ScalingFit) -> dict:
