@@ -430,3 +430,33 @@ def test_the_view_follows_the_fitted_poses(tmp_path):
         np.testing.assert_allclose(markers, kin.markers[k], atol=0.051)  # rounded to 0.1 mm
     assert [t["name"] for t in spec["data"]] == ["measured markers", "model markers", "residual", "segments",
                                                  "joint centres", "marker offsets"]
+
+
+def test_report_of_a_typed_result(tmp_path):
+    """A folder the serializer wrote: parameters named like reserved keys, structured warnings."""
+    from skelid.io.results import write_run
+    from skelid.result import FitResult, FitRun, FrameCounts, NoiseEstimate, ParameterEstimate
+    from skelid.result import Warning as FitWarning
+
+    def est(name, mean, status="identified"):
+        return ParameterEstimate(name, "mm", mean, mean, 1.5, (mean - 3, mean + 3), 1.2, status)
+
+    r = FitResult("marker", {"sigma": est("sigma", 101.0), "warnings": est("warnings", 202.0, "poor")},
+                  {"lengths": est("lengths", 303.0)}, NoiseEstimate(2.5, (2.4, 2.6)), FrameCounts(50, 48),
+                  warnings=(FitWarning("not-converged", "the joint fit stopped before converging"),
+                            FitWarning("poorly-identified", "this one is poorly identified", ("warnings",))),
+                  arrays={"residuals": np.abs(np.random.default_rng(0).normal(size=(50, 2)))})
+    run = FitRun({"marker": r}, {"model": "typed", "data": "t.trc", "units": "mm"},
+                 arrays={"markers": np.zeros((50, 2, 2)), "marker_names": np.array(["a", "b"]),
+                         "rate": np.array(50.0), "units": np.array("mm")})
+    write_run(tmp_path / "fit", run)
+    path, notes = write_report(tmp_path / "fit")
+    text, _ = _check_html(path, min_images=2)
+    summary = _section(text, "Summary")
+    for name, value in (("sigma", "101"), ("warnings", "202"), ("lengths", "303")):
+        row = summary[summary.index(f"<td class=\"l\">{name}"):]
+        assert value in row[:row.index("</tr>")], name
+    row = summary[summary.index('<td class="l">warnings'):]
+    assert "this one is poorly identified" in row[:row.index("</tr>")] and "status-poor" in row[:row.index("</tr>")]
+    assert 'class="severe">the joint fit stopped before converging' in summary
+    assert "[2.4, 2.6]" in summary and "Frames used: 48 of 50" in _section(text, "Final posterior")

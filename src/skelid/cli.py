@@ -253,7 +253,7 @@ def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_
     if len(method_names) > 1:
         raise click.UsageError("an .osim model is fitted with one method; give --method once")
     if out_dir is not None:
-        check_output_dir(out_dir, overwrite)
+        check_output_dir(out_dir, overwrite=overwrite)
     workflows.check_input_file(model_path, "model file")
     if marker_set is not None:
         workflows.check_input_file(marker_set, "marker-set file")

@@ -113,7 +113,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
         raise SkelidError(f"several trials, --noise and --alternative work with the marker method only, "
                           f"not {', '.join(names)}", "use --method marker or fit one file")
     if out_dir is not None:
-        check_output_dir(out_dir, overwrite)
+        check_output_dir(out_dir, overwrite=overwrite)
 
     def load_model(path):
         if str(path).lower().replace("_", "-") not in BUILTIN_MODELS:

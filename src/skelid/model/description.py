@@ -684,9 +684,9 @@ class Model:
                 j["axes"] = [list(a) for a in s.joint.axes]
             elif s.joint.type == "custom":
                 j["coordinates"] = list(s.joint.coordinates)
-                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis),
-                                 "coordinate": s.joint.coordinates[m.coordinate] if m.coordinate >= 0 else "",
-                                 "function": m.function.to_dict()}
+                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis)}
+                                | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
+                                | {"function": m.function.to_dict()}
                                 | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
                                 for m in s.joint.motions]
                 if s.joint.orientation:
