@@ -88,6 +88,7 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
     import numpy as np
 
     from skelid.io import read_markers
+    from skelid.io.results import summary_dict
     from skelid.workflows import check_input_file, check_units, make_estimator
 
     t0 = time.perf_counter()
@@ -102,7 +103,7 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             check_units(model, data)
             row["n_frames"] = int(data.n_frames)
             est.fit(data)
-            res = est.result()
+            res = summary_dict(est.result())
         row["frames_used"] = int(res.get("frames_used", 0))
         for name in model.parameter_names:
             v = res[name]
