@@ -11,7 +11,8 @@ temporary sibling and moved in when complete (:func:`skelid.io.atomic.atomic_dir
 
 ``result.json``
     The summary (:func:`fit_file`: :func:`skelid.io.results.summary_dict` per method) plus
-    ``command``, ``cwd``, ``versions``, ``data_overview``, ``model_parameters`` and ``warnings``.
+    ``command``, ``cwd``, ``versions``, ``data_overview``, ``model_parameters``, ``model_description``
+    (the model as a dict, for the report's view of the fitted body) and ``warnings``.
 ``arrays.npz``
     What is not JSON-friendly (:func:`skelid.io.results.fit_arrays`).
 ``*.png``
@@ -30,8 +31,8 @@ import warnings
 
 import numpy as np
 
-from skelid import registry
-from skelid.checks import check_input_file, check_units, data_overview  # noqa: F401 - the jobs' checks
+from skelid import checks, registry, resources
+from skelid.checks import check_input_file, check_units, data_overview
 from skelid.data import MarkerData, unit_scale
 from skelid.diagnostics import collect_warnings, fit_warnings, lag1_autocorrelation, overview_warnings, unique
 from skelid.errors import SkelidError, SkelidWarning
@@ -79,6 +80,16 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
     options = {"sigma": sigma, "artefact_rms": artefact_rms or None, "cutoff": cutoff or None}
     no_motion = {"cutoff": None} if cutoff == 0 and "cutoff" in registry.cli_settings(name) else {}
     return registry.make_estimator(name, model, options, rng=rng, **no_motion)
+
+
+def check_cost(model: Model, method: str, n_frames: int, limits=None, about: bool = False):
+    """Refuse a fit whose estimated memory or time exceeds ``limits`` (see :mod:`skelid.resources`).
+
+    Returns the estimate (:class:`skelid.resources.Cost`).
+    """
+    resources.check_grid(model, method)
+    frames = "" if n_frames <= 1 else f" of {'about ' if about else ''}{n_frames} frames"
+    return resources.check(resources.fit_cost(model, method, n_frames), limits, f"the {method} fit{frames}")
 
 
 # --------------------------------------------------------------------------- fitting
@@ -133,8 +144,14 @@ def _check_finite(method: str, res: dict) -> None:
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
             out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
-            artefact_rms: float | None = None) -> dict:
+            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> dict:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
+
+    An existing ``out_dir`` is refused unless ``overwrite``, which replaces it whole.
+
+    ``limits`` (:class:`skelid.resources.Limits`, default from the environment)
+    bounds the memory and time the fit is estimated to need: beyond them it is
+    refused before reading or fitting.
 
     Returns
     -------
@@ -145,7 +162,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     from skelid.simulate import BUILTIN_MODELS, resolve_model
 
     if out_dir is not None:
-        check_output_dir(out_dir)
+        check_output_dir(out_dir, overwrite)
     if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_path, "model file")
     model = resolve_model(model_path)
@@ -154,9 +171,20 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     for n in names:
         # an unknown method or a bad setting fails before reading
         make_estimator(n, model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
+        check_cost(model, n, 1, limits)  # a grid too large for any data
+    resources.check(resources.read_cost(data_path), limits, f"reading {data_path}")
+    n_guess = resources.estimate_frames(data_path)
+    if n_guess is not None:  # a file too long to fit is refused before it is parsed
+        for n in names:
+            check_cost(model, n, n_guess, limits, about=True)
     with collect_warnings() as read_warnings:
         data = read_markers(data_path)
         check_units(model, data)
+    checks.check_data(model, prepare(model, data), names, data.source or str(data_path))
+    cost = [check_cost(model, n, data.n_frames, limits) for n in names]
+    if progress and sys.stderr.isatty() and sum(c.seconds for c in cost) > 30:
+        sys.stderr.write(f"skelid: this fit may take about {resources.format_seconds(sum(c.seconds for c in cost))} "
+                         f"and {resources.format_size(max(c.memory for c in cost))} of memory\n")
     overview = data_overview(data, model)
     result, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
                               cutoff=cutoff, artefact_rms=artefact_rms)
@@ -168,9 +196,10 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     result.update(provenance(command))
     result["data_overview"] = overview
     result["model_parameters"] = model_parameters(model)
+    result["model_description"] = model.to_dict()
     if out_dir is not None:
         y = prepare(model, data)
-        with atomic_dir(out_dir, protect=[model_path, data_path]) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, data_path], overwrite=overwrite) as tmp:
             figures(model, data, fitted, tmp)
             write_npz(tmp / "arrays.npz", fit_arrays(model, y, data.rate, fitted))
             write_json(tmp / "result.json", result)
@@ -178,7 +207,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
 
 
 def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
-         method_names=None, progress: bool = True) -> dict:
+         method_names=None, progress: bool = True, limits=None, overwrite: bool = False) -> dict:
     """Simulate cases A and B with the seed paper's settings, fit, draw, summarise.
 
     Nothing appears in ``out_dir`` until every figure and ``summary.json`` are complete.
@@ -190,7 +219,10 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     if not (math.isfinite(sigma) and sigma >= 0):
         raise SkelidError(f"--sigma must be a finite number >= 0 (mm), got {sigma}", "e.g. --sigma 15")
     method_names = list(method_names or DEMO_METHODS)
-    check_output_dir(out_dir)
+    check_output_dir(out_dir, overwrite)
+    for case in ("case-a", "case-b"):
+        for n in method_names:
+            check_cost(builtin_model(case), n, n_frames, limits)
     summary, drawn = {}, []
     cases = ("case-a", "case-b")
     bar = tqdm(total=len(cases) + 1, desc="demo", unit="step", file=sys.stderr,
@@ -207,7 +239,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
                         "methods": res["methods"]}
         bar.update(1)
     bar.set_postfix_str("figures")
-    with bar, atomic_dir(out_dir) as tmp:
+    with bar, atomic_dir(out_dir, overwrite=overwrite) as tmp:
         for model, trial, fitted, key in drawn:
             figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
         write_json(tmp / "summary.json", summary)

@@ -70,12 +70,15 @@ from skelid.estimators.joint import (
     joint_fit,
     lag1_autocorrelation,
     newey_west,
+    row_weights,
     smoothed_bias,
     smoothed_frame_scores,
     usable_frames,
+    weighted_terms,
 )
 from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
-from skelid.estimators.pose import fit_pose, track_poses
+from skelid.estimators.noise import marker_groups, per_marker_fit
+from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
@@ -126,27 +129,16 @@ def frame_counts(model: Model, y, used=None) -> dict:
 def joint_motion(model: Model, pose, used=None) -> dict:
     """Range of every joint rotation but the root's (degrees; central 95 % of the frames).
 
-    Angles are taken about their circular mean; the 2.5 and 97.5 percentiles
-    keep a few badly fitted frames from inflating the range.
+    One-axis joints: the angle about its circular mean (2.5 to 97.5 percentile);
+    multi-axis joints of a 3-D model: the rotation angle from the mean rotation
+    (:func:`skelid.estimators.checks.joint_ranges`), free of gimbal artefacts.
 
     Functional information about a joint (its centre, its axis) comes only
     from the joint moving; a range of a few degrees means little information.
     """
-    pose = np.asarray(pose, float)
-    if used is not None:
-        pose = pose[np.asarray(used, bool)]
-    out = {}
-    for s, seg in enumerate(model.segments):
-        if seg.parent is None:
-            continue
-        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
-        if not ks or len(pose) == 0:
-            continue
-        z = np.exp(1j * pose[:, ks])
-        ang = np.angle(z * np.conj(z.mean(axis=0)))  # about the circular mean, in (-pi, pi]
-        lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
-        out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
-    return out
+    from skelid.estimators.checks import joint_ranges
+
+    return joint_ranges(model, pose, used)
 
 
 def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float = 1e-9,
@@ -250,6 +242,15 @@ class Motion(NamedTuple):
     cutoff: float | np.ndarray | None  # Hz, per pose coordinate under 'auto'
 
 
+class Weights(NamedTuple):
+    """Per-marker noise levels and the fit weighted by them (``noise='per_marker'``), or the fit as it is."""
+
+    fit: JointFit
+    weights: np.ndarray | None  # (M,) sigma^2 / sigma_m^2
+    marker_sigma: np.ndarray | None  # (M,)
+    marker_dof: np.ndarray | None  # (M,)
+
+
 class Frames(NamedTuple):
     used: np.ndarray  # (T,) bool
     skipped: dict  # reason -> count
@@ -304,6 +305,7 @@ class MarkerFit(NamedTuple):
     start: Start
     screen: Screen
     motion: Motion
+    weights: Weights
     frames: Frames
     noise: Noise
     ident: dict
@@ -374,6 +376,20 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Mot
     return Motion(fit, cutoff)
 
 
+def weights_stage(model: Model, st: Start, sc: Screen, mo: Motion, s: MarkerEstimator) -> Weights:
+    """Per-marker noise levels and the weighted refit (see :mod:`skelid.estimators.noise`)."""
+    if s.noise == "pooled":
+        return Weights(mo.fit, None, None, None)
+
+    def refit(weights, prev):
+        return joint_fit(model, sc.y, prev.theta, prev.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                         rate=st.rate, cutoff=mo.cutoff, weights=weights)
+
+    groups = marker_groups(model.marker_names, s.marker_groups)
+    fit, w, sig, dof, _ = per_marker_fit(model, sc.y, refit, mo.fit, groups)
+    return Weights(fit, w, sig, dof)
+
+
 def frames_stage(model: Model, sc: Screen, fit: JointFit) -> Frames:
     usable = usable_frames(model, sc.y)
     used = fit.frames_used
@@ -418,7 +434,7 @@ def identify_stage(model: Model, st: Start, sc: Screen, fr: Frames, fit: JointFi
     return ident, pinned
 
 
-def residual_stage(model: Model, y, fit: JointFit, used, sigma: float) -> Residuals:
+def residual_stage(model: Model, y, fit: JointFit, used, sigma: float, w=None) -> Residuals:
     """Soft-tissue artefact shows as slow, correlated residuals; its white part drives the bias."""
     resid = y - marker_positions(model, fit.theta, fit.pose)
     score = lag1_autocorrelation(resid, used)
@@ -426,48 +442,48 @@ def residual_stage(model: Model, y, fit: JointFit, used, sigma: float) -> Residu
     numerical = sigma <= NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
     # with slow, correlated residuals the white noise comes from frame-to-frame differences,
     # which a slow drift barely touches
-    dr = np.diff(resid, axis=0)[used[1:] & used[:-1]]
+    dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
     white = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else sigma
     return Residuals(np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan), score,
                      bool(score > STA_AUTOCORRELATION and not numerical), white)
 
 
-def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, used, noise: Noise,
+def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weights, used, noise: Noise,
                res: Residuals, rng) -> Bias:
     """Second-order (Box) bias at the estimate, or a parametric bootstrap, or none."""
-    model, fit = est.model, mo.fit
+    model, fit, w = est.model, wt.fit, wt.weights
     sigma2 = noise.sigma**2
     sigma2_bias = min(sigma2, res.sigma_white**2) if res.flagged else sigma2
     method = "box" if est.bias_correction in (True, "auto") else est.bias_correction
     method = "none" if method is False else method
     y = sc.y
     if method == "box" and fit.penalty is None:
-        return Bias(box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias), method)
+        return Bias(box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w), method)
     if method == "box":
         return Bias(smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
-                                  sigma2_bias, fit.penalty), method)
+                                  sigma2_bias, fit.penalty, weights=w), method)
     if method == "bootstrap":
         return Bias(est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng), method)
     return Bias(np.zeros(model.n_params), method)
 
 
-def covariance_stage(est: MarkerEstimator, sc: Screen, fit: JointFit, used, noise: Noise,
+def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise,
                      res: Residuals) -> Covariance:
     """``sigma^2 S^{-1}``; Newey-West when the residuals are correlated; the stated artefact's term."""
-    model, y = est.model, sc.y
+    model, y, fit, w = est.model, sc.y, wt.fit, wt.weights
     info_inv = np.linalg.inv(fit.info)
     plain = noise.sigma**2 * info_inv
     # the bound with every pose a free unknown (no motion model), at the estimate
-    _, Jq_u, Jt_u = frame_terms(model, fit.theta, fit.pose[used], y[used])
+    _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
     crlb = crlb_sd(efficient_information(Jq_u, Jt_u, noise.sigma))
     widened = est.robust == "always" or (est.robust == "auto" and res.flagged)
     cov = plain
     y_used = np.where(used[:, None, None], y, np.nan)
     if widened:
         if fit.penalty is None:
-            scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
+            scores = frame_scores(model, y[used], fit.theta, fit.pose[used], weights=w)
         else:
-            scores = smoothed_frame_scores(model, y_used, fit.theta, fit.pose, fit.penalty)[used]
+            scores = smoothed_frame_scores(model, y_used, fit.theta, fit.pose, fit.penalty, weights=w)[used]
         cov_nw = info_inv @ newey_west(scores, _bandwidth(res.sta_score, len(scores))) @ info_inv
         cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
     # the part of a soft-tissue artefact that mimics a geometry change leaves no residual: with its
@@ -542,7 +558,7 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
         out.append(Warning("still-joint", f"joint(s) {', '.join(f.summary.still)} moved less than "
                            f"{STILL_JOINT_DEG:g} degrees: their centres and axes are informed only by tiny "
                            "motions (a static trial cannot locate a joint functionally)"))
-    if not f.motion.fit.converged:
+    if not f.weights.fit.converged:
         out.append(Warning("not-converged", "the joint fit stopped before converging; the estimate may be off"))
     theta = f.estimate.theta
     for k, p in enumerate(model.parameters):
@@ -555,21 +571,23 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
 def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error") -> MarkerFit:
     """The stages of a marker fit, each returning a small immutable value.
 
-    screen -> joint fit -> noise -> identifiability -> residuals -> bias -> covariance -> priors
+    screen -> joint fit -> per-marker weights -> noise -> identifiability -> residuals -> bias -> covariance -> priors
     -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
     """
     model = est.model
     st = start_stage(model, y, rate, est, rng)
     sc = screen_stage(model, st, est)
     mo = motion_stage(model, st, sc, est)
-    fr = frames_stage(model, sc, mo.fit)
-    noise = noise_stage(model, mo.fit, est.sigma)
-    ident, pinned = identify_stage(model, st, sc, fr, mo.fit, noise, on_bound)
-    res = residual_stage(model, sc.y, mo.fit, fr.used, noise.sigma)
-    bias = bias_stage(est, st, sc, mo, fr.used, noise, res, rng)
-    cov = covariance_stage(est, sc, mo.fit, fr.used, noise, res)
-    estimate = Estimate(*_combine_normal_priors(model, mo.fit.theta - bias.bias, cov.data))
-    return MarkerFit(st, sc, mo, fr, noise, ident, pinned, res, bias, cov, estimate,
+    wt = weights_stage(model, st, sc, mo, est)
+    fit = wt.fit
+    fr = frames_stage(model, sc, fit)
+    noise = noise_stage(model, fit, est.sigma)
+    ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound)
+    res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
+    bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
+    cov = covariance_stage(est, sc, wt, fr.used, noise, res)
+    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data))
+    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
                      summary_stage(model, ident, estimate))
 
 
@@ -608,6 +626,12 @@ class MarkerEstimator:
         units). The covariance it adds to the estimate (the part of the artefact that
         mimics a geometry change, see :mod:`skelid.estimators.artefact`) widens the
         interval. None: no artefact term.
+    noise : {'pooled', 'per_marker'}
+        One noise level for every marker, or each marker (or declared group) its
+        own, estimated from its residuals and used as weights in the fit
+        (see :mod:`skelid.estimators.noise`).
+    marker_groups : dict of str to list of str, optional
+        With ``noise='per_marker'``: markers that share one noise level.
     theta0 : (P,) float, optional
         Starting geometry (default: the prior centre).
     pose0 : (T, Q) float, optional
@@ -651,6 +675,10 @@ class MarkerEstimator:
     y_ : (T, M, D) float
         The markers the final fit used (model order and units; outliers and
         skipped frames NaN).
+    marker_sigma_ : (M,) float or None
+        Each marker's noise level with ``noise='per_marker'`` (NaN without data).
+    marker_weights_ : (M,) float or None
+        The weights of the fit (``sigma_^2 / marker_sigma_^2`` up to rounding).
     fit_ : MarkerFit
         Every stage's value.
     warnings_ : tuple of Warning
@@ -672,6 +700,8 @@ class MarkerEstimator:
         Setting("outlier_threshold", positive_or_none, "a positive number of robust sd, or None"),
         Setting("artefact_rms", non_negative_or_none, "a distance >= 0 in model units, or None",
                 cli="artefact_rms"),
+        Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'"),
+        Setting("marker_groups", lambda v: v is None or isinstance(v, dict), "None or {group: [marker names]}"),
         Setting("theta0", array_or_none, "None or finite starting values, one per parameter"),
         Setting("pose0", array_or_none, "None or finite starting poses (frames, pose coordinates)"),
     )
@@ -680,7 +710,7 @@ class MarkerEstimator:
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
-                 theta0=None, pose0=None):
+                 noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -692,6 +722,8 @@ class MarkerEstimator:
         self.rate = rate
         self.outlier_threshold = outlier_threshold
         self.artefact_rms = artefact_rms
+        self.noise = noise
+        self.marker_groups = marker_groups
         self.theta0 = theta0
         self.pose0 = pose0
 
@@ -707,7 +739,7 @@ class MarkerEstimator:
 
     def _publish(self, f: MarkerFit, found) -> None:
         """Set the fitted attributes from the stages' values."""
-        fit, used = f.motion.fit, f.frames.used
+        fit, used = f.weights.fit, f.frames.used
         self.fit_ = f
         self.fit_info_ = fit
         self.cutoff_ = f.motion.cutoff
@@ -734,6 +766,7 @@ class MarkerEstimator:
         self.y_ = np.where(used[:, None, None], f.screen.y, np.nan)
         self.posterior_ = GaussianPosterior(self.model.parameter_names, self.theta_, self.cov_)
         self.lengths_ = f.summary.lengths
+        self.marker_weights_, self.marker_sigma_, self.marker_dof_ = f.weights[1:]
         self.warnings_ = tuple(found)
 
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
@@ -768,8 +801,12 @@ class MarkerEstimator:
         if self.artefact_rms:
             diagnostics["artefact"] = {"rms": float(self.artefact_rms),
                                        "sd_added": np.sqrt(np.diag(self.cov_artefact_)).tolist()}
+        per, extra_noise = {}, {"white": self.sigma_white_}
+        if self.marker_sigma_ is not None:
+            per = dict(zip(model.marker_names, self.marker_sigma_.tolist(), strict=True))
+            extra_noise["per_marker_dof"] = dict(zip(model.marker_names, self.marker_dof_.tolist(), strict=True))
         noise = NoiseEstimate(self.sigma_, None if self.sigma is not None else tuple(self.sigma_ci_),
-                              fixed=self.sigma is not None, extra={"white": self.sigma_white_})
+                              fixed=self.sigma is not None, per_marker=per, extra=extra_noise)
         return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=noise,
                             skipped=self.frames_skipped_, diagnostics=diagnostics, derived=self.lengths_,
                             arrays={"residuals": self.residuals_, "pose": self.pose_,
@@ -777,39 +814,13 @@ class MarkerEstimator:
 
 
 def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
-    """(T, M) bool: marker positions whose residual distance is an outlier.
+    """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
-    With Gaussian noise the residual distance is ``sigma`` times a chi variable
-    with ``D`` degrees of freedom; ``sigma`` is estimated robustly from the
-    median distance. One glitched marker also drags its frame's pose, so in
-    each round only the worst marker of a frame is flagged, if beyond
-    ``threshold * sigma``, and that frame's pose refitted without it.
+    See :func:`skelid.estimators.screen.outlying_markers`.
     """
-    from scipy.stats import chi
+    from skelid.estimators.screen import outlying_markers
 
-    used = fit.frames_used
-    out = np.zeros(y.shape[:2], dtype=bool)
-    # per-frame poses (no motion model), so that a glitch does not spread to its neighbours
-    pose, _ = fit_pose(model, fit.theta, y, fit.pose, n_iter=20)
-    pose = np.where(used[:, None], pose, fit.pose)
-    d = np.linalg.norm(y - marker_positions(model, fit.theta, pose), axis=-1)
-    d = np.where(used[:, None], d, np.nan)
-    if not np.isfinite(d).any():
-        return out
-    floor = 1e-3 * float(np.abs(model.nominal_geometry).max())  # below this a deviation is irrelevant
-    limit = threshold * np.nanmedian(d) / chi.median(model.dim) + floor
-    for _ in range(n_rounds):
-        dd = np.where(np.isfinite(d), d, -1.0)
-        worst = np.argmax(dd, axis=1)
-        flag = used & (dd[np.arange(len(dd)), worst] > limit)
-        if not flag.any():
-            break
-        out[flag, worst[flag]] = True
-        yy = np.where(out[flag][..., None], np.nan, y[flag])
-        pose[flag], _ = fit_pose(model, fit.theta, yy, pose[flag], n_iter=20)
-        d[flag] = np.where(out[flag], np.nan,
-                           np.linalg.norm(yy - marker_positions(model, fit.theta, pose[flag]), axis=-1))
-    return out
+    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds)
 
 
 def _unit(model: Model, k: int) -> str:

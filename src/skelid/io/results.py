@@ -565,7 +565,7 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
     posterior with ``axes``, ``history``, ``marginal(k, lw)``; weighted samples
     with ``points``, ``weights``, whose mean and covariance are stored too; or a
     Gaussian with ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``,
-    ``measured_ (F,)``, ``map_path_ (F,)``.
+    ``measured_ (F,)``, ``map_path_ (F,)``, ``pose_ (F, Q)`` (stored as ``pose``).
     """
     out: dict[str, np.ndarray] = {}
     post = getattr(est, "posterior_", None)
@@ -596,7 +596,7 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
                 out["posterior.history_steps"] = np.array([int(h[0]) for h in hist])
                 out["posterior.history_mean"] = np.stack([np.asarray(h[1], float) for h in hist])
                 out["posterior.history_cov"] = np.stack([np.asarray(h[2], float) for h in hist])
-    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_"):
+    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_", "pose_"):
         v = getattr(est, attr, None)
         if v is not None:
             out[attr.rstrip("_")] = np.asarray(v, float)
