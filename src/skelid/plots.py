@@ -22,6 +22,9 @@ def _plt():
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
+    # names come from users' files: draw "$\\foo$" as those characters, never as mathtext
+    plt.rcParams["text.parse_math"] = False
+
     return plt
 
 

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skelid import resources
+from skelid import checks, resources
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, ModelError, SkelidError, SkelidWarning
 from skelid.estimators.base import prepare
@@ -107,12 +107,11 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
 # --------------------------------------------------------------------------- checks
 def check_input_file(path, what: str = "data file") -> Path:
     """An existing, readable, non-empty regular file, or a one-line error naming it."""
+    from skelid.io._common import check_regular_file
+
     path = Path(path)
     cls = ModelError if what.startswith("model") else FormatError
-    if not path.exists():
-        raise cls(f"{what} {path} does not exist", "check the path")
-    if path.is_dir():
-        raise cls(f"{what} {path} is a folder, not a file", f"give the path of the {what} itself")
+    check_regular_file(path, what, cls)
     try:
         with open(path, "rb") as fh:
             head = fh.read(1)
@@ -526,8 +525,10 @@ def _json_default(o):
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
             out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
-            artefact_rms: float | None = None, limits=None) -> dict:
+            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> dict:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
+
+    An existing ``out_dir`` is refused unless ``overwrite``, which replaces it whole.
 
     ``limits`` (:class:`skelid.resources.Limits`, default from the environment)
     bounds the memory and time the fit is estimated to need: beyond them it is
@@ -542,7 +543,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     from skelid.simulate import BUILTIN_MODELS, resolve_model
 
     if out_dir is not None:
-        check_output_dir(out_dir)
+        check_output_dir(out_dir, overwrite)
     if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_path, "model file")
     model = resolve_model(model_path)
@@ -560,6 +561,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     with collect_warnings() as read_warnings:
         data = read_markers(data_path)
         check_units(model, data)
+    checks.check_data(model, prepare(model, data), names, data.source or str(data_path))
     cost = [check_cost(model, n, data.n_frames, limits) for n in names]
     if progress and sys.stderr.isatty() and sum(c.seconds for c in cost) > 30:
         sys.stderr.write(f"skelid: this fit may take about {resources.format_seconds(sum(c.seconds for c in cost))} "
@@ -578,7 +580,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     result["model_description"] = model.to_dict()
     if out_dir is not None:
         y = prepare(model, data)
-        with atomic_dir(out_dir, protect=[model_path, data_path]) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, data_path], overwrite=overwrite) as tmp:
             figures(model, data, fitted, tmp)
             write_npz(tmp / "arrays.npz", fit_arrays(model, y, data.rate, fitted))
             write_json(tmp / "result.json", result)
@@ -613,7 +615,7 @@ def figures(model: Model, data: MarkerData, fitted: dict, out_dir, prefix: str =
 
 
 def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
-         method_names=None, progress: bool = True, limits=None) -> dict:
+         method_names=None, progress: bool = True, limits=None, overwrite: bool = False) -> dict:
     """Simulate cases A and B with the seed paper's settings, fit, draw, summarise.
 
     Nothing appears in ``out_dir`` until every figure and ``summary.json`` are complete.
@@ -625,7 +627,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     if not (math.isfinite(sigma) and sigma >= 0):
         raise SkelidError(f"--sigma must be a finite number >= 0 (mm), got {sigma}", "e.g. --sigma 15")
     method_names = list(method_names or DEMO_METHODS)
-    check_output_dir(out_dir)
+    check_output_dir(out_dir, overwrite)
     for case in ("case-a", "case-b"):
         for n in method_names:
             check_cost(builtin_model(case), n, n_frames, limits)
@@ -645,7 +647,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
                         "methods": res["methods"]}
         bar.update(1)
     bar.set_postfix_str("figures")
-    with bar, atomic_dir(out_dir) as tmp:
+    with bar, atomic_dir(out_dir, overwrite=overwrite) as tmp:
         for model, trial, fitted, key in drawn:
             figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
         write_json(tmp / "summary.json", summary)
