@@ -467,3 +467,20 @@ def test_report_of_a_typed_result(tmp_path):
     assert "this one is poorly identified" in row[:row.index("</tr>")] and "status-poor" in row[:row.index("</tr>")]
     assert 'class="severe">the joint fit stopped before converging' in summary
     assert "[2.4, 2.6]" in summary and "Frames used: 48 of 50" in _section(text, "Final posterior")
+
+
+def test_a_warning_stays_with_its_method(tmp_path):
+    """A run-level copy of one method's warning is not shown beside another method's estimates."""
+    d = odd_result(tmp_path / "odd")
+    res = json.loads((d / "result.json").read_text())
+    res["methods"]["paper"] = {"L": {"map": 1.0, "mean": 1.0, "sd": 0.1, "ci95": [0.8, 1.2]},
+                               "warnings": ["paper method dropped 9 of 90 frames (no converged solution inside "
+                                            "the interval)"]}
+    res["warnings"] += res["methods"]["marker"]["warnings"] + res["methods"]["paper"]["warnings"]
+    (d / "result.json").write_text(json.dumps(res))
+    path, _ = write_report(d, tmp_path / "two.html")
+    text, _ = _check_html(path, min_images=3)
+    summary = _section(text, "Summary")
+    paper = summary[summary.index("Method: paper"):]
+    assert "stopped before converging" not in paper and "dropped 9 of 90 frames" in paper
+    assert 'class="severe">paper method dropped' not in paper  # frames dropped: a warning, not a broken fit
