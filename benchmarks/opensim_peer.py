@@ -163,8 +163,9 @@ def markdown(res: dict) -> str:
              f"{'REDUCED run (--quick). ' if res['reduced'] else ''}Machine: shared, 2 cores under load; "
              "times are wall clock and CPU seconds of one process.", "",
              "## subject01: gait2354, static + walk", "",
-             f"skelid: trials joined ({s1['frames']['static']} static + {s1['frames']['walk']} walk frames), "
-             "one scale per body with markers, offsets of every free marker.", "",
+             f"skelid: {res.get('trials', 'joined')} fit ({s1['frames']['static']} static + "
+             f"{s1['frames']['walk']} walk frames), one scale per body with markers, then offsets of every free "
+             "marker placed on the static trial.", "",
              "| body | skelid scale [95 % interval] | OpenSim ScaleTool (x, y, z) |", "|---|---|---|"]
     for r in s1["scales"]:
         os_ = ", ".join(f"{v:.4f}" for v in r["opensim"]) if r["opensim"] else "-"
