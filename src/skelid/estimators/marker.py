@@ -108,7 +108,7 @@ def frame_counts(model: Model, y, used=None) -> dict:
         Frames that entered the fit.
     """
     n = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
-    used = n > model.n_pose if used is None else np.asarray(used, bool)
+    used = usable_frames(model, y) if used is None else np.asarray(used, bool)
     surplus = n - model.n_pose
 
     def stats(v):
