@@ -92,8 +92,12 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
         if not (math.isfinite(artefact_rms) and artefact_rms >= 0):
             raise SkelidError(f"--artefact-rms must be a distance >= 0 {model.units}, got {artefact_rms}",
                               f"give the soft-tissue artefact's rms displacement in {model.units}, or 0 for none")
-        if name == "marker":
+        if name in ("marker", "marker-smc"):
             extra["artefact_rms"] = artefact_rms or None
+        elif artefact_rms:
+            raise SkelidError(f"--artefact-rms is not available with --method {name}: its posterior does not come "
+                              "from the joint fit the artefact term is computed from",
+                              "use --method marker or marker-smc with --artefact-rms")
     if cutoff is not None and name in ("marker", "marker-smc"):
         if not (math.isfinite(cutoff) and cutoff >= 0):
             raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",

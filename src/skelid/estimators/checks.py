@@ -73,3 +73,70 @@ def joint_ranges(model: Model, pose, used=None, theta=None) -> dict[str, list[fl
         lo, hi = np.percentile(ang, [2.5, 97.5], axis=0)
         out[seg.joint.name] = [round(float(v), 2) for v in np.degrees(hi - lo)]
     return out
+
+
+#: tail probability below which an angle-driven residual pattern is not noise
+MISFIT_P = 1e-6
+#: share of a segment's angle-driven residual that its markers have in common, above which it is the
+#: joint model, not soft tissue (soft-tissue artefact moves each marker its own way)
+MISFIT_COMMON = 0.5
+
+
+def model_misfit(model: Model, y, theta, pose, used, sigma: float) -> dict[str, dict]:
+    """Residual structure that follows a joint angle and moves a segment's markers together.
+
+    For each segment ``s`` with at least two markers and a joint with rotation
+    coordinates ``u``, the residuals of its markers are expressed in the segment's
+    frame and regressed on ``u, u^2, u^3`` (centred and scaled, with a constant).
+    Soft-tissue artefact also follows the joint angles, but moves each marker its
+    own way; a joint model that cannot follow the joint (a knee whose centre
+    moves with flexion, fitted as a fixed hinge) moves all the segment's markers
+    together. So the test is on the *mean* residual of the segment's ``n``
+    markers: its angle-explained sum of squares ``SS_c`` against white noise
+    (``SS_c n / sigma^2 ~ chi^2_{kD}``, tail below ``MISFIT_P``), and its share of the
+    markers' own explained sums, ``n SS_c / sum_m SS_m`` (1 when they move as one,
+    about ``1/n`` for independent artefacts), above ``MISFIT_COMMON``.
+
+    Returns
+    -------
+    dict
+        joint name -> ``{"rms": rms of the common pattern (model units), "common_share": ...,
+        "log10_p": ..., "segment": ..., "flagged": bool}``.
+    """
+    from scipy.stats import chi2
+
+    used = np.asarray(used, bool)
+    out: dict[str, dict] = {}
+    if used.sum() < 20 or not np.isfinite(sigma) or sigma <= 0:
+        return out
+    kin = forward_kinematics(model, theta, pose[used])
+    r = np.asarray(y, float)[used] - kin.markers  # (T, M, D)
+    for s, seg in enumerate(model.segments):
+        if seg.parent is None:
+            continue
+        ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
+        ms = np.flatnonzero(np.asarray(model.marker_segment) == s)
+        if not ks or len(ms) < 2:
+            continue
+        r_seg = np.einsum("tji,tmj->tmi", kin.R_world_seg[:, s], r[:, ms])  # in the segment's frame
+        ok = np.isfinite(r_seg).all(axis=(1, 2))
+        if ok.sum() < 20:
+            continue
+        u = pose[used][ok][:, ks]
+        u = (u - u.mean(axis=0)) / np.maximum(u.std(axis=0), 1e-12)
+        X = np.concatenate([np.ones((len(u), 1)), u, u**2, u**3], axis=1)
+        k = X.shape[1] - 1
+        beta, *_ = np.linalg.lstsq(X, r_seg[ok].reshape(len(u), -1), rcond=None)
+        fitted = X[:, 1:] @ beta[1:]  # (T, n*D) angle-driven part (constant left out)
+        fitted = fitted - fitted.mean(axis=0)
+        per_marker = float(np.sum(fitted**2))
+        common = fitted.reshape(len(u), len(ms), -1).mean(axis=1)  # (T, D)
+        ss_c = float(np.sum(common**2))
+        share = len(ms) * ss_c / per_marker if per_marker > 0 else 0.0
+        dfree = k * model.dim
+        log10_p = float(chi2.logsf(ss_c * len(ms) / sigma**2, dfree) / np.log(10))
+        rms = float(np.sqrt(np.mean(np.sum(common**2, axis=1))))
+        out[seg.joint.name] = {"segment": seg.name, "rms": rms, "common_share": round(share, 3),
+                               "log10_p": round(log10_p, 1),
+                               "flagged": bool(log10_p < np.log10(MISFIT_P) and share > MISFIT_COMMON)}
+    return out

@@ -25,6 +25,7 @@ from skelid.data import MarkerData
 from skelid.errors import DataError, IdentifiabilityError
 from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import prepare, warn_once
+from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
     box_bias,
     choose_cutoffs,
@@ -189,7 +190,11 @@ class MarkerEstimator:
         Stated root-mean-square soft-tissue artefact of a marker coordinate (model
         units). The covariance it adds to the estimate (the part of the artefact that
         mimics a geometry change, see :mod:`skelid.estimators.artefact`) widens the
-        interval. None: no artefact term.
+        interval. None: no artefact term (the marker jackknife then estimates it).
+    jackknife : bool
+        Leave each marker out (one-step refits, :mod:`skelid.estimators.jackknife`) and
+        add the markers' disagreement beyond white noise to the covariance (only
+        reported when ``artefact_rms`` is stated).
     outlier_threshold : float or None
         Marker positions whose residual distance after a first fit exceeds this
         many robust standard deviations are left out and the fit repeated
@@ -245,7 +250,8 @@ class MarkerEstimator:
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
-                 outlier_threshold: float | None = 8.0, artefact_rms: float | None = None):
+                 outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
+                 jackknife: bool = True):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -257,6 +263,7 @@ class MarkerEstimator:
         self.rate = rate
         self.outlier_threshold = outlier_threshold
         self.artefact_rms = artefact_rms
+        self.jackknife = jackknife
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
@@ -423,6 +430,14 @@ class MarkerEstimator:
                 model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose, fit.penalty,
                 float(self.artefact_rms), used)
             cov = cov + self.cov_artefact_
+        # one marker's artefact that moves the estimate shows when that marker is left out
+        self.jackknife_ = {"available": False, "folded": False}
+        if self.jackknife:
+            cov, self.jackknife_, msg = jackknife_stage(
+                model, np.where(used[:, None, None], y, np.nan), fit, self.sigma_, cov,
+                fold_in=not self.artefact_rms, rng=rng)
+            if msg:
+                warn_once(msg, self.warnings_)
         self.cov_data_ = cov
         theta, cov = _combine_normal_priors(model, theta, cov)
         self.cov_ = cov
@@ -497,6 +512,7 @@ class MarkerEstimator:
         out["counting"] = self.identifiability_.get("counting")
         out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
         out["residual_autocorrelation"] = self.sta_score_
+        out["jackknife"] = self.jackknife_
         if self.artefact_rms:
             out["artefact"] = {"rms": float(self.artefact_rms),
                                "sd_added": [float(v) for v in np.sqrt(np.diag(self.cov_artefact_))]}

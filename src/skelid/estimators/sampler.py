@@ -40,13 +40,15 @@ estimate: under a flat prior this is exactly shifting every sample by
 lets a normal prior act on the corrected likelihood, as the default
 estimator combines it.
 
-**Serially correlated residuals.** When the default estimator widened its
-interval because the residuals are serially correlated (soft-tissue
-artefact; Newey-West covariance ``V_NW`` instead of ``V = sigma^2 S^{-1}``),
+**Serially correlated residuals, stated artefact, marker jackknife.** When the
+default estimator widened its interval (``V_W`` instead of ``V = sigma^2 S^{-1}``)
+because the residuals are serially correlated (Newey-West), because the user
+stated a soft-tissue artefact (``artefact_rms``), or because the markers
+disagree beyond their noise (the marker jackknife),
 the likelihood is misspecified and too sharp. As in composite-likelihood
 practice its curvature is adjusted by one factor,
 
-.. math:: \\tau = P / \\mathrm{tr}(V^{-1} V_{NW}) ,
+.. math:: \\tau = P / \\mathrm{tr}(V^{-1} V_{W}) ,
 
 which in one dimension is the ratio of the unwidened to the widened variance,
 so the sampled posterior has the widened width (Ribatet, Cooley and Davison
@@ -582,10 +584,11 @@ class SamplerEstimator(MarkerEstimator):
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, n_particles: int = 200, n_moves: int = 3,
-                 ess_fraction: float = 0.5, inner_iter: int = 8):
+                 ess_fraction: float = 0.5, inner_iter: int = 8, artefact_rms: float | None = None,
+                 jackknife: bool = True):
         super().__init__(model, sigma=sigma, cutoff=cutoff, bias_correction=bias_correction, n_boot=n_boot,
                          robust=robust, rng=rng, n_iter=n_iter, rate=rate,
-                         outlier_threshold=outlier_threshold)
+                         outlier_threshold=outlier_threshold, artefact_rms=artefact_rms, jackknife=jackknife)
         self.n_particles = n_particles
         self.n_moves = n_moves
         self.ess_fraction = ess_fraction
@@ -600,7 +603,8 @@ class SamplerEstimator(MarkerEstimator):
         P = model.n_params
         fit = self.fit_info_
         tau = 1.0
-        if self.widened_:
+        if self.widened_ or self.artefact_rms or self.jackknife_.get("folded"):
+            # Newey-West, a stated artefact or the marker jackknife widened the default interval
             tau = float(P / np.trace(np.linalg.solve(self.cov_plain_, self.cov_data_)))
             tau = min(tau, 1.0)
         self.likelihood_tau_ = tau
