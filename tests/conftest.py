@@ -6,6 +6,9 @@ import pytest
 
 matplotlib.use("Agg")
 os.environ.setdefault("MPLBACKEND", "Agg")
+# every test runs the compiled pose kernel (or the numpy path where it asks for it), never a mix that
+# depends on when the kernel's cache was written; the kernels compile in the background from the start
+os.environ.setdefault("SKELID_NUMBA", "wait")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -17,3 +20,10 @@ def shared_data():
     if not SHARED.is_dir():
         pytest.skip(f"shared data folder {SHARED} is absent")
     return SHARED
+
+
+def pytest_sessionstart(session):
+    from skelid.estimators import _lm_kernel
+
+    for planar in (True, False):  # compile both drivers on the side while the first tests run
+        _lm_kernel.warm(planar, wait=False)

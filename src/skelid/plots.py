@@ -1,10 +1,13 @@
 """Figures. matplotlib is imported only when a figure is drawn (Agg backend).
 
-Every function writes one PNG atomically and returns its path.
+Every function writes one PNG atomically and returns its path. Names from
+model and data files are drawn as written: mathtext is off while a figure is
+built (a marker called ``$\\foo$`` is not TeX).
 """
 
 from __future__ import annotations
 
+import functools
 import io
 from pathlib import Path
 
@@ -19,7 +22,21 @@ def _plt():
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
 
+    # names come from users' files: draw "$\\foo$" as those characters, never as mathtext
+    plt.rcParams["text.parse_math"] = False
+
     return plt
+
+
+def literal_text(func):
+    """Build the figure with mathtext off, so that names are shown as written."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with _plt().rc_context({"text.parse_math": False}):
+            return func(*args, **kwargs)
+
+    return wrapper
 
 
 def _save(fig, path) -> Path:
@@ -32,6 +49,7 @@ def _save(fig, path) -> Path:
     return path
 
 
+@literal_text
 def trajectories(data, path, title: str = "Marker trajectories") -> Path:
     """Marker paths in the x-y plane (2-D data) or coordinates against time (3-D)."""
     plt = _plt()
@@ -57,6 +75,7 @@ def trajectories(data, path, title: str = "Marker trajectories") -> Path:
     return _save(fig, path)
 
 
+@literal_text
 def posterior_history(posterior, path, truth: float | None = None, units: str = "mm",
                       title: str = "Posterior", gaussians: dict | None = None) -> Path:
     """The marginal posterior of the first parameter at each stored step."""
@@ -89,6 +108,7 @@ def posterior_history(posterior, path, truth: float | None = None, units: str = 
     return _save(fig, path)
 
 
+@literal_text
 def map_path(steps_map, path, truth: float | None = None, measured=None, name: str = "L2",
              units: str = "mm", title: str = "Most likely value per step", extra: dict | None = None) -> Path:
     """Most likely value after each step, the per-frame measurements and the truth."""

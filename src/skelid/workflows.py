@@ -11,13 +11,14 @@ temporary sibling and moved in when complete (:func:`skelid.io.atomic.atomic_dir
 
 ``result.json``
     The summary (:func:`fit_file`) plus ``command``, ``cwd``, ``versions``,
-    ``data_overview``, ``model_parameters`` and ``warnings``.
+    ``data_overview``, ``model_parameters``, ``model_description`` (the model as a
+    dict, for the report's view of the fitted body) and ``warnings``.
 ``arrays.npz``
     What is not JSON-friendly (:func:`fit_arrays`): ``markers (F, M, D)`` in
     model units, ``marker_names``, ``rate``, ``units``, and per method ``NAME.*``
     entries: posterior grid axes, final marginals and their history, Gaussian
     mean and covariance, posterior samples and their weights, per-frame
-    measured values, ``residuals (F, M)``, ``crlb_sd (P,)``.
+    measured values, ``residuals (F, M)``, ``crlb_sd (P,)``, ``pose (F, Q)``.
 ``*.png``
     The seed paper's figures.
 """
@@ -39,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skelid import checks, resources
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, ModelError, SkelidError, SkelidWarning
 from skelid.estimators.base import prepare
@@ -109,12 +111,11 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
 # --------------------------------------------------------------------------- checks
 def check_input_file(path, what: str = "data file") -> Path:
     """An existing, readable, non-empty regular file, or a one-line error naming it."""
+    from skelid.io._common import check_regular_file
+
     path = Path(path)
     cls = ModelError if what.startswith("model") else FormatError
-    if not path.exists():
-        raise cls(f"{what} {path} does not exist", "check the path")
-    if path.is_dir():
-        raise cls(f"{what} {path} is a folder, not a file", f"give the path of the {what} itself")
+    check_regular_file(path, what, cls)
     try:
         with open(path, "rb") as fh:
             head = fh.read(1)
@@ -124,6 +125,16 @@ def check_input_file(path, what: str = "data file") -> Path:
     if not head:
         raise cls(f"{what} {path} is empty", "check that the file was written completely")
     return path
+
+
+def check_cost(model: Model, method: str, n_frames: int, limits=None, about: bool = False):
+    """Refuse a fit whose estimated memory or time exceeds ``limits`` (see :mod:`skelid.resources`).
+
+    Returns the estimate (:class:`skelid.resources.Cost`).
+    """
+    resources.check_grid(model, method)
+    frames = "" if n_frames <= 1 else f" of {'about ' if about else ''}{n_frames} frames"
+    return resources.check(resources.fit_cost(model, method, n_frames), limits, f"the {method} fit{frames}")
 
 
 def _model_names_in_file(model: Model, data: MarkerData) -> dict[str, str]:
@@ -453,7 +464,7 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
     posterior with ``axes``, ``history``, ``marginal(k, lw)``; weighted samples
     with ``points``, ``weights``, whose mean and covariance are stored too; or a
     Gaussian with ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``,
-    ``measured_ (F,)``, ``map_path_ (F,)``.
+    ``measured_ (F,)``, ``map_path_ (F,)``, ``pose_ (F, Q)`` (stored as ``pose``).
     """
     out: dict[str, np.ndarray] = {}
     post = getattr(est, "posterior_", None)
@@ -484,7 +495,7 @@ def estimator_arrays(est) -> dict[str, np.ndarray]:
                 out["posterior.history_steps"] = np.array([int(h[0]) for h in hist])
                 out["posterior.history_mean"] = np.stack([np.asarray(h[1], float) for h in hist])
                 out["posterior.history_cov"] = np.stack([np.asarray(h[2], float) for h in hist])
-    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_"):
+    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_", "pose_"):
         v = getattr(est, attr, None)
         if v is not None:
             out[attr.rstrip("_")] = np.asarray(v, float)
@@ -518,8 +529,14 @@ def _json_default(o):
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
             out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
-            artefact_rms: float | None = None) -> dict:
+            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> dict:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
+
+    An existing ``out_dir`` is refused unless ``overwrite``, which replaces it whole.
+
+    ``limits`` (:class:`skelid.resources.Limits`, default from the environment)
+    bounds the memory and time the fit is estimated to need: beyond them it is
+    refused before reading or fitting.
 
     Returns
     -------
@@ -530,7 +547,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     from skelid.simulate import BUILTIN_MODELS, resolve_model
 
     if out_dir is not None:
-        check_output_dir(out_dir)
+        check_output_dir(out_dir, overwrite)
     if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_path, "model file")
     model = resolve_model(model_path)
@@ -539,9 +556,20 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     for n in names:
         # an unknown method or a bad setting fails before reading
         make_estimator(n, model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
+        check_cost(model, n, 1, limits)  # a grid too large for any data
+    resources.check(resources.read_cost(data_path), limits, f"reading {data_path}")
+    n_guess = resources.estimate_frames(data_path)
+    if n_guess is not None:  # a file too long to fit is refused before it is parsed
+        for n in names:
+            check_cost(model, n, n_guess, limits, about=True)
     with collect_warnings() as read_warnings:
         data = read_markers(data_path)
         check_units(model, data)
+    checks.check_data(model, prepare(model, data), names, data.source or str(data_path))
+    cost = [check_cost(model, n, data.n_frames, limits) for n in names]
+    if progress and sys.stderr.isatty() and sum(c.seconds for c in cost) > 30:
+        sys.stderr.write(f"skelid: this fit may take about {resources.format_seconds(sum(c.seconds for c in cost))} "
+                         f"and {resources.format_size(max(c.memory for c in cost))} of memory\n")
     overview = data_overview(data, model)
     result, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
                               cutoff=cutoff, artefact_rms=artefact_rms)
@@ -553,9 +581,10 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     result.update(provenance(command))
     result["data_overview"] = overview
     result["model_parameters"] = model_parameters(model)
+    result["model_description"] = model.to_dict()
     if out_dir is not None:
         y = prepare(model, data)
-        with atomic_dir(out_dir, protect=[model_path, data_path]) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, data_path], overwrite=overwrite) as tmp:
             figures(model, data, fitted, tmp)
             write_npz(tmp / "arrays.npz", fit_arrays(model, y, data.rate, fitted))
             write_json(tmp / "result.json", result)
@@ -590,7 +619,7 @@ def figures(model: Model, data: MarkerData, fitted: dict, out_dir, prefix: str =
 
 
 def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
-         method_names=None, progress: bool = True) -> dict:
+         method_names=None, progress: bool = True, limits=None, overwrite: bool = False) -> dict:
     """Simulate cases A and B with the seed paper's settings, fit, draw, summarise.
 
     Nothing appears in ``out_dir`` until every figure and ``summary.json`` are complete.
@@ -602,7 +631,10 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     if not (math.isfinite(sigma) and sigma >= 0):
         raise SkelidError(f"--sigma must be a finite number >= 0 (mm), got {sigma}", "e.g. --sigma 15")
     method_names = list(method_names or DEMO_METHODS)
-    check_output_dir(out_dir)
+    check_output_dir(out_dir, overwrite)
+    for case in ("case-a", "case-b"):
+        for n in method_names:
+            check_cost(builtin_model(case), n, n_frames, limits)
     summary, drawn = {}, []
     cases = ("case-a", "case-b")
     bar = tqdm(total=len(cases) + 1, desc="demo", unit="step", file=sys.stderr,
@@ -619,7 +651,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
                         "methods": res["methods"]}
         bar.update(1)
     bar.set_postfix_str("figures")
-    with bar, atomic_dir(out_dir) as tmp:
+    with bar, atomic_dir(out_dir, overwrite=overwrite) as tmp:
         for model, trial, fitted, key in drawn:
             figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
         write_json(tmp / "summary.json", summary)

@@ -15,7 +15,7 @@ from skelid.simulate import builtin_model, simulate
 from tests.helpers import tree_3d, tree_3d_functional
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-needs_numba = pytest.mark.skipif(not _lm_kernel.AVAILABLE, reason="numba is not installed")
+needs_numba = pytest.mark.skipif(not _lm_kernel.AVAILABLE, reason="the compiled kernel is turned off (SKELID_NUMBA=0)")
 MODELS = {"case-a": lambda: builtin_model("case-a"), "case-b": lambda: builtin_model("case-b"),
           "tree3d": tree_3d, "tree3d_functional": tree_3d_functional,
           "lower_limb": lambda: load_model(EXAMPLES / "lower_limb.toml")}
@@ -226,3 +226,37 @@ def test_grid_filter_paths_agree(case, monkeypatch):
     np.testing.assert_allclose(fast.state_.rss, slow.state_.rss, rtol=1e-9)
     np.testing.assert_allclose(fast.state_.logdet, slow.state_.logdet, rtol=1e-9)
     assert fast.sigma_ == pytest.approx(slow.sigma_, rel=1e-9)
+
+
+@needs_numba
+def test_a_cold_cache_starts_the_compilation_aside_once_and_uses_numpy_meanwhile(monkeypatch):
+    started = []
+    monkeypatch.setattr(_lm_kernel, "MODE", "1")
+    monkeypatch.setattr(_lm_kernel, "compiled", lambda planar: False)
+    monkeypatch.setattr(_lm_kernel, "_cached", lambda planar: False)
+    monkeypatch.setattr(_lm_kernel, "warm", lambda planar, wait=True: started.append((planar, wait)))
+    monkeypatch.setattr(_lm_kernel, "_last_check", {})
+    assert not _lm_kernel.ready(True)
+    assert not _lm_kernel.ready(True)  # looked at again only after a while
+    assert started == [(True, False)]
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=5.0, n_frames=3, rng=np.random.default_rng(1))
+    q, _ = fit_pose(model, model.theta_center, trial.data.positions[..., :2], trial.pose)
+    assert np.all(np.isfinite(q))
+    monkeypatch.setattr(_lm_kernel, "_cached", lambda planar: True)
+    monkeypatch.setattr(_lm_kernel, "_last_check", {})
+    assert _lm_kernel.ready(True)
+
+
+@needs_numba
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_cache_check_uses_the_signature_of_real_calls(planar):
+    model = builtin_model("case-a") if planar else tree_3d()
+    trial = simulate(model, sigma=1.0, n_frames=2, rng=np.random.default_rng(1))
+    y = trial.data.positions[..., : model.dim]
+    fit_pose_logdet(model, model.theta_center, y, trial.pose)
+    import numba
+
+    sig = tuple(numba.typeof(a) for a in _lm_kernel._example_args(planar))
+    assert sig in _lm_kernel._driver(planar).signatures
+    assert _lm_kernel._cached(planar)

@@ -24,9 +24,18 @@ MARKER_FILES = [
     ("pyomeca-upperlimb/markers.csv", read_csv, 580, 51, 100, "mm", 0.0103),
     ("pyomeca-upperlimb/markers.trc", read_trc, 93, 51, 100, "mm", 0.0),
     ("hand-fingers/recording.tsv", read_tsv, 6000, 21, 100, "mm", 0.0049),
+    ("addbio-subject4/MarkerData/static1.trc", read_trc, 517, 55, 100, "m", 0.0),
+    ("addbio-subject4/MarkerData/walking1.trc", read_trc, 131, 51, 100, "m", 0.0187),
+    ("addbio-subject4/MarkerData/walking2.trc", read_trc, 132, 51, 100, "m", 0.0189),
+    ("addbio-subject4/MarkerData/squats1.trc", read_trc, 1346, 51, 100, "m", 0.0),
+    ("addbio-subject4/MarkerData/STS1.trc", read_trc, 1399, 51, 100, "m", 0.0),
+    ("addbio-subject4/MarkerData/DJ1.trc", read_trc, 269, 51, 100, "m", 0.0003),
+    # the C3D files also hold the lab software's computed points (bones, angles, moments): not markers
+    ("ktk-gait-pig/static.c3d", read_c3d, 879, 44, 100, "m", 0.0225),
+    ("ktk-gait-pig/gait.c3d", read_c3d, 474, 40, 100, "m", 0.1128),
 ]
 pytestmark = pytest.mark.filterwarnings("ignore::skelid.errors.SkelidWarning")  # checked where expected
-NOT_MARKER_FILES = ["LICENSE", "LICENSE.txt", "LICENSE.md", "NOTICE", ".xml", ".osim"]
+NOT_MARKER_FILES = ["LICENSE", "LICENSE.txt", "LICENSE.md", "NOTICE", "README.txt", ".xml", ".osim"]
 
 
 @pytest.fixture(scope="module")

@@ -47,13 +47,14 @@ def _base():
 
 
 @pytest.mark.parametrize("mutate, message", [
-    (lambda d: d["segments"][1]["joint"].update(type="ball"), "unknown joint type 'ball'"),
+    (lambda d: d["segments"][1]["joint"].update(type="ball"), "segments.1..joint.type: unknown value 'ball'"),
     (lambda d: d["segments"][1].update(parent="torso"), "not a segment"),
     (lambda d: d["markers"][0].update(segment="leg"), "not in the model"),
     (lambda d: d["parameters"][0].update(joint="Q"), "refers to joint 'Q'"),
-    (lambda d: d["parameters"][0]["prior"].update(lower=400.0), "lower < upper"),
-    (lambda d: d["markers"][0].update(position=[1.0]), "expected 2 numbers"),
-    (lambda d: d.update(extra=1), "unknown top-level key"),
+    (lambda d: d["parameters"][0]["prior"].update(lower=400.0),
+     "parameters.0..prior: lower 400 must be below upper 300"),
+    (lambda d: d["markers"][0].update(position=[1.0]), "markers.0..position: must have 2 numbers, got 1"),
+    (lambda d: d.update(extra=1), "extra: unknown key"),
     (lambda d: d["segments"][2].update(parent="hand"), "cycle"),
 ])
 def test_invalid_models_give_one_line_errors(mutate, message):

@@ -110,6 +110,8 @@ def test_planar_path_equals_products_of_rotations(case):
     g = geometry(model, theta)
     fast, slow = _forward_planar(plan, g, pose), _forward_general(plan, g, pose)
     for name, a, b in zip(fast._fields, fast, slow, strict=True):
+        if a is None and b is None:  # terms of coupled (custom) joints only
+            continue
         assert a.shape == b.shape, name
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9, err_msg=name)
 

@@ -89,6 +89,8 @@ def test_axis_tilt_turns_the_hinge():
     ({"name": "c", "kind": "joint_centre", "joint": "knee", "axis": "x", "axes": ["x"],
       "prior": {"type": "uniform", "lower": -5, "upper": 5}}, "either axis or axes"),
     ({"name": "c", "kind": "joint_centre", "joint": "knee", "axes": ["x", "w"],
+      "prior": {"type": "uniform", "lower": -5, "upper": 5}}, r"axes\[1\]: unknown value 'w'"),
+    ({"name": "c", "kind": "joint_centre", "joint": "knee", "axes": ["x", "x"],
       "prior": {"type": "uniform", "lower": -5, "upper": 5}}, "distinct"),
     ({"name": "c", "kind": "joint_position", "joint": "knee", "axes": ["x", "y"],
       "prior": [{"type": "normal", "sd": 5}]}, "1 priors for 2 axes"),

@@ -1,4 +1,4 @@
-"""Compiled Levenberg-Marquardt pose fit (optional: needs numba, the ``[fast]`` extra).
+"""Compiled Levenberg-Marquardt pose fit (numba).
 
 The same iteration as the numpy path of :func:`skelid.estimators.pose.fit_pose`,
 compiled. Every quantity is stored batch-last (``q (Q, B)``, ``J^T J (Q, Q, B)``)
@@ -17,22 +17,38 @@ Hinges tilted by ``axis_direction`` parameters have an axis that depends on
 ``theta``: their axes and cross-product matrices come in per batch element
 (``t_axis (T, 3, B)``, ``t_skew``, ``t_skew2 (T, 3, 3, B)``).
 
-Set the environment variable ``SKELID_NUMBA=0`` to use the numpy path even
-when numba is installed.
+**Compilation.** There are two drivers, one for planar and one for spatial
+models; each is compiled on first use and cached on disk by numba
+(``cache=True``: beside this file when that folder is writable, otherwise in
+the user's cache folder or ``NUMBA_CACHE_DIR``). Compiling one takes tens of
+seconds, loading it from the cache well under a second. So that nobody waits
+for it, :func:`ready` answers whether a driver can run without compiling in
+this process; when it cannot, it starts the compilation in a separate
+background process (:func:`warm`) and the caller uses the numpy path
+meanwhile. Once that process has written the cache, the next call loads the
+compiled driver. The two paths agree to rounding, so only the speed changes.
+
+The environment variable ``SKELID_NUMBA`` selects the path: ``0`` (or
+``false``, ``no``, ``off``) always the numpy path; ``wait`` always the
+compiled path, waiting for the compilation if the cache is cold (the tests
+use this, so that a result never depends on when the cache was written);
+anything else (the default) as described above.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 
-try:  # pragma: no cover - depends on the environment
-    if os.environ.get("SKELID_NUMBA", "1").strip().lower() in ("0", "false", "no", "off"):
-        raise ImportError("disabled by SKELID_NUMBA")
-    import numba
-except ImportError:  # pragma: no cover - depends on the environment
+MODE = os.environ.get("SKELID_NUMBA", "1").strip().lower()
+if MODE in ("0", "false", "no", "off"):  # pragma: no cover - depends on the environment
     numba = None
+else:
+    import numba
 
 AVAILABLE = numba is not None
 
@@ -45,7 +61,7 @@ def plan_arrays(plan) -> tuple | None:
     """
     S, Q, D = plan.n_segments, plan.n_pose, plan.dim
     order = [k for ks in plan.segment_dofs for k in ks]
-    if order != list(range(Q)):
+    if order != list(range(Q)) or plan.has_custom:  # custom (coupled) joints: numpy path
         return None
     dof_start = np.zeros(S + 1, dtype=np.int64)
     dof_start[1:] = np.cumsum([len(ks) for ks in plan.segment_dofs])
@@ -647,3 +663,142 @@ if AVAILABLE:  # pragma: no branch
 def no_tilts(B: int) -> tuple:
     """The ``tilts`` argument of :func:`lm_fit` for a model without tilted hinges."""
     return np.zeros((0, 3, B)), np.zeros((0, 3, 3, B)), np.zeros((0, 3, 3, B))
+
+
+# ------------------------------------------------------------------ which path, and warming the cache
+_last_check: dict[bool, float] = {}
+_warming: dict[bool, subprocess.Popen] = {}
+_RECHECK_S = 0.5  # while a driver is not cached, look again at most this often
+
+
+def _example_args(planar: bool) -> tuple:
+    """Arguments with the types of every real call of a driver (their values are never used)."""
+    f, i, b = np.zeros, np.int64, np.bool_
+    return (f((2, 1)), f((1, 2, 1)), f((1, 1)), f((1, 1)), 1, 1e-10, 1e-3, True, 2, 1, 1,
+            np.zeros(2, i), np.zeros(2, i), np.zeros(1, b), f((1, 3)), f((1, 3, 3)), f((1, 3, 3)),
+            np.zeros(1, i), f((1, 1)), np.zeros((1, 3), b), np.zeros(1, i),
+            f((0, 3, 1)), f((0, 3, 3, 1)), f((0, 3, 3, 1)))
+
+
+def _driver(planar: bool):
+    return _lm_planar if planar else _lm_spatial
+
+
+def _cached(planar: bool) -> bool:
+    """Whether numba's disk cache holds the driver for this machine and this source.
+
+    Reads numba's cache index; if that cannot be read in this numba version,
+    answers True (the driver is then compiled in this process when first called).
+    """
+    disp = _driver(planar)
+    try:
+        sig = tuple(numba.typeof(a) for a in _example_args(planar))
+        cache = disp._cache
+        key = cache._index_key(sig, disp.targetctx.codegen())
+        return cache._cache_file._load_index().get(key) is not None
+    except Exception:  # noqa: BLE001 - numba internals changed: fall back to compiling here
+        return True
+
+
+def compiled(planar: bool) -> bool:
+    """Whether the driver is already compiled (or loaded) in this process."""
+    return AVAILABLE and bool(_driver(planar).signatures)
+
+
+def ready(planar: bool) -> bool:
+    """Whether the compiled driver can run now without compiling in this process.
+
+    False without numba (or with ``SKELID_NUMBA=0``). True once the driver is
+    loaded or when numba's cache holds it; with ``SKELID_NUMBA=wait`` always
+    True, after waiting for :func:`warm` if the cache is cold.
+    Otherwise starts :func:`warm` in the background (once) and answers False;
+    while the driver is not cached the cache is looked at again at most every
+    half second, so calling this per frame costs nothing.
+    """
+    if not AVAILABLE:
+        return False
+    if compiled(planar) or MODE == "compile":  # "compile": the warm-up process itself
+        return True
+    if MODE == "wait":
+        if not _cached(planar):
+            warm(planar, wait=True)
+        return True
+    now = time.monotonic()
+    if now - _last_check.get(planar, -np.inf) < _RECHECK_S:
+        return False
+    _last_check[planar] = now
+    if _cached(planar):
+        return True
+    warm(planar, wait=False)
+    return False
+
+
+def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
+    """Compile the driver into numba's disk cache in a separate process.
+
+    Parameters
+    ----------
+    planar : bool
+        Which driver.
+    wait : bool
+        Wait for the process to finish (at most ``timeout`` seconds).
+
+    Returns
+    -------
+    bool
+        Whether the driver is cached (after waiting, if asked).
+    """
+    if not AVAILABLE:
+        return False
+    proc = _warming.get(planar)
+    if proc is None and not _cached(planar):
+        env = dict(os.environ, SKELID_NUMBA="compile", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+        code = f"from skelid.estimators._lm_kernel import _compile_here; _compile_here({planar!r})"
+        proc = _warming[planar] = subprocess.Popen(
+            [sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL, start_new_session=True)
+    if proc is not None and wait:
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return False
+    return _cached(planar)
+
+
+def _compile_here(planar: bool) -> None:
+    """Compile the driver into the cache in this process, unless another process has (one at a time)."""
+    import tempfile
+
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        fcntl = None
+    name = f"skelid-numba-{'planar' if planar else 'spatial'}-{getattr(os, 'getuid', lambda: 0)()}.lock"
+    with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
+        if fcntl is not None:
+            fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+        if not _cached(planar):
+            _fit_tiny_model(planar)
+
+
+def _fit_tiny_model(planar: bool) -> None:
+    """Compile (or load) the driver in this process by fitting a tiny model through the public path."""
+    from skelid.estimators.pose import fit_pose_logdet
+    from skelid.model import model_from_dict
+
+    joint = {"type": "revolute", "name": "j"} if planar else {"type": "hinge", "name": "j", "axis": [0, 0, 1]}
+    root = {"type": "free", "name": "root"}
+    d = {"model": {"name": "warm", "dim": 2 if planar else 3, "units": "m"},
+         "segments": [{"name": "a", "parent": "ground", "joint": root},
+                      {"name": "b", "parent": "a", "joint": dict(joint, position=[1.0, 0.0] if planar
+                                                                  else [1.0, 0.0, 0.0])}],
+         "markers": [{"name": f"m{k}", "segment": "ab"[k // 3],
+                      "position": ([0.1 * k, 0.2] if planar else [0.1 * k, 0.2, 0.05 * k])} for k in range(6)],
+         "parameters": [{"name": "len", "kind": "length", "joint": "j",
+                         "prior": {"type": "uniform", "lower": 0.5, "upper": 1.5}}]}
+    model = model_from_dict(d, "warm")
+    D = model.dim
+    y = np.random.default_rng(0).normal(size=(2, len(model.markers), D))
+    fit_pose_logdet(model, model.theta_center, y, np.zeros((2, model.n_pose)), n_iter=2)
+    if not compiled(planar):  # pragma: no cover - the model did not reach the kernel
+        raise RuntimeError("the warm-up fit did not use the compiled kernel")

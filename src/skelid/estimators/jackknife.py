@@ -59,7 +59,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skelid.estimators.joint import frame_scores, influence_rows, joint_fit, smoothed_frame_scores
+from skelid.estimators.joint import influence_rows, joint_fit, row_weights
 from skelid.estimators.likelihood import frame_terms
 from skelid.model.description import Model
 
@@ -87,14 +87,21 @@ class Jackknife(NamedTuple):
         return self.cov is not None
 
 
-def _scores(model, y, theta, pose, R):
-    if R is None:
-        return frame_scores(model, y, theta, pose).sum(axis=0)
-    return smoothed_frame_scores(model, y, theta, pose, R).sum(axis=0)
+def _terms(model, y, theta, pose, R, weights):
+    """Weighted influence rows, information and reduced score of a fit (see the module notes)."""
+    r, Jq, Jt = frame_terms(model, theta, pose, y)
+    sw = row_weights(weights, y)
+    if sw is not None:
+        r, Jq, Jt = r * sw, Jq * sw[..., None], Jt * sw[..., None]
+    A, G = influence_rows(Jq, Jt, R)
+    score = np.einsum("tkp,tk->p", A, r)
+    if R is not None:
+        score = score + np.einsum("tqp,tq->p", G, (R @ pose.ravel()).reshape(pose.shape))
+    return A, np.einsum("tkp,tkq->pq", Jt, A), score
 
 
 def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
-                     rng: np.random.Generator | None = None) -> Jackknife:
+                     rng: np.random.Generator | None = None, weights=None) -> Jackknife:
     """One-step leave-one-marker-out replicates and their covariance.
 
     Parameters
@@ -111,6 +118,8 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
         White-noise level of the null distribution.
     rng : numpy.random.Generator, optional
         For the white-noise draws (default ``default_rng(0)``).
+    weights : (M,) or (T, M) float, optional
+        The fit's marker weights.
 
     Returns
     -------
@@ -119,9 +128,7 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     y = np.asarray(y, float)
     T, M, _ = y.shape
     P = model.n_params
-    _, Jq, Jt = frame_terms(model, theta, pose, y)
-    A, _ = influence_rows(Jq, Jt, R)
-    S = np.einsum("tkp,tkq->pq", Jt, A)
+    A, S, _ = _terms(model, y, theta, pose, R, weights)
     S_isqrt = _inv_sqrt(S)
     rng = np.random.default_rng(0) if rng is None else rng
     seed = int(rng.integers(2**32))
@@ -138,13 +145,11 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
             continue
         ym = y.copy()
         ym[:, m] = np.nan
-        _, Jq_m, Jt_m = frame_terms(model, theta, pose, ym)
-        A_m, _ = influence_rows(Jq_m, Jt_m, R)
-        S_m = np.einsum("tkp,tkq->pq", Jt_m, A_m)
+        A_m, S_m, score_m = _terms(model, ym, theta, pose, R, weights)
         if np.linalg.eigvalsh(S_isqrt @ S_m @ S_isqrt)[0] < ESSENTIAL:
             continue
         S_m_inv = np.linalg.inv(S_m)
-        shifts[m] = S_m_inv @ _scores(model, ym, theta, pose, R)
+        shifts[m] = S_m_inv @ score_m
         null[:, m] = response(A_m) @ S_m_inv.T - base
     ok = np.isfinite(shifts).all(axis=1)
     n = int(ok.sum())
@@ -209,7 +214,7 @@ def _inv_sqrt(S):
     return (V / np.sqrt(np.maximum(w, 1e-300 * max(w.max(), 1e-300)))) @ V.T
 
 
-def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=None):
+def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=None, weights=None):
     """The marker jackknife of a fit, folded into its covariance.
 
     Parameters
@@ -221,6 +226,8 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
         The fit's noise level (for the white-noise null).
     cov : (P, P) float
         The covariance so far.
+    weights : (M,) or (T, M) float, optional
+        The fit's marker weights.
     fold_in : bool
         Add the markers' disagreement to ``cov`` (False: report only, e.g. when the
         artefact's size is stated).
@@ -235,7 +242,7 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
         A warning when the interval was widened.
     """
     names = model.parameter_names
-    jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty, sigma=sigma, rng=rng)
+    jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty, sigma=sigma, rng=rng, weights=weights)
     out = {"available": jk.available, "folded": False,
            "markers_without_replicate": [model.marker_names[m] for m in np.flatnonzero(~jk.replicate)]}
     if not jk.available:

@@ -62,10 +62,17 @@ def _banded(Hqq, R):
 
 
 def _banded_system(Hqq, R):
-    """``blockdiag(Hqq) + R`` in upper banded form, with a tiny ridge that keeps it definite."""
+    """``blockdiag(Hqq) + R`` in upper banded form, with a tiny ridge that keeps it definite.
+
+    The ridge is relative to each pose coordinate's own mean diagonal (angles and
+    translations have different units: one ridge for all would perturb the
+    solution along the translations by a fraction of a percent).
+    """
     ab = _banded(Hqq, R)
     u = ab.shape[0] - 1
-    ab[u] += 1e-10 * max(float(np.mean(ab[u])), 1e-300)  # frames without markers: keep it definite
+    T, Q = Hqq.shape[:2]
+    scale = np.maximum(ab[u].reshape(T, Q).mean(axis=0), 1e-300)
+    ab[u] += 1e-10 * np.tile(scale, T)  # frames without markers: keep it definite
     return ab
 
 
@@ -298,6 +305,33 @@ def smoothing_penalty(model: Model, Hqq, rate: float, cutoff):
     return sp.kron(D3.T @ D3, sp.diags(w)).tocsc()
 
 
+def block_penalty(model: Model, Hqq, blocks):
+    """Block-diagonal motion-model penalty for trials stacked along the frame axis.
+
+    Parameters
+    ----------
+    Hqq : (T, Q, Q) float
+        Per-frame pose information of all trials.
+    blocks : sequence of (start, stop, rate, cutoff)
+        Each trial's frames; a cutoff of None leaves its poses unsmoothed.
+
+    Returns
+    -------
+    scipy.sparse matrix (T*Q, T*Q): :func:`smoothing_penalty` of each trial on
+    its own diagonal block, zero across trials.
+    """
+    import scipy.sparse as sp
+
+    Q = Hqq.shape[-1]
+    parts = []
+    for a, b, rate, cutoff in blocks:
+        if cutoff is None or rate is None:
+            parts.append(sp.csc_matrix(((b - a) * Q, (b - a) * Q)))
+        else:
+            parts.append(smoothing_penalty(model, Hqq[a:b], rate, cutoff))
+    return sp.block_diag(parts, format="csc")
+
+
 def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
     """Like :func:`_schur_step` with the pose blocks coupled by the penalty ``R``."""
     T, Q = gq.shape
@@ -323,9 +357,38 @@ def _continuous_poses(model: Model, q, use):
     return np.stack([np.interp(t, idx, qa[:, k]) for k in range(q.shape[1])], axis=-1)
 
 
+def row_weights(weights, y) -> np.ndarray | None:
+    """Square roots of marker weights, one per residual row: ``(T, M*D)``, or None.
+
+    Parameters
+    ----------
+    weights : (M,) or (T, M) float, or None
+        Weight of each marker (or each marker in each frame); ``1/sigma_m^2``
+        relative to a common scale.
+    y : (T, M, D) float
+    """
+    if weights is None:
+        return None
+    T, M, D = y.shape
+    w = np.asarray(weights, dtype=float)
+    if w.shape not in ((M,), (T, M)):
+        raise ValueError(f"weights must have shape ({M},) or ({T}, {M}), got {w.shape}")
+    if not np.all(np.isfinite(w) & (w >= 0)):
+        raise ValueError("weights must be finite and non-negative")
+    return np.repeat(np.sqrt(np.broadcast_to(w, (T, M))), D, axis=1)
+
+
+def weighted_terms(model: Model, theta, q, y, sw=None):
+    """:func:`~skelid.estimators.likelihood.frame_terms` with rows scaled by ``sw`` (T, M*D)."""
+    r, Jq, Jt = frame_terms(model, theta, q, y)
+    if sw is None:
+        return r, Jq, Jt
+    return r * sw, Jq * sw[..., None], Jt * sw[..., None]
+
+
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
-              cutoff: float | None = None, frames=None) -> JointFit:
+              cutoff: float | None = None, frames=None, weights=None, blocks=None) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -344,21 +407,37 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
     frames : (T,) bool, optional
         Frames allowed into the fit (others are skipped), on top of the count
         of :func:`usable_frames`.
+    weights : (M,) or (T, M) float, optional
+        Weighted least squares: each marker's residual and Jacobian rows are
+        scaled by the square root of its weight (``1/sigma_m^2`` up to a common
+        factor). ``rss`` and ``info`` are then weighted ones: ``rss / dof``
+        estimates that common factor.
+    blocks : sequence of (start, stop, rate, cutoff), optional
+        Several trials stacked along the frame axis: each block of frames gets
+        its own motion-model penalty (rate and cutoff; cutoff None for none)
+        and no smoothing crosses a block boundary. Replaces ``rate``/``cutoff``.
     """
     y = np.asarray(y, dtype=float)
     use = usable_frames(model, y)
     if frames is not None:
         use &= np.asarray(frames, dtype=bool)
     y = np.where(use[:, None, None], y, np.nan)  # skipped frames give zero rows: no part in the fit
+    sw = row_weights(weights, y)
     theta = np.array(theta0, dtype=float)
     q = np.array(q0, dtype=float)
     R = None
-    if cutoff is not None and rate is not None:
+    if blocks is not None and all(c is None or r_ is None for _, _, r_, c in blocks):
+        blocks = None  # no trial smoothed: the per-frame fit
+    if blocks is not None:
+        q = np.concatenate([_continuous_poses(model, q[a:b], use[a:b]) for a, b, *_ in blocks])
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+        R = block_penalty(model, pose_information(Jq), blocks)
+    elif cutoff is not None and rate is not None:
         q = _continuous_poses(model, q, use)
-        r, Jq, Jt = frame_terms(model, theta, q, y)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
         R = smoothing_penalty(model, pose_information(Jq), rate, cutoff)
     else:
-        r, Jq, Jt = frame_terms(model, theta, q, y)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
 
     def total(r_, q_):
         c = float(np.sum(r_**2))
@@ -382,7 +461,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         if bounds is not None:
             theta_new = np.clip(theta_new, bounds[0], bounds[1])
         q_new = q + dq
-        r_new, Jq_new, Jt_new = frame_terms(model, theta_new, q_new, y)
+        r_new, Jq_new, Jt_new = weighted_terms(model, theta_new, q_new, y, sw)
         cost_new = total(r_new, q_new)
         if np.isfinite(cost_new) and cost_new <= cost:
             # along a long curved valley Gauss-Newton steps come out short: extrapolate while it pays
@@ -392,7 +471,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
                 if bounds is not None:
                     th2 = np.clip(th2, bounds[0], bounds[1])
                 q2 = q + 2.0 * mult * dq
-                r2, Jq2, Jt2 = frame_terms(model, th2, q2, y)
+                r2, Jq2, Jt2 = weighted_terms(model, th2, q2, y, sw)
                 c2 = total(r2, q2)
                 if not (np.isfinite(c2) and c2 < cost_new):
                     break
@@ -421,7 +500,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 
 
-def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4) -> np.ndarray:
+def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weights=None) -> np.ndarray:
     """Second-order bias ``b_theta`` (P,) of the joint least-squares estimate.
 
     Parameters
@@ -435,9 +514,13 @@ def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4) -> np
         Noise variance.
     step : float
         Relative size of the finite-difference step along each direction.
+    weights : (M,) or (T, M) float, optional
+        Marker weights of a weighted fit (``sigma2`` is then the variance of a
+        weighted residual): every row ``f_i`` becomes ``sqrt(w_i) f_i``.
     """
     P, Q = model.n_params, model.n_pose
-    r, Jq, Jt = frame_terms(model, theta, q, y)
+    sw = row_weights(weights, np.asarray(y, float))
+    r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
     Hqq = pose_information(Jq)
     Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
     Hqq_inv = np.linalg.pinv(Hqq, hermitian=True)
@@ -467,16 +550,18 @@ def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4) -> np
     second = np.einsum("tkmdj,tkj->tkmd", Jp - Jm, dirs) / (2.0 * hh[..., None])
     mask = np.isfinite(y).all(axis=-1)
     d = (second.sum(axis=1) * mask[..., None]).reshape(T, -1)  # (T, M*D)
+    if sw is not None:
+        d = d * sw
     return -0.5 * sigma2 * S_inv @ np.einsum("tkp,tk->p", Kp, d)
 
 
-def frame_scores(model: Model, y, theta, q) -> np.ndarray:
-    """Per-frame scores ``((I-P_t)K_t)^T r_t``: ``(T, P)``."""
-    r, Jq, Jt = frame_terms(model, theta, q, y)
+def frame_scores(model: Model, y, theta, q, weights=None) -> np.ndarray:
+    """Per-frame scores ``((I-P_t)K_t)^T r_t``: ``(T, P)`` (weighted rows with ``weights``)."""
+    r, Jq, Jt = weighted_terms(model, theta, q, y, row_weights(weights, np.asarray(y, float)))
     return np.einsum("tkp,tk->tp", projected_theta_jacobian(Jq, Jt), r)
 
 
-def smoothed_frame_scores(model: Model, y, theta, q, R) -> np.ndarray:
+def smoothed_frame_scores(model: Model, y, theta, q, R, weights=None) -> np.ndarray:
     """Per-frame scores ``(T, P)`` of the motion-model fit that sum to its reduced gradient.
 
     With ``A = blockdiag(J_t^T J_t) + R`` and ``G = A^{-1} H_{q theta}``,
@@ -484,7 +569,7 @@ def smoothed_frame_scores(model: Model, y, theta, q, R) -> np.ndarray:
     ``theta`` after the poses are eliminated (zero at the optimum), so their
     long-run covariance goes with the information ``S`` of :func:`joint_fit`.
     """
-    r, Jq, Jt = frame_terms(model, theta, q, y)
+    r, Jq, Jt = weighted_terms(model, theta, q, y, row_weights(weights, np.asarray(y, float)))
     A, G = influence_rows(Jq, Jt, R)
     Rq = (R @ q.ravel()).reshape(q.shape)
     return np.einsum("tkp,tk->tp", A, r) + np.einsum("tqp,tq->tp", G, Rq)
@@ -543,7 +628,7 @@ def lag1_autocorrelation(resid, used) -> float:
 
 
 def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
-                  max_frames: int | None = None) -> np.ndarray:
+                  max_frames: int | None = None, weights=None) -> np.ndarray:
     """Second-order bias ``b_theta`` (P,) of the joint fit under the motion-model penalty ``R``.
 
     For ``min ||y - f(beta)||^2 + beta^T R beta`` (``R`` acts on the poses) the
@@ -557,8 +642,11 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
     ``-C R beta`` of a motion that is not exactly smooth is not included. Long
     trials are cut into pieces of ``max_frames`` (default: 2400 pose
     coordinates' worth) whose biases are averaged with their information as weights.
+    With marker ``weights`` (see :func:`box_bias`) every row is scaled by ``sqrt(w_i)``.
     """
     T = len(q)
+    if weights is not None:
+        weights = np.broadcast_to(np.asarray(weights, float), np.asarray(y).shape[:2])
     if max_frames is None:
         max_frames = max(50, 2400 // model.n_pose)
     if T > max_frames:
@@ -567,11 +655,12 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
         num, den = 0.0, 0.0
         for a, b in zip(edges[:-1], edges[1:], strict=True):
             Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
-            bb, S = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step)
+            bb, S = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step,
+                                         None if weights is None else weights[a:b])
             num = num + S @ bb
             den = den + S
         return np.linalg.solve(den, num)
-    return _smoothed_bias_dense(model, y, theta, q, sigma2, R, step)[0]
+    return _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights)[0]
 
 
 def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
@@ -579,10 +668,11 @@ def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
     return R[a * Q:b * Q, a * Q:b * Q]
 
 
-def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step):
+def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
     P, Q = model.n_params, model.n_pose
     T = len(q)
-    _, Jq, Jt = frame_terms(model, theta, q, y)
+    sw = row_weights(weights, np.asarray(y, float))
+    _, Jq, Jt = weighted_terms(model, theta, q, y, sw)
     m = Jq.shape[1]
     n = P + T * Q
     N = np.zeros((n, n))
@@ -608,6 +698,8 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step):
     Sig = 0.5 * (Sig + np.swapaxes(Sig, 1, 2))
     mask = np.isfinite(y).all(axis=-1)
     wmask = np.repeat(mask, model.dim, axis=1).astype(float)  # (T, m)
+    if sw is not None:
+        wmask = wmask * sw  # a weighted row's second derivatives scale with it
 
     def jac_full(th, qq):
         _, a, b = marker_jacobian(model, th, qq)

@@ -33,11 +33,14 @@ from skelid.estimators.joint import (
     joint_fit,
     lag1_autocorrelation,
     newey_west,
+    row_weights,
     smoothed_bias,
     smoothed_frame_scores,
     usable_frames,
+    weighted_terms,
 )
 from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
+from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
@@ -199,6 +202,12 @@ class MarkerEstimator:
         Marker positions whose residual distance after a first fit exceeds this
         many robust standard deviations are left out and the fit repeated
         (None: keep every position).
+    noise : {'pooled', 'per_marker'}
+        One noise level for every marker, or each marker (or declared group) its
+        own, estimated from its residuals and used as weights in the fit
+        (see :mod:`skelid.estimators.noise`).
+    marker_groups : dict of str to list of str, optional
+        With ``noise='per_marker'``: markers that share one noise level.
 
     Attributes
     ----------
@@ -239,6 +248,10 @@ class MarkerEstimator:
     y_ : (T, M, D) float
         The markers the final fit used (model order and units; outliers and
         skipped frames NaN).
+    marker_sigma_ : (M,) float or None
+        Each marker's noise level with ``noise='per_marker'`` (NaN without data).
+    marker_weights_ : (M,) float or None
+        The weights of the fit (``sigma_^2 / marker_sigma_^2`` up to rounding).
     warnings_ : list of str
     """
 
@@ -251,7 +264,7 @@ class MarkerEstimator:
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
-                 jackknife: bool = True):
+                 noise: str = "pooled", marker_groups: dict | None = None, jackknife: bool = True):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -263,6 +276,8 @@ class MarkerEstimator:
         self.rate = rate
         self.outlier_threshold = outlier_threshold
         self.artefact_rms = artefact_rms
+        self.noise = noise
+        self.marker_groups = marker_groups
         self.jackknife = jackknife
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
@@ -319,6 +334,7 @@ class MarkerEstimator:
                               rate=rate, cutoff=cutoff)
                     for th, qq in ((theta0, pose0), (fit.theta, fit.pose))]
             fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
+        fit, w = self._noise_levels(y, fit, bounds, fixed, rate, cutoff)
         used = fit.frames_used
         n_skip = int((~used).sum())
         self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
@@ -383,17 +399,17 @@ class MarkerEstimator:
         # the noise that drives the second-order bias is the white part of the residuals:
         # with slow, correlated residuals (soft-tissue artefact, model misfit) it is
         # estimated from frame-to-frame differences, which a slow drift barely touches
-        dr = np.diff(resid, axis=0)[used[1:] & used[:-1]]
+        dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
         self.sigma_white_ = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else self.sigma_
         sigma2_bias = min(sigma2, self.sigma_white_**2) if flagged else sigma2
         method = self.bias_correction
         if method is True or method == "auto":
             method = "box"
         if method == "box" and fit.penalty is None:
-            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias)
+            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w)
         elif method == "box":
             self.bias_ = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta,
-                                       fit.pose, sigma2_bias, fit.penalty)
+                                       fit.pose, sigma2_bias, fit.penalty, weights=w)
         elif method == "bootstrap":
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
         elif method is False or method == "none":
@@ -405,7 +421,7 @@ class MarkerEstimator:
         cov = sigma2 * info_inv
         self.crlb_motion_sd_ = np.sqrt(np.diag(cov))
         # the bound with every pose a free unknown (no motion model), at the estimate
-        _, Jq_u, Jt_u = frame_terms(model, fit.theta, fit.pose[used], y[used])
+        _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
         self.crlb_sd_ = crlb_sd(efficient_information(Jq_u, Jt_u, self.sigma_))
         if flagged:
             warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
@@ -415,10 +431,10 @@ class MarkerEstimator:
         self.widened_ = self.robust == "always" or (self.robust == "auto" and flagged)
         if self.widened_:
             if fit.penalty is None:
-                scores = frame_scores(model, y[used], fit.theta, fit.pose[used])
+                scores = frame_scores(model, y[used], fit.theta, fit.pose[used], weights=w)
             else:
                 scores = smoothed_frame_scores(model, np.where(used[:, None, None], y, np.nan),
-                                               fit.theta, fit.pose, fit.penalty)[used]
+                                               fit.theta, fit.pose, fit.penalty, weights=w)[used]
             lags = _bandwidth(self.sta_score_, len(scores))
             cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
             cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
@@ -435,7 +451,7 @@ class MarkerEstimator:
         if self.jackknife:
             cov, self.jackknife_, msg = jackknife_stage(
                 model, np.where(used[:, None, None], y, np.nan), fit, self.sigma_, cov,
-                fold_in=not self.artefact_rms, rng=rng)
+                fold_in=not self.artefact_rms, rng=rng, weights=w)
             if msg:
                 warn_once(msg, self.warnings_)
         self.cov_data_ = cov
@@ -478,6 +494,24 @@ class MarkerEstimator:
                           f"[{p.prior.lower:g}, {p.prior.upper:g}]", self.warnings_)
         return self
 
+    def _noise_levels(self, y, fit, bounds, fixed, rate, cutoff):
+        """Per-marker noise levels and the weighted fit (``noise='per_marker'``), or the fit as it is."""
+        self.marker_sigma_ = self.marker_weights_ = self.marker_dof_ = None
+        if self.noise == "pooled":
+            return fit, None
+        if self.noise != "per_marker":
+            raise ValueError("noise must be 'pooled' or 'per_marker'")
+        model = self.model
+
+        def refit(weights, prev):
+            return joint_fit(model, y, prev.theta, prev.pose, n_iter=self.n_iter, bounds=bounds,
+                             frames=fixed, rate=rate, cutoff=cutoff, weights=weights)
+
+        groups = marker_groups(model.marker_names, self.marker_groups)
+        fit, w, sig, dof, _ = per_marker_fit(model, y, refit, fit, groups)
+        self.marker_sigma_, self.marker_weights_, self.marker_dof_ = sig, w, dof
+        return fit, w
+
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
         """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate."""
         clean = marker_positions(self.model, fit.theta, fit.pose)
@@ -505,6 +539,11 @@ class MarkerEstimator:
         out.update(summ)
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
                         "fixed": self.sigma is not None, "white": self.sigma_white_}
+        if self.marker_sigma_ is not None:
+            out["sigma"]["per_marker"] = {
+                n: {"value": None if not np.isfinite(v) else float(v),
+                    "dof": None if not np.isfinite(d) else float(d)}
+                for n, v, d in zip(self.model.marker_names, self.marker_sigma_, self.marker_dof_, strict=True)}
         if self.lengths_:
             out["lengths"] = self.lengths_
         out["cutoff_hz"] = None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist()

@@ -84,8 +84,8 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, d
     ``\\lambda`` multiplied by 10 (by 0.3 on success). An element whose normal
     equations are not finite (it went astray) takes no step. All elements
     iterate together until every one has stopped improving (relative decrease
-    below ``tol``) or is stuck (``\\lambda > 10^8``). With numba installed a
-    compiled kernel runs the same iteration (see
+    below ``tol``) or is stuck (``\\lambda > 10^8``). A compiled kernel runs
+    the same iteration once it is compiled (see
     :mod:`skelid.estimators._lm_kernel`); set ``SKELID_NUMBA=0`` to use numpy.
     """
     q, cost, _ = _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet=False)
@@ -123,8 +123,13 @@ def _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet):
 
 
 def _kernel_tables(model, plan) -> tuple | None:
-    """The compiled kernel's model tables (kept with the model like its plan); None without the kernel."""
-    if not _lm_kernel.AVAILABLE:
+    """The compiled kernel's model tables (kept with the model like its plan).
+
+    None where the numpy path fits: without numba, while the kernel is not
+    yet compiled (see :func:`skelid.estimators._lm_kernel.ready`), or for a
+    model the kernel cannot represent.
+    """
+    if not _lm_kernel.ready(bool(plan.planar)):
         return None
     tables = model.__dict__.get("_lm_kernel_tables", False)
     if tables is False:
@@ -182,12 +187,20 @@ class FramePoseFitter:
         self.g = geometry(model, self.theta)  # (K, G)
         self.tilt = tilt_tables(model, self.theta)
         self.n = self.g.shape[0]
-        self.tables = _kernel_tables(model, self.plan)
-        if self.tables is not None:
+        self.tables = None
+        self._use_kernel()
+
+    def _use_kernel(self) -> bool:
+        """Whether to call the compiled kernel now (its batch-last arrays are made the first time)."""
+        if self.tables is None:
+            self.tables = _kernel_tables(self.model, self.plan)
+            if self.tables is None:
+                return False
             self.gT = np.ascontiguousarray(self.g.T)
             self.tiltT = _tilts_batch_last(self.tilt, (self.n,))
             self.yT = np.empty((self.plan.n_markers, self.plan.dim, self.n))
             self.wT = np.empty((self.plan.n_markers, self.n))
+        return True
 
     def fit(self, y, q0, n_iter: int = 8, tol: float = 1e-10, damping: float = 1e-3):
         """Poses of one frame ``y (M, D)`` (NaN where missing) from ``q0 (K, Q)`` or ``(Q,)``.
@@ -204,7 +217,7 @@ class FramePoseFitter:
         y = np.asarray(y, dtype=float)
         present = np.isfinite(y).all(axis=-1)
         y0 = np.where(present[:, None], y, 0.0)
-        if self.tables is None:
+        if not self._use_kernel():
             q = np.array(np.broadcast_to(q0, (self.n, self.plan.n_pose)), dtype=float)
             return _fit_numpy(self.plan, self.g, self.tilt, y0, present, q, (self.n,), n_iter, tol, damping, True)
         self.yT[...] = y0[..., None]
@@ -353,7 +366,7 @@ def segment_placements(model: Model, theta, y, min_markers: int = 3, flat_tol: f
     y = np.asarray(y, dtype=float)
     F = y.shape[0]
     g = geometry(model, theta)
-    r_all = g[S * D:].reshape(M, D)
+    r_all = g[S * D:(S + M) * D].reshape(M, D)
     R = np.broadcast_to(np.eye(D), (F, S, D, D)).copy()
     p = np.zeros((F, S, D))
     placed = np.zeros((F, S), dtype=bool)
@@ -453,6 +466,10 @@ def rigid_poses(model: Model, theta, y):
             eul = np.moveaxis(_euler_zxy(R_rel), -1, 0)
             vals = list(eul) if kind == "spherical" else \
                 [*np.moveaxis(p[:, s] - offsets[s], -1, 0), *eul]
+        elif kind == "custom":
+            vals = custom_joint_coordinates(model, s, R_rel, p[:, s] - offsets[s] if par < 0 else None)
+            if vals is None:
+                continue
         elif kind == "hinge":
             a = local_axis.get(ks[0], np.asarray(model.dofs[ks[0]].axis))
             vals = [_hinge_angle(R_rel, np.broadcast_to(a, (F, 3)))]
@@ -468,6 +485,52 @@ def rigid_poses(model: Model, theta, y):
             q[:, k] = np.where(ok, v, 0.0)
             known[:, k] = ok
     return q, known
+
+
+def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None):
+    """Coordinates of custom joint ``s`` from its relative rotation, or None if not plain.
+
+    Handled: every coordinate drives one motion as itself; the rotations, one
+    to three, about mutually perpendicular axes; translations (of the root,
+    ``shift (F, 3)`` in the world) along independent axes.
+    """
+    from skelid.model.kinematics import kinematics_plan
+
+    plan = kinematics_plan(model)
+    rows = plan.custom[s]
+    if any(k >= 0 and not f.is_identity for _t, _a, k, f, *_ in rows) \
+            or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, *_ in rows):
+        return None
+    if plan.orientation[s] is not None:
+        R_rel = R_rel @ plan.orientation[s].T
+    rot = [(a, k) for t, a, k, *_ in rows if not t and k >= 0]
+    trans = [(a, k) for t, a, k, *_ in rows if t and k >= 0]
+    if trans and shift is None:
+        return None
+    ax = np.array([a for a, _ in rot])
+    if len(rot) > 1 and np.abs(ax @ ax.T - np.eye(len(rot))).max() > 1e-9:
+        return None
+    F = R_rel.shape[0]
+    if len(rot) == 1:
+        ang = [_hinge_angle(R_rel, np.broadcast_to(ax[0], (F, 3)))]
+    elif len(rot) >= 2:
+        B = np.array(ax.T) if len(rot) == 3 else np.stack([ax[0], ax[1], np.cross(ax[0], ax[1])], -1)
+        sgn = np.sign(np.linalg.det(B))
+        B[:, 2] *= sgn  # a proper rotation; the third angle changes sign with it
+        Rb = B.T @ R_rel @ B  # = Rx(a) Ry(b) Rz(c)
+        a = np.arctan2(-Rb[:, 1, 2], Rb[:, 2, 2])
+        b = np.arcsin(np.clip(Rb[:, 0, 2], -1.0, 1.0))
+        c = np.arctan2(-Rb[:, 0, 1], Rb[:, 0, 0])
+        ang = [a, b, sgn * c][:len(rot)]
+    else:
+        ang = []
+    tv = []
+    if trans:
+        T = np.array([a for a, _ in trans]).T  # (3, n)
+        tv = list(np.linalg.lstsq(T, shift.T, rcond=None)[0])
+    out = dict(zip([k for _, k in rot], ang, strict=True)) | dict(zip([k for _, k in trans], tv, strict=True))
+    seg_dofs = [k for k, d in enumerate(model.dofs) if d.segment == s]
+    return [out[k] for k in seg_dofs]
 
 
 def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_starts: int = 64,
@@ -491,8 +554,32 @@ def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_start
         q0 = np.where(known, q_known, q0)
         q0[0] = np.where(known, q_known, 0.0)  # and one start at the reference pose
     q, cost = fit_pose(model, np.asarray(theta)[None], y_frame[None], q0, n_iter=60)
-    best = int(np.nanargmin(cost))
-    return q[best], float(cost[best])
+    best = _canonical_best(model, q, cost, y_frame)
+    return _wrap_angles(model, q[best]), float(cost[best])
+
+
+def _wrap_angles(model: Model, q) -> np.ndarray:
+    """``q (..., Q)`` with every rotational coordinate wrapped into ``[-pi, pi)``."""
+    rot = np.array([d.kind == "R" for d in model.dofs])
+    return np.where(rot, (q + np.pi) % (2.0 * np.pi) - np.pi, q)
+
+
+def _canonical_best(model: Model, q, cost, y_frame) -> int:
+    """Index of the start to keep: of the poses at the lowest cost (to rounding), the one nearest the reference.
+
+    Different angle branches of one placement (e.g. the two Euler triples of
+    one rotation) reach the same cost; which start reaches it first is
+    decided by rounding. Taking, among the poses within a relative ``1e-6``
+    of the lowest cost, the one with the smallest wrapped angles makes the
+    choice independent of rounding (and of the compiled or numpy path).
+    """
+    if not np.isfinite(cost).any():
+        return 0
+    n_obs = int(np.isfinite(y_frame).all(axis=-1).sum()) * model.dim
+    floor = 1e-12 * max(float(np.nanmax(np.abs(y_frame), initial=0.0)), 1.0) ** 2 * n_obs
+    low = np.isfinite(cost) & (cost <= np.nanmin(cost) * (1.0 + 1e-6) + floor)
+    size = np.sum(_wrap_angles(model, q) ** 2, axis=-1)
+    return int(np.argmin(np.where(low, size, np.inf)))
 
 
 def pose_determined(model: Model, y) -> np.ndarray:

@@ -62,12 +62,14 @@ from pathlib import Path
 import numpy as np
 
 from skelid.errors import ModelError
+from skelid.model.functions import CoordinateFunction
 
 JOINT_TYPES = {
     2: ("free", "revolute", "fixed"),
-    3: ("free", "hinge", "universal", "spherical", "fixed"),
+    3: ("free", "hinge", "universal", "spherical", "fixed", "custom"),
 }
-PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre", "axis_direction")
+PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre", "axis_direction",
+                   "scale", "marker_offset")
 LINEAR_SETTING_KINDS = ("length", "joint_position", "marker_position")  # replace a coordinate
 PRIOR_KINDS = ("uniform", "normal", "lognormal")
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -171,19 +173,50 @@ class Parameter:
     @property
     def grid(self) -> np.ndarray:
         """(K,) float: candidate values ``lower, lower + step, ..., upper``."""
-        n = int(round((self.prior.upper - self.prior.lower) / self.grid_step)) + 1
+        from skelid.resources import MAX_GRID_POINTS
+
+        n = (self.prior.upper - self.prior.lower) / self.grid_step
+        if not n + 1 <= MAX_GRID_POINTS:
+            raise ModelError(f"parameter {self.name!r}: a grid_step of {self.grid_step:g} makes {n + 1:.3g} grid "
+                             "points", "use a coarser grid_step (or narrower prior bounds) in the model file")
+        n = int(round(n)) + 1
         return np.linspace(self.prior.lower, self.prior.lower + (n - 1) * self.grid_step, n)
 
 
 @dataclass(frozen=True)
+class Motion:
+    """One elementary motion of a ``custom`` joint: a rotation or translation by ``function(q)``.
+
+    ``axis`` is a unit vector in the parent segment's frame (translations) or in
+    the frame left by the joint's earlier rotations (rotations);
+    ``coordinate`` indexes the joint's ``coordinates`` (-1: a constant function).
+    """
+
+    kind: str  # "R" or "T"
+    axis: tuple[float, ...]
+    coordinate: int
+    function: CoordinateFunction
+    scale_weights: tuple[float, ...] = ()  # translation scales by w . s (default: the axis squared)
+
+
+@dataclass(frozen=True)
 class Joint:
-    """The joint that attaches a segment to its parent."""
+    """The joint that attaches a segment to its parent.
+
+    A ``custom`` joint moves its child by ``motions``: every translation first
+    (along axes of the parent's frame), then the rotations in order, then the
+    constant rotation ``orientation``; the coordinates it has are named by
+    ``coordinates`` (see :mod:`skelid.model.functions`).
+    """
 
     name: str
     type: str
     position: tuple[float, ...]
     axes: tuple[tuple[float, ...], ...] = ()
     range: tuple[tuple[float, float], ...] = ()  # degrees, per rotation; used to simulate
+    motions: tuple[Motion, ...] = ()
+    coordinates: tuple[str, ...] = ()
+    orientation: tuple[float, ...] = ()  # 9 numbers, row-major: rotation after the motions (custom)
 
 
 @dataclass(frozen=True)
@@ -207,11 +240,12 @@ class Marker:
 
 @dataclass(frozen=True)
 class Dof:
-    """One elementary motion of a joint (internal)."""
+    """One pose coordinate of a joint (internal): an elementary motion, or a coupled coordinate."""
 
     segment: int
     kind: str  # "R" rotation or "T" translation
     axis: tuple[float, ...]  # in the frame the joint acts in (after earlier motions)
+    coupled: bool = False  # drives several motions of a custom joint, or one through a function
 
 
 # ----------------------------------------------------------------------------- model
@@ -270,6 +304,8 @@ class Model:
                     f"joint {s.joint.name!r}: only the root segment may have a free joint",
                     "use revolute (2-D) or hinge/universal/spherical (3-D)",
                 )
+            if s.joint.type == "custom":
+                _check_custom(s.joint)
             if len(s.joint.position) != self.dim:
                 raise ModelError(
                     f"joint {s.joint.name!r}: position needs {self.dim} coordinates, "
@@ -309,9 +345,10 @@ class Model:
         for p in self.parameters:
             if pnames.count(p.name) > 1:
                 raise ModelError(f"parameter name {p.name!r} is used twice")
-            targets = joint_names if p.kind != "marker_position" else mnames
+            on_marker = p.kind in ("marker_position", "marker_offset")
+            targets = mnames if on_marker else seg_names if p.kind == "scale" else joint_names
             if p.target not in targets:
-                what = "marker" if p.kind == "marker_position" else "joint"
+                what = "marker" if on_marker else "segment" if p.kind == "scale" else "joint"
                 raise ModelError(
                     f"parameter {p.name!r} refers to {what} {p.target!r}, which is not in the model",
                     f"use one of: {', '.join(targets)}",
@@ -324,7 +361,8 @@ class Model:
                         "so its length has no direction",
                         "give the joint a nominal position along the segment",
                     )
-            if p.kind in ("joint_position", "marker_position", "joint_centre") and p.axis is not None \
+            if p.kind in ("joint_position", "marker_position", "joint_centre", "scale", "marker_offset") \
+                    and p.axis is not None \
                     and p.axis >= self.dim:
                 raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
             if p.kind == "joint_centre":
@@ -409,6 +447,41 @@ class Model:
                     out += [Dof(i, "R", ez), Dof(i, "R", ex), Dof(i, "R", ey)]
                 elif t in ("hinge", "universal"):
                     out += [Dof(i, "R", a) for a in s.joint.axes]
+                elif t == "custom":
+                    out += _custom_dofs(i, s.joint)
+        return tuple(out)
+
+    @cached_property
+    def coupled_translations(self) -> tuple[tuple[int, int, np.ndarray, float], ...]:
+        """Translations of ``custom`` joints by a function that scales with the parent segment.
+
+        ``(segment index, motion index, b (P,), base)``: the translation
+        ``f(q)`` along its axis ``a`` is multiplied by ``base + theta @ b``, the
+        parent's scale along ``a``: ``sum_i w_i s_i`` with ``s_i`` its per-axis
+        factors (``s`` for one factor) and weights ``w`` the motion's
+        ``scale_weights`` (an imported OpenSim joint: its axis in the joint's
+        parent frame, as OpenSim scales a ``CustomJoint``) or ``a_i^2``.
+        Translations that are a coordinate itself are not scaled.
+        """
+        out = []
+        for i, s in enumerate(self.segments):
+            if s.joint.type != "custom" or s.parent is None:
+                continue
+            for j, m in enumerate(s.joint.motions):
+                if m.kind != "T" or m.function.is_identity or m.function.is_constant:
+                    continue
+                b = np.zeros(self.n_params)
+                a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
+                covered = np.zeros(3)
+                for k, p in enumerate(self.parameters):
+                    if p.kind == "scale" and p.target == s.parent:
+                        if p.axis is None:
+                            b[k] += a2.sum()
+                            covered[:] = 1.0
+                        else:
+                            b[k] += a2[p.axis]
+                            covered[p.axis] = 1.0
+                out.append((i, j, b, float(a2 @ (1.0 - covered))))
         return tuple(out)
 
     @property
@@ -451,7 +524,8 @@ class Model:
         """(G,) float: joint positions then marker positions, as written in the model."""
         return np.concatenate(
             [np.ravel([s.joint.position for s in self.segments]),
-             np.ravel([m.position for m in self.markers])]
+             np.ravel([m.position for m in self.markers]),
+             np.ones(len(self.coupled_translations))]
         ).astype(float)
 
     @cached_property
@@ -467,6 +541,7 @@ class Model:
         setting = np.zeros((g.size, self.n_params), dtype=bool)
         jidx = {s.joint.name: i for i, s in enumerate(self.segments)}
         midx = {m.name: i for i, m in enumerate(self.markers)}
+        sidx = self.segment_index
         for k, p in enumerate(self.parameters):
             if p.kind == "length":
                 sl = slice(jidx[p.target] * D, jidx[p.target] * D + D)
@@ -479,6 +554,17 @@ class Model:
                 g[base + p.axis] = 0.0
                 A[base + p.axis, k] = 1.0
                 setting[base + p.axis, k] = True
+            elif p.kind == "marker_offset":
+                A[(S + midx[p.target]) * D + p.axis, k] += 1.0
+            elif p.kind == "scale":
+                s = sidx[p.target]
+                rows = [(S + m) * D for m in np.flatnonzero(self.marker_segment == s)]
+                rows += [c * D for c in np.flatnonzero(self.parent_index == s)]
+                for r in rows:
+                    for a in range(D) if p.axis is None else (p.axis,):
+                        A[r + a, k] += self.nominal_geometry[r + a]
+                        g[r + a] = 0.0
+                        setting[r + a, k] = True
             elif p.kind == "joint_centre":
                 s = jidx[p.target]
                 A[s * D + p.axis, k] += 1.0
@@ -486,10 +572,15 @@ class Model:
                     A[(S + m) * D + p.axis, k] -= 1.0
                 for c in np.flatnonzero(self.parent_index == s):
                     A[c * D + p.axis, k] -= 1.0
+        n0 = (S + len(self.markers)) * D
+        for n, (_s, _m, b, base) in enumerate(self.coupled_translations):
+            g[n0 + n] = base
+            A[n0 + n] = b
         if np.any(setting.sum(axis=1) > 1):
             raise ModelError(
                 f"model {self.name!r}: two parameters set the same coordinate",
-                "give each geometric quantity at most one length/joint_position/marker_position parameter",
+                "give each geometric quantity at most one length/joint_position/marker_position/scale "
+                "parameter",
             )
         return g, A
 
@@ -542,14 +633,17 @@ class Model:
     def theta_nominal(self) -> np.ndarray:
         """(P,) float: the parameters' values implied by the model's nominal geometry.
 
-        Zero for ``joint_centre`` shifts and ``axis_direction`` tilts.
+        Zero for ``joint_centre`` shifts, ``marker_offset`` shifts and
+        ``axis_direction`` tilts; one for ``scale`` factors.
         """
         g0 = self.nominal_geometry
         _, A = self.geometry_map
         out = np.zeros(self.n_params)
         for k, p in enumerate(self.parameters):
             col = A[:, k]
-            if p.kind == "length":
+            if p.kind == "scale":
+                out[k] = 1.0
+            elif p.kind == "length":
                 out[k] = g0[col != 0] @ col[col != 0]
             elif p.kind in ("joint_position", "marker_position"):
                 out[k] = g0[col != 0][0]
@@ -571,6 +665,8 @@ class Model:
     # ---------------------------------------------------------------- export
     def to_dict(self) -> dict:
         """A dict that :func:`model_from_dict` turns back into an equal model."""
+        from skelid.model.schema import PARAMETER_TARGET
+
         axis_name = "xyz"
         d = {
             "model": {"name": self.name, "dim": self.dim, "units": self.units},
@@ -586,6 +682,15 @@ class Model:
                 j["axis"] = list(s.joint.axes[0])
             elif s.joint.type == "universal":
                 j["axes"] = [list(a) for a in s.joint.axes]
+            elif s.joint.type == "custom":
+                j["coordinates"] = list(s.joint.coordinates)
+                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis)}
+                                | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
+                                | {"function": m.function.to_dict()}
+                                | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
+                                for m in s.joint.motions]
+                if s.joint.orientation:
+                    j["orientation"] = [list(s.joint.orientation[r * 3:r * 3 + 3]) for r in range(3)]
             if s.joint.range:
                 j["range"] = [list(r) for r in s.joint.range]
             d["segments"].append({"name": s.name, "parent": s.parent or "ground", "joint": j})
@@ -596,7 +701,7 @@ class Model:
             d["markers"].append(e)
         for p in self.parameters:
             e = {"name": p.name, "kind": p.kind}
-            e["marker" if p.kind == "marker_position" else "joint"] = p.target
+            e[PARAMETER_TARGET.get(p.kind, "joint")] = p.target
             if p.axis is not None:
                 e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
             e["prior"] = p.prior.to_dict()
@@ -609,6 +714,68 @@ class Model:
         keep = tuple(self.parameter(n) for n in names)
         return Model(self.name, self.dim, self.units, self.segments, self.markers, keep,
                      self.description)
+
+
+# ----------------------------------------------------------------------------- custom joints
+def _check_custom(j: Joint) -> None:
+    if not j.motions:
+        raise ModelError(f"joint {j.name!r}: a custom joint needs at least one motion",
+                         "use a fixed joint for a weld")
+    for m in j.motions:
+        if m.kind not in ("R", "T") or len(m.axis) != 3:
+            raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation and a 3-D axis")
+        if not -1 <= m.coordinate < len(j.coordinates):
+            raise ModelError(f"joint {j.name!r}: a motion refers to coordinate {m.coordinate}, "
+                             f"the joint has {len(j.coordinates)}")
+        if m.coordinate < 0 and not m.function.is_constant:
+            raise ModelError(f"joint {j.name!r}: a motion without a coordinate must have a constant function")
+    used = {m.coordinate for m in j.motions}
+    for c, name in enumerate(j.coordinates):
+        if c not in used:
+            raise ModelError(f"joint {j.name!r}: coordinate {name!r} drives no motion",
+                             "remove it or give a motion its name")
+    if j.orientation and len(j.orientation) != 9:
+        raise ModelError(f"joint {j.name!r}: orientation must be a 3 x 3 rotation matrix")
+
+
+def _custom_dofs(i: int, j: Joint) -> list[Dof]:
+    """One pose coordinate per coordinate of a custom joint, in the joint's order."""
+    out = []
+    for c in range(len(j.coordinates)):
+        ms = [m for m in j.motions if m.coordinate == c]
+        plain = len(ms) == 1 and ms[0].function.is_identity
+        rot = [m for m in ms if m.kind == "R"]
+        if plain:
+            out.append(Dof(i, ms[0].kind, ms[0].axis))
+        else:
+            out.append(Dof(i, "R", (rot or ms)[0].axis, coupled=True))
+    return out
+
+
+def _custom_from_dict(j: dict, where: str):
+    coords = j.get("coordinates", [])
+    if not isinstance(coords, list) or not all(isinstance(c, str) for c in coords):
+        raise ModelError(f"{where}: a custom joint needs coordinates = ['name', ...]")
+    motions = []
+    for n, m in enumerate(j.get("motions", [])):
+        mw = f"{where} motion {n + 1}"
+        if not isinstance(m, dict) or m.get("kind") not in ("rotation", "translation"):
+            raise ModelError(f"{mw}: needs kind = 'rotation' or 'translation'")
+        c = m.get("coordinate", "")
+        if c and c not in coords:
+            raise ModelError(f"{mw}: coordinate {c!r} is not one of the joint's coordinates {coords}")
+        sw = m.get("scale_weights", ())
+        motions.append(Motion("R" if m["kind"] == "rotation" else "T", _unit(m.get("axis"), f"{mw} axis"),
+                              coords.index(c) if c else -1,
+                              CoordinateFunction.from_dict(m.get("function"), f"{mw} function"),
+                              _num_list(sw, 3, f"{mw} scale_weights") if sw else ()))
+    orient = ()
+    if "orientation" in j:
+        R = np.asarray(j["orientation"], dtype=float)
+        if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
+            raise ModelError(f"{where}: orientation must be a 3 x 3 rotation matrix")
+        orient = tuple(float(v) for v in R.ravel())
+    return tuple(motions), tuple(str(c) for c in coords), orient
 
 
 # ----------------------------------------------------------------------------- loading
@@ -660,8 +827,10 @@ def _prior(d, where: str, nominal: float = math.nan) -> Prior:
 
 def _nominal(kind: str, target: str, axis, segments, markers) -> float:
     """Nominal value of a scalar parameter from the parsed geometry (NaN if the target is unknown)."""
-    if kind in ("joint_centre", "axis_direction"):
+    if kind in ("joint_centre", "axis_direction", "marker_offset"):
         return 0.0
+    if kind == "scale":
+        return 1.0
     if kind == "marker_position":
         pos = next((m.position for m in markers if m.name == target), None)
     else:
@@ -682,13 +851,15 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
     kind = p.get("kind")
     if kind not in PARAMETER_KINDS:
         raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
-    target_key = "marker" if kind == "marker_position" else "joint"
+    from skelid.model.schema import PARAMETER_TARGET
+
+    target_key = PARAMETER_TARGET.get(kind, "joint")
     target = p.get(target_key)
     if target is None:
         raise ModelError(f"{where}: needs {target_key} = '...'")
     names = AXES if kind != "axis_direction" else TILT_AXES
     hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
-    if kind == "length":
+    if kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
         if "axis" in p or "axes" in p:
             raise ModelError(f"{where}: a length has no axis", "remove axis/axes")
         comps = [(name, None)]
@@ -730,13 +901,9 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
     """Build a :class:`Model` from the parsed TOML structure (see docs/model-format.md)."""
-    if not isinstance(d, dict):
-        raise ModelError(f"{source}: not a table")
-    known = {"model", "segments", "markers", "parameters", "aliases"}
-    extra = set(d) - known
-    if extra:
-        raise ModelError(f"{source}: unknown top-level key(s) {sorted(extra)}",
-                         f"use only {sorted(known)}")
+    from skelid.model.schema import check_built, validate
+
+    validate(d, source)  # keys, types and ranges, with key paths; what follows builds the model
     head = d.get("model", {})
     try:
         dim = int(head.get("dim", 3))
@@ -773,9 +940,10 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
         if rng and not isinstance(rng[0], list):
             rng = [rng]
         rng = tuple(_num_list(r, 2, f"{where} joint range") for r in rng)
+        motions, coords, orient = _custom_from_dict(j, where) if jtype == "custom" else ((), (), ())
         segments.append(Segment(
             str(s["name"]), None if parent in (None, "ground") else str(parent),
-            Joint(str(j.get("name", s["name"])), jtype, pos, axes, rng),
+            Joint(str(j.get("name", s["name"])), jtype, pos, axes, rng, motions, coords, orient),
         ))
     aliases = d.get("aliases", {}) or {}
     markers = []
@@ -788,8 +956,10 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
     params = []
     for i, p in enumerate(d.get("parameters", [])):
         params += _parameters(p, i, source, segments, markers)
-    return Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
-                 str(head.get("description", "")))
+    model = Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
+                  str(head.get("description", "")))
+    check_built(model, d, source)
+    return model
 
 
 def load_model(path) -> Model:
@@ -800,7 +970,9 @@ def load_model(path) -> Model:
     ModelError
         With the file name, the problem and the fix, for any invalid content.
     """
-    path = Path(path)
+    from skelid.io._common import check_regular_file
+
+    path = check_regular_file(path, "model file", ModelError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

@@ -56,6 +56,8 @@ class Kinematics(NamedTuple):
     markers: np.ndarray  # (..., M, D)
     g: np.ndarray  # (..., G)
     tilt_omega: np.ndarray  # (..., T, 2, D) world d(rotation)/d(tilt) of each tilted hinge, per degree
+    dof_velocity: np.ndarray | None = None  # (..., Q, D) extra term of coupled coordinates' columns
+    coupled_shift: np.ndarray | None = None  # (..., C, D) world f(q) a of each scaled coupled translation
 
 
 class KinematicsPlan(NamedTuple):
@@ -89,6 +91,12 @@ class KinematicsPlan(NamedTuple):
     dof_tilt: np.ndarray  # (Q,) int: slot of the hinge in Model.axis_tilts, -1 if its axis is fixed
     n_tilts: int
     planar: bool  # 2-D, no tilted axis, every joint's translations before its rotation
+    custom: tuple = ()  # per segment: None, or its custom joint's motions (see _custom_tables)
+    orientation: tuple = ()  # per segment: None, or the constant (3, 3) rotation after its motions
+    has_custom: bool = False
+    n_coupled: int = 0  # scaled coupled translations (entries of g after the markers)
+    coupled_segment: np.ndarray = np.zeros(0, dtype=int)  # (C,) segment of each
+    coupled_moves: np.ndarray = np.zeros((0, 0))  # (C, M) float: the translation moves marker m
 
 
 def kinematics_plan(model: Model) -> KinematicsPlan:
@@ -129,15 +137,44 @@ def _build_plan(model: Model) -> KinematicsPlan:
         max(t, default=-1) < min(r, default=Q) for t, r in zip(seg_trans, seg_rot, strict=True))
     ms = np.asarray(model.marker_segment, dtype=int)
     A_joint = A[: S * D].reshape(S, D, P)
-    A_mark = A[S * D:].reshape(M, D, P)
+    A_mark = A[S * D:(S + M) * D].reshape(M, D, P)
     used_j = np.flatnonzero(np.abs(A_joint).sum(axis=(1, 2)))
     used_m = np.flatnonzero(np.abs(A_mark).sum(axis=(1, 2)))
+    custom, orient = _custom_tables(model, seg_dofs)
+    ct = model.coupled_translations
+    ct_seg = np.array([c[0] for c in ct], dtype=int)
     return KinematicsPlan(
         D, S, M, Q, P, tuple(int(i) for i in model.parent_index), g_base, A, dof_segment, is_t, axis,
         skew, skew @ skew, seg_dofs, seg_rot, seg_trans, ms,
         np.asarray(model.dof_moves_marker, dtype=float), np.flatnonzero(~is_t), np.flatnonzero(is_t),
         used_j, A_joint[used_j], model.ancestor[used_j][:, ms].astype(float), used_m, A_mark[used_m],
-        dof_tilt, len(model.axis_tilts), planar)
+        dof_tilt, len(model.axis_tilts), planar, custom, orient,
+        any(c is not None for c in custom) or any(o is not None for o in orient), len(ct), ct_seg,
+        model.ancestor[ct_seg][:, ms].astype(float) if len(ct) else np.zeros((0, M)))
+
+
+def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
+    """Per segment: its custom joint's motions ``(is_translation, axis (3,), pose index or -1,
+    function, slot in g's coupled factors or -1)``, translations first; and its constant rotation."""
+    slot = {(c[0], c[1]): n for n, c in enumerate(model.coupled_translations)}
+    custom, orient = [], []
+    for i, s in enumerate(model.segments):
+        j = s.joint
+        if j.type != "custom":
+            custom.append(None)
+            orient.append(None)
+            continue
+        rows = []
+        for n, m in enumerate(j.motions):
+            k = seg_dofs[i][m.coordinate] if m.coordinate >= 0 else -1
+            a = np.asarray(m.axis, float)
+            K = _skew(a)
+            rows.append((m.kind == "T", a, k, m.function, slot.get((i, n), -1), K, K @ K))
+        rows.sort(key=lambda r: not r[0])  # translations first (stable: rotations keep their order)
+        custom.append(tuple(rows))
+        R = np.asarray(j.orientation, float).reshape(3, 3) if j.orientation else None
+        orient.append(None if R is None or np.allclose(R, np.eye(3), atol=0, rtol=0) else R)
+    return tuple(custom), tuple(orient)
 
 
 def geometry(model: Model, theta) -> np.ndarray:
@@ -365,8 +402,11 @@ def _forward_general(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray, tilt
         batch = np.broadcast_shapes(batch, tilt.axis.shape[:-2])
     gb = g.shape[:-1]
     offsets = g[..., : S * D].reshape(gb + (S, D))
-    r_marker = g[..., S * D:].reshape(gb + (M, D))
+    r_marker = g[..., S * D:(S + M) * D].reshape(gb + (M, D))
+    factors = g[..., (S + M) * D:]
     eye = np.eye(D)
+    velocity = np.zeros(batch + (Q, D)) if plan.has_custom else None
+    shift = np.zeros(batch + (plan.n_coupled, D)) if plan.has_custom else None
     R = np.empty(batch + (S, D, D))
     p = np.empty(batch + (S, D))
     Rpar = np.empty(batch + (S, D, D))
@@ -379,6 +419,14 @@ def _forward_general(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray, tilt
         pp = 0.0 if par < 0 else p[..., par, :]
         Ri = Rp
         pi = pp + np.matmul(Rp, offsets[..., i, :, None])[..., 0]
+        if plan.has_custom and plan.custom[i] is not None:
+            Ri, pi = _custom_joint(plan.custom[i], Rp, pi, pose, factors, axis, pivot, velocity, shift)
+            if plan.orientation[i] is not None:
+                Ri = Ri @ plan.orientation[i]
+            R[..., i, :, :] = Ri
+            p[..., i, :] = pi
+            Rpar[..., i, :, :] = Rp
+            continue
         for k in plan.segment_dofs[i]:
             qk = pose[..., k]
             j = plan.dof_tilt[k]
@@ -410,7 +458,55 @@ def _forward_general(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray, tilt
         Rpar[..., i, :, :] = Rp
     ms = plan.marker_segment
     x = p[..., ms, :] + np.matmul(R[..., ms, :, :], r_marker[..., None])[..., 0]
-    return Kinematics(R, p, Rpar, axis, pivot, x, np.broadcast_to(g, batch + g.shape[-1:]), omega)
+    return Kinematics(R, p, Rpar, axis, pivot, x, np.broadcast_to(g, batch + g.shape[-1:]), omega,
+                      velocity, shift)
+
+
+def _custom_joint(rows, Rp, p0, pose, factors, axis, pivot, velocity, shift):
+    """Frame of a custom joint's child and its coordinates' Jacobian columns (written in place).
+
+    Translations along ``Rp a`` by ``c f(q)`` (``c`` the parent's scale along
+    ``a`` for a scaled coupled translation, else 1), then rotations by
+    ``f(q)`` about axes carried by the earlier rotations. The column of a
+    coordinate is ``omega x (x - pivot) + v`` with ``omega = sum f'(q) w`` over
+    its rotations (world axes ``w``), ``v = sum c f'(q) Rp a`` over its
+    translations and the pivot at the joint centre after the translations.
+    """
+    pi = p0
+    for is_t, a, k, fun, slot, _K, _K2 in rows:
+        if not is_t:
+            continue
+        w = Rp @ a
+        if fun.is_identity:  # a translational coordinate
+            axis[..., k, :] = w
+            pi = pi + w * pose[..., k, None]
+            continue
+        val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
+        c = factors[..., slot] if slot >= 0 else 1.0
+        if slot >= 0:
+            shift[..., slot, :] = w * val[..., None]
+        pi = pi + w * (c * val)[..., None]
+        if k >= 0:
+            velocity[..., k, :] += w * (c * der)[..., None]
+    Ri = Rp
+    for is_t, a, k, fun, _slot, K, K2 in rows:
+        if is_t:
+            continue
+        if fun.is_identity:
+            val = pose[..., k]
+            axis[..., k, :] = Ri @ a
+        else:
+            val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
+            if k >= 0:
+                axis[..., k, :] += (Ri @ a) * der[..., None]
+        Ri = Ri @ (np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * K2 + _EYE3)
+    for is_t, _a, k, fun, _slot, _K, _K2 in rows:
+        if k >= 0 and not (is_t and fun.is_identity):
+            pivot[..., k, :] = pi
+    return Ri, pi
+
+
+_EYE3 = np.eye(3)
 
 
 def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
@@ -471,6 +567,8 @@ def pose_jacobian_from_plan(plan, kin: Kinematics, mask=None) -> np.ndarray:
     if plan.trans_dofs.size:
         t = plan.trans_dofs
         cols[..., t, :, :] = kin.dof_axis[..., t, None, :]
+    if kin.dof_velocity is not None:
+        cols += kin.dof_velocity[..., :, None, :]
     cols *= (plan.moves if mask is None else plan.moves * mask[..., None, :])[..., None]
     return np.moveaxis(cols, -3, -1)
 
@@ -513,6 +611,8 @@ def pose_gradient(model: Model, kin: Kinematics, r) -> np.ndarray:
         g_rot = np.einsum("km,...m->...k", W, c) - (pivot[..., 0] * s[..., 1] - pivot[..., 1] * s[..., 0])
     g_trans = np.einsum("...kd,...kd->...k", axis, s)
     is_t = np.array([d.kind == "T" for d in model.dofs], dtype=bool)
+    if kin.dof_velocity is not None:
+        g_rot = g_rot + np.einsum("...kd,...kd->...k", kin.dof_velocity, s)
     return np.where(is_t, g_trans, g_rot)
 
 
@@ -529,6 +629,11 @@ def theta_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
         J[..., used_m, :, :] += np.einsum(
             "...mij,mjp->...mip", kin.R_world_seg[..., plan.marker_segment[used_m], :, :], plan.A_marker
         )
+    if plan.n_coupled:
+        # d x / d c = f(q) Rp a for the markers the translation moves; c = base + theta @ b
+        _, A = model.geometry_map
+        B = A[(plan.n_segments + plan.n_markers) * plan.dim:]  # (C, P)
+        J += np.einsum("...cd,cm,cp->...mdp", kin.coupled_shift, plan.coupled_moves, B)
     for j, (k, ku, kv, *_) in enumerate(model.axis_tilts):
         moved = plan.moves[k][:, None]
         rel = kin.markers - kin.dof_pivot[..., k, None, :]

@@ -1,0 +1,222 @@
+"""Per-marker noise levels: each marker (or group of markers) its own ``sigma``.
+
+Model: marker ``m`` in frame ``t`` is seen with its own noise level,
+
+.. math:: y_{tm} = x_m(q_t, \\theta) + \\varepsilon_{tm}, \\qquad
+          \\varepsilon_{tm} \\sim N(0, \\sigma_m^2 I),
+
+so the likelihood is a weighted least-squares problem with weights
+``w_m = 1/sigma_m^2`` (up to one common factor ``s^2``, which ``RSS_w / dof``
+estimates). A skin marker over a bony landmark that moves 3 times as much as
+the others gets a ninth of their weight and cannot drag a joint centre.
+
+**Degrees of freedom.** The fit spends ``Q`` pose coordinates per frame (or the
+effective number under the motion model) and ``P`` parameters. They are
+apportioned to the markers by the leverage of the weighted fit: with
+``H = J (J^T J + R)^{-1} J^T`` (``J`` the weighted Jacobian of all unknowns,
+``R`` the motion-model penalty), the residual of row ``i`` has expectation
+``E r_i^2 = sigma_i^2 (1 - H_ii)`` when the weights are right. Through the
+arrow structure of ``J`` (poses eliminated, see :mod:`skelid.estimators.joint`)
+
+.. math:: H_{ii} = j_i^\\top [A^{-1}]_{tt}\\, j_i + a_i^\\top S^{-1} a_i, \\qquad
+          A = \\mathrm{blockdiag}(J_t^\\top J_t) + R,
+
+with ``j_i`` the row's pose Jacobian, ``a_i`` its influence row
+(:func:`~skelid.estimators.joint.influence_rows`) and ``S`` the information
+about ``theta``. So
+
+.. math:: \\hat\\sigma_m^2 = \\frac{\\sum_{t,d} r_{tmd}^2}{n_m - \\sum_{t,d} H_{tmd,tmd}} ,
+
+and the weights and the fit are iterated to a fixed point (each step is the
+REML-like estimating equation for the variance components of a linear model).
+
+Example
+-------
+>>> import numpy as np
+>>> from skelid.estimators.noise import group_sigma
+>>> s, dof = group_sigma(np.array([4.0, 9.0]), np.array([1.0, 1.0]), np.array([0, 1]))
+>>> [float(v) for v in s]
+[2.0, 3.0]
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+
+from skelid.errors import ModelError
+from skelid.estimators.joint import (
+    JointFit,
+    _banded_system,
+    band_inverse_blocks,
+    influence_rows,
+    row_weights,
+    weighted_terms,
+)
+from skelid.estimators.likelihood import pose_information
+from skelid.model.description import Model
+
+#: a marker's sigma is kept within this factor of the pooled one (a marker that the fit
+#: could follow almost exactly must not take all the weight)
+SIGMA_RATIO_LIMIT = 10.0
+
+
+def row_leverage(Jq, Jt, R=None) -> np.ndarray:
+    """Diagonal of the hat matrix of the joint fit, one value per residual row.
+
+    Parameters
+    ----------
+    Jq : (T, m, Q) float
+        Pose Jacobians (weighted rows; missing markers zero rows).
+    Jt : (T, m, P) float
+        Parameter Jacobians.
+    R : sparse (T*Q, T*Q), optional
+        Motion-model penalty on the poses.
+
+    Returns
+    -------
+    (T, m) float, summing to ``T Q + P`` without a penalty (every row present
+    and every pose fixed), to the fit's effective number of unknowns with one.
+    """
+    T, _, Q = Jq.shape
+    Hqq = pose_information(Jq)
+    if R is None:
+        Ainv = np.linalg.pinv(Hqq, hermitian=True)
+    else:
+        Ainv = band_inverse_blocks(_banded_system(Hqq, R), Q)
+    A, _ = influence_rows(Jq, Jt, R)
+    S = np.einsum("tkp,tkq->pq", Jt, A)
+    S_inv = np.linalg.pinv(0.5 * (S + S.T), hermitian=True)
+    return np.einsum("tki,tij,tkj->tk", Jq, Ainv, Jq) + np.einsum("tkp,pq,tkq->tk", A, S_inv, A)
+
+
+def marker_leverage(model: Model, y, fit: JointFit, weights=None) -> np.ndarray:
+    """Leverage summed over each marker's rows: ``(M,)``, the unknowns its data pay for."""
+    y = np.where(fit.frames_used[:, None, None], np.asarray(y, float), np.nan)
+    _, Jq, Jt = weighted_terms(model, fit.theta, fit.pose, y, row_weights(weights, y))
+    h = row_leverage(Jq, Jt, fit.penalty)
+    T, M = y.shape[:2]
+    return h.reshape(T, M, model.dim).sum(axis=(0, 2))
+
+
+def marker_rss(model: Model, y, fit: JointFit) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted residual sum of squares ``(M,)`` and coordinate count ``(M,)`` of each marker."""
+    from skelid.model.kinematics import marker_positions
+
+    y = np.where(fit.frames_used[:, None, None], np.asarray(y, float), np.nan)
+    r = y - marker_positions(model, fit.theta, fit.pose)
+    ok = np.isfinite(r).all(axis=-1)
+    rss = np.where(ok[..., None], r, 0.0) ** 2
+    return rss.sum(axis=(0, 2)), ok.sum(axis=0) * float(model.dim)
+
+
+def group_sigma(rss, dof, groups) -> tuple[np.ndarray, np.ndarray]:
+    """Noise level of each group, given to each of its markers.
+
+    Parameters
+    ----------
+    rss, dof : (M,) float
+        Each marker's residual sum of squares and residual degrees of freedom.
+    groups : (M,) int
+        Group label of each marker.
+
+    Returns
+    -------
+    sigma, dof : (M,) float
+        ``sqrt(sum rss / sum dof)`` over the marker's group, and that group's dof
+        (NaN where the group has no residual degrees of freedom).
+    """
+    groups = np.asarray(groups)
+    labels, inv = np.unique(groups, return_inverse=True)
+    g_rss = np.bincount(inv, weights=rss, minlength=len(labels))
+    g_dof = np.bincount(inv, weights=dof, minlength=len(labels))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(g_dof > 0, np.sqrt(g_rss / np.where(g_dof > 0, g_dof, 1.0)), np.nan)
+    return s[inv], np.where(g_dof > 0, g_dof, np.nan)[inv]
+
+
+def marker_groups(names: Sequence[str], groups: Mapping[str, Sequence[str]] | None) -> np.ndarray:
+    """(M,) int labels: markers named in one declared group share a label; others their own.
+
+    Raises
+    ------
+    ModelError
+        A group names a marker the model does not have, or a marker is in two groups.
+    """
+    label = np.arange(len(names))
+    if not groups:
+        return label
+    index = {n: i for i, n in enumerate(names)}
+    seen: dict[str, str] = {}
+    for k, (gname, members) in enumerate(groups.items()):
+        for n in members:
+            if n not in index:
+                raise ModelError(f"marker group {gname!r} names marker {n!r}, which the model does not have",
+                                 f"use marker names of the model: {', '.join(names)}")
+            if n in seen:
+                raise ModelError(f"marker {n!r} is in two marker groups ({seen[n]!r} and {gname!r})",
+                                 "put each marker in at most one group")
+            seen[n] = gname
+            label[index[n]] = len(names) + k
+    return label
+
+
+def weights_from_sigma(sigma, present) -> np.ndarray:
+    """Weights ``s^2 / sigma_m^2`` (M,) with ``s`` the geometric mean over the markers present.
+
+    Markers without an estimate (no data, no residual dof) get weight 1; each
+    sigma is kept within :data:`SIGMA_RATIO_LIMIT` of the geometric mean.
+    """
+    sigma = np.asarray(sigma, float)
+    ok = np.asarray(present, bool) & np.isfinite(sigma) & (sigma > 0)
+    if not ok.any():
+        return np.ones_like(sigma)
+    ref = float(np.exp(np.mean(np.log(sigma[ok]))))
+    s = np.clip(np.where(ok, sigma, ref), ref / SIGMA_RATIO_LIMIT, ref * SIGMA_RATIO_LIMIT)
+    return (ref / s) ** 2
+
+
+def per_marker_fit(model: Model, y, refit: Callable[[np.ndarray | None, JointFit], JointFit],
+                   fit: JointFit, groups=None, n_rounds: int = 8, rtol: float = 1e-3):
+    """Iterate weighted fits and per-marker noise levels to a fixed point.
+
+    Parameters
+    ----------
+    y : (T, M, D) float
+        Markers of the fit.
+    refit : callable ``(weights (M,), previous fit) -> JointFit``
+        Runs the weighted joint fit (with the caller's motion model and bounds).
+    fit : JointFit
+        The unweighted fit to start from.
+    groups : (M,) int, optional
+        Markers sharing a noise level (see :func:`marker_groups`).
+
+    Returns
+    -------
+    fit : JointFit
+        The last weighted fit.
+    weights : (M,) float
+    sigma : (M,) float
+        Each marker's noise level (model units; NaN for a marker without data).
+    dof : (M,) float
+        Residual degrees of freedom behind each marker's (group's) level.
+    n_rounds : int
+        Fits run.
+    """
+    M = np.asarray(y).shape[1]
+    groups = np.arange(M) if groups is None else np.asarray(groups)
+    weights = np.ones(M)
+    sigma_old = None
+    k = 0
+    for k in range(1, n_rounds + 1):  # noqa: B007 - the count is reported
+        rss, n = marker_rss(model, y, fit)
+        lev = marker_leverage(model, y, fit, weights)
+        sigma, dof = group_sigma(rss, np.maximum(n - lev, 0.0), groups)
+        new = weights_from_sigma(sigma, n > 0)
+        if sigma_old is not None and np.allclose(sigma, sigma_old, rtol=rtol, equal_nan=True):
+            break
+        sigma_old = sigma
+        weights = new
+        fit = refit(weights, fit)
+    return fit, weights, sigma, dof, k

@@ -1,0 +1,762 @@
+"""OpenSim models (.osim) in and out.
+
+Reading
+-------
+:func:`read_osim` turns an OpenSim 4.x model (and the 3.x / 2.x layout with
+``location_in_parent``) into a frozen :class:`~skelid.model.Model` in
+millimetres. Each OpenSim body becomes a segment whose frame keeps the body's
+orientation and has its origin at the joint centre (the origin of the joint's
+child frame). With ``X_PF`` the joint's parent frame in the parent body,
+``X_BM`` its child frame in the child body and ``X_FM(q)`` the joint's motion,
+
+.. math::
+
+    X_{G B} = X_{G P}\\, X_{P F}\\, X_{F M}(q)\\, X_{B M}^{-1},
+
+the skelid joint position is ``p_PF - p_P^c`` (``p_P^c`` the parent's own
+joint centre in the parent body), a marker's position is ``r_B - p_BM``, the
+joint's axes are ``R_PF a`` and a constant rotation ``R_PF R_BM^T`` follows the
+motions. ``PinJoint`` (rotation about z of F), ``SliderJoint``,
+``UniversalJoint``, ``BallJoint``, ``GimbalJoint``, ``FreeJoint``,
+``PlanarJoint``, ``WeldJoint`` and ``CustomJoint`` become ``custom`` joints
+whose motions are functions of the coordinates (``LinearFunction``,
+``Constant``, ``PolynomialFunction``, ``SimmSpline``, ``NaturalCubicSpline``,
+``MultiplierFunction``; see :mod:`skelid.model.functions`). A locked
+coordinate becomes a constant at its default value. Bodies that carry no marker
+and have no descendant that does are left out (``keep='markers'``).
+
+Anything else that changes where a marker is (a coordinate coupled to another
+joint's coordinate by a ``CoordinateCouplerConstraint``, an unknown joint or
+function) is refused in one line naming the element.
+
+Parameters for identification come from :func:`osim_parameters`: a ``scale``
+factor per body (or three per axis) that scales the body's joint frames,
+markers and the coupled translations of joints whose parent it is, as
+OpenSim's ScaleTool does, and ``marker_offset`` shifts of the markers (its
+MarkerPlacer). :func:`write_scaled_osim` writes the result back into a copy
+of the XML tree; :func:`write_scale_set` writes an OpenSim ScaleSet.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from skelid.errors import FormatError, ModelError
+from skelid.model.description import (
+    Joint,
+    Marker,
+    Model,
+    Motion,
+    Parameter,
+    Prior,
+    Segment,
+)
+from skelid.model.functions import CoordinateFunction
+
+M_TO_MM = 1000.0
+UNIT_WORDS = {"meters": 1.0, "meter": 1.0, "m": 1.0}
+JOINT_TAGS = ("CustomJoint", "PinJoint", "SliderJoint", "UniversalJoint", "BallJoint", "GimbalJoint",
+              "FreeJoint", "PlanarJoint", "WeldJoint")
+FUNCTION_TAGS = ("LinearFunction", "Constant", "PolynomialFunction", "SimmSpline", "NaturalCubicSpline",
+                 "MultiplierFunction")
+# OpenSim 4 evaluates a NaturalCubicSpline with the end conditions of its SimmSpline (checked against the
+# opensim package to 1e-12 mm on gait2354), so both read as "fmm" splines.
+EX, EY, EZ = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+
+
+# ----------------------------------------------------------------------------- small helpers
+def _floats(text, n: int | None, where: str) -> tuple[float, ...]:
+    try:
+        v = tuple(float(x) for x in (text or "").split())
+    except ValueError:
+        raise FormatError(f"{where}: expected numbers, got {text!r}", "fix the value in the .osim file") from None
+    if n is not None and len(v) != n:
+        raise FormatError(f"{where}: expected {n} numbers, got {len(v)}", "fix the value in the .osim file")
+    if not all(math.isfinite(x) for x in v):
+        raise FormatError(f"{where}: numbers must be finite, got {text!r}", "fix the value in the .osim file")
+    return v
+
+
+def _rot_xyz(angles) -> np.ndarray:
+    """Body-fixed x-y-z rotation ``Rx(a) Ry(b) Rz(c)`` (OpenSim's frame orientation)."""
+    a, b, c = angles
+    ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
+    Rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
+    Ry = np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
+    Rz = np.array([[cc, -sc, 0], [sc, cc, 0], [0, 0, 1]])
+    return Rx @ Ry @ Rz
+
+
+def _child(el, tag):
+    return el.find(tag) if el is not None else None
+
+
+def _text(el, tag, default=None):
+    c = el.find(tag)
+    return default if c is None or c.text is None else c.text.strip()
+
+
+@dataclass
+class _Frame:
+    """A frame fixed on a body: ``X_body_frame``."""
+
+    body: str
+    R: np.ndarray
+    p: np.ndarray  # metres
+
+
+@dataclass
+class _JointSpec:
+    name: str
+    tag: str
+    parent: _Frame
+    child: _Frame
+    coordinates: list  # (name, range (lo, hi), locked, default, motion_type)
+    motions: list  # (kind, axis (F frame), coordinate index or -1, CoordinateFunction in metres/radians)
+
+
+# ----------------------------------------------------------------------------- functions
+def _function(el, where: str) -> CoordinateFunction:
+    """An OpenSim function element -> CoordinateFunction (values in OpenSim units)."""
+    tag = el.tag
+    name = f"{where} {tag}"
+    if tag == "LinearFunction":
+        c = _floats(_text(el, "coefficients"), 2, name)
+        return CoordinateFunction("linear", c)
+    if tag == "Constant":
+        return CoordinateFunction("constant", _floats(_text(el, "value"), 1, name))
+    if tag == "PolynomialFunction":
+        return CoordinateFunction("polynomial", _floats(_text(el, "coefficients"), None, name))
+    if tag in ("SimmSpline", "NaturalCubicSpline"):
+        x, y = _floats(_text(el, "x"), None, name), _floats(_text(el, "y"), None, name)
+        try:
+            return CoordinateFunction("spline", (), x, y, "fmm")
+        except ModelError as exc:
+            raise FormatError(f"{name}: {exc.problem}", "fix the knots in the .osim file") from None
+    if tag == "MultiplierFunction":
+        inner = _function_in(el, "function", where) or _first_function(el, where)
+        s = float(_text(el, "scale", "1"))
+        f = inner
+        return CoordinateFunction(f.kind, f.coefficients, f.x, f.y, f.end, f.scale * s)
+    raise ModelError(f"{where}: unsupported function {tag}",
+                     f"use one of {', '.join(FUNCTION_TAGS)} (or refit the joint with one)")
+
+
+def _first_function(el, where):
+    for c in el:
+        if c.tag in FUNCTION_TAGS or c.tag.endswith("Function") or c.tag.endswith("Spline"):
+            return _function(c, where)
+    raise ModelError(f"{where}: no function found", "give the transform axis a function")
+
+
+def _function_in(el, tag, where):
+    f = el.find(tag)
+    if f is None:
+        return None
+    for c in f:
+        return _function(c, where)
+    return None
+
+
+# ----------------------------------------------------------------------------- joints
+def _coordinates(el, jname):
+    out = []
+    for c in el.iter("Coordinate"):
+        rng = _floats(_text(c, "range", "-3.14159 3.14159"), 2, f"coordinate {c.get('name')!r} range")
+        locked = _text(c, "locked", "false").lower() == "true"
+        default = float(_text(c, "default_value", "0") or 0)
+        motion_type = _text(c, "motion_type", "")
+        out.append((c.get("name"), rng, locked, default, motion_type))
+    return out
+
+
+def _standard_motions(tag: str, n_coords: int, jname: str):
+    """Motions of the joints with a fixed structure, as (kind, axis, coordinate)."""
+    table = {
+        "PinJoint": [("R", EZ, 0)],
+        "SliderJoint": [("T", EX, 0)],
+        "UniversalJoint": [("R", EX, 0), ("R", EY, 1)],
+        "BallJoint": [("R", EX, 0), ("R", EY, 1), ("R", EZ, 2)],
+        "GimbalJoint": [("R", EX, 0), ("R", EY, 1), ("R", EZ, 2)],
+        "FreeJoint": [("R", EX, 0), ("R", EY, 1), ("R", EZ, 2), ("T", EX, 3), ("T", EY, 4), ("T", EZ, 5)],
+        "PlanarJoint": [("R", EZ, 0), ("T", EX, 1), ("T", EY, 2)],
+        "WeldJoint": [],
+    }
+    motions = table[tag]
+    need = max((c for *_, c in motions), default=-1) + 1
+    if n_coords != need:
+        raise ModelError(f"joint {jname!r} ({tag}) has {n_coords} coordinates, expected {need}",
+                         "fix the joint's coordinate list")
+    ident = CoordinateFunction("linear", (1.0, 0.0))
+    return [(k, a, c, ident) for k, a, c in motions]
+
+
+def _spatial_transform(el, coords, jname):
+    st = el.find("SpatialTransform")
+    if st is None:
+        raise ModelError(f"CustomJoint {jname!r} has no SpatialTransform", "add one or use another joint type")
+    names = [c[0] for c in coords]
+    out = []
+    for ta in st.iter("TransformAxis"):
+        axname = ta.get("name", "")
+        where = f"joint {jname!r} {axname}"
+        kind = "R" if axname.startswith("rotation") else "T"
+        axis = np.asarray(_floats(_text(ta, "axis"), 3, f"{where} axis"))
+        n = float(np.linalg.norm(axis))
+        if n == 0:
+            raise FormatError(f"{where}: zero axis", "give the transform axis a direction")
+        cnames = (_text(ta, "coordinates", "") or "").split()
+        f = _function_in(ta, "function", where)
+        if f is None:
+            f = next((_function(c, where) for c in ta if c.tag in FUNCTION_TAGS or c.tag.endswith("Function")
+                      or c.tag.endswith("Spline")), None)
+        if f is None:
+            if cnames:
+                raise ModelError(f"{where}: coordinate without a function", "give the transform axis a function")
+            continue
+        if len(cnames) > 1:
+            raise ModelError(f"{where}: a function of {len(cnames)} coordinates is not supported",
+                             "use one coordinate per transform axis")
+        if cnames and cnames[0] not in names:
+            raise ModelError(f"{where}: unknown coordinate {cnames[0]!r}", f"use one of {names}")
+        ci = names.index(cnames[0]) if cnames else -1
+        if ci < 0 and not f.is_constant:
+            f = CoordinateFunction("constant", (float(f.value(np.zeros(1))[0]),))
+        if f.is_constant and f.coefficients[0] * f.scale == 0.0:
+            continue  # does not move
+        out.append((kind, tuple(axis / n), ci, f))
+    return out
+
+
+# ----------------------------------------------------------------------------- the XML walk
+class _Reader:
+    def __init__(self, root, source: str):
+        self.source = source
+        self.model_el = root.find("Model") if root.tag != "Model" else root
+        if self.model_el is None:
+            raise FormatError(f"{source}: no <Model> element", "is this an OpenSim .osim file?")
+        units = (_text(self.model_el, "length_units", "meters") or "meters").lower()
+        if units not in UNIT_WORDS:
+            raise ModelError(f"{source}: <length_units> is {units!r}",
+                             "skelid reads OpenSim models in meters; convert the model to meters")
+        self.frames: dict[str, _Frame] = {}
+        self.joints: list[_JointSpec] = []
+        self.bodies: list[str] = []
+        self.markers: list[tuple[str, str, np.ndarray, bool]] = []  # name, body, location in body (m), fixed
+
+    # frames --------------------------------------------------------------
+    def frame(self, ref: str, owner: dict, where: str) -> _Frame:
+        ref = ref.strip()
+        key = ref.rsplit("/", 1)[-1] if ref.startswith("/bodyset/") or ref in ("/ground", "ground") else ref
+        if ref in ("/ground", "ground", "../ground"):
+            return _Frame("ground", np.eye(3), np.zeros(3))
+        if key in owner:
+            return owner[key]
+        name = ref.rstrip("/").rsplit("/", 1)[-1]
+        if name in owner:
+            return owner[name]
+        if name in self.frames:
+            return self.frames[name]
+        if name in self.bodies or name == "ground":
+            return _Frame(name, np.eye(3), np.zeros(3))
+        raise ModelError(f"{where}: unknown frame {ref!r}", "point the socket at a body or an offset frame")
+
+    def offset_frames(self, el, where) -> dict:
+        out = {}
+        fr = el.find("frames")
+        if fr is None:
+            return out
+        pending = list(fr.iter("PhysicalOffsetFrame"))
+        for _ in range(len(pending) + 1):
+            rest = []
+            for f in pending:
+                try:
+                    base = self.frame(_text(f, "socket_parent", ""), out, f"{where} frame {f.get('name')!r}")
+                except ModelError:
+                    rest.append(f)
+                    continue
+                R = _rot_xyz(_floats(_text(f, "orientation", "0 0 0"), 3, f"{where} orientation"))
+                p = np.asarray(_floats(_text(f, "translation", "0 0 0"), 3, f"{where} translation"))
+                out[f.get("name")] = _Frame(base.body, base.R @ R, base.p + base.R @ p)
+            if not rest:
+                break
+            pending = rest
+        if pending and rest:
+            raise ModelError(f"{where}: offset frame {rest[0].get('name')!r} has an unknown parent",
+                             "fix its socket_parent")
+        return out
+
+    # 4.x -------------------------------------------------------------------
+    def read(self):
+        m = self.model_el
+        bodyset = m.find("BodySet")
+        if bodyset is None:
+            raise FormatError(f"{self.source}: no <BodySet>", "is this an OpenSim model?")
+        body_els = list(bodyset.iter("Body"))
+        self.bodies = [b.get("name") for b in body_els if b.get("name") != "ground"]
+        old_layout = any(b.find("Joint") is not None for b in body_els)
+        if old_layout:
+            self._read_old(body_els)
+        else:
+            self._read_new(m)
+        self._read_markers(m.find("MarkerSet"))
+        self.couplers = []
+        cs = m.find("ConstraintSet")
+        if cs is not None:
+            for c in cs.iter("CoordinateCouplerConstraint"):
+                enforced = (_text(c, "isEnforced", "true") or "true").lower() == "true" and \
+                    (_text(c, "isDisabled", "false") or "false").lower() != "true"
+                if enforced:
+                    self.couplers.append((c.get("name"), _text(c, "dependent_coordinate_name", ""),
+                                          (_text(c, "independent_coordinate_names", "") or "").split()))
+
+    def _read_new(self, m):
+        for fs in (m.findall("FrameSet") or []):
+            self.frames.update(self.offset_frames(fs.find("objects") or fs, "FrameSet"))
+        jointset = m.find("JointSet")
+        if jointset is None:
+            raise FormatError(f"{self.source}: no <JointSet>", "is this an OpenSim 4 model?")
+        objects = jointset.find("objects")
+        for el in (objects if objects is not None else []):
+            self._joint(el, el.get("name"))
+
+    def _joint(self, el, jname, parent=None, child=None):
+        tag = el.tag
+        if tag not in JOINT_TAGS:
+            raise ModelError(f"{self.source}: joint {jname!r} is a {tag}, which skelid does not read",
+                             f"use one of {', '.join(JOINT_TAGS)}")
+        coords = _coordinates(el, jname)
+        if parent is None:
+            own = self.offset_frames(el, f"joint {jname!r}")
+            parent = self.frame(_text(el, "socket_parent_frame", ""), own, f"joint {jname!r} parent")
+            child = self.frame(_text(el, "socket_child_frame", ""), own, f"joint {jname!r} child")
+        if child.body == "ground":
+            raise ModelError(f"joint {jname!r} has the ground as its child",
+                             "reverse the joint so that the ground is its parent")
+        if (_text(el, "reverse", "false") or "false").lower() == "true":
+            raise ModelError(f"joint {jname!r} is reversed", "write it with the parent body as its parent")
+        if tag == "CustomJoint":
+            motions = _spatial_transform(el, coords, jname)
+        else:
+            motions = _standard_motions(tag, len(coords), jname)
+        self.joints.append(_JointSpec(jname, tag, parent, child, coords, motions))
+
+    # 3.x / 2.x -------------------------------------------------------------
+    def _read_old(self, body_els):
+        for b in body_els:
+            jwrap = b.find("Joint")
+            if jwrap is None or len(jwrap) == 0:
+                continue
+            el = jwrap[0]
+            jname = el.get("name")
+            pname = _text(el, "parent_body", "")
+            R_pf = _rot_xyz(_floats(_text(el, "orientation_in_parent", "0 0 0"), 3, f"joint {jname!r}"))
+            p_pf = np.asarray(_floats(_text(el, "location_in_parent", "0 0 0"), 3, f"joint {jname!r}"))
+            R_bm = _rot_xyz(_floats(_text(el, "orientation", "0 0 0"), 3, f"joint {jname!r}"))
+            p_bm = np.asarray(_floats(_text(el, "location", "0 0 0"), 3, f"joint {jname!r}"))
+            parent = _Frame(pname, R_pf, p_pf)
+            child = _Frame(b.get("name"), R_bm, p_bm)
+            self._joint(el, jname, parent, child)
+
+    # markers ---------------------------------------------------------------
+    def _read_markers(self, ms):
+        if ms is None:
+            return
+        for mk in ms.iter("Marker"):
+            name = mk.get("name")
+            ref = _text(mk, "socket_parent_frame") or _text(mk, "body")
+            if not ref:
+                raise ModelError(f"marker {name!r} names no body", "give it a socket_parent_frame or body")
+            try:
+                fr = self.frame(ref, {}, f"marker {name!r}")
+            except ModelError:
+                raise ModelError(f"marker {name!r} is on {ref!r}, which is not a body of the model",
+                                 "put it on one of: " + ", ".join(self.bodies)) from None
+            loc = np.asarray(_floats(_text(mk, "location", "0 0 0"), 3, f"marker {name!r} location"))
+            fixed = (_text(mk, "fixed", "false") or "false").lower() == "true"
+            self.markers.append((name, fr.body, fr.p + fr.R @ loc, fixed))
+
+
+def _parse(path) -> ET.ElementTree:
+    path = Path(path)
+    try:
+        return ET.parse(path)
+    except FileNotFoundError:
+        raise ModelError(f"model file {path} does not exist", "check the path") from None
+    except ET.ParseError as exc:
+        raise FormatError(f"{path}: malformed XML ({exc})", "repair the file or export it again from OpenSim") \
+            from None
+    except OSError as exc:
+        raise ModelError(f"cannot read {path}: {exc.strerror or exc}", "check the path and permissions") from None
+
+
+# ----------------------------------------------------------------------------- to a skelid model
+@dataclass(frozen=True)
+class OsimInfo:
+    """What the write-back needs besides the model: per segment its joint's child frame in the body (m)."""
+
+    source: str
+    child_offset: dict  # body -> (R_BM (3,3), p_BM (3,)) in metres
+    joint_of: dict  # body -> joint name
+    fixed_markers: frozenset
+
+
+def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = None) -> tuple[Model, OsimInfo]:
+    """Read an OpenSim model into a skelid :class:`Model` (millimetres).
+
+    Parameters
+    ----------
+    path : str or Path
+        The .osim file.
+    marker_set : str or Path, optional
+        An OpenSim MarkerSet XML file whose markers replace the model's (the
+        gait2354 model, for instance, ships its markers separately).
+    keep : {'markers', 'all'}
+        Keep only the bodies that carry markers or lead to one (default), or all.
+
+    Returns
+    -------
+    model : Model
+        No parameters; see :func:`osim_parameters`.
+    info : OsimInfo
+
+    Raises
+    ------
+    FormatError, ModelError
+        One line naming the element and the fix.
+    """
+    tree = _parse(path)
+    rd = _Reader(tree.getroot(), str(path))
+    rd.read()
+    if marker_set is not None:
+        ms_root = _parse(marker_set).getroot()
+        ms = ms_root if ms_root.tag == "MarkerSet" else ms_root.find("MarkerSet")
+        if ms is None:
+            raise FormatError(f"{marker_set}: no <MarkerSet> element", "give an OpenSim MarkerSet file")
+        rd.markers = []
+        rd._read_markers(ms)
+    if not rd.markers:
+        raise ModelError(f"{path} has no markers",
+                         "add a MarkerSet to the model, or give the marker-set file (--marker-set FILE)")
+    return _to_model(rd, keep, name or rd.model_el.get("name") or Path(path).stem)
+
+
+def _to_model(rd: _Reader, keep: str, name: str) -> tuple[Model, OsimInfo]:
+    by_child = {}
+    for j in rd.joints:
+        if j.child.body in by_child:
+            raise ModelError(f"body {j.child.body!r} is the child of two joints "
+                             f"({by_child[j.child.body].name!r}, {j.name!r})",
+                             "skelid reads tree-shaped models; remove the loop-closing joint")
+        by_child[j.child.body] = j
+    parent_of = {b: j.parent.body for b, j in by_child.items()}
+    marker_bodies = {m[1] for m in rd.markers}
+    for b in marker_bodies:
+        if b == "ground":
+            raise ModelError("a marker is fixed to the ground", "remove it: it carries no information")
+        if b not in by_child:
+            raise ModelError(f"body {b!r} carries markers but no joint attaches it",
+                             "attach it to the model with a joint")
+    kept = set()
+    for b in (marker_bodies if keep == "markers" else set(by_child)):
+        while b != "ground" and b not in kept:
+            kept.add(b)
+            if b not in parent_of:
+                raise ModelError(f"body {b!r} is not attached to the ground through joints",
+                                 "attach it with a joint")
+            b = parent_of[b]
+    # coordinates coupled across joints
+    owner = {c[0]: j for j in rd.joints for c in j.coordinates}
+    for cname, dep, indep in rd.couplers:
+        j = owner.get(dep)
+        if j is not None and j.child.body in kept:
+            raise ModelError(f"CoordinateCouplerConstraint {cname!r} couples {dep!r} to {indep}",
+                             "skelid cannot yet follow a coordinate coupled across joints; "
+                             "remove the markers of the bodies it moves")
+    child_offset = {}
+    segments = []
+    order = [b for b in rd.bodies if b in kept]
+    for b in order:
+        j = by_child[b]
+        child_offset[b] = (j.child.R, j.child.p)
+    for b in order:
+        j = by_child[b]
+        par = j.parent.body
+        base = np.zeros(3) if par == "ground" else child_offset[par][1]
+        o = (j.parent.p - base) * M_TO_MM
+        R_pf = j.parent.R
+        motions, coords, ranges = [], [], []
+        cmap = {}
+        for ci, (cname, _rng, locked, _default, _mt) in enumerate(j.coordinates):
+            if not locked and any(c == ci for *_x, c, _f in j.motions):
+                cmap[ci] = len(coords)
+                coords.append(cname)
+        for kind, axis, ci, f in j.motions:
+            cname, rng, locked, default, _mt = j.coordinates[ci] if ci >= 0 else ("", (0, 0), True, 0.0, "")
+            if ci >= 0 and locked:
+                f = CoordinateFunction("constant", (float(f.value(np.array([default]))[0]),))
+                ci = -1
+            a = tuple(float(v) for v in R_pf @ np.asarray(axis))
+            if kind == "T":
+                f = CoordinateFunction(f.kind, f.coefficients, f.x, f.y, f.end, f.scale)
+                translational_coord = ci >= 0 and f.is_identity
+                if not translational_coord:
+                    f = CoordinateFunction(f.kind, f.coefficients, f.x, f.y, f.end, f.scale * M_TO_MM)
+                if f.is_constant:  # a fixed offset: part of the joint position
+                    o = o + np.asarray(a) * f.coefficients[0] * f.scale
+                    continue
+            motions.append(Motion(kind, a, cmap.get(ci, -1), f,
+                                  tuple(float(v) for v in axis) if kind == "T" else ()))
+        for ci, (_cname, rng, _locked, _d, _mt) in enumerate(j.coordinates):
+            if ci in cmap and any(m.kind == "R" and m.coordinate == cmap[ci] for m in motions):
+                ranges.append(tuple(float(np.degrees(v)) for v in rng))
+        C = R_pf @ j.child.R.T
+        orient = () if np.allclose(C, np.eye(3), atol=1e-15, rtol=0) else tuple(float(v) for v in C.ravel())
+        joint = Joint(j.name, "custom", tuple(float(v) for v in o), (), tuple(ranges), tuple(motions),
+                      tuple(coords), orient)
+        segments.append(Segment(b, None if par == "ground" else par, joint))
+    markers = []
+    for mname, body, loc, _fixed in rd.markers:
+        if body not in kept:
+            continue
+        r = (loc - child_offset[body][1]) * M_TO_MM
+        markers.append(Marker(mname, body, tuple(float(v) for v in r)))
+    info = OsimInfo(rd.source, child_offset, {b: by_child[b].name for b in order},
+                    frozenset(m[0] for m in rd.markers if m[3]))
+    return Model(name, 3, "mm", tuple(segments), tuple(markers)), info
+
+
+# ----------------------------------------------------------------------------- parameters
+def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers: str = "offsets",
+                    marker_names=None, scale_sd_log: float = 0.15, offset_sd: float = 10.0) -> Model:
+    """The model with identification parameters for an imported OpenSim model.
+
+    Parameters
+    ----------
+    scale : {'bodies', 'axes', 'none'}
+        One log-normal scale factor per body that carries markers (median 1,
+        ``scale_sd_log``), three per axis, or none.
+    markers : {'offsets', 'none'}
+        A normal ``marker_offset`` (mean 0, ``offset_sd`` mm) per axis of every
+        marker not marked ``fixed`` in the model, or none.
+    marker_names : iterable of str, optional
+        Markers present in the data: only those get offsets, and only the
+        markers among them count as carrying a body. Default: all.
+
+    Returns
+    -------
+    Model
+    """
+    if scale not in ("bodies", "axes", "none"):
+        raise ModelError(f"unknown scale setting {scale!r}", "use bodies, axes or none")
+    if markers not in ("offsets", "none"):
+        raise ModelError(f"unknown marker setting {markers!r}", "use offsets or none")
+    present = set(model.marker_names if marker_names is None else marker_names)
+    params = []
+    lo, hi = math.exp(-5 * scale_sd_log), math.exp(5 * scale_sd_log)
+    sprior = Prior("lognormal", lo, hi, 1.0, scale_sd_log)
+    seg_with = [s.name for s in model.segments
+                if sum(1 for m in model.markers if m.segment == s.name and m.name in present) >= 1]
+    for s in seg_with:
+        if scale == "bodies":
+            params.append(Parameter(f"scale_{s}", "scale", s, None, sprior, (hi - lo) / 200))
+        elif scale == "axes":
+            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, sprior, (hi - lo) / 200)
+                       for i, a in enumerate("xyz")]
+    if markers == "offsets":
+        oprior = Prior("normal", -5 * offset_sd, 5 * offset_sd, 0.0, offset_sd)
+        for m in model.markers:
+            if m.name in present and m.name not in info.fixed_markers:
+                params += [Parameter(f"offset_{m.name}_{a}", "marker_offset", m.name, i, oprior, offset_sd / 20)
+                           for i, a in enumerate("xyz")]
+    return Model(model.name, model.dim, model.units, model.segments, model.markers, tuple(params),
+                 model.description)
+
+
+def keep_markers(model: Model, names) -> Model:
+    """The model with only the markers ``names`` and the bodies they need (no parameters)."""
+    names = set(names)
+    mk = tuple(m for m in model.markers if m.name in names)
+    if not mk:
+        raise ModelError(f"none of the markers of model {model.name!r} is in the data",
+                         "check the marker names in the data file against the model's")
+    idx = {s.name: s for s in model.segments}
+    need = set()
+    for m in mk:
+        b = m.segment
+        while b is not None and b not in need:
+            need.add(b)
+            b = idx[b].parent
+    return Model(model.name, 3, model.units, tuple(s for s in model.segments if s.name in need), mk)
+
+
+def load_osim(path, marker_set=None, scale: str = "bodies", markers: str = "offsets",
+              marker_names=None) -> Model:
+    """:func:`read_osim`, only the markers in ``marker_names`` if given, then :func:`osim_parameters`."""
+    model, info = read_osim(path, marker_set)
+    if marker_names is not None:
+        model = keep_markers(model, marker_names)
+    return osim_parameters(model, info, scale, markers, marker_names)
+
+
+# ----------------------------------------------------------------------------- writing back
+def body_scales(model: Model, theta) -> dict[str, np.ndarray]:
+    """Per body its three scale factors from ``theta (P,)`` (1 where it has no scale parameter)."""
+    out = {}
+    for k, p in enumerate(model.parameters):
+        if p.kind == "scale":
+            s = out.setdefault(p.target, np.ones(3))
+            if p.axis is None:
+                s[:] = theta[k]
+            else:
+                s[p.axis] = theta[k]
+    return out
+
+
+def marker_locations(model: Model, info: OsimInfo, theta) -> dict[str, np.ndarray]:
+    """Each marker's location in its body frame (metres) after scaling and offsets."""
+    from skelid.model.kinematics import geometry
+
+    g = geometry(model, np.asarray(theta, float))
+    S, M = len(model.segments), len(model.markers)
+    r = g[S * 3:(S + M) * 3].reshape(M, 3) / M_TO_MM
+    scales = body_scales(model, theta)
+    out = {}
+    for i, m in enumerate(model.markers):
+        p_bm = info.child_offset[m.segment][1] * scales.get(m.segment, np.ones(3))
+        out[m.name] = p_bm + r[i]
+    return out
+
+
+def _fmt(v) -> str:
+    return " ".join(repr(float(x)) for x in v)
+
+
+def _scale_function_el(fel_parent, factor: float):
+    """Multiply the function under ``fel_parent`` by ``factor`` (wrap it, or scale a MultiplierFunction)."""
+    for c in list(fel_parent):
+        if c.tag == "MultiplierFunction":
+            sc = c.find("scale")
+            sc.text = repr(float(sc.text) * factor)
+            return
+        if c.tag == "Constant":
+            v = c.find("value")
+            v.text = repr(float(v.text) * factor)
+            return
+        if c.tag in FUNCTION_TAGS:
+            idx = list(fel_parent).index(c)
+            fel_parent.remove(c)
+            mf = ET.Element("MultiplierFunction", {"name": c.get("name", "function")})
+            c2 = copy.deepcopy(c)
+            c2.set("name", "")
+            inner = ET.SubElement(mf, "function")
+            inner.append(c2)
+            ET.SubElement(mf, "scale").text = repr(float(factor))
+            fel_parent.insert(idx, mf)
+            return
+
+
+def write_scaled_osim(src, out, model: Model, info: OsimInfo, theta, marker_set=None, name=None) -> None:
+    """Write ``src`` scaled by the fitted ``theta`` to ``out``, every other element untouched.
+
+    Joint frames on a body are scaled by its factors, coupled translations of
+    a ``CustomJoint`` by its parent's factor along the axis, markers moved to
+    their fitted locations (scale and offset). Markers read from a separate
+    ``marker_set`` file are added to the model's MarkerSet.
+    """
+    tree = _parse(src)
+    root = tree.getroot()
+    m_el = root.find("Model")
+    if name:
+        m_el.set("name", name)
+    scales = body_scales(model, theta)
+    locs = marker_locations(model, info, theta)
+
+    def sc(body):
+        return scales.get(body, np.ones(3))
+
+    def scale_vec(el, tag, body):
+        e = el.find(tag)
+        if e is not None and body in scales:
+            e.text = _fmt(np.asarray(_floats(e.text, 3, tag)) * sc(body))
+
+    bodyset = m_el.find("BodySet")
+    old_layout = any(b.find("Joint") is not None for b in bodyset.iter("Body"))
+    joints = []
+    if old_layout:
+        for b in bodyset.iter("Body"):
+            jw = b.find("Joint")
+            if jw is not None and len(jw):
+                el = jw[0]
+                parent = _text(el, "parent_body", "")
+                scale_vec(el, "location_in_parent", parent)
+                scale_vec(el, "location", b.get("name"))
+                joints.append((el, parent))
+    else:
+        for el in (m_el.find("JointSet").find("objects") or []):
+            fr = el.find("frames")
+            for f in (fr.iter("PhysicalOffsetFrame") if fr is not None else []):
+                body = (_text(f, "socket_parent", "") or "").rsplit("/", 1)[-1]
+                scale_vec(f, "translation", body)
+            pref = (_text(el, "socket_parent_frame", "") or "")
+            parent = pref.rsplit("/", 1)[-1]
+            if fr is not None:
+                for f in fr.iter("PhysicalOffsetFrame"):
+                    if f.get("name") == parent:
+                        parent = (_text(f, "socket_parent", "") or "").rsplit("/", 1)[-1]
+            joints.append((el, parent))
+    for el, parent in joints:
+        if el.tag != "CustomJoint" or parent not in scales:
+            continue
+        for ta in el.iter("TransformAxis"):
+            if not ta.get("name", "").startswith("translation"):
+                continue
+            a = np.asarray(_floats(_text(ta, "axis"), 3, "axis"))
+            a = a / np.linalg.norm(a)
+            factor = float(a @ sc(parent))  # OpenSim: the axis (in the joint's parent frame) . scale factors
+            holder = ta.find("function")
+            if holder is None:
+                holder = ta
+            _scale_function_el(holder, factor)
+    ms = m_el.find("MarkerSet")
+    if marker_set is not None:
+        extra = _parse(marker_set).getroot()
+        extra = extra if extra.tag == "MarkerSet" else extra.find("MarkerSet")
+        if ms is None:
+            ms = ET.SubElement(m_el, "MarkerSet", {"name": "markerset"})
+        objs = ms.find("objects")
+        if objs is None:
+            objs = ET.SubElement(ms, "objects")
+        for mk in extra.iter("Marker"):
+            objs.append(copy.deepcopy(mk))
+    if ms is not None:
+        for mk in ms.iter("Marker"):
+            n = mk.get("name")
+            ref = _text(mk, "socket_parent_frame") or _text(mk, "body") or ""
+            body = ref.rsplit("/", 1)[-1]
+            loc = mk.find("location")
+            if n in locs:
+                loc.text = _fmt(locs[n])
+            elif body in scales and loc is not None:
+                loc.text = _fmt(np.asarray(_floats(loc.text, 3, "location")) * sc(body))
+    tree.write(out, encoding="UTF-8", xml_declaration=True)
+
+
+def write_scale_set(out, model: Model, theta, name: str = "scaleset") -> None:
+    """An OpenSim ScaleSet XML with one Scale per body that has scale parameters."""
+    root = ET.Element("OpenSimDocument", {"Version": "40000"})
+    ss = ET.SubElement(root, "ScaleSet", {"name": name})
+    objs = ET.SubElement(ss, "objects")
+    for body, s in body_scales(model, theta).items():
+        e = ET.SubElement(objs, "Scale", {"name": ""})
+        ET.SubElement(e, "scales").text = _fmt(s)
+        ET.SubElement(e, "segment").text = body
+        ET.SubElement(e, "apply").text = "true"
+    ET.indent(root)
+    ET.ElementTree(root).write(out, encoding="UTF-8", xml_declaration=True)

@@ -1,0 +1,510 @@
+"""Writing and reading fit results: ``result.json`` (with a ``schema_version``) plus ``arrays.npz``.
+
+The one serializer of :class:`~skelid.result.FitResult` and :class:`~skelid.result.FitRun`;
+``skelid fit``, ``batch`` and ``report`` all go through it. The format is documented in
+``docs/result-format.md``.
+
+Reading never trusts the files: a hand-edited or damaged ``result.json`` or
+``arrays.npz`` (wrong types, missing keys, deep nesting, huge numbers, arrays of the
+wrong shape, a newer or unknown ``schema_version``) is refused with one
+:class:`~skelid.errors.FormatError` line naming the file, the key path and the
+problem, before anything uses it. Sizes are bounded before reading.
+
+JSON has no NaN: a non-finite number is written as ``null`` and a ``null`` float
+reads back as NaN (``crlb_sd``: as None).
+
+Examples
+--------
+>>> import tempfile, pathlib
+>>> from skelid.result import FitResult, FitRun, NoiseEstimate, ParameterEstimate
+>>> p = ParameterEstimate("L2", "mm", 250.0, 250.0, 2.0, (246.1, 253.9))
+>>> run = FitRun({"marker": FitResult("marker", {"L2": p}, noise=NoiseEstimate(15.0))})
+>>> d = pathlib.Path(tempfile.mkdtemp())
+>>> _ = write_run(d, run)
+>>> read_run(d).results["marker"].parameters["L2"].sd
+2.0
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from skelid.errors import FormatError
+from skelid.io.atomic import atomic_write
+from skelid.result import (
+    STATUSES,
+    FitResult,
+    FitRun,
+    FrameCounts,
+    NoiseEstimate,
+    ParameterEstimate,
+    Warning,
+)
+
+#: the version this skelid writes; it reads this one only
+SCHEMA_VERSION = 1
+#: ``format`` field of ``result.json``
+FORMAT = "skelid-result"
+RESULT_JSON = "result.json"
+ARRAYS_NPZ = "arrays.npz"
+
+#: refuse a ``result.json`` larger than this before reading it
+MAX_JSON_BYTES = 64 * 2**20
+#: refuse an ``arrays.npz`` whose arrays hold more than this, uncompressed, before reading them
+MAX_ARRAY_BYTES = 4 * 2**30
+#: deepest nesting of JSON objects and lists accepted
+MAX_DEPTH = 32
+#: longest string accepted anywhere in ``result.json``
+MAX_STRING = 100_000
+#: most dimensions of one array
+MAX_NDIM = 5
+#: integers beyond this are not counts or settings but damage
+MAX_INT = 2**53
+
+_FIX = "write the folder again with 'skelid fit ... --out DIR'"
+
+
+# ============================================================================ write
+def _clean(v: Any, path: str = "$") -> Any:
+    """``v`` as plain JSON values: numpy scalars and arrays converted, non-finite floats as None."""
+    if isinstance(v, bool | None | str):
+        return v
+    if isinstance(v, int | np.integer):
+        return int(v)
+    if isinstance(v, float | np.floating):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, np.ndarray):
+        return _clean(v.tolist(), path)
+    if isinstance(v, Path):
+        return str(v)
+    if isinstance(v, Mapping):
+        return {str(k): _clean(x, f"{path}.{k}") for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_clean(x, f"{path}[{i}]") for i, x in enumerate(v)]
+    raise TypeError(f"{path}: {type(v).__name__} is not a JSON value")
+
+
+def _estimate_to_dict(p: ParameterEstimate) -> dict:
+    return {"unit": p.unit, "map": p.map, "mean": p.mean, "sd": p.sd, "interval": list(p.interval),
+            "crlb_sd": p.crlb_sd, "status": p.status, "extra": dict(p.extra)}
+
+
+def _warning_to_dict(w: Warning) -> dict:
+    return {"code": w.code, "message": w.message, "parameters": list(w.parameters)}
+
+
+def result_to_dict(r: FitResult) -> dict:
+    """JSON-ready dict of a result; ``arrays`` appear as ``{key: {"shape", "dtype"}}``."""
+    noise = None if r.noise is None else {
+        "sigma": r.noise.sigma, "interval": None if r.noise.interval is None else list(r.noise.interval),
+        "fixed": r.noise.fixed, "per_marker": dict(r.noise.per_marker), "extra": dict(r.noise.extra)}
+    frames = None if r.frames is None else {
+        "total": r.frames.total, "used": r.frames.used, "skipped": dict(r.frames.skipped)}
+    return _clean({
+        "method": r.method,
+        "parameters": {k: _estimate_to_dict(p) for k, p in r.parameters.items()},
+        "derived": {k: _estimate_to_dict(p) for k, p in r.derived.items()},
+        "noise": noise,
+        "frames": frames,
+        "diagnostics": dict(r.diagnostics),
+        "warnings": [_warning_to_dict(w) for w in r.warnings],
+        "settings": dict(r.settings),
+        "provenance": dict(r.provenance),
+        "arrays": {k: {"shape": list(a.shape), "dtype": a.dtype.str} for k, a in r.arrays.items()},
+    })
+
+
+def run_to_dict(run: FitRun) -> dict:
+    """The whole ``result.json`` document of a run."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "format": FORMAT,
+        "context": _clean(dict(run.context)),
+        "warnings": [_warning_to_dict(w) for w in run.warnings],
+        "arrays": {k: {"shape": list(a.shape), "dtype": a.dtype.str} for k, a in run.arrays.items()},
+        "results": {k: result_to_dict(r) for k, r in run.results.items()},
+    }
+
+
+def run_arrays(run: FitRun) -> dict[str, np.ndarray]:
+    """The ``arrays.npz`` members of a run: ``run/KEY`` and ``METHOD/KEY``."""
+    out = {f"run/{k}": a for k, a in run.arrays.items()}
+    for m, r in run.results.items():
+        out.update({f"{m}/{k}": a for k, a in r.arrays.items()})
+    return out
+
+
+def dumps(doc: Mapping) -> str:
+    """Standard JSON text (no NaN tokens), as the files hold it."""
+    return json.dumps(_clean(doc), indent=2, allow_nan=False) + "\n"
+
+
+def write_run(out_dir, run: FitRun) -> Path:
+    """Write ``result.json`` and ``arrays.npz`` of ``run`` into ``out_dir`` (each atomically).
+
+    The JSON is written last: its presence says the folder is complete.
+
+    Returns
+    -------
+    Path
+        The ``result.json`` written.
+    """
+    out_dir = Path(out_dir)
+    for a in run_arrays(run).values():
+        if a.dtype.kind not in "biufU":
+            raise TypeError(f"array of dtype {a.dtype} cannot be written without pickling")
+    with atomic_write(out_dir / ARRAYS_NPZ, "wb", encoding=None) as fh:
+        np.savez_compressed(fh, **run_arrays(run))
+    with atomic_write(out_dir / RESULT_JSON) as fh:
+        fh.write(dumps(run_to_dict(run)))
+    return out_dir / RESULT_JSON
+
+
+# ============================================================================= read
+class _Bad(Exception):
+    """A problem inside the document, with its key path."""
+
+    def __init__(self, where: str, problem: str):
+        super().__init__(f"{where}: {problem}" if where else problem)
+
+
+def _type_name(v) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "true/false", type(None): "null",
+            int: "an integer", float: "a number"}.get(type(v), type(v).__name__)
+
+
+def _obj(v, where: str, keys: dict[str, bool] | None = None) -> dict:
+    """``v`` must be an object; with ``keys`` ({key: required}), no other key and no missing one."""
+    if not isinstance(v, dict):
+        raise _Bad(where, f"expected an object, got {_type_name(v)}")
+    if keys is not None:
+        unknown = sorted(set(v) - set(keys))
+        if unknown:
+            raise _Bad(where, f"unknown key {unknown[0]!r} (expected {', '.join(keys)})")
+        missing = [k for k, req in keys.items() if req and k not in v]
+        if missing:
+            raise _Bad(where, f"missing key {missing[0]!r}")
+    return v
+
+
+def _str(v, where: str) -> str:
+    if not isinstance(v, str):
+        raise _Bad(where, f"expected a string, got {_type_name(v)}")
+    return v
+
+
+def _int(v, where: str, low: int = 0) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _Bad(where, f"expected an integer, got {_type_name(v)}")
+    if not low <= v <= MAX_INT:
+        raise _Bad(where, f"integer {v} out of range [{low}, 2**53]")
+    return v
+
+
+def _float(v, where: str, none_ok: bool = False) -> float | None:
+    """A JSON number, or null (NaN; None where ``none_ok``)."""
+    if v is None:
+        return None if none_ok else math.nan
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise _Bad(where, f"expected a number, got {_type_name(v)}")
+    if isinstance(v, int) and abs(v) > MAX_INT:
+        raise _Bad(where, f"number {v} out of range")
+    return float(v)
+
+
+def _bool(v, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise _Bad(where, f"expected true or false, got {_type_name(v)}")
+    return v
+
+
+def _pair(v, where: str) -> tuple[float, float]:
+    if not isinstance(v, list) or len(v) != 2:
+        raise _Bad(where, f"expected a list of two numbers, got {_type_name(v)}")
+    return _float(v[0], f"{where}[0]"), _float(v[1], f"{where}[1]")
+
+
+def _json_value(v, where: str, depth: int = 0) -> Any:
+    """Any JSON value, bounded in depth, string length and integer size."""
+    if depth > MAX_DEPTH:
+        raise _Bad(where, f"nested deeper than {MAX_DEPTH} levels")
+    if isinstance(v, dict):
+        return {k: _json_value(x, f"{where}.{k}", depth + 1) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_json_value(x, f"{where}[{i}]", depth + 1) for i, x in enumerate(v)]
+    if isinstance(v, str) and len(v) > MAX_STRING:
+        raise _Bad(where, f"string of {len(v)} characters (at most {MAX_STRING})")
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INT:
+        raise _Bad(where, f"integer {v} out of range")
+    if isinstance(v, float) and not math.isfinite(v):
+        raise _Bad(where, "NaN or infinity (write null)")
+    return v
+
+
+def _json_object(v, where: str) -> dict:
+    return _json_value(_obj(v, where), where)
+
+
+def _estimate(name: str, v, where: str) -> ParameterEstimate:
+    d = _obj(v, where, {"unit": True, "map": True, "mean": True, "sd": True, "interval": True,
+                        "crlb_sd": False, "status": True, "extra": False})
+    status = _str(d["status"], f"{where}.status")
+    if status not in STATUSES:
+        raise _Bad(f"{where}.status", f"{status!r} is not one of {', '.join(STATUSES)}")
+    return ParameterEstimate(
+        name=name, unit=_str(d["unit"], f"{where}.unit"), map=_float(d["map"], f"{where}.map"),
+        mean=_float(d["mean"], f"{where}.mean"), sd=_float(d["sd"], f"{where}.sd"),
+        interval=_pair(d["interval"], f"{where}.interval"),
+        crlb_sd=_float(d.get("crlb_sd"), f"{where}.crlb_sd", none_ok=True), status=status,
+        extra=_json_object(d.get("extra", {}), f"{where}.extra"))
+
+
+def _warnings(v, where: str) -> tuple[Warning, ...]:
+    if not isinstance(v, list):
+        raise _Bad(where, f"expected a list of warnings, got {_type_name(v)}")
+    out = []
+    for i, w in enumerate(v):
+        wh = f"{where}[{i}]"
+        d = _obj(w, wh, {"code": True, "message": True, "parameters": False})
+        params = d.get("parameters", [])
+        if not isinstance(params, list):
+            raise _Bad(f"{wh}.parameters", f"expected a list of names, got {_type_name(params)}")
+        out.append(Warning(_str(d["code"], f"{wh}.code"), _str(d["message"], f"{wh}.message"),
+                           tuple(_str(p, f"{wh}.parameters[{j}]") for j, p in enumerate(params))))
+    return tuple(out)
+
+
+def _array_specs(v, where: str) -> dict[str, tuple[tuple[int, ...], str]]:
+    out = {}
+    for k, spec in _obj(v, where).items():
+        wh = f"{where}.{k}"
+        d = _obj(spec, wh, {"shape": True, "dtype": True})
+        if not isinstance(d["shape"], list) or len(d["shape"]) > MAX_NDIM:
+            raise _Bad(f"{wh}.shape", f"expected a list of at most {MAX_NDIM} sizes")
+        shape = tuple(_int(n, f"{wh}.shape[{i}]") for i, n in enumerate(d["shape"]))
+        out[k] = (shape, _str(d["dtype"], f"{wh}.dtype"))
+    return out
+
+
+def _take_arrays(specs: dict, arrays: Mapping[str, np.ndarray], prefix: str, where: str) -> dict:
+    out = {}
+    for k, (shape, _) in specs.items():
+        key = f"{prefix}{k}"
+        if key not in arrays:
+            raise _Bad(f"{where}.{k}", f"{ARRAYS_NPZ} has no array {key!r}")
+        a = arrays[key]
+        if a.shape != shape:
+            raise _Bad(f"{where}.{k}", f"{ARRAYS_NPZ}[{key!r}] has shape {a.shape}, result.json says {shape}")
+        out[k] = a
+    return out
+
+
+def result_from_dict(d, arrays: Mapping[str, np.ndarray] | None = None, where: str = "",
+                     prefix: str = "") -> FitResult:
+    """A :class:`FitResult` from :func:`result_to_dict`'s output, every field checked.
+
+    ``arrays`` supplies the arrays the document declares (under ``prefix + key``);
+    None leaves the result without arrays.
+
+    Raises
+    ------
+    FormatError
+        A field has the wrong type, a key is missing or unknown, a declared array is
+        absent or of another shape.
+    """
+    try:
+        return _result(d, arrays, where or "$", prefix)
+    except _Bad as exc:
+        raise FormatError(f"not a valid skelid result: {exc}") from None
+
+
+def _result(d, arrays, where: str, prefix: str) -> FitResult:
+    d = _obj(d, where, {"method": True, "parameters": True, "derived": False, "noise": False,
+                        "frames": False, "diagnostics": False, "warnings": False, "settings": False,
+                        "provenance": False, "arrays": False})
+    params = {k: _estimate(k, v, f"{where}.parameters.{k}")
+              for k, v in _obj(d["parameters"], f"{where}.parameters").items()}
+    derived = {k: _estimate(k, v, f"{where}.derived.{k}")
+               for k, v in _obj(d.get("derived", {}), f"{where}.derived").items()}
+    noise = None
+    if d.get("noise") is not None:
+        wn = f"{where}.noise"
+        n = _obj(d["noise"], wn, {"sigma": True, "interval": False, "fixed": False, "per_marker": False,
+                                  "extra": False})
+        per = {k: _float(v, f"{wn}.per_marker.{k}")
+               for k, v in _obj(n.get("per_marker", {}), f"{wn}.per_marker").items()}
+        noise = NoiseEstimate(_float(n["sigma"], f"{wn}.sigma"),
+                              None if n.get("interval") is None else _pair(n["interval"], f"{wn}.interval"),
+                              _bool(n.get("fixed", False), f"{wn}.fixed"), per,
+                              _json_object(n.get("extra", {}), f"{wn}.extra"))
+    frames = None
+    if d.get("frames") is not None:
+        wf = f"{where}.frames"
+        f = _obj(d["frames"], wf, {"total": True, "used": True, "skipped": False})
+        total, used = _int(f["total"], f"{wf}.total"), _int(f["used"], f"{wf}.used")
+        if used > total:
+            raise _Bad(f"{wf}.used", f"{used} frames used of {total}")
+        skipped = {k: _int(v, f"{wf}.skipped.{k}")
+                   for k, v in _obj(f.get("skipped", {}), f"{wf}.skipped").items()}
+        frames = FrameCounts(total, used, skipped)
+    specs = _array_specs(d.get("arrays", {}), f"{where}.arrays")
+    arr = {} if arrays is None else _take_arrays(specs, arrays, prefix, f"{where}.arrays")
+    return FitResult(
+        method=_str(d["method"], f"{where}.method"), parameters=params, derived=derived, noise=noise,
+        frames=frames, diagnostics=_json_object(d.get("diagnostics", {}), f"{where}.diagnostics"),
+        warnings=_warnings(d.get("warnings", []), f"{where}.warnings"),
+        settings=_json_object(d.get("settings", {}), f"{where}.settings"),
+        provenance=_json_object(d.get("provenance", {}), f"{where}.provenance"), arrays=arr)
+
+
+def run_from_dict(doc, arrays: Mapping[str, np.ndarray] | None = None) -> FitRun:
+    """A :class:`FitRun` from a parsed ``result.json`` (and the arrays of ``arrays.npz``).
+
+    Raises
+    ------
+    FormatError
+        Unknown or newer ``schema_version``, or any field not as documented.
+    """
+    try:
+        return _run(doc, arrays)
+    except _Bad as exc:
+        raise FormatError(f"not a valid skelid result: {exc}", _FIX) from None
+
+
+def _check_version(doc) -> None:
+    if not isinstance(doc, dict):
+        raise _Bad("$", f"expected an object, got {_type_name(doc)}")
+    if "schema_version" not in doc:
+        if "methods" in doc:
+            raise _Bad("$", "written by skelid before result schema version 1 (no schema_version)")
+        raise _Bad("$", "missing key 'schema_version'")
+    v = doc["schema_version"]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _Bad("$.schema_version", f"expected an integer, got {_type_name(v)}")
+    if v > SCHEMA_VERSION:
+        raise _Bad("$.schema_version", f"version {v} is newer than this skelid reads ({SCHEMA_VERSION}); "
+                   "upgrade skelid")
+    if v != SCHEMA_VERSION:
+        raise _Bad("$.schema_version", f"unknown version {v} (this skelid reads {SCHEMA_VERSION})")
+
+
+def _run(doc, arrays) -> FitRun:
+    _check_version(doc)
+    doc = _obj(doc, "$", {"schema_version": True, "format": True, "context": False, "warnings": False,
+                          "arrays": False, "results": True})
+    if doc["format"] != FORMAT:
+        raise _Bad("$.format", f"expected {FORMAT!r}, got {doc['format']!r}")
+    results = {k: _result(v, arrays, f"$.results.{k}", f"{k}/")
+               for k, v in _obj(doc["results"], "$.results").items()}
+    for k, r in results.items():
+        if r.method != k:
+            raise _Bad(f"$.results.{k}.method", f"{r.method!r} under the key {k!r}")
+    specs = _array_specs(doc.get("arrays", {}), "$.arrays")
+    arr = {} if arrays is None else _take_arrays(specs, arrays, "run/", "$.arrays")
+    return FitRun(results, _json_object(doc.get("context", {}), "$.context"),
+                  _warnings(doc.get("warnings", []), "$.warnings"), arr)
+
+
+def _no_duplicates(pairs):
+    d = {}
+    for k, v in pairs:
+        if k in d:
+            raise _Bad("", f"key {k!r} appears twice in one object")
+        d[k] = v
+    return d
+
+
+def _no_constant(token: str):
+    raise _Bad("", f"{token} is not JSON (write null)")
+
+
+def load_json(path) -> Any:
+    """Parse ``path`` as JSON with the size, nesting and number bounds; one FormatError line otherwise."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if not path.is_file():
+            raise FormatError(f"{path} is not a regular file", _FIX)
+        if size > MAX_JSON_BYTES:
+            raise FormatError(f"{path} is {size / 2**20:.0f} MiB, more than a result file holds "
+                              f"({MAX_JSON_BYTES // 2**20} MiB)", _FIX)
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise FormatError(f"{path} is not UTF-8 text", _FIX) from None
+    except OSError as exc:
+        raise FormatError(f"cannot read {path}: {exc.strerror or exc}", "check the path and permissions") from None
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_no_constant)
+    except json.JSONDecodeError as exc:
+        raise FormatError(f"{path} is not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})",
+                          _FIX) from None
+    except _Bad as exc:
+        raise FormatError(f"{path}: {exc}", _FIX) from None
+    except (RecursionError, ValueError) as exc:  # nesting beyond the parser's stack, an integer too long
+        raise FormatError(f"{path} cannot be read as a result ({str(exc).splitlines()[0][:80]})", _FIX) from None
+
+
+def load_npz(path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, bounded in size and kind; one FormatError line otherwise."""
+    path = Path(path)
+    try:
+        if not path.is_file():
+            raise FormatError(f"{path} is not a regular file", _FIX)
+        with zipfile.ZipFile(path) as zf:
+            infos = zf.infolist()
+        total = sum(i.file_size for i in infos)
+        if total > MAX_ARRAY_BYTES:
+            raise FormatError(f"{path} unpacks to {total / 2**30:.1f} GiB, more than a result holds "
+                              f"({MAX_ARRAY_BYTES / 2**30:.0f} GiB)", _FIX)
+        out = {}
+        with np.load(path, allow_pickle=False) as z:
+            for k in z.files:
+                a = z[k]
+                if a.dtype.kind not in "biufU" or a.ndim > MAX_NDIM:
+                    raise FormatError(f"{path}: array {k!r} of dtype {a.dtype} and {a.ndim} dimensions is "
+                                      "not one skelid writes", _FIX)
+                out[k] = a
+        return out
+    except FormatError:
+        raise
+    except OSError as exc:
+        raise FormatError(f"cannot read {path}: {exc.strerror or exc}", "check the path and permissions") from None
+    except (zipfile.BadZipFile, ValueError, EOFError, KeyError, RuntimeError, NotImplementedError) as exc:
+        raise FormatError(f"{path} is damaged ({str(exc).splitlines()[0][:80] if str(exc) else 'unreadable'})",
+                          _FIX) from None
+
+
+def read_run(result_dir) -> FitRun:
+    """Read and validate the run a folder holds (``result.json`` and, if present, ``arrays.npz``).
+
+    A folder without ``arrays.npz`` reads with every array left out.
+
+    Raises
+    ------
+    FormatError
+        The folder, ``result.json`` or ``arrays.npz`` is missing, damaged, of an unknown or
+        newer version, or not as documented; one line naming the file and the key path.
+    """
+    d = Path(result_dir)
+    if not d.is_dir():
+        raise FormatError(f"result folder {d} does not exist" if not d.exists()
+                          else f"{d} is not a result folder", "give the folder 'skelid fit --out DIR' wrote")
+    js = d / RESULT_JSON
+    if not js.exists():
+        raise FormatError(f"{d} has no {RESULT_JSON}", "give the folder 'skelid fit --out DIR' wrote")
+    doc = load_json(js)
+    npz = d / ARRAYS_NPZ
+    arrays = load_npz(npz) if npz.exists() else None
+    try:
+        return _run(doc, arrays)
+    except _Bad as exc:
+        raise FormatError(f"{js}: {exc}", _FIX) from None

@@ -1,0 +1,218 @@
+"""OpenSim model import: forward kinematics against the opensim package, Jacobians, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skelid.errors import FormatError, ModelError, SkelidError
+from skelid.io.osim import osim_parameters, read_osim
+from skelid.model import model_from_dict
+from skelid.model.functions import CoordinateFunction
+from skelid.model.kinematics import forward_kinematics, marker_jacobian, marker_positions
+
+SUBJECT01 = "opensim-subject01"
+MODELS = [
+    (f"{SUBJECT01}/gait2354_simbody.osim", f"{SUBJECT01}/gait2354_Scale_MarkerSet.xml"),
+    (f"{SUBJECT01}/std_subject01_simbody.osim", None),
+    ("addbio-subject4/Models/unscaled_generic.osim", None),
+    ("addbio-subject4/Models/manually_scaled.osim", None),
+    ("addbio-subject4/Models/optimized_scale_and_markers.osim", None),
+]
+
+
+def _pose_names(model):
+    return [c for s in model.segments for c in s.joint.coordinates]
+
+
+@pytest.mark.parametrize("path,marker_set", MODELS, ids=[m[0].rsplit("/", 1)[-1] for m in MODELS])
+def test_markers_equal_opensim_at_random_poses(shared_data, path, marker_set):
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    ms = None if marker_set is None else str(shared_data / marker_set)
+    model, _ = read_osim(shared_data / path, ms)
+    om = osim.Model(str(shared_data / path))
+    if ms is not None:
+        mset = osim.MarkerSet(ms)
+        for i in range(mset.getSize()):
+            om.addMarker(mset.get(i).clone())
+    state = om.initSystem()
+    coords = om.getCoordinateSet()
+    names = _pose_names(model)
+    assert len(names) == model.n_pose
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for _ in range(100):
+        q = np.zeros(model.n_pose)
+        for k, n in enumerate(names):
+            c = coords.get(n)
+            v = rng.uniform(max(c.getRangeMin(), -np.pi), min(c.getRangeMax(), np.pi))
+            c.setValue(state, v, False)
+            q[k] = v * (1000.0 if c.getMotionType() == 2 else 1.0)  # translations: m -> mm
+        om.realizePosition(state)
+        x = marker_positions(model, np.zeros(0), q)
+        ref = np.array([[om.getMarkerSet().get(m.name).getLocationInGround(state).get(i) for i in range(3)]
+                        for m in model.markers]) * 1000.0
+        worst = max(worst, float(np.abs(x - ref).max()))
+    assert worst <= 0.01, f"largest marker difference {worst:.2e} mm"
+
+
+@pytest.fixture
+def gait_model(shared_data):
+    model, info = read_osim(shared_data / MODELS[0][0], shared_data / MODELS[0][1])
+    return osim_parameters(model, info, scale="axes", markers="offsets"), info
+
+
+def test_jacobians_equal_finite_differences(gait_model):
+    model, _ = gait_model
+    rng = np.random.default_rng(1)
+    theta = model.theta_nominal + rng.normal(0, 0.05, model.n_params)
+    q = rng.uniform(-0.6, 0.3, model.n_pose)
+    x, Jq, Jt = marker_jacobian(model, theta, q)
+    h = 1e-6
+    for k in range(model.n_pose):
+        e = np.zeros(model.n_pose)
+        e[k] = h
+        fd = (marker_positions(model, theta, q + e) - marker_positions(model, theta, q - e)) / (2 * h)
+        np.testing.assert_allclose(Jq[..., k], fd, atol=1e-5 * (1 + np.abs(fd).max()), err_msg=f"pose {k}")
+    for k in range(model.n_params):
+        e = np.zeros(model.n_params)
+        e[k] = h
+        fd = (marker_positions(model, theta + e, q) - marker_positions(model, theta - e, q)) / (2 * h)
+        np.testing.assert_allclose(Jt[..., k], fd, atol=1e-5 * (1 + np.abs(fd).max()),
+                                   err_msg=model.parameters[k].name)
+
+
+def test_scaling_a_body_scales_its_markers_and_the_knee_translation(gait_model):
+    model, _ = gait_model
+    theta = model.theta_nominal.copy()
+    names = model.parameter_names
+    q = np.zeros(model.n_pose)
+    x0 = marker_positions(model, theta, q)
+    for a in "xyz":
+        theta[names.index(f"scale_femur_r_{a}")] = 1.1
+    kin0 = forward_kinematics(model, model.theta_nominal, q)
+    kin1 = forward_kinematics(model, theta, q)
+    s = {n: i for i, n in enumerate(s.name for s in model.segments)}
+    hip, knee = s["femur_r"], s["tibia_r"]
+    # the knee centre moves 10 % further from the hip (femur frame = its joint's frame at q = 0 here)
+    np.testing.assert_allclose(kin1.p_world_seg[knee] - kin1.p_world_seg[hip],
+                               1.1 * (kin0.p_world_seg[knee] - kin0.p_world_seg[hip]), atol=1e-9)
+    x1 = marker_positions(model, theta, q)
+    moved = np.abs(x1 - x0).max(axis=1) > 1e-9
+    on = {m.segment for m, mv in zip(model.markers, moved, strict=True) if mv}
+    assert on <= {"femur_r", "tibia_r", "talus_r", "calcn_r", "toes_r"} and "femur_r" in on
+
+
+def test_model_round_trips_through_its_dict(gait_model):
+    model, _ = gait_model
+    back = model_from_dict(model.to_dict())
+    rng = np.random.default_rng(2)
+    theta = model.theta_nominal + rng.normal(0, 0.02, model.n_params)
+    q = rng.uniform(-0.5, 0.5, (3, model.n_pose))
+    np.testing.assert_allclose(marker_positions(back, theta, q), marker_positions(model, theta, q), atol=1e-9)
+
+
+def test_splines():
+    scipy = pytest.importorskip("scipy.interpolate")
+    x = np.array([-2.0, -1.2, -0.5, 0.1, 0.9, 2.0])
+    y = np.sin(x) + 0.1 * x**2
+    q = np.linspace(-1.99, 1.99, 57)
+    nat = CoordinateFunction("spline", (), tuple(x), tuple(y), "natural")
+    ref = scipy.CubicSpline(x, y, bc_type="natural")
+    v, d = nat.value_and_derivative(q)
+    np.testing.assert_allclose(v, ref(q), atol=1e-12)
+    np.testing.assert_allclose(d, ref(q, 1), atol=1e-12)
+    cubic = CoordinateFunction("spline", (), tuple(x), tuple(x**3 - x), "fmm")  # reproduces a cubic
+    v, d = cubic.value_and_derivative(q)
+    np.testing.assert_allclose(v, q**3 - q, atol=1e-10)
+    np.testing.assert_allclose(d, 3 * q**2 - 1, atol=1e-9)
+    poly = CoordinateFunction("polynomial", (2.0, -1.0, 0.5))
+    np.testing.assert_allclose(poly.value_and_derivative(q)[1], 4 * q - 1.0)
+
+
+OSIM_HEAD = """<?xml version="1.0" encoding="UTF-8" ?>
+<OpenSimDocument Version="40000"><Model name="m"><length_units>{units}</length_units>
+<BodySet><objects><Body name="a"/><Body name="b"/></objects></BodySet>
+<JointSet><objects>
+<FreeJoint name="j0"><socket_parent_frame>/ground</socket_parent_frame>
+<socket_child_frame>/bodyset/a</socket_child_frame>
+<coordinates><Coordinate name="r1"/><Coordinate name="r2"/><Coordinate name="r3"/>
+<Coordinate name="t1"/><Coordinate name="t2"/><Coordinate name="t3"/></coordinates></FreeJoint>
+<{joint} name="j1"><socket_parent_frame>/bodyset/a</socket_parent_frame>
+<socket_child_frame>/bodyset/b</socket_child_frame>
+<coordinates><Coordinate name="k"/></coordinates></{joint}>
+</objects></JointSet>
+<MarkerSet><objects>
+<Marker name="m1"><socket_parent_frame>/bodyset/{body}</socket_parent_frame><location>0 0.1 0</location></Marker>
+<Marker name="m2"><socket_parent_frame>/bodyset/a</socket_parent_frame><location>0.1 0 0</location></Marker>
+</objects></MarkerSet></Model></OpenSimDocument>"""
+
+
+def _write(tmp_path, units="meters", joint="PinJoint", body="b", text=None):
+    p = tmp_path / "m.osim"
+    p.write_text(text if text is not None else OSIM_HEAD.format(units=units, joint=joint, body=body))
+    return p
+
+
+def test_a_small_model_reads(tmp_path):
+    model, _ = read_osim(_write(tmp_path))
+    assert [s.name for s in model.segments] == ["a", "b"]
+    assert model.n_pose == 7
+    np.testing.assert_allclose(marker_positions(model, np.zeros(0), np.zeros(7))[0], [0, 100, 0])
+
+
+@pytest.mark.parametrize("kw,err,words", [
+    ({"text": "<OpenSimDocument><Model"}, FormatError, "malformed XML"),
+    ({"joint": "EllipsoidJoint"}, ModelError, "EllipsoidJoint"),
+    ({"body": "nowhere"}, ModelError, "nowhere"),
+    ({"units": "millimeters"}, ModelError, "length_units"),
+])
+def test_bad_osim_is_one_line(tmp_path, kw, err, words):
+    with pytest.raises(err) as exc:
+        read_osim(_write(tmp_path, **kw))
+    line = exc.value.one_line()
+    assert words in line and "fix:" in line and "\n" not in line
+    assert isinstance(exc.value, SkelidError)
+
+
+@pytest.mark.parametrize("path,marker_set", [MODELS[0], MODELS[2]], ids=["gait2354", "addbio-generic"])
+def test_written_scaled_model_equals_skelid_in_opensim(shared_data, tmp_path, path, marker_set):
+    """Scales and offsets written back: OpenSim's markers on the written .osim equal skelid's."""
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    from skelid.io.osim import write_scale_set, write_scaled_osim
+
+    ms = None if marker_set is None else shared_data / marker_set
+    base, info = read_osim(shared_data / path, ms)
+    model = osim_parameters(base, info, scale="axes", markers="offsets")
+    rng = np.random.default_rng(4)
+    theta = model.theta_nominal.copy()
+    for k, p in enumerate(model.parameters):
+        theta[k] = rng.uniform(0.85, 1.2) if p.kind == "scale" else rng.normal(0, 8.0)
+    out = tmp_path / "scaled.osim"
+    write_scaled_osim(shared_data / path, out, model, info, theta, ms)
+    write_scale_set(tmp_path / "scales.xml", model, theta)
+    assert osim.ScaleSet(str(tmp_path / "scales.xml")).getSize() == len({p.target for p in model.parameters
+                                                                          if p.kind == "scale"})
+    om = osim.Model(str(out))
+    state = om.initSystem()
+    coords = om.getCoordinateSet()
+    names = _pose_names(model)
+    worst = 0.0
+    for _ in range(10):
+        q = np.zeros(model.n_pose)
+        for k, n in enumerate(names):
+            c = coords.get(n)
+            v = rng.uniform(max(c.getRangeMin(), -np.pi), min(c.getRangeMax(), np.pi))
+            c.setValue(state, v, False)
+            q[k] = v * (1000.0 if c.getMotionType() == 2 else 1.0)
+        om.realizePosition(state)
+        x = marker_positions(model, theta, q)
+        ref = np.array([[om.getMarkerSet().get(m.name).getLocationInGround(state).get(i) for i in range(3)]
+                        for m in model.markers]) * 1000.0
+        worst = max(worst, float(np.abs(x - ref).max()))
+    assert worst <= 0.01, f"largest marker difference {worst:.2e} mm"
+    # and read back by skelid itself, the unscaled geometry of the written file is the scaled one
+    again, _ = read_osim(out)
+    q = np.zeros(model.n_pose)
+    np.testing.assert_allclose(marker_positions(again, np.zeros(0), q), marker_positions(model, theta, q),
+                               atol=1e-6)
