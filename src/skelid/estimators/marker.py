@@ -25,6 +25,7 @@ from skelid.data import MarkerData
 from skelid.errors import DataError, IdentifiabilityError
 from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import prepare, warn_once
+from skelid.estimators.checks import model_misfit
 from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
     box_bias,
@@ -423,9 +424,18 @@ class MarkerEstimator:
         # the bound with every pose a free unknown (no motion model), at the estimate
         _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
         self.crlb_sd_ = crlb_sd(efficient_information(Jq_u, Jt_u, self.sigma_))
+        # a joint model that cannot follow a joint moves its segment's markers together with the angle
+        self.misfit_ = model_misfit(model, y, fit.theta, fit.pose, used, self.sigma_white_)
+        misfit = [j for j, v in self.misfit_.items() if v["flagged"]]
+        for j in misfit:
+            v = self.misfit_[j]
+            warn_once(f"model misfit at joint {j}: the markers of {v['segment']} move together with the joint "
+                      f"angle (rms {v['rms']:.3g} {model.units}), which the joint model cannot follow (a joint "
+                      "centre that moves with the angle?); this is not soft-tissue artefact", self.warnings_)
         if flagged:
+            what = "model misfit (above)" if misfit else "soft-tissue artefact"
             warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
-                      f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
+                      f"{self.sta_score_:.2f}): they look like {what}, so the "
                       "interval was widened (Newey-West)", self.warnings_)
         self.cov_plain_ = cov
         self.widened_ = self.robust == "always" or (self.robust == "auto" and flagged)
