@@ -50,5 +50,9 @@ class IdentifiabilityError(SkelidError):
     """A parameter cannot be identified from the data (no information, no solution)."""
 
 
+class ConvergenceError(SkelidError):
+    """The fit did not converge, so no interval can be reported."""
+
+
 class SkelidWarning(UserWarning):
     """A problem the user should know about that does not stop the computation."""

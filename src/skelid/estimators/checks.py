@@ -140,3 +140,67 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float) -> dict[str, 
                                "log10_p": round(log10_p, 1),
                                "flagged": bool(log10_p < np.log10(MISFIT_P) and share > MISFIT_COMMON)}
     return out
+
+
+#: a parameter is informed by the nominal marker placement when one still pose gives at least this
+#: share of the precision that the whole trial gives
+PLACEMENT_SHARE = 0.5
+#: default standard deviation (mm) of a skin marker's placement on its segment, per coordinate,
+#: folded in when a placement-informed parameter comes from a trial whose joints barely moved
+DEFAULT_PLACEMENT_SD_MM = 5.0
+
+
+def placement_information(model: Model, y, theta, pose, used, R=None, weights=None) -> dict:
+    """How much of each parameter's information a still pose gives, and its sensitivity to placement.
+
+    **Where the information comes from.** ``S = sum_t K_t^T A_t`` is the information about
+    ``theta`` (unit noise). A trial standing still at one pose ``q*`` (the used frame nearest
+    the median pose) for the same number of frames would give ``S_* = T K_*^T (I - P_*) K_*``.
+    The share ``S^{-1}_kk / S_*^{-1}_kk`` (0 when ``S_*`` does not identify parameter ``k``) is
+    near 1 for a parameter that follows from the markers' nominal positions in their
+    segments (a segment ``length`` between markers), and near 0 for a functional one (a
+    joint centre found from the joint's motion).
+
+    **Placement.** The markers' positions on their segments are constants of the model. A
+    change ``delta`` (segment frame) of marker ``m``'s position moves it by ``R_t delta`` in
+    every frame and, to first order, the estimate by ``g_m delta`` with
+    ``g_m = S^{-1} sum_t A_{t,m}^T R_{t,s(m)}``. Independent placement errors of standard
+    deviation ``s`` per coordinate add ``s^2 sum_m g_m g_m^T`` to the covariance.
+
+    Returns
+    -------
+    dict
+        ``share_still`` (P,) and ``cov_per_unit`` (P, P): the placement covariance for ``s = 1``.
+    """
+    from skelid.estimators.joint import influence_rows, row_weights
+    from skelid.estimators.likelihood import frame_terms, projected_theta_jacobian
+
+    used = np.asarray(used, bool)
+    yu = np.where(used[:, None, None], y, np.nan)
+    r, Jq, Jt = frame_terms(model, theta, pose, yu)
+    sw = row_weights(weights, yu)
+    if sw is not None:
+        Jq, Jt = Jq * sw[..., None], Jt * sw[..., None]
+    A, _ = influence_rows(Jq, Jt, R)
+    S = np.einsum("tkp,tkq->pq", Jt, A)
+    S_inv = np.linalg.pinv(S)
+    # a still trial at the frame nearest the median pose
+    idx = np.flatnonzero(used)
+    med = np.median(pose[idx], axis=0)
+    t0 = idx[np.argmin(np.sum((pose[idx] - med) ** 2, axis=1))]
+    Kp = projected_theta_jacobian(Jq[t0], Jt[t0])
+    S_still = len(idx) * Kp.T @ Kp
+    w, V = np.linalg.eigh(S_still)
+    good = w > 1e-9 * max(abs(w).max(), 1e-300)
+    # a parameter with any weight on a direction the still pose cannot see gets share 0
+    blind = np.abs(V[:, ~good]).max(axis=1) > 1e-3 if (~good).any() else np.zeros(len(w), bool)
+    var_still = (V[:, good] ** 2 / w[good]).sum(axis=1)
+    share = np.where(blind, 0.0, np.diag(S_inv) / np.maximum(var_still, 1e-300))
+    # sensitivity to each marker's placement, in its segment's frame
+    kin = forward_kinematics(model, theta, pose)
+    D, M = model.dim, len(model.markers)
+    Rm = kin.R_world_seg[:, np.asarray(model.marker_segment)]  # (T, M, D, D)
+    Am = A.reshape(len(pose), M, D, -1)  # (T, M, D, P)
+    g = np.einsum("pq,tmdq,tmde->mpe", S_inv, Am, Rm)  # (M, P, D)
+    cov_unit = np.einsum("mpe,mqe->pq", g, g)
+    return {"share_still": np.clip(share, 0.0, 1.0), "cov_per_unit": cov_unit}

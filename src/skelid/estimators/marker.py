@@ -21,11 +21,16 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from skelid.data import MarkerData
-from skelid.errors import DataError, IdentifiabilityError
+from skelid.data import MarkerData, unit_scale
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError
 from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import prepare, warn_once
-from skelid.estimators.checks import model_misfit
+from skelid.estimators.checks import (
+    DEFAULT_PLACEMENT_SD_MM,
+    PLACEMENT_SHARE,
+    model_misfit,
+    placement_information,
+)
 from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
     box_bias,
@@ -51,6 +56,8 @@ NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
+BIAS_RELIABLE = 0.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
+CONVERGED_SD = 0.1  # an unconverged fit whose estimate still moves by more than this many sd fails
 
 
 def frame_counts(model: Model, y, used=None) -> dict:
@@ -199,6 +206,11 @@ class MarkerEstimator:
         Leave each marker out (one-step refits, :mod:`skelid.estimators.jackknife`) and
         add the markers' disagreement beyond white noise to the covariance (only
         reported when ``artefact_rms`` is stated).
+    placement_sd : float, optional
+        Standard deviation (model units, per coordinate) of each marker's placement on its
+        segment. It widens the interval of parameters informed by the placement rather than
+        by motion (:func:`skelid.estimators.checks.placement_information`). None: 5 mm for a
+        static trial, none otherwise.
     outlier_threshold : float or None
         Marker positions whose residual distance after a first fit exceeds this
         many robust standard deviations are left out and the fit repeated
@@ -265,7 +277,8 @@ class MarkerEstimator:
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
-                 noise: str = "pooled", marker_groups: dict | None = None, jackknife: bool = True):
+                 noise: str = "pooled", marker_groups: dict | None = None, jackknife: bool = True,
+                 placement_sd: float | None = None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -280,6 +293,7 @@ class MarkerEstimator:
         self.noise = noise
         self.marker_groups = marker_groups
         self.jackknife = jackknife
+        self.placement_sd = placement_sd
 
     def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
         """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
@@ -336,6 +350,7 @@ class MarkerEstimator:
                     for th, qq in ((theta0, pose0), (fit.theta, fit.pose))]
             fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
         fit, w = self._noise_levels(y, fit, bounds, fixed, rate, cutoff)
+        fit = self._converge(y, fit, bounds, fixed, rate, cutoff, w)
         used = fit.frames_used
         n_skip = int((~used).sum())
         self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
@@ -415,6 +430,19 @@ class MarkerEstimator:
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
         elif method is False or method == "none":
             self.bias_ = np.zeros(P)
+        sd_plain = np.sqrt(np.clip(np.diag(sigma2 * info_inv), 0, None))
+        self.bias_fallback_ = None
+        if self.bias_correction == "auto" and method == "box" and np.any(np.abs(self.bias_) > BIAS_RELIABLE * sd_plain):
+            # the second-order expansion is unreliable here (near a singular pose): the bias of this
+            # fit under the fitted model is measured by simulation instead
+            k = int(np.argmax(np.abs(self.bias_) / sd_plain))
+            box = self.bias_
+            self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
+            method = "bootstrap"
+            self.bias_fallback_ = {"box": box.tolist(), "bootstrap": self.bias_.tolist(), "n_boot": self.n_boot}
+            warn_once(f"the second-order bias correction of {model.parameter_names[k]} ({box[k]:.3g}) is large "
+                      f"against its sd ({sd_plain[k]:.3g}): the local approximation is unreliable here, so the "
+                      f"bias was measured by parametric bootstrap ({self.n_boot} refits) instead", self.warnings_)
         else:
             raise ValueError("bias_correction must be 'auto', 'box', 'bootstrap' or 'none'")
         self.bias_method_ = method
@@ -464,6 +492,7 @@ class MarkerEstimator:
                 fold_in=not self.artefact_rms, rng=rng, weights=w)
             if msg:
                 warn_once(msg, self.warnings_)
+        cov = self._placement(y, fit, used, w, ident, cov)
         self.cov_data_ = cov
         theta, cov = _combine_normal_priors(model, theta, cov)
         self.cov_ = cov
@@ -503,6 +532,62 @@ class MarkerEstimator:
                 warn_once(f"parameter {p.name} = {theta[k]:.4g} lies outside its prior bounds "
                           f"[{p.prior.lower:g}, {p.prior.upper:g}]", self.warnings_)
         return self
+
+    def _converge(self, y, fit, bounds, fixed, rate, cutoff, w):
+        """A fit that stopped early is continued once; if the estimate still moves by more than
+        ``CONVERGED_SD`` of its sd, no interval is reported (one line)."""
+        if fit.converged:
+            return fit
+        more = joint_fit(self.model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds, frames=fixed,
+                         rate=rate if cutoff is not None else None, cutoff=cutoff, weights=w)
+        dof = max(more.n_obs - more.pose_dof - self.model.n_params, 1.0)
+        try:
+            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
+        except np.linalg.LinAlgError:
+            return more
+        step = np.abs(more.theta - fit.theta)
+        if not more.converged and np.any(step > CONVERGED_SD * np.maximum(sd, 1e-300)):
+            k = int(np.argmax(step / np.maximum(sd, 1e-300)))
+            raise ConvergenceError(
+                f"the joint fit did not converge: {self.model.parameter_names[k]} still moved by {step[k]:.3g} "
+                f"({step[k] / max(sd[k], 1e-300):.1f} sd) in {self.n_iter} further iterations, so no interval "
+                "can be given", "raise n_iter, or check the model's starting geometry and the data")
+        return more
+
+    def _placement(self, y, fit, used, w, ident, cov):
+        """Flag parameters informed by the nominal marker placement; add its uncertainty to ``cov``.
+
+        See :func:`skelid.estimators.checks.placement_information`. The placement's standard
+        deviation is ``placement_sd`` when stated; otherwise
+        ``DEFAULT_PLACEMENT_SD_MM`` for a trial whose joints all moved less than
+        ``STILL_JOINT_DEG`` (a static trial), and none for a trial with motion.
+        """
+        model = self.model
+        place = placement_information(model, y, fit.theta, fit.pose, used, fit.penalty, w)
+        share = place["share_still"]
+        flagged = share > PLACEMENT_SHARE
+        ranges = [max(r) for r in ident.get("joint_range_deg", {}).values()]
+        static = bool(ranges) and max(ranges) < STILL_JOINT_DEG
+        if self.placement_sd is not None:
+            sd = float(self.placement_sd)
+        else:
+            sd = DEFAULT_PLACEMENT_SD_MM * unit_scale("mm", model.units) if static else 0.0
+        added = sd**2 * place["cov_per_unit"] if flagged.any() else np.zeros_like(cov)
+        self.placement_ = {"placement_sd": sd, "static": static,
+                           "parameters": {n: {"share_from_still_pose": round(float(share[k]), 3),
+                                              "informed_by_placement": bool(flagged[k]),
+                                              "sd_added": float(np.sqrt(max(added[k, k], 0.0)))}
+                                          for k, n in enumerate(model.parameter_names)}}
+        if flagged.any() and (static or sd > 0):  # with motion the flag stays in the result only
+            names = ", ".join(np.array(model.parameter_names)[flagged])
+            tail = (f"; a marker placement uncertainty of {sd:.3g} {model.units} per coordinate was added to "
+                    "the interval" if sd > 0 else
+                    "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
+            warn_once(f"parameter(s) {names} are informed by the markers' nominal placement on their segments, "
+                      f"not by motion (one still pose gives {100 * share[flagged].min():.0f} % or more of "
+                      f"their precision): their value follows from the model's marker positions{tail}",
+                      self.warnings_)
+        return cov + added
 
     def _noise_levels(self, y, fit, bounds, fixed, rate, cutoff):
         """Per-marker noise levels and the weighted fit (``noise='per_marker'``), or the fit as it is."""
@@ -562,6 +647,8 @@ class MarkerEstimator:
         out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
         out["residual_autocorrelation"] = self.sta_score_
         out["jackknife"] = self.jackknife_
+        out["placement"] = self.placement_
+        out["model_misfit"] = self.misfit_
         if self.artefact_rms:
             out["artefact"] = {"rms": float(self.artefact_rms),
                                "sd_added": [float(v) for v in np.sqrt(np.diag(self.cov_artefact_))]}
