@@ -430,9 +430,12 @@ class MarkerEstimator:
             self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
         elif method is False or method == "none":
             self.bias_ = np.zeros(P)
+        else:
+            raise ValueError("bias_correction must be 'auto', 'box', 'bootstrap' or 'none'")
         sd_plain = np.sqrt(np.clip(np.diag(sigma2 * info_inv), 0, None))
         self.bias_fallback_ = None
-        if self.bias_correction == "auto" and method == "box" and np.any(np.abs(self.bias_) > BIAS_RELIABLE * sd_plain):
+        unreliable = np.any(np.abs(self.bias_) > BIAS_RELIABLE * sd_plain)
+        if self.bias_correction in ("auto", True) and method == "box" and unreliable:
             # the second-order expansion is unreliable here (near a singular pose): the bias of this
             # fit under the fitted model is measured by simulation instead
             k = int(np.argmax(np.abs(self.bias_) / sd_plain))
@@ -443,8 +446,6 @@ class MarkerEstimator:
             warn_once(f"the second-order bias correction of {model.parameter_names[k]} ({box[k]:.3g}) is large "
                       f"against its sd ({sd_plain[k]:.3g}): the local approximation is unreliable here, so the "
                       f"bias was measured by parametric bootstrap ({self.n_boot} refits) instead", self.warnings_)
-        else:
-            raise ValueError("bias_correction must be 'auto', 'box', 'bootstrap' or 'none'")
         self.bias_method_ = method
         theta = fit.theta - self.bias_
         cov = sigma2 * info_inv
