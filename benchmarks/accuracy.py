@@ -74,7 +74,7 @@ def one_trial(args):
         try:
             if name == "paper":
                 est = PaperFilter(model).fit(trial.data)
-                post, dropped = est.posterior_, est.n_dropped_
+                post, dropped = est.posterior_, int((~est.frames_used_).sum())
             elif name == "profile":
                 est = MarkerEstimator(model, cutoff=None, bias_correction="none", robust="never")
                 est.fit(trial.data)

@@ -11,15 +11,18 @@ and the coupled translations of the joints it is the parent of, and a
 
 The scale factors come from skelid's ``marker`` method (poses and geometry by
 joint least squares, intervals from the Laplace approximation) with the
-markers at their nominal places. The offsets are then placed as OpenSim's
+markers at their nominal places; with several trials, from its multi-trial
+form (each trial fitted alone, then all at once with one geometry, the
+between-trial spread added to the interval; see
+:mod:`skelid.estimators.multitrial`). The offsets are then placed as OpenSim's
 MarkerPlacer places them: each free marker moves to where the first (static)
 trial saw it in the fitted poses, with a standard error from the frame
 scatter (:func:`place_markers`). They are not fitted jointly with the scales:
 the joint fit has no prior penalty, and offsets of every marker of a body
-trade with the body's pose, so the data alone cannot identify them. Several trials of one
-subject are joined in time order into one recording with a gap of missing
-frames between them, so the motion model never links the last pose of one
-trial to the first of the next; the geometry is shared, the poses are not.
+trade with the body's pose, so the data alone cannot identify them.
+Several trials of one subject are read as one recording (:func:`join_trials`: the union of their
+markers, a gap of missing frames between trials) and fitted as separate
+trials with one geometry.
 
 :func:`write_outputs` writes the scaled ``.osim`` (every other element of the
 source kept), an OpenSim ScaleSet, and ``scaling.json`` with each factor and
@@ -116,7 +119,7 @@ STATIC_FRAMES = 30
 
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
-             static_frames: int | None = STATIC_FRAMES) -> ScalingFit:
+             static_frames: int | None = STATIC_FRAMES, joined: bool = False) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
@@ -134,6 +137,9 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         The first trial, when it has more frames, contributes this many evenly
         spaced ones (a static trial repeats one pose: more frames add time, not
         information, since its residuals are serially correlated). None: all.
+    joined : bool
+        Fit the trials as one recording with gaps (one marker fit) instead of
+        the multi-trial fit (each trial alone, then together).
 
     Returns
     -------
@@ -161,7 +167,18 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     sub = MarkerData(data.positions[:, [data.names.index(n) for n in model.marker_names]],
                      model.marker_names, data.rate, data.units, data.source, data.meta)
     t0 = time.perf_counter()
-    if model.n_params:
+    if model.n_params and len(trials) > 1 and method == "marker" and not joined:
+        from skelid.estimators.multitrial import MultiTrialEstimator
+
+        parts = [MarkerData(sub.positions[a:b], sub.names, sub.rate, sub.units, t.source)
+                 for (a, b), t in zip(data.meta["trial_frames"], trials, strict=True)]
+        est = MultiTrialEstimator(model, sigma=sigma, rng=np.random.default_rng(seed)).fit(parts)
+        res, theta = est.result(), np.asarray(est.theta_, float)
+        edges = np.cumsum([0] + [len(p.positions) for p in parts])
+        pose = np.full((sub.positions.shape[0], model.n_pose), np.nan)
+        for (a, b), e0, e1 in zip(data.meta["trial_frames"], edges[:-1], edges[1:], strict=True):
+            pose[a:b] = est.pose_[e0:e1]
+    elif model.n_params:
         est = make_estimator(method, model, sigma, rng=np.random.default_rng(seed))
         est.fit(sub)
         res, theta, pose = est.result(), np.asarray(est.theta_, float), est.pose_

@@ -77,5 +77,5 @@ def test_noise_free_misfit_keeps_its_markers_and_says_misfit_once():
     model, y, _ = _trial(2, 0.0, moving_centre=10.0)
     est = MarkerEstimator(model, rng=np.random.default_rng(0)).fit(MarkerData(y, model.marker_names, 100.0, "mm"))
     assert not est.outliers_.any()
-    assert sum("model misfit at joint knee" in w for w in est.warnings_) == 1
-    assert not any("look like soft-tissue artefact" in w for w in est.warnings_)
+    assert sum("model misfit at joint knee" in w.message for w in est.warnings_) == 1
+    assert not any("look like soft-tissue artefact" in w.message for w in est.warnings_)

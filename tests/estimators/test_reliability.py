@@ -17,7 +17,7 @@ def test_a_fit_that_does_not_converge_fails_in_one_line():
     model = builtin_model("case-b")
     trial = simulate(model, n_frames=120, sigma=2.0, rng=np.random.default_rng(0))
     with pytest.raises(ConvergenceError) as exc:
-        MarkerEstimator(model, n_iter=1, cutoff=None, jackknife=False).fit(trial.data, theta0=[205.0])
+        MarkerEstimator(model, n_iter=1, cutoff=None, jackknife=False, theta0=[205.0]).fit(trial.data)
     assert "\n" not in exc.value.one_line() and "did not converge" in exc.value.one_line()
 
 
@@ -29,7 +29,7 @@ def test_an_unreliable_bias_correction_falls_back_to_the_bootstrap(monkeypatch):
     est.fit(trial.data)
     assert est.bias_method_ == "bootstrap" and est.bias_fallback_["n_boot"] == 4
     assert est.bias_[0] == pytest.approx(est.bias_fallback_["bootstrap"][0])
-    assert any("parametric bootstrap" in w for w in est.warnings_)
+    assert any("parametric bootstrap" in w.message for w in est.warnings_)
 
 
 def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
@@ -44,7 +44,7 @@ def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
     est = MarkerEstimator(model, cutoff=None, jackknife=False, rng=np.random.default_rng(0)).fit(data)
     assert est.placement_["static"] and est.placement_["placement_sd"] == 5.0
     assert all(v["informed_by_placement"] for v in est.placement_["parameters"].values())
-    assert any("nominal placement" in w for w in est.warnings_)
+    assert any("nominal placement" in w.message for w in est.warnings_)
     # the covariance added is exactly sd^2 times the placement sensitivity (closed form)
     fit = est.fit_info_
     place = placement_information(model, est.y_, fit.theta, fit.pose, est.frames_used_, fit.penalty)
