@@ -74,6 +74,10 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
     if cutoff is not None and not (math.isfinite(cutoff) and cutoff >= 0):
         raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
                           "use 0 for no motion model, or e.g. --cutoff 6")
+    if artefact_rms and "artefact_rms" not in registry.cli_settings(name).values():
+        raise SkelidError(f"--artefact-rms is not available with --method {name}: its posterior does not come "
+                          "from the joint fit the artefact term is computed from",
+                          "use --method marker or marker-smc with --artefact-rms")
     options = {"sigma": sigma, "artefact_rms": artefact_rms or None, "cutoff": cutoff or None}
     no_motion = {"cutoff": None} if cutoff == 0 and "cutoff" in registry.cli_settings(name) else {}
     return registry.make_estimator(name, model, options, rng=rng, **no_motion)
