@@ -300,8 +300,19 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
              "json": out_dir / f"{name}_scaling.json"}
     write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set)
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
-    paths["json"].write_text(json.dumps(scaling_table(fit), indent=1, allow_nan=False) + "\n")
+    paths["json"].write_text(json.dumps(_finite_or_none(scaling_table(fit)), indent=1, allow_nan=False) + "\n")
     return paths
+
+
+def _finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, float | np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
 
 
 def opensim_ik(osim_path, trc_path, out_dir, markers=None) -> dict:
