@@ -30,6 +30,7 @@ import numpy as np
 
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, ModelError
+from skelid.estimators.joint import usable_frames  # the one usable-frame rule
 from skelid.model.description import Model
 
 #: usable frames each method needs at the least (the motion model of the marker methods needs a few)
@@ -37,12 +38,6 @@ MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5}
 DEFAULT_MIN_FRAMES = 5
 #: a coordinate whose peak-to-peak range over the frames is below this fraction of the model's size is still
 MOTION_RTOL = 1e-9
-
-
-def usable_frames(model, y: np.ndarray) -> np.ndarray:
-    """(F,) bool: frames whose present markers give more coordinates than the pose has."""
-    present = np.isfinite(y).all(axis=-1)  # (F, M)
-    return present.sum(axis=1) * model.dim > model.n_pose
 
 
 def check_surplus(model, where: str = "the data") -> None:

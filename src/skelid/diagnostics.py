@@ -74,15 +74,26 @@ def fit_warnings(model: Model, name: str, res: dict, est) -> list[str]:
         r = np.asarray(r, float)
         # residuals at the level of the file's rounding (noise-free data) say nothing about tissue
         floor = NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
+        misfit = {v["segment"] for v in (getattr(est, "misfit_", None) or {}).values() if v["flagged"]}
+        slow, one = [], ""
         for m, mname in enumerate(model.marker_names[: r.shape[1]]):
+            if model.markers[m].segment in misfit:
+                continue  # already reported as model misfit
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # a marker never present
                 rho = lag1_autocorrelation(r[:, m])
             rms = float(np.sqrt(np.nanmean(r[:, m] ** 2))) if np.isfinite(r[:, m]).any() else 0.0
             if rho > STA_AUTOCORR and rms > floor:
-                out.append(f"residuals of marker {mname} ({name} method, rms {rms:.3g} {model.units}) are "
-                           f"correlated in time (lag-1 autocorrelation {rho:.2f}): this looks like "
-                           "soft-tissue artefact, not measurement noise")
+                slow.append(f"{mname} (rms {rms:.3g}, lag-1 {rho:.2f})")
+                one = (f"residuals of marker {mname} ({name} method, rms {rms:.3g} {model.units}) are "
+                       f"correlated in time (lag-1 autocorrelation {rho:.2f}): this looks like "
+                       "soft-tissue artefact, not measurement noise")
+        if len(slow) == 1:
+            out.append(one)
+        elif slow:  # one line for all of them
+            out.append(f"residuals of {len(slow)} markers ({name} method) are correlated in time: "
+                       f"{', '.join(slow)} {model.units}; this looks like soft-tissue artefact, not measurement "
+                       "noise")
     measured = getattr(est, "measured_", None)
     if measured is not None and model.n_params == 1:
         rho = lag1_autocorrelation(measured)

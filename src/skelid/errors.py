@@ -58,5 +58,9 @@ class NotFittedError(SkelidError, AttributeError):
     """A fitted attribute or result was asked for before ``fit``."""
 
 
+class ConvergenceError(SkelidError):
+    """The fit did not converge, so no interval can be reported."""
+
+
 class SkelidWarning(UserWarning):
     """A problem the user should know about that does not stop the computation."""

@@ -145,6 +145,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     -------
     ScalingFit
     """
+    from skelid.io.results import summary_dict
     from skelid.workflows import make_estimator
 
     trials = list(trials)
@@ -184,7 +185,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     elif model.n_params:
         est = make_estimator(method, model, sigma, rng=np.random.default_rng(seed))
         est.fit(sub)
-        res, theta, pose = est.result(), np.asarray(est.theta_, float), est.pose_
+        res, theta, pose = summary_dict(est.result()), np.asarray(est.theta_, float), est.pose_
     else:  # nothing to scale: poses of the nominal model only
         from skelid.estimators.pose import track_poses
 

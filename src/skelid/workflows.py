@@ -53,9 +53,6 @@ def methods() -> dict:
     return registry.estimators()
 
 
-DEMO_METHODS = ("paper", "marker")
-
-
 def make_estimator(name: str, model: Model, sigma: float | None = None,
                    rng: np.random.Generator | None = None, cutoff: float | None = None,
                    artefact_rms: float | None = None):
@@ -77,6 +74,10 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
     if cutoff is not None and not (math.isfinite(cutoff) and cutoff >= 0):
         raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
                           "use 0 for no motion model, or e.g. --cutoff 6")
+    if artefact_rms and "artefact_rms" not in registry.cli_settings(name).values():
+        raise SkelidError(f"--artefact-rms is not available with --method {name}: its posterior does not come "
+                          "from the joint fit the artefact term is computed from",
+                          "use --method marker or marker-smc with --artefact-rms")
     options = {"sigma": sigma, "artefact_rms": artefact_rms or None, "cutoff": cutoff or None}
     no_motion = {"cutoff": None} if cutoff == 0 and "cutoff" in registry.cli_settings(name) else {}
     return registry.make_estimator(name, model, options, rng=rng, **no_motion)
@@ -206,45 +207,12 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     return result
 
 
-def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
-         method_names=None, progress: bool = True, limits=None, overwrite: bool = False) -> dict:
-    """Simulate cases A and B with the seed paper's settings, fit, draw, summarise.
+def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0, method_names=None,
+         progress: bool = True, limits=None, overwrite: bool = False) -> dict:
+    """Simulate cases A and B, fit, draw, summarise (see :func:`skelid.demo.demo`)."""
+    from skelid.demo import demo as run_demo
 
-    Nothing appears in ``out_dir`` until every figure and ``summary.json`` are complete.
-    """
-    from tqdm import tqdm
-
-    from skelid.simulate import builtin_model, simulate
-
-    if not (math.isfinite(sigma) and sigma >= 0):
-        raise SkelidError(f"--sigma must be a finite number >= 0 (mm), got {sigma}", "e.g. --sigma 15")
-    method_names = list(method_names or DEMO_METHODS)
-    check_output_dir(out_dir, overwrite)
-    for case in ("case-a", "case-b"):
-        for n in method_names:
-            check_cost(builtin_model(case), n, n_frames, limits)
-    summary, drawn = {}, []
-    cases = ("case-a", "case-b")
-    bar = tqdm(total=len(cases) + 1, desc="demo", unit="step", file=sys.stderr,
-               disable=not progress or not sys.stderr.isatty())
-    for k, case in enumerate(cases):
-        bar.set_postfix_str(case)
-        model = builtin_model(case)
-        trial = simulate(model, n_frames=n_frames, sigma=sigma,
-                         rng=np.random.default_rng([seed, k]))
-        res, fitted = fit_file(model, trial.data, method_names, seed=seed, progress=progress)
-        key = case.replace("-", "_")
-        drawn.append((model, trial, fitted, key))
-        summary[key] = {"truth": trial.truth, "sigma_noise": sigma, "frames_total": res["frames_total"],
-                        "methods": res["methods"]}
-        bar.update(1)
-    bar.set_postfix_str("figures")
-    with bar, atomic_dir(out_dir, overwrite=overwrite) as tmp:
-        for model, trial, fitted, key in drawn:
-            figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
-        write_json(tmp / "summary.json", summary)
-        bar.update(1)
-    return summary
+    return run_demo(out_dir, seed, n_frames, sigma, method_names, progress, limits, overwrite)
 
 
 def table(summary: dict) -> str:

@@ -59,6 +59,7 @@ from skelid.estimators.base import (
     positive_or_none,
     steps,
 )
+from skelid.estimators.joint import usable_frames
 from skelid.estimators.pose import FramePoseFitter, initial_pose
 from skelid.estimators.posterior import GridPosterior
 from skelid.model.description import Model
@@ -199,7 +200,7 @@ class MarkerGridFilter:
         _, pts = self._points()
         n_coord = int(np.isfinite(frame).all(axis=-1).sum()) * self.model.dim
         step = state.n_frames + 1
-        usable = n_coord > self.model.n_pose
+        usable = bool(usable_frames(self.model, frame[None])[0])
         q = state.pose
         if usable and q is None:
             q0, _ = initial_pose(self.model, self.model.theta_center, frame, make_rng(self.rng))

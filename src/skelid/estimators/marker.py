@@ -43,8 +43,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.stats import chi2
 
-from skelid.data import MarkerData
-from skelid.errors import DataError, IdentifiabilityError
+from skelid.data import MarkerData, unit_scale
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError
 from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import (
     RATE,
@@ -62,6 +62,13 @@ from skelid.estimators.base import (
     positive_int,
     positive_or_none,
 )
+from skelid.estimators.checks import (
+    DEFAULT_PLACEMENT_SD_MM,
+    PLACEMENT_SHARE,
+    model_misfit,
+    placement_information,
+)
+from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
     JointFit,
     box_bias,
@@ -88,6 +95,8 @@ NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
+BIAS_RELIABLE = 0.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
+CONVERGED_SD = 0.1  # an unconverged fit whose estimate still moves by more than this many sd fails
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
 Z95 = 1.959964  # two-sided 95 % normal quantile
@@ -108,7 +117,7 @@ def frame_counts(model: Model, y, used=None) -> dict:
         Frames that entered the fit.
     """
     n = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
-    used = n > model.n_pose if used is None else np.asarray(used, bool)
+    used = usable_frames(model, y) if used is None else np.asarray(used, bool)
     surplus = n - model.n_pose
 
     def stats(v):
@@ -269,11 +278,13 @@ class Residuals(NamedTuple):
     sta_score: float  # mean lag-1 autocorrelation of the residual coordinates
     flagged: bool  # correlated beyond STA_AUTOCORRELATION and above the rounding level
     sigma_white: float
+    misfit: dict  # joint -> angle-driven residual pattern shared by its segment's markers (checks.model_misfit)
 
 
 class Bias(NamedTuple):
     bias: np.ndarray  # (P,)
     method: str
+    fallback: dict | None = None  # the second-order bias that was too large to trust, and the bootstrap's
 
 
 class Covariance(NamedTuple):
@@ -284,6 +295,8 @@ class Covariance(NamedTuple):
     widened: bool
     crlb_sd: np.ndarray  # (P,) with every pose free
     crlb_motion_sd: np.ndarray  # (P,) with the motion model
+    jackknife: dict  # leave-one-marker-out summary (jackknife.jackknife_stage)
+    placement: dict  # where the information comes from, and the placement term added
 
 
 class Estimate(NamedTuple):
@@ -444,8 +457,9 @@ def residual_stage(model: Model, y, fit: JointFit, used, sigma: float, w=None) -
     # which a slow drift barely touches
     dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
     white = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else sigma
+    misfit = model_misfit(model, y, fit.theta, fit.pose, used, white)
     return Residuals(np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan), score,
-                     bool(score > STA_AUTOCORRELATION and not numerical), white)
+                     bool(score > STA_AUTOCORRELATION and not numerical), white, misfit)
 
 
 def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weights, used, noise: Noise,
@@ -457,18 +471,28 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     method = "box" if est.bias_correction in (True, "auto") else est.bias_correction
     method = "none" if method is False else method
     y = sc.y
-    if method == "box" and fit.penalty is None:
-        return Bias(box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w), method)
     if method == "box":
-        return Bias(smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
-                                  sigma2_bias, fit.penalty, weights=w), method)
+        if fit.penalty is None:
+            b = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w)
+        else:
+            b = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
+                              sigma2_bias, fit.penalty, weights=w)
+        sd = noise.sigma * np.sqrt(np.clip(np.diag(np.linalg.inv(fit.info)), 0, None))
+        if est.bias_correction in ("auto", True) and np.any(np.abs(b) > BIAS_RELIABLE * sd):
+            # the second-order expansion is unreliable here (near a singular pose): the bias of this
+            # fit under the fitted model is measured by simulation instead
+            boot = est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng)
+            k = int(np.argmax(np.abs(b) / np.maximum(sd, 1e-300)))
+            return Bias(boot, "bootstrap", {"box": b.tolist(), "bootstrap": boot.tolist(), "n_boot": est.n_boot,
+                                            "parameter": model.parameter_names[k], "sd": float(sd[k])})
+        return Bias(b, method)
     if method == "bootstrap":
         return Bias(est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng), method)
     return Bias(np.zeros(model.n_params), method)
 
 
 def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise,
-                     res: Residuals) -> Covariance:
+                     res: Residuals, ident: dict | None = None, rng=None) -> Covariance:
     """``sigma^2 S^{-1}``; Newey-West when the residuals are correlated; the stated artefact's term."""
     model, y, fit, w = est.model, sc.y, wt.fit, wt.weights
     info_inv = np.linalg.inv(fit.info)
@@ -493,7 +517,63 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
         artefact = artefact_covariance(model, y_used, fit.theta, fit.pose, fit.penalty,
                                        float(est.artefact_rms), used)
         cov = cov + artefact
-    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)))
+    # one marker's artefact that moves the estimate shows when that marker is left out
+    jack = {"available": False, "folded": False}
+    if est.jackknife:
+        cov, jack, _ = jackknife_stage(model, y_used, fit, noise.sigma, cov, fold_in=not est.artefact_rms,
+                                       rng=rng, weights=w)
+    cov, place = placement_stage(est, y_used, fit, used, w, ident or {}, cov)
+    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place)
+
+
+def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator) -> Weights:
+    """A fit that stopped early is continued once; if its estimate still moves by more than
+    ``CONVERGED_SD`` of its sd, no interval is reported (one line)."""
+    fit = wt.fit
+    if fit.converged:
+        return wt
+    more = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                     rate=st.rate if mo.cutoff is not None else None, cutoff=mo.cutoff, weights=wt.weights)
+    dof = max(more.n_obs - more.pose_dof - model.n_params, 1.0)
+    try:
+        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
+    except np.linalg.LinAlgError:
+        return wt._replace(fit=more)
+    step = np.abs(more.theta - fit.theta)
+    if not more.converged and np.any(step > CONVERGED_SD * np.maximum(sd, 1e-300)):
+        k = int(np.argmax(step / np.maximum(sd, 1e-300)))
+        raise ConvergenceError(
+            f"the joint fit did not converge: {model.parameter_names[k]} still moved by {step[k]:.3g} "
+            f"({step[k] / max(sd[k], 1e-300):.1f} sd) in {s.n_iter} further iterations, so no interval "
+            "can be given", "raise n_iter, or check the model's starting geometry and the data")
+    return wt._replace(fit=more)
+
+
+def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
+    """Flag parameters informed by the nominal marker placement; add its uncertainty to ``cov``.
+
+    See :func:`skelid.estimators.checks.placement_information`. The placement's standard
+    deviation is ``placement_sd`` when stated; otherwise ``DEFAULT_PLACEMENT_SD_MM`` for a trial
+    whose joints all moved less than ``STILL_JOINT_DEG`` (a static trial), and none for a trial
+    with motion (the flag is then reported without a warning).
+    """
+    model = est.model
+    place = placement_information(model, y_used, fit.theta, fit.pose, used, fit.penalty, w)
+    share = place["share_still"]
+    flagged = share > PLACEMENT_SHARE
+    ranges = [max(r) for r in ident.get("joint_range_deg", {}).values()]
+    static = bool(ranges) and max(ranges) < STILL_JOINT_DEG
+    if est.placement_sd is not None:
+        sd = float(est.placement_sd)
+    else:
+        sd = DEFAULT_PLACEMENT_SD_MM * unit_scale("mm", model.units) if static else 0.0
+    added = sd**2 * place["cov_per_unit"] if flagged.any() else np.zeros_like(cov)
+    out = {"placement_sd": sd, "static": static, "min_share": float(share[flagged].min()) if flagged.any() else 0.0,
+           "parameters": {n: {"share_from_still_pose": round(float(share[k]), 3),
+                              "informed_by_placement": bool(flagged[k]),
+                              "sd_added": float(np.sqrt(max(added[k, k], 0.0)))}
+                          for k, n in enumerate(model.parameter_names)}}
+    return cov + added, out
 
 
 def summary_stage(model: Model, ident: dict, est: Estimate) -> Summary:
@@ -544,11 +624,43 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
             out.append(Warning("poorly-identified", f"parameter {row['parameter']} is poorly identified for "
                                f"this motion (Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than "
                                "a quarter of its prior range)", (row["parameter"],)))
+    misfit = [j for j, v in f.residuals.misfit.items() if v["flagged"]]
+    for j in misfit:
+        v = f.residuals.misfit[j]
+        out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
+                           f"with the joint angle (rms {v['rms']:.3g} {model.units}), which the joint model cannot "
+                           "follow (a joint centre that moves with the angle?); this is not soft-tissue artefact"))
     if f.residuals.flagged:
         then = ("so the interval was widened (Newey-West)" if f.cov.widened else
                 "but the interval was not widened (robust='never')")
-        out.append(Warning("soft-tissue-artefact", f"residuals are serially correlated (lag-1 autocorrelation "
-                           f"{f.residuals.sta_score:.2f}): they look like soft-tissue artefact, {then}"))
+        what = "model misfit (above)" if misfit else "soft-tissue artefact"
+        out.append(Warning("model-misfit" if misfit else "soft-tissue-artefact",
+                           f"residuals are serially correlated (lag-1 autocorrelation "
+                           f"{f.residuals.sta_score:.2f}): they look like {what}, {then}"))
+    fb = f.bias.fallback
+    if fb:
+        k = model.parameter_names.index(fb["parameter"])
+        out.append(Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
+                           f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
+                           f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
+                           "refits) instead", (fb["parameter"],)))
+    jk = f.cov.jackknife
+    if jk.get("folded"):
+        k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
+        v = jk["parameters"][k]
+        out.append(Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
+                           f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
+                           f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,)))
+    pl = f.cov.placement
+    flagged_p = tuple(n for n, v in pl["parameters"].items() if v["informed_by_placement"])
+    if flagged_p and (pl["static"] or pl["placement_sd"] > 0):  # with motion the flag stays in the result
+        tail = (f"; a marker placement uncertainty of {pl['placement_sd']:.3g} {model.units} per coordinate was "
+                "added to the interval" if pl["placement_sd"] > 0 else
+                "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
+        out.append(Warning("placement-informed", f"parameter(s) {', '.join(flagged_p)} are informed by the "
+                           "markers' nominal placement on their segments, not by motion (one still pose gives "
+                           f"{100 * pl['min_share']:.0f} % or more of their precision): their value follows "
+                           f"from the model's marker positions{tail}", flagged_p))
     for k, (before, after) in enumerate(zip(f.ident["table"], f.summary.table, strict=True)):
         if before["status"] == "identified" and after["status"] == "poor":
             out.append(Warning("poorly-identified", f"parameter {after['parameter']} is poorly identified for "
@@ -579,13 +691,14 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     sc = screen_stage(model, st, est)
     mo = motion_stage(model, st, sc, est)
     wt = weights_stage(model, st, sc, mo, est)
+    wt = converge_stage(model, st, sc, mo, wt, est)
     fit = wt.fit
     fr = frames_stage(model, sc, fit)
     noise = noise_stage(model, fit, est.sigma)
     ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound)
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
-    cov = covariance_stage(est, sc, wt, fr.used, noise, res)
+    cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data))
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
                      summary_stage(model, ident, estimate))
@@ -632,6 +745,15 @@ class MarkerEstimator:
         (see :mod:`skelid.estimators.noise`).
     marker_groups : dict of str to list of str, optional
         With ``noise='per_marker'``: markers that share one noise level.
+    jackknife : bool
+        Leave each marker out (one-step refits, :mod:`skelid.estimators.jackknife`) and
+        add the markers' disagreement beyond white noise to the covariance (only
+        reported when ``artefact_rms`` is stated).
+    placement_sd : float, optional
+        Standard deviation (model units, per coordinate) of each marker's placement on its
+        segment; it widens the interval of parameters informed by the placement rather than
+        by motion (:func:`skelid.estimators.checks.placement_information`). None: 5 mm for a
+        static trial, none otherwise.
     theta0 : (P,) float, optional
         Starting geometry (default: the prior centre).
     pose0 : (T, Q) float, optional
@@ -702,6 +824,8 @@ class MarkerEstimator:
                 cli="artefact_rms"),
         Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'"),
         Setting("marker_groups", lambda v: v is None or isinstance(v, dict), "None or {group: [marker names]}"),
+        Setting("jackknife", lambda v: isinstance(v, bool), "True or False"),
+        Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
         Setting("theta0", array_or_none, "None or finite starting values, one per parameter"),
         Setting("pose0", array_or_none, "None or finite starting poses (frames, pose coordinates)"),
     )
@@ -710,7 +834,8 @@ class MarkerEstimator:
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
-                 noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None):
+                 noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None,
+                 jackknife: bool = True, placement_sd: float | None = None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -724,6 +849,8 @@ class MarkerEstimator:
         self.artefact_rms = artefact_rms
         self.noise = noise
         self.marker_groups = marker_groups
+        self.jackknife = jackknife
+        self.placement_sd = placement_sd
         self.theta0 = theta0
         self.pose0 = pose0
 
@@ -760,6 +887,10 @@ class MarkerEstimator:
         self.cov_plain_ = f.cov.plain
         self.widened_ = f.cov.widened
         self.cov_artefact_ = f.cov.artefact
+        self.jackknife_ = f.cov.jackknife
+        self.placement_ = f.cov.placement
+        self.misfit_ = f.residuals.misfit
+        self.bias_fallback_ = f.bias.fallback
         self.cov_data_ = f.cov.data
         self.theta_, self.cov_ = f.estimate
         self.pose_ = fit.pose
@@ -786,7 +917,10 @@ class MarkerEstimator:
         """The typed result (:class:`~skelid.result.FitResult`)."""
         check_fitted(self)
         model = self.model
-        extra = {n: {"bias_removed": float(self.bias_[k]), "crlb_sd_motion_model": float(self.crlb_motion_sd_[k])}
+        jk = self.jackknife_.get("parameters", {})
+        extra = {n: {"bias_removed": float(self.bias_[k]), "crlb_sd_motion_model": float(self.crlb_motion_sd_[k]),
+                     "jackknife_sd": jk.get(n, {}).get("sd"),
+                     "informed_by_placement": self.placement_["parameters"][n]["informed_by_placement"]}
                  for k, n in enumerate(model.parameter_names)}
         diagnostics = {
             "identifiability": self.identifiability_["table"], "null": self.identifiability_["null"],
@@ -797,7 +931,8 @@ class MarkerEstimator:
             "cutoff_hz": None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist(),
             "outlying_marker_positions": int(self.outliers_.sum()),
             "converged": bool(self.fit_info_.converged), "iterations": int(self.fit_info_.n_iter),
-            "bias_method": self.bias_method_}
+            "bias_method": self.bias_method_, "bias_fallback": self.bias_fallback_,
+            "marker_jackknife": self.jackknife_, "placement": self.placement_, "model_misfit": self.misfit_}
         if self.artefact_rms:
             diagnostics["artefact"] = {"rms": float(self.artefact_rms),
                                        "sd_added": np.sqrt(np.diag(self.cov_artefact_)).tolist()}

@@ -40,9 +40,10 @@ estimate: under a flat prior this is exactly shifting every sample by
 lets a normal prior act on the corrected likelihood, as the default
 estimator combines it.
 
-**Serially correlated residuals.** When the default estimator widened its
-interval because the residuals are serially correlated (soft-tissue
-artefact; Newey-West covariance ``V_NW`` instead of ``V = sigma^2 S^{-1}``),
+**Widened intervals.** When the default estimator widened its interval
+(``V_NW`` instead of ``V = sigma^2 S^{-1}``) because the residuals are serially
+correlated (soft-tissue artefact, Newey-West), or added a stated artefact's,
+the marker jackknife's or the markers' placement term,
 the likelihood is misspecified and too sharp. As in composite-likelihood
 practice its curvature is adjusted by one factor,
 
@@ -606,7 +607,7 @@ class SamplerEstimator:
               "bias_method_", "crlb_sd_", "crlb_motion_sd_", "pose_", "residuals_", "y_", "cutoff_",
               "sta_score_", "widened_", "cov_plain_", "cov_data_", "cov_artefact_", "theta_profile_",
               "fit_info_")
-    settings = tuple(s for s in MarkerEstimator.settings if s.name != "artefact_rms") + (
+    settings = MarkerEstimator.settings + (
         Setting("n_particles", lambda v: positive_int(v) and v >= 2, "an integer number of particles >= 2"),
         Setting("n_moves", positive_int, "a positive number of moves per stage"),
         Setting("ess_fraction", lambda v: positive(v) and v < 1, "a fraction between 0 and 1"),
@@ -617,7 +618,9 @@ class SamplerEstimator:
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
                  rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, theta0=None, pose0=None, n_particles: int = 200,
-                 n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8):
+                 n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8,
+                 artefact_rms: float | None = None, noise: str = "pooled", marker_groups: dict | None = None,
+                 jackknife: bool = True, placement_sd: float | None = None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -634,6 +637,11 @@ class SamplerEstimator:
         self.n_moves = n_moves
         self.ess_fraction = ess_fraction
         self.inner_iter = inner_iter
+        self.artefact_rms = artefact_rms
+        self.noise = noise
+        self.marker_groups = marker_groups
+        self.jackknife = jackknife
+        self.placement_sd = placement_sd
 
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
@@ -675,7 +683,9 @@ class SamplerEstimator:
         model = self.model
         fit = marker.fit_info_
         tau = 1.0
-        if marker.widened_:
+        if marker.widened_ or marker.artefact_rms or marker.jackknife_.get("folded") \
+                or marker.placement_["placement_sd"] > 0:
+            # Newey-West, a stated artefact, the marker jackknife or the placement term widened the interval
             tau = min(float(model.n_params / np.trace(np.linalg.solve(marker.cov_plain_, marker.cov_data_))), 1.0)
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
