@@ -58,3 +58,27 @@ def tree_3d_functional():
          "prior": {"type": "uniform", "lower": 250, "upper": 350}},
     ]
     return model_from_dict(d, "tree3d_functional")
+
+
+def run_cli(args, cwd=None, memory_mb: int | None = 3000, timeout: float = 120, env=None):
+    """Run ``skelid ARGS`` in a fresh Python process under an address-space limit.
+
+    Returns the ``subprocess.CompletedProcess`` (text mode). ``memory_mb`` caps
+    the child's virtual memory (``RLIMIT_AS``), so a job that would allocate
+    without bound fails fast instead of taking the machine down.
+    """
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    def limit():  # pragma: no cover - runs in the child
+        if memory_mb is not None:
+            n = memory_mb * 2**20
+            resource.setrlimit(resource.RLIMIT_AS, (n, n))
+
+    code = "import sys; from skelid.cli import main; sys.exit(main(sys.argv[1:]))"
+    full_env = {**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                **(env or {})}
+    return subprocess.run([sys.executable, "-c", code, *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, preexec_fn=limit, env=full_env, stdin=subprocess.DEVNULL)

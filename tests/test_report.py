@@ -5,6 +5,7 @@ and the view itself. A headless browser loads it in ``test_report_browser.py``.
 """
 
 import base64
+import html
 import json
 import struct
 import zlib
@@ -13,12 +14,14 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
-from skelid import workflows
+from skelid import registry
 from skelid.cli import main
+from skelid.estimators.base import RNG, Setting, positive_or_none
 from skelid.estimators.paper import PaperFilter
 from skelid.estimators.posterior import GridPosterior
 from skelid.io import write_trc
 from skelid.report import NOT_AVAILABLE, SECTIONS, write_report
+from skelid.result import FitResult, FrameCounts, NoiseEstimate, ParameterEstimate
 from skelid.simulate import builtin_model, simulate
 from tests.conftest import EXAMPLES
 
@@ -260,9 +263,12 @@ class _MarkerLike:
     """Stands in for an estimator with every attribute the report can use."""
 
     name = "marker"
+    settings = (Setting("sigma", positive_or_none, "a positive noise level", cli="sigma"), RNG)
 
     def __init__(self, model, sigma=None, rng=None):
         self.model = model
+        self.sigma = sigma
+        self.rng = rng
 
     def fit(self, y, progress=None):
         from skelid.estimators.base import prepare
@@ -283,16 +289,18 @@ class _MarkerLike:
         return self
 
     def result(self):
-        s = self.posterior_.summary()
-        name = self.model.parameter_names[0]
-        s[name]["crlb_sd"] = float(self.crlb_sd_[0])
-        return {**s, "sigma": {"value": self.sigma_, "ci95": [2.8, 3.2], "fixed": False},
-                "identifiability": [{"parameter": name, "crlb_sd": float(self.crlb_sd_[0]), "status": "identified"}],
-                "warnings": []}
+        name, post = self.model.parameter_names[0], self.posterior_
+        ci = post.credible_interval(0.95)[0]
+        p = ParameterEstimate(name, "mm", post.map[0], post.mean[0], post.sd[0], tuple(ci),
+                              crlb_sd=float(self.crlb_sd_[0]))
+        F = len(self.residuals_)
+        return FitResult("marker", {name: p}, noise=NoiseEstimate(self.sigma_, (2.8, 3.2)), frames=FrameCounts(F, F),
+                         diagnostics={"identifiability": [{"parameter": name, "crlb_sd": float(self.crlb_sd_[0]),
+                                                           "status": "identified"}]})
 
 
 def test_fit_and_report_with_a_fuller_estimator(tmp_path, monkeypatch, capfd):
-    monkeypatch.setattr(workflows, "methods", lambda: {"paper": PaperFilter, "marker": _MarkerLike})
+    monkeypatch.setattr(registry, "estimators", lambda: {"paper": PaperFilter, "marker": _MarkerLike})
     trial = simulate(builtin_model("case-a"), sigma=5.0, n_frames=120, rng=np.random.default_rng(4))
     write_trc(tmp_path / "arm.trc", trial.data)
     out = tmp_path / "fit"
@@ -310,3 +318,169 @@ def test_fit_and_report_with_a_fuller_estimator(tmp_path, monkeypatch, capfd):
     residuals = _section(text, "Residuals per marker")
     assert residuals.count(NOT_AVAILABLE) == 1  # the paper method has none, the marker method has them
     assert _section(text, "Identifiability").count(NOT_AVAILABLE) == 1
+
+
+# ----------------------------------------------------------------------------- names, summary, the fitted body
+ODD = {"marker": ["$\\foo$", "<script>alert(1)</script>", "a&b"], "parameter": "$\\alpha$"}
+
+
+def odd_result(d, n_frames: int = 90, with_pose: bool = True):
+    """A hand-made fit of a 3-D tree whose names are not safe as HTML or figure text.
+
+    The poses are the simulation's (no fit runs); the marker method's result did not
+    converge and its first parameter is poorly identified.
+    """
+    from skelid.model import model_from_dict
+    from tests.helpers import tree_3d
+
+    spec = tree_3d().to_dict()
+    for k, name in enumerate(ODD["marker"]):
+        spec["markers"][k]["name"] = name
+    spec["parameters"][0]["name"] = ODD["parameter"]
+    model = model_from_dict(spec, "odd")
+    trial = simulate(model, n_frames=n_frames, sigma=2.0, rng=np.random.default_rng(5))
+    y = np.array(trial.data.positions)
+    y[10:20, 4] = np.nan
+    names = model.parameter_names
+    est = {n: {"map": float(v), "mean": float(v), "sd": 1.0, "ci95": [float(v) - 2, float(v) + 2], "crlb_sd": 0.9}
+           for n, v in zip(names, trial.theta, strict=True)}
+    others = [{"name": f"extra{k}", "used_by_model": False, "frames_missing": 5 * k, "gaps": int(k > 0),
+               "longest_gap": 5 * k} for k in range(4)]
+    result = {
+        "model": "odd", "data": "odd.trc", "units": "mm", "frames_total": n_frames,
+        "methods": {"marker": {**est, "frames_used": n_frames,
+                               "sigma": {"value": 2.0, "ci95": [1.9, 2.1], "fixed": False},
+                               "lengths": {"hip-knee": {"value": 400.0, "sd": 1.0, "ci95": [398.0, 402.0]}},
+                               "identifiability": [{"parameter": n, "crlb_sd": 0.9,
+                                                    "status": "poor" if k == 0 else "identified"}
+                                                   for k, n in enumerate(names)],
+                               "warnings": ["the joint fit stopped before converging; the estimate may be off",
+                                            f"parameter {names[0]} is poorly identified for this motion"]}},
+        "warnings": [f"marker {ODD['marker'][1]} is missing in 10 of {n_frames} frames"],
+        "data_overview": {"source": "odd.trc", "format": "trc", "n_frames": n_frames, "n_markers": 14, "dim": 3,
+                          "rate_hz": 100.0, "units": "mm", "duration_s": n_frames / 100,
+                          "model_markers": {m: m for m in model.marker_names},
+                          "markers": [{"name": m, "used_by_model": True, "frames_missing": 10 * (k == 4),
+                                       "gaps": int(k == 4), "longest_gap": 10 * (k == 4)}
+                                      for k, m in enumerate(model.marker_names)] + others},
+        "model_description": model.to_dict(),
+    }
+    arrays = {"markers": y, "marker_names": np.array(model.marker_names), "rate": np.array(100.0),
+              "units": np.array("mm"), "marker.crlb_sd": np.full(len(names), 0.9)}
+    if with_pose:
+        arrays["marker.pose"] = trial.pose
+    d.mkdir(parents=True)
+    (d / "result.json").write_text(json.dumps(result))
+    np.savez(d / "arrays.npz", **arrays)
+    return d
+
+
+def test_summary_answers_first(tmp_path):
+    path, _ = write_report(odd_result(tmp_path / "odd"), tmp_path / "odd.html")
+    text, scan = _check_html(path, min_images=3)
+    assert scan.headings["h2"][:2] == ["Summary", "The fitted body"]
+    summary = _section(text, "Summary")
+    # every estimate, its interval and bound are on the first screen, with its warnings beside it
+    for name in ("$\\alpha$", "hip_x", "s1_z", "hip-knee", "marker noise σ"):
+        assert html.escape(name) in summary, name
+    assert summary.count("0.9") >= 3 and "[1.9, 2.1]" in summary
+    row = summary[summary.index(html.escape(ODD["parameter"])):]
+    row = row[:row.index("</tr>")]
+    assert "poorly identified" in row and "status-poor" in row
+    fit_row = summary[summary.index('<tr class="fit">'):]
+    assert "stopped before converging" in fit_row[:fit_row.index("</tr>")]
+    assert 'class="severe">the joint fit stopped before converging' in summary
+    assert "missing in 10 of 90 frames" in summary  # a warning about no parameter: below the table
+
+
+def test_gap_table_lists_the_model_markers_only(tmp_path):
+    path, _ = write_report(odd_result(tmp_path / "odd"), tmp_path / "odd.html")
+    text, _ = _check_html(path, min_images=3)
+    gaps = _section(text, "Data overview")
+    gaps = gaps[gaps.index("Gaps of the model"):]
+    assert gaps.count("<tr") == 1 + 10 + 1  # head, the model's 10 markers, one line for the rest
+    assert "4 other markers in the file, not used by the model (3 with gaps)" in gaps
+
+
+def test_names_are_shown_as_written(tmp_path):
+    path, _ = write_report(odd_result(tmp_path / "odd"), tmp_path / "odd.html")
+    text, scan = _check_html(path, min_images=3)
+    outside = "".join(scan.outside)
+    for name in [*ODD["marker"], ODD["parameter"]]:
+        assert name in outside, name  # the parser unescapes: the page shows the name itself
+    assert "<script>alert(1)" not in text  # nowhere as markup, not even inside the view's data
+    view = next(s for s in scan.scripts if "Plotly.newPlot" in s)
+    # plotly's pseudo-HTML escaped (&lt;), then the JSON's & escaped for the script element
+    assert "\\u0026lt;script\\u0026gt;alert(1)" in view and '"typesetMath":false' in view
+
+
+def test_the_view_follows_the_fitted_poses(tmp_path):
+    from skelid.model import model_from_dict
+    from skelid.model.kinematics import forward_kinematics
+    from skelid.viewer import figure_spec
+
+    d = odd_result(tmp_path / "odd")
+    res = json.loads((d / "result.json").read_text())
+    model = model_from_dict(res["model_description"])
+    with np.load(d / "arrays.npz") as z:
+        pose, y = z["marker.pose"], z["markers"]
+    theta = [res["methods"]["marker"][n]["mean"] for n in model.parameter_names]
+    spec = figure_spec(model, theta, pose, y, max_frames=30)
+    assert spec["meta"] == {"dim": 3, "frames_total": 90, "frames_shown": 30, "stride": 3, "n_segments": 5,
+                            "n_markers": 10}
+    kin = forward_kinematics(model, np.array(theta), pose[[0, 3, 87]])
+    joints = {f["name"]: f["data"][4] for f in spec["frames"]}
+    for k, t in enumerate((0, 3, 87)):
+        got = np.array([joints[str(t)][a] for a in "xyz"], float).T
+        np.testing.assert_allclose(got, kin.p_world_seg[k], atol=0.051)  # rounded to 0.1 mm
+        markers = np.array([spec["frames"][t // 3]["data"][1][a] for a in "xyz"], float).T
+        np.testing.assert_allclose(markers, kin.markers[k], atol=0.051)  # rounded to 0.1 mm
+    assert [t["name"] for t in spec["data"]] == ["measured markers", "model markers", "residual", "segments",
+                                                 "joint centres", "marker offsets"]
+
+
+def test_report_of_a_typed_result(tmp_path):
+    """A folder the serializer wrote: parameters named like reserved keys, structured warnings."""
+    from skelid.io.results import write_run
+    from skelid.result import FitResult, FitRun, FrameCounts, NoiseEstimate, ParameterEstimate
+    from skelid.result import Warning as FitWarning
+
+    def est(name, mean, status="identified"):
+        return ParameterEstimate(name, "mm", mean, mean, 1.5, (mean - 3, mean + 3), 1.2, status)
+
+    r = FitResult("marker", {"sigma": est("sigma", 101.0), "warnings": est("warnings", 202.0, "poor")},
+                  {"lengths": est("lengths", 303.0)}, NoiseEstimate(2.5, (2.4, 2.6)), FrameCounts(50, 48),
+                  warnings=(FitWarning("not-converged", "the joint fit stopped before converging"),
+                            FitWarning("poorly-identified", "this one is poorly identified", ("warnings",))),
+                  arrays={"residuals": np.abs(np.random.default_rng(0).normal(size=(50, 2)))})
+    run = FitRun({"marker": r}, {"model": "typed", "data": "t.trc", "units": "mm"},
+                 arrays={"markers": np.zeros((50, 2, 2)), "marker_names": np.array(["a", "b"]),
+                         "rate": np.array(50.0), "units": np.array("mm")})
+    write_run(tmp_path / "fit", run)
+    path, notes = write_report(tmp_path / "fit")
+    text, _ = _check_html(path, min_images=2)
+    summary = _section(text, "Summary")
+    for name, value in (("sigma", "101"), ("warnings", "202"), ("lengths", "303")):
+        row = summary[summary.index(f"<td class=\"l\">{name}"):]
+        assert value in row[:row.index("</tr>")], name
+    row = summary[summary.index('<td class="l">warnings'):]
+    assert "this one is poorly identified" in row[:row.index("</tr>")] and "status-poor" in row[:row.index("</tr>")]
+    assert 'class="severe">the joint fit stopped before converging' in summary
+    assert "[2.4, 2.6]" in summary and "Frames used: 48 of 50" in _section(text, "Final posterior")
+
+
+def test_a_warning_stays_with_its_method(tmp_path):
+    """A run-level copy of one method's warning is not shown beside another method's estimates."""
+    d = odd_result(tmp_path / "odd")
+    res = json.loads((d / "result.json").read_text())
+    res["methods"]["paper"] = {"L": {"map": 1.0, "mean": 1.0, "sd": 0.1, "ci95": [0.8, 1.2]},
+                               "warnings": ["paper method dropped 9 of 90 frames (no converged solution inside "
+                                            "the interval)"]}
+    res["warnings"] += res["methods"]["marker"]["warnings"] + res["methods"]["paper"]["warnings"]
+    (d / "result.json").write_text(json.dumps(res))
+    path, _ = write_report(d, tmp_path / "two.html")
+    text, _ = _check_html(path, min_images=3)
+    summary = _section(text, "Summary")
+    paper = summary[summary.index("Method: paper"):]
+    assert "stopped before converging" not in paper and "dropped 9 of 90 frames" in paper
+    assert 'class="severe">paper method dropped' not in paper  # frames dropped: a warning, not a broken fit

@@ -68,6 +68,22 @@ def _finite(name: str, value):
     return value
 
 
+def _limit_options(f):
+    """``--max-memory`` and ``--max-time``: the limits a job's estimated cost must stay under."""
+    f = click.option("--max-time", default=None, metavar="DURATION",
+                     help="Refuse a job estimated to take longer (e.g. 2h, 90m; default 1h or "
+                          "$SKELID_MAX_TIME).")(f)
+    return click.option("--max-memory", default=None, metavar="SIZE",
+                        help="Refuse a job estimated to need more memory (e.g. 8G, 512M; default 4G or "
+                             "$SKELID_MAX_MEMORY).")(f)
+
+
+def _limits(max_memory, max_time):
+    from skelid.resources import Limits
+
+    return Limits.from_settings(max_memory, max_time)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="skelid")
 def cli():
@@ -77,19 +93,24 @@ def cli():
 
 @cli.command(epilog="Example:\n\n\b\n    skelid demo --out demo-output --frames 500")
 @click.option("--out", "out_dir", default="demo-output", show_default=True,
-              help="Folder for figures and summary.json (appears only when complete).")
+              help="Folder for figures and summary.json (appears only when complete; must be new, "
+                   "or see --overwrite).")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 @click.option("--frames", type=click.IntRange(min=10), default=500, show_default=True)
 @click.option("--sigma", type=click.FloatRange(min=0.0), default=15.0, show_default=True,
               help="Marker noise in mm.")
 @click.option("--json", "as_json", is_flag=True, help="Print summary.json on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no table.")
-def demo(out_dir, seed, frames, sigma, as_json, quiet):
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
+              "are removed).")
+@_limit_options
+def demo(out_dir, seed, frames, sigma, as_json, quiet, overwrite, max_memory, max_time):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
-    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet)
+    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
+                             limits=_limits(max_memory, max_time), overwrite=overwrite)
     if as_json:
         _echo_json(summary)
     elif not quiet:
@@ -110,7 +131,9 @@ def demo(out_dir, seed, frames, sigma, as_json, quiet):
 @click.option("--sta-amplitude", type=click.FloatRange(min=0.0), default=10.0, show_default=True)
 @click.option("--out", "out_path", required=True, help="Output file: .trc or .csv.")
 @click.option("--json", "as_json", is_flag=True, help="Print what was written and the truth as JSON.")
-def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json):
+@_limit_options
+def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_amplitude, out_path, as_json,
+             max_memory, max_time):
     """Simulate a trial of MODEL_NAME (case-a, case-b or a model .toml) and write it."""
     from skelid import io
     from skelid.simulate import BUILTIN_MODELS, resolve_model
@@ -128,6 +151,10 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
     if str(model_name).lower().replace("_", "-") not in BUILTIN_MODELS:
         check_input_file(model_name, "model file")
     model = resolve_model(model_name)
+    from skelid import resources
+
+    resources.check(resources.simulate_cost(model, frames), _limits(max_memory, max_time),
+                    f"simulating {frames} frames")
     trial = run(model, n_frames=frames, rate=rate, sigma=sigma, rng=np.random.default_rng(seed),
                 hard_poses=hard_poses, noise=noise, sta_amplitude=sta_amplitude)
     (io.write_csv if suffix == ".csv" else io.write_trc)(out_path, trial.data)
@@ -142,14 +169,15 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 
 @cli.command(epilog=EXAMPLES_EPILOG)
 @click.argument("model_path")
-@click.argument("data_path")
+@click.argument("data_paths", nargs=-1, required=True)
 @click.option("--method", "method_names", multiple=True,
               help="Estimator (repeat for several): marker (default), paper, marker-grid, marker-smc.")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Marker noise in model units (default 15 mm for the paper method).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout, nothing else.")
 @click.option("--out", "out_dir", default=None,
-              help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
+              help="Folder for result.json, arrays.npz and figures (read by 'skelid report'); must be new, "
+                   "or see --overwrite.")
 @click.option("--cutoff", type=float, default=None,
               help="Motion model of the marker methods: poses are smoothed above this frequency "
                    "(Hz; default: chosen per pose coordinate from the motion, at least 6; 0 = none).")
@@ -157,19 +185,54 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Soft-tissue artefact of the marker method: root-mean-square displacement of a marker "
                    "coordinate against its bone (model units); its effect on the estimate widens the "
                    "interval (default: none).")
+@click.option("--noise", type=click.Choice(["pooled", "per-marker"]), default="pooled", show_default=True,
+              help="Marker method: one noise level for all markers, or each marker its own (estimated, "
+                   "used as weights).")
+@click.option("--alternative", "alternatives", multiple=True,
+              help="Another model of the same body (repeat for several): the data are refitted under "
+                   "each and the spread of the shared quantities is reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
+@click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "none"]), default="bodies",
+              show_default=True, help="OpenSim models: one scale factor per body with markers, three per axis, "
+              "or none.")
+@click.option("--markers", "marker_kind", type=click.Choice(["offsets", "none"]), default="offsets",
+              show_default=True, help="OpenSim models: fit an offset of every free marker, or none.")
+@click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
+              "are removed).")
+@_limit_options
 @click.pass_context
-def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, as_json, out_dir, seed, quiet):
-    """Fit MODEL_PATH (a .toml model or case-a/case-b) to the markers in DATA_PATH."""
+def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
+        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, max_memory, max_time):
+    """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
+
+    Several files are trials of one body: one geometry is fitted to all of them, with each
+    trial's own estimate and a consistency test beside it. With an .osim model, every trial
+    (a static one and movements) informs one set of body scales and marker offsets, and --out
+    receives the scaled .osim, its ScaleSet and scaling.json with the intervals.
+    """
     from skelid import workflows
 
+    if str(model_path).lower().endswith(".osim"):
+        _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
+                  marker_set, as_json, quiet, overwrite)
+        return
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
-    result = workflows.run_fit(model_path, data_path, method_names, sigma=sigma, seed=seed,
-                               out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                               cutoff=cutoff, artefact_rms=artefact_rms)
+    if len(data_paths) > 1 or alternatives or noise != "pooled":
+        from skelid.sensitivity import run_fit_trials
+
+        result = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
+                                out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
+                                artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
+                                alternatives=alternatives, overwrite=overwrite)
+    else:
+        result = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
+                                   out_dir=out_dir, command=_command(ctx), progress=not quiet,
+                                   cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time),
+                                   overwrite=overwrite)
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)
@@ -178,6 +241,81 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, a
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")
+
+
+def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
+              as_json, quiet, overwrite=False):
+    """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim."""
+    from skelid import scaling, workflows
+    from skelid.io import read_markers
+    from skelid.io.atomic import atomic_dir, check_output_dir
+
+    if len(method_names) > 1:
+        raise click.UsageError("an .osim model is fitted with one method; give --method once")
+    if out_dir is not None:
+        check_output_dir(out_dir, overwrite=overwrite)
+    workflows.check_input_file(model_path, "model file")
+    if marker_set is not None:
+        workflows.check_input_file(marker_set, "marker-set file")
+    for p in data_paths:
+        workflows.check_input_file(p, "data file")
+    trials = [read_markers(p) for p in data_paths]
+    fit_ = scaling.fit_osim(model_path, trials, marker_set, scale_kind, marker_kind,
+                            method_names[0] if method_names else "marker", seed, sigma)
+    table = scaling.scaling_table(fit_)
+    _echo_warnings(table["warnings"])
+    if out_dir is not None:
+        with atomic_dir(out_dir, protect=[model_path, *data_paths], overwrite=overwrite) as tmp:
+            paths = scaling.write_outputs(fit_, tmp)
+            workflows.write_json(Path(tmp) / "result.json", {"method": "marker", **fit_.result,
+                                                            "scaling": table})
+        table["written"] = {k: str(Path(out_dir) / v.name) for k, v in paths.items()}
+    if as_json:
+        _echo_json(table)
+    elif not quiet:
+        for body, s in table["scales"].items():
+            for ax, e in s.items():
+                lo, hi = e["ci95"]
+                click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
+        click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
+        if out_dir:
+            click.echo(f"scaled model, ScaleSet and scaling.json written to {out_dir}")
+
+
+@cli.group("model")
+def model_group():
+    """Inspect and convert model files."""
+
+
+@model_group.command("import", epilog="Example:\n\n\b\n"
+                     "    skelid model import gait2354_simbody.osim --marker-set gait2354_Scale_MarkerSet.xml "
+                     "--out gait2354.toml")
+@click.argument("osim_path")
+@click.option("--out", "out_path", required=True, help="The .toml model file to write.")
+@click.option("--marker-set", default=None, help="A MarkerSet .xml file for a model without markers.")
+@click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "none"]), default="none",
+              show_default=True, help="Scale parameters to declare.")
+@click.option("--markers", "marker_kind", type=click.Choice(["offsets", "none"]), default="none",
+              show_default=True, help="Marker-offset parameters to declare.")
+@click.option("--all-bodies", is_flag=True, help="Keep bodies without markers too.")
+def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_bodies):
+    """Convert an OpenSim .osim model (4.x or older) into a skelid .toml model."""
+    import tomli_w
+
+    from skelid import workflows
+    from skelid.io.atomic import atomic_write
+    from skelid.io.osim import osim_parameters, read_osim
+
+    workflows.check_input_file(osim_path, "model file")
+    model, info = read_osim(osim_path, marker_set, keep="all" if all_bodies else "markers")
+    model = osim_parameters(model, info, scale_kind, marker_kind)
+    head = (f"# imported from {Path(osim_path).name} by skelid model import: frames keep the OpenSim bodies'\n"
+            "# orientation with their origin at the joint centre; lengths in mm\n")
+    text = head + tomli_w.dumps(model.to_dict())
+    with atomic_write(out_path) as fh:
+        fh.write(text)
+    click.echo(f"{out_path}: {len(model.segments)} segments, {model.n_pose} coordinates, "
+               f"{len(model.markers)} markers, {model.n_params} parameters")
 
 
 @cli.command(epilog="Example:\n\n\b\n"
@@ -197,14 +335,16 @@ def fit(ctx, model_path, data_path, method_names, sigma, cutoff, artefact_rms, a
 @click.option("--retry-failed", is_flag=True, help="Fit again the trials whose rows hold an error.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no summary line.")
+@_limit_options
 def batch(model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, as_json,
-          quiet):
+          quiet, max_memory, max_time):
     """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out."""
     from skelid.batch import run_batch
 
     _finite("--sigma", sigma)
     summary = run_batch(model_path, pattern, out_path, method=method, sigma=sigma, seed=seed, workers=workers,
-                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet)
+                        scheduler=scheduler, retry_failed=retry_failed, progress=not quiet,
+                        limits=_limits(max_memory, max_time))
     if as_json:
         _echo_json(summary)
     elif not quiet:

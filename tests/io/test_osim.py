@@ -134,10 +134,12 @@ OSIM_HEAD = """<?xml version="1.0" encoding="UTF-8" ?>
 <OpenSimDocument Version="40000"><Model name="m"><length_units>{units}</length_units>
 <BodySet><objects><Body name="a"/><Body name="b"/></objects></BodySet>
 <JointSet><objects>
-<FreeJoint name="j0"><socket_parent_frame>/ground</socket_parent_frame><socket_child_frame>/bodyset/a</socket_child_frame>
+<FreeJoint name="j0"><socket_parent_frame>/ground</socket_parent_frame>
+<socket_child_frame>/bodyset/a</socket_child_frame>
 <coordinates><Coordinate name="r1"/><Coordinate name="r2"/><Coordinate name="r3"/>
 <Coordinate name="t1"/><Coordinate name="t2"/><Coordinate name="t3"/></coordinates></FreeJoint>
-<{joint} name="j1"><socket_parent_frame>/bodyset/a</socket_parent_frame><socket_child_frame>/bodyset/b</socket_child_frame>
+<{joint} name="j1"><socket_parent_frame>/bodyset/a</socket_parent_frame>
+<socket_child_frame>/bodyset/b</socket_child_frame>
 <coordinates><Coordinate name="k"/></coordinates></{joint}>
 </objects></JointSet>
 <MarkerSet><objects>
@@ -171,3 +173,46 @@ def test_bad_osim_is_one_line(tmp_path, kw, err, words):
     line = exc.value.one_line()
     assert words in line and "fix:" in line and "\n" not in line
     assert isinstance(exc.value, SkelidError)
+
+
+@pytest.mark.parametrize("path,marker_set", [MODELS[0], MODELS[2]], ids=["gait2354", "addbio-generic"])
+def test_written_scaled_model_equals_skelid_in_opensim(shared_data, tmp_path, path, marker_set):
+    """Scales and offsets written back: OpenSim's markers on the written .osim equal skelid's."""
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    from skelid.io.osim import write_scale_set, write_scaled_osim
+
+    ms = None if marker_set is None else shared_data / marker_set
+    base, info = read_osim(shared_data / path, ms)
+    model = osim_parameters(base, info, scale="axes", markers="offsets")
+    rng = np.random.default_rng(4)
+    theta = model.theta_nominal.copy()
+    for k, p in enumerate(model.parameters):
+        theta[k] = rng.uniform(0.85, 1.2) if p.kind == "scale" else rng.normal(0, 8.0)
+    out = tmp_path / "scaled.osim"
+    write_scaled_osim(shared_data / path, out, model, info, theta, ms)
+    write_scale_set(tmp_path / "scales.xml", model, theta)
+    assert osim.ScaleSet(str(tmp_path / "scales.xml")).getSize() == len({p.target for p in model.parameters
+                                                                          if p.kind == "scale"})
+    om = osim.Model(str(out))
+    state = om.initSystem()
+    coords = om.getCoordinateSet()
+    names = _pose_names(model)
+    worst = 0.0
+    for _ in range(10):
+        q = np.zeros(model.n_pose)
+        for k, n in enumerate(names):
+            c = coords.get(n)
+            v = rng.uniform(max(c.getRangeMin(), -np.pi), min(c.getRangeMax(), np.pi))
+            c.setValue(state, v, False)
+            q[k] = v * (1000.0 if c.getMotionType() == 2 else 1.0)
+        om.realizePosition(state)
+        x = marker_positions(model, theta, q)
+        ref = np.array([[om.getMarkerSet().get(m.name).getLocationInGround(state).get(i) for i in range(3)]
+                        for m in model.markers]) * 1000.0
+        worst = max(worst, float(np.abs(x - ref).max()))
+    assert worst <= 0.01, f"largest marker difference {worst:.2e} mm"
+    # and read back by skelid itself, the unscaled geometry of the written file is the scaled one
+    again, _ = read_osim(out)
+    q = np.zeros(model.n_pose)
+    np.testing.assert_allclose(marker_positions(again, np.zeros(0), q), marker_positions(model, theta, q),
+                               atol=1e-6)

@@ -498,13 +498,13 @@ def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None):
 
     plan = kinematics_plan(model)
     rows = plan.custom[s]
-    if any(k >= 0 and not f.is_identity for _t, _a, k, f, _s in rows) \
-            or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, _s in rows):
+    if any(k >= 0 and not f.is_identity for _t, _a, k, f, *_ in rows) \
+            or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, *_ in rows):
         return None
     if plan.orientation[s] is not None:
         R_rel = R_rel @ plan.orientation[s].T
-    rot = [(a, k) for t, a, k, _f, _s in rows if not t and k >= 0]
-    trans = [(a, k) for t, a, k, _f, _s in rows if t and k >= 0]
+    rot = [(a, k) for t, a, k, *_ in rows if not t and k >= 0]
+    trans = [(a, k) for t, a, k, *_ in rows if t and k >= 0]
     if trans and shift is None:
         return None
     ax = np.array([a for a, _ in rot])

@@ -173,7 +173,13 @@ class Parameter:
     @property
     def grid(self) -> np.ndarray:
         """(K,) float: candidate values ``lower, lower + step, ..., upper``."""
-        n = int(round((self.prior.upper - self.prior.lower) / self.grid_step)) + 1
+        from skelid.resources import MAX_GRID_POINTS
+
+        n = (self.prior.upper - self.prior.lower) / self.grid_step
+        if not n + 1 <= MAX_GRID_POINTS:
+            raise ModelError(f"parameter {self.name!r}: a grid_step of {self.grid_step:g} makes {n + 1:.3g} grid "
+                             "points", "use a coarser grid_step (or narrower prior bounds) in the model file")
+        n = int(round(n)) + 1
         return np.linspace(self.prior.lower, self.prior.lower + (n - 1) * self.grid_step, n)
 
 
@@ -190,6 +196,7 @@ class Motion:
     axis: tuple[float, ...]
     coordinate: int
     function: CoordinateFunction
+    scale_weights: tuple[float, ...] = ()  # translation scales by w . s (default: the axis squared)
 
 
 @dataclass(frozen=True)
@@ -450,9 +457,11 @@ class Model:
 
         ``(segment index, motion index, b (P,), base)``: the translation
         ``f(q)`` along its axis ``a`` is multiplied by ``base + theta @ b``, the
-        parent's scale along ``a`` (``sum_i a_i^2 s_i`` with ``s_i`` its
-        per-axis factors, or ``s`` for one factor), as OpenSim scales a
-        ``CustomJoint``. Translations that are a coordinate itself are not scaled.
+        parent's scale along ``a``: ``sum_i w_i s_i`` with ``s_i`` its per-axis
+        factors (``s`` for one factor) and weights ``w`` the motion's
+        ``scale_weights`` (an imported OpenSim joint: its axis in the joint's
+        parent frame, as OpenSim scales a ``CustomJoint``) or ``a_i^2``.
+        Translations that are a coordinate itself are not scaled.
         """
         out = []
         for i, s in enumerate(self.segments):
@@ -462,7 +471,7 @@ class Model:
                 if m.kind != "T" or m.function.is_identity or m.function.is_constant:
                     continue
                 b = np.zeros(self.n_params)
-                a2 = np.asarray(m.axis, float) ** 2
+                a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
                 covered = np.zeros(3)
                 for k, p in enumerate(self.parameters):
                     if p.kind == "scale" and p.target == s.parent:
@@ -675,9 +684,11 @@ class Model:
                 j["axes"] = [list(a) for a in s.joint.axes]
             elif s.joint.type == "custom":
                 j["coordinates"] = list(s.joint.coordinates)
-                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis),
-                                 "coordinate": s.joint.coordinates[m.coordinate] if m.coordinate >= 0 else "",
-                                 "function": m.function.to_dict()} for m in s.joint.motions]
+                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis)}
+                                | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
+                                | {"function": m.function.to_dict()}
+                                | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
+                                for m in s.joint.motions]
                 if s.joint.orientation:
                     j["orientation"] = [list(s.joint.orientation[r * 3:r * 3 + 3]) for r in range(3)]
             if s.joint.range:
@@ -753,9 +764,11 @@ def _custom_from_dict(j: dict, where: str):
         c = m.get("coordinate", "")
         if c and c not in coords:
             raise ModelError(f"{mw}: coordinate {c!r} is not one of the joint's coordinates {coords}")
+        sw = m.get("scale_weights", ())
         motions.append(Motion("R" if m["kind"] == "rotation" else "T", _unit(m.get("axis"), f"{mw} axis"),
                               coords.index(c) if c else -1,
-                              CoordinateFunction.from_dict(m.get("function"), f"{mw} function")))
+                              CoordinateFunction.from_dict(m.get("function"), f"{mw} function"),
+                              _num_list(sw, 3, f"{mw} scale_weights") if sw else ()))
     orient = ()
     if "orientation" in j:
         R = np.asarray(j["orientation"], dtype=float)
@@ -957,7 +970,9 @@ def load_model(path) -> Model:
     ModelError
         With the file name, the problem and the fix, for any invalid content.
     """
-    path = Path(path)
+    from skelid.io._common import check_regular_file
+
+    path = check_regular_file(path, "model file", ModelError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

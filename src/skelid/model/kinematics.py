@@ -167,7 +167,9 @@ def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
         rows = []
         for n, m in enumerate(j.motions):
             k = seg_dofs[i][m.coordinate] if m.coordinate >= 0 else -1
-            rows.append((m.kind == "T", np.asarray(m.axis, float), k, m.function, slot.get((i, n), -1)))
+            a = np.asarray(m.axis, float)
+            K = _skew(a)
+            rows.append((m.kind == "T", a, k, m.function, slot.get((i, n), -1), K, K @ K))
         rows.sort(key=lambda r: not r[0])  # translations first (stable: rotations keep their order)
         custom.append(tuple(rows))
         R = np.asarray(j.orientation, float).reshape(3, 3) if j.orientation else None
@@ -471,35 +473,40 @@ def _custom_joint(rows, Rp, p0, pose, factors, axis, pivot, velocity, shift):
     translations and the pivot at the joint centre after the translations.
     """
     pi = p0
-    for is_t, a, k, fun, slot in rows:
+    for is_t, a, k, fun, slot, _K, _K2 in rows:
         if not is_t:
             continue
-        q = pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1])
-        val, der = fun.value_and_derivative(q)
         w = Rp @ a
+        if fun.is_identity:  # a translational coordinate
+            axis[..., k, :] = w
+            pi = pi + w * pose[..., k, None]
+            continue
+        val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
         c = factors[..., slot] if slot >= 0 else 1.0
         if slot >= 0:
             shift[..., slot, :] = w * val[..., None]
         pi = pi + w * (c * val)[..., None]
         if k >= 0:
-            if fun.is_identity:
-                axis[..., k, :] = w
-            else:
-                velocity[..., k, :] += w * (c * der)[..., None]
+            velocity[..., k, :] += w * (c * der)[..., None]
     Ri = Rp
-    for is_t, a, k, fun, _slot in rows:
+    for is_t, a, k, fun, _slot, K, K2 in rows:
         if is_t:
             continue
-        q = pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1])
-        val, der = fun.value_and_derivative(q)
-        if k >= 0:
-            axis[..., k, :] += (Ri @ a) * der[..., None]
-        K = _skew(a)
-        Ri = Ri @ (np.eye(3) + np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * (K @ K))
-    for is_t, _a, k, fun, _slot in rows:
+        if fun.is_identity:
+            val = pose[..., k]
+            axis[..., k, :] = Ri @ a
+        else:
+            val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
+            if k >= 0:
+                axis[..., k, :] += (Ri @ a) * der[..., None]
+        Ri = Ri @ (np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * K2 + _EYE3)
+    for is_t, _a, k, fun, _slot, _K, _K2 in rows:
         if k >= 0 and not (is_t and fun.is_identity):
             pivot[..., k, :] = pi
     return Ri, pi
+
+
+_EYE3 = np.eye(3)
 
 
 def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:

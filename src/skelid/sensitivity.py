@@ -1,0 +1,170 @@
+"""Several trials and model alternatives: what ``skelid fit MODEL a.trc b.trc ...`` runs.
+
+* Several files: one geometry for all of them
+  (:class:`~skelid.estimators.multitrial.MultiTrialEstimator`), each trial's own
+  estimate beside the joint one, their chi-square consistency, the between-trial
+  variance in the interval.
+* Model alternatives (``--alternative OTHER.toml``: another joint type, another
+  marker subset, another nominal geometry): the same data are fitted under each,
+  and the spread of every quantity the models share is reported beside the
+  interval. The spread is the range of the estimates over the models (the main
+  one included); it measures how much the answer depends on modelling choices
+  the data cannot settle, which no interval from one model contains.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from skelid.data import MarkerData
+from skelid.errors import DataError
+from skelid.io.results import summary_dict
+from skelid.model.description import Model
+from skelid.result import FitResult
+
+
+def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):
+    """One fitted estimator for ``datas``: the single-trial one for one file, else the multi-trial one."""
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.multitrial import MultiTrialEstimator
+
+    if len(datas) == 1:
+        return MarkerEstimator(model, **settings).fit(datas[0])
+    return MultiTrialEstimator(model, **settings).fit(datas)
+
+
+def quantities(model: Model, est) -> dict[str, dict[str, float]]:
+    """Parameters and derived lengths of a fitted estimator: ``{name: {"value", "sd"}}``."""
+    sd = est.posterior_.sd
+    out = {n: {"value": float(est.theta_[k]), "sd": float(sd[k])} for k, n in enumerate(model.parameter_names)}
+    for n, v in (getattr(est, "lengths_", None) or {}).items():
+        out.setdefault(n, {"value": float(v["value"]), "sd": float(v["sd"])})
+    return out
+
+
+def model_spread(estimates: Mapping[str, Mapping[str, Mapping[str, float]]]) -> dict:
+    """Spread of each quantity over model alternatives.
+
+    Parameters
+    ----------
+    estimates : {model name: {quantity: {"value", "sd"}}}
+        The first model is the main one.
+
+    Returns
+    -------
+    dict : ``{quantity: {"values": {model: value}, "spread": max - min, "sd_over_models": sd,
+    "largest_sd": the widest of the models' own sds}}`` for every quantity that at
+    least two models share.
+    """
+    names: dict[str, dict[str, float]] = {}
+    sds: dict[str, list[float]] = {}
+    for mname, q in estimates.items():
+        for n, v in q.items():
+            names.setdefault(n, {})[mname] = v["value"]
+            sds.setdefault(n, []).append(v["sd"])
+    out = {}
+    for n, vals in names.items():
+        if len(vals) < 2:
+            continue
+        x = np.array(list(vals.values()))
+        out[n] = {"values": dict(vals), "spread": float(x.max() - x.min()),
+                  "sd_over_models": float(x.std(ddof=1)), "largest_sd": float(max(sds[n]))}
+    return out
+
+
+def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings) -> dict:
+    """Fit every model alternative to the same data and report the spread (see :func:`model_spread`).
+
+    Raises
+    ------
+    DataError
+        Two alternatives have the same name (their results could not be told apart).
+    """
+    seen = [m.name for m in models]
+    if len(set(seen)) != len(seen):
+        raise DataError(f"model alternatives need distinct names, got {', '.join(seen)}",
+                        "give each model file its own [model] name")
+    fits = {m.name: quantities(m, fit_trials(m, datas, **settings)) for m in models}
+    return {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+
+
+def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None = None, seed: int = 0,
+                   out_dir=None, command=None, cutoff: float | None = None,
+                   artefact_rms: float | None = None, noise: str = "pooled", alternatives=(),
+                   overwrite: bool = False) -> dict:
+    """``skelid fit`` with several trials, per-marker noise or model alternatives (marker method only).
+
+    Returns
+    -------
+    dict
+        ``{"model", "data": [files], "units", "frames_total", "methods": {"marker": result}}``
+        with ``warnings``, provenance and, with alternatives, ``alternatives``
+        (:func:`sensitivity` without the main fit repeated).
+    """
+    from skelid import workflows
+    from skelid.errors import SkelidError
+    from skelid.estimators.base import prepare
+    from skelid.io import read_markers
+    from skelid.io.atomic import atomic_dir, check_output_dir
+    from skelid.simulate import BUILTIN_MODELS, resolve_model
+
+    names = list(method_names) or ["marker"]
+    if names != ["marker"]:
+        raise SkelidError(f"several trials, --noise and --alternative work with the marker method only, "
+                          f"not {', '.join(names)}", "use --method marker or fit one file")
+    if out_dir is not None:
+        check_output_dir(out_dir, overwrite=overwrite)
+
+    def load_model(path):
+        if str(path).lower().replace("_", "-") not in BUILTIN_MODELS:
+            workflows.check_input_file(path, "model file")
+        return resolve_model(path)
+
+    model = load_model(model_path)
+    others = [load_model(p) for p in alternatives]
+    for p in data_paths:
+        workflows.check_input_file(p, "data file")
+    # bad settings fail before any reading
+    workflows.make_estimator("marker", model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
+    settings = {"sigma": sigma, "rng": np.random.default_rng(seed), "noise": noise,
+                "artefact_rms": artefact_rms or None}
+    if cutoff is not None:
+        settings["cutoff"] = cutoff or None
+    with workflows.collect_warnings() as read_warnings:
+        datas = [read_markers(p) for p in data_paths]
+        for d in datas:
+            workflows.check_units(model, d)
+    with workflows.collect_warnings():
+        est = fit_trials(model, datas, **settings)
+    res = est.result()
+    res = summary_dict(res) if isinstance(res, FitResult) else res
+    out = {"model": model.name, "data": [str(p) for p in data_paths], "units": model.units,
+           "frames_total": int(sum(d.n_frames for d in datas)), "methods": {"marker": res}}
+    if len(datas) > 1:
+        for row, p in zip(res["trials"], data_paths, strict=True):
+            row["data"] = str(p)
+    if others:
+        with workflows.collect_warnings():
+            fits = {model.name: quantities(model, est)}
+            seen = {model.name}
+            for m in others:
+                if m.name in seen:
+                    raise DataError(f"model alternatives need distinct names; {m.name!r} is used twice",
+                                    "give each model file its own [model] name")
+                seen.add(m.name)
+                fits[m.name] = quantities(m, fit_trials(m, datas, **settings))
+        out["alternatives"] = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+    out["warnings"] = list(dict.fromkeys(read_warnings + res.get("warnings", [])))
+    out.update(workflows.provenance(command))
+    out["model_parameters"] = workflows.model_parameters(model)
+    if out_dir is not None:
+        if len(datas) == 1:
+            arrays = workflows.fit_arrays(model, prepare(model, datas[0]), datas[0].rate, {"marker": est})
+        else:
+            arrays = {f"marker.{k}": v for k, v in workflows.estimator_arrays(est).items()}
+        with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
+            workflows.write_npz(tmp / "arrays.npz", arrays)
+            workflows.write_json(tmp / "result.json", out)
+    return out

@@ -1,0 +1,81 @@
+"""Memory and time estimated before allocation; refused beyond the limits with one line."""
+
+import pytest
+
+from skelid import resources
+from skelid.errors import SkelidError
+from skelid.simulate import builtin_model
+from tests.helpers import run_cli
+
+
+def _tiny_step_model(tmp_path, step):
+    text = (resources.Path(__file__).resolve().parents[1] / "examples" / "case_a.toml").read_text()
+    p = tmp_path / "tiny.toml"
+    p.write_text(text.replace("grid_step = 0.5", f"grid_step = {step}"))
+    assert f"grid_step = {step}" in p.read_text()
+    return p
+
+
+@pytest.fixture(scope="module")
+def trial(tmp_path_factory):
+    import numpy as np
+
+    from skelid.io import write_trc
+    from skelid.simulate import simulate
+    p = tmp_path_factory.mktemp("res") / "a.trc"
+    write_trc(p, simulate(builtin_model("case-a"), n_frames=60, rng=np.random.default_rng(0)).data)
+    return p
+
+
+@pytest.mark.parametrize("step, method", [(1e-6, "paper"), (1e-6, "marker-grid"), (1e-12, "paper")])
+def test_tiny_grid_step_is_refused_before_allocating(tmp_path, trial, step, method):
+    model = _tiny_step_model(tmp_path, step)
+    r = run_cli(["fit", model, trial, "--method", method], memory_mb=2500)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-2000:]
+    assert "grid_step" in lines[0] and ("--max-memory" in lines[0] or "grid" in lines[0])
+
+
+def test_lower_limit_refuses_and_names_the_flag(trial):
+    r = run_cli(["fit", "case-a", trial, "--max-memory", "100K"], memory_mb=None)
+    assert r.returncode == 2 and "--max-memory" in r.stderr and r.stderr.count("\n") == 1
+    r = run_cli(["fit", "case-a", trial], memory_mb=None, env={"SKELID_MAX_TIME": "1e-6"})
+    assert r.returncode == 2 and "--max-time" in r.stderr and r.stderr.count("\n") == 1
+
+
+def test_a_million_frames_are_refused_with_an_estimate():
+    m = builtin_model("case-a")
+    with pytest.raises(resources.ResourceError, match=r"would take roughly .* \(fix: use fewer frames"):
+        resources.check(resources.fit_cost(m, "marker", 10**6), resources.Limits())
+    with pytest.raises(resources.ResourceError, match="particles"):
+        resources.check(resources.fit_cost(m, "marker-smc", 10**6), resources.Limits(seconds=1e12))
+
+
+def test_grid_points_never_overflow():
+    d = builtin_model("case-a").to_dict()
+    d["parameters"][0]["grid_step"] = 1e-300
+    from skelid.model import model_from_dict
+
+    m = model_from_dict(d)
+    assert resources.grid_points(m) > 1e300
+    with pytest.raises(SkelidError, match="grid_step"):
+        resources.check_grid(m, "paper")
+    with pytest.raises(SkelidError, match="grid_step"):
+        _ = m.parameters[0].grid
+
+
+@pytest.mark.parametrize("text, n", [("4G", 4 * 2**30), ("512M", 512 * 2**20), ("1.5GiB", int(1.5 * 2**30)),
+                                     ("1000", 1000), ("2kb", 2048)])
+def test_parse_size(text, n):
+    assert resources.parse_size(text) == n
+
+
+@pytest.mark.parametrize("text", ["", "-1G", "lots", "0", "1e999G"])
+def test_parse_size_refuses(text):
+    with pytest.raises(SkelidError):
+        resources.parse_size(text)
+
+
+def test_estimate_frames(trial):
+    n = resources.estimate_frames(trial)
+    assert 50 <= n <= 70
