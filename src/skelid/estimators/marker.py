@@ -526,10 +526,10 @@ class MarkerEstimator:
         out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
                         "fixed": self.sigma is not None, "white": self.sigma_white_}
         if self.marker_sigma_ is not None:
-            out["sigma"]["per_marker"] = {
-                n: {"value": None if not np.isfinite(v) else float(v),
-                    "dof": None if not np.isfinite(d) else float(d)}
-                for n, v, d in zip(self.model.marker_names, self.marker_sigma_, self.marker_dof_, strict=True)}
+            ok = np.isfinite(self.marker_sigma_)  # a marker without data has no level
+            names = np.array(self.model.marker_names)[ok]
+            out["sigma"]["per_marker"] = dict(zip(names.tolist(), self.marker_sigma_[ok].tolist(), strict=True))
+            out["sigma"]["per_marker_dof"] = dict(zip(names.tolist(), self.marker_dof_[ok].tolist(), strict=True))
         if self.lengths_:
             out["lengths"] = self.lengths_
         out["cutoff_hz"] = None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist()
