@@ -48,6 +48,7 @@ DATA = ROOT.parent / "shared" / "data"
 S01 = DATA / "opensim-subject01"
 S04 = DATA / "addbio-subject4"
 OUT = ROOT / "benchmarks" / "results"
+JOINED = False  # --joined: trials as one recording with gaps, one marker fit
 
 
 def _every(data: MarkerData, step: int) -> MarkerData:
@@ -89,11 +90,11 @@ def run_scaletool(tmp: Path) -> dict:
 def subject01(tmp: Path, quick: bool) -> dict:
     static = read_markers(S01 / "subject01_static.trc")
     walk = read_markers(S01 / "subject01_walk1.trc")
-    trials = [_every(static, 10), walk] if quick else [static, walk]
+    trials = [static, _every(walk, 2)] if quick else [static, walk]
     peer = run_scaletool(tmp)
     c0, t0 = _cpu(), time.perf_counter()
     fit = fit_osim(S01 / "gait2354_simbody.osim", trials, S01 / "gait2354_Scale_MarkerSet.xml",
-                   scale="bodies", markers="offsets")
+                   scale="bodies", markers="offsets", joined=JOINED)
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     paths = write_outputs(fit, tmp / "skelid01")
     table = scaling_table(fit)
@@ -103,7 +104,8 @@ def subject01(tmp: Path, quick: bool) -> dict:
                      "opensim": peer["scales"].get(body)})
     ik_sk = opensim_ik(paths["osim"], S01 / "subject01_walk1.trc", tmp / "ik01_skelid")
     ik_os = opensim_ik(peer["model"], S01 / "subject01_walk1.trc", tmp / "ik01_opensim")
-    return {"frames": {"static": int(trials[0].positions.shape[0]), "walk": int(walk.positions.shape[0])},
+    return {"frames": {"static": min(30, int(static.positions.shape[0])),
+                       "walk": int(trials[1].positions.shape[0])},
             "scales": rows, "ik_walk": {"skelid": ik_sk, "opensim_scaletool": ik_os},
             "seconds": {"skelid_fit_wall": round(wall, 2), "skelid_fit_cpu": round(cpu, 2),
                         "opensim_scaletool_wall": peer["seconds"],
@@ -133,9 +135,9 @@ def subject4(tmp: Path, quick: bool) -> dict:
     names = ["static1", "walking1", "walking2", "squats1", "STS1", "DJ1"]
     fit_names = ["static1", "walking1"] if quick else ["static1", "walking1", "walking2"]
     trials = {n: read_markers(S04 / "MarkerData" / f"{n}.trc") for n in names}
-    use = [_every(trials[n], 5) if n == "static1" else trials[n] for n in fit_names]
+    use = [trials[n] for n in fit_names]
     c0, t0 = _cpu(), time.perf_counter()
-    fit = fit_osim(S04 / "Models" / "unscaled_generic.osim", use, scale="bodies", markers="offsets")
+    fit = fit_osim(S04 / "Models" / "unscaled_generic.osim", use, scale="bodies", markers="offsets", joined=JOINED)
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     paths = write_outputs(fit, tmp / "skelid04")
     table = scaling_table(fit)
@@ -144,10 +146,10 @@ def subject4(tmp: Path, quick: bool) -> dict:
               "generic": S04 / "Models" / "unscaled_generic.osim"}
     lengths = {k: key_lengths(v) for k, v in models.items()}
     ik = {}
-    ik_trials = names if not quick else ["static1", "walking1"]
+    ik_trials = ["static1", "walking1", "walking2", "DJ1"]  # STS1, squats1 (1400 frames each): too long here
     for m in ("skelid", "addbiomechanics", "expert"):
         ik[m] = {n: opensim_ik(models[m], S04 / "MarkerData" / f"{n}.trc", tmp / f"ik04_{m}_{n}") for n in ik_trials}
-    return {"fit_trials": fit_names, "static_every": 5,
+    return {"fit_trials": fit_names, "static_frames": 30,
             "scales_skelid": {b: {"value": e["xyz"]["value"], "ci95": e["xyz"]["ci95"]}
                               for b, e in table["scales"].items()},
             "key_lengths_mm": lengths, "ik": ik,
@@ -161,8 +163,9 @@ def markdown(res: dict) -> str:
              f"{'REDUCED run (--quick). ' if res['reduced'] else ''}Machine: shared, 2 cores under load; "
              "times are wall clock and CPU seconds of one process.", "",
              "## subject01: gait2354, static + walk", "",
-             f"skelid: trials joined ({s1['frames']['static']} static + {s1['frames']['walk']} walk frames), "
-             "one scale per body with markers, offsets of every free marker.", "",
+             f"skelid: {res.get('trials', 'joined')} fit ({s1['frames']['static']} static + "
+             f"{s1['frames']['walk']} walk frames), one scale per body with markers, then offsets of every free "
+             "marker placed on the static trial.", "",
              "| body | skelid scale [95 % interval] | OpenSim ScaleTool (x, y, z) |", "|---|---|---|"]
     for r in s1["scales"]:
         os_ = ", ".join(f"{v:.4f}" for v in r["opensim"]) if r["opensim"] else "-"
@@ -177,13 +180,13 @@ def markdown(res: dict) -> str:
               f"{ik['opensim_scaletool']['max_mm']:.1f} | ScaleTool {sec['opensim_scaletool_wall']} + "
               f"IK {sec['opensim_ik_walk_wall']} |", "",
              "## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
-             f"skelid fitted to {', '.join(s4['fit_trials'])} (static every {s4['static_every']}th frame), "
+             f"skelid fitted to {', '.join(s4['fit_trials'])} (static trial: {s4['static_frames']} frames), "
              f"{s4['seconds']['skelid_fit_wall']} s wall, {s4['seconds']['skelid_fit_cpu']} s CPU.", "",
              "| length (mm) | generic | skelid | AddBiomechanics | expert |", "|---|---|---|---|---|"]
     L = s4["key_lengths_mm"]
     for name in L["generic"]:
-        lines.append(f"| {name} | {L['generic'][name]:.1f} | {L['skelid'].get(name, float('nan')):.1f} | "
-                     f"{L['addbiomechanics'].get(name, float('nan')):.1f} | {L['expert'].get(name, float('nan')):.1f} |")
+        v = [L[m].get(name, float("nan")) for m in ("generic", "skelid", "addbiomechanics", "expert")]
+        lines.append(f"| {name} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
     lines += ["", "| trial | skelid IK RMSE (mm) | AddBiomechanics | expert |", "|---|---|---|---|"]
     for n in s4["ik"]["skelid"]:
         lines.append(f"| {n} | " + " | ".join(f"{s4['ik'][m][n]['rmse_mm']:.1f}"
@@ -196,9 +199,12 @@ def markdown(res: dict) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames (results marked reduced)")
+    ap.add_argument("--joined", action="store_true", help="fit the trials as one recording with gaps")
     args = ap.parse_args(argv)
+    global JOINED
+    JOINED = args.joined
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    res = {"reduced": bool(args.quick)}
+    res = {"reduced": bool(args.quick), "trials": "joined" if args.joined else "multi-trial"}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         res["subject01"] = subject01(tmp, args.quick)

@@ -27,3 +27,14 @@ def pytest_sessionstart(session):
 
     for planar in (True, False):  # compile both drivers on the side while the first tests run
         _lm_kernel.warm(planar, wait=False)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """The cases the command-line fuzz harness tried, per class of input."""
+    import sys
+
+    fuzz = sys.modules.get("tests.test_fuzz_cli")
+    if fuzz is not None and fuzz.COUNTS:
+        terminalreporter.write_sep("-", "fuzz cases tried per class")
+        for line in fuzz.summary_lines():
+            terminalreporter.write_line(line)

@@ -56,15 +56,19 @@ def test_new_folder_appears_whole_or_not_at_all(tmp_path):
     assert not _siblings(out)
 
 
-def test_existing_folder_keeps_the_users_files(tmp_path):
+def test_existing_folder_is_refused_or_replaced_whole(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    (out / "notes.txt").write_text("mine")
+    (out / "old.png").write_text("previous run")
     (out / "result.json").write_text('{"old": 1}')
-    with atomic_dir(out) as tmp:
+    with pytest.raises(SkelidError, match="already exists .*--overwrite"), atomic_dir(out) as tmp:
+        pass
+    assert json.loads((out / "result.json").read_text()) == {"old": 1}
+    with atomic_dir(out, overwrite=True) as tmp:
         (tmp / "result.json").write_text('{"new": 1}')
-    assert (out / "notes.txt").read_text() == "mine"
+    assert [p.name for p in out.iterdir()] == ["result.json"]  # nothing of the previous run is left
     assert json.loads((out / "result.json").read_text()) == {"new": 1}
+    assert not _siblings(out)
 
 
 def test_output_never_replaces_an_input(tmp_path):
@@ -72,7 +76,8 @@ def test_output_never_replaces_an_input(tmp_path):
     out.mkdir()
     data = out / "result.json"
     data.write_text("input")
-    with pytest.raises(SkelidError, match="would overwrite an input"), atomic_dir(out, protect=[data]) as tmp:
+    with pytest.raises(SkelidError, match="would delete the input"), \
+            atomic_dir(out, protect=[data], overwrite=True) as tmp:
         (tmp / "result.json").write_text("output")
     assert data.read_text() == "input"
 
@@ -146,7 +151,7 @@ def test_interrupt_keeps_the_previous_output(tmp_path):
     out = tmp_path / "demo"
     out.mkdir()
     (out / "summary.json").write_text('{"previous": true}\n')
-    p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet"], tmp_path)
+    p = _start(["demo", "--frames", "5000", "--out", str(out), "--quiet", "--overwrite"], tmp_path)
     _wait_busy(p)
     p.send_signal(signal.SIGINT)
     p.communicate(timeout=60)
@@ -173,7 +178,7 @@ def test_sigkill_while_writing_leaves_no_partial_file(tmp_path):
     _assert_complete_or_absent(out, "result.json")
     leftovers = _siblings(out)
     assert all(q.is_dir() and q.name.endswith(".part") for q in leftovers), leftovers
-    with atomic_dir(out) as tmp:  # the next run removes what the killed one left
+    with atomic_dir(out, overwrite=True) as tmp:  # the next run removes what the killed one left
         (tmp / "result.json").write_text("{}")
     assert not _siblings(out)
 

@@ -1,6 +1,7 @@
 """skelid batch: one row per trial on a local Dask cluster, failures as rows, resumable."""
 
 import json
+import re
 import sys
 
 import numpy as np
@@ -56,19 +57,90 @@ def test_batch_csv_and_bad_arguments_are_one_line_errors(tmp_path, capsys):
     assert "unsupported table type" in capsys.readouterr().err
     (tmp_path / "r.csv").write_text("file,other\nx,1\n")
     assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r.csv")]) == 2
-    assert "not those of this model" in capsys.readouterr().err
+    assert "not those of a skelid batch table" in capsys.readouterr().err
 
 
 def test_csv_table_round_trip(tmp_path):
     model = builtin_model("case-a")
     cols = columns(model)
-    rows = [dict.fromkeys(cols) | {"file": "/b.trc", "method": "paper", "n_frames": 10, "frames_used": 9,
-                                   "L2": 250.5, "L2_sd": 1.25, "L2_ci_low": 248.0, "L2_ci_high": 253.0,
-                                   "sigma": 15.0, "seconds": 0.5},
-            dict.fromkeys(cols) | {"file": "/a.trc", "method": "paper", "error": "a, \"quoted\" problem"}]
+    rows = _rows(cols)
     out = tmp_path / "r.csv"
     write_table(out, rows, cols)
-    assert read_table(out, cols) == sorted(rows, key=lambda r: r["file"])
+    def strip(rs):
+        return [{k: v for k, v in r.items() if k != "row_sha256"} for r in rs]
+
+    assert strip(read_table(out, cols)) == strip(sorted(rows, key=lambda r: r["file"]))
+
+
+def _rows(cols):
+    key = {"method": "paper", "settings": '{"seed": 0}', "skelid_version": "0.1.0"}
+    return [dict.fromkeys(cols) | key | {"file": "/b.trc", "file_sha256": "bb", "n_frames": 10, "frames_used": 9,
+                                         "L2": 250.5, "L2_sd": 1.25, "L2_ci_low": 248.0, "L2_ci_high": 253.0,
+                                         "sigma": 15.0, "seconds": 0.5},
+            dict.fromkeys(cols) | key | {"file": "/a.trc", "file_sha256": "aa",
+                                         "error": "a, \"quoted\" problem"}]
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda t: t[:-12], "truncated or corrupt|does not match its checksum"),
+    (lambda t: t.replace("250.5", "260.5"), "does not match its checksum"),
+    (lambda t: t.replace("250.5", "abc"), "is corrupt: line 3 has 'abc'"),
+    (lambda t: t + t.splitlines()[2] + "\n", "duplicate rows"),
+    (lambda t: t.replace(",", ";"), "not those of a skelid batch table"),
+    (lambda t: "\x00\xff" + t, "cannot read|not those"),
+])
+def test_damaged_tables_are_refused_in_one_line(tmp_path, capsys, damage, message):
+    cols = columns(builtin_model("case-a"))
+    out = tmp_path / "r.csv"
+    write_table(out, _rows(cols), cols)
+    out.write_text(damage(out.read_text()))
+    before = out.read_bytes()
+    write_trc(tmp_path / "a.trc", simulate(builtin_model("case-a"), sigma=5.0, n_frames=30).data)
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(message, err[0]), err
+    assert out.read_bytes() == before
+
+
+class _Now:
+    """A stand-in for a Dask client that runs each task at once, in this process."""
+
+    class Future:
+        def __init__(self, fn, args):
+            self.key, self.value = object(), fn(*args)
+
+        def result(self):
+            return self.value
+
+    def submit(self, fn, *args, key=None, pure=None):
+        return self.Future(fn, args)
+
+    def close(self):
+        pass
+
+
+def test_exactly_once_keyed_by_content_method_and_settings(tmp_path, monkeypatch):
+    import distributed
+
+    from skelid import batch
+
+    monkeypatch.setattr(batch, "_client", lambda workers, scheduler: (_Now(), None))
+    monkeypatch.setattr(distributed, "as_completed", lambda futures: iter(futures))
+    trials = tmp_path / "trials"
+    trials.mkdir()
+    for k in range(2):
+        write_trc(trials / f"t{k}.trc", simulate(builtin_model("case-a"), sigma=5.0, n_frames=30,
+                                                 rng=np.random.default_rng(k)).data)
+    out = tmp_path / "r.csv"
+    run = lambda **kw: batch.run_batch("case-a", str(trials / "*.trc"), out, method="paper", **kw)  # noqa: E731
+    assert run()["fitted"] == 2
+    assert run()["skipped"] == 2  # the same settings: nothing again
+    assert run(seed=1)["fitted"] == 2  # another seed: new rows beside the old
+    assert run(sigma=10.0)["fitted"] == 2
+    rows = read_table(out, columns(builtin_model("case-a")))
+    assert len(rows) == 6 and len({batch.row_key(r) for r in rows}) == 6
+    (trials / "t0.trc").rename(trials / "renamed.trc")  # the same content under another name: not again
+    assert run()["skipped"] == 2
 
 
 def test_missing_extra_is_one_line(tmp_path, capsys, monkeypatch):

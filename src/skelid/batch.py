@@ -9,7 +9,10 @@ its scheduler address) and writes one row per trial:
 column                    meaning
 ========================  ====================================================
 ``file``                  the trial's absolute path
+``file_sha256``           hash of the trial file's content
 ``method``                the estimator
+``settings``              JSON of the settings that shape the result (model, sigma, seed)
+``skelid_version``        the version of skelid that fitted it
 ``n_frames``              frames in the file
 ``frames_used``           frames the method used
 ``<param>``               the estimate (posterior mean) of each parameter
@@ -19,12 +22,22 @@ column                    meaning
 ``seconds``               time to read and fit the trial
 ``error``                 one line saying why the trial failed, or null
 ``warnings``              the method's warnings, joined by `` | ``, or null
+``row_sha256``            checksum of the row's other values
 ========================  ====================================================
+
+**Exactly once.** A row is keyed by ``(file_sha256, method, settings,
+skelid_version)``: a re-run skips the trials whose key is in the table, and a
+run with another method, seed, sigma or model adds rows beside the old ones
+(a renamed or moved file with the same content is not fitted again). A table
+whose columns are not those of the model (a foreign table), whose rows are
+truncated, malformed or do not match their checksum (a corrupt or
+hand-edited table), or which holds two rows with one key (duplicates) is
+refused with one line before anything is fitted.
 
 A trial that fails (an unreadable file, a missing marker, no solution) becomes
 a row with its error and never stops the batch. The table is rewritten
 atomically as trials finish, so an interrupted batch leaves a valid table, and
-a re-run fits only the files that are not in it yet (``retry_failed`` fits
+a re-run fits only the trials whose key is not in it yet (``retry_failed`` fits
 the failed ones again). ``dask[distributed]`` and ``pyarrow`` come with the
 ``[dask]`` extra.
 """
@@ -44,8 +57,12 @@ from pathlib import Path
 from skelid.errors import SkelidError, SkelidWarning
 
 #: columns before and after the per-parameter ones
-HEAD = ("file", "method", "n_frames", "frames_used")
-TAIL = ("sigma", "seconds", "error", "warnings")
+HEAD = ("file", "file_sha256", "method", "settings", "skelid_version", "n_frames", "frames_used")
+TAIL = ("sigma", "seconds", "error", "warnings", "row_sha256")
+#: the columns that identify a trial's fit
+KEY = ("file_sha256", "method", "settings", "skelid_version")
+STRING_COLUMNS = ("file", "file_sha256", "method", "settings", "skelid_version", "error", "warnings", "row_sha256")
+INT_COLUMNS = ("n_frames", "frames_used")
 PARAM_SUFFIXES = ("", "_sd", "_ci_low", "_ci_high")
 #: rewrite the table at most this often while trials finish (seconds)
 WRITE_INTERVAL = 2.0
@@ -77,8 +94,43 @@ def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
+def file_sha256(path) -> str:
+    """Hash of a file's content (read in blocks)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    except OSError as exc:
+        return f"unreadable: {exc.strerror or exc}"
+    return h.hexdigest()
+
+
+def settings_text(model, sigma: float | None, seed: int) -> str:
+    """The settings that shape a result, as canonical JSON (the model by a hash of its description)."""
+    import hashlib
+    import json
+
+    m = hashlib.sha256(json.dumps(model.to_dict(), sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return json.dumps({"model": m, "sigma": sigma, "seed": seed}, sort_keys=True)
+
+
+def row_key(row) -> tuple:
+    return tuple(row.get(c) for c in KEY)
+
+
+def row_checksum(row, cols) -> str:
+    import hashlib
+    import json
+
+    values = [row.get(c) for c in cols if c != "row_sha256"]
+    return hashlib.sha256(json.dumps(values, default=repr).encode()).hexdigest()
+
+
 def fit_trial(path: str, model, method: str = "marker", sigma: float | None = None, seed: int = 0,
-              limits=None) -> dict:
+              limits=None, ident: dict | None = None) -> dict:
     """Read and fit one trial; never raises for the trial's own problems.
 
     Returns
@@ -89,12 +141,15 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
     import numpy as np
 
     from skelid import resources
+    from skelid.checks import check_data
+    from skelid.estimators.base import prepare
     from skelid.io import read_markers
+    from skelid.io.results import summary_dict
     from skelid.workflows import check_cost, check_input_file, check_units, make_estimator
 
     t0 = time.perf_counter()
     row = dict.fromkeys(columns(model))
-    row.update(file=str(path), method=method)
+    row.update({"file": str(path), "method": method, **(ident or {})})
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", SkelidWarning)
@@ -104,9 +159,10 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             data = read_markers(path)
             check_units(model, data)
             row["n_frames"] = int(data.n_frames)
+            check_data(model, prepare(model, data), [method], str(path))
             check_cost(model, method, data.n_frames, limits)
             est.fit(data)
-            res = est.result()
+            res = summary_dict(est.result())
         row["frames_used"] = int(res.get("frames_used", 0))
         for name in model.parameter_names:
             v = res[name]
@@ -145,16 +201,26 @@ def _fmt(out: Path) -> str:
 def _schema(cols):
     import pyarrow as pa
 
-    kinds = {"file": pa.string(), "method": pa.string(), "error": pa.string(), "warnings": pa.string(),
-             "n_frames": pa.int64(), "frames_used": pa.int64()}
+    kinds = {**{c: pa.string() for c in STRING_COLUMNS}, **{c: pa.int64() for c in INT_COLUMNS}}
     return pa.schema([(c, kinds.get(c, pa.float64())) for c in cols])
 
 
 def read_table(out: Path, cols) -> list[dict]:
-    """Rows already in ``out`` (none if it does not exist); an error if its columns differ."""
-    if not out.exists():
+    """Rows already in ``out`` (none if it does not exist), each checked.
+
+    Raises
+    ------
+    SkelidError
+        One line: the table cannot be read, its columns are not ``cols`` (a
+        foreign table), a row is truncated, malformed or does not match its
+        checksum, or two rows share one key.
+    """
+    from skelid.io.atomic import check_target
+
+    if check_target(out) is None:
         return []
     fmt = _fmt(out)
+    fix = "remove it, or choose another --out file"
     try:
         if fmt == "parquet":
             import pyarrow.parquet as pq
@@ -165,33 +231,57 @@ def read_table(out: Path, cols) -> list[dict]:
             with open(out, newline="", encoding="utf-8") as fh:
                 reader = csv.DictReader(fh)
                 names = list(reader.fieldnames or [])
-                rows = [{k: _from_csv(k, v) for k, v in r.items()} for r in reader]
+                _check_columns(out, names, cols)
+                rows = []
+                for r in reader:
+                    if None in r or None in r.values():
+                        raise SkelidError(f"table {out} is truncated or corrupt: line {reader.line_num} has "
+                                          f"{len(r) - (None in r) - sum(v is None for v in r.values())} fields "
+                                          f"for {len(names)} columns", fix)
+                    rows.append({k: _from_csv(k, v, out, reader.line_num) for k, v in r.items()})
     except SkelidError:
         raise
     except Exception as exc:
-        raise SkelidError(f"cannot read the existing table {out}: {_one_line(exc)}",
-                          "remove it or choose another --out file") from None
-    if names != list(cols):
-        raise SkelidError(f"{out} has columns {', '.join(names)}, not those of this model and method",
-                          "choose another --out file for this model")
+        raise SkelidError(f"cannot read the existing table {out}: {_one_line(exc)}", fix) from None
+    _check_columns(out, names, cols)
+    seen = {}
+    for i, r in enumerate(rows):
+        if r.get("row_sha256") != row_checksum(r, cols):
+            raise SkelidError(f"row {i + 1} of table {out} ({r.get('file')}) does not match its checksum: the "
+                              "table is truncated, corrupt or was edited", fix)
+        k = row_key(r)
+        if k in seen:
+            raise SkelidError(f"table {out} has duplicate rows {seen[k] + 1} and {i + 1} for one trial "
+                              f"({r.get('file')}, {r.get('method')}, the same settings)",
+                              "remove one of them, or choose another --out file")
+        seen[k] = i
     return rows
 
 
-def _from_csv(col: str, text: str | None):
-    if text is None or text == "":
+def _check_columns(out, names, cols) -> None:
+    if list(names) != list(cols):
+        raise SkelidError(f"{out} has columns {', '.join(names[:8])}{', ...' if len(names) > 8 else ''}, not "
+                          "those of a skelid batch table of this model", "choose another --out file for this model")
+
+
+def _from_csv(col: str, text: str, out, line: int):
+    if text == "":
         return None
-    if col in ("file", "method", "error", "warnings"):
+    if col in STRING_COLUMNS:
         return text
-    if col in ("n_frames", "frames_used"):
-        return int(text)
-    return float(text)
+    try:
+        return int(text) if col in INT_COLUMNS else float(text)
+    except ValueError:
+        raise SkelidError(f"table {out} is corrupt: line {line} has {text[:40]!r} in column {col}",
+                          "remove it, or choose another --out file") from None
 
 
 def write_table(out: Path, rows: list[dict], cols) -> None:
     """Write ``rows`` to ``out`` atomically (a reader sees the old or the new table, never half)."""
     from skelid.io.atomic import atomic_write
 
-    rows = sorted(rows, key=lambda r: r["file"])
+    rows = sorted(({**r, "row_sha256": row_checksum(r, cols)} for r in rows),
+                  key=lambda r: (r["file"], r["method"], r.get("settings") or "", r.get("skelid_version") or ""))
     if _fmt(out) == "parquet":
         import pyarrow as pa
         import pyarrow.parquet as pq
@@ -279,10 +369,17 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     model = resolve_model(model_path)
     make_estimator(method, model, sigma)  # an unknown method or a bad sigma fails before any work
     check_cost(model, method, 1, limits)  # a grid too large for any trial
+    from skelid import __version__
+
     cols = columns(model)
     files = find_trials(pattern)
-    rows = {r["file"]: r for r in read_table(out, cols)}
-    todo = [f for f in files if f not in rows or (retry_failed and rows[f].get("error") is not None)]
+    rows = {row_key(r): r for r in read_table(out, cols)}
+    settings = settings_text(model, sigma, seed)
+    ident = {f: {"file_sha256": file_sha256(f), "method": method, "settings": settings,
+                 "skelid_version": __version__} for f in files}
+    key_of = {f: row_key(ident[f]) for f in files}
+    todo = [f for f in files
+            if key_of[f] not in rows or (retry_failed and rows[key_of[f]].get("error") is not None)]
     summary = {"out": str(out), "trials": len(files), "fitted": 0, "failed": 0,
                "skipped": len(files) - len(todo), "seconds": 0.0}
     if not todo:
@@ -294,8 +391,8 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     client, cluster = _client(workers, scheduler)
     unsaved = False
     try:
-        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, key=f"skelid-fit-{i}-{f}",
-                                 pure=False) for i, f in enumerate(todo)]
+        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f],
+                                 key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
         path_of = {fut.key: f for fut, f in zip(futures, todo, strict=True)}
         bar = tqdm(total=len(todo), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,
                    disable=not progress or not sys.stderr.isatty())
@@ -307,9 +404,9 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
                     row = fut.result()
                 except Exception as exc:  # the worker died or the task could not run
                     row = dict.fromkeys(cols)
-                    row.update(file=path_of[fut.key], method=method,
-                               error=_one_line(f"worker failed on this trial: {type(exc).__name__}: {exc}"))
-                rows[row["file"]] = row
+                    row.update({"file": path_of[fut.key], **ident[path_of[fut.key]],
+                                "error": _one_line(f"worker failed on this trial: {type(exc).__name__}: {exc}")})
+                rows[row_key(row)] = row
                 unsaved = True
                 summary["failed" if row["error"] is not None else "fitted"] += 1
                 bar.update(1)

@@ -93,21 +93,24 @@ def cli():
 
 @cli.command(epilog="Example:\n\n\b\n    skelid demo --out demo-output --frames 500")
 @click.option("--out", "out_dir", default="demo-output", show_default=True,
-              help="Folder for figures and summary.json (appears only when complete).")
+              help="Folder for figures and summary.json (appears only when complete; must be new, "
+                   "or see --overwrite).")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 @click.option("--frames", type=click.IntRange(min=10), default=500, show_default=True)
 @click.option("--sigma", type=click.FloatRange(min=0.0), default=15.0, show_default=True,
               help="Marker noise in mm.")
 @click.option("--json", "as_json", is_flag=True, help="Print summary.json on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no table.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
+              "are removed).")
 @_limit_options
-def demo(out_dir, seed, frames, sigma, as_json, quiet, max_memory, max_time):
+def demo(out_dir, seed, frames, sigma, as_json, quiet, overwrite, max_memory, max_time):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
 
     _finite("--sigma", sigma)
     summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
-                             limits=_limits(max_memory, max_time))
+                             limits=_limits(max_memory, max_time), overwrite=overwrite)
     if as_json:
         _echo_json(summary)
     elif not quiet:
@@ -173,7 +176,8 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Marker noise in model units (default 15 mm for the paper method).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON on stdout, nothing else.")
 @click.option("--out", "out_dir", default=None,
-              help="Folder for result.json, arrays.npz and figures (read by 'skelid report').")
+              help="Folder for result.json, arrays.npz and figures (read by 'skelid report'); must be new, "
+                   "or see --overwrite.")
 @click.option("--cutoff", type=float, default=None,
               help="Motion model of the marker methods: poses are smoothed above this frequency "
                    "(Hz; default: chosen per pose coordinate from the motion, at least 6; 0 = none).")
@@ -195,10 +199,12 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--markers", "marker_kind", type=click.Choice(["offsets", "none"]), default="offsets",
               show_default=True, help="OpenSim models: fit an offset of every free marker, or none.")
 @click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
+              "are removed).")
 @_limit_options
 @click.pass_context
 def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
-        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, max_memory, max_time):
+        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, max_memory, max_time):
     """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
 
     Several files are trials of one body: one geometry is fitted to all of them, with each
@@ -210,7 +216,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
     if str(model_path).lower().endswith(".osim"):
         _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
-                  marker_set, as_json, quiet)
+                  marker_set, as_json, quiet, overwrite)
         return
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
@@ -221,11 +227,12 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         result = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
                                 out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
                                 artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
-                                alternatives=alternatives)
+                                alternatives=alternatives, overwrite=overwrite)
     else:
         result = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
                                    out_dir=out_dir, command=_command(ctx), progress=not quiet,
-                                   cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time))
+                                   cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time),
+                                   overwrite=overwrite)
     _echo_warnings(result["warnings"])
     if as_json:
         _echo_json(result)
@@ -237,7 +244,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
 
 def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
-              as_json, quiet):
+              as_json, quiet, overwrite=False):
     """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim."""
     from skelid import scaling, workflows
     from skelid.io import read_markers
@@ -246,7 +253,7 @@ def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_
     if len(method_names) > 1:
         raise click.UsageError("an .osim model is fitted with one method; give --method once")
     if out_dir is not None:
-        check_output_dir(out_dir)
+        check_output_dir(out_dir, overwrite=overwrite)
     workflows.check_input_file(model_path, "model file")
     if marker_set is not None:
         workflows.check_input_file(marker_set, "marker-set file")
@@ -258,7 +265,7 @@ def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_
     table = scaling.scaling_table(fit_)
     _echo_warnings(table["warnings"])
     if out_dir is not None:
-        with atomic_dir(out_dir, protect=[model_path, *data_paths]) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, *data_paths], overwrite=overwrite) as tmp:
             paths = scaling.write_outputs(fit_, tmp)
             workflows.write_json(Path(tmp) / "result.json", {"method": "marker", **fit_.result,
                                                             "scaling": table})

@@ -15,6 +15,8 @@ import numpy as np
 
 from skelid.errors import DataError
 
+#: sampling rates accepted, in Hz
+RATE_RANGE = (1e-2, 1e6)
 UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 
@@ -68,8 +70,12 @@ class MarkerData:
                 f"duplicate marker names {dup} in {self.source or 'data'}",
                 "rename the markers so that each name is unique",
             )
-        if not (np.isfinite(self.rate) and self.rate > 0):
-            raise DataError(f"sampling rate must be positive, got {self.rate}")
+        numeric = isinstance(self.rate, int | float | np.integer | np.floating) \
+            and not isinstance(self.rate, bool | np.bool_)
+        rate_ok = numeric and bool(RATE_RANGE[0] <= float(self.rate) <= RATE_RANGE[1])
+        if not rate_ok:
+            raise DataError(f"sampling rate must be between {RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} Hz, "
+                            f"got {self.rate!r} in {self.source or 'the data'}", "give the rate in Hz")
         unit_scale(self.units, "mm")
         pos[~np.isfinite(pos)] = np.nan
         pos.setflags(write=False)

@@ -42,6 +42,7 @@ import math
 import re
 import sys
 import zipfile
+from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
 
@@ -175,15 +176,6 @@ def _na(what: str = "") -> str:
 
 def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{_e(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode("ascii")}">'
-
-
-def _param_entries(m: dict) -> dict:
-    return {k: v for k, v in m.items() if isinstance(v, dict) and "map" in v and "ci95" in v}
-
-
-def _method_arrays(arrays: dict, method: str) -> dict:
-    pre = f"{method}."
-    return {k[len(pre):]: v for k, v in arrays.items() if k.startswith(pre)}
 
 
 # ----------------------------------------------------------------------------- figures
@@ -416,31 +408,32 @@ class _Builder:
         return "\n".join(out)
 
 
-def _refs(result: dict, pname: str) -> dict:
+def _refs(ctx: Mapping, pname: str) -> dict:
     refs = {}
-    truth = result.get("truth") or {}
-    if isinstance(truth, dict) and pname in truth:
+    truth = ctx.get("truth") or {}
+    if isinstance(truth, Mapping) and pname in truth:
         refs["true value"] = float(truth[pname])
-    mp = (result.get("model_parameters") or {}).get(pname) or {}
+    mp = (ctx.get("model_parameters") or {}).get(pname) or {}
     if "nominal" in mp and "true value" not in refs:
         refs["nominal (model file)"] = float(mp["nominal"])
     return refs
 
 
-def _overview(b: _Builder, result: dict):
-    ov = result.get("data_overview")
-    if not isinstance(ov, dict):
+def _overview(b: _Builder, run):
+    ctx = run.context
+    ov = ctx.get("data_overview")
+    if not isinstance(ov, Mapping):
         b.add(_na("data overview (result.json has no data_overview)"))
         return
-    rows = [("data file", _e(ov.get("source", result.get("data", "")))),
+    rows = [("data file", _e(ov.get("source", ctx.get("data", "")))),
             ("format", _e(ov.get("format", "–"))),
             ("frames", _fmt(ov.get("n_frames"))),
             ("markers in the file", _fmt(ov.get("n_markers"))),
             ("sampling rate", f"{_fmt(ov.get('rate_hz'))} Hz"),
             ("duration", f"{_fmt(ov.get('duration_s'))} s"),
             ("units in the file", _e(ov.get("units", "–"))),
-            ("model", _e(result.get("model", "–"))),
-            ("model units (results are in these)", _e(result.get("units", "–")))]
+            ("model", _e(ctx.get("model", "–"))),
+            ("model units (results are in these)", _e(ctx.get("units", "–")))]
     b.add(_table(["", ""], rows, left=(0, 1)))
     used = ov.get("model_markers") or {}
     if used:
@@ -463,7 +456,7 @@ def _overview(b: _Builder, result: dict):
         b.add(_table(["marker", "frames missing", "gaps", "longest gap [frames]"], rows, row_class=cls))
 
 
-def _trajectories(b: _Builder, arrays: dict):
+def _trajectories(b: _Builder, arrays: Mapping):
     if "markers" not in arrays:
         b.add(_na("marker trajectories (no arrays.npz)"))
         return
@@ -478,11 +471,11 @@ def _trajectories(b: _Builder, arrays: dict):
         b.add("<p>No marker of the model is missing in any frame.</p>")
 
 
-def _evolution(b: _Builder, result: dict, arrays: dict, units: str):
-    for method, m in result["methods"].items():
+def _evolution(b: _Builder, run, units: str):
+    for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
-        a = _method_arrays(arrays, method)
-        names = [str(n) for n in a.get("posterior.names", list(_param_entries(m)))]
+        a = r.arrays
+        names = [str(n) for n in a.get("posterior.names", list(r.parameters))]
         shown = False
         steps = a.get("posterior.history_steps")
         if str(a.get("posterior.kind", "")) == "grid" and steps is not None and len(steps):
@@ -491,7 +484,7 @@ def _evolution(b: _Builder, result: dict, arrays: dict, units: str):
                     continue
                 axis, hist = a[f"posterior.axis.{k}"], a[f"posterior.history.{k}"]
                 final = a.get(f"posterior.marginal.{k}")
-                refs = _refs(result, name)
+                refs = _refs(run.context, name)
                 b.figure(partial(fig_history, axis, hist, steps, final, name, units, refs, method),
                          f"posterior of {name} as frames accumulate")
                 shown = True
@@ -499,12 +492,12 @@ def _evolution(b: _Builder, result: dict, arrays: dict, units: str):
             means, covs = a["posterior.history_mean"], a["posterior.history_cov"]
             for k, name in enumerate(names):
                 sds = np.sqrt(np.clip(covs[:, k, k], 0, None))
-                refs = _refs(result, name)
+                refs = _refs(run.context, name)
                 b.figure(partial(fig_gaussian_history, steps, means[:, k], sds, name, units, refs, method),
                          f"posterior of {name} as frames accumulate")
                 shown = True
         if "map_path" in a and names:
-            refs = _refs(result, names[0])
+            refs = _refs(run.context, names[0])
             b.figure(partial(fig_map_path, a["map_path"], a.get("measured"), names[0], units, refs, method),
                      f"most likely {names[0]} per frame")
             shown = True
@@ -524,33 +517,37 @@ def _histogram(x, w=None) -> dict:
     return {"axis": 0.5 * (edges[:-1] + edges[1:]), "marginal": mass / max(mass.sum(), 1e-300)}
 
 
-def _final(b: _Builder, result: dict, arrays: dict, units: str):
-    mpars = result.get("model_parameters") or {}
-    truth = result.get("truth") or {}
-    for method, m in result["methods"].items():
+def _noise_line(r, units: str) -> str:
+    n = r.noise
+    if n is None:
+        return _na("marker noise σ")
+    how = "fixed, not estimated" if n.fixed else "estimated"
+    ci = f", 95 % interval {_interval(n.interval)} {_e(units)}" if n.interval is not None else ""
+    return f"<p>Marker noise σ = {_fmt(n.sigma)} {_e(units)} ({how}){ci}.</p>"
+
+
+def _final(b: _Builder, run, units: str):
+    ctx = run.context
+    mpars = ctx.get("model_parameters") or {}
+    truth = ctx.get("truth") or {}
+    for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
-        params = _param_entries(m)
-        if not params:
+        if not r.parameters:
             b.add(_na("parameter estimates"))
             continue
-        a = _method_arrays(arrays, method)
-        crlb_arr = a.get("crlb_sd")
+        a = r.arrays
         post_names = [str(n) for n in a.get("posterior.names", [])]
         rows, panels = [], []
-        for i, (name, v) in enumerate(params.items()):
-            crlb = v.get("crlb_sd")
-            if crlb is None and crlb_arr is not None and i < len(crlb_arr):
-                crlb = float(crlb_arr[i])
+        for name, p in r.parameters.items():
             prior = (mpars.get(name) or {}).get("prior") or {}
             ref = truth.get(name, (mpars.get(name) or {}).get("nominal"))
-            rows.append((_e(name), _fmt(v.get("map")), _fmt(v.get("mean")), _fmt(v.get("sd")),
-                         _interval(v.get("ci95")),
-                         _fmt(crlb) if crlb is not None else f'<span class="na">{NOT_AVAILABLE}</span>',
+            rows.append((_e(name), _fmt(p.map), _fmt(p.mean), _fmt(p.sd), _interval(p.interval),
+                         _fmt(p.crlb_sd) if p.crlb_sd is not None else f'<span class="na">{NOT_AVAILABLE}</span>',
                          _interval([prior.get("lower"), prior.get("upper")]) if prior else "–",
                          _fmt(ref)))
-            panel = {"name": name, "mean": float(v.get("mean", v["map"])), "sd": float(v.get("sd") or 0.0),
-                     "ci95": v.get("ci95"), "crlb_sd": None if crlb is None else float(crlb),
-                     "refs": _refs(result, name)}
+            panel = {"name": name, "mean": p.mean if math.isfinite(p.mean) else p.map,
+                     "sd": p.sd if math.isfinite(p.sd) else 0.0, "ci95": list(p.interval),
+                     "crlb_sd": p.crlb_sd, "refs": _refs(ctx, name)}
             k = post_names.index(name) if name in post_names else None
             if k is not None and f"posterior.axis.{k}" in a:
                 panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
@@ -565,42 +562,35 @@ def _final(b: _Builder, result: dict, arrays: dict, units: str):
         ref_head = "true value" if truth else "nominal (model file)"
         b.add(_table(["parameter", f"MAP [{units}]", f"mean [{units}]", f"sd [{units}]", "95 % interval",
                       f"Cramér–Rao sd [{units}]", "prior interval", ref_head], rows))
-        sig = m.get("sigma")
-        if isinstance(sig, dict) and "value" in sig:
-            how = "fixed, not estimated" if sig.get("fixed") else "estimated"
-            ci = f", 95 % interval {_interval(sig.get('ci95'))} {_e(units)}" if sig.get("ci95") else ""
-            b.add(f"<p>Marker noise σ = {_fmt(sig['value'])} {_e(units)} ({how}){ci}.</p>")
-        else:
-            b.add(_na("marker noise σ"))
-        if "frames_used" in m:
-            dropped = f", {_fmt(m['frames_dropped'])} dropped" if "frames_dropped" in m else ""
-            b.add(f"<p>Frames used: {_fmt(m['frames_used'])} of {_fmt(result.get('frames_total'))}{dropped}.</p>")
-        if "seconds" in m:
-            b.add(f"<p>The fit took {_fmt(m['seconds'], 3)} s.</p>")
+        b.add(_noise_line(r, units))
+        if r.frames is not None:
+            dropped = f", {_fmt(r.frames.dropped)} dropped" if r.frames.dropped else ""
+            b.add(f"<p>Frames used: {_fmt(r.frames.used)} of {_fmt(r.frames.total)}{dropped}.</p>")
+        if "seconds" in r.provenance:
+            b.add(f"<p>The fit took {_fmt(r.provenance['seconds'], 3)} s.</p>")
         b.figure(partial(fig_final, panels, units, method),
                  f"final posterior of each parameter ({method})")
 
 
-def _residuals(b: _Builder, result: dict, arrays: dict, units: str):
+def _residuals(b: _Builder, run, units: str):
     from skelid.workflows import lag1_autocorrelation
 
-    names = [str(n) for n in arrays.get("marker_names", [])]
-    rate = float(arrays.get("rate", 1.0))
-    for method, m in result["methods"].items():
+    names = [str(n) for n in run.arrays.get("marker_names", [])]
+    rate = float(run.arrays.get("rate", 1.0))
+    for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
-        r = _method_arrays(arrays, method).get("residuals")
-        if r is None or np.asarray(r).ndim != 2:
+        res = r.arrays.get("residuals")
+        if res is None or np.ndim(res) != 2:
             b.add(_na("per-marker residuals"))
             continue
-        r = np.asarray(r, float)
-        sig = m.get("sigma") if isinstance(m.get("sigma"), dict) else {}
-        sigma = sig.get("value")
-        b.figure(partial(fig_residuals, r, names, rate, units, sigma, method),
+        res = np.asarray(res, float)
+        sigma = None if r.noise is None else r.noise.sigma
+        b.figure(partial(fig_residuals, res, names, rate, units, sigma, method),
                  f"residuals per marker ({method})")
         rows = []
         with np.errstate(invalid="ignore"):
-            for k in range(r.shape[1]):
-                col = r[:, k]
+            for k in range(res.shape[1]):
+                col = res[:, k]
                 fin = col[np.isfinite(col)]
                 rows.append((_e(names[k] if k < len(names) else f"marker {k}"),
                              _fmt(np.sqrt(np.mean(fin ** 2)) if fin.size else None),
@@ -610,43 +600,50 @@ def _residuals(b: _Builder, result: dict, arrays: dict, units: str):
               "soft-tissue artefact gives slow drifts (autocorrelation near 1) that follow the motion.</p>")
 
 
-def _identifiability(b: _Builder, result: dict, units: str):
-    for method, m in result["methods"].items():
+def _identifiability(b: _Builder, run, units: str):
+    for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
-        rows = m.get("identifiability")
+        rows = r.diagnostics.get("identifiability")
         if not isinstance(rows, list) or not rows:
             b.add(_na("identifiability table"))
             continue
         b.add(_table(["parameter", f"Cramér–Rao sd [{units}]", "status"],
-                     [(_e(r.get("parameter", "")), _fmt(r.get("crlb_sd")), _e(r.get("status", "")))
-                      for r in rows], left=(0, 2)))
+                     [(_e(row.get("parameter", "")), _fmt(row.get("crlb_sd")), _e(row.get("status", "")))
+                      for row in rows if isinstance(row, Mapping)], left=(0, 2)))
 
 
-def _warnings(b: _Builder, result: dict, notes: list[str]):
-    items = list(result.get("warnings") or [])
-    for m in result["methods"].values():
-        items += [w for w in m.get("warnings", []) or [] if w not in items]
-    items += [n for n in notes if n not in items]
+def _all_warnings(run, notes) -> list[dict]:
+    out, seen = [], set()
+    for w in [*run.warnings, *(w for r in run.results.values() for w in r.warnings)]:
+        if w.message not in seen:
+            seen.add(w.message)
+            out.append({"message": w.message, "severe": _is_severe(w.code, w.message)})
+    return out + [{"message": n, "severe": False} for n in notes if n not in seen]
+
+
+def _warnings(b: _Builder, run, notes: list[str]):
+    items = _all_warnings(run, notes)
     if items:
-        b.add("<ul>" + "".join(f'<li class="warn">{_e(w)}</li>' for w in items) + "</ul>")
+        b.add(_warning_list(items, show=len(items)))
     else:
         b.add("<p>No warnings.</p>")
 
 
-def _provenance(b: _Builder, result: dict):
+def _provenance(b: _Builder, run):
     from skelid.workflows import versions
 
-    cmd = result.get("command")
+    prov = run.context.get("provenance") or {}
+    cmd = prov.get("command")
     if cmd:
         import shlex
 
         text = shlex.join(str(c) for c in cmd) if isinstance(cmd, list) else str(cmd)
-        b.add(f"<p>Command (run in <code>{_e(result.get('cwd', '?'))}</code>"
-              f"{', on ' + _e(result['created']) if result.get('created') else ''}):</p><pre>{_e(text)}</pre>")
+        b.add(f"<p>Command (run in <code>{_e(prov.get('cwd', '?'))}</code>"
+              f"{', on ' + _e(prov['created']) if prov.get('created') else ''}):</p><pre>{_e(text)}</pre>")
     else:
         b.add(_na("the command (result.json does not record it)"))
-    vers = result.get("versions")
-    if isinstance(vers, dict) and vers:
+    vers = prov.get("versions")
+    if isinstance(vers, Mapping) and vers:
         b.add(_table(["package", "version"], [(_e(k), _e(v)) for k, v in vers.items()], left=(0, 1)))
     else:
         b.add(_na("versions (result.json does not record them)"))
@@ -658,43 +655,32 @@ def _provenance(b: _Builder, result: dict):
 #: warning codes that say the numbers themselves may be wrong (shown in red)
 SEVERE_CODES = frozenset({"not-converged", "approximation-broken", "broken-approximation", "unreliable-fit",
                           "sampler-not-mixed", "sampler-stage-limit", "fallback"})
-_SEVERE_TEXT = re.compile(r"converg|approximation|not have mixed|jumped to the posterior|unreliable", re.I)
+_SEVERE_TEXT = re.compile(r"not converg|before converging|failed to converge|approximation (is )?broke|"
+                          r"not have mixed|jumped to the posterior|unreliable", re.I)
 
 
 def _is_severe(code: str, message: str) -> bool:
     return code in SEVERE_CODES or bool(_SEVERE_TEXT.search(message))
 
 
-def _mentions(message: str, name: str) -> bool:
-    """Whether a warning's text names parameter ``name`` (as a whole token)."""
-    return re.search(rf"(?<![\w.]){re.escape(name)}(?![\w])", message) is not None
-
-
-def _method_warnings(result: dict, method: str) -> list[dict]:
-    """The warnings of one method as ``{code, message, parameters, severe}``.
-
-    Structured warnings (with ``code`` and ``parameters``) are taken as they are;
-    a plain message concerns the parameters it names.
-    """
-    m = result["methods"][method]
-    names = list(_param_entries(m))
-    others = [k for k in result["methods"] if k != method]
-    items = list(m.get("warnings") or [])
-    for w in result.get("warnings") or []:  # run-level: this method's, or no method's
-        text = w.get("message", "") if isinstance(w, dict) else str(w)
-        if f"{method} method" in text or not any(f"{o} method" in text for o in others):
+def _method_warnings(run, method: str) -> list[dict]:
+    """This method's warnings and the run's that concern it (or no method), as ``{message, parameters, severe}``."""
+    r = run.results[method]
+    others = [k for k in run.results if k != method]
+    items = list(r.warnings)
+    theirs = {w.message for o in others for w in run.results[o].warnings}
+    for w in run.warnings:  # run-level: this method's, or no method's
+        if w.message in theirs and w.message not in {x.message for x in r.warnings}:
+            continue
+        if f"{method} method" in w.message or not any(f"{o} method" in w.message for o in others):
             items.append(w)
     out, seen = [], set()
     for w in items:
-        if isinstance(w, dict):
-            code, text, params = str(w.get("code", "")), str(w.get("message", "")), list(w.get("parameters") or [])
-        else:
-            code, text = "", str(w)
-            params = [n for n in names if "parameter" in text.lower() and _mentions(text, n)]
-        if text in seen:
+        if w.message in seen:
             continue
-        seen.add(text)
-        out.append({"code": code, "message": text, "parameters": params, "severe": _is_severe(code, text)})
+        seen.add(w.message)
+        out.append({"message": w.message, "parameters": [p for p in w.parameters if p in r.parameters],
+                    "severe": _is_severe(w.code, w.message)})
     return out
 
 
@@ -713,54 +699,43 @@ def _warning_list(items: list[dict], cls: str = "w", show: int = 6) -> str:
             f'warnings</summary><ul class="{cls}">{li(items[show - 1:])}</ul></details>')
 
 
-def _status_cell(status) -> str:
-    if not status:
+def _status_cell(p) -> str:
+    if not p.extra.get("status_given", True):
         return "–"
-    s = str(status)
-    key = "poor" if s.lower().startswith("poor") else s.lower()
-    return f'<span class="status-{_e(key)}">{_e(s)}</span>'
+    return f'<span class="status-{_e(p.status)}">{_e(p.status)}</span>'
 
 
-def _summary(b: _Builder, result: dict, arrays: dict, units: str, notes: list[str]):
+def _summary(b: _Builder, run, units: str, notes: list[str]):
     """The answer: every estimate with its interval, bound, status and warnings; then the other warnings."""
-    for method, m in result["methods"].items():
+    for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
-        params = _param_entries(m)
-        warns = _method_warnings(result, method)
-        status = {str(r.get("parameter")): r.get("status") for r in m.get("identifiability") or []
-                  if isinstance(r, dict)}
-        crlb_arr = _method_arrays(arrays, method).get("crlb_sd")
+        warns = _method_warnings(run, method)
         rows, cls = [], []
         fit_wide = [w for w in warns if not w["parameters"] and w["severe"]]
         if fit_wide:
             rows.append(("<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)))
             cls.append("fit")
-        for i, (name, v) in enumerate(params.items()):
-            crlb = v.get("crlb_sd")
-            if crlb is None and crlb_arr is not None and i < len(crlb_arr):
-                crlb = float(crlb_arr[i])
+        for name, p in r.parameters.items():
             mine = [w for w in warns if name in w["parameters"]]
-            rows.append((_e(name), _fmt(v.get("mean", v.get("map"))), _interval(v.get("ci95")),
-                         _fmt(crlb) if crlb is not None else '<span class="na">–</span>',
-                         _status_cell(status.get(name)), _warning_list(mine)))
+            unit = "" if p.unit == units else f" {_e(p.unit)}"
+            rows.append((_e(name), _fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
+                         _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>',
+                         _status_cell(p), _warning_list(mine)))
             cls.append("")
-        for name, v in (m.get("lengths") or {}).items():
-            if isinstance(v, dict):
-                rows.append((f"{_e(name)} <small>(derived length)</small>", _fmt(v.get("value")),
-                             _interval(v.get("ci95")), "–", "–", ""))
-                cls.append("")
-        sig = m.get("sigma")
-        if isinstance(sig, dict) and "value" in sig:
-            rows.append(("marker noise σ" + (" <small>(fixed)</small>" if sig.get("fixed") else ""),
-                         _fmt(sig["value"]), _interval(sig.get("ci95")), "–", "–", ""))
+        for name, p in r.derived.items():
+            rows.append((f"{_e(name)} <small>(derived length)</small>", _fmt(p.mean), _interval(p.interval),
+                         _fmt(p.crlb_sd) if p.crlb_sd is not None else "–", _status_cell(p), ""))
+            cls.append("")
+        if r.noise is not None:
+            rows.append(("marker noise σ" + (" <small>(fixed)</small>" if r.noise.fixed else ""),
+                         _fmt(r.noise.sigma), _interval(r.noise.interval), "–", "–", ""))
             cls.append("")
         if not rows:
             b.add(_na("parameter estimates"))
             continue
         b.add(_table(["parameter", f"estimate [{units}]", "95 % interval", f"Cramér–Rao sd [{units}]", "status",
                       "warnings"], rows, left=(0, 5), row_class=cls, cell_class={5: "w"}))
-        used = {t for w in warns for t in ([w["message"]] if w["parameters"] or w["severe"] else [])}
-        rest = [w for w in warns if w["message"] not in used]
+        rest = [w for w in warns if not w["parameters"] and not w["severe"]]
         if rest:
             b.add(f"<p>Other warnings about this fit:</p>{_warning_list(rest)}")
     if notes:
@@ -768,47 +743,47 @@ def _summary(b: _Builder, result: dict, arrays: dict, units: str, notes: list[st
 
 
 # ----------------------------------------------------------------------------- the fitted body
-def _model_of(result: dict):
-    """The fitted model from ``result.json`` (``model_description``), or None."""
-    desc = result.get("model_description")
-    if not isinstance(desc, dict):
+def _model_of(ctx: Mapping):
+    """The fitted model from the result's context (``model_description``), or None."""
+    desc = ctx.get("model_description")
+    if not isinstance(desc, Mapping):
         return None
     from skelid.model import model_from_dict
 
     try:
-        return model_from_dict(desc, str(result.get("model", "model")))
+        return model_from_dict(dict(desc), str(ctx.get("model", "model")))
     except (SkelidError, KeyError, TypeError, ValueError):
         return None
 
 
-def _body(b: _Builder, result: dict, arrays: dict, units: str):
-    """The interactive view of the first method's fitted body over the trial."""
+def _body(b: _Builder, run, units: str):
+    """The interactive view of the fitted body over the trial (the first method with poses, else the first)."""
     from skelid import viewer
 
-    model = _model_of(result)
+    model = _model_of(run.context)
     if model is None:
-        b.add(_na("the view of the fitted body (result.json has no model description; "
+        b.add(_na("the view of the fitted body (the result holds no model description; "
                   "rerun skelid fit to get it)"))
         return
-    if "markers" not in arrays:
+    if "markers" not in run.arrays:
         b.add(_na("the view of the fitted body (no arrays.npz)"))
         return
-    method = next((k for k, m in result["methods"].items() if _param_entries(m)), None)
+    method = next((k for k, r in run.results.items() if r.parameters and "pose" in r.arrays),
+                  next((k for k, r in run.results.items() if r.parameters), None))
     if method is None:
         b.add(_na("the view of the fitted body (no estimates)"))
         return
-    est = _param_entries(result["methods"][method])
-    theta = np.array([float(est[n].get("mean", est[n]["map"])) if n in est else float(v)
+    r = run.results[method]
+    theta = np.array([r.parameters[n].mean if n in r.parameters else float(v)
                       for n, v in zip(model.parameter_names, model.theta_nominal, strict=True)])
-    y = np.asarray(arrays["markers"], float)
-    a = _method_arrays(arrays, method)
-    pose = a.get("pose", a.get("poses"))
-    keep, stride = viewer.decimation(len(y))
+    y = np.asarray(run.arrays["markers"], float)
+    pose = r.arrays.get("pose", r.arrays.get("poses"))
+    keep, _ = viewer.decimation(len(y))
     if pose is not None and np.shape(pose) == (len(y), model.n_pose):
         pose = np.array(pose, float)
-        r = a.get("residuals")
-        if r is not None and np.shape(r)[0] == len(y):  # frames the fit skipped have no pose
-            pose[~np.isfinite(np.asarray(r, float)).any(axis=1)] = np.nan
+        res = r.arrays.get("residuals")
+        if res is not None and np.shape(res)[0] == len(y):  # frames the fit skipped have no pose
+            pose[~np.isfinite(np.asarray(res, float)).any(axis=1)] = np.nan
         how = f"the poses the {_e(method)} method estimated"
     else:
         from skelid.estimators.pose import pose_determined, track_poses
@@ -819,7 +794,7 @@ def _body(b: _Builder, result: dict, arrays: dict, units: str):
         pose[keep] = q
         how = (f"poses fitted to the shown frames at the {_e(method)} method's estimate "
                "(the method estimates no poses)")
-    rate = float(arrays.get("rate", 1.0))
+    rate = float(run.arrays.get("rate", 1.0))
     spec = viewer.figure_spec(model, theta, pose, y, rate=rate, units=units,
                               title=f"{model.name}: fitted body ({method} method) and measured markers")
     meta = spec["meta"]
@@ -833,39 +808,59 @@ def _body(b: _Builder, result: dict, arrays: dict, units: str):
     b.uses_plotly = True
 
 
-def build_html(result: dict, arrays: dict, notes=(), progress: bool = False) -> str:
-    """The report as one HTML string (figures embedded)."""
-    units = str(result.get("units") or arrays.get("units", ""))
+def load_run(result_dir):
+    """``(run, notes)``: the :class:`~skelid.result.FitRun` a result folder holds and what it lacks.
+
+    A folder with a ``schema_version`` is read by :func:`skelid.io.results.read_run`; an
+    older one by :func:`load_result_dir` and :func:`skelid.io.legacy.run_from_legacy`.
+    """
+    from skelid.io.legacy import has_schema, run_from_legacy
+
+    d = Path(result_dir)
+    if has_schema(d):
+        from skelid.io.results import read_run
+
+        run = read_run(d)
+        notes = [] if (d / "arrays.npz").is_file() else [
+            f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
+            "residual figures (rerun skelid fit with --out to get them)"]
+        return run, notes
+    result, arrays, notes = load_result_dir(d)
+    return run_from_legacy(result, arrays), notes
+
+
+def build_html(result, arrays=None, notes=(), progress: bool = False) -> str:
+    """The report as one HTML string (figures and the view's library embedded).
+
+    Parameters
+    ----------
+    result : FitRun, FitResult or ``result.json`` dict
+    arrays : mapping, optional
+        The arrays of a ``result.json`` dict.
+    """
+    from skelid.io.frames import as_run
+
+    run = as_run(result, arrays)
+    ctx = run.context
+    units = str(ctx.get("units") or run.arrays.get("units", "") or
+                next((p.unit for r in run.results.values() for p in r.parameters.values()), ""))
     b = _Builder()
-    title = f"skelid report: {result.get('model', 'model')} on {Path(str(result.get('data', ''))).name or 'data'}"
+    title = f"skelid report: {ctx.get('model', 'model')} on {Path(str(ctx.get('data', ''))).name or 'data'}"
     head = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_e(title)}</title>\n'
             f"<style>{CSS}</style>\n")
     b.add("</head>\n<body>\n" f"<h1>{_e(title)}</h1>")
-    methods = ", ".join(result["methods"]) or "none"
+    methods = ", ".join(run.results) or "none"
     b.add(f"<p>Methods: {_e(methods)}. All lengths are in {_e(units)}.</p>")
     b.add("<nav><ol>" + "".join(f'<li><a href="#{k}">{_e(t)}</a></li>' for k, t in SECTIONS) + "</ol></nav>")
+    sections = {"summary": lambda: _summary(b, run, units, list(notes)), "body": lambda: _body(b, run, units),
+                "overview": lambda: _overview(b, run), "trajectories": lambda: _trajectories(b, run.arrays),
+                "evolution": lambda: _evolution(b, run, units), "posterior": lambda: _final(b, run, units),
+                "residuals": lambda: _residuals(b, run, units),
+                "identifiability": lambda: _identifiability(b, run, units),
+                "warnings": lambda: _warnings(b, run, list(notes)), "provenance": lambda: _provenance(b, run)}
     for key, heading in SECTIONS:
         b.add(f'<h2 id="{key}">{_e(heading)}</h2>')
-        if key == "summary":
-            _summary(b, result, arrays, units, list(notes))
-        elif key == "body":
-            _body(b, result, arrays, units)
-        elif key == "overview":
-            _overview(b, result)
-        elif key == "trajectories":
-            _trajectories(b, arrays)
-        elif key == "evolution":
-            _evolution(b, result, arrays, units)
-        elif key == "posterior":
-            _final(b, result, arrays, units)
-        elif key == "residuals":
-            _residuals(b, result, arrays, units)
-        elif key == "identifiability":
-            _identifiability(b, result, units)
-        elif key == "warnings":
-            _warnings(b, result, list(notes))
-        else:
-            _provenance(b, result)
+        sections[key]()
     b.add("</body>\n</html>")
     body = b.render(progress)
     if b.uses_plotly:
@@ -884,7 +879,7 @@ def write_report(result_dir, out=None, progress: bool = False) -> tuple[Path, li
     notes : list of str
         What the report could not include, for the user to read.
     """
-    result, arrays, notes = load_result_dir(result_dir)
+    run, notes = load_run(result_dir)
     out = Path(out) if out is not None else Path(result_dir) / "report.html"
     inputs = {(Path(result_dir) / n).resolve() for n in ("result.json", "arrays.npz")}
     if out.resolve() in inputs:
@@ -892,7 +887,7 @@ def write_report(result_dir, out=None, progress: bool = False) -> tuple[Path, li
     if out.is_dir():
         raise SkelidError(f"--out {out} is a folder", "give the name of the HTML file to write, e.g. report.html")
     ensure_parent(out)
-    text = build_html(result, arrays, notes, progress)
+    text = build_html(run, None, notes, progress)
     with atomic_write(out, newline="\n") as fh:
         fh.write(text)
     return out, notes

@@ -9,11 +9,20 @@ and the coupled translations of the joints it is the parent of, and a
 .. math:: r_m = S_{b(m)}\\, r_m^0 + \\delta_m, \\qquad
           \\log s_b \\sim N(0, 0.15^2), \\quad \\delta_m \\sim N(0, (10\\,\\mathrm{mm})^2 I).
 
-The estimator is skelid's ``marker`` method (poses and geometry by joint least
-squares, intervals from the Laplace approximation). Several trials of one
-subject are joined in time order into one recording with a gap of missing
-frames between them, so the motion model never links the last pose of one
-trial to the first of the next; the geometry is shared, the poses are not.
+The scale factors come from skelid's ``marker`` method (poses and geometry by
+joint least squares, intervals from the Laplace approximation) with the
+markers at their nominal places; with several trials, from its multi-trial
+form (each trial fitted alone, then all at once with one geometry, the
+between-trial spread added to the interval; see
+:mod:`skelid.estimators.multitrial`). The offsets are then placed as OpenSim's
+MarkerPlacer places them: each free marker moves to where the first (static)
+trial saw it in the fitted poses, with a standard error from the frame
+scatter (:func:`place_markers`). They are not fitted jointly with the scales:
+the joint fit has no prior penalty, and offsets of every marker of a body
+trade with the body's pose, so the data alone cannot identify them.
+Several trials of one subject are read as one recording (:func:`join_trials`: the union of their
+markers, a gap of missing frames between trials) and fitted as separate
+trials with one geometry.
 
 :func:`write_outputs` writes the scaled ``.osim`` (every other element of the
 source kept), an OpenSim ScaleSet, and ``scaling.json`` with each factor and
@@ -35,6 +44,7 @@ from skelid.errors import DataError
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
+    keep_markers,
     marker_locations,
     osim_parameters,
     read_osim,
@@ -43,7 +53,7 @@ from skelid.io.osim import (
 )
 from skelid.model.description import Model
 
-GAP_FRAMES = 30  # missing frames between joined trials
+GAP_FRAMES = 10  # missing frames between joined trials
 
 
 def join_trials(trials, gap: int = GAP_FRAMES, units: str = "mm") -> MarkerData:
@@ -101,14 +111,15 @@ class ScalingFit:
     seconds: float
     dropped_markers: tuple = ()
     warnings: list = field(default_factory=list)
+    theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    @property
-    def theta(self) -> np.ndarray:
-        return np.asarray(self.estimator.theta_, float)
+
+STATIC_FRAMES = 30
 
 
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
-             method: str = "marker", seed: int = 0, sigma: float | None = None) -> ScalingFit:
+             method: str = "marker", seed: int = 0, sigma: float | None = None,
+             static_frames: int | None = STATIC_FRAMES, joined: bool = False) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
@@ -118,15 +129,30 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         A static trial and movement trials of one subject (joined by :func:`join_trials`).
     marker_set : path, optional
         A MarkerSet file for models without markers.
-    scale, markers : str
+    scale : {'bodies', 'axes', 'none'}
         See :func:`skelid.io.osim.osim_parameters`.
+    markers : {'offsets', 'none'}
+        Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
+    static_frames : int or None
+        The first trial, when it has more frames, contributes this many evenly
+        spaced ones (a static trial repeats one pose: more frames add time, not
+        information, since its residuals are serially correlated). None: all.
+    joined : bool
+        Fit the trials as one recording with gaps (one marker fit) instead of
+        the multi-trial fit (each trial alone, then together).
 
     Returns
     -------
     ScalingFit
     """
+    from skelid.io.results import summary_dict
     from skelid.workflows import make_estimator
 
+    trials = list(trials)
+    if static_frames is not None and trials and trials[0].positions.shape[0] > static_frames:
+        t = trials[0]
+        idx = np.unique(np.linspace(0, t.positions.shape[0] - 1, static_frames).round().astype(int))
+        trials[0] = MarkerData(t.positions[idx], t.names, t.rate, t.units, t.source, t.meta)
     data = join_trials(trials)
     full, info = read_osim(osim_path, marker_set)
     present = [n for n in full.marker_names if n in data.names
@@ -135,37 +161,103 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
                         f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(data.names[:4])} ...)",
                         "rename the markers in the model's MarkerSet or in the data so that they match")
-    model, info = read_osim(osim_path, marker_set)
-    model = _only(model, present)
-    model = osim_parameters(model, info, scale, markers, present)
+    base, info = read_osim(osim_path, marker_set)
+    base = keep_markers(base, present)
+    model = osim_parameters(base, info, scale, "none", present)
     dropped = tuple(n for n in full.marker_names if n not in present)
     sub = MarkerData(data.positions[:, [data.names.index(n) for n in model.marker_names]],
                      model.marker_names, data.rate, data.units, data.source, data.meta)
-    est = make_estimator(method, model, sigma, rng=np.random.default_rng(seed))
     t0 = time.perf_counter()
-    est.fit(sub)
+    if model.n_params and len(trials) > 1 and method == "marker" and not joined:
+        from skelid.estimators.multitrial import MultiTrialEstimator
+
+        parts = [MarkerData(sub.positions[a:b], sub.names, sub.rate, sub.units, t.source)
+                 for (a, b), t in zip(data.meta["trial_frames"], trials, strict=True)]
+        est = MultiTrialEstimator(model, sigma=sigma, rng=np.random.default_rng(seed)).fit(parts)
+        res, theta = est.result(), np.asarray(est.theta_, float)
+        edges = np.cumsum([0] + [len(p.positions) for p in parts])
+        pose = np.full((sub.positions.shape[0], model.n_pose), np.nan)
+        for (a, b), e0, e1 in zip(data.meta["trial_frames"], edges[:-1], edges[1:], strict=True):
+            pose[a:b] = est.pose_[e0:e1]
+    elif model.n_params:
+        est = make_estimator(method, model, sigma, rng=np.random.default_rng(seed))
+        est.fit(sub)
+        res, theta, pose = summary_dict(est.result()), np.asarray(est.theta_, float), est.pose_
+    else:  # nothing to scale: poses of the nominal model only
+        from skelid.estimators.pose import track_poses
+
+        est, res, theta = None, {"warnings": []}, np.zeros(0)
+        static = slice(*data.meta["trial_frames"][0])
+        pose = np.zeros((sub.positions.shape[0], model.n_pose))
+        pose[static] = track_poses(model, theta, sub.positions[static], np.random.default_rng(seed))[0]
+    if markers == "offsets":
+        static = data.meta["trial_frames"][0]
+        offsets, sd, n_eff = place_markers(model, theta, pose, sub.positions, static,
+                                           [m.name not in info.fixed_markers for m in model.markers])
+        model = osim_parameters(base, info, scale, "offsets", present)
+        theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
+        for k, p in enumerate(model.parameters):
+            if p.kind == "marker_offset":
+                i = model.marker_names.index(p.target)
+                theta[k] = offsets[i, p.axis]
+                half = 1.959964 * sd[i, p.axis]
+                res[p.name] = {"map": float(offsets[i, p.axis]), "mean": float(offsets[i, p.axis]),
+                               "sd": float(sd[i, p.axis]), "ci95": [float(offsets[i, p.axis] - half),
+                                                                   float(offsets[i, p.axis] + half)],
+                               "n_eff": float(n_eff[i]), "method": "placed on the static trial"}
     seconds = time.perf_counter() - t0
-    res = est.result()
     warns = list(res.get("warnings", []))
     if dropped:
         warns.append(f"{len(dropped)} model markers are not in the data and were left out: "
                      f"{', '.join(dropped)}")
     return ScalingFit(model, info, str(osim_path), None if marker_set is None else str(marker_set),
-                      sub, est, res, seconds, dropped, warns)
+                      sub, est, res, seconds, dropped, warns, theta)
 
 
-def _only(model: Model, names) -> Model:
-    """The model with only the markers ``names`` and the bodies they need."""
-    names = set(names)
-    mk = tuple(m for m in model.markers if m.name in names)
-    idx = {s.name: s for s in model.segments}
-    need = set()
-    for m in mk:
-        b = m.segment
-        while b is not None and b not in need:
-            need.add(b)
-            b = idx[b].parent
-    return Model(model.name, 3, model.units, tuple(s for s in model.segments if s.name in need), mk)
+def place_markers(model: Model, theta, pose, y, frames, movable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker offsets that put each marker where the static trial saw it (OpenSim's MarkerPlacer).
+
+    With the fitted geometry and poses, a marker's offset is the mean over the
+    static frames of its residual in its segment's frame,
+    ``delta_m = mean_t R_t^T (y_mt - x_mt)``; its standard error is the frame
+    scatter over ``sqrt(n_eff)`` with ``n_eff = n (1 - rho) / (1 + rho)`` from
+    the lag-1 autocorrelation ``rho`` of the residuals (a static trial's
+    residuals are strongly correlated in time).
+
+    Parameters
+    ----------
+    pose : (F, Q) float
+    y : (F, M, 3) float
+    frames : (start, stop)
+        The static trial's frames.
+    movable : (M,) bool
+        Markers that may move (not ``fixed`` in the model); the others get 0.
+
+    Returns
+    -------
+    offsets, sd : (M, 3) float
+        In the segment frame, model units.
+    n_eff : (M,) float
+    """
+    from skelid.model.kinematics import forward_kinematics
+
+    sl = slice(*frames)
+    kin = forward_kinematics(model, theta, pose[sl])
+    R = kin.R_world_seg[:, model.marker_segment]  # (T, M, 3, 3)
+    r = np.einsum("tmji,tmj->tmi", R, y[sl] - kin.markers)  # residual in the segment frame
+    ok = np.isfinite(r).all(axis=-1)
+    n = ok.sum(axis=0).astype(float)
+    r0 = np.where(ok[..., None], r, 0.0)
+    mean = r0.sum(axis=0) / np.maximum(n, 1)[:, None]
+    dev = np.where(ok[..., None], r - mean, 0.0)
+    var = (dev**2).sum(axis=0) / np.maximum(n - 1, 1)[:, None]
+    num = (dev[1:] * dev[:-1]).sum(axis=(0, 2))
+    den = (dev**2).sum(axis=(0, 2))
+    rho = np.clip(np.where(den > 0, num / np.maximum(den, 1e-300), 0.0), 0.0, 0.99)
+    n_eff = np.maximum(n * (1 - rho) / (1 + rho), 1.0)
+    sd = np.sqrt(var / n_eff[:, None])
+    movable = np.asarray(movable, bool) & (n > 0)
+    return np.where(movable[:, None], mean, 0.0), np.where(movable[:, None], sd, 0.0), n_eff
 
 
 def scaling_table(fit: ScalingFit) -> dict:
@@ -208,8 +300,19 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
              "json": out_dir / f"{name}_scaling.json"}
     write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set)
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
-    paths["json"].write_text(json.dumps(scaling_table(fit), indent=1, allow_nan=False) + "\n")
+    paths["json"].write_text(json.dumps(_finite_or_none(scaling_table(fit)), indent=1, allow_nan=False) + "\n")
     return paths
+
+
+def _finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, float | np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
 
 
 def opensim_ik(osim_path, trc_path, out_dir, markers=None) -> dict:

@@ -20,7 +20,9 @@ import numpy as np
 
 from skelid.data import MarkerData
 from skelid.errors import DataError
+from skelid.io.results import summary_dict
 from skelid.model.description import Model
+from skelid.result import FitResult
 
 
 def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):
@@ -90,7 +92,8 @@ def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings
 
 def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None = None, seed: int = 0,
                    out_dir=None, command=None, cutoff: float | None = None,
-                   artefact_rms: float | None = None, noise: str = "pooled", alternatives=()) -> dict:
+                   artefact_rms: float | None = None, noise: str = "pooled", alternatives=(),
+                   overwrite: bool = False) -> dict:
     """``skelid fit`` with several trials, per-marker noise or model alternatives (marker method only).
 
     Returns
@@ -112,7 +115,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
         raise SkelidError(f"several trials, --noise and --alternative work with the marker method only, "
                           f"not {', '.join(names)}", "use --method marker or fit one file")
     if out_dir is not None:
-        check_output_dir(out_dir)
+        check_output_dir(out_dir, overwrite=overwrite)
 
     def load_model(path):
         if str(path).lower().replace("_", "-") not in BUILTIN_MODELS:
@@ -136,6 +139,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
     with workflows.collect_warnings():
         est = fit_trials(model, datas, **settings)
     res = est.result()
+    res = summary_dict(res) if isinstance(res, FitResult) else res
     out = {"model": model.name, "data": [str(p) for p in data_paths], "units": model.units,
            "frames_total": int(sum(d.n_frames for d in datas)), "methods": {"marker": res}}
     if len(datas) > 1:
@@ -160,7 +164,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
             arrays = workflows.fit_arrays(model, prepare(model, datas[0]), datas[0].rate, {"marker": est})
         else:
             arrays = {f"marker.{k}": v for k, v in workflows.estimator_arrays(est).items()}
-        with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives]) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
             workflows.write_npz(tmp / "arrays.npz", arrays)
             workflows.write_json(tmp / "result.json", out)
     return out

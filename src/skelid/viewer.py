@@ -213,6 +213,7 @@ def figure_spec(model: Model, theta, poses, measured=None, frame_index=None, rat
         layout["yaxis"] = {"range": ranges[1], "title": {"text": f"y [{_text(units)}]"}, "autorange": False,
                            "scaleanchor": "x", "scaleratio": 1}
         layout["margin"].update(b=60, l=70)
+        slider["pad"], play["pad"] = {"t": 70}, {"t": 80}
         layout["legend"] = {"x": 1.02, "y": 1}
     meta = {"dim": D, "frames_total": F, "frames_shown": K, "stride": stride,
             "n_segments": S, "n_markers": M}

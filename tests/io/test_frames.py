@@ -2,7 +2,6 @@
 
 import doctest
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -53,17 +52,20 @@ def test_dataframe_has_a_row_per_parameter_derived_length_and_noise(odd):
 
 
 def test_dataframe_of_a_typed_result():
-    """A FitResult-shaped object: parameters and derived quantities as estimates with fields."""
-    def est(name, mean, status="identified"):
-        return SimpleNamespace(name=name, unit="mm", map=mean, mean=mean, sd=1.0, interval=(mean - 2, mean + 2),
-                               crlb_sd=None, status=status, extra={})
+    """Parameters called sigma and warnings, a derived length called lengths: no collision."""
+    from skelid.result import FitResult, NoiseEstimate, ParameterEstimate
 
-    r = SimpleNamespace(method="marker", parameters={"sigma": est("sigma", 5.0), "warnings": est("warnings", 7.0)},
-                        derived={"lengths": est("lengths", 300.0)}, noise=None, arrays={})
+    def est(name, mean, status="identified"):
+        return ParameterEstimate(name, "mm", mean, mean, 1.0, (mean - 2, mean + 2), None, status)
+
+    r = FitResult("marker", {"sigma": est("sigma", 5.0), "warnings": est("warnings", 7.0, "poor")},
+                  {"lengths": est("lengths", 300.0)}, NoiseEstimate(2.5, (2.4, 2.6)))
     df = to_dataframe(r)
     assert list(zip(df["name"], df["kind"], df["estimate"], strict=True)) == [
-        ("sigma", "parameter", 5.0), ("warnings", "parameter", 7.0), ("lengths", "derived", 300.0)]
-    assert df["crlb_sd"].isna().all()
+        ("sigma", "parameter", 5.0), ("warnings", "parameter", 7.0), ("lengths", "derived", 300.0),
+        ("sigma", "noise", 2.5)]
+    assert list(df["status"][:3]) == ["identified", "poor", "identified"] and df["status"].isna()[3]
+    assert df["crlb_sd"].isna().all() and list(df.iloc[3][["lower", "upper"]]) == [2.4, 2.6]
 
 
 def test_xarray_has_named_dims(odd):

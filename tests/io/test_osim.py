@@ -134,10 +134,12 @@ OSIM_HEAD = """<?xml version="1.0" encoding="UTF-8" ?>
 <OpenSimDocument Version="40000"><Model name="m"><length_units>{units}</length_units>
 <BodySet><objects><Body name="a"/><Body name="b"/></objects></BodySet>
 <JointSet><objects>
-<FreeJoint name="j0"><socket_parent_frame>/ground</socket_parent_frame><socket_child_frame>/bodyset/a</socket_child_frame>
+<FreeJoint name="j0"><socket_parent_frame>/ground</socket_parent_frame>
+<socket_child_frame>/bodyset/a</socket_child_frame>
 <coordinates><Coordinate name="r1"/><Coordinate name="r2"/><Coordinate name="r3"/>
 <Coordinate name="t1"/><Coordinate name="t2"/><Coordinate name="t3"/></coordinates></FreeJoint>
-<{joint} name="j1"><socket_parent_frame>/bodyset/a</socket_parent_frame><socket_child_frame>/bodyset/b</socket_child_frame>
+<{joint} name="j1"><socket_parent_frame>/bodyset/a</socket_parent_frame>
+<socket_child_frame>/bodyset/b</socket_child_frame>
 <coordinates><Coordinate name="k"/></coordinates></{joint}>
 </objects></JointSet>
 <MarkerSet><objects>

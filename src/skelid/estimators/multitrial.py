@@ -266,7 +266,7 @@ class MultiTrialEstimator:
         sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
         self.lengths_ = {name: {"value": float(v), "sd": float(e), "ci95": [float(v - Z95 * e), float(v + Z95 * e)]}
                          for (name, _), v, e in zip(model.derived_lengths, lens, sd_len, strict=True)}
-        self.warnings_ = list(dict.fromkeys(w for e in ests for w in e.warnings_))
+        self.warnings_ = list(dict.fromkeys(w.message for e in ests for w in e.warnings_))
         if not fit.converged:
             self.warnings_.append("the joint fit of all trials stopped before converging; the estimate may be off")
         if self.consistency_["p_value"] < 0.01:
@@ -290,7 +290,7 @@ class MultiTrialEstimator:
                                    "sd_with_between_trial": float(np.hypot(sd[p], sd_tau[p]))}
                                for p, n in enumerate(self.model.parameter_names)},
                 "lengths": {n: dict(v) for n, v in e.lengths_.items()},
-                "warnings": list(e.warnings_),
+                "warnings": [w.message for w in e.warnings_],
             })
         return rows
 

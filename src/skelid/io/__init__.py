@@ -21,7 +21,6 @@ neither a recognised content nor a marker-file extension (``.xml``,
 from __future__ import annotations
 
 import codecs
-from pathlib import Path
 
 from skelid.data import MarkerData
 from skelid.errors import FormatError
@@ -101,11 +100,9 @@ def read_markers(path) -> MarkerData:
         One line naming the file: it does not exist, is not a marker file, or
         is malformed.
     """
-    path = Path(path)
-    if not path.exists():
-        raise FormatError(f"data file {path} does not exist", "check the path")
-    if path.is_dir():
-        raise FormatError(f"{path} is a folder, not a marker file", "give the path of a marker file")
+    from skelid.io._common import check_regular_file
+
+    path = check_regular_file(path, "data file")
     fmt = sniff_format(path)
     if fmt is not None:
         return FORMAT_READERS[fmt](path)

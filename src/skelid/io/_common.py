@@ -92,11 +92,38 @@ def parse_number(text: str, path: Path, where: str) -> float:
 
 
 def parse_rate(text: str, path: Path, where: str) -> float:
-    """A sampling rate: a positive finite number of Hz."""
+    """A sampling rate: a finite number of Hz within :data:`skelid.data.RATE_RANGE`."""
+    from skelid.data import RATE_RANGE
+
     rate = parse_number(text, path, where)
-    if rate <= 0:
-        raise FormatError(f"{path}: {where} must be a positive sampling rate in Hz, got {text!r}")
+    if not RATE_RANGE[0] <= rate <= RATE_RANGE[1]:
+        raise FormatError(f"{path}: {where} must be a sampling rate between {RATE_RANGE[0]:g} and "
+                          f"{RATE_RANGE[1]:g} Hz, got {text!r}", "correct the sampling rate in the file")
     return rate
+
+
+def check_regular_file(path, what: str = "data file", cls=FormatError) -> Path:
+    """An existing regular file, checked without opening it (a FIFO would block, a device never end).
+
+    Raises ``cls`` with one line for a missing path, a folder, a FIFO, a device or a socket.
+    """
+    import os
+    import stat
+
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise cls(f"{what} {path} does not exist", "check the path") from None
+    except OSError as exc:
+        raise cls(f"cannot read {what} {path}: {exc.strerror or exc}", "check the path and its permissions") \
+            from None
+    if stat.S_ISREG(st.st_mode):
+        return path
+    kind = ("a folder" if stat.S_ISDIR(st.st_mode) else "a named pipe (FIFO)" if stat.S_ISFIFO(st.st_mode)
+            else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+            else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+    raise cls(f"{what} {path} is {kind}, not a file", f"give the path of the {what} itself (a regular file)")
 
 
 def parse_table(rows: list[tuple[int, list[str]]], n_cols: int, path: Path) -> np.ndarray:

@@ -45,7 +45,6 @@ import importlib
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -66,75 +65,8 @@ def _need(module: str):
 
 
 # ----------------------------------------------------------------------------- one shape for every input
-def _estimate(name, unit, map_, mean, sd, ci, crlb=None, status=None):
-    ci = ci if isinstance(ci, list | tuple) and len(ci) == 2 else (math.nan, math.nan)
-    f = [math.nan if v is None else float(v) for v in (map_, mean, sd, *ci)]
-    return SimpleNamespace(name=name, unit=unit, map=f[0], mean=f[1], sd=f[2], interval=(f[3], f[4]),
-                           crlb_sd=None if crlb is None else float(crlb), status=status, extra={})
-
-
-_STATUS = {"identified": "identified", "well identified": "identified", "ok": "identified",
-           "poor": "poor", "poorly identified": "poor", "unidentified": "unidentified",
-           "not identified": "unidentified", "prior": "prior"}
-
-
-def _legacy_result(method: str, m: dict, units: str, frames_total, arrays: dict) -> SimpleNamespace:
-    """One method of a ``result.json`` without ``schema_version``, shaped like a ``FitResult``."""
-    pre = f"{method}."
-    own = {k[len(pre):]: v for k, v in arrays.items() if k.startswith(pre)}
-    status = {str(r.get("parameter")): _STATUS.get(str(r.get("status", "")).lower())
-              for r in m.get("identifiability") or [] if isinstance(r, dict)}
-    crlb = own.get("crlb_sd")
-    params = {}
-    entries = [(k, v) for k, v in m.items() if isinstance(v, dict) and "map" in v and "ci95" in v]
-    for i, (name, v) in enumerate(entries):
-        c = v.get("crlb_sd")
-        if c is None and crlb is not None and i < len(crlb):
-            c = float(crlb[i])
-        params[name] = _estimate(name, units, v["map"], v.get("mean", v["map"]), v.get("sd"), v["ci95"], c,
-                                 status.get(name))
-    derived = {k: _estimate(k, units, v.get("value"), v.get("value"), v.get("sd"), v.get("ci95"))
-               for k, v in (m.get("lengths") or {}).items() if isinstance(v, dict)}
-    sig = m.get("sigma")
-    noise = None
-    if isinstance(sig, dict) and "value" in sig:
-        ci = sig.get("ci95")
-        noise = SimpleNamespace(sigma=float(sig["value"]), interval=tuple(ci) if ci else None,
-                                fixed=bool(sig.get("fixed")), per_marker={}, extra={})
-    # a method's arrays under the names a FitResult uses
-    arr = dict(own)
-    if "posterior.points" in own:
-        arr["samples"] = own["posterior.points"]
-        if "posterior.weights" in own:
-            arr["weights"] = own["posterior.weights"]
-    if "posterior.cov" in own:
-        arr["cov"] = own["posterior.cov"]
-    return SimpleNamespace(method=method, parameters=params, derived=derived, noise=noise,
-                           frames=SimpleNamespace(total=frames_total, used=m.get("frames_used", frames_total)),
-                           warnings=tuple(m.get("warnings") or ()), arrays=arr)
-
-
-def _legacy_run(result: Mapping, arrays: Mapping | None = None) -> SimpleNamespace:
-    """A ``result.json`` dict without ``schema_version`` (and its arrays), shaped like a ``FitRun``."""
-    arrays = dict(arrays or {})
-    if not isinstance(result.get("methods"), Mapping):
-        raise SkelidError("this is not a skelid fit result (no 'methods' table)",
-                          "give a FitRun, a FitResult or a folder written by 'skelid fit --out'")
-    units = str(result.get("units") or arrays.get("units", ""))
-    results = {k: _legacy_result(k, m, units, result.get("frames_total"), arrays)
-               for k, m in result["methods"].items()}
-    kinds = {k: v.get("kind") for k, v in (result.get("model_parameters") or {}).items() if isinstance(v, dict)}
-    for r in results.values():  # hinge-axis tilts are angles
-        for name, p in r.parameters.items():
-            if kinds.get(name) == "axis_direction":
-                p.unit = "deg"
-    context = {k: v for k, v in result.items() if k != "methods"}
-    shared = {k: v for k, v in arrays.items() if "." not in k}
-    return SimpleNamespace(results=results, context=context, arrays=shared)
-
-
 def as_run(result, arrays: Mapping | None = None):
-    """A run-shaped view (``results``, ``context``, ``arrays``) of any form a result comes in.
+    """The :class:`~skelid.result.FitRun` of any form a result comes in.
 
     Parameters
     ----------
@@ -142,43 +74,39 @@ def as_run(result, arrays: Mapping | None = None):
     arrays : mapping, optional
         The arrays of a ``result.json`` dict (``arrays.npz``'s content).
     """
-    if hasattr(result, "results") and hasattr(result, "context"):
-        return result
-    if hasattr(result, "parameters") and hasattr(result, "method"):
-        return SimpleNamespace(results={result.method: result}, context={}, arrays={})
-    if isinstance(result, str | Path):
-        d = Path(result)
-        try:
-            from skelid.io import results as serializer
+    from skelid.io.legacy import has_schema, run_from_legacy
+    from skelid.result import FitResult, FitRun
 
-            if hasattr(serializer, "read_run") and _has_schema(d):
-                return serializer.read_run(d)
-        except ImportError:
-            pass
+    if isinstance(result, FitRun):
+        return result
+    if isinstance(result, FitResult):
+        return FitRun({result.method: result})
+    if isinstance(result, str | Path):
+        if has_schema(result):
+            from skelid.io.results import read_run
+
+            return read_run(result)
         from skelid.report import load_result_dir
 
-        doc, arr, _ = load_result_dir(d)
-        return _legacy_run(doc, arr)
+        doc, arr, _ = load_result_dir(result)
+        return run_from_legacy(doc, arr)
     if isinstance(result, Mapping):
-        return _legacy_run(result, arrays)
+        if "schema_version" in result:
+            from skelid.io.results import run_from_dict
+
+            return run_from_dict(result, arrays)
+        return run_from_legacy(result, arrays)
     raise SkelidError(f"cannot convert a {type(result).__name__}",
                       "give a FitRun, a FitResult, a result folder or a result.json dict")
 
 
-def _has_schema(d: Path) -> bool:
-    import json
-
-    try:
-        return "schema_version" in json.loads((d / "result.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-
-
-def _pick(run, method: str | None):
+def _pick(run, method: str | None, prefer=()):
+    """The result of ``method``; by default the first that has one of the arrays ``prefer``, else the first."""
     if not run.results:
         raise SkelidError("the result holds no method", "fit first: skelid fit MODEL DATA --out DIR")
     if method is None:
-        return next(iter(run.results.values()))
+        return next((r for r in run.results.values() if any(k in r.arrays for k in prefer)),
+                    next(iter(run.results.values())))
     if method not in run.results:
         raise SkelidError(f"the result has no method {method!r}", f"use one of: {', '.join(run.results)}")
     return run.results[method]
@@ -221,7 +149,8 @@ def to_dataframe(result, arrays: Mapping | None = None):
         for kind, table in (("parameter", r.parameters), ("derived", r.derived)):
             for name, p in table.items():
                 rows.append((method, name, kind, p.unit, p.mean, p.map, p.sd, p.interval[0], p.interval[1],
-                             math.nan if p.crlb_sd is None else p.crlb_sd, p.status))
+                             math.nan if p.crlb_sd is None else p.crlb_sd,
+                             p.status if p.extra.get("status_given", True) else None))
         n = getattr(r, "noise", None)
         if n is not None:
             lo, hi = n.interval if n.interval is not None else (math.nan, math.nan)
@@ -257,7 +186,7 @@ def to_xarray(result, method: str | None = None, arrays: Mapping | None = None):
     ----------
     result : FitRun, FitResult, result folder or ``result.json`` dict
     method : str, optional
-        Which method (default: the first).
+        Which method (default: the first with poses or residuals, else the first).
     arrays : mapping, optional
         With a ``result.json`` dict: its arrays.
 
@@ -272,7 +201,7 @@ def to_xarray(result, method: str | None = None, arrays: Mapping | None = None):
     """
     xr = _need("xarray")
     run = as_run(result, arrays)
-    r = _pick(run, method)
+    r = _pick(run, method, prefer=("pose", "residuals"))
     shared = dict(run.arrays)
     own = dict(r.arrays)
     model = _model(run)

@@ -579,41 +579,30 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
                  model.description)
 
 
-def only_markers(model: Model, names) -> Model:
-    """The model without the markers not in ``names`` (and the bodies then left without one)."""
+def keep_markers(model: Model, names) -> Model:
+    """The model with only the markers ``names`` and the bodies they need (no parameters)."""
     names = set(names)
-    keep = [m for m in model.markers if m.name in names]
-    if not keep:
+    mk = tuple(m for m in model.markers if m.name in names)
+    if not mk:
         raise ModelError(f"none of the markers of model {model.name!r} is in the data",
                          "check the marker names in the data file against the model's")
-    return Model(model.name, model.dim, model.units, model.segments, tuple(keep), model.parameters,
-                 model.description)
+    idx = {s.name: s for s in model.segments}
+    need = set()
+    for m in mk:
+        b = m.segment
+        while b is not None and b not in need:
+            need.add(b)
+            b = idx[b].parent
+    return Model(model.name, 3, model.units, tuple(s for s in model.segments if s.name in need), mk)
 
 
 def load_osim(path, marker_set=None, scale: str = "bodies", markers: str = "offsets",
               marker_names=None) -> Model:
-    """:func:`read_osim` then :func:`osim_parameters` (only markers in ``marker_names`` if given)."""
+    """:func:`read_osim`, only the markers in ``marker_names`` if given, then :func:`osim_parameters`."""
     model, info = read_osim(path, marker_set)
     if marker_names is not None:
-        model = only_markers(model, marker_names)
-        model, info = _reread_for(path, marker_set, model)
+        model = keep_markers(model, marker_names)
     return osim_parameters(model, info, scale, markers, marker_names)
-
-
-def _reread_for(path, marker_set, model):
-    """Re-read keeping only the bodies the remaining markers need."""
-    full, info = read_osim(path, marker_set)
-    names = set(model.marker_names)
-    rd_markers = [m for m in full.markers if m.name in names]
-    needed = set()
-    idx = {s.name: s for s in full.segments}
-    for m in rd_markers:
-        b = m.segment
-        while b is not None and b not in needed:
-            needed.add(b)
-            b = idx[b].parent
-    segs = tuple(s for s in full.segments if s.name in needed)
-    return Model(full.name, 3, "mm", segs, tuple(rd_markers)), info
 
 
 # ----------------------------------------------------------------------------- writing back

@@ -684,9 +684,9 @@ class Model:
                 j["axes"] = [list(a) for a in s.joint.axes]
             elif s.joint.type == "custom":
                 j["coordinates"] = list(s.joint.coordinates)
-                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis),
-                                 "coordinate": s.joint.coordinates[m.coordinate] if m.coordinate >= 0 else "",
-                                 "function": m.function.to_dict()}
+                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis)}
+                                | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
+                                | {"function": m.function.to_dict()}
                                 | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
                                 for m in s.joint.motions]
                 if s.joint.orientation:
@@ -970,7 +970,9 @@ def load_model(path) -> Model:
     ModelError
         With the file name, the problem and the fix, for any invalid content.
     """
-    path = Path(path)
+    from skelid.io._common import check_regular_file
+
+    path = check_regular_file(path, "model file", ModelError)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

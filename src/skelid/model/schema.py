@@ -322,6 +322,40 @@ JOINT_KEYS: dict[str, dict[str, Key]] = {
                               "the two rotation axes, the second moved by the first", required=True)},
 }
 
+_COEFFS = Key(ListOf(Num(length=False), min_len=1), "coefficients (linear: slope, intercept; polynomial: "
+             "highest power first; constant: the value)", required=True)
+#: keys of each coordinate function type (custom joints)
+FUNCTION_KEYS: dict[str, dict[str, Key]] = {
+    "constant": {"coefficients": _COEFFS},
+    "linear": {"coefficients": _COEFFS},
+    "polynomial": {"coefficients": _COEFFS},
+    "spline": {"x": Key(ListOf(Num(length=False), min_len=2), "knots (coordinate values)", required=True),
+               "y": Key(ListOf(Num(length=False), min_len=2), "values at the knots", required=True),
+               "end": Key(Str(("natural", "fmm")), "end condition", default='"natural"')},
+}
+
+FUNCTION = Table({"type": Key(Str(lambda ctx: tuple(FUNCTION_KEYS)), "function type", required=True),
+                  "scale": Key(Num(length=False), "multiplies the function", default="1")},
+                 variant=("type", lambda t: FUNCTION_KEYS.get(t, {})),
+                 example="{type = 'linear', coefficients = [1.0, 0.0]}")
+
+MOTION = Table({
+    "kind": Key(Str(("rotation", "translation")), "rotation or translation", required=True),
+    "axis": Key(Vec(3, Num(length=False), nonzero=True), "axis (parent frame for translations, the frame "
+                "left by earlier rotations for rotations)", required=True),
+    "coordinate": Key(Str(), "the joint coordinate it follows", default="none: a constant function"),
+    "function": Key(FUNCTION, "the amount as a function of the coordinate", required=True),
+    "scale_weights": Key(Vec(3, Num(length=False)), "a translation scales by w . (parent's scale factors)",
+                         default="the axis squared"),
+}, example="{kind = 'rotation', axis = [0, 0, 1], coordinate = 'knee', function = {...}}")
+
+JOINT_KEYS["custom"] = {
+    "coordinates": Key(ListOf(Str()), "names of the joint's coordinates (pose order)", required=True),
+    "motions": Key(ListOf(MOTION), "translations (applied first) and rotations, in order", required=True),
+    "orientation": Key(ListOf(Vec(3, Num(length=False)), n=3), "constant rotation matrix after the motions",
+                       default="the identity"),
+}
+
 #: the key naming what a parameter moves, by parameter kind (default: ``joint``)
 PARAMETER_TARGET: dict[str, str] = {"marker_position": "marker", "marker_offset": "marker", "scale": "segment"}
 

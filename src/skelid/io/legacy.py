@@ -1,0 +1,158 @@
+"""Result folders written before ``schema_version`` 1, read as a typed :class:`~skelid.result.FitRun`.
+
+Until version 1, ``result.json`` held one dict per method in which parameter
+estimates (``{"map", "mean", "sd", "ci95"}``) sat beside reserved keys
+(``sigma``, ``lengths``, ``identifiability``, ``warnings``, ...), and
+``arrays.npz`` named a method's arrays ``METHOD.KEY``. :func:`run_from_legacy`
+turns such a dict into the typed result, so the report and the conversions
+read one shape. A folder with a ``schema_version`` goes to
+:func:`skelid.io.results.read_run`.
+
+Plain-text warnings name their parameters in the text; a warning that
+contains ``parameter NAME`` (as a whole token) is attached to ``NAME``. A
+parameter whose method gave no status has ``extra["status_given"] = False``.
+
+Examples
+--------
+>>> doc = {"units": "mm", "frames_total": 100, "methods": {"marker": {
+...     "L": {"map": 250.0, "mean": 250.0, "sd": 2.0, "ci95": [246.1, 253.9]},
+...     "sigma": {"value": 2.0, "ci95": [1.9, 2.1], "fixed": False},
+...     "warnings": ["parameter L is poorly identified for this motion"]}}}
+>>> run = run_from_legacy(doc)
+>>> r = run.results["marker"]
+>>> r.parameters["L"].interval, r.noise.sigma, r.warnings[0].parameters
+((246.1, 253.9), 2.0, ('L',))
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from skelid.errors import SkelidError
+from skelid.result import FitResult, FitRun, FrameCounts, NoiseEstimate, ParameterEstimate, Warning
+
+_STATUS = {"identified": "identified", "well identified": "identified", "ok": "identified",
+           "poor": "poor", "poorly identified": "poor", "unidentified": "unidentified",
+           "not identified": "unidentified", "prior": "prior"}
+#: keys of a method's dict that are not parameters
+_RESERVED = ("sigma", "lengths", "identifiability", "counting", "joint_range_deg", "warnings", "frames_used",
+             "frames_dropped", "seconds")
+_CODES = (
+    (re.compile(r"not converg|before converging|failed to converge", re.I), "not-converged"),
+    (re.compile(r"poorly identified", re.I), "poorly-identified"),
+    (re.compile(r"soft-tissue", re.I), "soft-tissue-artefact"),
+    (re.compile(r"bound of (its|their) prior", re.I), "on-bound"),
+    (re.compile(r"skipped|dropped", re.I), "frames-skipped"),
+    (re.compile(r"left out", re.I), "outliers"),
+    (re.compile(r"missing in", re.I), "marker-gaps"),
+    (re.compile(r"sampler", re.I), "sampler"),
+)
+
+
+def _float(v) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _pair(v) -> tuple[float, float]:
+    return (_float(v[0]), _float(v[1])) if isinstance(v, list | tuple) and len(v) == 2 else (math.nan, math.nan)
+
+
+def _mentions(text: str, name: str) -> bool:
+    return re.search(rf"(?<![\w.]){re.escape(name)}(?![\w])", text) is not None
+
+
+def legacy_warning(text, names=()) -> Warning:
+    """A plain-text warning as a :class:`Warning`: a code guessed from its words, the parameters it names."""
+    if isinstance(text, Mapping):
+        return Warning(str(text.get("code", "note")), str(text.get("message", "")),
+                       tuple(text.get("parameters") or ()))
+    text = str(text)
+    code = next((c for rx, c in _CODES if rx.search(text)), "note")
+    params = tuple(n for n in names if "parameter" in text.lower() and _mentions(text, n))
+    return Warning(code, text, params)
+
+
+def _result(method: str, m: Mapping, units: str, frames_total, arrays: Mapping, kinds: Mapping) -> FitResult:
+    pre = f"{method}."
+    own = {k[len(pre):]: np.asarray(v) for k, v in arrays.items() if k.startswith(pre)}
+    status = {str(r.get("parameter")): _STATUS.get(str(r.get("status", "")).lower(), "poor")
+              for r in m.get("identifiability") or [] if isinstance(r, Mapping)}
+    crlb = own.get("crlb_sd")
+    entries = [(k, v) for k, v in m.items()
+               if k not in _RESERVED and isinstance(v, Mapping) and "map" in v and "ci95" in v]
+    params = {}
+    for i, (name, v) in enumerate(entries):
+        c = v.get("crlb_sd")
+        if c is None and crlb is not None and i < len(crlb):
+            c = float(crlb[i])
+        params[name] = ParameterEstimate(
+            name, "deg" if kinds.get(name) == "axis_direction" else units, _float(v["map"]),
+            _float(v.get("mean", v["map"])), _float(v.get("sd")), _pair(v["ci95"]),
+            None if c is None else _float(c), status.get(name, "identified"),
+            {} if name in status else {"status_given": False})
+    derived = {k: ParameterEstimate(k, units, _float(v.get("value")), _float(v.get("value")), _float(v.get("sd")),
+                                    _pair(v.get("ci95")), None, "identified", {"status_given": False})
+               for k, v in (m.get("lengths") or {}).items() if isinstance(v, Mapping)}
+    sig = m.get("sigma")
+    noise = None
+    if isinstance(sig, Mapping) and "value" in sig:
+        ci = sig.get("ci95")
+        noise = NoiseEstimate(_float(sig["value"]), _pair(ci) if ci else None, bool(sig.get("fixed")),
+                              extra={k: v for k, v in sig.items() if k not in ("value", "ci95", "fixed")})
+    frames = None
+    if frames_total is not None:
+        used = m.get("frames_used", frames_total)
+        frames = FrameCounts(int(frames_total), int(used if isinstance(used, int | float) else frames_total))
+    diagnostics = {k: m[k] for k in ("identifiability", "counting", "joint_range_deg") if m.get(k) is not None}
+    if "posterior.points" in own:  # the names a typed result uses
+        own["samples"] = own["posterior.points"]
+        if "posterior.weights" in own:
+            own["weights"] = own["posterior.weights"]
+    if "posterior.cov" in own:
+        own["cov"] = own["posterior.cov"]
+    provenance = {"seconds": m["seconds"]} if "seconds" in m else {}
+    return FitResult(method, params, derived, noise, frames, diagnostics,
+                     tuple(legacy_warning(w, list(params)) for w in m.get("warnings") or ()),
+                     provenance=provenance, arrays=own)
+
+
+def run_from_legacy(doc: Mapping, arrays: Mapping | None = None) -> FitRun:
+    """A ``result.json`` dict without ``schema_version`` (and its arrays) as a :class:`FitRun`.
+
+    Raises
+    ------
+    SkelidError
+        ``doc`` has no ``methods`` table.
+    """
+    arrays = dict(arrays or {})
+    if not isinstance(doc.get("methods"), Mapping):
+        raise SkelidError("this is not a skelid fit result (no 'methods' table)",
+                          "give a folder written by 'skelid fit --out DIR'")
+    units = str(doc.get("units") or arrays.get("units", ""))
+    kinds = {k: v.get("kind") for k, v in (doc.get("model_parameters") or {}).items() if isinstance(v, Mapping)}
+    results = {k: _result(k, m, units, doc.get("frames_total"), arrays, kinds) for k, m in doc["methods"].items()}
+    names = [n for r in results.values() for n in r.parameters]
+    context = {k: v for k, v in doc.items() if k not in ("methods", "warnings")}
+    prov = {k: context.pop(k) for k in ("command", "cwd", "created", "versions") if k in context}
+    if prov:
+        context["provenance"] = prov
+    return FitRun(results, context, tuple(legacy_warning(w, names) for w in doc.get("warnings") or ()),
+                  {k: v for k, v in arrays.items() if "." not in k})
+
+
+def has_schema(result_dir) -> bool:
+    """Whether ``result_dir/result.json`` declares a ``schema_version`` (False if unreadable)."""
+    try:
+        doc = json.loads((Path(result_dir) / "result.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "schema_version" in doc

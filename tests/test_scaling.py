@@ -1,0 +1,199 @@
+"""Scaling an OpenSim model: noise-free data from a scaled model give back its scales and offsets."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from skelid.data import MarkerData
+from skelid.errors import DataError
+from skelid.io.osim import osim_parameters, read_osim
+from skelid.model.kinematics import marker_positions
+from skelid.scaling import fit_osim, join_trials, write_outputs
+
+MODEL = """<?xml version="1.0" encoding="UTF-8" ?>
+<OpenSimDocument Version="40000"><Model name="leg"><length_units>meters</length_units>
+<BodySet><objects><Body name="pelvis"/><Body name="thigh"/><Body name="shank"/></objects></BodySet>
+<JointSet><objects>
+<FreeJoint name="root"><socket_parent_frame>/ground</socket_parent_frame>
+<socket_child_frame>/bodyset/pelvis</socket_child_frame>
+<coordinates><Coordinate name="rx"/><Coordinate name="ry"/><Coordinate name="rz"/>
+<Coordinate name="tx"/><Coordinate name="ty"/><Coordinate name="tz"/></coordinates></FreeJoint>
+<BallJoint name="hip"><socket_parent_frame>pelvis_offset</socket_parent_frame>
+<socket_child_frame>/bodyset/thigh</socket_child_frame>
+<coordinates><Coordinate name="h1"/><Coordinate name="h2"/><Coordinate name="h3"/></coordinates>
+<frames><PhysicalOffsetFrame name="pelvis_offset"><socket_parent>/bodyset/pelvis</socket_parent>
+<translation>0.05 -0.08 0.09</translation><orientation>0.1 0 0.2</orientation></PhysicalOffsetFrame></frames>
+</BallJoint>
+<CustomJoint name="knee"><socket_parent_frame>/bodyset/thigh</socket_parent_frame>
+<socket_child_frame>/bodyset/shank</socket_child_frame>
+<coordinates><Coordinate name="k"><range>-2 0.2</range></Coordinate></coordinates>
+<SpatialTransform>
+<TransformAxis name="rotation1"><coordinates>k</coordinates><axis>0 0 1</axis>
+<LinearFunction name="function"><coefficients>1 0</coefficients></LinearFunction></TransformAxis>
+<TransformAxis name="translation1"><coordinates>k</coordinates><axis>1 0 0</axis>
+<SimmSpline name="function"><x>-2 -1 0 0.5</x><y>-0.004 0.003 -0.002 -0.005</y></SimmSpline></TransformAxis>
+<TransformAxis name="translation2"><coordinates>k</coordinates><axis>0 1 0</axis>
+<SimmSpline name="function"><x>-2 -1 0 0.5</x><y>-0.42 -0.41 -0.40 -0.398</y></SimmSpline></TransformAxis>
+</SpatialTransform></CustomJoint>
+</objects></JointSet>
+<MarkerSet><objects>
+{markers}
+</objects></MarkerSet></Model></OpenSimDocument>"""
+
+MARKERS = {"pelvis": [(0.1, 0.05, 0.1), (0.1, 0.05, -0.1), (-0.1, 0.06, 0.0), (0.0, 0.1, 0.05)],
+           "thigh": [(0.03, -0.1, 0.05), (0.04, -0.25, 0.06), (-0.03, -0.2, 0.05), (0.0, -0.38, 0.05)],
+           "shank": [(0.03, -0.1, 0.04), (0.04, -0.25, 0.05), (-0.03, -0.2, 0.05), (0.0, -0.38, 0.04)]}
+
+
+@pytest.fixture
+def leg(tmp_path):
+    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+                     f'<location>{x} {y} {z}</location></Marker>'
+                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
+    p = tmp_path / "leg.osim"
+    p.write_text(MODEL.format(markers=text))
+    return p
+
+
+def _trials(path, scales, offsets=None, frames=(8, 40)):
+    base, info = read_osim(path)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    theta = model.theta_nominal.copy()
+    for k, p in enumerate(model.parameters):
+        if p.kind == "scale":
+            theta[k] = scales[p.target]
+        elif offsets and p.target in offsets:
+            theta[k] = offsets[p.target][p.axis]
+    t = np.arange(frames[1]) / 60.0
+    q = np.zeros((frames[1], model.n_pose))
+    q[:, 3:6] = [100.0, 900.0, 50.0]
+    q[:, 3] += 400 * t
+    q[:, 6] = 0.5 * np.sin(2 * np.pi * 1.1 * t)
+    q[:, 7] = 0.3 * np.sin(2 * np.pi * 0.7 * t + 1)
+    q[:, 8] = 0.3 * np.sin(2 * np.pi * 0.9 * t + 2)
+    q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
+    q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    static = np.zeros((frames[0], model.n_pose))
+    static[:, 3:6] = [0.0, 900.0, 0.0]
+    rng = np.random.default_rng(0)
+    mk = []
+    for qq in (static, q):
+        x = marker_positions(model, theta, qq) + rng.normal(0, 0.01, (len(qq), len(model.markers), 3))
+        mk.append(MarkerData(x, model.marker_names, 60.0, "mm", "sim"))
+    return mk
+
+
+def test_noise_free_scales_are_recovered(leg, tmp_path):
+    truth = {"pelvis": 1.08, "thigh": 1.12, "shank": 0.93}
+    trials = _trials(leg, truth)
+    fit = fit_osim(leg, trials, scale="bodies", markers="none")
+    got = {p.target: fit.theta[k] for k, p in enumerate(fit.model.parameters)}
+    for b, v in truth.items():
+        assert got[b] == pytest.approx(v, abs=2e-4), b
+    paths = write_outputs(fit, tmp_path / "out")
+    table = json.loads(paths["json"].read_text())
+    assert table["scales"]["thigh"]["xyz"]["ci95"][0] <= 1.12 <= table["scales"]["thigh"]["xyz"]["ci95"][1] + 1e-3
+    again, _ = read_osim(paths["osim"])  # the written model carries the scales
+    s_again, _ = read_osim(leg)
+    f_again = again.segments[2].joint.motions[2].function.scale
+    assert f_again == pytest.approx(1.12 * s_again.segments[2].joint.motions[2].function.scale, rel=1e-4)
+
+
+def test_placed_offsets_recover_moved_markers_up_to_each_bodys_pose(leg):
+    """Offsets of every marker of a body trade with the body's pose, so placement can only recover the
+    markers' configuration on each body: the distances between them."""
+    from skelid.model.kinematics import geometry
+
+    truth = {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}
+    moved = {"thigh1": (6.0, -4.0, 3.0), "shank3": (-5.0, 2.0, 4.0), "pelvis0": (0.0, 3.0, -2.0)}
+    trials = _trials(leg, truth, moved)
+    fit = fit_osim(leg, trials, scale="none", markers="offsets")
+    model = fit.model
+    S, M = len(model.segments), len(model.markers)
+    placed = geometry(model, fit.theta)[S * 3:(S + M) * 3].reshape(M, 3)
+    true = np.array(placed)
+    for i, m in enumerate(model.markers):
+        true[i] = np.asarray(m.position) + np.asarray(moved.get(m.name, (0.0, 0.0, 0.0)))
+    moved_any = False
+    def dist(r, idx):
+        return np.linalg.norm(r[idx][:, None] - r[idx][None], axis=-1)
+
+    nominal = np.array([m.position for m in model.markers])
+    for b in MARKERS:
+        idx = [i for i, m in enumerate(model.markers) if m.segment == b]
+        np.testing.assert_allclose(dist(placed, idx), dist(true, idx), atol=0.05)
+        moved_any |= np.abs(dist(placed, idx) - dist(nominal, idx)).max() > 1.0
+    assert moved_any
+
+
+def test_trials_join_with_a_gap_and_markers_are_united():
+    a = MarkerData(np.ones((4, 2, 3)), ("m1", "m2"), 100.0, "m")
+    b = MarkerData(np.ones((3, 2, 3)), ("m2", "m3"), 100.0, "mm")
+    j = join_trials([a, b], gap=5)
+    assert j.names == ("m1", "m2", "m3") and j.positions.shape == (12, 3, 3)
+    assert np.all(j.positions[:4, 0] == 1000.0) and np.isnan(j.positions[4:9]).all()
+    assert np.isnan(j.positions[9:, 0]).all() and j.meta["trial_frames"] == [(0, 4), (9, 12)]
+    with pytest.raises(DataError):
+        join_trials([a, MarkerData(np.ones((3, 2, 3)), ("m2", "m3"), 50.0, "mm")])
+
+
+def test_no_model_marker_in_the_data_is_one_line(leg):
+    other = MarkerData(np.ones((5, 2, 3)), ("X", "Y"), 60.0, "mm")
+    with pytest.raises(DataError, match="none of the 12 markers"):
+        fit_osim(leg, [other])
+
+
+def test_cli_fit_osim_writes_the_scaled_model(leg, tmp_path, capsys):
+    from skelid.cli import main
+    from skelid.io import write_trc
+
+    static, move = _trials(leg, {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0})
+    write_trc(tmp_path / "static.trc", static)
+    write_trc(tmp_path / "move.trc", move)
+    out = tmp_path / "fit"
+    rc = main(["fit", str(leg), str(tmp_path / "static.trc"), str(tmp_path / "move.trc"), "--out", str(out),
+               "--json", "--quiet"])
+    assert rc == 0
+    table = json.loads(capsys.readouterr().out)
+    assert table["scales"]["thigh"]["xyz"]["value"] == pytest.approx(1.1, abs=1e-3)
+    assert {p.name for p in out.iterdir()} >= {"scaled.osim", "scaled_scale_set.xml", "scaled_scaling.json",
+                                               "result.json"}
+
+
+@pytest.mark.parametrize("text,words", [
+    ("<OpenSimDocument><Model", "malformed XML"),
+    (MODEL.replace("BallJoint", "EllipsoidJoint").format(markers=""), "EllipsoidJoint"),
+    (MODEL.format(markers='<Marker name="x"><socket_parent_frame>/bodyset/arm</socket_parent_frame>'
+                          '<location>0 0 0</location></Marker>'), "arm"),
+])
+def test_cli_bad_osim_exits_2_with_one_line(tmp_path, capsys, text, words):
+    from skelid.cli import main
+
+    bad = tmp_path / "bad.osim"
+    bad.write_text(text)
+    trc = tmp_path / "t.trc"
+    from skelid.io import write_trc
+
+    write_trc(trc, MarkerData(np.ones((3, 1, 3)), ("x",), 60.0, "mm"))
+    for argv in (["fit", str(bad), str(trc), "--out", str(tmp_path / "o")],
+                 ["model", "import", str(bad), "--out", str(tmp_path / "m.toml")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and len(err.splitlines()) == 1
+        assert not (tmp_path / "o").exists() and not (tmp_path / "m.toml").exists()
+
+
+def test_cli_model_import_writes_a_model_that_loads(leg, tmp_path):
+    from skelid.cli import main
+    from skelid.model import load_model
+
+    out = tmp_path / "leg.toml"
+    assert main(["model", "import", str(leg), "--out", str(out), "--scale", "bodies"]) == 0
+    model = load_model(out)
+    base, _ = read_osim(leg)
+    q = np.linspace(-0.5, 0.3, base.n_pose)
+    np.testing.assert_allclose(marker_positions(model, model.theta_nominal, q),
+                               marker_positions(base, np.zeros(0), q), atol=1e-9)
