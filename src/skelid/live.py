@@ -536,7 +536,10 @@ class Session:
             pts = self._grid._points()[1]
             mean = w @ pts
             d = pts - mean
-            return mean, (d * w[:, None]).T @ d
+            # plus the grid's own quantisation variance (step^2 / 12), so that a posterior on one point
+            # still has an invertible covariance
+            steps = np.array([np.diff(a).mean() if a.size > 1 else 0.0 for a in post.axes])
+            return mean, (d * w[:, None]).T @ d + np.diag(steps**2 / 12.0)
         _, L0, _, _ = self._prior
         Lam = L0 + self._state.info_data / self._current_sigma2()
         return self._state.mean.copy(), np.linalg.inv(Lam)
