@@ -131,6 +131,17 @@ def key_lengths(path, theta=None, model=None) -> dict:
     return out
 
 
+def subject4_peers(tmp: Path) -> dict:
+    """Without a skelid fit: the peers' key lengths and IK RMSE on the walks."""
+    models = {"addbiomechanics": S04 / "Models" / "optimized_scale_and_markers.osim",
+              "expert": S04 / "Models" / "manually_scaled.osim",
+              "generic": S04 / "Models" / "unscaled_generic.osim"}
+    lengths = {k: key_lengths(v) for k, v in models.items()}
+    ik = {m: {n: opensim_ik(models[m], S04 / "MarkerData" / f"{n}.trc", tmp / f"ik04_{m}_{n}")
+              for n in ("walking1",)} for m in ("addbiomechanics", "expert")}
+    return {"skelid_fit": "not run (--subject4 peers)", "key_lengths_mm": lengths, "ik": ik}
+
+
 def subject4(tmp: Path, quick: bool) -> dict:
     names = ["static1", "walking1", "walking2", "squats1", "STS1", "DJ1"]
     fit_names = ["static1", "walking1"] if quick else ["static1", "walking1", "walking2"]
@@ -159,6 +170,27 @@ def subject4(tmp: Path, quick: bool) -> dict:
 
 def markdown(res: dict) -> str:
     s1, s4 = res["subject01"], res["subject4"]
+    if "skelid_fit" in s4:
+        return _markdown01(res, s1) + _markdown4_peers(s4)
+    return _markdown01(res, s1) + _markdown4(s4)
+
+
+def _markdown4_peers(s4: dict) -> str:
+    lines = ["## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
+             f"skelid's fit of subject4: {s4['skelid_fit']}.", "",
+             "| length (mm) | generic | AddBiomechanics | expert |", "|---|---|---|---|"]
+    L = s4["key_lengths_mm"]
+    for name in L["generic"]:
+        v = [L[m].get(name, float("nan")) for m in ("generic", "addbiomechanics", "expert")]
+        lines.append(f"| {name} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
+    lines += ["", "| trial | AddBiomechanics IK RMSE (mm) | expert |", "|---|---|---|"]
+    for n in s4["ik"]["addbiomechanics"]:
+        a, e = s4["ik"]["addbiomechanics"][n]["rmse_mm"], s4["ik"]["expert"][n]["rmse_mm"]
+        lines.append(f"| {n} | {a:.1f} | {e:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _markdown01(res: dict, s1: dict) -> str:
     lines = ["# OpenSim peers: ScaleTool and AddBiomechanics against skelid", "",
              f"{'REDUCED run (--quick). ' if res['reduced'] else ''}Machine: shared, 2 cores under load; "
              "times are wall clock and CPU seconds of one process.", "",
@@ -178,8 +210,12 @@ def markdown(res: dict) -> str:
               f"fit {sec['skelid_fit_wall']} wall, {sec['skelid_fit_cpu']} CPU |",
               f"| ScaleTool-scaled model | {ik['opensim_scaletool']['rmse_mm']:.1f} | "
               f"{ik['opensim_scaletool']['max_mm']:.1f} | ScaleTool {sec['opensim_scaletool_wall']} + "
-              f"IK {sec['opensim_ik_walk_wall']} |", "",
-             "## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
+              f"IK {sec['opensim_ik_walk_wall']} |", ""]
+    return "\n".join(lines) + "\n"
+
+
+def _markdown4(s4: dict) -> str:
+    lines = ["## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
              f"skelid fitted to {', '.join(s4['fit_trials'])} (static trial: {s4['static_frames']} frames), "
              f"{s4['seconds']['skelid_fit_wall']} s wall, {s4['seconds']['skelid_fit_cpu']} s CPU.", "",
              "| length (mm) | generic | skelid | AddBiomechanics | expert |", "|---|---|---|---|---|"]
@@ -200,6 +236,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames (results marked reduced)")
     ap.add_argument("--joined", action="store_true", help="fit the trials as one recording with gaps")
+    ap.add_argument("--subject4", choices=("full", "peers"), default="full",
+                    help="peers: no skelid fit of subject4, only the peers' lengths and IK on a walk")
     args = ap.parse_args(argv)
     global JOINED
     JOINED = args.joined
@@ -209,7 +247,7 @@ def main(argv=None):
         tmp = Path(tmp)
         res["subject01"] = subject01(tmp, args.quick)
         print(json.dumps(res["subject01"]["seconds"]), flush=True)
-        res["subject4"] = subject4(tmp, args.quick)
+        res["subject4"] = subject4(tmp, args.quick) if args.subject4 == "full" else subject4_peers(tmp)
     res["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "opensim_peer.json").write_text(json.dumps(res, indent=1) + "\n")

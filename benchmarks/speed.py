@@ -437,10 +437,13 @@ def _arm3d():
 
 
 def section_live(args) -> dict:
+    from skelid.estimators import _lm_kernel
     from skelid.live import Session
     from skelid.simulate import builtin_model, simulate
 
     _quiet()
+    for planar in (True, False):  # measure the compiled path, not the numpy one used while it compiles
+        _lm_kernel.warm(planar, wait=True)
     out = {}
     F = args.live_frames
     model = builtin_model("case-a")
@@ -510,7 +513,10 @@ def _advice_session(model, theta, sigma, follow: bool, target_sd, rng, amplitude
 
 
 def section_advice(args) -> dict:
+    from skelid.estimators import _lm_kernel
+
     _quiet()
+    _lm_kernel.warm(False, wait=True)
     model = _arm3d()
     theta = model.theta_nominal
     sigma, target = 0.002, 0.002  # 2 mm markers; every centre to 2 mm sd

@@ -155,8 +155,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         trials[0] = MarkerData(t.positions[idx], t.names, t.rate, t.units, t.source, t.meta)
     data = join_trials(trials)
     full, info = read_osim(osim_path, marker_set)
+    multi = len(trials) > 1 and method == "marker" and not joined
+    # the multi-trial fit needs every marker in every trial; a joined recording, in any
+    spans = data.meta["trial_frames"] if multi else [(0, data.positions.shape[0])]
     present = [n for n in full.marker_names if n in data.names
-               and np.isfinite(data.positions[:, data.names.index(n)]).all(axis=-1).any()]
+               and all(np.isfinite(data.positions[a:b, data.names.index(n)]).all(axis=-1).any() for a, b in spans)]
     if not present:
         raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
                         f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(data.names[:4])} ...)",
@@ -168,7 +171,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     sub = MarkerData(data.positions[:, [data.names.index(n) for n in model.marker_names]],
                      model.marker_names, data.rate, data.units, data.source, data.meta)
     t0 = time.perf_counter()
-    if model.n_params and len(trials) > 1 and method == "marker" and not joined:
+    if model.n_params and multi:
         from skelid.estimators.multitrial import MultiTrialEstimator
 
         parts = [MarkerData(sub.positions[a:b], sub.names, sub.rate, sub.units, t.source)
@@ -208,8 +211,8 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     seconds = time.perf_counter() - t0
     warns = list(res.get("warnings", []))
     if dropped:
-        warns.append(f"{len(dropped)} model markers are not in the data and were left out: "
-                     f"{', '.join(dropped)}")
+        warns.append(f"{len(dropped)} model markers are not in the data"
+                     + (" (of every trial)" if multi else "") + f" and were left out: {', '.join(dropped)}")
     return ScalingFit(model, info, str(osim_path), None if marker_set is None else str(marker_set),
                       sub, est, res, seconds, dropped, warns, theta)
 

@@ -166,11 +166,13 @@ def check_array_with_rate_equals_marker_data(name):
 
 def check_bad_settings_name_the_setting(name):
     for setting, value in BAD_SETTINGS:
-        est = _new(name, **{setting: value})
+        est = estimators()[name](MODEL, **{**FAST[name], setting: value})  # __init__ only stores it
         with pytest.raises(SettingError, match=setting) as err:
             _fit(est)
         assert isinstance(err.value, ValueError) and isinstance(err.value, SkelidError)
         assert "\n" not in err.value.one_line()
+        with pytest.raises(SettingError, match=setting):  # the registry checks before any data are read
+            _new(name, **{setting: value})
 
 
 def check_no_frames_is_a_data_error(name):

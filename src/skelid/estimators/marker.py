@@ -938,8 +938,10 @@ class MarkerEstimator:
                                        "sd_added": np.sqrt(np.diag(self.cov_artefact_)).tolist()}
         per, extra_noise = {}, {"white": self.sigma_white_}
         if self.marker_sigma_ is not None:
-            per = dict(zip(model.marker_names, self.marker_sigma_.tolist(), strict=True))
-            extra_noise["per_marker_dof"] = dict(zip(model.marker_names, self.marker_dof_.tolist(), strict=True))
+            ok = np.isfinite(self.marker_sigma_)  # a marker without data has no level
+            names = np.array(model.marker_names)[ok].tolist()
+            per = dict(zip(names, self.marker_sigma_[ok].tolist(), strict=True))
+            extra_noise["per_marker_dof"] = dict(zip(names, self.marker_dof_[ok].tolist(), strict=True))
         noise = NoiseEstimate(self.sigma_, None if self.sigma is not None else tuple(self.sigma_ci_),
                               fixed=self.sigma is not None, per_marker=per, extra=extra_noise)
         return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=noise,
