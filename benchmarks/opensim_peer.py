@@ -48,6 +48,7 @@ DATA = ROOT.parent / "shared" / "data"
 S01 = DATA / "opensim-subject01"
 S04 = DATA / "addbio-subject4"
 OUT = ROOT / "benchmarks" / "results"
+JOINED = False  # --joined: trials as one recording with gaps, one marker fit
 
 
 def _every(data: MarkerData, step: int) -> MarkerData:
@@ -93,7 +94,7 @@ def subject01(tmp: Path, quick: bool) -> dict:
     peer = run_scaletool(tmp)
     c0, t0 = _cpu(), time.perf_counter()
     fit = fit_osim(S01 / "gait2354_simbody.osim", trials, S01 / "gait2354_Scale_MarkerSet.xml",
-                   scale="bodies", markers="offsets")
+                   scale="bodies", markers="offsets", joined=JOINED)
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     paths = write_outputs(fit, tmp / "skelid01")
     table = scaling_table(fit)
@@ -130,13 +131,24 @@ def key_lengths(path, theta=None, model=None) -> dict:
     return out
 
 
+def subject4_peers(tmp: Path) -> dict:
+    """Without a skelid fit: the peers' key lengths and IK RMSE on the walks."""
+    models = {"addbiomechanics": S04 / "Models" / "optimized_scale_and_markers.osim",
+              "expert": S04 / "Models" / "manually_scaled.osim",
+              "generic": S04 / "Models" / "unscaled_generic.osim"}
+    lengths = {k: key_lengths(v) for k, v in models.items()}
+    ik = {m: {n: opensim_ik(models[m], S04 / "MarkerData" / f"{n}.trc", tmp / f"ik04_{m}_{n}")
+              for n in ("walking1",)} for m in ("addbiomechanics", "expert")}
+    return {"skelid_fit": "not run (--subject4 peers)", "key_lengths_mm": lengths, "ik": ik}
+
+
 def subject4(tmp: Path, quick: bool) -> dict:
     names = ["static1", "walking1", "walking2", "squats1", "STS1", "DJ1"]
     fit_names = ["static1", "walking1"] if quick else ["static1", "walking1", "walking2"]
     trials = {n: read_markers(S04 / "MarkerData" / f"{n}.trc") for n in names}
     use = [trials[n] for n in fit_names]
     c0, t0 = _cpu(), time.perf_counter()
-    fit = fit_osim(S04 / "Models" / "unscaled_generic.osim", use, scale="bodies", markers="offsets")
+    fit = fit_osim(S04 / "Models" / "unscaled_generic.osim", use, scale="bodies", markers="offsets", joined=JOINED)
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     paths = write_outputs(fit, tmp / "skelid04")
     table = scaling_table(fit)
@@ -158,12 +170,34 @@ def subject4(tmp: Path, quick: bool) -> dict:
 
 def markdown(res: dict) -> str:
     s1, s4 = res["subject01"], res["subject4"]
+    if "skelid_fit" in s4:
+        return _markdown01(res, s1) + _markdown4_peers(s4)
+    return _markdown01(res, s1) + _markdown4(s4)
+
+
+def _markdown4_peers(s4: dict) -> str:
+    lines = ["## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
+             f"skelid's fit of subject4: {s4['skelid_fit']}.", "",
+             "| length (mm) | generic | AddBiomechanics | expert |", "|---|---|---|---|"]
+    L = s4["key_lengths_mm"]
+    for name in L["generic"]:
+        v = [L[m].get(name, float("nan")) for m in ("generic", "addbiomechanics", "expert")]
+        lines.append(f"| {name} | " + " | ".join(f"{x:.1f}" for x in v) + " |")
+    lines += ["", "| trial | AddBiomechanics IK RMSE (mm) | expert |", "|---|---|---|"]
+    for n in s4["ik"]["addbiomechanics"]:
+        a, e = s4["ik"]["addbiomechanics"][n]["rmse_mm"], s4["ik"]["expert"][n]["rmse_mm"]
+        lines.append(f"| {n} | {a:.1f} | {e:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _markdown01(res: dict, s1: dict) -> str:
     lines = ["# OpenSim peers: ScaleTool and AddBiomechanics against skelid", "",
              f"{'REDUCED run (--quick). ' if res['reduced'] else ''}Machine: shared, 2 cores under load; "
              "times are wall clock and CPU seconds of one process.", "",
              "## subject01: gait2354, static + walk", "",
-             f"skelid: trials joined ({s1['frames']['static']} static + {s1['frames']['walk']} walk frames), "
-             "one scale per body with markers, offsets of every free marker.", "",
+             f"skelid: {res.get('trials', 'joined')} fit ({s1['frames']['static']} static + "
+             f"{s1['frames']['walk']} walk frames), one scale per body with markers, then offsets of every free "
+             "marker placed on the static trial.", "",
              "| body | skelid scale [95 % interval] | OpenSim ScaleTool (x, y, z) |", "|---|---|---|"]
     for r in s1["scales"]:
         os_ = ", ".join(f"{v:.4f}" for v in r["opensim"]) if r["opensim"] else "-"
@@ -176,8 +210,12 @@ def markdown(res: dict) -> str:
               f"fit {sec['skelid_fit_wall']} wall, {sec['skelid_fit_cpu']} CPU |",
               f"| ScaleTool-scaled model | {ik['opensim_scaletool']['rmse_mm']:.1f} | "
               f"{ik['opensim_scaletool']['max_mm']:.1f} | ScaleTool {sec['opensim_scaletool_wall']} + "
-              f"IK {sec['opensim_ik_walk_wall']} |", "",
-             "## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
+              f"IK {sec['opensim_ik_walk_wall']} |", ""]
+    return "\n".join(lines) + "\n"
+
+
+def _markdown4(s4: dict) -> str:
+    lines = ["## subject4: LaiArnold generic model, AddBiomechanics and expert scalings", "",
              f"skelid fitted to {', '.join(s4['fit_trials'])} (static trial: {s4['static_frames']} frames), "
              f"{s4['seconds']['skelid_fit_wall']} s wall, {s4['seconds']['skelid_fit_cpu']} s CPU.", "",
              "| length (mm) | generic | skelid | AddBiomechanics | expert |", "|---|---|---|---|---|"]
@@ -197,14 +235,19 @@ def markdown(res: dict) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames (results marked reduced)")
+    ap.add_argument("--joined", action="store_true", help="fit the trials as one recording with gaps")
+    ap.add_argument("--subject4", choices=("full", "peers"), default="full",
+                    help="peers: no skelid fit of subject4, only the peers' lengths and IK on a walk")
     args = ap.parse_args(argv)
+    global JOINED
+    JOINED = args.joined
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    res = {"reduced": bool(args.quick)}
+    res = {"reduced": bool(args.quick), "trials": "joined" if args.joined else "multi-trial"}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         res["subject01"] = subject01(tmp, args.quick)
         print(json.dumps(res["subject01"]["seconds"]), flush=True)
-        res["subject4"] = subject4(tmp, args.quick)
+        res["subject4"] = subject4(tmp, args.quick) if args.subject4 == "full" else subject4_peers(tmp)
     res["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "opensim_peer.json").write_text(json.dumps(res, indent=1) + "\n")

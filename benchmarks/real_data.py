@@ -75,7 +75,7 @@ def quantities(est) -> dict:
 def summary(est, seconds: float, err=None) -> dict:
     ident = getattr(est, "identifiability_", {})
     res = {"seconds": round(seconds, 2), "error": err,
-           "warnings": list(getattr(est, "warnings_", [])),
+           "warnings": [getattr(w, "message", w) for w in getattr(est, "warnings_", ())],
            "joint_range_deg": ident.get("joint_range_deg"),
            "status": {r["parameter"]: r["status"] for r in ident.get("table", [])}}
     if err is None:

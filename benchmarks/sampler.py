@@ -69,7 +69,7 @@ def quadrature(est, grid):
 
 def row(name, est, seconds):
     g, s = est.gaussian_posterior_, est.posterior_
-    smp = est.result()["sampler"]
+    smp = est.result().diagnostics["sampler"]
     d_mean = np.max(np.abs(s.mean - g.mean) / g.sd)
     sd_ratio = s.sd / g.sd
     return (f"| {name} | {est.model.n_params} | {int(est.frames_used_.sum())} | {seconds:.1f} | "

@@ -18,6 +18,10 @@ lower_limb  the 3-D model examples/lower_limb.toml on the OpenSim walk, or tests
 rss         peak resident memory of the grid filter and the paper method on 10^5 frames
 batch       32 simulated trials through skelid batch (2 workers) against one after another
 scaling     time against frames, hypotheses and markers
+first_fit   the first case-A fit in a fresh process after installation (cold numba cache) against one with a
+            warm cache
+live        skelid.live.Session.push latencies: case A (grid and Gaussian forms) and the 3-D arm, >= 10^4 frames
+advice      simulated live sessions: a user who follows Session.advice() against a fixed calibration motion
 """
 
 from __future__ import annotations
@@ -54,6 +58,11 @@ TARGETS = {  # key: (limit, "<=" or ">=", what)
     "ratio_vs_least_squares": (0.5, "<="),
     "lower_limb_fit_s": (2.0, "<="),
     "peak_rss_mb_1e5_frames": (1024.0, "<="),
+    "marker_scaling_ratio_1e4_over_1e3": (10.0, "<="),
+    "first_fit_extra_s": (2.0, "<="),
+    "live_p50_ms_case_a": (0.2, "<="),
+    "live_p99_ms_arm3d": (2.0, "<="),
+    "advice_frames_saved_fraction": (0.3, ">="),
 }
 
 
@@ -371,12 +380,166 @@ def section_scaling(args) -> dict:
     for M in (3, 6, 12, 24, 48):
         wall, _ = _update_latencies(_planar_chain(M), 256, 200)
         marks[str(M)] = float(np.median(wall))
-    return {"scaling": {"frames_s": frames, "hypotheses_update_ms": hyps, "markers_update_ms": marks}}
+    out = {"scaling": {"frames_s": frames, "hypotheses_update_ms": hyps, "markers_update_ms": marks}}
+    if "marker" in frames.get("10000", {}) and "marker" in frames.get("1000", {}):
+        out["marker_scaling_ratio_1e4_over_1e3"] = frames["10000"]["marker"] / frames["1000"]["marker"]
+    return out
+
+
+def section_first_fit(args) -> dict:
+    """First fit in a fresh process with a cold numba cache (as after installation) and with a warm one."""
+    cache = tempfile.mkdtemp(prefix="skelid-numba-cache-")
+    env = {"NUMBA_CACHE_DIR": cache, "SKELID_NUMBA": "1"}
+    cold = _child("first_fit_child", args, env=env)
+    t0 = time.perf_counter()
+    _child("first_fit_wait", args, env=env)  # the background compilation, to its end
+    compile_wait = time.perf_counter() - t0
+    warm = _child("first_fit_child", args, env=env)
+    return {"first_fit_extra_s": cold["fit_s"] - warm["fit_s"], "first_fit_cold_s": cold["fit_s"],
+            "first_fit_warm_s": warm["fit_s"], "first_fit_cold_path": cold["path"],
+            "first_fit_background_compile_left_s": compile_wait}
+
+
+def section_first_fit_child(args) -> dict:
+    from skelid.estimators import _lm_kernel
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.simulate import builtin_model, simulate
+
+    _quiet()
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=15.0, n_frames=500, rng=np.random.default_rng(0))
+    t0 = time.perf_counter()
+    MarkerEstimator(model).fit(trial.data)
+    fit_s = time.perf_counter() - t0
+    return {"fit_s": fit_s, "path": "compiled" if _lm_kernel.compiled(True) else "numpy"}
+
+
+def section_first_fit_wait(args) -> dict:
+    from skelid.estimators import _lm_kernel
+
+    return {"cached": bool(_lm_kernel.warm(True, wait=True))}
+
+
+def _push_latencies(session, positions) -> np.ndarray:
+    """Wall time (ms) of each push after the first ten."""
+    out = np.empty(len(positions))
+    for t, frame in enumerate(positions):
+        t0 = time.perf_counter()
+        session.push(frame)
+        out[t] = time.perf_counter() - t0
+    return out[10:] * 1e3
+
+
+def _arm3d():
+    from skelid.model import load_model
+
+    return load_model(ROOT / "examples" / "tennis_arm.toml")
+
+
+def section_live(args) -> dict:
+    from skelid.estimators import _lm_kernel
+    from skelid.live import Session
+    from skelid.simulate import builtin_model, simulate
+
+    _quiet()
+    for planar in (True, False):  # measure the compiled path, not the numpy one used while it compiles
+        _lm_kernel.warm(planar, wait=True)
+    out = {}
+    F = args.live_frames
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=15.0, n_frames=F + 10, rng=np.random.default_rng(0))
+    for method in ("grid", "gaussian"):
+        s = Session(model, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate, method=method)
+        lat = _push_latencies(s, trial.data.positions)
+        out[f"live_case_a_{method}_ms"] = {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
+                                           "max": float(lat.max()), "frames": int(lat.size)}
+    best = min(out.values(), key=lambda r: r["p50"])
+    out["live_p50_ms_case_a"] = best["p50"]
+    arm = _arm3d()
+    trial = simulate(arm, sigma=0.002, n_frames=F + 10, rng=np.random.default_rng(1))
+    s = Session(arm, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate, method="gaussian")
+    lat = _push_latencies(s, trial.data.positions)
+    out["live_arm3d_ms"] = {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
+                            "max": float(lat.max()), "frames": int(lat.size), "model": "examples/tennis_arm.toml",
+                            "parameters": arm.n_params, "markers": len(arm.markers), "pose": arm.n_pose}
+    out["live_p99_ms_arm3d"] = out["live_arm3d_ms"]["p99"]
+    return out
+
+
+def _advice_session(model, theta, sigma, follow: bool, target_sd, rng, amplitude=60.0, block=20, max_frames=600):
+    """Frames until every parameter's sd is at most ``target_sd`` (or ``max_frames``)."""
+    from skelid.estimators.pose import _rotation_ranges
+    from skelid.live import Session
+    from skelid.model.kinematics import marker_positions
+
+    ranges = _rotation_ranges(model)
+    movable = [k for k, d in enumerate(model.dofs) if d.kind == "R" and model.parent_index[d.segment] >= 0]
+    q = np.array([0.5 * (ranges[k][0] + ranges[k][1]) if k in ranges else 0.0 for k in range(model.n_pose)])
+    q[[k for k, d in enumerate(model.dofs) if model.parent_index[d.segment] < 0]] = rng.normal(0, 0.3, 6)[:sum(
+        1 for d in model.dofs if model.parent_index[d.segment] < 0)]
+    session = Session(model, rate=100.0, method="gaussian", sigma=sigma, rng=rng)
+    n = 0
+    turn = 0
+
+    def show(qs):
+        nonlocal n
+        for qq in qs:
+            y = marker_positions(model, theta, qq) + rng.normal(0.0, sigma, (len(model.markers), model.dim))
+            est = session.push(y)
+            n += 1
+            if np.all(np.sqrt(np.diag(est.cov)) <= target_sd) or n >= max_frames:
+                return True
+        return False
+
+    # the first frames: the user stands still (tiny sway)
+    if show(q + rng.normal(0, 0.01, (10, model.n_pose))):
+        return n
+    wave = np.sin(np.linspace(0.0, 2.0 * np.pi, block, endpoint=False))
+    while True:
+        if follow:
+            adv = session.advice(amplitudes_deg=(amplitude,), n_frames=block)
+            k = adv[0].dof
+        else:
+            k = movable[turn % len(movable)]
+            turn += 1
+        lo, hi = ranges[k]
+        half = 0.5 * min(np.radians(amplitude), hi - lo)
+        c = float(np.clip(q[k], lo + half, hi - half))
+        seq = np.repeat(q[None], block, axis=0)
+        seq[:, k] = c + half * wave
+        if show(seq + rng.normal(0, 0.005, seq.shape)):
+            return n
+        q = seq[-1]
+
+
+def section_advice(args) -> dict:
+    from skelid.estimators import _lm_kernel
+
+    _quiet()
+    _lm_kernel.warm(False, wait=True)
+    model = _arm3d()
+    theta = model.theta_nominal
+    sigma, target = 0.002, 0.002  # 2 mm markers; every centre to 2 mm sd
+    follow, fixed = [], []
+    for i in range(args.advice_sessions):
+        follow.append(_advice_session(model, theta, sigma, True, target, np.random.default_rng(1000 + i)))
+        fixed.append(_advice_session(model, theta, sigma, False, target, np.random.default_rng(1000 + i)))
+    follow, fixed = np.array(follow), np.array(fixed)
+    return {"advice_frames_saved_fraction": float(1.0 - follow.mean() / fixed.mean()),
+            "advice_study": {"sessions": int(follow.size), "model": "examples/tennis_arm.toml",
+                             "sigma_m": sigma, "target_sd_m": target, "amplitude_deg": 60.0, "block_frames": 20,
+                             "max_frames": 600, "frames_following_advice": follow.tolist(),
+                             "frames_fixed_motion": fixed.tolist(),
+                             "median_following": float(np.median(follow)), "median_fixed": float(np.median(fixed)),
+                             "per_session_saved_fraction_quartiles":
+                                 np.percentile(1.0 - follow / fixed, [25, 50, 75]).tolist()}}
 
 
 SECTIONS = {"online": section_online, "fit": section_fit, "peer": section_peer, "lower_limb": section_lower_limb,
-            "rss": section_rss, "batch": section_batch, "scaling": section_scaling}
-CHILD_SECTIONS = {"online_numpy": section_online_numpy, "rss_child": section_rss_child}
+            "rss": section_rss, "batch": section_batch, "scaling": section_scaling, "first_fit": section_first_fit,
+            "live": section_live, "advice": section_advice}
+CHILD_SECTIONS = {"online_numpy": section_online_numpy, "rss_child": section_rss_child,
+                  "first_fit_child": section_first_fit_child, "first_fit_wait": section_first_fit_wait}
 
 
 def _child(section: str, args, env=None, extra=()) -> dict:
@@ -434,7 +597,8 @@ def write_markdown(res: dict, path: Path) -> None:
              "| key | value | target | met |", "|---|---:|---|---|"]
     keys = ["online_update_ms_median", "online_update_ms_p99", "fit_case_a_s", "least_squares_s",
             "ratio_vs_least_squares", "skelid_rmse", "least_squares_rmse", "lower_limb_fit_s",
-            "peak_rss_mb_1e5_frames", "batch_32_wall_s", "batch_32_serial_s"]
+            "peak_rss_mb_1e5_frames", "batch_32_wall_s", "batch_32_serial_s", "marker_scaling_ratio_1e4_over_1e3",
+            "first_fit_extra_s", "live_p50_ms_case_a", "live_p99_ms_arm3d", "advice_frames_saved_fraction"]
     for k in keys:
         if k not in res:
             lines.append(f"| {k} | (not measured) | | |")
@@ -442,6 +606,29 @@ def write_markdown(res: dict, path: Path) -> None:
         t = v.get(k)
         lines.append(f"| {k} | {res[k]:.4g} | {t['target'] if t else ''} | "
                      f"{('yes' if t['met'] else 'no') if t else ''} |")
+    lines.append("")
+    if res.get("load_before", 0) > 2 or res.get("load_after", 0) > 2:
+        lines += ["**Measured on a loaded machine** (load average above the 2 cores): times are upper bounds.", ""]
+    if "first_fit_cold_s" in res:
+        lines.append(f"First fit after installation (fresh process, empty numba cache): "
+                     f"{res['first_fit_cold_s']:.2f} s "
+                     f"on the {res['first_fit_cold_path']} path while the kernel compiles in the background, against "
+                     f"{res['first_fit_warm_s']:.2f} s with the cache warm.")
+    for key, what in (("live_case_a_grid_ms", "Live push, case A, grid form"),
+                      ("live_case_a_gaussian_ms", "Live push, case A, Gaussian form"),
+                      ("live_arm3d_ms", "Live push, 3-D arm (examples/tennis_arm.toml), Gaussian form")):
+        if key in res:
+            r = res[key]
+            lines.append(f"{what}: p50 {r['p50']:.3f} ms, p99 {r['p99']:.3f} ms, max {r['max']:.1f} ms over "
+                         f"{r['frames']} frames.")
+    if "advice_study" in res:
+        a = res["advice_study"]
+        lines.append(f"Advice study ({a['sessions']} simulated sessions, {a['model']}, "
+                     f"sigma {a['sigma_m'] * 1e3:g} mm, "
+                     f"target sd {a['target_sd_m'] * 1e3:g} mm on every parameter, {a['amplitude_deg']:g} deg sweeps "
+                     f"of {a['block_frames']} frames): median {a['median_following']:.0f} frames following the advice "
+                     f"against {a['median_fixed']:.0f} with the fixed motion; per-session saved fraction quartiles "
+                     f"{', '.join(f'{x:.2f}' for x in a['per_session_saved_fraction_quartiles'])}.")
     lines.append("")
     if "online_numpy_update_ms_median" in res:
         lines.append(f"Online update without numba (numpy path): median "
@@ -501,6 +688,8 @@ def main(argv=None):
     ap.add_argument("--batch-frames", type=int, default=300)
     ap.add_argument("--scaling-frames", type=int, nargs="*", default=[100, 1000, 10_000])
     ap.add_argument("--marker-max-frames", type=int, default=1000)
+    ap.add_argument("--live-frames", type=int, default=10_000)
+    ap.add_argument("--advice-sessions", type=int, default=50)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--child-out", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--method", default=None, help=argparse.SUPPRESS)

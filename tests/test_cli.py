@@ -152,3 +152,19 @@ def test_artefact_option_widens_the_interval(tmp_path, capsys):
         assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", bad]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "--artefact-rms" in err
+
+
+def test_artefact_option_works_with_the_sampler_and_is_refused_where_it_cannot_act(tmp_path, capsys):
+    trc = tmp_path / "b.trc"
+    assert main(["simulate", "case-b", "--sigma", "2", "--frames", "80", "--out", str(trc)]) == 0
+    capsys.readouterr()
+    widths = []
+    for rms in ("0", "5"):
+        assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", rms, "--json",
+                     "--method", "marker-smc"]) == 0
+        res = json.loads(capsys.readouterr().out)["methods"]["marker-smc"]
+        widths.append(res["L2"]["ci95"][1] - res["L2"]["ci95"][0])
+    assert widths[1] > 1.5 * widths[0]
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", "5", "--method", "paper"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--artefact-rms" in err

@@ -14,12 +14,14 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
-from skelid import workflows
+from skelid import registry
 from skelid.cli import main
+from skelid.estimators.base import RNG, Setting, positive_or_none
 from skelid.estimators.paper import PaperFilter
 from skelid.estimators.posterior import GridPosterior
 from skelid.io import write_trc
 from skelid.report import NOT_AVAILABLE, SECTIONS, write_report
+from skelid.result import FitResult, FrameCounts, NoiseEstimate, ParameterEstimate
 from skelid.simulate import builtin_model, simulate
 from tests.conftest import EXAMPLES
 
@@ -261,9 +263,12 @@ class _MarkerLike:
     """Stands in for an estimator with every attribute the report can use."""
 
     name = "marker"
+    settings = (Setting("sigma", positive_or_none, "a positive noise level", cli="sigma"), RNG)
 
     def __init__(self, model, sigma=None, rng=None):
         self.model = model
+        self.sigma = sigma
+        self.rng = rng
 
     def fit(self, y, progress=None):
         from skelid.estimators.base import prepare
@@ -284,16 +289,18 @@ class _MarkerLike:
         return self
 
     def result(self):
-        s = self.posterior_.summary()
-        name = self.model.parameter_names[0]
-        s[name]["crlb_sd"] = float(self.crlb_sd_[0])
-        return {**s, "sigma": {"value": self.sigma_, "ci95": [2.8, 3.2], "fixed": False},
-                "identifiability": [{"parameter": name, "crlb_sd": float(self.crlb_sd_[0]), "status": "identified"}],
-                "warnings": []}
+        name, post = self.model.parameter_names[0], self.posterior_
+        ci = post.credible_interval(0.95)[0]
+        p = ParameterEstimate(name, "mm", post.map[0], post.mean[0], post.sd[0], tuple(ci),
+                              crlb_sd=float(self.crlb_sd_[0]))
+        F = len(self.residuals_)
+        return FitResult("marker", {name: p}, noise=NoiseEstimate(self.sigma_, (2.8, 3.2)), frames=FrameCounts(F, F),
+                         diagnostics={"identifiability": [{"parameter": name, "crlb_sd": float(self.crlb_sd_[0]),
+                                                           "status": "identified"}]})
 
 
 def test_fit_and_report_with_a_fuller_estimator(tmp_path, monkeypatch, capfd):
-    monkeypatch.setattr(workflows, "methods", lambda: {"paper": PaperFilter, "marker": _MarkerLike})
+    monkeypatch.setattr(registry, "estimators", lambda: {"paper": PaperFilter, "marker": _MarkerLike})
     trial = simulate(builtin_model("case-a"), sigma=5.0, n_frames=120, rng=np.random.default_rng(4))
     write_trc(tmp_path / "arm.trc", trial.data)
     out = tmp_path / "fit"
@@ -460,3 +467,20 @@ def test_report_of_a_typed_result(tmp_path):
     assert "this one is poorly identified" in row[:row.index("</tr>")] and "status-poor" in row[:row.index("</tr>")]
     assert 'class="severe">the joint fit stopped before converging' in summary
     assert "[2.4, 2.6]" in summary and "Frames used: 48 of 50" in _section(text, "Final posterior")
+
+
+def test_a_warning_stays_with_its_method(tmp_path):
+    """A run-level copy of one method's warning is not shown beside another method's estimates."""
+    d = odd_result(tmp_path / "odd")
+    res = json.loads((d / "result.json").read_text())
+    res["methods"]["paper"] = {"L": {"map": 1.0, "mean": 1.0, "sd": 0.1, "ci95": [0.8, 1.2]},
+                               "warnings": ["paper method dropped 9 of 90 frames (no converged solution inside "
+                                            "the interval)"]}
+    res["warnings"] += res["methods"]["marker"]["warnings"] + res["methods"]["paper"]["warnings"]
+    (d / "result.json").write_text(json.dumps(res))
+    path, _ = write_report(d, tmp_path / "two.html")
+    text, _ = _check_html(path, min_images=3)
+    summary = _section(text, "Summary")
+    paper = summary[summary.index("Method: paper"):]
+    assert "stopped before converging" not in paper and "dropped 9 of 90 frames" in paper
+    assert 'class="severe">paper method dropped' not in paper  # frames dropped: a warning, not a broken fit

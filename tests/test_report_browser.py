@@ -65,10 +65,11 @@ def _errors(driver) -> list:
     return [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
-def _shot(driver, path):
+def _shot(driver, path, capsys):
     png = driver.find_element("id", "skeleton-view").screenshot_as_png
     path.write_bytes(png)
-    print(f"screenshot: {path}")
+    with capsys.disabled():  # shown in the test output, not captured
+        print(f"\nscreenshot of the report's view: {path}")
     from PIL import Image
 
     return np.asarray(Image.open(io.BytesIO(png)).convert("L"), float)
@@ -89,9 +90,9 @@ def _move_slider(driver, fraction: float):
     ActionChains(driver).move_to_element_with_offset(rail, int((fraction - 0.5) * width), 0).click().perform()
 
 
-def _check_view(driver, tmp_path, label: str, dim: int):
+def _check_view(driver, tmp_path, label: str, capsys):
     assert _errors(driver) == []
-    before = _shot(driver, tmp_path / f"{label}-first-frame.png")
+    before = _shot(driver, tmp_path / f"{label}-first-frame.png", capsys)
     assert before.std() > 5.0 and (before < 200).mean() > 0.005, "the view is blank"
     frame0 = driver.execute_script("return document.getElementById('skeleton-view').dataset.frame;")
     joints0 = _positions(driver, 4)
@@ -101,16 +102,16 @@ def _check_view(driver, tmp_path, label: str, dim: int):
     time.sleep(0.5)
     joints1 = _positions(driver, 4)
     assert len(joints1[0]) == len(joints0[0]) and joints1 != joints0  # the joint centres moved
-    after = _shot(driver, tmp_path / f"{label}-later-frame.png")
+    after = _shot(driver, tmp_path / f"{label}-later-frame.png", capsys)
     assert after.shape == before.shape and np.abs(after - before).mean() > 0.05  # and were drawn again
     assert _errors(driver) == []
     return int(driver.execute_script("return document.getElementById('skeleton-view').dataset.frame;"))
 
 
-def test_3d_view_in_a_browser(browser, tmp_path):
+def test_3d_view_in_a_browser(browser, tmp_path, capsys):
     path, _ = write_report(odd_result(tmp_path / "odd"), tmp_path / "odd.html")
     _load(browser, path)
-    frame = _check_view(browser, tmp_path, "3d", 3)
+    frame = _check_view(browser, tmp_path, "3d", capsys)
     assert 40 <= frame <= 80  # 70 % along 90 frames
     # odd names are shown as written and ran nothing (an alert would have stopped the driver)
     body = browser.execute_script("return document.body.innerText;")
@@ -137,8 +138,8 @@ def _planar_result(d):
     return d
 
 
-def test_planar_view_in_a_browser(browser, tmp_path):
+def test_planar_view_in_a_browser(browser, tmp_path, capsys):
     path, _ = write_report(_planar_result(tmp_path / "planar"), tmp_path / "planar.html")
     _load(browser, path)
-    _check_view(browser, tmp_path, "2d", 2)
+    _check_view(browser, tmp_path, "2d", capsys)
     assert browser.execute_script("return document.getElementById('skeleton-view')._fullData[0].type;") == "scatter"

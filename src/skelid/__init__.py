@@ -8,6 +8,8 @@ from skelid.errors import (
     FormatError,
     IdentifiabilityError,
     ModelError,
+    NotFittedError,
+    SettingError,
     SkelidError,
     SkelidWarning,
 )
@@ -20,5 +22,5 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "MarkerData", "Model", "load_model", "SkelidError", "FormatError", "ModelError",
-    "DataError", "IdentifiabilityError", "SkelidWarning", "__version__",
+    "DataError", "IdentifiabilityError", "SettingError", "NotFittedError", "SkelidWarning", "__version__",
 ]

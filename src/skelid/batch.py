@@ -144,6 +144,7 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
     from skelid.checks import check_data
     from skelid.estimators.base import prepare
     from skelid.io import read_markers
+    from skelid.io.results import summary_dict
     from skelid.workflows import check_cost, check_input_file, check_units, make_estimator
 
     t0 = time.perf_counter()
@@ -161,7 +162,7 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             check_data(model, prepare(model, data), [method], str(path))
             check_cost(model, method, data.n_frames, limits)
             est.fit(data)
-            res = est.result()
+            res = summary_dict(est.result())
         row["frames_used"] = int(res.get("frames_used", 0))
         for name in model.parameter_names:
             v = res[name]

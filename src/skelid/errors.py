@@ -50,5 +50,17 @@ class IdentifiabilityError(SkelidError):
     """A parameter cannot be identified from the data (no information, no solution)."""
 
 
+class SettingError(SkelidError, ValueError):
+    """An estimator setting has a value it cannot use (names the setting)."""
+
+
+class NotFittedError(SkelidError, AttributeError):
+    """A fitted attribute or result was asked for before ``fit``."""
+
+
+class ConvergenceError(SkelidError):
+    """The fit did not converge, so no interval can be reported."""
+
+
 class SkelidWarning(UserWarning):
     """A problem the user should know about that does not stop the computation."""

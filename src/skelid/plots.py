@@ -134,3 +134,28 @@ def map_path(steps_map, path, truth: float | None = None, measured=None, name: s
     ax.legend(fontsize=8)
     ax.set_title(title)
     return _save(fig, path)
+
+
+def fit_figures(model, data, fitted: dict, out_dir, prefix: str = "",
+            truth: dict | None = None) -> list[Path]:
+    """The seed paper's figures for a fit: trajectories, posterior history, MAP per step."""
+    out_dir = Path(out_dir)
+    name = model.parameter_names[0] if model.n_params else ""
+    tv = (truth or {}).get(name)
+    paths = [trajectories(data, out_dir / f"{prefix}trajectories.png",
+                                title=f"{model.name}: marker trajectories")]
+    main = fitted.get("paper") or next(iter(fitted.values()))
+    gauss = {f"final posterior ({k} method)": (v.posterior_.mean[0], v.posterior_.sd[0])
+             for k, v in fitted.items() if v is not main and not hasattr(v.posterior_, "axes")}
+    if hasattr(main, "posterior_") and hasattr(main.posterior_, "axes"):
+        paths.append(posterior_history(
+            main.posterior_, out_dir / f"{prefix}posterior.png", truth=tv, units=model.units,
+            title=f"{model.name}: posterior of {name} ({main.name} method)", gaussians=gauss))
+    if hasattr(main, "map_path_"):
+        extra = {f"most likely value ({k})": v.map_path_ for k, v in fitted.items()
+                 if v is not main and hasattr(v, "map_path_")}
+        paths.append(map_path(
+            main.map_path_, out_dir / f"{prefix}map_per_step.png", truth=tv,
+            measured=getattr(main, "measured_", None), name=name, units=model.units,
+            title=f"{model.name}: most likely {name} per step", extra=extra))
+    return paths

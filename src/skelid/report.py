@@ -655,7 +655,8 @@ def _provenance(b: _Builder, run):
 #: warning codes that say the numbers themselves may be wrong (shown in red)
 SEVERE_CODES = frozenset({"not-converged", "approximation-broken", "broken-approximation", "unreliable-fit",
                           "sampler-not-mixed", "sampler-stage-limit", "fallback"})
-_SEVERE_TEXT = re.compile(r"converg|approximation|not have mixed|jumped to the posterior|unreliable", re.I)
+_SEVERE_TEXT = re.compile(r"not converg|before converging|failed to converge|approximation (is )?broke|"
+                          r"not have mixed|jumped to the posterior|unreliable", re.I)
 
 
 def _is_severe(code: str, message: str) -> bool:
@@ -667,7 +668,10 @@ def _method_warnings(run, method: str) -> list[dict]:
     r = run.results[method]
     others = [k for k in run.results if k != method]
     items = list(r.warnings)
+    theirs = {w.message for o in others for w in run.results[o].warnings}
     for w in run.warnings:  # run-level: this method's, or no method's
+        if w.message in theirs and w.message not in {x.message for x in r.warnings}:
+            continue
         if f"{method} method" in w.message or not any(f"{o} method" in w.message for o in others):
             items.append(w)
     out, seen = [], set()
@@ -753,7 +757,7 @@ def _model_of(ctx: Mapping):
 
 
 def _body(b: _Builder, run, units: str):
-    """The interactive view of the first method's fitted body over the trial."""
+    """The interactive view of the fitted body over the trial (the first method with poses, else the first)."""
     from skelid import viewer
 
     model = _model_of(run.context)
@@ -764,7 +768,8 @@ def _body(b: _Builder, run, units: str):
     if "markers" not in run.arrays:
         b.add(_na("the view of the fitted body (no arrays.npz)"))
         return
-    method = next((k for k, r in run.results.items() if r.parameters), None)
+    method = next((k for k, r in run.results.items() if r.parameters and "pose" in r.arrays),
+                  next((k for k, r in run.results.items() if r.parameters), None))
     if method is None:
         b.add(_na("the view of the fitted body (no estimates)"))
         return

@@ -11,15 +11,18 @@ and the coupled translations of the joints it is the parent of, and a
 
 The scale factors come from skelid's ``marker`` method (poses and geometry by
 joint least squares, intervals from the Laplace approximation) with the
-markers at their nominal places. The offsets are then placed as OpenSim's
+markers at their nominal places; with several trials, from its multi-trial
+form (each trial fitted alone, then all at once with one geometry, the
+between-trial spread added to the interval; see
+:mod:`skelid.estimators.multitrial`). The offsets are then placed as OpenSim's
 MarkerPlacer places them: each free marker moves to where the first (static)
 trial saw it in the fitted poses, with a standard error from the frame
 scatter (:func:`place_markers`). They are not fitted jointly with the scales:
 the joint fit has no prior penalty, and offsets of every marker of a body
-trade with the body's pose, so the data alone cannot identify them. Several trials of one
-subject are joined in time order into one recording with a gap of missing
-frames between them, so the motion model never links the last pose of one
-trial to the first of the next; the geometry is shared, the poses are not.
+trade with the body's pose, so the data alone cannot identify them.
+Several trials of one subject are read as one recording (:func:`join_trials`: the union of their
+markers, a gap of missing frames between trials) and fitted as separate
+trials with one geometry.
 
 :func:`write_outputs` writes the scaled ``.osim`` (every other element of the
 source kept), an OpenSim ScaleSet, and ``scaling.json`` with each factor and
@@ -116,7 +119,7 @@ STATIC_FRAMES = 30
 
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
-             static_frames: int | None = STATIC_FRAMES) -> ScalingFit:
+             static_frames: int | None = STATIC_FRAMES, joined: bool = False) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
@@ -134,11 +137,15 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         The first trial, when it has more frames, contributes this many evenly
         spaced ones (a static trial repeats one pose: more frames add time, not
         information, since its residuals are serially correlated). None: all.
+    joined : bool
+        Fit the trials as one recording with gaps (one marker fit) instead of
+        the multi-trial fit (each trial alone, then together).
 
     Returns
     -------
     ScalingFit
     """
+    from skelid.io.results import summary_dict
     from skelid.workflows import make_estimator
 
     trials = list(trials)
@@ -148,8 +155,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         trials[0] = MarkerData(t.positions[idx], t.names, t.rate, t.units, t.source, t.meta)
     data = join_trials(trials)
     full, info = read_osim(osim_path, marker_set)
+    multi = len(trials) > 1 and method == "marker" and not joined
+    # the multi-trial fit needs every marker in every trial; a joined recording, in any
+    spans = data.meta["trial_frames"] if multi else [(0, data.positions.shape[0])]
     present = [n for n in full.marker_names if n in data.names
-               and np.isfinite(data.positions[:, data.names.index(n)]).all(axis=-1).any()]
+               and all(np.isfinite(data.positions[a:b, data.names.index(n)]).all(axis=-1).any() for a, b in spans)]
     if not present:
         raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
                         f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(data.names[:4])} ...)",
@@ -161,10 +171,21 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     sub = MarkerData(data.positions[:, [data.names.index(n) for n in model.marker_names]],
                      model.marker_names, data.rate, data.units, data.source, data.meta)
     t0 = time.perf_counter()
-    if model.n_params:
+    if model.n_params and multi:
+        from skelid.estimators.multitrial import MultiTrialEstimator
+
+        parts = [MarkerData(sub.positions[a:b], sub.names, sub.rate, sub.units, t.source)
+                 for (a, b), t in zip(data.meta["trial_frames"], trials, strict=True)]
+        est = MultiTrialEstimator(model, sigma=sigma, rng=np.random.default_rng(seed)).fit(parts)
+        res, theta = est.result(), np.asarray(est.theta_, float)
+        edges = np.cumsum([0] + [len(p.positions) for p in parts])
+        pose = np.full((sub.positions.shape[0], model.n_pose), np.nan)
+        for (a, b), e0, e1 in zip(data.meta["trial_frames"], edges[:-1], edges[1:], strict=True):
+            pose[a:b] = est.pose_[e0:e1]
+    elif model.n_params:
         est = make_estimator(method, model, sigma, rng=np.random.default_rng(seed))
         est.fit(sub)
-        res, theta, pose = est.result(), np.asarray(est.theta_, float), est.pose_
+        res, theta, pose = summary_dict(est.result()), np.asarray(est.theta_, float), est.pose_
     else:  # nothing to scale: poses of the nominal model only
         from skelid.estimators.pose import track_poses
 
@@ -190,8 +211,8 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     seconds = time.perf_counter() - t0
     warns = list(res.get("warnings", []))
     if dropped:
-        warns.append(f"{len(dropped)} model markers are not in the data and were left out: "
-                     f"{', '.join(dropped)}")
+        warns.append(f"{len(dropped)} model markers are not in the data"
+                     + (" (of every trial)" if multi else "") + f" and were left out: {', '.join(dropped)}")
     return ScalingFit(model, info, str(osim_path), None if marker_set is None else str(marker_set),
                       sub, est, res, seconds, dropped, warns, theta)
 
@@ -282,8 +303,19 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
              "json": out_dir / f"{name}_scaling.json"}
     write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set)
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
-    paths["json"].write_text(json.dumps(scaling_table(fit), indent=1, allow_nan=False) + "\n")
+    paths["json"].write_text(json.dumps(_finite_or_none(scaling_table(fit)), indent=1, allow_nan=False) + "\n")
     return paths
+
+
+def _finite_or_none(obj):
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, float | np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
 
 
 def opensim_ik(osim_path, trc_path, out_dir, markers=None) -> dict:

@@ -20,7 +20,9 @@ import numpy as np
 
 from skelid.data import MarkerData
 from skelid.errors import DataError
+from skelid.io.results import summary_dict
 from skelid.model.description import Model
+from skelid.result import FitResult
 
 
 def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):
@@ -137,6 +139,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
     with workflows.collect_warnings():
         est = fit_trials(model, datas, **settings)
     res = est.result()
+    res = summary_dict(res) if isinstance(res, FitResult) else res
     out = {"model": model.name, "data": [str(p) for p in data_paths], "units": model.units,
            "frames_total": int(sum(d.n_frames for d in datas)), "methods": {"marker": res}}
     if len(datas) > 1:

@@ -213,6 +213,8 @@ def figure_spec(model: Model, theta, poses, measured=None, frame_index=None, rat
         layout["yaxis"] = {"range": ranges[1], "title": {"text": f"y [{_text(units)}]"}, "autorange": False,
                            "scaleanchor": "x", "scaleratio": 1}
         layout["margin"].update(b=60, l=70)
+        slider.update(pad={"t": 70}, x=0.13, len=0.87)  # clear of the play button beside the y axis
+        play["pad"] = {"t": 80}
         layout["legend"] = {"x": 1.02, "y": 1}
     meta = {"dim": D, "frames_total": F, "frames_shown": K, "stride": stride,
             "n_segments": S, "n_markers": M}

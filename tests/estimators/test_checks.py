@@ -78,4 +78,4 @@ def test_still_wrist_near_gimbal_lock_is_reported_as_barely_moving():
         MarkerData(y, model.marker_names, 100.0, "mm"))
     (r,) = est.identifiability_["joint_range_deg"]["wrist"]
     assert r < 5.0
-    assert any("moved less than" in w for w in est.warnings_)
+    assert any("moved less than" in w.message for w in est.warnings_)

@@ -61,8 +61,8 @@ def test_noise_level_and_bound_are_reported():
     lo, hi = est.sigma_ci_
     assert lo < est.sigma_ < hi
     res = est.result()
-    assert res["L2"]["crlb_sd"] > 0 and res["sigma"]["fixed"] is False
-    assert res["identifiability"][0]["status"] == "identified"
+    assert res.parameters["L2"].crlb_sd > 0 and res.noise.fixed is False
+    assert res.parameters["L2"].status == "identified"
     assert abs(est.theta_[0] - 250.0) < 5 * est.posterior_.sd[0]
 
 
@@ -132,7 +132,7 @@ def test_automatic_cutoff_is_recorded():
     trial = simulate(model, sigma=5.0, n_frames=200, rng=np.random.default_rng(9))
     est = MarkerEstimator(model).fit(trial.data)
     assert np.shape(est.cutoff_) == (model.n_pose,)
-    assert "cutoff_hz" in est.result()
+    assert len(est.result().diagnostics["cutoff_hz"]) == model.n_pose
 
 
 @pytest.mark.parametrize("n_frames", [30, 400])  # the dense path and the banded sweep

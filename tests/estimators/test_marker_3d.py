@@ -28,7 +28,7 @@ def test_noise_free_trial_recovers_every_parameter_and_derived_length():
     hip, knee = model.segment_index["thigh"], model.segment_index["shank"]
     assert est.lengths_["hip-knee"]["value"] == pytest.approx(
         np.linalg.norm(centres[knee] - centres[hip]), abs=1e-6)
-    res = est.result()
+    res = est.result().diagnostics
     assert res["counting"]["pose_coordinates_per_frame"] == 12
     assert res["counting"]["surplus_per_frame"] == {"min": 18, "median": 18.0, "max": 18}
     assert set(res["joint_range_deg"]) == {"hip", "knee", "ankle"}
@@ -72,7 +72,7 @@ def test_gaps_use_present_markers_and_skip_frames_that_cannot_fix_the_pose():
     assert est.frames_skipped_ == {"too_few_coordinates": 3, "pose_not_fixed": 4}
     skipped = np.r_[20:24, 30:33]
     assert not est.frames_used_[skipped].any() and est.frames_used_.sum() == 73
-    assert any("7 of 80 frames" in w for w in est.warnings_)
+    assert any("7 of 80 frames" in w.message for w in est.warnings_)
     assert np.isnan(est.residuals_[5:15, names.index("p1")]).all()  # nothing filled in
     # skipping is exact: the same fit as without those frames
     keep = np.setdiff1d(np.arange(80), skipped)
@@ -104,4 +104,4 @@ def test_glitched_marker_positions_are_left_out_and_counted():
     clean = _fit(model, trial.data, cutoff=6.0)
     assert not clean.outliers_.any()
     np.testing.assert_allclose(est.theta_, clean.theta_, atol=0.5 * clean.posterior_.sd.max())
-    assert est.result()["outlying_marker_positions"] == 4
+    assert est.result().diagnostics["outlying_marker_positions"] == 4

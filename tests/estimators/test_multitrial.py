@@ -93,9 +93,10 @@ def test_two_trials_different_rates_and_markers():
     # near the information-weighted combination of the trials
     S = [np.linalg.inv(e.cov_plain_) for e in one]
     comb = np.linalg.solve(S[0] + S[1], S[0] @ one[0].theta_ + S[1] @ one[1].theta_)
-    sd = multi.posterior_.sd
-    assert np.all(np.abs(multi.theta_ - comb) < 0.2 * sd)
-    assert np.all(sd < min(e.posterior_.sd.min() for e in one) * 1.01)
+    fe = MultiTrialEstimator(model, outlier_threshold=None, between_trial="none").fit([a.data, db])
+    assert np.all(np.abs(fe.theta_ - comb) < 0.2 * fe.posterior_.sd)
+    # without between-trial variance the joint interval is narrower than either trial's
+    assert np.all(fe.posterior_.sd < np.min([e.posterior_.sd for e in one], axis=0))
     res = multi.result()
     assert len(res["trials"]) == 2 and res["consistency"]["dof"] == 2
     assert res["trials"][1]["sigma"] == pytest.approx(2.0, rel=0.15)
@@ -115,10 +116,9 @@ def test_between_trial_variance_widens_the_joint_interval():
     assert re.tau2_[0] > 1.0
     assert re.posterior_.sd[0] > 3 * fe.posterior_.sd[0]
     assert re.consistency_["p_value"] < 1e-6
-    np.testing.assert_allclose(re.theta_, fe.theta_)
-    # the joint variance is the closed form sum_k w_k^2 (v_k + tau^2) / (sum w_k)^2 when the
-    # parameters are uncorrelated; here check the scalar identity on the first parameter's diagonal
-    S = np.array([np.linalg.inv(c) for c in re.trial_cov_])
-    A_inv = np.linalg.inv(S.sum(0))
-    extra = A_inv @ np.einsum("kpq,qr,krs->ps", S, np.diag(re.tau2_), S) @ A_inv
-    np.testing.assert_allclose(re.cov_ - fe.cov_, extra, rtol=1e-9, atol=1e-12)
+    # random-effects combination: weights (C_k + Omega)^{-1}, covariance their summed inverse
+    W = np.linalg.inv(re.trial_cov_ + np.diag(re.tau2_))
+    np.testing.assert_allclose(re.cov_, np.linalg.inv(W.sum(0)), rtol=1e-9)
+    np.testing.assert_allclose(re.theta_, re.cov_ @ np.einsum("kpq,kq->p", W, re.trial_theta_), rtol=1e-9)
+    # the elbow x estimates spread about their mean shift (1.5 mm): the joint one is near it
+    assert abs(re.theta_[0] - (model.theta_center[0] + 1.5)) < 3 * re.posterior_.sd[0]

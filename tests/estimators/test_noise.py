@@ -106,7 +106,7 @@ def test_a_noisy_marker_does_not_drag_the_joint_centre():
     # the weighted interval is the narrower one, and it is reported per marker
     assert np.all(per.posterior_.sd < pooled.posterior_.sd)
     res = per.result()
-    assert res["sigma"]["per_marker"]["f0"]["value"] == pytest.approx(10.0, rel=0.15)
+    assert res.noise.per_marker["f0"] == pytest.approx(10.0, rel=0.15)
 
 
 def test_equal_noise_gives_the_pooled_estimate():

@@ -67,7 +67,7 @@ def test_fit_equals_folding_update():
     np.testing.assert_allclose(np.array(measured), est.measured_, equal_nan=True)
     np.testing.assert_allclose(state.posterior.log_weights, est.posterior_.log_weights, atol=1e-9)
     assert [s for s, _ in state.posterior.history] == [10, 60]
-    assert state.n_used == est.used_.sum()
+    assert state.n_used == est.frames_used_.sum()
 
 
 @settings(max_examples=15, deadline=None, derandomize=True)
@@ -108,4 +108,4 @@ def test_missing_markers_drop_frames_and_warn():
     est = PaperFilter(model)
     with pytest.warns(UserWarning, match="missing"):
         est.fit(trial.data.replace(positions=y))
-    assert not est.used_[5:15].any()
+    assert not est.frames_used_[5:15].any()

@@ -19,7 +19,11 @@ pytest.importorskip("arviz")
 
 
 def test_doctests():
-    assert doctest.testmod(frames, optionflags=doctest.NORMALIZE_WHITESPACE).failed == 0
+    import skelid.io.legacy
+    import skelid.viewer
+
+    for module in (frames, skelid.io.legacy, skelid.viewer):
+        assert doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE).failed == 0, module.__name__
 
 
 @pytest.fixture

@@ -773,7 +773,10 @@ def _compile_here(planar: bool) -> None:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX: no lock
         fcntl = None
-    name = f"skelid-numba-{'planar' if planar else 'spatial'}-{getattr(os, 'getuid', lambda: 0)()}.lock"
+    import zlib
+
+    where = zlib.crc32(os.path.abspath(__file__).encode())  # one lock per installed copy
+    name = f"skelid-numba-{'planar' if planar else 'spatial'}-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
     with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
         if fcntl is not None:
             fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes

@@ -1,20 +1,193 @@
-"""What every estimator shares: matching data to a model, and the fit/update shape.
+"""What every estimator shares: the contract, its declared settings, and matching data to a model.
 
-An estimator is built with the model and its settings only
-(``Estimator(model, sigma=15.0)``); ``fit(data)`` returns the estimator with
-fitted attributes ending in ``_``; ``init_state()`` and ``update(state, frame)``
-are the online form, and ``fit`` equals folding ``update`` over the frames.
+The contract (checked for every registered estimator by ``tests/estimators/test_contract.py``):
+
+* ``Estimator(model, **settings)`` only stores the settings; each class declares them in
+  ``settings`` (a tuple of :class:`Setting`), which the registry and the command line read;
+* ``fit(data, *, progress=None)`` checks the settings (:class:`~skelid.errors.SettingError`
+  naming the setting), fits, and returns the estimator; starting values are settings;
+* fitted attributes end in ``_`` and share names across estimators: ``frames_used_ (F,) bool``,
+  ``sigma_``, ``posterior_``, ``warnings_`` (tuple of :class:`~skelid.result.Warning`), ...;
+  none exists before ``fit``;
+* ``result()`` returns the typed :class:`~skelid.result.FitResult`
+  (:class:`~skelid.errors.NotFittedError` before ``fit``);
+* an online estimator also has ``init_state()`` and ``update(state, frame) -> state``, and
+  ``fit`` folds ``update`` over the frames.
+
+``data`` is a :class:`~skelid.data.MarkerData`, or an array ``(F, M, D)`` of the model's markers
+in model order and units together with the ``rate`` setting (a rate is required, so that an
+array never silently loses the motion model).
 """
 
 from __future__ import annotations
 
+import math
 import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import DataError, SkelidWarning
+from skelid.errors import DataError, NotFittedError, SettingError, SkelidWarning
 from skelid.model.description import Model
+from skelid.result import Warning
+
+
+# ------------------------------------------------------------------------ settings
+@dataclass(frozen=True)
+class Setting:
+    """One declared estimator setting.
+
+    Parameters
+    ----------
+    name : str
+        Keyword of ``__init__``.
+    check : callable
+        ``check(value) -> bool``: whether the value is usable.
+    allowed : str
+        The usable values in words, for the error message.
+    cli : str, optional
+        The ``skelid fit`` option that sets it (``"sigma"`` for ``--sigma``), if any.
+    """
+
+    name: str
+    check: Callable[[Any], bool]
+    allowed: str
+    cli: str | None = None
+
+
+def _number(v) -> bool:
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def positive(v) -> bool:
+    return _number(v) and v > 0
+
+
+def positive_or_none(v) -> bool:
+    return v is None or positive(v)
+
+
+def non_negative_or_none(v) -> bool:
+    return v is None or (_number(v) and v >= 0)
+
+
+def positive_int(v) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool) and v > 0
+
+
+def one_of(*values) -> Callable[[Any], bool]:
+    return lambda v: isinstance(v, str | bool | type(None)) and v in values
+
+
+def seed_like(v) -> bool:
+    """None, a non-negative integer seed, or a :class:`numpy.random.Generator`."""
+    return v is None or isinstance(v, np.random.Generator) or (positive_int(v) or (_number(v) and v == 0
+                                                                                  and isinstance(v, int)))
+
+
+def array_or_none(v) -> bool:
+    try:
+        return v is None or np.isfinite(np.asarray(v, float)).all()
+    except (TypeError, ValueError):
+        return False
+
+
+def steps(v) -> bool:
+    try:
+        return all(positive_int(s) for s in v)
+    except TypeError:
+        return False
+
+
+RNG = Setting("rng", seed_like, "None, an integer seed >= 0 or a numpy.random.Generator")
+RATE = Setting("rate", positive_or_none, "a positive sampling rate in Hz (needed when data is an array)")
+
+
+def check_settings(est) -> None:
+    """Raise :class:`~skelid.errors.SettingError` naming the first unusable setting of ``est``."""
+    for s in type(est).settings:
+        v = getattr(est, s.name)
+        try:
+            ok = bool(s.check(v))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise SettingError(f"{type(est).__name__} setting {s.name}={v!r} is not usable",
+                               f"give {s.allowed}")
+
+
+def get_settings(est) -> dict:
+    """The declared settings of ``est`` as ``{name: value}``."""
+    return {s.name: getattr(est, s.name) for s in type(est).settings}
+
+
+def make_rng(rng) -> np.random.Generator:
+    """A generator from the ``rng`` setting: a seed gives a fresh one on every fit (fit twice, same answer)."""
+    if isinstance(rng, np.random.Generator):
+        return rng
+    return np.random.default_rng(0 if rng is None else int(rng))
+
+
+def check_fitted(est, attr: str = "frames_used_") -> None:
+    """Raise :class:`~skelid.errors.NotFittedError` if ``est`` has not been fitted."""
+    if not hasattr(est, attr):
+        raise NotFittedError(f"this {type(est).__name__} has not been fitted yet",
+                             "call fit(data) before asking for its result")
+
+
+def setting_json(v):
+    """A setting as a JSON value for :attr:`FitResult.settings`."""
+    if isinstance(v, np.random.Generator):
+        return "Generator"
+    if isinstance(v, np.ndarray | list | tuple):
+        return np.asarray(v, float).tolist() if np.asarray(v).dtype.kind in "biuf" else [str(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v if v is None or isinstance(v, bool | int | float | str) else repr(v)
+
+
+def marker_array(model: Model, data, rate) -> tuple[np.ndarray, float]:
+    """``(y (F, M, D), rate)`` from ``data``: a :class:`MarkerData`, or an array with the ``rate`` setting.
+
+    Raises
+    ------
+    DataError
+        See :func:`prepare`; an array of another shape than ``(F, M, D)`` for the model.
+    SettingError
+        An array without a ``rate``.
+    """
+    if isinstance(data, MarkerData):
+        return prepare(model, data), data.rate
+    if rate is None:
+        raise SettingError("marker data given as an array need the sampling rate (setting rate=None)",
+                           "pass rate=HZ to the estimator, or give a MarkerData")
+    try:
+        y = np.array(data, dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(f"data must be MarkerData or an array of numbers, got {type(data).__name__}") from None
+    shape = (len(model.markers), model.dim)
+    if y.ndim != 3 or y.shape[1:] != shape:
+        raise DataError(f"marker array of shape {y.shape} does not fit model {model.name!r}",
+                        f"give (frames, {shape[0]}, {shape[1]}): the model's markers in model order and units")
+    y[~np.isfinite(y)] = np.nan
+    if len(y) == 0:
+        raise DataError("the marker array has no frames", "give at least one frame")
+    _check_present(model, y, "the marker array")
+    return y, float(rate)
+
+
+def _check_present(model: Model, y: np.ndarray, source: str) -> None:
+    """Every model marker present in some frame, and some frame with a marker."""
+    present = np.isfinite(y).all(axis=2)
+    never = [n for n, p in zip(model.marker_names, present.any(axis=0), strict=True) if not p]
+    if never:
+        raise DataError(
+            f"marker(s) {', '.join(never)} are missing in every frame of {source}",
+            "remove them from the model or use a trial in which they were tracked",
+        )
 
 
 def prepare(model: Model, data: MarkerData) -> np.ndarray:
@@ -35,13 +208,8 @@ def prepare(model: Model, data: MarkerData) -> np.ndarray:
         raise DataError(f"{data.source or 'the data'} has no frames", "check the file")
     sel = data.select(model.marker_names, model.marker_labels)
     y = sel.positions * unit_scale(data.units, model.units)
+    _check_present(model, y, data.source or "the data")
     present = np.isfinite(y).all(axis=2)
-    never = [n for n, p in zip(model.marker_names, present.any(axis=0), strict=True) if not p]
-    if never:
-        raise DataError(
-            f"marker(s) {', '.join(never)} are missing in every frame of {data.source or 'the data'}",
-            "remove them from the model or use a trial in which they were tracked",
-        )
     if model.dim == 2 and y.shape[2] == 3:
         z = y[..., 2][present]
         spread = float(np.max(np.abs(z - z.mean())))
@@ -60,8 +228,69 @@ def prepare(model: Model, data: MarkerData) -> np.ndarray:
     return y
 
 
+def emit(found) -> tuple[Warning, ...]:
+    """Issue each :class:`~skelid.result.Warning` once as a :class:`SkelidWarning`; the unique ones, in order."""
+    out = []
+    for w in found:
+        if all(w.message != o.message for o in out):
+            out.append(w)
+            warnings.warn(w.message, SkelidWarning, stacklevel=3)
+    return tuple(out)
+
+
 def warn_once(message: str, record: list | None = None) -> None:
     """Issue a :class:`SkelidWarning` and keep its text for the JSON result."""
     warnings.warn(message, SkelidWarning, stacklevel=3)
     if record is not None and message not in record:
         record.append(message)
+
+
+def _status(s) -> str:
+    return {"unidentifiable": "unidentified"}.get(str(s), str(s)) if s else "identified"
+
+
+def parameter_unit(model: Model, k: int) -> str:
+    """Unit of parameter ``k``: degrees for axis tilts, the model's length unit otherwise."""
+    return "deg" if model.parameters[k].kind == "axis_direction" else model.units
+
+
+def build_result(est, posterior, *, noise=None, skipped=None, crlb_sd=None, extra=None, status=None,
+                 diagnostics=None, derived=None, arrays=None):
+    """The :class:`~skelid.result.FitResult` of a fitted estimator from its posterior and extras.
+
+    Parameters
+    ----------
+    posterior : GridPosterior, GaussianPosterior or SamplePosterior
+        With ``map``, ``mean``, ``sd`` and ``credible_interval(0.95)``, named as the model's parameters.
+    crlb_sd : (P,) float, optional
+    extra : dict, optional
+        ``{parameter: {key: value}}``.
+    status : dict, optional
+        ``{parameter: status}``; defaults to the rows of ``est.identifiability_`` if any.
+    derived : dict, optional
+        ``{name: {"value", "sd", "ci95"}}`` (joint-to-joint lengths).
+    """
+    from skelid.result import FitResult, FrameCounts, ParameterEstimate
+
+    model = est.model
+    ci = np.atleast_2d(posterior.credible_interval(0.95))
+    if status is None:
+        rows = getattr(est, "identifiability_", {}).get("table", [])
+        status = {r["parameter"]: r["status"] for r in rows}
+    params = {}
+    for k, n in enumerate(model.parameter_names):
+        crlb = None if crlb_sd is None or not np.isfinite(crlb_sd[k]) else float(crlb_sd[k])
+        params[n] = ParameterEstimate(n, parameter_unit(model, k), float(posterior.map[k]),
+                                      float(posterior.mean[k]), float(posterior.sd[k]),
+                                      (float(ci[k, 0]), float(ci[k, 1])), crlb_sd=crlb,
+                                      status=_status(status.get(n)), extra=(extra or {}).get(n, {}))
+    der = {n: ParameterEstimate(n, model.units, v["value"], v["value"], v["sd"], tuple(v["ci95"]))
+           for n, v in (derived or {}).items()}
+    used = np.asarray(est.frames_used_, bool)
+    arr = {k: np.asarray(v) for k, v in (arrays or {}).items() if v is not None}
+    return FitResult(
+        method=est.name, parameters=params, derived=der, noise=noise,
+        frames=FrameCounts(len(used), int(used.sum()), skipped or {}),
+        diagnostics=diagnostics or {}, warnings=tuple(est.warnings_),
+        settings={k: setting_json(v) for k, v in get_settings(est).items() if k not in ("theta0", "pose0")},
+        arrays=arr)

@@ -23,6 +23,16 @@ drops no frame that has enough markers to fix its pose. It carries the
 O(sigma^2) bias of the profile and Laplace likelihoods (no motion model, no
 bias correction); :class:`~skelid.estimators.marker.MarkerEstimator` is the
 batch estimator with both.
+
+Example
+-------
+>>> import numpy as np
+>>> from skelid.simulate import builtin_model, simulate
+>>> model = builtin_model("case-a")
+>>> trial = simulate(model, n_frames=80, sigma=5.0, rng=np.random.default_rng(0))
+>>> r = MarkerGridFilter(model, rng=0, axes=(np.linspace(230.0, 270.0, 41),)).fit(trial.data).result()
+>>> abs(r.parameters["L2"].mean - 250.0) < 4 * r.parameters["L2"].sd + 1.0
+True
 """
 
 from __future__ import annotations
@@ -32,11 +42,28 @@ from typing import NamedTuple
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.errors import ModelError
-from skelid.estimators.base import prepare, warn_once
+from skelid.errors import DataError, ModelError
+from skelid.estimators.base import (
+    RATE,
+    RNG,
+    Setting,
+    array_or_none,
+    build_result,
+    check_fitted,
+    check_settings,
+    emit,
+    make_rng,
+    marker_array,
+    one_of,
+    positive_int,
+    positive_or_none,
+    steps,
+)
+from skelid.estimators.joint import usable_frames
 from skelid.estimators.pose import FramePoseFitter, initial_pose
 from skelid.estimators.posterior import GridPosterior
 from skelid.model.description import Model
+from skelid.result import FitResult, NoiseEstimate, Warning
 
 
 class GridState(NamedTuple):
@@ -66,31 +93,46 @@ class MarkerGridFilter:
         Steps (frame counts) at which the posterior is stored.
     n_iter : int
         Pose iterations per frame and hypothesis in :meth:`update`.
-    rng : numpy.random.Generator, optional
+    rng : int, numpy.random.Generator or None
+    rate : float, optional
+        Sampling rate (Hz) of data given as an array; required then.
 
     Attributes
     ----------
     posterior_ : GridPosterior
+    state_ : GridState
+        The online state after the last frame.
     map_path_ : (T,) float
         Most likely value of the first parameter after each step.
     sigma_ : float
     frames_used_ : (T,) bool
+    warnings_ : tuple of Warning
     """
 
     name = "marker-grid"
+    settings = (
+        Setting("sigma", positive_or_none, "a positive noise level in model units, or None to estimate it",
+                cli="sigma"),
+        Setting("likelihood", one_of("laplace", "profile"), "'laplace' or 'profile'"),
+        Setting("axes", lambda v: v is None or all(array_or_none(a) and np.size(a) > 0 for a in v),
+                "None or one non-empty sequence of finite grid values per parameter"),
+        Setting("history_steps", steps, "a sequence of positive frame counts"),
+        Setting("n_iter", positive_int, "a positive number of iterations"),
+        RNG,
+        RATE,
+    )
 
     def __init__(self, model: Model, sigma: float | None = None, likelihood: str = "laplace",
                  axes=None, history_steps=(50, 100, 500), n_iter: int = 8,
-                 rng: np.random.Generator | None = None):
-        if likelihood not in ("laplace", "profile"):
-            raise ValueError("likelihood must be 'laplace' or 'profile'")
+                 rng: np.random.Generator | int | None = None, rate: float | None = None):
         self.model = model
         self.sigma = sigma
         self.likelihood = likelihood
         self.axes = axes
-        self.history_steps = tuple(int(s) for s in history_steps)
+        self.history_steps = history_steps
         self.n_iter = n_iter
         self.rng = rng
+        self.rate = rate
 
     # ---------------------------------------------------------------- grid
     def _axes(self):
@@ -158,11 +200,10 @@ class MarkerGridFilter:
         _, pts = self._points()
         n_coord = int(np.isfinite(frame).all(axis=-1).sum()) * self.model.dim
         step = state.n_frames + 1
-        usable = n_coord > self.model.n_pose
+        usable = bool(usable_frames(self.model, frame[None])[0])
         q = state.pose
         if usable and q is None:
-            rng = self.rng if self.rng is not None else np.random.default_rng(0)
-            q0, _ = initial_pose(self.model, self.model.theta_center, frame, rng)
+            q0, _ = initial_pose(self.model, self.model.theta_center, frame, make_rng(self.rng))
             q = np.broadcast_to(q0, (len(pts), self.model.n_pose))
         if usable:
             q, rss, logdet = self._frame_loglik_terms(pts, q, frame)
@@ -170,7 +211,7 @@ class MarkerGridFilter:
                               step, state.n_used + 1, state.history)
         else:
             state = state._replace(n_frames=step)
-        if step in self.history_steps:
+        if step in tuple(self.history_steps):
             lw = self._log_weights(state.rss, state.logdet, state.n_obs, state.n_used)
             state = state._replace(history=state.history + ((step, lw),))
         return state
@@ -181,10 +222,10 @@ class MarkerGridFilter:
         return GridPosterior(self.model.parameter_names, axes, lw, state.n_frames, state.history)
 
     # --------------------------------------------------------------- batch
-    def fit(self, data: MarkerData | np.ndarray) -> MarkerGridFilter:
+    def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerGridFilter:
         """Fold :meth:`update` over every frame (the one loop over frames)."""
-        y = prepare(self.model, data) if isinstance(data, MarkerData) else np.asarray(data, float)
-        self.warnings_ = []
+        check_settings(self)
+        y, _ = marker_array(self.model, data, self.rate)
         axes, _ = self._points()
         state = self.init_state()
         shape = tuple(a.size for a in axes)
@@ -196,23 +237,27 @@ class MarkerGridFilter:
             used[t] = state.n_used > n_before
             lw = self._log_weights(state.rss, state.logdet, state.n_obs, state.n_used)
             path[t] = axes[0][np.unravel_index(np.argmax(lw), shape)[0]]
+            if progress is not None:
+                progress(1)
         if not used.any():
-            raise ModelError("no frame has enough markers to fix the pose",
-                             "check that the file holds the model's markers")
+            raise DataError("no frame has enough markers to fix the pose",
+                            "check that the file holds the model's markers")
         self.state_ = state
         self.posterior_ = self.posterior(state)
         self.map_path_ = path
         self.sigma_ = float(np.sqrt(self._dof_sigma2(state.rss.min(), state.n_obs, state.n_used)))
         self.frames_used_ = used
+        found = []
         if (~used).any():
-            warn_once(f"{int((~used).sum())} of {len(y)} frames have too few markers to fix the pose "
-                      "and were skipped", self.warnings_)
+            found.append(Warning("frames-skipped", f"{int((~used).sum())} of {len(y)} frames have too few markers "
+                                 "to fix the pose and were skipped"))
+        self.warnings_ = emit(found)
         return self
 
-    def result(self) -> dict:
-        out = {"frames_used": int(self.frames_used_.sum()),
-               "frames_dropped": int((~self.frames_used_).sum())}
-        out.update(self.posterior_.summary())
-        out["sigma"] = {"value": self.sigma_, "fixed": self.sigma is not None}
-        out["warnings"] = list(self.warnings_)
-        return out
+    def result(self) -> FitResult:
+        """The typed result (:class:`~skelid.result.FitResult`)."""
+        check_fitted(self)
+        used = self.frames_used_
+        return build_result(self, self.posterior_, noise=NoiseEstimate(self.sigma_, fixed=self.sigma is not None),
+                            skipped={"too_few_coordinates": int((~used).sum())},
+                            arrays={"map_path": self.map_path_})

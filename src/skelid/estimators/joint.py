@@ -615,9 +615,16 @@ def newey_west(scores, lags: int) -> np.ndarray:
     return out
 
 
-def lag1_autocorrelation(resid, used) -> float:
-    """Mean lag-1 autocorrelation of the residual coordinates ``(T, M, D)`` over used frames."""
-    r = resid[used]
+def lag1_autocorrelation(x, used=None) -> float:
+    """Mean lag-1 autocorrelation of the series in ``x (T, ...)`` over the frames ``used`` (default: all).
+
+    Each column of ``x`` (a residual coordinate, a marker's residual distance, a per-frame
+    value) is one series; NaN entries are left out. Measurement noise gives values near 0,
+    slow drift (soft-tissue artefact) values near 1; fewer than 4 frames give 0.
+    """
+    r = np.asarray(x, float)
+    r = r if used is None else r[np.asarray(used, bool)]
+    r = r.reshape(len(r), -1)
     if len(r) < 4:
         return 0.0
     r = r - np.nanmean(r, axis=0)

@@ -1,5 +1,15 @@
 """The marker-space estimator: joint fit, bias removed, CRLB, sigma, honest interval.
 
+Model: marker ``m`` in frame ``t`` is seen at
+
+.. math:: y_{tm} = f_m(\\theta, q_t) + \\varepsilon_{tm}, \\qquad \\varepsilon_{tm} \\sim N(0, \\sigma^2 I_D),
+
+with geometry ``theta (P,)`` shared by all frames and a pose ``q_t (Q,)`` per frame; the
+motion model penalises rough poses, so the estimate is
+
+.. math:: (\\hat\\theta, \\hat q) = \\arg\\min \\sum_{t,m} \\lVert y_{tm} - f_m(\\theta, q_t) \\rVert^2
+          + q^\\top R\\, q .
+
 Steps (see :mod:`skelid.estimators.joint` for the equations):
 
 1. poses tracked at the prior centre, then joint least squares over ``theta``
@@ -14,18 +24,53 @@ Steps (see :mod:`skelid.estimators.joint` for the equations):
 
 A normal prior on a parameter is combined with the data's Gaussian
 approximation (precision-weighted); uniform priors only bound the search.
+
+Example
+-------
+>>> import numpy as np
+>>> from skelid.simulate import builtin_model, simulate
+>>> model = builtin_model("case-a")
+>>> trial = simulate(model, n_frames=80, sigma=5.0, rng=np.random.default_rng(0))
+>>> r = MarkerEstimator(model, rng=0).fit(trial.data).result()
+>>> abs(r.parameters["L2"].mean - 250.0) < 4 * r.parameters["L2"].sd + 1.0
+True
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.stats import chi2
 
-from skelid.data import MarkerData
-from skelid.errors import DataError, IdentifiabilityError
+from skelid.data import MarkerData, unit_scale
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError
 from skelid.estimators.artefact import artefact_covariance
-from skelid.estimators.base import prepare, warn_once
+from skelid.estimators.base import (
+    RATE,
+    RNG,
+    Setting,
+    array_or_none,
+    build_result,
+    check_fitted,
+    check_settings,
+    emit,
+    make_rng,
+    marker_array,
+    non_negative_or_none,
+    one_of,
+    positive_int,
+    positive_or_none,
+)
+from skelid.estimators.checks import (
+    DEFAULT_PLACEMENT_SD_MM,
+    PLACEMENT_SHARE,
+    model_misfit,
+    placement_information,
+)
+from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
+    JointFit,
     box_bias,
     choose_cutoffs,
     frame_scores,
@@ -44,11 +89,17 @@ from skelid.estimators.pose import track_poses
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances, marker_positions
+from skelid.result import FitResult, NoiseEstimate, Warning
 
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
+BIAS_RELIABLE = 0.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
+CONVERGED_SD = 0.1  # an unconverged fit whose estimate still moves by more than this many sd fails
+#: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
+POOR_FRACTION = 0.25
+Z95 = 1.959964  # two-sided 95 % normal quantile
 
 
 def frame_counts(model: Model, y, used=None) -> dict:
@@ -66,7 +117,7 @@ def frame_counts(model: Model, y, used=None) -> dict:
         Frames that entered the fit.
     """
     n = np.isfinite(y).all(axis=-1).sum(axis=-1) * model.dim
-    used = n > model.n_pose if used is None else np.asarray(used, bool)
+    used = usable_frames(model, y) if used is None else np.asarray(used, bool)
     surplus = n - model.n_pose
 
     def stats(v):
@@ -149,7 +200,7 @@ def identifiability(model: Model, info: np.ndarray, sigma: float, rel_tol: float
             in_null[model.parameter_names.index(n)] = True
     table = []
     for k, p in enumerate(model.parameters):
-        status = "unidentifiable" if in_null[k] else ("poor" if sd[k] > 0.25 * width[k] else "identified")
+        status = "unidentifiable" if in_null[k] else ("poor" if sd[k] > POOR_FRACTION * width[k] else "identified")
         table.append({"parameter": p.name, "crlb_sd": None if not np.isfinite(sd[k]) else float(sd[k]),
                       "status": status})
     out = {"table": table, "null": null,
@@ -172,6 +223,488 @@ def null_message(model: Model, null: list[dict]) -> str:
     return "; ".join(parts)
 
 
+# ============================================================================ stage values
+class Start(NamedTuple):
+    """What the fit starts from: markers, rate, starting geometry and poses, frames whose pose is fixed."""
+
+    y: np.ndarray  # (T, M, D) markers, model order and units
+    rate: float
+    theta0: np.ndarray  # (P,)
+    pose0: np.ndarray  # (T, Q)
+    bounds: tuple  # ((P,), (P,)) prior bounds
+    fixed: np.ndarray  # (T,) bool: the frame's markers fix every pose coordinate
+
+
+class Screen(NamedTuple):
+    """A first fit without motion model, and the glitched marker positions it left out."""
+
+    y: np.ndarray  # (T, M, D) with outliers NaN
+    fit: JointFit
+    fixed: np.ndarray  # (T,) bool
+    outliers: np.ndarray  # (T, M) bool
+
+
+class Motion(NamedTuple):
+    """The joint fit with the motion model (or the screening fit without one)."""
+
+    fit: JointFit
+    cutoff: float | np.ndarray | None  # Hz, per pose coordinate under 'auto'
+
+
+class Weights(NamedTuple):
+    """Per-marker noise levels and the fit weighted by them (``noise='per_marker'``), or the fit as it is."""
+
+    fit: JointFit
+    weights: np.ndarray | None  # (M,) sigma^2 / sigma_m^2
+    marker_sigma: np.ndarray | None  # (M,)
+    marker_dof: np.ndarray | None  # (M,)
+
+
+class Frames(NamedTuple):
+    used: np.ndarray  # (T,) bool
+    skipped: dict  # reason -> count
+
+
+class Noise(NamedTuple):
+    sigma: float
+    interval: np.ndarray  # (2,)
+    dof: float
+
+
+class Residuals(NamedTuple):
+    """Residual structure: distances, serial correlation, and the white noise level."""
+
+    distance: np.ndarray  # (T, M), NaN in frames not used
+    sta_score: float  # mean lag-1 autocorrelation of the residual coordinates
+    flagged: bool  # correlated beyond STA_AUTOCORRELATION and above the rounding level
+    sigma_white: float
+    misfit: dict  # joint -> angle-driven residual pattern shared by its segment's markers (checks.model_misfit)
+
+
+class Bias(NamedTuple):
+    bias: np.ndarray  # (P,)
+    method: str
+    fallback: dict | None = None  # the second-order bias that was too large to trust, and the bootstrap's
+
+
+class Covariance(NamedTuple):
+    info_inv: np.ndarray  # (P, P) S^{-1}
+    plain: np.ndarray  # sigma^2 S^{-1}
+    data: np.ndarray  # plain, or Newey-West widened, plus the artefact term
+    artefact: np.ndarray  # (P, P)
+    widened: bool
+    crlb_sd: np.ndarray  # (P,) with every pose free
+    crlb_motion_sd: np.ndarray  # (P,) with the motion model
+    jackknife: dict  # leave-one-marker-out summary (jackknife.jackknife_stage)
+    placement: dict  # where the information comes from, and the placement term added
+
+
+class Estimate(NamedTuple):
+    theta: np.ndarray  # (P,) bias-corrected, normal priors combined
+    cov: np.ndarray  # (P, P)
+
+
+class Summary(NamedTuple):
+    """Diagnostics decided from the values: final identifiability rows, still joints, lengths."""
+
+    table: list  # identifiability rows with the final sd and status
+    still: list  # joints that barely moved
+    lengths: dict  # derived joint-to-joint lengths
+
+
+class MarkerFit(NamedTuple):
+    """Every stage's value of one marker fit (see :meth:`MarkerEstimator.fit`)."""
+
+    start: Start
+    screen: Screen
+    motion: Motion
+    weights: Weights
+    frames: Frames
+    noise: Noise
+    ident: dict
+    pinned: np.ndarray  # (P,) bool: the profile estimate sits on a prior bound
+    residuals: Residuals
+    bias: Bias
+    cov: Covariance
+    estimate: Estimate
+    summary: Summary
+
+
+# ================================================================================ stages
+def start_stage(model: Model, y, rate, s: MarkerEstimator, rng) -> Start:
+    """Starting geometry and poses; which frames' markers fix the pose."""
+    if model.n_params == 0:
+        raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
+                                   "add a [[parameters]] table")
+    theta0 = model.theta_center if s.theta0 is None else np.asarray(s.theta0, float)
+    bounds = (np.array([p.prior.lower for p in model.parameters]),
+              np.array([p.prior.upper for p in model.parameters]))
+    pose0 = s.pose0
+    if pose0 is None:
+        stride = max(1, int(rate // 25))  # track at about 25 Hz, interpolate between
+        pose0, _ = track_poses(model, theta0, y, rng, stride=stride)
+    pose0 = np.asarray(pose0, float)
+    _, Jq0, _ = frame_terms(model, theta0, pose0, y)
+    fixed = pose_fixed(Jq0)
+    if not fixed.any():
+        raise IdentifiabilityError(
+            f"no frame's markers fix the pose of model {model.name!r}: "
+            f"{_undetermined(model, Jq0, y)} cannot be seen from the markers",
+            "add a marker on that segment or use a joint with fewer axes (hinge, universal)")
+    return Start(y, float(rate), theta0, pose0, bounds, fixed)
+
+
+def screen_stage(model: Model, st: Start, s: MarkerEstimator) -> Screen:
+    """Fit without motion model (a smoother would spread a glitch over its neighbours); leave out glitches."""
+    y, fixed = st.y, st.fixed
+    fit = joint_fit(model, y, st.theta0, st.pose0, n_iter=s.n_iter, bounds=st.bounds, frames=fixed)
+    out = np.zeros(y.shape[:2], dtype=bool)
+    if s.outlier_threshold is not None:
+        found = _outlying_markers(model, y, fit, s.outlier_threshold)
+        if found.any():  # drop them (they become missing, not replaced) and fit again
+            out = found
+            y = np.where(out[..., None], np.nan, y)
+            _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y)
+            fixed = pose_fixed(Jq0)
+            fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed)
+    return Screen(y, fit, fixed, out)
+
+
+def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Motion:
+    """The joint fit with the motion model, from the tracked poses and from the screening fit."""
+    rate = st.rate
+    cutoff = s.cutoff or None  # 0: no motion model
+    if isinstance(cutoff, int | float) and cutoff >= rate / 2:
+        cutoff = None  # no smoothing at or above the Nyquist frequency
+    if isinstance(cutoff, str):  # "auto": per-coordinate cutoffs from the motion, at least 6 Hz
+        cutoff = np.maximum(choose_cutoffs(model, sc.fit.pose, sc.fit.frames_used, rate),
+                            min(MIN_AUTO_CUTOFF, rate / 2))
+    if cutoff is None:
+        return Motion(sc.fit, None)
+    # the motion model makes pose branches stick: keep the start with the lower penalised cost
+    fits = [joint_fit(model, sc.y, th, qq, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
+                      cutoff=cutoff)
+            for th, qq in ((st.theta0, st.pose0), (sc.fit.theta, sc.fit.pose))]
+    fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
+    return Motion(fit, cutoff)
+
+
+def weights_stage(model: Model, st: Start, sc: Screen, mo: Motion, s: MarkerEstimator) -> Weights:
+    """Per-marker noise levels and the weighted refit (see :mod:`skelid.estimators.noise`)."""
+    if s.noise == "pooled":
+        return Weights(mo.fit, None, None, None)
+
+    def refit(weights, prev):
+        return joint_fit(model, sc.y, prev.theta, prev.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                         rate=st.rate, cutoff=mo.cutoff, weights=weights)
+
+    groups = marker_groups(model.marker_names, s.marker_groups)
+    fit, w, sig, dof, _ = per_marker_fit(model, sc.y, refit, mo.fit, groups)
+    return Weights(fit, w, sig, dof)
+
+
+def frames_stage(model: Model, sc: Screen, fit: JointFit) -> Frames:
+    usable = usable_frames(model, sc.y)
+    used = fit.frames_used
+    if used.sum() == 0:
+        raise DataError("no frame has enough markers to fix the pose",
+                        "check that the file holds the model's markers")
+    return Frames(used, {"too_few_coordinates": int((~usable).sum()),
+                         "pose_not_fixed": int((usable & ~sc.fixed).sum())})
+
+
+def noise_stage(model: Model, fit: JointFit, sigma: float | None) -> Noise:
+    """``sigma^2 = RSS / (n_obs - pose dof - P)`` with a chi-square interval, or the user's value."""
+    dof = fit.n_obs - fit.pose_dof - model.n_params
+    if dof <= 0:
+        raise IdentifiabilityError(
+            f"{fit.n_obs} marker coordinates cannot inform {model.n_params} parameters and "
+            f"{model.n_pose} pose coordinates per frame (each frame must give more coordinates than pose "
+            "coordinates)", "add markers or remove parameters")
+    if sigma is not None:
+        return Noise(float(sigma), np.array([sigma, sigma], float), dof)
+    return Noise(float(np.sqrt(fit.rss / dof)), np.sqrt(fit.rss / chi2.ppf([0.975, 0.025], dof)), dof)
+
+
+def identify_stage(model: Model, st: Start, sc: Screen, fr: Frames, fit: JointFit, noise: Noise,
+                   on_bound: str) -> tuple[dict, np.ndarray]:
+    """Identifiability table, and the parameters whose profile estimate sits on a prior bound."""
+    ident = identifiability(model, fit.info, noise.sigma, y=sc.y, pose=fit.pose, used=fr.used)
+    if ident["null"]:
+        raise IdentifiabilityError(
+            f"the data cannot identify {null_message(model, ident['null'])} (no information "
+            "about this for this motion and these markers)",
+            "fix one of these parameters (remove it from [[parameters]]) or record more varied motion")
+    lo, hi = st.bounds
+    width = hi - lo
+    pinned = (fit.theta <= lo + 1e-6 * width) | (fit.theta >= hi - 1e-6 * width)
+    if pinned.any() and model.n_params == 1 and on_bound == "error":
+        p = model.parameters[0]
+        raise IdentifiabilityError(
+            f"no solution inside the interval [{p.prior.lower:g}, {p.prior.upper:g}] of parameter "
+            f"{p.name}: the best fit sits on the bound {fit.theta[0]:g} {model.units}",
+            "widen the parameter's prior bounds or check the model's marker positions")
+    return ident, pinned
+
+
+def residual_stage(model: Model, y, fit: JointFit, used, sigma: float, w=None) -> Residuals:
+    """Soft-tissue artefact shows as slow, correlated residuals; its white part drives the bias."""
+    resid = y - marker_positions(model, fit.theta, fit.pose)
+    score = lag1_autocorrelation(resid, used)
+    # residuals at the file's rounding level (noise-free data) are not soft-tissue artefact
+    numerical = sigma <= NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
+    # with slow, correlated residuals the white noise comes from frame-to-frame differences,
+    # which a slow drift barely touches
+    dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
+    white = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else sigma
+    misfit = model_misfit(model, y, fit.theta, fit.pose, used, white)
+    return Residuals(np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan), score,
+                     bool(score > STA_AUTOCORRELATION and not numerical), white, misfit)
+
+
+def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weights, used, noise: Noise,
+               res: Residuals, rng) -> Bias:
+    """Second-order (Box) bias at the estimate, or a parametric bootstrap, or none."""
+    model, fit, w = est.model, wt.fit, wt.weights
+    sigma2 = noise.sigma**2
+    sigma2_bias = min(sigma2, res.sigma_white**2) if res.flagged else sigma2
+    method = "box" if est.bias_correction in (True, "auto") else est.bias_correction
+    method = "none" if method is False else method
+    y = sc.y
+    if method == "box":
+        if fit.penalty is None:
+            b = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w)
+        else:
+            b = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
+                              sigma2_bias, fit.penalty, weights=w)
+        sd = noise.sigma * np.sqrt(np.clip(np.diag(np.linalg.inv(fit.info)), 0, None))
+        if est.bias_correction in ("auto", True) and np.any(np.abs(b) > BIAS_RELIABLE * sd):
+            # the second-order expansion is unreliable here (near a singular pose): the bias of this
+            # fit under the fitted model is measured by simulation instead
+            boot = est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng)
+            k = int(np.argmax(np.abs(b) / np.maximum(sd, 1e-300)))
+            return Bias(boot, "bootstrap", {"box": b.tolist(), "bootstrap": boot.tolist(), "n_boot": est.n_boot,
+                                            "parameter": model.parameter_names[k], "sd": float(sd[k])})
+        return Bias(b, method)
+    if method == "bootstrap":
+        return Bias(est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng), method)
+    return Bias(np.zeros(model.n_params), method)
+
+
+def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise,
+                     res: Residuals, ident: dict | None = None, rng=None) -> Covariance:
+    """``sigma^2 S^{-1}``; Newey-West when the residuals are correlated; the stated artefact's term."""
+    model, y, fit, w = est.model, sc.y, wt.fit, wt.weights
+    info_inv = np.linalg.inv(fit.info)
+    plain = noise.sigma**2 * info_inv
+    # the bound with every pose a free unknown (no motion model), at the estimate
+    _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
+    crlb = crlb_sd(efficient_information(Jq_u, Jt_u, noise.sigma))
+    widened = est.robust == "always" or (est.robust == "auto" and res.flagged)
+    cov = plain
+    y_used = np.where(used[:, None, None], y, np.nan)
+    if widened:
+        if fit.penalty is None:
+            scores = frame_scores(model, y[used], fit.theta, fit.pose[used], weights=w)
+        else:
+            scores = smoothed_frame_scores(model, y_used, fit.theta, fit.pose, fit.penalty, weights=w)[used]
+        cov_nw = info_inv @ newey_west(scores, _bandwidth(res.sta_score, len(scores))) @ info_inv
+        cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
+    # the part of a soft-tissue artefact that mimics a geometry change leaves no residual: with its
+    # size stated, its effect on the estimate is added (a random-effect model of the artefact)
+    artefact = np.zeros((model.n_params, model.n_params))
+    if est.artefact_rms:
+        artefact = artefact_covariance(model, y_used, fit.theta, fit.pose, fit.penalty,
+                                       float(est.artefact_rms), used)
+        cov = cov + artefact
+    # one marker's artefact that moves the estimate shows when that marker is left out
+    jack = {"available": False, "folded": False}
+    if est.jackknife:
+        cov, jack, _ = jackknife_stage(model, y_used, fit, noise.sigma, cov, fold_in=not est.artefact_rms,
+                                       rng=rng, weights=w)
+    cov, place = placement_stage(est, y_used, fit, used, w, ident or {}, cov)
+    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place)
+
+
+def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator) -> Weights:
+    """A fit that stopped early is continued once; if its estimate still moves by more than
+    ``CONVERGED_SD`` of its sd, no interval is reported (one line)."""
+    fit = wt.fit
+    if fit.converged:
+        return wt
+    more = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                     rate=st.rate if mo.cutoff is not None else None, cutoff=mo.cutoff, weights=wt.weights)
+    dof = max(more.n_obs - more.pose_dof - model.n_params, 1.0)
+    try:
+        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
+    except np.linalg.LinAlgError:
+        return wt._replace(fit=more)
+    step = np.abs(more.theta - fit.theta)
+    if not more.converged and np.any(step > CONVERGED_SD * np.maximum(sd, 1e-300)):
+        k = int(np.argmax(step / np.maximum(sd, 1e-300)))
+        raise ConvergenceError(
+            f"the joint fit did not converge: {model.parameter_names[k]} still moved by {step[k]:.3g} "
+            f"({step[k] / max(sd[k], 1e-300):.1f} sd) in {s.n_iter} further iterations, so no interval "
+            "can be given", "raise n_iter, or check the model's starting geometry and the data")
+    return wt._replace(fit=more)
+
+
+def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
+    """Flag parameters informed by the nominal marker placement; add its uncertainty to ``cov``.
+
+    See :func:`skelid.estimators.checks.placement_information`. The placement's standard
+    deviation is ``placement_sd`` when stated; otherwise ``DEFAULT_PLACEMENT_SD_MM`` for a trial
+    whose joints all moved less than ``STILL_JOINT_DEG`` (a static trial), and none for a trial
+    with motion (the flag is then reported without a warning).
+    """
+    model = est.model
+    place = placement_information(model, y_used, fit.theta, fit.pose, used, fit.penalty, w)
+    share = place["share_still"]
+    flagged = share > PLACEMENT_SHARE
+    ranges = [max(r) for r in ident.get("joint_range_deg", {}).values()]
+    static = bool(ranges) and max(ranges) < STILL_JOINT_DEG
+    if est.placement_sd is not None:
+        sd = float(est.placement_sd)
+    else:
+        sd = DEFAULT_PLACEMENT_SD_MM * unit_scale("mm", model.units) if static else 0.0
+    added = sd**2 * place["cov_per_unit"] if flagged.any() else np.zeros_like(cov)
+    out = {"placement_sd": sd, "static": static, "min_share": float(share[flagged].min()) if flagged.any() else 0.0,
+           "parameters": {n: {"share_from_still_pose": round(float(share[k]), 3),
+                              "informed_by_placement": bool(flagged[k]),
+                              "sd_added": float(np.sqrt(max(added[k, k], 0.0)))}
+                          for k, n in enumerate(model.parameter_names)}}
+    return cov + added, out
+
+
+def summary_stage(model: Model, ident: dict, est: Estimate) -> Summary:
+    """The final identifiability rows (the final interval also decides 'poor'), still joints, lengths."""
+    sd = np.sqrt(np.clip(np.diag(est.cov), 0.0, None))
+    table = []
+    for k, row in enumerate(ident["table"]):
+        p = model.parameters[k]
+        row = dict(row, sd=float(sd[k]))
+        if row["status"] == "identified" and sd[k] > POOR_FRACTION * (p.prior.upper - p.prior.lower):
+            row["status"] = "poor"
+        table.append(row)
+    functional = {p.target for p in model.parameters if p.kind in ("joint_centre", "axis_direction")}
+    still = [j for j, r in ident.get("joint_range_deg", {}).items()
+             if j in functional and max(r) < STILL_JOINT_DEG]
+    return Summary(table, still, derived_lengths(model, est.theta, est.cov))
+
+
+def derived_lengths(model: Model, theta, cov) -> dict:
+    """Joint-to-joint lengths with their sd (delta method) and 95 % interval."""
+    lengths, grad = joint_distances(model, theta)
+    sd = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
+    return {name: {"value": float(v), "sd": float(e), "ci95": [float(v - Z95 * e), float(v + Z95 * e)]}
+            for (name, _), v, e in zip(model.derived_lengths, lengths, sd, strict=True)}
+
+
+def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """The warnings a marker fit deserves, decided from its values."""
+    out = []
+    names = np.array(model.parameter_names)
+    out_ = f.screen.outliers
+    if out_.any():
+        out.append(Warning("outliers", f"{int(out_.sum())} marker positions in {int(out_.any(axis=1).sum())} "
+                           f"frames lie more than {s.outlier_threshold:g} robust standard deviations from the "
+                           "fitted model (mislabelled or glitched markers?) and were left out"))
+    n_skip = int((~f.frames.used).sum())
+    if n_skip:
+        out.append(Warning("frames-skipped", f"{n_skip} of {len(f.frames.used)} frames have too few markers "
+                           "to fix the pose and were skipped"))
+    if f.pinned.any():
+        pinned = tuple(names[f.pinned])
+        out.append(Warning("on-bound", f"parameter(s) {', '.join(pinned)} ended on a bound of their prior "
+                           "interval: the data do not pin them inside it", pinned) if model.n_params > 1 else
+                   Warning("on-bound", f"parameter {pinned[0]} ended on a bound of its prior interval: the "
+                           "data do not pin it inside it", pinned))
+    for k, row in enumerate(f.ident["table"]):
+        if row["status"] == "poor":
+            out.append(Warning("poorly-identified", f"parameter {row['parameter']} is poorly identified for "
+                               f"this motion (Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than "
+                               "a quarter of its prior range)", (row["parameter"],)))
+    misfit = [j for j, v in f.residuals.misfit.items() if v["flagged"]]
+    for j in misfit:
+        v = f.residuals.misfit[j]
+        out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
+                           f"with the joint angle (rms {v['rms']:.3g} {model.units}), which the joint model cannot "
+                           "follow (a joint centre that moves with the angle?); this is not soft-tissue artefact"))
+    if f.residuals.flagged:
+        then = ("so the interval was widened (Newey-West)" if f.cov.widened else
+                "but the interval was not widened (robust='never')")
+        what = "model misfit (above)" if misfit else "soft-tissue artefact"
+        out.append(Warning("model-misfit" if misfit else "soft-tissue-artefact",
+                           f"residuals are serially correlated (lag-1 autocorrelation "
+                           f"{f.residuals.sta_score:.2f}): they look like {what}, {then}"))
+    fb = f.bias.fallback
+    if fb:
+        k = model.parameter_names.index(fb["parameter"])
+        out.append(Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
+                           f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
+                           f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
+                           "refits) instead", (fb["parameter"],)))
+    jk = f.cov.jackknife
+    if jk.get("folded"):
+        k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
+        v = jk["parameters"][k]
+        out.append(Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
+                           f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
+                           f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,)))
+    pl = f.cov.placement
+    flagged_p = tuple(n for n, v in pl["parameters"].items() if v["informed_by_placement"])
+    if flagged_p and (pl["static"] or pl["placement_sd"] > 0):  # with motion the flag stays in the result
+        tail = (f"; a marker placement uncertainty of {pl['placement_sd']:.3g} {model.units} per coordinate was "
+                "added to the interval" if pl["placement_sd"] > 0 else
+                "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
+        out.append(Warning("placement-informed", f"parameter(s) {', '.join(flagged_p)} are informed by the "
+                           "markers' nominal placement on their segments, not by motion (one still pose gives "
+                           f"{100 * pl['min_share']:.0f} % or more of their precision): their value follows "
+                           f"from the model's marker positions{tail}", flagged_p))
+    for k, (before, after) in enumerate(zip(f.ident["table"], f.summary.table, strict=True)):
+        if before["status"] == "identified" and after["status"] == "poor":
+            out.append(Warning("poorly-identified", f"parameter {after['parameter']} is poorly identified for "
+                               f"this motion (sd {after['sd']:.3g} {_unit(model, k)} is more than a quarter of "
+                               "its prior range)", (after["parameter"],)))
+    if f.summary.still:
+        out.append(Warning("still-joint", f"joint(s) {', '.join(f.summary.still)} moved less than "
+                           f"{STILL_JOINT_DEG:g} degrees: their centres and axes are informed only by tiny "
+                           "motions (a static trial cannot locate a joint functionally)"))
+    if not f.weights.fit.converged:
+        out.append(Warning("not-converged", "the joint fit stopped before converging; the estimate may be off"))
+    theta = f.estimate.theta
+    for k, p in enumerate(model.parameters):
+        if not p.prior.lower <= theta[k] <= p.prior.upper:
+            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
+                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
+    return out
+
+
+def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error") -> MarkerFit:
+    """The stages of a marker fit, each returning a small immutable value.
+
+    screen -> joint fit -> per-marker weights -> noise -> identifiability -> residuals -> bias -> covariance -> priors
+    -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
+    """
+    model = est.model
+    st = start_stage(model, y, rate, est, rng)
+    sc = screen_stage(model, st, est)
+    mo = motion_stage(model, st, sc, est)
+    wt = weights_stage(model, st, sc, mo, est)
+    wt = converge_stage(model, st, sc, mo, wt, est)
+    fit = wt.fit
+    fr = frames_stage(model, sc, fit)
+    noise = noise_stage(model, fit, est.sigma)
+    ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound)
+    res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
+    bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
+    cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
+    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data))
+    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
+                     summary_stage(model, ident, estimate))
+
+
+# ============================================================================== estimator
 class MarkerEstimator:
     """Bias-corrected joint estimate of the model's parameters from marker coordinates.
 
@@ -180,29 +713,51 @@ class MarkerEstimator:
     model : Model
     sigma : float, optional
         Marker noise standard deviation (model units); estimated if not given.
-    bias_correction : bool
-        Subtract the second-order bias (default True). False gives the plain
-        profile (joint least-squares) estimate.
+    cutoff : float, 'auto' or None
+        Motion-model cutoff (Hz); 'auto' chooses one per pose coordinate; None: no motion model.
+    bias_correction : {'auto', 'box', 'bootstrap', 'none'}
+        Subtract the second-order bias (default); 'none' gives the plain profile
+        (joint least-squares) estimate.
+    n_boot : int
+        Replicates of the 'bootstrap' bias.
     robust : {'auto', 'always', 'never'}
         Use the Newey-West covariance when residuals look like soft-tissue
         artefact ('auto'), always, or never.
-    rng : numpy.random.Generator, optional
-        For the random starts of poses that rigid fits of the segments do not give.
+    rng : int, numpy.random.Generator or None
+        Seed (a fresh generator on every fit) or generator for the random starts of poses that rigid
+        fits of the segments do not give.
+    n_iter : int
+        Joint-fit iterations at most.
+    rate : float, optional
+        Sampling rate (Hz) of data given as an array; required then.
+    outlier_threshold : float or None
+        Marker positions whose residual distance after a first fit exceeds this
+        many robust standard deviations are left out and the fit repeated
+        (None: keep every position).
     artefact_rms : float, optional
         Stated root-mean-square soft-tissue artefact of a marker coordinate (model
         units). The covariance it adds to the estimate (the part of the artefact that
         mimics a geometry change, see :mod:`skelid.estimators.artefact`) widens the
         interval. None: no artefact term.
-    outlier_threshold : float or None
-        Marker positions whose residual distance after a first fit exceeds this
-        many robust standard deviations are left out and the fit repeated
-        (None: keep every position).
     noise : {'pooled', 'per_marker'}
         One noise level for every marker, or each marker (or declared group) its
         own, estimated from its residuals and used as weights in the fit
         (see :mod:`skelid.estimators.noise`).
     marker_groups : dict of str to list of str, optional
         With ``noise='per_marker'``: markers that share one noise level.
+    jackknife : bool
+        Leave each marker out (one-step refits, :mod:`skelid.estimators.jackknife`) and
+        add the markers' disagreement beyond white noise to the covariance (only
+        reported when ``artefact_rms`` is stated).
+    placement_sd : float, optional
+        Standard deviation (model units, per coordinate) of each marker's placement on its
+        segment; it widens the interval of parameters informed by the placement rather than
+        by motion (:func:`skelid.estimators.checks.placement_information`). None: 5 mm for a
+        static trial, none otherwise.
+    theta0 : (P,) float, optional
+        Starting geometry (default: the prior centre).
+    pose0 : (T, Q) float, optional
+        Starting poses (default: tracked at the starting geometry).
 
     Attributes
     ----------
@@ -222,8 +777,7 @@ class MarkerEstimator:
         Residual distance of each marker in each frame (NaN where missing and
         in frames skipped).
     outliers_ : (T, M) bool
-        Marker positions left out as outliers (residual distance beyond
-        ``outlier_threshold`` robust standard deviations after a first fit).
+        Marker positions left out as outliers.
     frames_skipped_ : dict
         Frames left out because they have no more coordinates than pose
         coordinates, or because their markers do not fix every pose coordinate.
@@ -247,19 +801,41 @@ class MarkerEstimator:
         Each marker's noise level with ``noise='per_marker'`` (NaN without data).
     marker_weights_ : (M,) float or None
         The weights of the fit (``sigma_^2 / marker_sigma_^2`` up to rounding).
-    warnings_ : list of str
+    fit_ : MarkerFit
+        Every stage's value.
+    warnings_ : tuple of Warning
     """
 
     name = "marker"
-    #: a one-parameter fit that ends on a prior bound is an error (its normal posterior would
-    #: straddle the bound); an estimator that can represent a posterior against a bound turns it off
-    bound_is_error = True
+    settings = (
+        Setting("sigma", positive_or_none, "a positive noise level in model units, or None to estimate it",
+                cli="sigma"),
+        Setting("cutoff", lambda v: v == "auto" or non_negative_or_none(v),
+                "'auto', a cutoff >= 0 Hz, or None for no motion model", cli="cutoff"),
+        Setting("bias_correction", one_of("auto", "box", "bootstrap", "none", True, False),
+                "'auto', 'box', 'bootstrap' or 'none'"),
+        Setting("n_boot", positive_int, "a positive number of bootstrap replicates"),
+        Setting("robust", one_of("auto", "always", "never"), "'auto', 'always' or 'never'"),
+        RNG,
+        Setting("n_iter", positive_int, "a positive number of iterations"),
+        RATE,
+        Setting("outlier_threshold", positive_or_none, "a positive number of robust sd, or None"),
+        Setting("artefact_rms", non_negative_or_none, "a distance >= 0 in model units, or None",
+                cli="artefact_rms"),
+        Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'"),
+        Setting("marker_groups", lambda v: v is None or isinstance(v, dict), "None or {group: [marker names]}"),
+        Setting("jackknife", lambda v: isinstance(v, bool), "True or False"),
+        Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
+        Setting("theta0", array_or_none, "None or finite starting values, one per parameter"),
+        Setting("pose0", array_or_none, "None or finite starting poses (frames, pose coordinates)"),
+    )
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
-                 rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
+                 rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
-                 noise: str = "pooled", marker_groups: dict | None = None):
+                 noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None,
+                 jackknife: bool = True, placement_sd: float | None = None):
         self.model = model
         self.sigma = sigma
         self.cutoff = cutoff
@@ -273,230 +849,56 @@ class MarkerEstimator:
         self.artefact_rms = artefact_rms
         self.noise = noise
         self.marker_groups = marker_groups
+        self.jackknife = jackknife
+        self.placement_sd = placement_sd
+        self.theta0 = theta0
+        self.pose0 = pose0
 
-    def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> MarkerEstimator:
-        """Fit a whole trial; ``theta0``/``pose0`` optionally give the starting point."""
-        model = self.model
-        rate = data.rate if isinstance(data, MarkerData) else self.rate
-        cutoff = self.cutoff if (self.cutoff and rate) else None
-        if isinstance(cutoff, int | float) and cutoff >= rate / 2:
-            cutoff = None  # no smoothing at or above the Nyquist frequency
-        if model.n_params == 0:
-            raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
-                                       "add a [[parameters]] table")
-        y = prepare(model, data) if isinstance(data, MarkerData) else np.asarray(data, float)
-        self.warnings_ = []
-        rng = self.rng if self.rng is not None else np.random.default_rng(0)
-        theta0 = model.theta_center if theta0 is None else np.asarray(theta0, float)
-        bounds = (np.array([p.prior.lower for p in model.parameters]),
-                  np.array([p.prior.upper for p in model.parameters]))
-        if pose0 is None:
-            stride = max(1, int(rate // 25)) if rate else 1  # track at about 25 Hz, interpolate between
-            pose0, _ = track_poses(model, theta0, y, rng, stride=stride)
-        # a frame whose markers do not fix every pose coordinate is skipped (and counted)
-        _, Jq0, _ = frame_terms(model, theta0, pose0, y)
-        fixed = pose_fixed(Jq0)
-        if not fixed.any():
-            raise IdentifiabilityError(
-                f"no frame's markers fix the pose of model {model.name!r}: "
-                f"{_undetermined(model, Jq0, y)} cannot be seen from the markers",
-                "add a marker on that segment or use a joint with fewer axes (hinge, universal)")
-        # a first fit without motion model screens glitched markers (a smoother would spread a
-        # glitch over its neighbours) and gives the per-frame poses that set the cutoffs
-        fit = joint_fit(model, y, theta0, pose0, n_iter=self.n_iter, bounds=bounds, frames=fixed)
-        self.outliers_ = np.zeros(y.shape[:2], dtype=bool)
-        if self.outlier_threshold is not None:
-            out = _outlying_markers(model, y, fit, self.outlier_threshold)
-            if out.any():  # drop them (they become missing, not replaced) and fit again
-                self.outliers_ = out
-                y = np.where(out[..., None], np.nan, y)
-                _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y)
-                fixed = pose_fixed(Jq0)
-                fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
-                                frames=fixed)
-                warn_once(f"{int(out.sum())} marker positions in {int(out.any(axis=1).sum())} frames lie "
-                          f"more than {self.outlier_threshold:g} robust standard deviations from the "
-                          "fitted model (mislabelled or glitched markers?) and were left out", self.warnings_)
-        if isinstance(cutoff, str):  # "auto": per-coordinate cutoffs from the motion, at least 6 Hz
-            cutoff = np.maximum(choose_cutoffs(model, fit.pose, fit.frames_used, rate),
-                                min(MIN_AUTO_CUTOFF, rate / 2))
-        self.cutoff_ = cutoff
-        if cutoff is not None:
-            # the motion model makes pose branches stick: start from the tracked poses and from the
-            # screening fit, and keep the lower penalised cost
-            fits = [joint_fit(model, y, th, qq, n_iter=self.n_iter, bounds=bounds, frames=fixed,
-                              rate=rate, cutoff=cutoff)
-                    for th, qq in ((theta0, pose0), (fit.theta, fit.pose))]
-            fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
-        fit, w = self._noise_levels(y, fit, bounds, fixed, rate, cutoff)
-        used = fit.frames_used
-        n_skip = int((~used).sum())
-        self.frames_skipped_ = {"too_few_coordinates": int((~usable_frames(model, y)).sum()),
-                                "pose_not_fixed": int((usable_frames(model, y) & ~fixed).sum())}
-        if used.sum() == 0:
-            raise DataError("no frame has enough markers to fix the pose",
-                            "check that the file holds the model's markers")
-        if n_skip:
-            warn_once(f"{n_skip} of {len(y)} frames have too few markers to fix the pose "
-                      "and were skipped", self.warnings_)
-        Q, P = model.n_pose, model.n_params
-        dof = fit.n_obs - fit.pose_dof - P
-        if dof <= 0:
-            raise IdentifiabilityError(
-                f"{fit.n_obs} marker coordinates cannot inform {P} parameters and "
-                f"{Q} pose coordinates per frame (each frame must give more coordinates than pose "
-                "coordinates)", "add markers or remove parameters")
-        if self.sigma is None:
-            sigma2 = fit.rss / dof
-            self.sigma_ci_ = np.sqrt(fit.rss / chi2.ppf([0.975, 0.025], dof))
-        else:
-            sigma2 = float(self.sigma) ** 2
-            self.sigma_ci_ = np.array([self.sigma, self.sigma], float)
-        self.sigma_ = float(np.sqrt(sigma2))
-        ident = identifiability(model, fit.info, self.sigma_, y=y, pose=fit.pose, used=used)
-        self.identifiability_ = ident
-        if ident["null"]:
-            raise IdentifiabilityError(
-                f"the data cannot identify {null_message(model, ident['null'])} (no information "
-                "about this for this motion and these markers)",
-                "fix one of these parameters (remove it from [[parameters]]) or record more varied motion")
-        width = bounds[1] - bounds[0]
-        pinned = (fit.theta <= bounds[0] + 1e-6 * width) | (fit.theta >= bounds[1] - 1e-6 * width)
-        if pinned.any() and model.n_params > 1:
-            warn_once(f"parameter(s) {', '.join(np.array(model.parameter_names)[pinned])} ended on a "
-                      "bound of their prior interval: the data do not pin them inside it", self.warnings_)
-        elif pinned.any() and not self.bound_is_error:
-            warn_once(f"parameter {model.parameter_names[0]} ended on a bound of its prior interval: the "
-                      "data do not pin it inside it", self.warnings_)
-        elif pinned.any():
-            k = int(np.flatnonzero(pinned)[0])
-            p = model.parameters[k]
-            raise IdentifiabilityError(
-                f"no solution inside the interval [{p.prior.lower:g}, {p.prior.upper:g}] of parameter "
-                f"{p.name}: the best fit sits on the bound {fit.theta[k]:g} {model.units}",
-                "widen the parameter's prior bounds or check the model's marker positions")
-        for k, row in enumerate(ident["table"]):
-            if row["status"] == "poor":
-                warn_once(f"parameter {row['parameter']} is poorly identified for this motion "
-                          f"(Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than a quarter "
-                          "of its prior range)", self.warnings_)
-        info_inv = np.linalg.inv(fit.info)
-        self.theta_profile_ = fit.theta
-        # residual structure: soft-tissue artefact shows as slow, correlated residuals
-        x = marker_positions(model, fit.theta, fit.pose)
-        resid = y - x
-        self.residuals_ = np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan)
-        self.sta_score_ = lag1_autocorrelation(resid, used)
-        # residuals at the file's rounding level (noise-free data) are not soft-tissue artefact
-        numerical = self.sigma_ <= NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
-        flagged = self.sta_score_ > STA_AUTOCORRELATION and not numerical
-        # the noise that drives the second-order bias is the white part of the residuals:
-        # with slow, correlated residuals (soft-tissue artefact, model misfit) it is
-        # estimated from frame-to-frame differences, which a slow drift barely touches
-        dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
-        self.sigma_white_ = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else self.sigma_
-        sigma2_bias = min(sigma2, self.sigma_white_**2) if flagged else sigma2
-        method = self.bias_correction
-        if method is True or method == "auto":
-            method = "box"
-        if method == "box" and fit.penalty is None:
-            self.bias_ = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w)
-        elif method == "box":
-            self.bias_ = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta,
-                                       fit.pose, sigma2_bias, fit.penalty, weights=w)
-        elif method == "bootstrap":
-            self.bias_ = self._bootstrap_bias(y, fit, np.sqrt(sigma2), rate, cutoff, bounds, rng)
-        elif method is False or method == "none":
-            self.bias_ = np.zeros(P)
-        else:
-            raise ValueError("bias_correction must be 'auto', 'box', 'bootstrap' or 'none'")
-        self.bias_method_ = method
-        theta = fit.theta - self.bias_
-        cov = sigma2 * info_inv
-        self.crlb_motion_sd_ = np.sqrt(np.diag(cov))
-        # the bound with every pose a free unknown (no motion model), at the estimate
-        _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
-        self.crlb_sd_ = crlb_sd(efficient_information(Jq_u, Jt_u, self.sigma_))
-        if flagged:
-            warn_once(f"residuals are serially correlated (lag-1 autocorrelation "
-                      f"{self.sta_score_:.2f}): they look like soft-tissue artefact, so the "
-                      "interval was widened (Newey-West)", self.warnings_)
-        self.cov_plain_ = cov
-        self.widened_ = self.robust == "always" or (self.robust == "auto" and flagged)
-        if self.widened_:
-            if fit.penalty is None:
-                scores = frame_scores(model, y[used], fit.theta, fit.pose[used], weights=w)
-            else:
-                scores = smoothed_frame_scores(model, np.where(used[:, None, None], y, np.nan),
-                                               fit.theta, fit.pose, fit.penalty, weights=w)[used]
-            lags = _bandwidth(self.sta_score_, len(scores))
-            cov_nw = info_inv @ newey_west(scores, lags) @ info_inv
-            cov = cov_nw if np.all(np.diag(cov_nw) >= np.diag(cov)) else np.maximum(cov, cov_nw)
-        # the part of a soft-tissue artefact that mimics a geometry change leaves no residual: with its
-        # size stated, its effect on the estimate is added (a random-effect model of the artefact)
-        self.cov_artefact_ = np.zeros((P, P))
-        if self.artefact_rms:
-            self.cov_artefact_ = artefact_covariance(
-                model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose, fit.penalty,
-                float(self.artefact_rms), used)
-            cov = cov + self.cov_artefact_
-        self.cov_data_ = cov
-        theta, cov = _combine_normal_priors(model, theta, cov)
-        self.cov_ = cov
-        self.theta_ = theta
-        self.pose_ = fit.pose
-        self.y_ = np.where(used[:, None, None], y, np.nan)
-        self.frames_used_ = used
-        self.fit_info_ = fit
-        self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
-        # the final interval (widened for correlated residuals) also decides "poor"
-        sd_post = self.posterior_.sd
-        for k, row in enumerate(ident["table"]):
-            p = model.parameters[k]
-            row["sd"] = float(sd_post[k])
-            if row["status"] == "identified" and sd_post[k] > 0.25 * (p.prior.upper - p.prior.lower):
-                row["status"] = "poor"
-                warn_once(f"parameter {p.name} is poorly identified for this motion (sd "
-                          f"{sd_post[k]:.3g} {_unit(model, k)} is more than a quarter of its prior range)",
-                          self.warnings_)
-        functional = {p.target for p in model.parameters if p.kind in ("joint_centre", "axis_direction")}
-        still = [j for j, r in ident.get("joint_range_deg", {}).items()
-                 if j in functional and max(r) < STILL_JOINT_DEG]
-        if still:
-            warn_once(f"joint(s) {', '.join(still)} moved less than {STILL_JOINT_DEG:g} degrees: their "
-                      "centres and axes are informed only by tiny motions (a static trial cannot "
-                      "locate a joint functionally)", self.warnings_)
-        lengths, grad = joint_distances(model, theta)
-        sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
-        self.lengths_ = {name: {"value": float(v), "sd": float(e),
-                                "ci95": [float(v - 1.959964 * e), float(v + 1.959964 * e)]}
-                         for (name, _), v, e in zip(model.derived_lengths, lengths, sd_len, strict=True)}
-        if not fit.converged:
-            warn_once("the joint fit stopped before converging; the estimate may be off",
-                      self.warnings_)
-        for k, p in enumerate(model.parameters):
-            if not p.prior.lower <= theta[k] <= p.prior.upper:
-                warn_once(f"parameter {p.name} = {theta[k]:.4g} lies outside its prior bounds "
-                          f"[{p.prior.lower:g}, {p.prior.upper:g}]", self.warnings_)
+    def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerEstimator:
+        """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""
+        check_settings(self)
+        y, rate = marker_array(self.model, data, self.rate)
+        f = run_marker_fit(self, y, rate, make_rng(self.rng))
+        self._publish(f, emit(marker_warnings(self.model, self, f)))
+        if progress is not None:
+            progress(len(y))
         return self
 
-    def _noise_levels(self, y, fit, bounds, fixed, rate, cutoff):
-        """Per-marker noise levels and the weighted fit (``noise='per_marker'``), or the fit as it is."""
-        self.marker_sigma_ = self.marker_weights_ = self.marker_dof_ = None
-        if self.noise == "pooled":
-            return fit, None
-        if self.noise != "per_marker":
-            raise ValueError("noise must be 'pooled' or 'per_marker'")
-        model = self.model
-
-        def refit(weights, prev):
-            return joint_fit(model, y, prev.theta, prev.pose, n_iter=self.n_iter, bounds=bounds,
-                             frames=fixed, rate=rate, cutoff=cutoff, weights=weights)
-
-        groups = marker_groups(model.marker_names, self.marker_groups)
-        fit, w, sig, dof, _ = per_marker_fit(model, y, refit, fit, groups)
-        self.marker_sigma_, self.marker_weights_, self.marker_dof_ = sig, w, dof
-        return fit, w
+    def _publish(self, f: MarkerFit, found) -> None:
+        """Set the fitted attributes from the stages' values."""
+        fit, used = f.weights.fit, f.frames.used
+        self.fit_ = f
+        self.fit_info_ = fit
+        self.cutoff_ = f.motion.cutoff
+        self.outliers_ = f.screen.outliers
+        self.frames_skipped_ = f.frames.skipped
+        self.frames_used_ = used
+        self.sigma_ = f.noise.sigma
+        self.sigma_ci_ = f.noise.interval
+        self.sigma_white_ = f.residuals.sigma_white
+        self.identifiability_ = dict(f.ident, table=f.summary.table)
+        self.theta_profile_ = fit.theta
+        self.residuals_ = f.residuals.distance
+        self.sta_score_ = f.residuals.sta_score
+        self.bias_ = f.bias.bias
+        self.bias_method_ = f.bias.method
+        self.crlb_motion_sd_ = f.cov.crlb_motion_sd
+        self.crlb_sd_ = f.cov.crlb_sd
+        self.cov_plain_ = f.cov.plain
+        self.widened_ = f.cov.widened
+        self.cov_artefact_ = f.cov.artefact
+        self.jackknife_ = f.cov.jackknife
+        self.placement_ = f.cov.placement
+        self.misfit_ = f.residuals.misfit
+        self.bias_fallback_ = f.bias.fallback
+        self.cov_data_ = f.cov.data
+        self.theta_, self.cov_ = f.estimate
+        self.pose_ = fit.pose
+        self.y_ = np.where(used[:, None, None], f.screen.y, np.nan)
+        self.posterior_ = GaussianPosterior(self.model.parameter_names, self.theta_, self.cov_)
+        self.lengths_ = f.summary.lengths
+        self.marker_weights_, self.marker_sigma_, self.marker_dof_ = f.weights[1:]
+        self.warnings_ = tuple(found)
 
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
         """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate."""
@@ -511,37 +913,41 @@ class MarkerEstimator:
             shifts.append(f.theta - fit.theta)
         return np.mean(shifts, axis=0)
 
-    def result(self) -> dict:
-        """JSON-ready summary."""
-        out = {"frames_used": int(self.frames_used_.sum()),
-               "frames_dropped": int((~self.frames_used_).sum()),
-               "frames_skipped": dict(self.frames_skipped_),
-               "outlying_marker_positions": int(self.outliers_.sum())}
-        summ = self.posterior_.summary()
-        for k, n in enumerate(self.model.parameter_names):
-            summ[n]["crlb_sd"] = float(self.crlb_sd_[k])
-            summ[n]["crlb_sd_motion_model"] = float(self.crlb_motion_sd_[k])
-            summ[n]["bias_removed"] = float(self.bias_[k])
-        out.update(summ)
-        out["sigma"] = {"value": self.sigma_, "ci95": [float(v) for v in self.sigma_ci_],
-                        "fixed": self.sigma is not None, "white": self.sigma_white_}
-        if self.marker_sigma_ is not None:
-            out["sigma"]["per_marker"] = {
-                n: {"value": None if not np.isfinite(v) else float(v),
-                    "dof": None if not np.isfinite(d) else float(d)}
-                for n, v, d in zip(self.model.marker_names, self.marker_sigma_, self.marker_dof_, strict=True)}
-        if self.lengths_:
-            out["lengths"] = self.lengths_
-        out["cutoff_hz"] = None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist()
-        out["identifiability"] = self.identifiability_["table"]
-        out["counting"] = self.identifiability_.get("counting")
-        out["joint_range_deg"] = self.identifiability_.get("joint_range_deg")
-        out["residual_autocorrelation"] = self.sta_score_
+    def result(self) -> FitResult:
+        """The typed result (:class:`~skelid.result.FitResult`)."""
+        check_fitted(self)
+        model = self.model
+        jk = self.jackknife_.get("parameters", {})
+        extra = {n: {"bias_removed": float(self.bias_[k]), "crlb_sd_motion_model": float(self.crlb_motion_sd_[k]),
+                     "jackknife_sd": jk.get(n, {}).get("sd"),
+                     "informed_by_placement": self.placement_["parameters"][n]["informed_by_placement"]}
+                 for k, n in enumerate(model.parameter_names)}
+        diagnostics = {
+            "identifiability": self.identifiability_["table"], "null": self.identifiability_["null"],
+            "condition": self.identifiability_["condition"],
+            "counting": self.identifiability_.get("counting"),
+            "joint_range_deg": self.identifiability_.get("joint_range_deg"),
+            "residual_autocorrelation": self.sta_score_, "widened": bool(self.widened_),
+            "cutoff_hz": None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist(),
+            "outlying_marker_positions": int(self.outliers_.sum()),
+            "converged": bool(self.fit_info_.converged), "iterations": int(self.fit_info_.n_iter),
+            "bias_method": self.bias_method_, "bias_fallback": self.bias_fallback_,
+            "marker_jackknife": self.jackknife_, "placement": self.placement_, "model_misfit": self.misfit_}
         if self.artefact_rms:
-            out["artefact"] = {"rms": float(self.artefact_rms),
-                               "sd_added": [float(v) for v in np.sqrt(np.diag(self.cov_artefact_))]}
-        out["warnings"] = list(self.warnings_)
-        return out
+            diagnostics["artefact"] = {"rms": float(self.artefact_rms),
+                                       "sd_added": np.sqrt(np.diag(self.cov_artefact_)).tolist()}
+        per, extra_noise = {}, {"white": self.sigma_white_}
+        if self.marker_sigma_ is not None:
+            ok = np.isfinite(self.marker_sigma_)  # a marker without data has no level
+            names = np.array(model.marker_names)[ok].tolist()
+            per = dict(zip(names, self.marker_sigma_[ok].tolist(), strict=True))
+            extra_noise["per_marker_dof"] = dict(zip(names, self.marker_dof_[ok].tolist(), strict=True))
+        noise = NoiseEstimate(self.sigma_, None if self.sigma is not None else tuple(self.sigma_ci_),
+                              fixed=self.sigma is not None, per_marker=per, extra=extra_noise)
+        return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=noise,
+                            skipped=self.frames_skipped_, diagnostics=diagnostics, derived=self.lengths_,
+                            arrays={"residuals": self.residuals_, "pose": self.pose_,
+                                    "outliers": self.outliers_})
 
 
 def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:

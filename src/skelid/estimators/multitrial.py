@@ -34,7 +34,11 @@ estimated per parameter by DerSimonian and Laird's method of moments: with
 
 .. math:: \\tau^2 = \\max\\Big(0, \\frac{Q - (K - 1)}{\\sum w_k - \\sum w_k^2 / \\sum w_k}\\Big),
 
-and enters ``V`` above. A trial's own interval that includes it uses
+and then replaces the stacked fit by the random-effects combination
+``theta = (sum_k W_k)^{-1} sum_k W_k theta_k`` with ``W_k = (C_k + Omega)^{-1}``
+and covariance ``(sum_k W_k)^{-1}``: a trial with a tiny within-trial variance
+(a static trial, whose lengths follow the markers' nominal placement) no longer
+decides the answer alone. A trial's own interval that includes it uses
 ``C_k + Omega``.
 
 Example
@@ -236,7 +240,15 @@ class MultiTrialEstimator:
             tau2, q, df = np.zeros(P), dersimonian_laird(self.trial_theta_, var)[1], len(ests) - 1
         self.tau2_ = tau2
         Omega = np.diag(tau2)
-        cov = self.cov_within_ + A_inv @ np.einsum("kpq,qr,krs->ps", S, Omega, S) @ A_inv
+        if np.any(tau2 > 0):
+            # trials differ beyond their own noise: each trial's estimate is the geometry plus its own
+            # random shift, so they are combined with the weights (C_k + Omega)^{-1} (a trial with a
+            # tiny within-trial variance no longer decides alone) and the variance that goes with them
+            W = np.linalg.inv(self.trial_cov_ + Omega)
+            cov = np.linalg.inv(W.sum(axis=0))
+            theta = cov @ np.einsum("kpq,kq->p", W, self.trial_theta_)
+        else:
+            cov = self.cov_within_
         self.consistency_ = consistency_test(self.trial_theta_, self.trial_cov_, theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             i2 = np.where(q > 0, np.maximum(0.0, (q - df) / q), 0.0)
@@ -254,7 +266,7 @@ class MultiTrialEstimator:
         sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
         self.lengths_ = {name: {"value": float(v), "sd": float(e), "ci95": [float(v - Z95 * e), float(v + Z95 * e)]}
                          for (name, _), v, e in zip(model.derived_lengths, lens, sd_len, strict=True)}
-        self.warnings_ = list(dict.fromkeys(w for e in ests for w in e.warnings_))
+        self.warnings_ = list(dict.fromkeys(w.message for e in ests for w in e.warnings_))
         if not fit.converged:
             self.warnings_.append("the joint fit of all trials stopped before converging; the estimate may be off")
         if self.consistency_["p_value"] < 0.01:
@@ -278,7 +290,7 @@ class MultiTrialEstimator:
                                    "sd_with_between_trial": float(np.hypot(sd[p], sd_tau[p]))}
                                for p, n in enumerate(self.model.parameter_names)},
                 "lengths": {n: dict(v) for n, v in e.lengths_.items()},
-                "warnings": list(e.warnings_),
+                "warnings": [w.message for w in e.warnings_],
             })
         return rows
 

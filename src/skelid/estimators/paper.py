@@ -31,6 +31,16 @@ distance from a marker on the unknown segment to its *distal* joint depends on
 ``L`` (that is what makes ``|MN| = L2`` an equation rather than a definition).
 The first frame is started from a marker fit of the model at the prior's
 centre. A frame that fails does not move the starting point of the next.
+
+Example
+-------
+>>> import numpy as np
+>>> from skelid.simulate import builtin_model, simulate
+>>> model = builtin_model("case-a")
+>>> trial = simulate(model, n_frames=80, sigma=5.0, rng=np.random.default_rng(0))
+>>> r = PaperFilter(model, rng=0).fit(trial.data).result()
+>>> r.parameters["L2"].interval[0] < r.parameters["L2"].mean < r.parameters["L2"].interval[1]
+True
 """
 
 from __future__ import annotations
@@ -41,11 +51,28 @@ import numpy as np
 
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import IdentifiabilityError, ModelError
-from skelid.estimators.base import prepare, warn_once
+from skelid.estimators.base import (
+    RATE,
+    RNG,
+    Setting,
+    build_result,
+    check_fitted,
+    check_settings,
+    emit,
+    make_rng,
+    marker_array,
+    positive_int,
+    positive_or_none,
+    steps,
+)
 from skelid.estimators.pose import initial_pose
 from skelid.estimators.posterior import GridPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_positions
+from skelid.result import FitResult, NoiseEstimate, Warning
+
+#: dropping more than this fraction of the frames gets a warning
+DROP_WARN_FRACTION = 0.2
 
 
 class ConstraintSystem:
@@ -205,30 +232,43 @@ class PaperFilter:
         Frame counts at which to keep a copy of the posterior.
     max_iter : int
         Newton iterations per frame.
-    rng : numpy.random.Generator, optional
+    rng : int, numpy.random.Generator or None
         For the random starts of the first frame's pose fit.
+    rate : float, optional
+        Sampling rate (Hz) of data given as an array; required then.
 
     Attributes
     ----------
     posterior_ : GridPosterior
+    state_ : PaperState
+        The online state after the last frame.
     measured_ : (F,) float
         Per-frame solved length; NaN for dropped frames.
-    used_ : (F,) bool
+    frames_used_ : (F,) bool
     map_path_ : (F,) float
         Most likely length after each step.
-    n_dropped_ : int
-    warnings_ : list of str
+    sigma_ : float
+        The likelihood's width used.
+    warnings_ : tuple of Warning
     """
 
     name = "paper"
+    settings = (
+        Setting("sigma", positive_or_none, "a positive width in model units, or None for 15 mm", cli="sigma"),
+        Setting("history_steps", steps, "a sequence of positive frame counts"),
+        Setting("max_iter", positive_int, "a positive number of iterations"),
+        RNG,
+        RATE,
+    )
 
     def __init__(self, model: Model, sigma: float | None = None, history_steps=(50, 100, 500),
-                 max_iter: int = 50, rng: np.random.Generator | None = None):
+                 max_iter: int = 50, rng: np.random.Generator | int | None = None, rate: float | None = None):
         self.model = model
         self.sigma = sigma
-        self.history_steps = tuple(int(s) for s in history_steps)
+        self.history_steps = history_steps
         self.max_iter = max_iter
         self.rng = rng
+        self.rate = rate
 
     # ---------------------------------------------------------------- helpers
     @property
@@ -252,8 +292,7 @@ class PaperFilter:
     def _start(self, frame) -> np.ndarray:
         """Starting point for the first frame: a marker fit of the model at the prior centre."""
         theta = self.model.theta_center
-        rng = self.rng if self.rng is not None else np.random.default_rng(0)
-        q, _ = initial_pose(self.model, theta, frame, rng)
+        q, _ = initial_pose(self.model, theta, frame, make_rng(self.rng))
         J = joint_positions(self.model, theta, q)[self.system.joints]
         return np.concatenate([J.ravel(), theta])
 
@@ -273,79 +312,72 @@ class PaperFilter:
         x0 = state.x
         if x0 is None:
             if not np.isfinite(frame).all():
-                snap = state.n_frames + 1 in self.history_steps
+                snap = state.n_frames + 1 in tuple(self.history_steps)
                 post = state.posterior.update(0.0, snapshot=snap)
                 return PaperState(post, None, state.n_frames + 1, state.n_used, np.nan)
             x0 = self._start(frame)
         x, conv = self.system.solve(frame, x0, self.max_iter)
         ok = self._accept(x, conv)
         measured = x[-1] if ok else np.nan
-        snap = state.n_frames + 1 in self.history_steps
+        snap = state.n_frames + 1 in tuple(self.history_steps)
         post = state.posterior.update(self._loglik(measured), snapshot=snap)
         return PaperState(post, x if ok else state.x if state.x is not None else x0,
                           state.n_frames + 1, state.n_used + ok, measured)
 
     # ------------------------------------------------------------------ batch
     def measure(self, y, progress=None) -> np.ndarray:
-        """Per-frame measured lengths ``(F,)`` (NaN where dropped): the sequential solve.
+        """Per-frame measured lengths ``(F,)`` (NaN where dropped): the sequential solve, by :meth:`update`."""
+        return self._fold(np.asarray(y, float), progress)[1]
 
-        ``progress``, if given, is called with 1 after each frame (a progress bar's ``update``).
-        """
-        out = np.full(len(y), np.nan)
-        x = None
+    def _fold(self, y, progress=None):
+        """Fold :meth:`update` over the frames (the one loop over frames): final state, measured, MAP path."""
+        state = self.init_state()
+        measured = np.full(len(y), np.nan)
+        path = np.full(len(y), np.nan)
+        grid = self._grid()
         for t, frame in enumerate(y):
+            state = self.update(state, frame)
+            measured[t] = state.measured
+            path[t] = grid[np.argmax(state.posterior.log_weights)]
             if progress is not None:
                 progress(1)
-            if x is None:
-                if not np.isfinite(frame).all():
-                    continue
-                x = self._start(frame)
-            xt, conv = self.system.solve(frame, x, self.max_iter)
-            if self._accept(xt, conv):
-                out[t] = xt[-1]
-                x = xt
-        return out
+        return state, measured, path
 
-    def fit(self, data: MarkerData | np.ndarray, progress=None) -> PaperFilter:
-        """Run the method on a whole trial (``progress``: see :meth:`measure`)."""
-        y = prepare(self.model, data) if isinstance(data, MarkerData) else np.asarray(data, float)
-        self.warnings_ = []
+    def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> PaperFilter:
+        """Fold :meth:`update` over a whole trial (``progress``: called with 1 after each frame)."""
+        check_settings(self)
+        y, _ = marker_array(self.model, data, self.rate)
+        found = []
         gaps = int((~np.isfinite(y).all(axis=(1, 2))).sum())
         if gaps:
-            warn_once(f"{gaps} of {len(y)} frames have missing markers; the paper method uses "
-                      "only the equations whose markers are present", self.warnings_)
-        measured = self.measure(y, progress)
-        post0 = self.init_state().posterior
-        ll = self._loglik(measured)  # (F, K)
-        cum = post0.log_weights + np.cumsum(ll, axis=0)
-        cum -= np.max(cum, axis=1, keepdims=True)
-        cum -= np.log(np.exp(cum).sum(axis=1, keepdims=True))
-        grid = self._grid()
-        history = tuple((s, cum[s - 1]) for s in self.history_steps if 1 <= s <= len(y))
-        self.posterior_ = GridPosterior(post0.names, post0.axes, cum[-1], len(y), history)
-        self.map_path_ = grid[np.argmax(cum, axis=1)]
-        self.measured_ = measured
-        self.used_ = np.isfinite(measured)
-        self.n_frames_ = len(y)
-        self.n_dropped_ = int(len(y) - self.used_.sum())
-        if self.used_.sum() == 0:
+            found.append(Warning("missing-markers", f"{gaps} of {len(y)} frames have missing markers; the paper "
+                                 "method uses only the equations whose markers are present"))
+        state, measured, path = self._fold(y, progress)
+        used = np.isfinite(measured)
+        if used.sum() == 0:
             raise IdentifiabilityError(
                 f"the per-frame solve found no solution inside the interval "
                 f"[{self.model.parameters[0].prior.lower:g}, {self.model.parameters[0].prior.upper:g}] "
                 f"in any of {len(y)} frames",
                 "widen the parameter's prior bounds or check the model's marker positions",
             )
-        if self.n_dropped_ > 0.2 * len(y):
-            warn_once(f"paper method dropped {self.n_dropped_} of {len(y)} frames "
-                      "(no converged solution inside the interval)", self.warnings_)
+        n_dropped = int(len(y) - used.sum())
+        if n_dropped > DROP_WARN_FRACTION * len(y):
+            found.append(Warning("frames-dropped", f"paper method dropped {n_dropped} of {len(y)} frames "
+                                 "(no converged solution inside the interval)"))
+        self.state_ = state
+        self.posterior_ = state.posterior
+        self.map_path_ = path
+        self.measured_ = measured
+        self.frames_used_ = used
+        self.sigma_ = self._sigma()
+        self.warnings_ = emit(found)
         return self
 
-    def result(self) -> dict:
-        """JSON-ready summary of the fit."""
-        return {
-            "frames_used": int(self.used_.sum()),
-            "frames_dropped": self.n_dropped_,
-            **self.posterior_.summary(),
-            "sigma": {"value": self._sigma(), "fixed": True},
-            "warnings": list(self.warnings_),
-        }
+    def result(self) -> FitResult:
+        """The typed result (:class:`~skelid.result.FitResult`)."""
+        check_fitted(self)
+        used = self.frames_used_
+        return build_result(self, self.posterior_, noise=NoiseEstimate(self.sigma_, fixed=True),
+                            skipped={"no_solution": int((~used).sum())},
+                            arrays={"measured": self.measured_, "map_path": self.map_path_})

@@ -40,9 +40,10 @@ estimate: under a flat prior this is exactly shifting every sample by
 lets a normal prior act on the corrected likelihood, as the default
 estimator combines it.
 
-**Serially correlated residuals.** When the default estimator widened its
-interval because the residuals are serially correlated (soft-tissue
-artefact; Newey-West covariance ``V_NW`` instead of ``V = sigma^2 S^{-1}``),
+**Widened intervals.** When the default estimator widened its interval
+(``V_NW`` instead of ``V = sigma^2 S^{-1}``) because the residuals are serially
+correlated (soft-tissue artefact, Newey-West), or added a stated artefact's,
+the marker jackknife's or the markers' placement term,
 the likelihood is misspecified and too sharp. As in composite-likelihood
 practice its curvature is adjusted by one factor,
 
@@ -97,11 +98,20 @@ the number of stages grows with the information the data add to the prior
 core with 200 particles: case A, 500 frames, 4 stages, about 5 s after
 the default fit; a three-parameter functional joint centre (finger model,
 500 frames), 11 stages, about a minute.
+
+Example
+-------
+>>> import numpy as np
+>>> from skelid.simulate import builtin_model, simulate
+>>> model = builtin_model("case-a")
+>>> trial = simulate(model, n_frames=80, sigma=5.0, rng=np.random.default_rng(0))
+>>> r = SamplerEstimator(model, rng=0, n_particles=40, n_moves=1).fit(trial.data).result()
+>>> abs(r.parameters["L2"].mean - 250.0) < 4 * r.parameters["L2"].sd + 1.0
+True
 """
 
 from __future__ import annotations
 
-import copy
 import time
 
 import numpy as np
@@ -110,10 +120,20 @@ from scipy.special import logsumexp
 from scipy.stats import norm
 
 from skelid.data import MarkerData
-from skelid.estimators.base import warn_once
+from skelid.estimators.base import (
+    Setting,
+    build_result,
+    check_fitted,
+    check_settings,
+    emit,
+    make_rng,
+    marker_array,
+    positive,
+    positive_int,
+)
 from skelid.estimators.joint import _banded, _banded_solver
 from skelid.estimators.likelihood import frame_terms, pose_information
-from skelid.estimators.marker import MarkerEstimator, _unit
+from skelid.estimators.marker import POOR_FRACTION, MarkerEstimator, _unit, marker_warnings, run_marker_fit
 from skelid.estimators.posterior import SamplePosterior, weighted_quantiles
 from skelid.estimators.smc import kish_ess, tempered_smc
 from skelid.model.description import Model
@@ -124,6 +144,7 @@ from skelid.model.kinematics import (
     pose_gradient,
     pose_jacobian,
 )
+from skelid.result import FitResult, Warning
 
 #: near the fit, an inner pose step that gains less than INNER_TOL + INNER_RTOL (l(theta_hat) - l(theta))
 #: in log-likelihood ends the solve; the steps shrink geometrically (by a factor of about 0.05-0.2),
@@ -526,17 +547,17 @@ class ProfileLikelihood:
         return np.where(np.isfinite(ll), ll, -np.inf), np.concatenate([at, q.reshape(N, -1)], axis=1)
 
 
-class SamplerEstimator(MarkerEstimator):
+class SamplerEstimator:
     """Posterior samples of the parameters by tempered SMC on the profile marker likelihood.
 
-    Runs :class:`~skelid.estimators.marker.MarkerEstimator` with the same
+    Holds a :class:`~skelid.estimators.marker.MarkerEstimator` fit with the same
     settings (its noise level, motion model, poses and bias are used), then
     samples ``p(theta) exp(l(theta))`` (see the module docstring).
 
     Parameters
     ----------
     model : Model
-    sigma, cutoff, bias_correction, n_boot, robust, rng, n_iter, rate, outlier_threshold
+    sigma, cutoff, bias_correction, n_boot, robust, rng, n_iter, rate, outlier_threshold, theta0, pose0
         As for :class:`~skelid.estimators.marker.MarkerEstimator`; ``rng`` also
         drives the sampler.
     n_particles : int
@@ -553,6 +574,8 @@ class SamplerEstimator(MarkerEstimator):
     ----------
     posterior_ : SamplePosterior
         The samples (with their log posterior density, up to a constant).
+    marker_ : MarkerEstimator
+        The fitted default estimator the sampler started from.
     gaussian_posterior_ : GaussianPosterior
         The default estimator's normal posterior, for comparison.
     theta_ : (P,) float
@@ -562,6 +585,8 @@ class SamplerEstimator(MarkerEstimator):
     lengths_ : dict
         Derived joint-to-joint lengths: mean, sd and equal-tailed 95 % interval
         over the samples.
+    identifiability_ : dict
+        The default estimator's, with the samples' sd and status.
     smc_ : SMCResult
         The sampler's record (temperatures, ESS, acceptance, evidence).
     refined_ : int
@@ -570,44 +595,103 @@ class SamplerEstimator(MarkerEstimator):
         The curvature adjustment ``tau``.
     sampler_seconds_ : float
         Time spent sampling (after the default fit).
+    warnings_ : tuple of Warning
 
-    Every other fitted attribute is the default estimator's (``sigma_``,
-    ``bias_``, ``crlb_sd_``, ``pose_``, ``residuals_``, ``identifiability_``, ...).
+    The attributes in ``SHARED`` are the default estimator's (``sigma_``, ``bias_``,
+    ``crlb_sd_``, ``pose_``, ``residuals_``, ``frames_used_``, ...).
     """
 
     name = "marker-smc"
-    bound_is_error = False  # a posterior against a prior bound is what the samples can show
+    #: fitted attributes taken from the default estimator's fit
+    SHARED = ("frames_used_", "frames_skipped_", "outliers_", "sigma_", "sigma_ci_", "sigma_white_", "bias_",
+              "bias_method_", "crlb_sd_", "crlb_motion_sd_", "pose_", "residuals_", "y_", "cutoff_",
+              "sta_score_", "widened_", "cov_plain_", "cov_data_", "cov_artefact_", "theta_profile_",
+              "fit_info_")
+    settings = MarkerEstimator.settings + (
+        Setting("n_particles", lambda v: positive_int(v) and v >= 2, "an integer number of particles >= 2"),
+        Setting("n_moves", positive_int, "a positive number of moves per stage"),
+        Setting("ess_fraction", lambda v: positive(v) and v < 1, "a fraction between 0 and 1"),
+        Setting("inner_iter", positive_int, "a positive number of iterations"),
+    )
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
                  bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
-                 rng: np.random.Generator | None = None, n_iter: int = 100, rate: float | None = None,
-                 outlier_threshold: float | None = 8.0, n_particles: int = 200, n_moves: int = 3,
-                 ess_fraction: float = 0.5, inner_iter: int = 8):
-        super().__init__(model, sigma=sigma, cutoff=cutoff, bias_correction=bias_correction, n_boot=n_boot,
-                         robust=robust, rng=rng, n_iter=n_iter, rate=rate,
-                         outlier_threshold=outlier_threshold)
+                 rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
+                 outlier_threshold: float | None = 8.0, theta0=None, pose0=None, n_particles: int = 200,
+                 n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8,
+                 artefact_rms: float | None = None, noise: str = "pooled", marker_groups: dict | None = None,
+                 jackknife: bool = True, placement_sd: float | None = None):
+        self.model = model
+        self.sigma = sigma
+        self.cutoff = cutoff
+        self.bias_correction = bias_correction
+        self.n_boot = n_boot
+        self.robust = robust
+        self.rng = rng
+        self.n_iter = n_iter
+        self.rate = rate
+        self.outlier_threshold = outlier_threshold
+        self.theta0 = theta0
+        self.pose0 = pose0
         self.n_particles = n_particles
         self.n_moves = n_moves
         self.ess_fraction = ess_fraction
         self.inner_iter = inner_iter
+        self.artefact_rms = artefact_rms
+        self.noise = noise
+        self.marker_groups = marker_groups
+        self.jackknife = jackknife
+        self.placement_sd = placement_sd
 
-    def fit(self, data: MarkerData | np.ndarray, theta0=None, pose0=None) -> SamplerEstimator:
+    def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
-        super().fit(data, theta0=theta0, pose0=pose0)
+        check_settings(self)
         model = self.model
-        rng = self.rng if self.rng is not None else np.random.default_rng(0)
+        y, rate = marker_array(model, data, self.rate)
+        marker = MarkerEstimator(model, **{s.name: getattr(self, s.name) for s in MarkerEstimator.settings
+                                           if hasattr(self, s.name)})
+        rng = make_rng(self.rng)
+        f = run_marker_fit(marker, y, rate, rng, on_bound="warn")
+        # the default estimator's bound check is about its normal estimate; the samples stay inside
+        found = [w for w in marker_warnings(model, marker, f) if w.code != "outside-prior"]
+        marker._publish(f, ())
+        if not isinstance(self.rng, np.random.Generator):
+            rng = make_rng(self.rng)
         t0 = time.perf_counter()
-        P = model.n_params
-        fit = self.fit_info_
+        res, like, post, refined = self._sample(marker, rng)
+        self.marker_ = marker
+        for a in self.SHARED:
+            setattr(self, a, getattr(marker, a))
+        self.smc_ = res
+        self.likelihood_tau_ = like.tau
+        self.refined_ = refined
+        self.inner_iterations_ = like.n_inner
+        self.gaussian_posterior_ = marker.posterior_
+        self.posterior_ = post
+        self.theta_ = post.mean
+        self.cov_ = post.cov
+        self.lengths_ = _sample_lengths(model, post)
+        self.identifiability_ = dict(marker.identifiability_, table=_sample_table(model, marker, post))
+        self.warnings_ = emit(found + _sample_warnings(model, marker, post, res))
+        self.sampler_seconds_ = time.perf_counter() - t0
+        if progress is not None:
+            progress(len(y))
+        return self
+
+    def _sample(self, marker: MarkerEstimator, rng):
+        """``(SMCResult, likelihood, SamplePosterior, n_refined)``: tempered SMC from the prior to the posterior."""
+        model = self.model
+        fit = marker.fit_info_
         tau = 1.0
-        if self.widened_:
-            tau = float(P / np.trace(np.linalg.solve(self.cov_plain_, self.cov_data_)))
-            tau = min(tau, 1.0)
-        self.likelihood_tau_ = tau
+        if marker.widened_ or marker.artefact_rms or marker.jackknife_.get("folded") \
+                or marker.placement_["placement_sd"] > 0:
+            # Newey-West, a stated artefact, the marker jackknife or the placement term widened the interval
+            tau = min(float(model.n_params / np.trace(np.linalg.solve(marker.cov_plain_, marker.cov_data_))), 1.0)
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
-        like = ProfileLikelihood(model, self.y_, fit.theta, fit.pose, fit.penalty, self.sigma_**2, self.bias_,
-                                 tau=tau, scale=np.sqrt(np.diag(self.cov_data_)), bounds=bounds, n_iter=self.inner_iter)
+        like = ProfileLikelihood(model, marker.y_, fit.theta, fit.pose, fit.penalty, marker.sigma_**2,
+                                 marker.bias_, tau=tau, scale=np.sqrt(np.diag(marker.cov_data_)), bounds=bounds,
+                                 n_iter=self.inner_iter)
         init = sample_prior(model, self.n_particles, rng)
         res = tempered_smc(like, model.log_prior, init, rng, n_moves=self.n_moves,
                            ess_fraction=self.ess_fraction, carry=like.initial_carry(self.n_particles),
@@ -621,65 +705,17 @@ class SamplerEstimator(MarkerEstimator):
             ll_far = np.maximum(ll_far, ll[far])
             log_w[far] += ll_far - ll[far]
             ll[far] = ll_far
-        self.refined_ = int(far.size)
-        self.smc_ = res._replace(log_evidence=res.log_evidence + like.offset, log_likelihood=ll + like.offset,
-                                 log_weights=log_w - logsumexp(log_w), carry=None)
-        self.inner_iterations_ = like.n_inner
-        self.gaussian_posterior_ = self.posterior_
+        res = res._replace(log_evidence=res.log_evidence + like.offset, log_likelihood=ll + like.offset,
+                           log_weights=log_w - logsumexp(log_w), carry=None)
         # moved particles are correlated copies: the last reweighting's ESS is the honest count
         ess = float(res.ess[-1]) * (kish_ess(log_w) / len(log_w))
-        self.posterior_ = SamplePosterior(model.parameter_names, res.particles, log_w,
-                                          log_target=ll + res.log_prior, ess=ess)
-        self.theta_ = self.posterior_.mean
-        self.cov_ = self.posterior_.cov
-        self._sample_summaries()
-        self.sampler_seconds_ = time.perf_counter() - t0
-        return self
+        post = SamplePosterior(model.parameter_names, res.particles, log_w,
+                               log_target=ll + res.log_prior, ess=ess)
+        return res, like, post, int(far.size)
 
-    def _sample_summaries(self):
-        """Lengths, identifiability rows and warnings from the samples."""
-        model, post, res = self.model, self.posterior_, self.smc_
-        w = post.weights
-        # the default estimator's bound check is about its normal estimate; the samples stay inside
-        self.warnings_ = [m for m in self.warnings_ if "lies outside its prior bounds" not in m]
-        lengths, _ = joint_distances(model, post.points)
-        self.lengths_ = {}
-        for k, (name, _) in enumerate(model.derived_lengths):
-            v = lengths[:, k]
-            mean = float(w @ v)
-            lo, hi = weighted_quantiles(v, w, [0.025, 0.975])
-            self.lengths_[name] = {"value": mean, "sd": float(np.sqrt(max(w @ (v - mean) ** 2, 0.0))),
-                                   "ci95": [float(lo), float(hi)]}
-        ident = copy.deepcopy(self.identifiability_)
-        sd = post.sd
-        ci = post.credible_interval(0.95)
-        for k, row in enumerate(ident["table"]):
-            p = model.parameters[k]
-            width = p.prior.upper - p.prior.lower
-            row["sd"] = float(sd[k])
-            if row["status"] == "identified" and sd[k] > 0.25 * width:
-                row["status"] = "poor"
-                warn_once(f"parameter {p.name} is poorly identified for this motion (posterior sd "
-                          f"{sd[k]:.3g} {_unit(model, k)} is more than a quarter of its prior range)",
-                          self.warnings_)
-            edge = 0.01 * width
-            if ci[k, 0] <= p.prior.lower + edge or ci[k, 1] >= p.prior.upper - edge:
-                warn_once(f"the posterior of {p.name} reaches a bound of its prior [{p.prior.lower:g}, "
-                          f"{p.prior.upper:g}]: the data do not pin it inside that interval, which "
-                          "shapes the result", self.warnings_)
-        self.identifiability_ = ident
-        if not res.completed:
-            warn_once("the sampler hit its limit of tempering stages and jumped to the posterior; "
-                      f"its final effective sample size is {res.ess[-1]:.0f}", self.warnings_)
-        if res.acceptance[-1] < 0.05:
-            warn_once(f"the sampler's moves were accepted only {100 * res.acceptance[-1]:.1f} % of the time "
-                      "at the posterior: the samples may not have mixed", self.warnings_)
-
-    def result(self) -> dict:
-        """JSON-ready summary: the default estimator's keys, plus ``sampler``."""
-        out = super().result()
+    def _sampler_record(self) -> dict:
         res = self.smc_
-        out["sampler"] = {
+        return {
             "particles": int(len(res.particles)),
             "ess": float(self.posterior_.ess),
             "stages": int(len(res.ess)),
@@ -693,4 +729,65 @@ class SamplerEstimator(MarkerEstimator):
             "refined": int(self.refined_),
             "seconds": round(float(self.sampler_seconds_), 3),
         }
-        return out
+
+    def result(self) -> FitResult:
+        """The typed result: the samples' summaries, the default estimator's diagnostics, the sampler record."""
+        check_fitted(self)
+        r = self.marker_.result()
+        extra = {n: dict(r.parameters[n].extra) for n in self.model.parameter_names}
+        diagnostics = dict(r.diagnostics, identifiability=self.identifiability_["table"],
+                           sampler=self._sampler_record())
+        return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=r.noise,
+                            skipped=self.frames_skipped_, diagnostics=diagnostics, derived=self.lengths_,
+                            arrays=dict(r.arrays, samples=self.posterior_.points,
+                                        sample_weights=self.posterior_.weights))
+
+
+def _sample_lengths(model: Model, post: SamplePosterior) -> dict:
+    """Derived lengths: weighted mean, sd and equal-tailed 95 % interval over the samples."""
+    w = post.weights
+    lengths, _ = joint_distances(model, post.points)
+    out = {}
+    for k, (name, _) in enumerate(model.derived_lengths):
+        v = lengths[:, k]
+        mean = float(w @ v)
+        lo, hi = weighted_quantiles(v, w, [0.025, 0.975])
+        out[name] = {"value": mean, "sd": float(np.sqrt(max(w @ (v - mean) ** 2, 0.0))), "ci95": [float(lo), float(hi)]}
+    return out
+
+
+def _sample_table(model: Model, marker: MarkerEstimator, post: SamplePosterior) -> list:
+    """The default estimator's identifiability rows with the samples' sd (which also decides 'poor')."""
+    table = []
+    for k, row in enumerate(marker.identifiability_["table"]):
+        p = model.parameters[k]
+        row = dict(row, sd=float(post.sd[k]))
+        if row["status"] == "identified" and post.sd[k] > POOR_FRACTION * (p.prior.upper - p.prior.lower):
+            row["status"] = "poor"
+        table.append(row)
+    return table
+
+
+def _sample_warnings(model: Model, marker: MarkerEstimator, post: SamplePosterior, res) -> list[Warning]:
+    out = []
+    ci = post.credible_interval(0.95)
+    for k, (before, row) in enumerate(zip(marker.identifiability_["table"], _sample_table(model, marker, post),
+                                          strict=True)):
+        p = model.parameters[k]
+        if before["status"] == "identified" and row["status"] == "poor":
+            out.append(Warning("poorly-identified", f"parameter {p.name} is poorly identified for this motion "
+                               f"(posterior sd {row['sd']:.3g} {_unit(model, k)} is more than a quarter of its "
+                               "prior range)", (p.name,)))
+        edge = 0.01 * (p.prior.upper - p.prior.lower)
+        if ci[k, 0] <= p.prior.lower + edge or ci[k, 1] >= p.prior.upper - edge:
+            out.append(Warning("posterior-on-bound", f"the posterior of {p.name} reaches a bound of its prior "
+                               f"[{p.prior.lower:g}, {p.prior.upper:g}]: the data do not pin it inside that "
+                               "interval, which shapes the result", (p.name,)))
+    if not res.completed:
+        out.append(Warning("sampler-incomplete", "the sampler hit its limit of tempering stages and jumped to "
+                           f"the posterior; its final effective sample size is {res.ess[-1]:.0f}"))
+    if res.acceptance[-1] < 0.05:
+        out.append(Warning("sampler-not-mixed", f"the sampler's moves were accepted only "
+                           f"{100 * res.acceptance[-1]:.1f} % of the time at the posterior: the samples may "
+                           "not have mixed"))
+    return out

@@ -26,9 +26,19 @@ and a position is an outlier when ``z / sigma^2`` exceeds the chi-square
 quantile with the tail probability of ``threshold`` standard deviations of one
 coordinate (8 sd: about ``10^-15``), so that pure Gaussian data almost never
 lose a position.
+
+**A glitch is isolated in time.** A residual that is large because the model
+cannot follow the joint (model misfit) or because the skin slides (soft-tissue
+artefact) changes slowly, frame to frame; a glitch or a swapped label does not.
+A position is therefore flagged only if it is also an outlier after each
+marker's residual has had its running median over ``WINDOW`` frames removed
+(same standardisation, its own robust scale): noise-free data from a model the
+fit cannot represent keep their markers.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 from scipy.stats import chi2, norm
@@ -40,9 +50,11 @@ from skelid.model.description import Model
 #: residual variance fraction (eigenvalue of ``I - H`` on a marker's block) below which a direction
 #: carries no usable check of that marker
 V_MIN = 0.05
+#: frames in the running median that a glitch must stand out from
+WINDOW = 9
 
 
-def standardised_residuals(model: Model, theta, pose, y) -> tuple[np.ndarray, np.ndarray]:
+def standardised_residuals(model: Model, theta, pose, y, detrend: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Leverage-corrected squared residuals of every marker position.
 
     Parameters
@@ -52,6 +64,9 @@ def standardised_residuals(model: Model, theta, pose, y) -> tuple[np.ndarray, np
         Per-frame poses (fitted to ``y`` with ``theta`` held).
     y : (T, M, D) float
         Markers, NaN where missing.
+    detrend : bool
+        Remove each marker coordinate's running median over ``WINDOW`` frames from the
+        residuals first (what is left of a slow drift is small; a glitch stays).
 
     Returns
     -------
@@ -69,12 +84,25 @@ def standardised_residuals(model: Model, theta, pose, y) -> tuple[np.ndarray, np
     V = I_H[:, idx[:, :, None], idx[:, None, :]]  # (T, M, D, D)
     w, U = np.linalg.eigh(V)
     rm = r.reshape(T, M, D)
+    if detrend:
+        rm = rm - running_median(np.where(np.isfinite(y), rm, np.nan), WINDOW)
     proj = np.einsum("tmdk,tmd->tmk", U, rm)
     keep = w > V_MIN
     z = np.sum(np.where(keep, proj**2 / np.where(keep, w, 1.0), 0.0), axis=-1)
     present = np.isfinite(y).all(axis=-1)
     dof = np.where(present, keep.sum(axis=-1), 0)
     return np.where(present, z, np.nan), dof
+
+
+def running_median(x, window: int) -> np.ndarray:
+    """Centred running median over the first axis, ignoring NaN (edges use the frames there are)."""
+    h = window // 2
+    pad = np.concatenate([np.full((h,) + x.shape[1:], np.nan), x, np.full((h,) + x.shape[1:], np.nan)])
+    win = np.lib.stride_tricks.sliding_window_view(pad, window, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-missing window
+        med = np.nanmedian(win, axis=-1)
+    return np.where(np.isfinite(med), med, 0.0)
 
 
 def robust_variance(z, dof) -> float:
@@ -130,15 +158,19 @@ def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rou
     s2 = robust_variance(z, dof)
     if not np.isfinite(s2):
         return out
+    zd, dofd = standardised_residuals(model, theta, pose, y, detrend=True)
+    s2d = robust_variance(zd, dofd)
     floor = (1e-3 * float(np.abs(model.nominal_geometry).max())) ** 2  # below this a deviation is irrelevant
     log_p_limit = np.log(2.0) + norm.logsf(threshold)
 
-    def log_tail(zz, dd):
+    def log_tail(zz, dd, var):
         with np.errstate(divide="ignore", invalid="ignore"):
-            lp = chi2.logsf(zz / s2, np.maximum(dd, 1))
+            lp = chi2.logsf(zz / var, np.maximum(dd, 1))
         return np.where((dd > 0) & np.isfinite(zz) & (zz > floor), lp, 0.0)
 
-    lp = log_tail(z, dof)
+    # an outlier must stand out from its frame's noise and from its own neighbours in time
+    isolated = log_tail(zd, dofd, s2d) < log_p_limit if np.isfinite(s2d) else np.zeros_like(out)
+    lp = np.where(isolated, log_tail(z, dof, s2), 0.0)
     for _ in range(n_rounds):
         worst = np.argmin(lp, axis=1)
         flag = used & (lp[np.arange(len(lp)), worst] < log_p_limit)
@@ -149,6 +181,6 @@ def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rou
         pf, _ = fit_pose(model, theta, yy, pose[flag], n_iter=20)
         pose[flag] = pf
         zf, df = standardised_residuals(model, theta, pf, yy)
-        lp[flag] = log_tail(zf, df)
+        lp[flag] = np.where(isolated[flag] & ~out[flag], log_tail(zf, df, s2), 0.0)
     return out
 

@@ -100,11 +100,13 @@ def as_run(result, arrays: Mapping | None = None):
                       "give a FitRun, a FitResult, a result folder or a result.json dict")
 
 
-def _pick(run, method: str | None):
+def _pick(run, method: str | None, prefer=()):
+    """The result of ``method``; by default the first that has one of the arrays ``prefer``, else the first."""
     if not run.results:
         raise SkelidError("the result holds no method", "fit first: skelid fit MODEL DATA --out DIR")
     if method is None:
-        return next(iter(run.results.values()))
+        return next((r for r in run.results.values() if any(k in r.arrays for k in prefer)),
+                    next(iter(run.results.values())))
     if method not in run.results:
         raise SkelidError(f"the result has no method {method!r}", f"use one of: {', '.join(run.results)}")
     return run.results[method]
@@ -184,7 +186,7 @@ def to_xarray(result, method: str | None = None, arrays: Mapping | None = None):
     ----------
     result : FitRun, FitResult, result folder or ``result.json`` dict
     method : str, optional
-        Which method (default: the first).
+        Which method (default: the first with poses or residuals, else the first).
     arrays : mapping, optional
         With a ``result.json`` dict: its arrays.
 
@@ -199,7 +201,7 @@ def to_xarray(result, method: str | None = None, arrays: Mapping | None = None):
     """
     xr = _need("xarray")
     run = as_run(result, arrays)
-    r = _pick(run, method)
+    r = _pick(run, method, prefer=("pose", "residuals"))
     shared = dict(run.arrays)
     own = dict(r.arrays)
     model = _model(run)

@@ -43,11 +43,16 @@ _STATUS = {"identified": "identified", "well identified": "identified", "ok": "i
 #: keys of a method's dict that are not parameters
 _RESERVED = ("sigma", "lengths", "identifiability", "counting", "joint_range_deg", "warnings", "frames_used",
              "frames_dropped", "seconds")
-_CODES = ((re.compile(r"converg", re.I), "not-converged"), (re.compile(r"poorly identified", re.I),
-          "poorly-identified"), (re.compile(r"soft-tissue", re.I), "soft-tissue-artefact"),
-          (re.compile(r"bound of (its|their) prior", re.I), "on-bound"), (re.compile(r"skipped", re.I),
-          "frames-skipped"), (re.compile(r"left out", re.I), "outliers"), (re.compile(r"missing in", re.I),
-          "marker-gaps"), (re.compile(r"sampler", re.I), "sampler"))
+_CODES = (
+    (re.compile(r"not converg|before converging|failed to converge", re.I), "not-converged"),
+    (re.compile(r"poorly identified", re.I), "poorly-identified"),
+    (re.compile(r"soft-tissue", re.I), "soft-tissue-artefact"),
+    (re.compile(r"bound of (its|their) prior", re.I), "on-bound"),
+    (re.compile(r"skipped|dropped", re.I), "frames-skipped"),
+    (re.compile(r"left out", re.I), "outliers"),
+    (re.compile(r"missing in", re.I), "marker-gaps"),
+    (re.compile(r"sampler", re.I), "sampler"),
+)
 
 
 def _float(v) -> float:

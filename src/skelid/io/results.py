@@ -508,3 +508,121 @@ def read_run(result_dir) -> FitRun:
         return _run(doc, arrays)
     except _Bad as exc:
         raise FormatError(f"{js}: {exc}", _FIX) from None
+
+
+# ==================================================================== JSON summary
+def summary_dict(r: FitResult) -> dict:
+    """The per-method JSON summary ``skelid fit`` prints and writes under ``methods``.
+
+    ``frames_used``, ``frames_dropped``, ``frames_skipped``; one entry per parameter
+    (``map``, ``mean``, ``sd``, ``ci95``, ``crlb_sd`` and the estimator's extras);
+    ``sigma``; ``lengths``; every diagnostic under its own key; ``warnings`` (messages).
+    In this flat shape a parameter named like a reserved key shadows it; the typed
+    :class:`~skelid.result.FitResult` and :func:`write_run` keep them apart.
+    """
+    out: dict = {}
+    if r.frames is not None:
+        out.update(frames_used=r.frames.used, frames_dropped=r.frames.dropped, frames_skipped=dict(r.frames.skipped))
+    out.update({k: v for k, v in r.diagnostics.items() if k not in ("identifiability",)})
+    for k, p in r.parameters.items():
+        entry = {"map": p.map, "mean": p.mean, "sd": p.sd, "ci95": list(p.interval)}
+        if p.crlb_sd is not None:
+            entry["crlb_sd"] = p.crlb_sd
+        entry.update(p.extra)
+        out[k] = entry
+    if r.noise is not None:
+        sig = {"value": r.noise.sigma, "fixed": r.noise.fixed}
+        if r.noise.interval is not None or r.noise.extra:
+            sig["ci95"] = list(r.noise.interval) if r.noise.interval is not None else [r.noise.sigma] * 2
+        sig.update(r.noise.extra)
+        if r.noise.per_marker:
+            sig["per_marker"] = dict(r.noise.per_marker)
+        out["sigma"] = sig
+    if r.derived:
+        out["lengths"] = {k: {"value": p.mean, "sd": p.sd, "ci95": list(p.interval)} for k, p in r.derived.items()}
+    if "identifiability" in r.diagnostics:
+        out["identifiability"] = r.diagnostics["identifiability"]
+    out["warnings"] = [w.message for w in r.warnings]
+    return out
+
+
+# ============================================== the folder ``skelid fit --out`` writes today
+# ``result.json`` of :func:`skelid.workflows.run_fit` (per-method :func:`summary_dict` under ``methods``)
+# and ``arrays.npz`` keyed ``METHOD.KEY``; :func:`write_run` / :func:`read_run` are the typed format.
+def fit_arrays(model, y: np.ndarray, rate: float, fitted: dict) -> dict[str, np.ndarray]:
+    """The arrays a report needs that JSON holds badly (see the module docstring)."""
+    out = {"markers": np.asarray(y, float), "marker_names": np.array(model.marker_names, dtype=str),
+           "rate": np.array(float(rate)), "units": np.array(model.units)}
+    for name, est in fitted.items():
+        out.update({f"{name}.{k}": v for k, v in estimator_arrays(est).items()})
+    return out
+
+
+def estimator_arrays(est) -> dict[str, np.ndarray]:
+    """Posterior grid, history, Gaussian moments, residuals and bounds of a fitted estimator.
+
+    Works on any estimator by the attributes it has: ``posterior_`` (a grid
+    posterior with ``axes``, ``history``, ``marginal(k, lw)``; weighted samples
+    with ``points``, ``weights``, whose mean and covariance are stored too; or a
+    Gaussian with ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``,
+    ``measured_ (F,)``, ``map_path_ (F,)``, ``pose_ (F, Q)`` (stored as ``pose``).
+    """
+    out: dict[str, np.ndarray] = {}
+    post = getattr(est, "posterior_", None)
+    if post is not None:
+        out["posterior.names"] = np.array(tuple(getattr(post, "names", ())), dtype=str)
+        history = tuple(getattr(post, "history", ()) or ())
+        if hasattr(post, "axes") and hasattr(post, "marginal"):
+            out["posterior.kind"] = np.array("grid")
+            steps = [int(h[0]) for h in history]
+            out["posterior.history_steps"] = np.array(steps, dtype=int)
+            for k, ax in enumerate(post.axes):
+                out[f"posterior.axis.{k}"] = np.asarray(ax, float)
+                out[f"posterior.marginal.{k}"] = np.asarray(post.marginal(k), float)
+                if steps:
+                    out[f"posterior.history.{k}"] = np.stack([post.marginal(k, h[1]) for h in history])
+        elif hasattr(post, "points") and hasattr(post, "weights"):
+            out["posterior.kind"] = np.array("samples")
+            out["posterior.points"] = np.asarray(post.points, float)
+            out["posterior.weights"] = np.asarray(post.weights, float)
+            out["posterior.mean"] = np.asarray(post.mean, float)
+            out["posterior.cov"] = np.atleast_2d(np.asarray(post.cov, float))
+        elif hasattr(post, "cov"):
+            out["posterior.kind"] = np.array("gaussian")
+            out["posterior.mean"] = np.asarray(post.mean, float)
+            out["posterior.cov"] = np.asarray(post.cov, float)
+            hist = [h for h in history if len(h) == 3]
+            if hist:
+                out["posterior.history_steps"] = np.array([int(h[0]) for h in hist])
+                out["posterior.history_mean"] = np.stack([np.asarray(h[1], float) for h in hist])
+                out["posterior.history_cov"] = np.stack([np.asarray(h[2], float) for h in hist])
+    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_", "pose_"):
+        v = getattr(est, attr, None)
+        if v is not None:
+            out[attr.rstrip("_")] = np.asarray(v, float)
+    return out
+
+
+def write_json(path, obj) -> Path:
+    path = Path(path)
+    text = json.dumps(obj, indent=2, default=_json_default, allow_nan=True)
+    with atomic_write(path) as fh:
+        fh.write(text + "\n")
+    return path
+
+
+def write_npz(path, arrays: dict) -> Path:
+    path = Path(path)
+    with atomic_write(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

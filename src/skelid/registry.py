@@ -1,0 +1,75 @@
+"""The estimators by method name, and building one from command-line options.
+
+Each estimator class declares its settings (``settings``: a tuple of
+:class:`~skelid.estimators.base.Setting`); a setting with a ``cli`` name is set by
+that ``skelid fit`` option. Building an estimator passes exactly the options its class
+declares: no signature inspection, no special cases by name.
+
+Examples
+--------
+>>> from skelid.simulate import builtin_model
+>>> est = make_estimator("marker", builtin_model("case-a"), {"sigma": 15.0, "cutoff": 6.0})
+>>> est.sigma, est.cutoff
+(15.0, 6.0)
+>>> names()
+('marker', 'paper', 'marker-grid', 'marker-smc')
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from skelid.errors import ModelError
+from skelid.model.description import Model
+
+DEFAULT_METHOD = "marker"
+
+
+def estimators() -> dict[str, type]:
+    """Estimator classes by method name (the class's ``name``)."""
+    from skelid.estimators.grid import MarkerGridFilter
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.paper import PaperFilter
+    from skelid.estimators.sampler import SamplerEstimator
+
+    return {cls.name: cls for cls in (MarkerEstimator, PaperFilter, MarkerGridFilter, SamplerEstimator)}
+
+
+def names() -> tuple[str, ...]:
+    return tuple(estimators())
+
+
+def estimator_class(name: str) -> type:
+    table = estimators()
+    if name not in table:
+        raise ModelError(f"unknown method {name!r}", f"use one of: {', '.join(table)}")
+    return table[name]
+
+
+def cli_settings(name: str) -> dict[str, str]:
+    """``{option: setting}`` of the command-line options method ``name`` takes."""
+    return {s.cli: s.name for s in estimator_class(name).settings if s.cli}
+
+
+def make_estimator(name: str, model: Model, options: Mapping | None = None, **settings):
+    """Estimator ``name`` for ``model``, with the command-line ``options`` it declares and ``settings``.
+
+    An option the method does not declare, or that is None, is left out (the
+    method's default applies); the settings are checked at once, so a bad value
+    fails before any data are read.
+
+    Raises
+    ------
+    ModelError
+        Unknown method.
+    SettingError
+        A setting the estimator cannot use.
+    """
+    from skelid.estimators.base import check_settings
+
+    cls = estimator_class(name)
+    kw = {setting: options[opt] for opt, setting in cli_settings(name).items()
+          if options and options.get(opt) is not None}
+    est = cls(model, **kw, **settings)
+    check_settings(est)
+    return est

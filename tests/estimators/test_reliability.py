@@ -1,0 +1,54 @@
+"""No tight interval from a broken fit; parameters informed by the markers' placement are said so."""
+
+import numpy as np
+import pytest
+
+import skelid.estimators.marker as marker_mod
+from skelid.data import MarkerData
+from skelid.errors import ConvergenceError
+from skelid.estimators.checks import placement_information
+from skelid.estimators.marker import MarkerEstimator
+from skelid.model.kinematics import marker_positions
+from skelid.simulate import builtin_model, simulate
+from tests.estimators.test_misfit import _knee_model
+
+
+def test_a_fit_that_does_not_converge_fails_in_one_line():
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=120, sigma=2.0, rng=np.random.default_rng(0))
+    with pytest.raises(ConvergenceError) as exc:
+        MarkerEstimator(model, n_iter=1, cutoff=None, jackknife=False, theta0=[205.0]).fit(trial.data)
+    assert "\n" not in exc.value.one_line() and "did not converge" in exc.value.one_line()
+
+
+def test_an_unreliable_bias_correction_falls_back_to_the_bootstrap(monkeypatch):
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=120, sigma=5.0, rng=np.random.default_rng(1))
+    monkeypatch.setattr(marker_mod, "BIAS_RELIABLE", 0.0)  # every correction counts as large
+    est = MarkerEstimator(model, cutoff=None, n_boot=4, jackknife=False, rng=np.random.default_rng(2))
+    est.fit(trial.data)
+    assert est.bias_method_ == "bootstrap" and est.bias_fallback_["n_boot"] == 4
+    assert est.bias_[0] == pytest.approx(est.bias_fallback_["bootstrap"][0])
+    assert any("parametric bootstrap" in w.message for w in est.warnings_)
+
+
+def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
+    model = _knee_model()
+    rng = np.random.default_rng(3)
+    n = 120
+    q = np.zeros((n, model.n_pose))
+    for k, d in enumerate(model.dofs):  # standing still: joints move well under a degree
+        q[:, k] = (0.2 if d.segment == 1 else 0.0) + np.radians(0.2) * np.sin(0.05 * np.arange(n) + k)
+    y = marker_positions(model, model.theta_center, q) + rng.normal(0.0, 0.5, size=(n, 6, 3))
+    data = MarkerData(y, model.marker_names, 100.0, "mm")
+    est = MarkerEstimator(model, cutoff=None, jackknife=False, rng=np.random.default_rng(0)).fit(data)
+    assert est.placement_["static"] and est.placement_["placement_sd"] == 5.0
+    assert all(v["informed_by_placement"] for v in est.placement_["parameters"].values())
+    assert any("nominal placement" in w.message for w in est.warnings_)
+    # the covariance added is exactly sd^2 times the placement sensitivity (closed form)
+    fit = est.fit_info_
+    place = placement_information(model, est.y_, fit.theta, fit.pose, est.frames_used_, fit.penalty)
+    bare = MarkerEstimator(model, cutoff=None, jackknife=False, placement_sd=0.0,
+                           rng=np.random.default_rng(0)).fit(data)
+    assert np.allclose(est.cov_data_ - bare.cov_data_, 25.0 * place["cov_per_unit"], rtol=1e-6, atol=1e-12)
+    assert np.all(est.posterior_.sd > bare.posterior_.sd)

@@ -1,0 +1,29 @@
+import json
+
+from skelid.cli import main
+from tests.conftest import EXAMPLES
+
+
+def test_several_trials_alternatives_and_per_marker_noise(tmp_path, capsys):
+    paths = []
+    for seed, frames in ((1, 60), (2, 50)):
+        p = tmp_path / f"t{seed}.trc"
+        assert main(["simulate", "case-b", "--sigma", "2", "--frames", str(frames), "--seed", str(seed),
+                     "--out", str(p)]) == 0
+        paths.append(str(p))
+    # an alternative model: the same body under another name (its estimate equals the main one)
+    alt = tmp_path / "alt.toml"
+    alt.write_text((EXAMPLES / "case_b.toml").read_text().replace('name = "case_b"', 'name = "case_b_alt"'))
+    capsys.readouterr()
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--cutoff", "0", "--noise", "per-marker",
+                 "--alternative", str(alt), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    m = res["methods"]["marker"]
+    assert len(m["trials"]) == 2 and [t["data"] for t in m["trials"]] == paths
+    assert m["consistency"]["dof"] == 1 and 0.0 <= m["consistency"]["p_value"] <= 1.0
+    lo, hi = m["L2"]["ci95"]
+    assert lo < 250.0 < hi
+    spread = res["alternatives"]["spread"]["L2"]
+    assert set(spread["values"]) == {"case_b", "case_b_alt"} and spread["spread"] < 1e-6
+    # another method with several trials is refused in one line
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--method", "paper"]) == 2

@@ -1,0 +1,126 @@
+"""The live session: labelled frames in, an immutable estimate out after each."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from skelid.errors import DataError, ModelError
+from skelid.estimators.marker import MarkerEstimator
+from skelid.live import Session
+from skelid.model import load_model
+from skelid.simulate import builtin_model, simulate
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _run(session, positions):
+    est = None
+    for frame in positions:
+        est = session.push(frame)
+    return est
+
+
+@pytest.mark.parametrize("name,method,sigma,frames", [("case-a", "gaussian", 1.0, 300),
+                                                       ("case-a", "grid", 1.0, 150),
+                                                       ("tennis_arm", "gaussian", 0.001, 200)])
+def test_last_live_estimate_agrees_with_the_batch_estimate(name, method, sigma, frames):
+    model = builtin_model(name) if name.startswith("case") else load_model(EXAMPLES / f"{name}.toml")
+    trial = simulate(model, n_frames=frames, sigma=sigma, rng=np.random.default_rng(3))
+    session = Session(model, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate,
+                      method=method, rng=np.random.default_rng(0))
+    est = _run(session, trial.data.positions)
+    batch = MarkerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data)
+    sd = np.sqrt(np.diag(batch.cov_))
+    live = np.array([est.parameters[n].mean for n in model.parameter_names])
+    np.testing.assert_array_less(np.abs(live - batch.theta_), sd)
+    assert est.healthy and est.health == "ok"
+
+
+def test_estimate_is_immutable_and_complete():
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=20, sigma=2.0, rng=np.random.default_rng(1))
+    session = Session(model, labels=trial.data.names, units="mm", rate=100.0, method="gaussian")
+    est = _run(session, trial.data.positions)
+    assert est.frame == 20 and est.time == pytest.approx(0.2)
+    assert set(est.marker_residuals) == set(model.marker_names)
+    assert set(est.joint_centres) == {s.joint.name for s in model.segments}
+    assert est.pose.shape == (model.n_pose,)
+    with pytest.raises(ValueError):
+        est.pose[0] = 1.0
+    with pytest.raises(TypeError):
+        est.parameters["x"] = None
+    with pytest.raises(AttributeError):
+        est.frame = 3
+    p = est.parameters["L2"]
+    assert p.interval[0] < p.mean < p.interval[1]
+
+
+def test_dict_frames_in_other_units_and_names_give_the_same_estimate():
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=15, sigma=2.0, rng=np.random.default_rng(2))
+    names = trial.data.names
+    a = Session(model, labels=names, units="mm", method="gaussian")
+    b = Session(model, labels={f"stream_{n}": n for n in names}, units="m", method="gaussian")
+    for frame in trial.data.positions:
+        ea = a.push(frame)
+        eb = b.push({f"stream_{n}": xyz / 1000.0 for n, xyz in zip(names, frame, strict=True)} | {"other": [1, 2, 3]})
+    np.testing.assert_allclose(eb.theta, ea.theta, rtol=1e-9)
+
+
+def test_a_missing_marker_and_a_swapped_label_mid_stream_are_flagged_and_do_not_break_it():
+    model = load_model(EXAMPLES / "tennis_arm.toml")
+    trial = simulate(model, n_frames=80, sigma=0.001, rng=np.random.default_rng(4))
+    names = list(trial.data.names)
+    y = trial.data.positions.copy()
+    y[30:34, 2] = np.nan  # a marker drops out
+    i, j = 1, 5  # two markers on different segments swap labels
+    y[50:54, [i, j]] = y[50:54, [j, i]]
+    clean = Session(model, labels=names, method="gaussian", rng=np.random.default_rng(0))
+    glitched = Session(model, labels=names, method="gaussian", rng=np.random.default_rng(0))
+    flags = {}
+    for t, (a, b) in enumerate(zip(trial.data.positions, y, strict=True)):
+        ec = clean.push(a)
+        eg = glitched.push(b)
+        flags[t] = (eg.healthy, eg.health, eg.rejected)
+    assert all(not flags[t][0] and "missing" in flags[t][1] for t in range(30, 34))
+    for t in range(50, 54):
+        assert not flags[t][0] and set(flags[t][2]) == {names[i], names[j]}, flags[t]
+    assert flags[79][0]
+    sd = np.sqrt(np.diag(ec.cov))
+    np.testing.assert_array_less(np.abs(eg.theta - ec.theta), 0.5 * sd)
+
+
+def test_bad_input_gives_one_line_errors():
+    model = builtin_model("case-a")
+    with pytest.raises(DataError, match="none of the labels"):
+        Session(model, labels=["a", "b"])
+    with pytest.raises(DataError, match="unknown length unit"):
+        Session(model, units="furlong")
+    with pytest.raises(ModelError, match="unknown live method"):
+        Session(model, method="magic")
+    s = Session(model, labels=model.marker_names)
+    with pytest.raises(DataError, match="array frame"):
+        s.push(np.zeros((2, 3)))
+
+
+def test_advice_ranks_movements_in_words():
+    model = load_model(EXAMPLES / "tennis_arm.toml")
+    trial = simulate(model, n_frames=30, sigma=0.001, rng=np.random.default_rng(5))
+    session = Session(model, labels=trial.data.names, method="gaussian")
+    assert session.advice() == []
+    _run(session, trial.data.positions)
+    advice = session.advice()
+    assert advice and all(a.sd_after <= a.sd_now * (1 + 1e-9) for a in advice)
+    assert [a.sd_after for a in advice] == sorted(a.sd_after for a in advice)
+    assert advice[0].text.startswith(("bend the", "turn the")) and "°" in advice[0].text
+
+
+def test_readme_live_loop_runs_as_written(capsys):
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text.split("## VR / live", 1)[1]
+    code = section.split("```python", 1)[1].split("```", 1)[0]
+    assert len(code.strip().splitlines()) <= 12
+    exec(compile(code, "README.md", "exec"), {})
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 2 and "True" in out[0] and out[1].startswith(("bend the", "turn the"))
