@@ -777,6 +777,12 @@ def _body(b: _Builder, run, units: str):
     theta = np.array([r.parameters[n].mean if n in r.parameters else float(v)
                       for n, v in zip(model.parameter_names, model.theta_nominal, strict=True)])
     y = np.asarray(run.arrays["markers"], float)
+    if y.ndim != 3 or y.shape[1:] != (len(model.markers), model.dim) or not len(y):
+        from skelid.errors import FormatError
+
+        raise FormatError(f"arrays.npz: the markers array has shape {y.shape}, not (frames, "
+                          f"{len(model.markers)}, {model.dim}) as model {model.name!r} needs",
+                          "fit again with 'skelid fit --out' to rewrite the result folder")
     pose = r.arrays.get("pose", r.arrays.get("poses"))
     keep, _ = viewer.decimation(len(y))
     if pose is not None and np.shape(pose) == (len(y), model.n_pose):
