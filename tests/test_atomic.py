@@ -103,7 +103,7 @@ def _start(args, cwd):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-def _wait_busy(p, cpu_seconds: float = 1.5, timeout: float = 60.0):
+def _wait_busy(p, cpu_seconds: float = 4.0, timeout: float = 90.0):
     """Wait until the child has done real work (past its imports), then return."""
     stat = Path(f"/proc/{p.pid}/stat")
     if not stat.exists():  # not Linux: a fixed wait well inside the run

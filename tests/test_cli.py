@@ -91,7 +91,7 @@ def _bad_inputs(tmp_path):
     notoml = tmp_path / "broken.toml"
     notoml.write_text("[model\n")
     return {
-        "unknown joint type": ([str(bad_model), str(good)], "unknown joint type 'ball'"),
+        "unknown joint type": ([str(bad_model), str(good)], "segments[1].joint.type: unknown value 'ball'"),
         "marker missing from file": ([str(EXAMPLES / "case_a.toml"), str(missing)], "marker(s) C"),
         "all rows NaN": ([str(EXAMPLES / "case_a.toml"), str(allnan)], "missing in every frame"),
         "no solution in interval": ([str(interval), str(clean)], "no solution inside the interval"),

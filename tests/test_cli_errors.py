@@ -66,7 +66,7 @@ BAD = {
     "sigma negative": ("fit {case_a} {good} --sigma -3 --out {out}", "'--sigma'"),
     "sigma absurdly small": ("fit {case_a} {good} --sigma 1e-300 --out {out}", "implausibly small"),
     "negative seed": ("fit {case_a} {good} --seed -1 --out {out}", "'--seed'"),
-    "missing argument": ("fit {case_a}", "Missing argument 'DATA_PATH'"),
+    "missing argument": ("fit {case_a}", "Missing argument 'DATA_PATHS...'"),
     "unknown option": ("fit {case_a} {good} --frobnicate", "No such option"),
     "unknown command": ("frobnicate", "No such command"),
     "simulate to an unknown file type": ("simulate case-a --out {out}.txt", "end the file name with .trc or .csv"),

@@ -80,7 +80,7 @@ def check_target(path, folder: bool = False) -> os.stat_result | None:
     path = Path(path)
     try:
         st = os.lstat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # absent (a file on the way is reported when creating it)
         return None
     except OSError as exc:
         raise _cannot_write(path, exc) from None
