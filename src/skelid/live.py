@@ -58,7 +58,7 @@ Examples
 >>> session = Session(model, labels=trial.data.names, units="mm", rate=100.0, method="gaussian")
 >>> for frame in trial.data.positions:
 ...     est = session.push(frame)
->>> abs(est.parameters["L2"].mean - trial.theta[0]) < 4 * est.parameters["L2"].sd
+>>> bool(abs(est.parameters["L2"].mean - trial.theta[0]) < 4 * est.parameters["L2"].sd)
 True
 """
 

@@ -95,7 +95,7 @@ NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
-BIAS_RELIABLE = 0.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
+BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.1  # an unconverged fit whose estimate still moves by more than this many sd fails
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
