@@ -1,9 +1,16 @@
 import os
 from pathlib import Path
 
-import matplotlib
-import pytest
+# the suite's linear algebra is many small factorisations: one BLAS thread each is faster than
+# threads contending for two cores (set before numpy loads, for this process and every subprocess)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
+import matplotlib  # noqa: E402
+import pytest  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+threadpool_limits(1)  # in case a plugin loaded numpy before this file
 matplotlib.use("Agg")
 os.environ.setdefault("MPLBACKEND", "Agg")
 # every test runs the compiled pose kernel (or the numpy path where it asks for it), never a mix that
