@@ -63,6 +63,8 @@ def _cpu():
 def run_scaletool(tmp: Path) -> dict:
     import opensim as osim
 
+    osim.Logger.removeFileSink()  # OpenSim would write opensim.log beside every model it loads
+
     work = tmp / "subject01"
     shutil.copytree(S01, work)
     cwd = os.getcwd()

@@ -75,6 +75,8 @@ def osim_lengths(path: Path) -> dict[str, float]:
     """Hip-knee and knee-ankle distances (mm) of an OpenSim model in its default pose."""
     import opensim as osim
 
+    osim.Logger.removeFileSink()  # OpenSim would write opensim.log beside every model it loads
+
     osim.Logger.setLevelString("off")
     m = osim.Model(str(path))
     s = m.initSystem()

@@ -2,6 +2,7 @@
 one line on stderr naming the problem and the fix, no traceback and nothing
 written; a bug in skelid gives exit status 1 and its traceback."""
 
+import dataclasses
 import json
 import os
 import shlex
@@ -133,8 +134,8 @@ def test_non_finite_estimates_are_a_bug_not_a_result(files, capfd, monkeypatch):
 
     def nan_result(self):
         res = real(self)
-        res["L2"]["mean"] = float("nan")
-        return res
+        bad = dataclasses.replace(res.parameters["L2"], mean=float("nan"))
+        return dataclasses.replace(res, parameters={**res.parameters, "L2": bad})
 
     monkeypatch.setattr(PaperFilter, "result", nan_result)
     assert main(["fit", CASE_A, files["good"], "--quiet", "--method", "paper"]) == 1

@@ -334,6 +334,8 @@ def opensim_ik(osim_path, trc_path, out_dir, markers=None) -> dict:
     """
     import opensim as osim
 
+    osim.Logger.removeFileSink()  # OpenSim would write opensim.log beside every model it loads
+
     from skelid.io import read_markers
 
     out_dir = Path(out_dir)

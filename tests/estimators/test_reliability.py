@@ -13,12 +13,29 @@ from skelid.simulate import builtin_model, simulate
 from tests.estimators.test_misfit import _knee_model
 
 
-def test_a_fit_that_does_not_converge_fails_in_one_line():
+def test_a_fit_that_does_not_converge_fails_in_one_line(monkeypatch):
     model = builtin_model("case-b")
     trial = simulate(model, n_frames=120, sigma=2.0, rng=np.random.default_rng(0))
+    real = marker_mod.joint_fit
+    calls = []
+
+    def creeping(*args, **kwargs):  # every fit stops early and its estimate keeps moving by 2 mm a call
+        calls.append(1)
+        f = real(*args, **kwargs)
+        return f._replace(converged=False, theta=f.theta + 2.0 * len(calls))
+
+    monkeypatch.setattr(marker_mod, "joint_fit", creeping)
     with pytest.raises(ConvergenceError) as exc:
-        MarkerEstimator(model, n_iter=1, cutoff=None, jackknife=False, theta0=[205.0]).fit(trial.data)
+        MarkerEstimator(model, n_iter=5, cutoff=None, jackknife=False).fit(trial.data)
     assert "\n" not in exc.value.one_line() and "did not converge" in exc.value.one_line()
+
+
+def test_a_slow_fit_is_continued_until_it_settles():
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=120, sigma=2.0, rng=np.random.default_rng(0))
+    est = MarkerEstimator(model, n_iter=1, cutoff=None, jackknife=False, theta0=[205.0]).fit(trial.data)
+    full = MarkerEstimator(model, cutoff=None, jackknife=False).fit(trial.data)
+    assert est.theta_[0] == pytest.approx(full.theta_[0], abs=0.25 * full.posterior_.sd[0] + 1e-9)
 
 
 def test_an_unreliable_bias_correction_falls_back_to_the_bootstrap(monkeypatch):

@@ -28,6 +28,7 @@ def _pose_names(model):
 @pytest.mark.parametrize("path,marker_set", MODELS, ids=[m[0].rsplit("/", 1)[-1] for m in MODELS])
 def test_markers_equal_opensim_at_random_poses(shared_data, path, marker_set):
     osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    osim.Logger.removeFileSink()  # no opensim.log beside the shared models
     ms = None if marker_set is None else str(shared_data / marker_set)
     model, _ = read_osim(shared_data / path, ms)
     om = osim.Model(str(shared_data / path))
@@ -179,6 +180,7 @@ def test_bad_osim_is_one_line(tmp_path, kw, err, words):
 def test_written_scaled_model_equals_skelid_in_opensim(shared_data, tmp_path, path, marker_set):
     """Scales and offsets written back: OpenSim's markers on the written .osim equal skelid's."""
     osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    osim.Logger.removeFileSink()  # no opensim.log beside the shared models
     from skelid.io.osim import write_scale_set, write_scaled_osim
 
     ms = None if marker_set is None else shared_data / marker_set

@@ -96,7 +96,8 @@ STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags sof
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
-CONVERGED_SD = 0.1  # an unconverged fit whose estimate still moves by more than this many sd fails
+CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
+CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
 Z95 = 1.959964  # two-sided 95 % normal quantile
@@ -527,26 +528,31 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
 
 
 def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator) -> Weights:
-    """A fit that stopped early is continued once; if its estimate still moves by more than
-    ``CONVERGED_SD`` of its sd, no interval is reported (one line)."""
+    """A fit that stopped early is continued (up to ``CONTINUE_ROUNDS`` times ``n_iter`` more
+    iterations); if its estimate still moves by more than ``CONVERGED_SD`` of its sd in the last
+    round, no interval is reported (one line)."""
     fit = wt.fit
+    for _ in range(CONTINUE_ROUNDS):
+        if fit.converged:
+            break
+        more = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                         rate=st.rate if mo.cutoff is not None else None, cutoff=mo.cutoff, weights=wt.weights)
+        dof = max(more.n_obs - more.pose_dof - model.n_params, 1.0)
+        try:
+            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
+        except np.linalg.LinAlgError:
+            return wt._replace(fit=more)
+        step = np.abs(more.theta - fit.theta)
+        fit = more
+        if not np.any(step > CONVERGED_SD * np.maximum(sd, 1e-300)):
+            return wt._replace(fit=more)
     if fit.converged:
-        return wt
-    more = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                     rate=st.rate if mo.cutoff is not None else None, cutoff=mo.cutoff, weights=wt.weights)
-    dof = max(more.n_obs - more.pose_dof - model.n_params, 1.0)
-    try:
-        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
-    except np.linalg.LinAlgError:
-        return wt._replace(fit=more)
-    step = np.abs(more.theta - fit.theta)
-    if not more.converged and np.any(step > CONVERGED_SD * np.maximum(sd, 1e-300)):
-        k = int(np.argmax(step / np.maximum(sd, 1e-300)))
-        raise ConvergenceError(
-            f"the joint fit did not converge: {model.parameter_names[k]} still moved by {step[k]:.3g} "
-            f"({step[k] / max(sd[k], 1e-300):.1f} sd) in {s.n_iter} further iterations, so no interval "
-            "can be given", "raise n_iter, or check the model's starting geometry and the data")
-    return wt._replace(fit=more)
+        return wt._replace(fit=fit)
+    k = int(np.argmax(step / np.maximum(sd, 1e-300)))
+    raise ConvergenceError(
+        f"the joint fit did not converge: {model.parameter_names[k]} still moved by {step[k]:.3g} "
+        f"({step[k] / max(sd[k], 1e-300):.1f} sd) in {s.n_iter} further iterations, so no interval "
+        "can be given", "raise n_iter, or check the model's starting geometry and the data")
 
 
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
