@@ -37,11 +37,9 @@ import base64
 import datetime
 import html
 import io
-import json
 import math
 import re
 import sys
-import zipfile
 from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
@@ -87,48 +85,6 @@ tr.fit td { background: #fff0f0; }
 .viewer { width: 100%; min-height: 620px; border: 1px solid #eee; }
 nav ol { columns: 2; }
 """
-
-
-# ----------------------------------------------------------------------------- reading
-def load_result_dir(result_dir) -> tuple[dict, dict, list[str]]:
-    """``(result, arrays, notes)`` from a folder written by ``skelid fit --out``.
-
-    Raises
-    ------
-    SkelidError
-        The folder, its ``result.json`` or its ``arrays.npz`` is missing or unreadable.
-    """
-    d = Path(result_dir)
-    fix = f"run 'skelid fit MODEL DATA --out {d}' first"
-    if not d.exists():
-        raise SkelidError(f"result folder {d} does not exist", fix)
-    if not d.is_dir():
-        raise SkelidError(f"{d} is a file, not a result folder", f"give the folder that holds result.json; {fix}")
-    path = d / "result.json"
-    if not path.is_file():
-        hint = " (it holds demo output, which has no single fit)" if (d / "summary.json").exists() else ""
-        raise SkelidError(f"{d} has no result.json{hint}", fix)
-    try:
-        result = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise SkelidError(f"cannot read {path}: {exc.strerror or exc}", "check the file's permissions") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise SkelidError(f"{path} is not valid JSON ({exc})", f"the file is damaged; {fix}") from None
-    if not isinstance(result, dict) or not isinstance(result.get("methods"), dict):
-        raise SkelidError(f"{path} is not a skelid fit result (no 'methods' table)", fix)
-    notes = []
-    arrays = {}
-    npz = d / "arrays.npz"
-    if npz.is_file():
-        try:
-            with np.load(npz, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-            raise SkelidError(f"{npz} is unreadable ({exc})", f"the file is damaged; {fix}") from None
-    else:
-        notes.append(f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
-                     "residual figures (rerun skelid fit with --out to get them)")
-    return result, arrays, notes
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -551,8 +507,8 @@ def _final(b: _Builder, run, units: str):
             k = post_names.index(name) if name in post_names else None
             if k is not None and f"posterior.axis.{k}" in a:
                 panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
-            elif k is not None and "posterior.points" in a:
-                panel.update(_histogram(a["posterior.points"][:, k], a.get("posterior.weights")))
+            elif k is not None and "samples" in a:
+                panel.update(_histogram(a["samples"][:, k], a.get("sample_weights")))
             elif k is not None and "posterior.cov" in a:
                 panel.update(mean=float(a["posterior.mean"][k]), sd=float(np.sqrt(max(a["posterior.cov"][k, k], 0))),
                              kind_label="posterior (Gaussian)")
@@ -817,22 +773,20 @@ def _body(b: _Builder, run, units: str):
 def load_run(result_dir):
     """``(run, notes)``: the :class:`~skelid.result.FitRun` a result folder holds and what it lacks.
 
-    A folder with a ``schema_version`` is read by :func:`skelid.io.results.read_run`; an
-    older one by :func:`load_result_dir` and :func:`skelid.io.legacy.run_from_legacy`.
+    Read by :func:`skelid.io.results.read_run`, which checks everything first: a
+    damaged, foreign or old folder is refused in one line (:class:`~skelid.errors.FormatError`).
     """
-    from skelid.io.legacy import has_schema, run_from_legacy
+    from skelid.io.results import read_run
 
     d = Path(result_dir)
-    if has_schema(d):
-        from skelid.io.results import read_run
-
-        run = read_run(d)
-        notes = [] if (d / "arrays.npz").is_file() else [
-            f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
-            "residual figures (rerun skelid fit with --out to get them)"]
-        return run, notes
-    result, arrays, notes = load_result_dir(d)
-    return run_from_legacy(result, arrays), notes
+    if d.is_dir() and not (d / "result.json").exists() and (d / "summary.json").exists():
+        raise SkelidError(f"{d} holds demo output, which has no single fit",
+                          "run 'skelid fit MODEL DATA --out DIR' and give DIR")
+    run = read_run(d)
+    notes = [] if (d / "arrays.npz").is_file() else [
+        f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
+        "residual figures (rerun skelid fit with --out to get them)"]
+    return run, notes
 
 
 def build_html(result, arrays=None, notes=(), progress: bool = False) -> str:
