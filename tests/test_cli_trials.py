@@ -16,8 +16,12 @@ def test_several_trials_alternatives_and_per_marker_noise(tmp_path, capsys):
     alt.write_text((EXAMPLES / "case_b.toml").read_text().replace('name = "case_b"', 'name = "case_b_alt"'))
     capsys.readouterr()
     assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--cutoff", "0", "--noise", "per-marker",
-                 "--alternative", str(alt), "--json"]) == 0
+                 "--alternative", str(alt), "--json", "--out", str(tmp_path / "fit")]) == 0
     res = json.loads(capsys.readouterr().out)
+    from skelid.io.results import read_run
+
+    run = read_run(tmp_path / "fit")  # the folder holds what was printed, through the one serializer
+    assert run.results["marker"].diagnostics["model_sensitivity"]["models"] == ["case_b", "case_b_alt"]
     m = res["results"]["marker"]
     diag = m["diagnostics"]
     assert len(diag["trials"]) == 2 and [t["data"] for t in diag["trials"]] == paths

@@ -16,6 +16,7 @@ import pytest
 
 from skelid import registry
 from skelid.cli import main
+from skelid.errors import SkelidError
 from skelid.estimators.base import RNG, Setting, positive_or_none
 from skelid.estimators.paper import PaperFilter
 from skelid.estimators.posterior import GridPosterior
@@ -497,3 +498,43 @@ def test_a_warning_stays_with_its_method(tmp_path):
     paper = summary[summary.index("Method: paper"):]
     assert "stopped before converging" not in paper and "dropped 9 of 90 frames" in paper
     assert 'class="severe">paper method dropped' not in paper  # frames dropped: a warning, not a broken fit
+
+
+def test_summary_shows_model_spread_and_noise_per_marker(tmp_path):
+    """With model alternatives, each estimate's spread over the models sits in its row; the noise of
+    each marker is listed under the table, highest first."""
+    from skelid.io.results import write_run
+    from skelid.result import FitRun
+
+    def est(name, mean):
+        return ParameterEstimate(name, "mm", mean, mean, 1.0, (mean - 2, mean + 2), 0.9)
+
+    spread = {"L": {"values": {"main": 250.0, "other": 256.0}, "spread": 6.0, "sd_over_models": 4.2,
+                    "largest_sd": 1.0},
+              "off": {"values": {"main": 10.0, "other": 10.5}, "spread": 0.5, "sd_over_models": 0.35,
+                      "largest_sd": 1.0}}
+    sens = {"models": ["main", "other"], "estimates": {m: {k: {"value": v["values"][m], "sd": 1.0}
+                                                           for k, v in spread.items()} for m in ("main", "other")},
+            "spread": spread}
+    r = FitResult("marker", {"L": est("L", 250.0), "off": est("off", 10.0)},
+                  noise=NoiseEstimate(2.0, (1.9, 2.1), per_marker={"KNE": 1.5, "<ANK>": 4.5, "HIP": 2.0}),
+                  diagnostics={"model_sensitivity": sens})
+    write_run(tmp_path / "fit", FitRun({"marker": r}, {"model": "m", "units": "mm"}))
+    path, _ = write_report(tmp_path / "fit")
+    text, _ = _check_html(path, min_images=1)
+    summary = _section(text, "Summary")
+    assert "spread over models [mm]" in summary
+    row = summary[summary.index('<td class="l">L</td>'):]
+    row = row[:row.index("</tr>")]
+    assert 'class="warn" title="main: 250, other: 256">6<' in row  # wider than any model's own sd
+    row = summary[summary.index('<td class="l">off</td>'):]
+    assert 'class="" title="main: 10, other: 10.5">0.5<' in row[:row.index("</tr>")]
+    noise = summary[summary.index("Marker noise per marker"):]
+    assert noise.index("&lt;ANK&gt; 4.5") < noise.index("HIP 2") < noise.index("KNE 1.5")
+    assert '<span class="warn">&lt;ANK&gt; 4.5</span>' in noise  # above 1.5 times the pooled level
+    # a malformed spread record is refused before the report is written
+    doc = json.loads((tmp_path / "fit" / "result.json").read_text())
+    doc["results"]["marker"]["diagnostics"]["model_sensitivity"]["spread"]["L"]["spread"] = "wide"
+    (tmp_path / "fit" / "result.json").write_text(json.dumps(doc))
+    with pytest.raises(SkelidError, match=r"model_sensitivity\.spread\.L\.spread: expected a number"):
+        write_report(tmp_path / "fit")

@@ -662,40 +662,108 @@ def _status_cell(p) -> str:
 
 
 def _summary(b: _Builder, run, units: str, notes: list[str]):
-    """The answer: every estimate with its interval, bound, status and warnings; then the other warnings."""
+    """The answer: every estimate with its interval, bound, status and warnings (and, with model
+    alternatives, its spread over the models); the noise of each marker; then the other warnings."""
     for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
         warns = _method_warnings(run, method)
-        rows, cls = [], []
-        fit_wide = [w for w in warns if not w["parameters"] and w["severe"]]
-        if fit_wide:
-            rows.append(("<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)))
-            cls.append("fit")
-        for name, p in r.parameters.items():
-            mine = [w for w in warns if name in w["parameters"]]
-            unit = "" if p.unit == units else f" {_e(p.unit)}"
-            rows.append((_e(name), _fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
-                         _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>',
-                         _status_cell(p), _warning_list(mine)))
-            cls.append("")
-        for name, p in r.derived.items():
-            rows.append((f"{_e(name)} <small>(derived length)</small>", _fmt(p.mean), _interval(p.interval),
-                         _fmt(p.crlb_sd) if p.crlb_sd is not None else "–", _status_cell(p), ""))
-            cls.append("")
-        if r.noise is not None:
-            rows.append(("marker noise σ" + (" <small>(fixed)</small>" if r.noise.fixed else ""),
-                         _fmt(r.noise.sigma), _interval(r.noise.interval), "–", "–", ""))
-            cls.append("")
+        spread = _model_spread(r)
+        rows, cls = _summary_rows(r, warns, units, spread)
         if not rows:
             b.add(_na("parameter estimates"))
             continue
-        b.add(_table(["parameter", f"estimate [{units}]", "95 % interval", f"Cramér–Rao sd [{units}]", "status",
-                      "warnings"], rows, left=(0, 5), row_class=cls, cell_class={5: "w"}))
+        head = ["parameter", f"estimate [{units}]", "95 % interval", f"Cramér–Rao sd [{units}]", "status",
+                *([f"spread over models [{units}]"] if spread else []), "warnings"]
+        last = len(head) - 1
+        b.add(_table(head, rows, left=(0, last), row_class=cls, cell_class={last: "w"}))
+        if spread:
+            b.add(_spread_note(r.diagnostics["model_sensitivity"]))
+        if r.noise is not None and r.noise.per_marker:
+            b.add(_per_marker_noise(r.noise, units))
         rest = [w for w in warns if not w["parameters"] and not w["severe"]]
         if rest:
             b.add(f"<p>Other warnings about this fit:</p>{_warning_list(rest)}")
     if notes:
         b.add(_warning_list([{"message": n, "severe": False} for n in notes]))
+
+
+def _summary_rows(r, warns: list[dict], units: str, spread: dict | None) -> tuple[list, list]:
+    """Rows of the summary table (and their classes): the whole fit's severe warnings, then each
+    parameter, derived length and the noise level; with ``spread``, its column before the warnings."""
+    rows, cls = [], []
+
+    def add(cells, key, row_class=""):
+        *main, warn = cells
+        extra = [] if spread is None else ["–" if key is None else _spread_cell(spread.get(key))]
+        rows.append((*main, *extra, warn))
+        cls.append(row_class)
+
+    fit_wide = [w for w in warns if not w["parameters"] and w["severe"]]
+    if fit_wide:
+        add(["<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)], None, "fit")
+    for name, p in r.parameters.items():
+        mine = [w for w in warns if name in w["parameters"]]
+        unit = "" if p.unit == units else f" {_e(p.unit)}"
+        add([_e(name), _fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
+             _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>', _status_cell(p),
+             _warning_list(mine)], name)
+    for name, p in r.derived.items():
+        add([f"{_e(name)} <small>(derived length)</small>", _fmt(p.mean), _interval(p.interval),
+             _fmt(p.crlb_sd) if p.crlb_sd is not None else "–", _status_cell(p), ""], name)
+    if r.noise is not None:
+        add(["marker noise σ" + (" <small>(fixed)</small>" if r.noise.fixed else ""), _fmt(r.noise.sigma),
+             _interval(r.noise.interval), "–", "–", ""], None)
+    return rows, cls
+
+
+def _model_spread(r) -> dict | None:
+    """``{quantity: spread record}`` of ``skelid fit --alternative`` (see :mod:`skelid.sensitivity`), or None."""
+    sens = r.diagnostics.get("model_sensitivity")
+    spread = sens.get("spread") if isinstance(sens, Mapping) else None
+    return dict(spread) if isinstance(spread, Mapping) and spread else None
+
+
+def _spread_cell(rec) -> str:
+    """The range of one quantity's estimates over the models, with each model's value on hover;
+    in colour where it is wider than the widest of the models' own sds."""
+    if not isinstance(rec, Mapping):
+        return '<span class="na">–</span>'
+    values = ", ".join(f"{k}: {_fmt(v)}" for k, v in (rec.get("values") or {}).items())
+    wide = _finite(rec.get("spread")) > _finite(rec.get("largest_sd"), math.inf)
+    return f'<span class="{"warn" if wide else ""}" title="{_e(values)}">{_fmt(rec.get("spread"))}</span>'
+
+
+def _finite(x, default: float = math.nan) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return default
+    return v if math.isfinite(v) else default
+
+
+def _spread_note(sens: Mapping) -> str:
+    models = ", ".join(_e(m) for m in sens.get("models") or [])
+    return (f"<p>Model sensitivity: the data were fitted again under each model ({models}); the spread is the "
+            "range of an estimate over them (hover for each model's value). It measures how much the answer "
+            "depends on modelling choices the data cannot settle, which no interval from one model contains; "
+            'a spread <span class="warn">in colour</span> exceeds the largest of the models\' own sds.</p>')
+
+
+def _per_marker_noise(noise, units: str, show: int = 12) -> str:
+    """The noise level of each marker, highest first (the rest folded away beyond ``show``)."""
+    items = sorted(noise.per_marker.items(), key=lambda kv: -_finite(kv[1], -math.inf))
+    pooled = noise.sigma
+
+    def cell(k, v):
+        high = math.isfinite(pooled) and _finite(v) > 1.5 * pooled
+        return f'<span class="{"warn" if high else ""}">{_e(k)} {_fmt(v, 3)}</span>'
+
+    text = ", ".join(cell(k, v) for k, v in items[:show])
+    if len(items) > show:
+        text += (f"<details><summary>{len(items) - show} more markers</summary>"
+                 + ", ".join(cell(k, v) for k, v in items[show:]) + "</details>")
+    return (f"<p>Marker noise per marker (σ in {_e(units)}, highest first; in colour: more than 1.5 times the "
+            f"pooled σ {_fmt(pooled)}): {text}</p>")
 
 
 # ----------------------------------------------------------------------------- the fitted body
