@@ -97,23 +97,7 @@ def status_warnings(result: FitResult) -> list[Warning]:
 
 def residual_warnings(model: Model, name: str, est) -> list[Warning]:
     """Markers whose residuals drift slowly (lag-1 autocorrelation above ``STA_AUTOCORR``): one warning."""
-    r = getattr(est, "residuals_", None)
-    if r is None or np.ndim(r) != 2:
-        return []
-    r = np.asarray(r, float)
-    # residuals at the level of the file's rounding (noise-free data) say nothing about tissue
-    floor = NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
-    misfit = {v["segment"] for v in (getattr(est, "misfit_", None) or {}).values() if v["flagged"]}
-    slow = []
-    for m, mname in enumerate(model.marker_names[: r.shape[1]]):
-        if model.markers[m].segment in misfit:
-            continue  # already reported as model misfit
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a marker never present
-            rho = lag1_autocorrelation(r[:, m])
-        rms = float(np.sqrt(np.nanmean(r[:, m] ** 2))) if np.isfinite(r[:, m]).any() else 0.0
-        if rho > STA_AUTOCORR and rms > floor:
-            slow.append((mname, rms, rho))
+    slow = slow_markers(model, est)
     if len(slow) == 1:
         mname, rms, rho = slow[0]
         return [Warning("soft-tissue-artefact", f"residuals of marker {mname} ({name} method, rms {rms:.3g} "
@@ -125,6 +109,32 @@ def residual_warnings(model: Model, name: str, est) -> list[Warning]:
                         f"in time: {listed} {model.units}; this looks like soft-tissue artefact, not measurement "
                         "noise")]
     return []
+
+
+def slow_markers(model: Model, est) -> list[tuple[str, float, float]]:
+    """``(marker, rms, lag-1 autocorrelation)`` of each marker whose residuals (``est.residuals_ (F, M)``)
+    drift: autocorrelation above ``STA_AUTOCORR`` and rms above the file's rounding level. Markers
+    on a segment already flagged as model misfit (``est.misfit_``) are left out."""
+    r = getattr(est, "residuals_", None)
+    if r is None or np.ndim(r) != 2:
+        return []
+    r = np.asarray(r, float)[:, : len(model.markers)]
+    # residuals at the level of the file's rounding (noise-free data) say nothing about tissue
+    floor = NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
+    misfit = {v["segment"] for v in (getattr(est, "misfit_", None) or {}).values() if v["flagged"]}
+    rms, rho = residual_scores(r)
+    return [(model.marker_names[m], float(rms[m]), float(rho[m])) for m in range(r.shape[1])
+            if rho[m] > STA_AUTOCORR and rms[m] > floor and model.markers[m].segment not in misfit]
+
+
+def residual_scores(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Root-mean-square ``(M,)`` (0 for a marker never present) and lag-1 autocorrelation ``(M,)``
+    of each column of the residuals ``r (F, M)``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a marker never present
+        rms = np.sqrt(np.nanmean(r ** 2, axis=0))
+        rho = np.array([lag1_autocorrelation(r[:, m]) for m in range(r.shape[1])], float)
+    return np.where(np.isfinite(rms), rms, 0.0), rho
 
 
 def measured_warnings(model: Model, name: str, est) -> list[Warning]:

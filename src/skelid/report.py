@@ -703,17 +703,20 @@ def _summary_rows(r, warns: list[dict], units: str, spread: dict | None) -> tupl
         add(["<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)], None, "fit")
     for name, p in r.parameters.items():
         mine = [w for w in warns if name in w["parameters"]]
-        unit = "" if p.unit == units else f" {_e(p.unit)}"
-        add([_e(name), _fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
-             _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>', _status_cell(p),
-             _warning_list(mine)], name)
+        add([_e(name), *_estimate_cells(p, units), _warning_list(mine)], name)
     for name, p in r.derived.items():
-        add([f"{_e(name)} <small>(derived length)</small>", _fmt(p.mean), _interval(p.interval),
-             _fmt(p.crlb_sd) if p.crlb_sd is not None else "–", _status_cell(p), ""], name)
+        add([f"{_e(name)} <small>(derived length)</small>", *_estimate_cells(p, units), ""], name)
     if r.noise is not None:
         add(["marker noise σ" + (" <small>(fixed)</small>" if r.noise.fixed else ""), _fmt(r.noise.sigma),
              _interval(r.noise.interval), "–", "–", ""], None)
     return rows, cls
+
+
+def _estimate_cells(p, units: str) -> list[str]:
+    """Estimate (with its unit where it is not the model's), interval, Cramér–Rao sd and status."""
+    unit = "" if p.unit == units else f" {_e(p.unit)}"
+    return [_fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
+            _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>', _status_cell(p)]
 
 
 def _model_spread(r) -> dict | None:

@@ -557,36 +557,37 @@ RUN_ARRAYS = {"markers": ("f", 3), "marker_names": ("U", 1), "rate": ("fiu", 0),
 def _check(v, spec, where: str) -> None:
     """``v`` has the shape ``spec`` describes (see above); raises _Bad naming the key path otherwise."""
     if isinstance(spec, _Opt):
-        if v is None:
-            return
-        errors = []
-        for s in spec:
-            try:
-                return _check(v, s, where)
-            except _Bad as exc:
-                errors.append(exc)
-        raise errors[0]
-    if isinstance(spec, _MapOf):
+        _check_opt(v, spec, where)
+    elif isinstance(spec, _MapOf):
         for k, x in _obj(v, where).items():
             _check(x, spec[0], f"{where}.{k}")
     elif isinstance(spec, dict):
         d = _obj(v, where)
-        for k, s in spec.items():
-            if k in d:
-                _check(d[k], s, f"{where}.{k}")
+        for k in spec.keys() & d.keys():
+            _check(d[k], spec[k], f"{where}.{k}")
     elif isinstance(spec, list):
         if not isinstance(v, list):
             raise _Bad(where, f"expected a list, got {_type_name(v)}")
         for i, x in enumerate(v):
             _check(x, spec[0], f"{where}[{i}]")
-    elif spec is float:
-        _float(v, where)
-    elif spec is int:
-        _int(v, where)
-    elif spec is str:
-        _str(v, where)
-    elif spec is bool:
-        _bool(v, where)
+    elif spec in _SCALARS:
+        _SCALARS[spec](v, where)
+
+
+def _check_opt(v, spec: _Opt, where: str) -> None:
+    """``v`` is null or has one of the shapes in ``spec`` (the first one's complaint otherwise)."""
+    if v is None:
+        return
+    errors = []
+    for s in spec:
+        try:
+            return _check(v, s, where)
+        except _Bad as exc:
+            errors.append(exc)
+    raise errors[0]
+
+
+_SCALARS = {float: _float, int: _int, str: _str, bool: _bool}
 
 
 def _check_run_arrays(arrays: Mapping[str, np.ndarray]) -> None:
