@@ -117,7 +117,7 @@ def base(tmp_path_factory):
 @pytest.fixture(scope="module")
 def result_dir(base, worker):
     res = worker.run(["fit", base["root"] / "model.toml", base["root"] / "data.trc", "--method", "paper",
-                      "--out", "res", "--quiet"], base["root"])
+                      "--method", "marker", "--out", "res", "--quiet"], base["root"])
     assert res["code"] == 0, res
     return base["root"] / "res"
 

@@ -1,7 +1,9 @@
 """One self-contained HTML report of a fit, answering first.
 
 ``write_report(result_dir)`` reads what ``skelid fit --out RESULT_DIR`` wrote
-(``result.json`` and, if present, ``arrays.npz``) and writes one HTML file that
+(``result.json`` and, if present, ``arrays.npz``, through
+:func:`skelid.io.results.read_run`, which refuses a damaged, foreign or old
+folder in one line before anything is drawn) and writes one HTML file that
 opens from disk or travels by mail: figures are embedded as base64 PNGs and
 the interactive view's library (plotly.js) is inlined, so nothing is fetched.
 Sections:
@@ -9,7 +11,10 @@ Sections:
 1. Summary: each parameter's estimate, 95 % interval, Cramér–Rao bound and
    status, with the warnings that concern it beside it (a fit that did not
    converge or whose approximation broke is shown there, in red), the derived
-   lengths and the marker noise; then every other warning.
+   lengths and the marker noise; with model alternatives (``skelid fit
+   --alternative``), each estimate's spread over the models in its row; the
+   noise level of each marker where it was estimated (``--noise per-marker``);
+   then every other warning.
 2. The fitted body: an interactive view (:mod:`skelid.viewer`) of the fitted
    skeleton (segments, joint centres, model markers) against the measured
    markers over time, 3-D or planar, with a frame slider and a play button.
