@@ -538,3 +538,18 @@ def test_summary_shows_model_spread_and_noise_per_marker(tmp_path):
     (tmp_path / "fit" / "result.json").write_text(json.dumps(doc))
     with pytest.raises(SkelidError, match=r"model_sensitivity\.spread\.L\.spread: expected a number"):
         write_report(tmp_path / "fit")
+
+
+def test_old_layout_and_demo_folders_are_refused_in_one_line(tmp_path, capfd):
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "result.json").write_text(json.dumps({"units": "mm", "methods": {"marker": {
+        "L2": {"map": 250.0, "mean": 250.0, "sd": 1.0, "ci95": [248.0, 252.0]}}}}))
+    demo = tmp_path / "demo"
+    demo.mkdir()
+    (demo / "summary.json").write_text("{}")
+    for folder, needle in ((old, "before result schema version 1"), (demo, "holds demo output")):
+        assert main(["report", str(folder), "--out", str(tmp_path / "r.html")]) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and "skelid fit" in err[0], err
+    assert not (tmp_path / "r.html").exists()
