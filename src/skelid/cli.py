@@ -252,6 +252,7 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     from skelid import scaling, workflows
     from skelid.io import read_markers
     from skelid.io.atomic import atomic_dir, check_output_dir
+    from skelid.io.legacy import run_from_scaling
     from skelid.io.results import write_run
 
     if len(method_names) > 1:
@@ -271,7 +272,7 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     if out_dir is not None:
         with atomic_dir(out_dir, protect=[model_path, *data_paths], overwrite=overwrite) as tmp:
             paths = scaling.write_outputs(fit_, tmp)
-            write_run(tmp, workflows.scaling_run(fit_, table, _command(ctx)))
+            write_run(tmp, run_from_scaling(fit_, table, _command(ctx)))
         table["written"] = {k: str(Path(out_dir) / v.name) for k, v in paths.items()}
     if as_json:
         _echo_json(table)

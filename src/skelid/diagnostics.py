@@ -36,7 +36,7 @@ IDENTIFIED = ("ok", "identified", "well identified", "well-identified", "good")
 
 __all__ = ["GAP_WARN_FRACTION", "POOR_FRACTION", "STA_AUTOCORR", "MEASURED_AUTOCORR", "overview_warnings",
            "fit_warnings", "prior_warnings", "status_warnings", "residual_warnings", "measured_warnings",
-           "lag1_autocorrelation", "unique", "collect_warnings"]
+           "lag1_autocorrelation", "unique", "unique_warnings", "collect_warnings"]
 
 
 def overview_warnings(overview: dict) -> list[str]:
@@ -150,6 +150,15 @@ def measured_warnings(model: Model, name: str, est) -> list[Warning]:
                     f"(lag-1 autocorrelation {rho:.2f}) instead of scattering independently: this looks like "
                     "soft-tissue artefact, and the 95 % interval, which treats frames as independent, is too "
                     "narrow", (pname,))]
+
+
+def unique_warnings(items) -> tuple[Warning, ...]:
+    """Warnings (or plain messages) each once by message, in order."""
+    out = {}
+    for w in items:
+        w = w if isinstance(w, Warning) else Warning("note", str(w))
+        out.setdefault(w.message, w)
+    return tuple(out.values())
 
 
 def unique(seq) -> list:

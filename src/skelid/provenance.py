@@ -36,3 +36,10 @@ def model_parameters(model: Model) -> dict:
     return {p.name: {"kind": p.kind, "target": p.target, "prior": p.prior.to_dict(),
                      "nominal": float(v), "units": model.units}
             for p, v in zip(model.parameters, model.theta_nominal, strict=True)}
+
+
+def run_context(model: Model, data_source, frames_total: int, command=None, **more) -> dict:
+    """The context of a run: model, data, units, frames, priors, model description, provenance."""
+    return {"model": model.name, "data": data_source, "units": model.units, "frames_total": int(frames_total),
+            **more, "model_parameters": model_parameters(model), "model_description": model.to_dict(),
+            "provenance": provenance(command)}

@@ -33,19 +33,20 @@ import numpy as np
 from skelid import checks, registry, resources
 from skelid.checks import check_input_file, check_units, data_overview
 from skelid.data import MarkerData, unit_scale
-from skelid.diagnostics import collect_warnings, fit_warnings, lag1_autocorrelation, overview_warnings
+from skelid.diagnostics import collect_warnings, fit_warnings, lag1_autocorrelation, overview_warnings, unique_warnings
 from skelid.errors import SkelidError, SkelidWarning
 from skelid.estimators.base import prepare
 from skelid.io.atomic import atomic_dir, check_output_dir
 from skelid.io.results import posterior_arrays, write_json, write_run
 from skelid.model.description import Model
 from skelid.plots import fit_figures as figures
-from skelid.provenance import model_parameters, provenance, versions
+from skelid.provenance import model_parameters, provenance, run_context, versions
 from skelid.result import FitResult, FitRun, Warning
 
 __all__ = ["methods", "make_estimator", "fit_file", "run_fit", "run_arrays", "demo", "table", "figures",
            "check_input_file", "check_units", "data_overview", "lag1_autocorrelation", "posterior_arrays",
-           "versions", "write_json", "write_run"]
+           "versions", "write_json", "write_run", "run_context", "unique_warnings", "model_parameters", "provenance",
+           "collect_warnings"]
 
 
 def methods() -> dict:
@@ -122,15 +123,6 @@ def method_result(model: Model, est, seconds: float | None = None) -> FitResult:
     return r.replace(warnings=warns, arrays={**posterior_arrays(est), **r.arrays}, provenance=prov)
 
 
-def unique_warnings(items) -> tuple[Warning, ...]:
-    """Warnings (or plain messages) each once by message, in order."""
-    out = {}
-    for w in items:
-        w = w if isinstance(w, Warning) else Warning("note", str(w))
-        out.setdefault(w.message, w)
-    return tuple(out.values())
-
-
 def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None = None,
              seed: int = 0, progress: bool = False, cutoff: float | None = None,
              artefact_rms: float | None = None) -> tuple[dict[str, FitResult], dict]:
@@ -165,13 +157,6 @@ def run_arrays(model: Model, data: MarkerData) -> dict[str, np.ndarray]:
     return {"markers": np.asarray(prepare(model, data), float),
             "marker_names": np.array(model.marker_names, dtype=str),
             "rate": np.array(float(data.rate)), "units": np.array(model.units)}
-
-
-def run_context(model: Model, data_source, frames_total: int, command=None, **more) -> dict:
-    """The context of a run: model, data, units, frames, priors, model description, provenance."""
-    return {"model": model.name, "data": data_source, "units": model.units, "frames_total": int(frames_total),
-            **more, "model_parameters": model_parameters(model), "model_description": model.to_dict(),
-            "provenance": provenance(command)}
 
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
@@ -231,20 +216,6 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
             figures(model, data, fitted, tmp)
             write_run(tmp, run)
     return run
-
-
-def scaling_run(fit_, table: dict, command):
-    """The run ``skelid fit MODEL.osim`` writes as ``result.json``: the scale and offset estimates
-    (converted from the scaling fit's flat dict), the scaling table in the context."""
-    from skelid.io.legacy import run_from_legacy
-
-    doc = {"units": fit_.model.units, "frames_total": int(fit_.data.positions.shape[0]),
-           "methods": {"marker": fit_.result}}
-    run = run_from_legacy(doc)
-    context = {"model": fit_.model.name, "data": str(fit_.data.source), "units": fit_.model.units,
-               "frames_total": int(fit_.data.positions.shape[0]), "scaling": table,
-               "provenance": provenance(command)}
-    return FitRun(run.results, context, tuple(fit_.warnings))
 
 
 def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0, method_names=None,

@@ -149,6 +149,20 @@ def run_from_legacy(doc: Mapping, arrays: Mapping | None = None) -> FitRun:
                   {k: v for k, v in arrays.items() if "." not in k})
 
 
+def run_from_scaling(fit_, table: dict, command=None) -> FitRun:
+    """The run ``skelid fit MODEL.osim`` writes as ``result.json``: the scale and offset estimates
+    (converted from the scaling fit's flat dict), the scaling table in the context."""
+    from skelid.provenance import provenance
+
+    doc = {"units": fit_.model.units, "frames_total": int(fit_.data.positions.shape[0]),
+           "methods": {"marker": fit_.result}}
+    run = run_from_legacy(doc)
+    context = {"model": fit_.model.name, "data": str(fit_.data.source), "units": fit_.model.units,
+               "frames_total": int(fit_.data.positions.shape[0]), "scaling": table,
+               "provenance": provenance(command)}
+    return FitRun(run.results, context, tuple(fit_.warnings))
+
+
 def summary_dict(r: FitResult) -> dict:
     """A :class:`FitResult` as one method's flat dict of the layout before schema version 1.
 
