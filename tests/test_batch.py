@@ -146,6 +146,35 @@ def test_exactly_once_keyed_by_content_method_and_settings(tmp_path, monkeypatch
     assert run()["skipped"] == 2
 
 
+def test_results_folders_go_through_the_serializer(tmp_path, monkeypatch, capsys):
+    import distributed
+
+    from skelid import batch
+    from skelid.io.results import read_run
+
+    monkeypatch.setattr(batch, "_client", lambda workers, scheduler: (_Now(), None))
+    monkeypatch.setattr(distributed, "as_completed", lambda futures: iter(futures))
+    write_trc(tmp_path / "t0.trc", simulate(builtin_model("case-a"), sigma=5.0, n_frames=30,
+                                            rng=np.random.default_rng(0)).data)
+    (tmp_path / "bad.trc").write_text("not a trc file\n")
+    out, res = tmp_path / "r.csv", tmp_path / "runs"
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(out), "--method", "paper",
+                 "--results", str(res), "--quiet"]) == 0
+    rows = {r["file"].rsplit("/", 1)[-1]: r for r in read_table(out, columns(builtin_model("case-a")))}
+    assert rows["bad.trc"]["result_dir"] is None and rows["bad.trc"]["error"]
+    folder = rows["t0.trc"]["result_dir"]
+    assert folder.startswith(str(res / "t0-")) and [p.name for p in res.iterdir()] == [folder.rsplit("/", 1)[-1]]
+    run = read_run(folder)
+    p = run.results["paper"].parameters["L2"]
+    assert (p.mean, p.interval) == (rows["t0.trc"]["L2"], (rows["t0.trc"]["L2_ci_low"], rows["t0.trc"]["L2_ci_high"]))
+    assert run.context["provenance"]["command"][:2] == ["skelid", "batch"] and run.arrays["markers"].shape[0] == 30
+    # a file where the folder belongs is refused before any work
+    (tmp_path / "afile").write_text("x")
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r2.csv"),
+                 "--results", str(tmp_path / "afile")]) == 2
+    assert not (tmp_path / "r2.csv").exists()
+
+
 def test_parameter_names_whose_columns_collide_are_one_line():
     from skelid.errors import SkelidError
     from skelid.model import model_from_dict

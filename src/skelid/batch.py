@@ -28,6 +28,7 @@ column                    meaning
 ``seconds``               time to read and fit the trial
 ``error``                 one line saying why the trial failed, or null
 ``warnings``              the method's warnings, joined by `` | ``, or null
+``result_dir``            with ``--results DIR``: the trial's result folder, or null
 ``row_sha256``            checksum of the row's other values
 ========================  ====================================================
 
@@ -39,6 +40,11 @@ whose columns are not those of the model (a foreign table), whose rows are
 truncated, malformed or do not match their checksum (a corrupt or
 hand-edited table), or which holds two rows with one key (duplicates) is
 refused with one line before anything is fitted.
+
+With ``--results DIR`` each fitted trial's whole result (the typed run, as
+``skelid fit --out`` writes it, through :func:`skelid.io.results.write_run`) goes
+into its own folder ``DIR/<file stem>-<hash of the row's key>``, which
+``skelid report`` and :mod:`skelid.io.frames` read.
 
 A trial that fails (an unreadable file, a missing marker, no solution) becomes
 a row with its error and never stops the batch. The table is rewritten
@@ -64,10 +70,11 @@ from skelid.errors import SkelidError, SkelidWarning
 
 #: columns before and after the per-parameter ones
 HEAD = ("file", "file_sha256", "method", "settings", "skelid_version", "n_frames", "frames_used")
-TAIL = ("sigma", "seconds", "error", "warnings", "row_sha256")
+TAIL = ("sigma", "seconds", "error", "warnings", "result_dir", "row_sha256")
 #: the columns that identify a trial's fit
 KEY = ("file_sha256", "method", "settings", "skelid_version")
-STRING_COLUMNS = ("file", "file_sha256", "method", "settings", "skelid_version", "error", "warnings", "row_sha256")
+STRING_COLUMNS = ("file", "file_sha256", "method", "settings", "skelid_version", "error", "warnings", "result_dir",
+                  "row_sha256")
 INT_COLUMNS = ("n_frames", "frames_used")
 #: per-parameter columns ``<param><suffix>`` and the field of :func:`skelid.io.frames.estimate_fields` each holds
 PARAM_FIELDS = {"": "estimate", "_sd": "sd", "_ci_low": "lower", "_ci_high": "upper", "_crlb_sd": "crlb_sd",
@@ -161,8 +168,11 @@ def row_checksum(row, cols) -> str:
 
 
 def fit_trial(path: str, model, method: str = "marker", sigma: float | None = None, seed: int = 0,
-              limits=None, ident: dict | None = None) -> dict:
+              limits=None, ident: dict | None = None, results_dir=None, command=None) -> dict:
     """Read and fit one trial; never raises for the trial's own problems.
+
+    With ``results_dir``, the trial's run is written to its own folder there
+    (:func:`result_folder`) through :func:`skelid.io.results.write_run`.
 
     Returns
     -------
@@ -195,6 +205,8 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             est.fit(data)
             res = method_result(model, est)
         row.update(result_values(res, model.parameter_names, estimate_fields))
+        if results_dir is not None:
+            row["result_dir"] = str(write_trial_run(results_dir, row, model, data, res, command))
         notes = list(dict.fromkeys([*(w.message for w in res.warnings),
                                     *(str(w.message) for w in caught if issubclass(w.category, SkelidWarning))]))
         row["warnings"] = " | ".join(_one_line(w) for w in notes) or None
@@ -206,6 +218,33 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
         row.update({f"{name}{s}": None for name in model.parameter_names for s in PARAM_SUFFIXES})
     row["seconds"] = round(time.perf_counter() - t0, 4)
     return row
+
+
+def result_folder(results_dir, row) -> Path:
+    """``results_dir/<file stem>-<hash of the row's key>``: one folder per (content, method, settings, version)."""
+    import hashlib
+    import json
+
+    key = hashlib.sha256(json.dumps(row_key(row)).encode()).hexdigest()[:12]
+    return Path(results_dir) / f"{Path(str(row['file'])).stem}-{key}"
+
+
+def write_trial_run(results_dir, row, model, data, res, command=None) -> Path:
+    """Write one trial's run (``res`` and what ``skelid fit`` puts beside it) to its :func:`result_folder`."""
+    from skelid.checks import data_overview
+    from skelid.io.atomic import atomic_dir
+    from skelid.io.results import write_run
+    from skelid.provenance import run_context
+    from skelid.result import FitRun
+    from skelid.workflows import run_arrays
+
+    target = result_folder(results_dir, row)
+    run = FitRun({res.method: res}, run_context(model, data.source, data.n_frames, command,
+                                                data_overview=data_overview(data, model)),
+                 res.warnings, run_arrays(model, data))
+    with atomic_dir(target, overwrite=True) as tmp:  # a folder left by an interrupted run is replaced whole
+        write_run(tmp, run)
+    return target
 
 
 def result_values(res, names, estimate_fields) -> dict:
@@ -369,7 +408,8 @@ def _client(workers: int | None, scheduler: str | None):
 
 def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: float | None = None,
               seed: int = 0, workers: int | None = None, scheduler: str | None = None,
-              retry_failed: bool = False, progress: bool = False, limits=None) -> dict:
+              retry_failed: bool = False, progress: bool = False, limits=None, results_dir=None,
+              command=None) -> dict:
     """Fit every trial matching ``pattern`` and add their rows to the table ``out``.
 
     Parameters
@@ -387,6 +427,10 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
         Address of an existing Dask scheduler to use instead.
     retry_failed : bool
         Fit again the trials whose rows hold an error.
+    results_dir : path-like, optional
+        Folder for each fitted trial's result folder (see :func:`result_folder`).
+    command : list of str, optional
+        The command line, recorded in each result's provenance.
 
     Returns
     -------
@@ -397,6 +441,11 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     from skelid.workflows import check_cost, check_input_file, make_estimator
 
     out = Path(out)
+    if results_dir is not None:  # a file, link or device there is refused before any work
+        from skelid.io.atomic import check_target
+
+        check_target(Path(results_dir), folder=True)
+        results_dir = Path(results_dir).absolute()
     parquet = _fmt(out) == "parquet"
     require_dask(parquet)
     if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
@@ -426,7 +475,7 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     client, cluster = _client(workers, scheduler)
     unsaved = False
     try:
-        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f],
+        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f], results_dir, command,
                                  key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
         path_of = {fut.key: f for fut, f in zip(futures, todo, strict=True)}
         bar = tqdm(total=len(todo), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,

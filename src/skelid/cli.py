@@ -337,18 +337,22 @@ def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_b
 @click.option("--scheduler", default=None, help="Address of an existing Dask scheduler (tcp://host:8786).")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--retry-failed", is_flag=True, help="Fit again the trials whose rows hold an error.")
+@click.option("--results", "results_dir", default=None,
+              help="Folder for each fitted trial's result folder (result.json and arrays.npz, as 'skelid fit "
+                   "--out' writes them; read by 'skelid report').")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress bar, no summary line.")
 @_limit_options
-def batch(model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, as_json,
-          quiet, max_memory, max_time):
+@click.pass_context
+def batch(ctx, model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, results_dir,
+          as_json, quiet, max_memory, max_time):
     """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out."""
     from skelid.batch import run_batch
 
     _finite("--sigma", sigma)
     summary = run_batch(model_path, pattern, out_path, method=method, sigma=sigma, seed=seed, workers=workers,
                         scheduler=scheduler, retry_failed=retry_failed, progress=not quiet,
-                        limits=_limits(max_memory, max_time))
+                        limits=_limits(max_memory, max_time), results_dir=results_dir, command=_command(ctx))
     if as_json:
         _echo_json(summary)
     elif not quiet:
