@@ -160,7 +160,12 @@ def test_cli_fit_osim_writes_the_scaled_model(leg, tmp_path, capsys):
     table = json.loads(capsys.readouterr().out)
     assert table["scales"]["thigh"]["xyz"]["value"] == pytest.approx(1.1, abs=1e-3)
     assert {p.name for p in out.iterdir()} >= {"scaled.osim", "scaled_scale_set.xml", "scaled_scaling.json",
-                                               "result.json"}
+                                               "result.json", "arrays.npz"}
+    from skelid.io.results import read_run
+
+    run = read_run(out)
+    assert run.context["scaling"]["scales"]["thigh"]["xyz"]["value"] == pytest.approx(1.1, abs=1e-3)
+    assert run.results["marker"].parameters  # the scale and offset estimates, typed
 
 
 @pytest.mark.parametrize("text,words", [

@@ -145,7 +145,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     -------
     ScalingFit
     """
-    from skelid.io.results import summary_dict
+    from skelid.io.legacy import summary_dict
     from skelid.workflows import make_estimator
 
     trials = list(trials)
