@@ -42,7 +42,7 @@ import numpy as np
 
 from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from skelid.model.description import Model
-from skelid.model.kinematics import marker_jacobian
+from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions
 
 
 def _banded(Hqq, R):
@@ -227,8 +227,7 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     A = Hqq + (lam * dq_)[..., None] * np.eye(Q) + 1e-12 * scale[:, None, None] * np.eye(Q)
     sol = np.linalg.solve(A, np.concatenate([Hqt, gq[..., None]], axis=-1))
     G, u = sol[..., :P], sol[..., P]
-    dtheta, dq, _ = _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
-    return dtheta, dq
+    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
 
 
 UNDERSMOOTH = 2.0
@@ -378,17 +377,44 @@ def row_weights(weights, y) -> np.ndarray | None:
     return np.repeat(np.sqrt(np.broadcast_to(w, (T, M))), D, axis=1)
 
 
-def weighted_terms(model: Model, theta, q, y, sw=None):
+def weighted_terms(model: Model, theta, q, y, sw=None, ws: Workspace | None = None):
     """:func:`~skelid.estimators.likelihood.frame_terms` with rows scaled by ``sw`` (T, M*D)."""
-    r, Jq, Jt = frame_terms(model, theta, q, y)
+    r, Jq, Jt = frame_terms(model, theta, q, y, ws)
     if sw is None:
         return r, Jq, Jt
     return r * sw, Jq * sw[..., None], Jt * sw[..., None]
 
 
+STEP_TOL = 1e-7  # a step in theta below this many standard errors (after the damping is gone) ends the fit
+
+
+def _residuals(model: Model, theta, q, y, sw=None, ws: Workspace | None = None) -> np.ndarray:
+    """Residuals ``(T, M*D)`` of :func:`weighted_terms` without the Jacobians (missing markers: 0)."""
+    mask = np.isfinite(y).all(axis=-1)
+    r = (np.where(mask[..., None], y, 0.0) - marker_positions(model, theta, q, ws)) * mask[..., None]
+    r = r.reshape(r.shape[:-2] + (-1,))
+    return r if sw is None else r * sw
+
+
+def _line_minimum(c0: float, slope: float, c1: float):
+    """Minimum of the parabola through ``c(0) = c0``, ``c'(0) = slope``, ``c(1) = c1``, or None.
+
+    A Gauss-Newton step lands at ``alpha = 1`` when the cost is as curved along it as the
+    Gauss-Newton model says; where residual curvature makes it twice as curved the iterates
+    zig-zag across the valley (and crawl where it is flatter). Returns the step length to try
+    instead (between 0.1 and 16), or None when 1 is close enough.
+    """
+    if not (np.isfinite(c1) and slope < 0.0):
+        return None
+    a = c1 - c0 - slope
+    alpha = 16.0 if a <= 0.0 else min(-slope / (2.0 * a), 16.0)
+    return max(alpha, 0.1) if abs(alpha - 1.0) > 0.2 else None
+
+
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
-              cutoff: float | None = None, frames=None, weights=None, blocks=None) -> JointFit:
+              cutoff: float | None = None, frames=None, weights=None, blocks=None, penalty=None,
+              step_tol: float = STEP_TOL, ws: Workspace | None = None) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -416,8 +442,21 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         Several trials stacked along the frame axis: each block of frames gets
         its own motion-model penalty (rate and cutoff; cutoff None for none)
         and no smoothing crosses a block boundary. Replaces ``rate``/``cutoff``.
+    penalty : scipy.sparse matrix, optional
+        The motion-model penalty of an earlier fit (its ``penalty``), used as it
+        is instead of one built from the starting poses (with ``rate`` and
+        ``cutoff``): continuing a fit then minimises the same cost.
+    step_tol : float
+        The fit has converged when, with the damping gone, the cost falls by less
+        than ``tol`` (relative) or a step moves no parameter by more than
+        ``step_tol`` of its standard error (the noise taken from the residuals).
+        A loose value (``1e-3``) suffices for a fit whose estimate is not reported.
+    ws : Workspace, optional
+        The model's workspace (one is made for this fit without it).
     """
     y = np.asarray(y, dtype=float)
+    if ws is None:
+        ws = Workspace(model)
     use = usable_frames(model, y)
     if frames is not None:
         use &= np.asarray(frames, dtype=bool)
@@ -430,63 +469,69 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         blocks = None  # no trial smoothed: the per-frame fit
     if blocks is not None:
         q = np.concatenate([_continuous_poses(model, q[a:b], use[a:b]) for a, b, *_ in blocks])
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
         R = block_penalty(model, pose_information(Jq), blocks)
-    elif cutoff is not None and rate is not None:
-        q = _continuous_poses(model, q, use)
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
-        R = smoothing_penalty(model, pose_information(Jq), rate, cutoff)
+    elif penalty is not None or (cutoff is not None and rate is not None):
+        if penalty is None:  # a continued fit's poses already follow its motion model
+            q = _continuous_poses(model, q, use)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+        R = penalty if penalty is not None else smoothing_penalty(model, pose_information(Jq), rate, cutoff)
     else:
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
 
     def total(r_, q_):
         c = float(np.sum(r_**2))
         return c + float(q_.ravel() @ (R @ q_.ravel())) if R is not None else c
 
+    def trial(alpha, dtheta, dq):
+        th = theta + alpha * dtheta
+        if bounds is not None:
+            th = np.clip(th, bounds[0], bounds[1])
+        qq = q + alpha * dq
+        rr = _residuals(model, th, qq, y, sw, ws)
+        return th, qq, rr, total(rr, qq)
+
     cost = total(r, q)
+    n_rows = max(int(np.isfinite(y).all(axis=-1).sum() * model.dim), 1)
     lam = 1e-3
-    converged = False
+    converged = stalled = False
     it = 0
     for it in range(1, n_iter + 1):  # noqa: B007 - the count is reported
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
         try:
             if R is None:
-                dtheta, dq = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
+                dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
+                slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)))
             else:
-                dtheta, dq, _ = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q)
+                dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q)
+                slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)) - float(q.ravel() @ (R @ dq.ravel())))
         except (np.linalg.LinAlgError, RuntimeError, ValueError):
             lam *= 10.0
             continue
-        theta_new = theta + dtheta
-        if bounds is not None:
-            theta_new = np.clip(theta_new, bounds[0], bounds[1])
-        q_new = q + dq
-        r_new, Jq_new, Jt_new = weighted_terms(model, theta_new, q_new, y, sw)
-        cost_new = total(r_new, q_new)
-        if np.isfinite(cost_new) and cost_new <= cost:
-            # along a long curved valley Gauss-Newton steps come out short: extrapolate while it pays
-            mult = 1.0
-            while mult < 16.0:
-                th2 = theta + 2.0 * mult * dtheta
-                if bounds is not None:
-                    th2 = np.clip(th2, bounds[0], bounds[1])
-                q2 = q + 2.0 * mult * dq
-                r2, Jq2, Jt2 = weighted_terms(model, th2, q2, y, sw)
-                c2 = total(r2, q2)
-                if not (np.isfinite(c2) and c2 < cost_new):
-                    break
-                theta_new, q_new, r_new, Jq_new, Jt_new, cost_new = th2, q2, r2, Jq2, Jt2, c2
-                mult *= 2.0
+        best = trial(1.0, dtheta, dq)
+        alpha = _line_minimum(cost, slope, best[3])
+        if alpha is not None:  # the cost along the step is far from the Gauss-Newton model's
+            other = trial(alpha, dtheta, dq)
+            if np.isfinite(other[3]) and not other[3] >= best[3]:
+                best = other
+        if np.isfinite(best[3]) and best[3] <= cost:
+            theta_new, q_new, r_new, cost_new = best
             small = (cost - cost_new) <= tol * max(cost, 1e-300)
-            theta, q, r, Jq, Jt, cost = theta_new, q_new, r_new, Jq_new, Jt_new, cost_new
+            # the step in theta against theta's standard error (noise from the residuals)
+            sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(S)), 0.0, None) * cost_new / n_rows)
+            still = bool(np.all(np.abs(theta_new - theta) <= step_tol * sd))
+            theta, q, cost = theta_new, q_new, cost_new
+            r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
             lam = max(lam * 0.3, 1e-12)
-            if small and lam <= 1e-4:  # a damped step's small gain says nothing about convergence
+            stalled = small
+            if small and still and lam <= 1e-4:  # a damped step's small gain says nothing about convergence
                 converged = True
                 break
         else:
             lam *= 10.0
-            if lam > 1e12:
-                converged = True  # no descent direction left: at a minimum to precision
+            if lam > 1e12 or (stalled and lam > 1e2):
+                # no descent direction left, or only steps the cost's rounding cannot tell apart
+                converged = True
                 break
     if R is None:
         Kp = projected_theta_jacobian(Jq, Jt)
