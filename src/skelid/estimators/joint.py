@@ -61,7 +61,7 @@ def _banded(Hqq, R):
     return ab
 
 
-def _banded_system(Hqq, R):
+def _banded_system(Hqq, R, ridge: float = 1e-10):
     """``blockdiag(Hqq) + R`` in upper banded form, with a tiny ridge that keeps it definite.
 
     The ridge is relative to each pose coordinate's own mean diagonal (angles and
@@ -72,7 +72,7 @@ def _banded_system(Hqq, R):
     u = ab.shape[0] - 1
     T, Q = Hqq.shape[:2]
     scale = np.maximum(ab[u].reshape(T, Q).mean(axis=0), 1e-300)
-    ab[u] += 1e-10 * np.tile(scale, T)  # frames without markers: keep it definite
+    ab[u] += ridge * np.tile(scale, T)  # frames without markers: keep it definite
     return ab
 
 
@@ -720,34 +720,73 @@ def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
     return R[a * Q:b * Q, a * Q:b * Q]
 
 
+def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
+    """Diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` for the arrow matrix of a smoothed joint fit.
+
+    ``N = s [[Htt, Hqt^T], [Hqt, blockdiag(Hqq)]] + [[0, 0], [0, R]]`` with ``s = scale``.
+    Eliminating the poses, ``A = s blockdiag(Hqq) + R`` (banded), ``G = A^{-1} s Hqt``,
+    ``S = s Htt - s Hqt^T G``; then ``C_{theta theta} = S^{-1}``,
+    ``C_{q_t theta} = -G_t S^{-1}`` and ``C_{q_t q_t} = (A^{-1})_{tt} + G_t S^{-1} G_t^T``,
+    with the diagonal blocks of ``A^{-1}`` from :func:`band_inverse_blocks` (linear in frames).
+
+    Returns
+    -------
+    blocks : (T, P+Q, P+Q) float
+    S_inv : (P, P) float
+    G : (T, Q, P) float
+    """
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    T, Q = Hqq.shape[:2]
+    P = Htt.shape[0]
+    for ridge in (0.0, 1e-10):  # exact unless a frame without markers leaves it singular
+        ab = _banded_system(scale * Hqq, R, ridge)
+        try:
+            U = cholesky_banded(ab, lower=False, check_finite=False)
+            break
+        except np.linalg.LinAlgError:
+            continue
+    G = cho_solve_banded((U, False), scale * Hqt.reshape(T * Q, P), check_finite=False).reshape(T, Q, P)
+    S = scale * Htt - scale * np.einsum("tip,tiq->pq", Hqt, G)
+    S_inv = np.linalg.inv(0.5 * (S + S.T))
+    GS = G @ S_inv  # (T, Q, P)
+    out = np.empty((T, P + Q, P + Q))
+    out[:, :P, :P] = S_inv
+    out[:, P:, :P] = -GS
+    out[:, :P, P:] = -np.swapaxes(GS, 1, 2)
+    out[:, P:, P:] = band_inverse_blocks(ab, Q) + GS @ np.swapaxes(G, 1, 2)
+    return out, S_inv, G
+
+
+#: relative step of the derivative that gives the diagonal blocks of C J^T J C (see _smoothed_bias_terms)
+_SANDWICH_STEP = 1e-4
+
+
 def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
+    """The bias of one piece of a trial (see :func:`smoothed_bias`) and its information ``S``.
+
+    Linear in frames: only diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` and of
+    ``C R C`` are needed. The first come from :func:`_arrow_inverse_blocks`; for
+    the second, ``C J^T J C = -dC(s)/ds`` at ``s = 1`` where ``C(s)`` is the inverse
+    with ``J^T J`` scaled by ``s``, so its diagonal blocks are a central difference of
+    two more :func:`_arrow_inverse_blocks` (relative error ``~ _SANDWICH_STEP^2``), and
+    ``C R C = C - C J^T J C``.
+    """
     P, Q = model.n_params, model.n_pose
     T = len(q)
     sw = row_weights(weights, np.asarray(y, float))
     _, Jq, Jt = weighted_terms(model, theta, q, y, sw)
     m = Jq.shape[1]
-    n = P + T * Q
-    N = np.zeros((n, n))
-    N[:P, :P] = np.einsum("tkp,tkq->pq", Jt, Jt)
+    Hqq = pose_information(Jq)
     Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    for t in range(T):  # block assembly; T blocks of (Q, Q) and (Q, P)
-        s = slice(P + t * Q, P + (t + 1) * Q)
-        N[s, s] = Jq[t].T @ Jq[t]
-        N[s, :P] = Hqt[t]
-        N[:P, s] = Hqt[t].T
-    N[P:, P:] += R.toarray()
-    C = _spd_inverse(N)
-    X = np.zeros_like(C)
-    X[P:] = R @ C[P:]
-    # (theta, q_t) index sets for every frame
-    idx = np.concatenate([np.broadcast_to(np.arange(P), (T, P)),
-                          P + np.arange(T)[:, None] * Q + np.arange(Q)], axis=1)  # (T, P+Q)
-    Cb = C[:, idx]  # (n, T, P+Q)
-    Xb = X[:, idx]
-    CRC = np.einsum("ntk,ntl->tkl", Cb, Xb)  # diagonal blocks of C R C
-    Cdiag = C[idx[:, :, None], idx[:, None, :]]  # (T, P+Q, P+Q)
-    Sig = Cdiag - CRC  # blocks of C J^T J C (unit noise)
+    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
+    h = _SANDWICH_STEP
+    plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h)
+    minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h)
+    Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R)
+    Sig = (minus - plus) / (2.0 * h)  # blocks of C J^T J C (unit noise)
     Sig = 0.5 * (Sig + np.swapaxes(Sig, 1, 2))
+    CRC = Cdiag - Sig  # blocks of C R C
     mask = np.isfinite(y).all(axis=-1)
     wmask = np.repeat(mask, model.dim, axis=1).astype(float)  # (T, m)
     if sw is not None:
@@ -769,8 +808,6 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
     v = np.einsum("tkl,til->tik", CRC, Jfull)  # (T, m, P+Q): v_i restricted to the frame block
     u = np.einsum("tjil,til->tj", DJ, v * wmask[..., None])  # sum_i H_i v_i per frame block
     wvec = -0.5 * np.einsum("tij,ti->tj", Jfull, d) + u  # (T, P+Q)
-    full = np.zeros(n)
-    full[:P] = wvec[:, :P].sum(axis=0)
-    full[P:] = wvec[:, P:].ravel()
-    b = sigma2 * (C[:P] @ full)
-    return b, np.linalg.inv(C[:P, :P])
+    # b = sigma^2 C[:P] w with C[theta, theta] = S^{-1}, C[theta, q_t] = -S^{-1} G_t^T
+    b = sigma2 * (S_inv @ (wvec[:, :P].sum(axis=0) - np.einsum("tqp,tq->p", G, wvec[:, P:])))
+    return b, np.linalg.inv(S_inv)
