@@ -45,15 +45,25 @@ from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions
 
 
-def _banded(Hqq, R):
-    """Upper banded form (for ``scipy.linalg.cholesky_banded``) of ``blockdiag(Hqq) + R``."""
-    T, Q = Hqq.shape[:2]
+def penalty_band(R, Q: int) -> np.ndarray:
+    """The penalty ``R`` in upper banded form, with at least ``Q - 1`` superdiagonals.
+
+    A fit whose penalty stays the same computes this once and passes it as
+    ``R_band`` to the banded solvers, which then only add the pose blocks.
+    """
     coo = R.tocoo()
     u = max(Q - 1, int(np.max(coo.col - coo.row)) if coo.nnz else 0)
-    n = T * Q
-    ab = np.zeros((u + 1, n))
+    ab = np.zeros((u + 1, R.shape[0]))
     keep = coo.row <= coo.col
     np.add.at(ab, (u + coo.row[keep] - coo.col[keep], coo.col[keep]), coo.data[keep])
+    return ab
+
+
+def _banded(Hqq, R, R_band=None):
+    """Upper banded form (for ``scipy.linalg.cholesky_banded``) of ``blockdiag(Hqq) + R``."""
+    T, Q = Hqq.shape[:2]
+    ab = (penalty_band(R, Q) if R_band is None else R_band).copy()
+    u = ab.shape[0] - 1
     base = np.arange(T)[:, None] * Q
     for off in range(Q):
         b = np.arange(off, Q)
@@ -61,14 +71,14 @@ def _banded(Hqq, R):
     return ab
 
 
-def _banded_system(Hqq, R, ridge: float = 1e-10):
+def _banded_system(Hqq, R, ridge: float = 1e-10, R_band=None):
     """``blockdiag(Hqq) + R`` in upper banded form, with a tiny ridge that keeps it definite.
 
     The ridge is relative to each pose coordinate's own mean diagonal (angles and
     translations have different units: one ridge for all would perturb the
     solution along the translations by a fraction of a percent).
     """
-    ab = _banded(Hqq, R)
+    ab = _banded(Hqq, R, R_band)
     u = ab.shape[0] - 1
     T, Q = Hqq.shape[:2]
     scale = np.maximum(ab[u].reshape(T, Q).mean(axis=0), 1e-300)
@@ -88,11 +98,11 @@ def _dense_from_banded(ab):
 DENSE_MAX = 1500  # below this many unknowns dense LAPACK beats the banded routines
 
 
-def _banded_solver(Hqq, R):
+def _banded_solver(Hqq, R, R_band=None):
     """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky."""
     from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
-    ab = _banded_system(Hqq, R)
+    ab = _banded_system(Hqq, R, R_band=R_band)
     if ab.shape[1] <= DENSE_MAX:
         cf = cho_factor(_dense_from_banded(ab), lower=False, check_finite=False)
         return lambda rhs: cho_solve(cf, rhs, check_finite=False)
@@ -168,7 +178,7 @@ def _spd_inverse(A) -> np.ndarray:
     return np.triu(Z) + np.triu(Z, 1).T
 
 
-def pose_edf(Jq, R) -> float:
+def pose_edf(Jq, R, R_band=None) -> float:
     """Effective number of pose parameters ``tr((H + R)^{-1} H)`` under the penalty ``R``.
 
     ``H`` is block diagonal (per-frame ``J^T J``), so only the diagonal blocks of
@@ -177,7 +187,7 @@ def pose_edf(Jq, R) -> float:
     """
     Hqq = pose_information(Jq)
     Q = Hqq.shape[-1]
-    return float(np.einsum("tij,tji->", band_inverse_blocks(_banded_system(Hqq, R), Q), Hqq))
+    return float(np.einsum("tij,tji->", band_inverse_blocks(_banded_system(Hqq, R, R_band=R_band), Q), Hqq))
 
 
 class JointFit(NamedTuple):
@@ -331,12 +341,12 @@ def block_penalty(model: Model, Hqq, blocks):
     return sp.block_diag(parts, format="csc")
 
 
-def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
+def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band=None):
     """Like :func:`_schur_step` with the pose blocks coupled by the penalty ``R``."""
     T, Q = gq.shape
     P = Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
-    solve = _banded_solver(Hqq + (lam * dq_)[..., None] * np.eye(Q), R)
+    solve = _banded_solver(Hqq + (lam * dq_)[..., None] * np.eye(Q), R, R_band)
     rhs_q = (gq.ravel() - R @ q.ravel()).reshape(T, Q)
     sol = solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).reshape(T * Q, P + 1))
     sol = sol.reshape(T, Q, P + 1)
@@ -396,6 +406,26 @@ def _residuals(model: Model, theta, q, y, sw=None, ws: Workspace | None = None) 
     return r if sw is None else r * sw
 
 
+def _anderson_step(theta, q, dtheta, dq, prev, Htt, Hqq):
+    """Step from ``(theta, q)`` that mixes this Gauss-Newton step with the last one (Anderson, depth 1).
+
+    Where the iterates zig-zag or crawl along one direction (the Gauss-Newton map
+    contracts slowly there), the two last steps show that direction and its rate,
+    and ``x + f - gamma (dx + df)`` with ``gamma = <f, df> / <df, df>`` jumps to
+    where the map's linearisation along it is fixed. Inner products are scaled by
+    the diagonal of ``J^T J`` (angles and lengths compare). None if undefined.
+    """
+    theta0, q0, dtheta0, dq0 = prev
+    w_t = np.diag(Htt)
+    w_q = np.einsum("tii->ti", Hqq)
+    df_t, df_q = dtheta - dtheta0, dq - dq0
+    den = float(w_t @ df_t**2 + np.sum(w_q * df_q**2))
+    if not den > 0.0:
+        return None
+    gamma = float(w_t @ (dtheta * df_t) + np.sum(w_q * dq * df_q)) / den
+    return (dtheta - gamma * (theta - theta0 + df_t), dq - gamma * (q - q0 + df_q))
+
+
 def _line_minimum(c0: float, slope: float, c1: float):
     """Minimum of the parabola through ``c(0) = c0``, ``c'(0) = slope``, ``c(1) = c1``, or None.
 
@@ -414,7 +444,7 @@ def _line_minimum(c0: float, slope: float, c1: float):
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
               cutoff: float | None = None, frames=None, weights=None, blocks=None, penalty=None,
-              step_tol: float = STEP_TOL, ws: Workspace | None = None) -> JointFit:
+              step_tol: float = STEP_TOL, ws: Workspace | None = None, summary: bool = True) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -453,6 +483,9 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         A loose value (``1e-3``) suffices for a fit whose estimate is not reported.
     ws : Workspace, optional
         The model's workspace (one is made for this fit without it).
+    summary : bool
+        Compute ``info`` and ``pose_dof`` at the end (False: None and NaN, for a
+        fit that is only compared by its cost).
     """
     y = np.asarray(y, dtype=float)
     if ws is None:
@@ -491,19 +524,26 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         rr = _residuals(model, th, qq, y, sw, ws)
         return th, qq, rr, total(rr, qq)
 
+    R_band = None if R is None else penalty_band(R, model.n_pose)
     cost = total(r, q)
     n_rows = max(int(np.isfinite(y).all(axis=-1).sum() * model.dim), 1)
+    # the cost of residuals at the data's rounding level: noise-free data converge to it
+    floor = n_rows * (1e-12 * max(float(np.nanmax(np.abs(y))) if np.isfinite(y).any() else 1.0, 1e-300)) ** 2
     lam = 1e-3
     converged = stalled = False
+    prev = None  # (theta, q, dtheta, dq) of the last accepted iteration, for the Anderson step
     it = 0
     for it in range(1, n_iter + 1):  # noqa: B007 - the count is reported
+        if cost <= floor:  # the residuals are rounding: nothing left to fit
+            converged = True
+            break
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
         try:
             if R is None:
                 dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
                 slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)))
             else:
-                dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q)
+                dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band)
                 slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)) - float(q.ravel() @ (R @ dq.ravel())))
         except (np.linalg.LinAlgError, RuntimeError, ValueError):
             lam *= 10.0
@@ -514,12 +554,19 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
             other = trial(alpha, dtheta, dq)
             if np.isfinite(other[3]) and not other[3] >= best[3]:
                 best = other
+        if prev is not None and lam <= 1e-4:
+            mixed = _anderson_step(theta, q, dtheta, dq, prev, Htt, Hqq)
+            if mixed is not None:
+                other = trial(1.0, *mixed)
+                if np.isfinite(other[3]) and not other[3] >= best[3]:
+                    best = other
         if np.isfinite(best[3]) and best[3] <= cost:
+            prev = (theta, q, dtheta, dq)
             theta_new, q_new, r_new, cost_new = best
-            small = (cost - cost_new) <= tol * max(cost, 1e-300)
+            small = (cost - cost_new) <= tol * cost + floor
             # the step in theta against theta's standard error (noise from the residuals)
-            sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(S)), 0.0, None) * cost_new / n_rows)
-            still = bool(np.all(np.abs(theta_new - theta) <= step_tol * sd))
+            sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(S)), 0.0, None) * max(cost_new, floor) / n_rows)
+            still = bool(np.all(np.abs(theta_new - theta) <= step_tol * sd + 1e-12 * np.maximum(np.abs(theta), 1.0)))
             theta, q, cost = theta_new, q_new, cost_new
             r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
             lam = max(lam * 0.3, 1e-12)
@@ -528,19 +575,22 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
                 converged = True
                 break
         else:
+            prev = None
             lam *= 10.0
             if lam > 1e12 or (stalled and lam > 1e2):
                 # no descent direction left, or only steps the cost's rounding cannot tell apart
                 converged = True
                 break
-    if R is None:
+    if not summary:
+        info, pose_dof = None, float("nan")
+    elif R is None:
         Kp = projected_theta_jacobian(Jq, Jt)
         info = np.einsum("tkp,tkq->pq", Kp, Kp)
         pose_dof = float(model.n_pose * use.sum())
     else:
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
-        *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q)
-        pose_dof = pose_edf(Jq, R)  # skipped frames have no rows: they add nothing
+        *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q, R_band)
+        pose_dof = pose_edf(Jq, R, R_band)  # skipped frames have no rows: they add nothing
     return JointFit(theta, q, float(np.sum(r**2)), np.sum(r**2, axis=1), info,
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 

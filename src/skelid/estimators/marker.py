@@ -391,12 +391,14 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
     # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
     # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays)
     fits = [joint_fit(model, sc.y, th, qq, n_iter=min(RACE_ITER, s.n_iter), bounds=st.bounds, frames=sc.fixed,
-                      rate=rate, cutoff=cutoff, ws=ws)
+                      rate=rate, cutoff=cutoff, ws=ws, summary=False)
             for th, qq in ((st.theta0, st.pose0), (sc.fit.theta, sc.fit.pose))]
-    fit = min(fits, key=_penalised_cost)
-    if not fit.converged and s.n_iter > RACE_ITER:
-        fit = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter - RACE_ITER, bounds=st.bounds,
-                        frames=sc.fixed, penalty=fit.penalty, ws=ws)
+    best = min(fits, key=_penalised_cost)
+    more = s.n_iter - RACE_ITER if not best.converged else 0  # 0: only the information at the estimate
+    fit = joint_fit(model, sc.y, best.theta, best.pose, n_iter=max(more, 0), bounds=st.bounds, frames=sc.fixed,
+                    penalty=best.penalty, ws=ws)
+    if not more:
+        fit = fit._replace(converged=best.converged, n_iter=best.n_iter)
     return Motion(fit, cutoff)
 
 
