@@ -366,7 +366,7 @@ def screen_stage(model: Model, st: Start, s: MarkerEstimator, ws: Workspace | No
                     tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws)
     out = np.zeros(y.shape[:2], dtype=bool)
     if s.outlier_threshold is not None:
-        found = _outlying_markers(model, y, fit, s.outlier_threshold)
+        found = _outlying_markers(model, y, fit, s.outlier_threshold, ws=ws)
         if found.any():  # drop them (they become missing, not replaced) and fit again
             out = found
             y = np.where(out[..., None], np.nan, y)
@@ -976,14 +976,14 @@ class MarkerEstimator:
                                     "outliers": self.outliers_})
 
 
-def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
+def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4, ws=None) -> np.ndarray:
     """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
     See :func:`skelid.estimators.screen.outlying_markers`.
     """
     from skelid.estimators.screen import outlying_markers
 
-    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds)
+    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds, ws)
 
 
 def _unit(model: Model, k: int) -> str:
