@@ -100,6 +100,8 @@ CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more tha
 CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each
 SCREEN_STEP_TOL = 1e-3  # the screening fit (no motion model) stops at steps below this many sd ...
 SCREEN_TOL = 1e-7  # ... that lower its cost by less than this fraction
+BOOT_STEP_TOL = 1e-3  # a bootstrap refit stops at steps below this many sd ...
+BOOT_TOL = 1e-7  # ... that lower its cost by less than this fraction
 RACE_ITER = 10  # iterations each start of the motion-model fit gets before the better one is continued
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
@@ -926,15 +928,21 @@ class MarkerEstimator:
         self.warnings_ = tuple(found)
 
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
-        """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate."""
-        clean = marker_positions(self.model, fit.theta, fit.pose)
+        """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate.
+
+        Each refit stops at steps below ``BOOT_STEP_TOL`` of the sd: the mean of
+        ``n_boot`` shifts has a Monte Carlo error of about ``sd / sqrt(n_boot)``, far
+        above that.
+        """
+        ws = Workspace(self.model)  # kinematics only: no pose fit here
+        clean = marker_positions(self.model, fit.theta, fit.pose, ws)
         miss = ~np.isfinite(y)
         shifts = []
         for _ in range(self.n_boot):
             ys = clean + rng.normal(0.0, sigma, size=clean.shape)
             ys[miss] = np.nan
             f = joint_fit(self.model, ys, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
-                          rate=rate, cutoff=cutoff)
+                          rate=rate, cutoff=cutoff, step_tol=BOOT_STEP_TOL, tol=BOOT_TOL, ws=ws)
             shifts.append(f.theta - fit.theta)
         return np.mean(shifts, axis=0)
 
