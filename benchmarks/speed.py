@@ -643,7 +643,8 @@ def write_markdown(res: dict, path: Path) -> None:
                          f"{', '.join(f'{x:.1f}' for x in r['loadavg_after'])} |")
         lines += ["", f"Command: `{res.get('command', '')}`. Ratios and the scaling ratio use CPU seconds "
                   "(wall-clock ratios beside them in speed.json); on a machine shared by several jobs wall "
-                  "times are upper bounds.", ""]
+                  "times are upper bounds. Keys of sections not listed here (online, rss, batch) come from an "
+                  "earlier run of this script.", ""]
     if res.get("load_before", 0) > 2 or res.get("load_after", 0) > 2:
         lines += ["**Measured on a loaded machine** (load average above the 2 cores): times are upper bounds.", ""]
     if "first_fit_cold_s" in res:
@@ -665,7 +666,9 @@ def write_markdown(res: dict, path: Path) -> None:
                      f"target sd {a['target_sd_m'] * 1e3:g} mm on every parameter, {a['amplitude_deg']:g} deg sweeps "
                      f"of {a['block_frames']} frames): median {a['median_following']:.0f} frames following the advice "
                      f"against {a['median_fixed']:.0f} with the fixed motion; per-session saved fraction quartiles "
-                     f"{', '.join(f'{x:.2f}' for x in a['per_session_saved_fraction_quartiles'])}.")
+                     f"{', '.join(f'{x:.2f}' for x in a['per_session_saved_fraction_quartiles'])}."
+                     + (f" **Reduced run**: {a['sessions']} sessions (the full study is 50: "
+                        "`--advice-sessions 50`)." if a["sessions"] < 50 else ""))
     lines.append("")
     if "online_numpy_update_ms_median" in res:
         lines.append(f"Online update without numba (numpy path): median "
