@@ -197,3 +197,61 @@ def test_cli_model_import_writes_a_model_that_loads(leg, tmp_path):
     q = np.linspace(-0.5, 0.3, base.n_pose)
     np.testing.assert_allclose(marker_positions(model, model.theta_nominal, q),
                                marker_positions(base, np.zeros(0), q), atol=1e-9)
+
+
+def test_marker_set_is_found_beside_the_model(shared_data):
+    from skelid.io.osim import find_marker_set
+
+    path = shared_data / "opensim-subject01" / "gait2354_simbody.osim"
+    ms, how = find_marker_set(path)
+    assert ms.name == "gait2354_Scale_MarkerSet.xml" and "subject01_Setup_Scale.xml" in how
+    model, info = read_osim(path)
+    assert len(model.markers) == 39 and info.marker_set == str(ms)
+
+
+def test_a_lone_marker_set_file_is_taken_two_are_refused_in_one_line(tmp_path):
+    from skelid.errors import ModelError
+
+    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+                     f'<location>{x} {y} {z}</location></Marker>'
+                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
+    (tmp_path / "leg.osim").write_text(MODEL.format(markers=""))
+    (tmp_path / "notes.xml").write_text("<OpenSimDocument><IKTaskSet/></OpenSimDocument>")
+    (tmp_path / "broken.xml").write_text("<OpenSimDocument><MarkerSet")
+    with pytest.raises(ModelError, match="--marker-set"):
+        read_osim(tmp_path / "leg.osim")
+    (tmp_path / "leg_markers.xml").write_text(f"<OpenSimDocument><MarkerSet><objects>{text}</objects>"
+                                              "</MarkerSet></OpenSimDocument>")
+    model, info = read_osim(tmp_path / "leg.osim")
+    assert len(model.markers) == 12 and info.marker_set.endswith("leg_markers.xml")
+    (tmp_path / "other.xml").write_text((tmp_path / "leg_markers.xml").read_text())
+    with pytest.raises(ModelError) as exc:
+        read_osim(tmp_path / "leg.osim")
+    line = str(exc.value)
+    assert "leg_markers.xml" in line and "other.xml" in line and "--marker-set" in line and "\n" not in line
+
+
+def test_the_first_example_runs_as_written_on_a_few_frames(shared_data, tmp_path, capsys):
+    """``skelid fit gait2354_simbody.osim static.trc walk.trc --out DIR`` (no marker set named): a scaled
+    model OpenSim loads and runs inverse kinematics with, a ScaleSet and a report."""
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    osim.Logger.removeFileSink()
+    from skelid.cli import main
+    from skelid.io import read_markers, write_trc
+    from skelid.scaling import opensim_ik
+
+    s01 = shared_data / "opensim-subject01"
+    static, walk = read_markers(s01 / "subject01_static.trc"), read_markers(s01 / "subject01_walk1.trc")
+    write_trc(tmp_path / "static.trc", MarkerData(static.positions[:4], static.names, static.rate, static.units))
+    write_trc(tmp_path / "walk.trc", MarkerData(walk.positions[:24:2], walk.names, walk.rate / 2, walk.units))
+    out = tmp_path / "fit"
+    assert main(["fit", str(s01 / "gait2354_simbody.osim"), str(tmp_path / "static.trc"),
+                 str(tmp_path / "walk.trc"), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "gait2354_Scale_MarkerSet.xml" in err
+    assert {"scaled.osim", "scaled_scale_set.xml", "scaled_report.md"} <= {p.name for p in out.iterdir()}
+    assert osim.ScaleSet(str(out / "scaled_scale_set.xml")).getSize() == 8
+    assert "femur_r" in (out / "scaled_report.md").read_text()
+    ik = opensim_ik(out / "scaled.osim", tmp_path / "walk.trc", tmp_path / "ik")
+    assert ik["frames"] == 12 and ik["markers"] == 31 and ik["rmse_mm"] < 60.0
+    assert not list(s01.glob("*.log"))

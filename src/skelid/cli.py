@@ -279,7 +279,7 @@ def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_
                 click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
         click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
         if out_dir:
-            click.echo(f"scaled model, ScaleSet and scaling.json written to {out_dir}")
+            click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")
 
 
 @cli.group("model")
