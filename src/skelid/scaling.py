@@ -35,7 +35,7 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -115,7 +115,7 @@ class ScalingFit:
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
-STATIC_FRAMES = 30
+STATIC_FRAMES = 20
 MOVEMENT_FRAMES = 80
 
 
@@ -129,7 +129,7 @@ def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -
     uniform : bool
         True: every ``k``-th frame with ``k = ceil(F / max_frames)`` and the
         rate divided by ``k`` (the motion model needs equal steps); False:
-        ``max_frames`` evenly spaced frames (a static trial, one pose).
+        ``max_frames`` evenly spaced frames at the original rate.
     """
     F = data.positions.shape[0]
     if max_frames is None or F <= max_frames:
@@ -160,9 +160,10 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     markers : {'offsets', 'none'}
         Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
     static_frames : int or None
-        The first trial, when it has more frames, contributes this many evenly
-        spaced ones (a static trial repeats one pose: more frames add time, not
-        information, since its residuals are serially correlated). None: all.
+        The first trial, when it has more frames, contributes every ``k``-th
+        frame, at most this many (a static trial repeats one pose: more frames
+        add time, not information, since its residuals are serially
+        correlated). None: all.
     movement_frames : int or None
         Each later trial, when it has more frames, contributes every ``k``-th
         frame, at most this many (:func:`thin_trial`; the residuals of
@@ -182,7 +183,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         raise DataError("no trial given", "give at least one marker file")
     full, info = read_osim(osim_path, marker_set)
     marker_set = info.marker_set
-    trials = [thin_trial(trials[0], static_frames, uniform=False)] + [
+    trials = [thin_trial(trials[0], static_frames)] + [
         thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
     multi = len(trials) > 1 and method == "marker" and not joined
     data = join_trials(trials) if not multi else None
@@ -200,20 +201,31 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
                         f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(names[:4])} ...)",
                         "rename the markers in the model's MarkerSet or in the data so that they match")
-    base = keep_markers(full, present)
-    model = osim_parameters(base, info, scale, "none", present)
+    original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
-    parts = [_select(t, model.marker_names) for t in trials]
     t0 = time.perf_counter()
+    notes, moved = [], {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
+        if markers == "offsets" and scale != "none":
+            moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed)
+            notes += [note] if note else []
+        base = _with_marker_positions(original, moved)
+        model = osim_parameters(base, info, scale, "none", present)
+        parts = [_select(t, model.marker_names) for t in trials]
         est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed)
     static = parts[0]
     if markers == "offsets":
         offsets, sd, n_eff = place_markers(model, theta, poses[0], static.positions,
                                            (0, static.positions.shape[0]),
                                            [m.name not in info.fixed_markers for m in model.markers])
-        model = osim_parameters(base, info, scale, "offsets", present)
+        if moved:  # offsets from the model's own marker places: the first placement, scaled, plus the last
+            s_body = body_scales(model, theta)
+            for i, m in enumerate(model.markers):
+                if m.name in moved:
+                    r0 = np.asarray(original.markers[original.marker_names.index(m.name)].position)
+                    offsets[i] += s_body.get(m.segment, np.ones(3)) * (np.asarray(m.position) - r0)
+        model = osim_parameters(original, info, scale, "offsets", present)
         theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
         for k, p in enumerate(model.parameters):
             if p.kind == "marker_offset":
@@ -228,7 +240,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     warns = []
     if info.marker_set_found_by:
         warns.append(f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}")
-    warns += list(res.get("warnings", []))
+    warns += notes + list(res.get("warnings", []))
     if dropped:
         warns.append(f"{len(dropped)} model markers are not in the data"
                      + (" (of every trial)" if multi else "") + f" and were left out: {', '.join(dropped)}")
@@ -238,6 +250,74 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                        parts[0].units, source, {"trial_frames_used": frames})
     return ScalingFit(model, info, str(osim_path), marker_set, shown, est, res, seconds, dropped,
                       list(dict.fromkeys(warns)), theta)
+
+
+def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
+                             seed: int = 0) -> tuple[dict, str | None]:
+    """Free markers placed on the static trial after a scale fit to its fixed (anatomical) markers.
+
+    OpenSim marks a marker ``fixed`` when its place on the body is known (a
+    bony landmark) and leaves the others (clusters on the thigh or shank) to
+    be placed on the subject; a generic model may hold them at one
+    placeholder point. Fitted at their nominal places they would drive the
+    scales. So first the static trial is fitted with the fixed markers only
+    (OpenSim's order: scale on the landmarks, then place the others), and each
+    free marker on a body that pass reaches is moved to where the static
+    trial saw it: ``r_m^0 = S_b^{-1} mean_t R_t^T (y_mt - p_t)``. The fit of
+    all trials then starts from those places.
+
+    Returns
+    -------
+    moved : dict
+        Marker name -> new nominal position (segment frame, mm); empty when
+        the model has no fixed markers or no free ones, or the static trial
+        does not fix the poses with its fixed markers alone.
+    note : str or None
+        What was done, for the warnings.
+    """
+    from skelid.errors import SkelidError
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.model.kinematics import forward_kinematics
+
+    def seen(n):
+        return n in static.names and np.isfinite(static.positions[:, static.names.index(n)]).all(axis=-1).any()
+
+    fixed = [m.name for m in full.markers if m.name in info.fixed_markers and seen(m.name)]
+    free = [m.name for m in full.markers if m.name not in info.fixed_markers and seen(m.name)]
+    if not fixed or not free:
+        return {}, None
+    m1 = osim_parameters(keep_markers(full, fixed), info, scale, "none", fixed)
+    if not m1.n_params:
+        return {}, None
+    try:
+        est = MarkerEstimator(m1, sigma=sigma, rng=np.random.default_rng(seed)).fit(_select(static, m1.marker_names))
+    except SkelidError as exc:
+        return {}, ("free markers placed after the scale fit only: a fit of the static trial's fixed markers "
+                    f"failed ({exc.problem})")
+    kin = forward_kinematics(m1, est.theta_, est.pose_)
+    seg = {s.name: i for i, s in enumerate(m1.segments)}
+    scales = body_scales(m1, est.theta_)
+    y = _select(static, free).positions
+    moved = {}
+    for j, n in enumerate(free):
+        b = full.markers[full.marker_names.index(n)].segment
+        if b not in seg:
+            continue
+        i = seg[b]
+        r = np.einsum("tji,tj->ti", kin.R_world_seg[:, i], y[:, j] - kin.p_world_seg[:, i])
+        ok = np.isfinite(r).all(axis=-1) & np.asarray(est.frames_used_, bool)
+        if ok.any():
+            moved[n] = tuple(float(v) for v in r[ok].mean(axis=0) / scales.get(b, np.ones(3)))
+    return moved, (f"{len(moved)} free markers were placed on the static trial after a scale fit to its "
+                   f"{len(fixed)} fixed markers, before the fit of every trial")
+
+
+def _with_marker_positions(model: Model, moved: dict) -> Model:
+    """``model`` with the markers in ``moved`` at their new positions."""
+    if not moved:
+        return model
+    mk = tuple(replace(m, position=moved[m.name]) if m.name in moved else m for m in model.markers)
+    return Model(model.name, model.dim, model.units, model.segments, mk)
 
 
 def _select(t: MarkerData, names) -> MarkerData:
