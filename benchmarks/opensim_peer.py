@@ -317,9 +317,10 @@ def _markdown4(s4: dict) -> str:
              for n in dyn]
     lines += ["", f"On the movement trials skelid's model tracks {min(worse):.1f} to {max(worse):.1f} mm worse "
               "(IK RMSE) than the better peer: skelid places each free marker on the static trial only, "
-              "AddBiomechanics moves the markers to fit every trial at once. skelid's intervals are "
-              "within-subject statistical intervals of one scale per body; the peers scale per axis, so a "
-              "peer's factor outside them is a different answer, not a check of coverage."]
+              "AddBiomechanics moves the markers to fit every trial at once. skelid's intervals are statistical "
+              "intervals of one scale per body given the model's marker set; neither peer is truth and they "
+              "disagree with each other (pelvis, tibia) by more than those intervals' width, so a peer's factor "
+              "outside them is a different answer, not a measured failure of coverage."]
     lines += ["", f"OpenSim IK on every k-th frame of each trial (at most {IK_FRAMES}; the same frames for every "
               "model), every model marker in the file, weight 1:", "",
               "| trial | frames | skelid IK RMSE (mm) | AddBiomechanics | expert | IK time, skelid model |",
