@@ -255,3 +255,32 @@ def test_the_first_example_runs_as_written_on_a_few_frames(shared_data, tmp_path
     ik = opensim_ik(out / "scaled.osim", tmp_path / "walk.trc", tmp_path / "ik")
     assert ik["frames"] == 12 and ik["markers"] == 31 and ik["rmse_mm"] < 60.0
     assert not list(s01.glob("*.log"))
+
+
+def test_free_markers_at_a_placeholder_are_placed_before_they_can_drive_the_scales(tmp_path):
+    """Cluster markers a generic model holds at one placeholder point: the static trial's fixed markers scale
+    the bodies first, and the free markers go where the static trial saw them."""
+    from skelid.scaling import place_free_markers_first
+
+    fixed = {"pelvis0", "pelvis1", "pelvis2", "pelvis3", "thigh0", "thigh3", "shank0", "shank3"}
+    placeholder = {"thigh": (0.0, -0.2, 0.05), "shank": (0.0, -0.2, 0.05)}
+
+    def write(path, true_places):
+        path.write_text(MODEL.format(markers="\n".join(
+            f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+            f'<location>{" ".join(map(str, loc if true_places or f"{b}{i}" in fixed else placeholder[b]))}'
+            f'</location><fixed>{str(f"{b}{i}" in fixed).lower()}</fixed></Marker>'
+            for b, locs in MARKERS.items() for i, loc in enumerate(locs))))
+        return path
+
+    truth = {"pelvis": 1.05, "thigh": 1.1, "shank": 0.95}
+    static, _ = _trials(write(tmp_path / "true.osim", True), truth, frames=(6, 2))
+    generic = write(tmp_path / "generic.osim", False)
+    full, info = read_osim(generic)
+    assert info.fixed_markers == fixed
+    moved, note = place_free_markers_first(full, info, "bodies", static)
+    assert set(moved) == {"thigh1", "thigh2", "shank1", "shank2"} and "8 fixed markers" in note
+    true_model, _ = read_osim(tmp_path / "true.osim")
+    for name, r in moved.items():  # the true place (mm, from the body's joint centre) up to the noise
+        expected = true_model.markers[true_model.marker_names.index(name)].position
+        np.testing.assert_allclose(r, expected, atol=0.5, err_msg=name)

@@ -290,7 +290,10 @@ def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: Ma
     if not m1.n_params:
         return {}, None
     try:
-        est = MarkerEstimator(m1, sigma=sigma, rng=np.random.default_rng(seed)).fit(_select(static, m1.marker_names))
+        with warnings.catch_warnings():  # a first pass: its warnings are not the answer's
+            warnings.simplefilter("ignore", SkelidWarning)
+            est = MarkerEstimator(m1, sigma=sigma, rng=np.random.default_rng(seed)).fit(
+                _select(static, m1.marker_names))
     except SkelidError as exc:
         return {}, ("free markers placed after the scale fit only: a fit of the static trial's fixed markers "
                     f"failed ({exc.problem})")
