@@ -308,6 +308,8 @@ def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_b
 
     workflows.check_input_file(osim_path, "model file")
     model, info = read_osim(osim_path, marker_set, keep="all" if all_bodies else "markers")
+    if info.marker_set_found_by:
+        _echo_warnings([f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}"])
     model = osim_parameters(model, info, scale_kind, marker_kind)
     head = (f"# imported from {Path(osim_path).name} by skelid model import: frames keep the OpenSim bodies'\n"
             "# orientation with their origin at the joint centre; lengths in mm\n")
