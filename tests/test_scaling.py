@@ -284,3 +284,11 @@ def test_free_markers_at_a_placeholder_are_placed_before_they_can_drive_the_scal
     for name, r in moved.items():  # the true place (mm, from the body's joint centre) up to the noise
         expected = true_model.markers[true_model.marker_names.index(name)].position
         np.testing.assert_allclose(r, expected, atol=0.5, err_msg=name)
+
+
+def test_batch_and_other_commands_read_an_osim_model_with_body_scales(shared_data):
+    from skelid.simulate import resolve_model
+
+    model = resolve_model(shared_data / "opensim-subject01" / "gait2354_simbody.osim")
+    assert {p.kind for p in model.parameters} == {"scale"} and len(model.parameters) == 8
+    assert len(model.markers) == 39  # the MarkerSet found beside the model
