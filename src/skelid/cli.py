@@ -397,11 +397,18 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def _one_blas_thread():
+    """One BLAS thread for the command: a fit is many small factorisations, which threads only slow down."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1, user_api="blas")
+
+
 def main(argv=None) -> int:
     """Entry point: run the CLI, turning user errors into one line and exit status 2."""
     args = list(sys.argv[1:] if argv is None else argv)
     try:
-        with _sigterm_as_exit():
+        with _sigterm_as_exit(), _one_blas_thread():
             cli.main(args=args, prog_name="skelid", standalone_mode=False, obj={"argv": ["skelid", *args]})
     except SkelidError as exc:
         click.echo(f"skelid: error: {exc.one_line()}", err=True)
