@@ -283,7 +283,7 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
                 click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
         click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
         if out_dir:
-            click.echo(f"scaled model, ScaleSet and scaling.json written to {out_dir}")
+            click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")
 
 
 @cli.group("model")
@@ -312,6 +312,8 @@ def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_b
 
     workflows.check_input_file(osim_path, "model file")
     model, info = read_osim(osim_path, marker_set, keep="all" if all_bodies else "markers")
+    if info.marker_set_found_by:
+        _echo_warnings([f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}"])
     model = osim_parameters(model, info, scale_kind, marker_kind)
     head = (f"# imported from {Path(osim_path).name} by skelid model import: frames keep the OpenSim bodies'\n"
             "# orientation with their origin at the joint centre; lengths in mm\n")
@@ -400,11 +402,18 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def _one_blas_thread():
+    """One BLAS thread for the command: a fit is many small factorisations, which threads only slow down."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1, user_api="blas")
+
+
 def main(argv=None) -> int:
     """Entry point: run the CLI, turning user errors into one line and exit status 2."""
     args = list(sys.argv[1:] if argv is None else argv)
     try:
-        with _sigterm_as_exit():
+        with _sigterm_as_exit(), _one_blas_thread():
             cli.main(args=args, prog_name="skelid", standalone_mode=False, obj={"argv": ["skelid", *args]})
     except SkelidError as exc:
         click.echo(f"skelid: error: {exc.one_line()}", err=True)
