@@ -627,9 +627,15 @@ def derived_lengths(model: Model, theta, cov) -> dict:
 
 
 def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
-    """The warnings a marker fit deserves, decided from its values."""
+    """The warnings a marker fit deserves, decided from its values (one small check per concern)."""
+    checks = (_data_warnings, _bound_warnings, _identification_warnings, _residual_warnings, _bias_warnings,
+              _jackknife_warnings, _placement_warnings, _motion_warnings)
+    return [w for check in checks for w in check(model, s, f)]
+
+
+def _data_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Marker positions left out as outliers; frames skipped."""
     out = []
-    names = np.array(model.parameter_names)
     out_ = f.screen.outliers
     if out_.any():
         out.append(Warning("outliers", f"{int(out_.sum())} marker positions in {int(out_.any(axis=1).sum())} "
@@ -639,18 +645,46 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
     if n_skip:
         out.append(Warning("frames-skipped", f"{n_skip} of {len(f.frames.used)} frames have too few markers "
                            "to fix the pose and were skipped"))
+    return out
+
+
+def _bound_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Parameters pinned on a bound of their prior, or lying outside it."""
+    out = []
     if f.pinned.any():
-        pinned = tuple(names[f.pinned])
+        pinned = tuple(np.array(model.parameter_names)[f.pinned])
         out.append(Warning("on-bound", f"parameter(s) {', '.join(pinned)} ended on a bound of their prior "
                            "interval: the data do not pin them inside it", pinned) if model.n_params > 1 else
                    Warning("on-bound", f"parameter {pinned[0]} ended on a bound of its prior interval: the "
                            "data do not pin it inside it", pinned))
+    theta = f.estimate.theta
+    for k, p in enumerate(model.parameters):
+        if not p.prior.lower <= theta[k] <= p.prior.upper:
+            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
+                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
+    return out
+
+
+def _identification_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Parameters poorly identified by the Cramér-Rao bound, or only once the interval is final."""
+    out = []
     for k, row in enumerate(f.ident["table"]):
         if row["status"] == "poor":
             out.append(Warning("poorly-identified", f"parameter {row['parameter']} is poorly identified for "
                                f"this motion (Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than "
                                "a quarter of its prior range)", (row["parameter"],)))
+    for k, (before, after) in enumerate(zip(f.ident["table"], f.summary.table, strict=True)):
+        if before["status"] == "identified" and after["status"] == "poor":
+            out.append(Warning("poorly-identified", f"parameter {after['parameter']} is poorly identified for "
+                               f"this motion (sd {after['sd']:.3g} {_unit(model, k)} is more than a quarter of "
+                               "its prior range)", (after["parameter"],)))
+    return out
+
+
+def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Model misfit at a joint; serially correlated residuals and whether the interval was widened."""
     misfit = [j for j, v in f.residuals.misfit.items() if v["flagged"]]
+    out = []
     for j in misfit:
         v = f.residuals.misfit[j]
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
@@ -663,46 +697,57 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
         out.append(Warning("model-misfit" if misfit else "soft-tissue-artefact",
                            f"residuals are serially correlated (lag-1 autocorrelation "
                            f"{f.residuals.sta_score:.2f}): they look like {what}, {then}"))
+    return out
+
+
+def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """A second-order bias correction too large for its approximation (bootstrap fallback)."""
     fb = f.bias.fallback
-    if fb:
-        k = model.parameter_names.index(fb["parameter"])
-        out.append(Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
-                           f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
-                           f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
-                           "refits) instead", (fb["parameter"],)))
+    if not fb:
+        return []
+    k = model.parameter_names.index(fb["parameter"])
+    return [Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
+                    f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
+                    f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
+                    "refits) instead", (fb["parameter"],))]
+
+
+def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Markers that disagree beyond their noise (the interval widened by the marker jackknife)."""
     jk = f.cov.jackknife
-    if jk.get("folded"):
-        k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
-        v = jk["parameters"][k]
-        out.append(Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
-                           f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
-                           f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,)))
+    if not jk.get("folded"):
+        return []
+    k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
+    v = jk["parameters"][k]
+    return [Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
+                    f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
+                    f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,))]
+
+
+def _placement_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Parameters informed by the markers' nominal placement rather than by motion."""
     pl = f.cov.placement
     flagged_p = tuple(n for n, v in pl["parameters"].items() if v["informed_by_placement"])
-    if flagged_p and (pl["static"] or pl["placement_sd"] > 0):  # with motion the flag stays in the result
-        tail = (f"; a marker placement uncertainty of {pl['placement_sd']:.3g} {model.units} per coordinate was "
-                "added to the interval" if pl["placement_sd"] > 0 else
-                "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
-        out.append(Warning("placement-informed", f"parameter(s) {', '.join(flagged_p)} are informed by the "
-                           "markers' nominal placement on their segments, not by motion (one still pose gives "
-                           f"{100 * pl['min_share']:.0f} % or more of their precision): their value follows "
-                           f"from the model's marker positions{tail}", flagged_p))
-    for k, (before, after) in enumerate(zip(f.ident["table"], f.summary.table, strict=True)):
-        if before["status"] == "identified" and after["status"] == "poor":
-            out.append(Warning("poorly-identified", f"parameter {after['parameter']} is poorly identified for "
-                               f"this motion (sd {after['sd']:.3g} {_unit(model, k)} is more than a quarter of "
-                               "its prior range)", (after["parameter"],)))
+    if not flagged_p or not (pl["static"] or pl["placement_sd"] > 0):  # with motion the flag stays in the result
+        return []
+    tail = (f"; a marker placement uncertainty of {pl['placement_sd']:.3g} {model.units} per coordinate was "
+            "added to the interval" if pl["placement_sd"] > 0 else
+            "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
+    return [Warning("placement-informed", f"parameter(s) {', '.join(flagged_p)} are informed by the "
+                    "markers' nominal placement on their segments, not by motion (one still pose gives "
+                    f"{100 * pl['min_share']:.0f} % or more of their precision): their value follows "
+                    f"from the model's marker positions{tail}", flagged_p)]
+
+
+def _motion_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Joints that hardly moved; a joint fit that did not converge."""
+    out = []
     if f.summary.still:
         out.append(Warning("still-joint", f"joint(s) {', '.join(f.summary.still)} moved less than "
                            f"{STILL_JOINT_DEG:g} degrees: their centres and axes are informed only by tiny "
                            "motions (a static trial cannot locate a joint functionally)"))
     if not f.weights.fit.converged:
         out.append(Warning("not-converged", "the joint fit stopped before converging; the estimate may be off"))
-    theta = f.estimate.theta
-    for k, p in enumerate(model.parameters):
-        if not p.prior.lower <= theta[k] <= p.prior.upper:
-            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
-                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
     return out
 
 
