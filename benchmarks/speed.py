@@ -641,8 +641,9 @@ def write_markdown(res: dict, path: Path) -> None:
         for name, r in res["section_runs"].items():
             lines.append(f"| {name} | {r['date']} | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
                          f"{', '.join(f'{x:.1f}' for x in r['loadavg_after'])} |")
-        lines += ["", f"Command: `{res.get('command', '')}`. Ratios and the scaling ratio use CPU seconds "
-                  "(wall-clock ratios beside them in speed.json); on a machine shared by several jobs wall "
+        commands = dict.fromkeys(r.get("command", res.get("command", "")) for r in res["section_runs"].values())
+        lines += ["", f"Commands: {'; '.join(f'`{c}`' for c in commands)}. Ratios and the scaling ratio use CPU "
+                  "seconds (wall-clock ratios beside them in speed.json); on a machine shared by several jobs wall "
                   "times are upper bounds. Keys of sections not listed here (online, rss, batch) come from an "
                   "earlier run of this script.", ""]
     if res.get("load_before", 0) > 2 or res.get("load_after", 0) > 2:
@@ -762,7 +763,8 @@ def main(argv=None):
         print(f"[speed] {name} ...", flush=True)
         res.update(SECTIONS[name](args))
         runs[name] = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-                      "loadavg_after": list(os.getloadavg()), "date": time.strftime("%Y-%m-%d %H:%M")}
+                      "loadavg_after": list(os.getloadavg()), "date": time.strftime("%Y-%m-%d %H:%M"),
+                      "command": res["command"]}
         print(f"[speed] {name} done in {time.perf_counter() - t0:.0f} s", flush=True)
         json_path.write_text(json.dumps(res, indent=2) + "\n")
     res["load_after"] = round(os.getloadavg()[0], 2)

@@ -577,7 +577,8 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         else:
             prev = None
             lam *= 10.0
-            if lam > 1e12 or (stalled and lam > 1e2):
+            at_rounding = stalled and np.isfinite(best[3]) and best[3] - cost <= 1e-11 * abs(cost)
+            if lam > 1e12 or (stalled and lam > 1e2) or at_rounding:
                 # no descent direction left, or only steps the cost's rounding cannot tell apart
                 converged = True
                 break

@@ -987,7 +987,7 @@ class MarkerEstimator:
             ys = clean + rng.normal(0.0, sigma, size=clean.shape)
             ys[miss] = np.nan
             f = joint_fit(self.model, ys, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
-                          rate=rate, cutoff=cutoff, step_tol=BOOT_STEP_TOL, tol=BOOT_TOL, ws=ws)
+                          rate=rate, cutoff=cutoff, step_tol=BOOT_STEP_TOL, tol=BOOT_TOL, ws=ws, summary=False)
             shifts.append(f.theta - fit.theta)
         return np.mean(shifts, axis=0)
 

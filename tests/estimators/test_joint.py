@@ -1,0 +1,101 @@
+"""The joint fit's linear-time pieces against dense references on small trials."""
+
+import numpy as np
+import pytest
+
+from skelid.estimators.joint import (
+    _arrow_inverse_blocks,
+    _smoothed_bias_dense,
+    joint_fit,
+    smoothing_penalty,
+    weighted_terms,
+)
+from skelid.estimators.likelihood import pose_information
+from skelid.model.kinematics import marker_jacobian
+from skelid.simulate import builtin_model, simulate
+
+
+def _small_fit(n_frames=40, seed=3):
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=5.0, n_frames=n_frames, rng=np.random.default_rng(seed))
+    y = trial.data.positions
+    _, Jq, _ = weighted_terms(model, trial.theta, trial.pose, y)
+    R = smoothing_penalty(model, pose_information(Jq), trial.data.rate, 8.0)
+    return model, y, trial.theta, trial.pose, R
+
+
+def _dense_normal_matrix(model, y, theta, q, R):
+    P, Q, T = model.n_params, model.n_pose, len(q)
+    _, Jq, Jt = weighted_terms(model, theta, q, y)
+    J = np.zeros((T, Jq.shape[1], P + T * Q))  # rows of frame t: theta columns, then its own pose block
+    J[:, :, :P] = Jt
+    for t in range(T):
+        J[t, :, P + t * Q:P + (t + 1) * Q] = Jq[t]
+    J = J.reshape(-1, P + T * Q)
+    N = J.T @ J
+    N[P:, P:] += R.toarray()
+    return N, J
+
+
+def _frame_index(P, Q, T):
+    return np.concatenate([np.broadcast_to(np.arange(P), (T, P)), P + np.arange(T)[:, None] * Q + np.arange(Q)], 1)
+
+
+def test_arrow_inverse_blocks_equal_the_dense_inverse():
+    model, y, theta, q, R = _small_fit()
+    P, Q, T = model.n_params, model.n_pose, len(q)
+    _, Jq, Jt = weighted_terms(model, theta, q, y)
+    blocks, S_inv, _ = _arrow_inverse_blocks(pose_information(Jq), np.einsum("tki,tkp->tip", Jq, Jt),
+                                             np.einsum("tkp,tkq->pq", Jt, Jt), R)
+    N, _ = _dense_normal_matrix(model, y, theta, q, R)
+    C = np.linalg.inv(N)
+    idx = _frame_index(P, Q, T)
+    dense = C[idx[:, :, None], idx[:, None, :]]
+    scale = np.sqrt(np.einsum("tii->ti", dense))
+    np.testing.assert_allclose(blocks / (scale[:, :, None] * scale[:, None, :]),
+                               dense / (scale[:, :, None] * scale[:, None, :]), atol=1e-8)
+    np.testing.assert_allclose(S_inv, C[:P, :P], rtol=1e-8)
+
+
+def test_smoothed_bias_equals_the_dense_formula():
+    """b = sigma^2 C (-1/2 J^T d + sum_i H_i v_i), d_i = tr(C J^T J C H_i), v_i = (C R C J^T)_i, all dense."""
+    model, y, theta, q, R = _small_fit()
+    P, Q, T = model.n_params, model.n_pose, len(q)
+    N, J = _dense_normal_matrix(model, y, theta, q, R)
+    C = np.linalg.inv(N)
+    Rt = np.zeros_like(N)
+    Rt[P:, P:] = R.toarray()
+    Sig, V = C @ (N - Rt) @ C, C @ Rt @ C @ J.T
+    step = 1e-4
+    m = J.shape[0] // T
+    w = np.zeros(P + T * Q)
+    for t in range(T):  # second derivatives of frame t's rows in (theta, q_t) by central differences
+        cols = _frame_index(P, Q, T)[t]
+        H = np.zeros((m, P + Q, P + Q))
+        for j in range(P + Q):
+            e = np.zeros(P + Q)
+            e[j] = step
+            _, qp, tp = marker_jacobian(model, theta + e[:P], q[t] + e[P:])
+            _, qm, tm = marker_jacobian(model, theta - e[:P], q[t] - e[P:])
+            H[:, j, :] = (np.concatenate([tp, qp], -1) - np.concatenate([tm, qm], -1)).reshape(m, P + Q) / (2 * step)
+        rows = slice(t * m, (t + 1) * m)
+        d = np.einsum("ijl,lj->i", H, Sig[np.ix_(cols, cols)])
+        w += -0.5 * J[rows].T @ d
+        w[cols] += np.einsum("ijl,li->j", H, V[np.ix_(cols, np.arange(J.shape[0])[rows])])
+    expected = (C @ w)[:P]
+    b, S = _smoothed_bias_dense(model, y, theta, q, 1.0, R, step)
+    np.testing.assert_allclose(b, expected, rtol=1e-6)
+    np.testing.assert_allclose(S, np.linalg.inv(C[:P, :P]), rtol=1e-8)
+
+
+@pytest.mark.parametrize("cutoff", [None, 6.0])
+def test_joint_fit_stops_where_a_fit_run_to_the_cost_rounding_stops(cutoff):
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=15.0, n_frames=80, rng=np.random.default_rng(5))
+    y, rate = trial.data.positions, trial.data.rate
+    fit = joint_fit(model, y, model.theta_center, trial.pose, rate=rate, cutoff=cutoff)
+    assert fit.converged and fit.n_iter < 100
+    tight = joint_fit(model, y, fit.theta, fit.pose, n_iter=300, tol=0.0, step_tol=0.0, penalty=fit.penalty,
+                      rate=rate, cutoff=cutoff)
+    sd = np.sqrt(np.diag(np.linalg.inv(fit.info)) * fit.rss / (fit.n_obs - fit.pose_dof - model.n_params))
+    assert np.all(np.abs(tight.theta - fit.theta) <= 1e-6 * sd)
