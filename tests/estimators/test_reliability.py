@@ -69,3 +69,27 @@ def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
                            rng=np.random.default_rng(0)).fit(data)
     assert np.allclose(est.cov_data_ - bare.cov_data_, 25.0 * place["cov_per_unit"], rtol=1e-6, atol=1e-12)
     assert np.all(est.posterior_.sd > bare.posterior_.sd)
+
+
+def test_near_a_singular_pose_the_fit_reaches_the_minimum_a_start_at_the_truth_reaches(monkeypatch):
+    # an elbow kept near the folded pose: per-frame fits jump between pose branches, and a motion-model
+    # fit started from them sticks in a local minimum unless a stiffer motion model is fitted first
+    from skelid.estimators.joint import joint_fit
+    from skelid.simulate import simulate_posture
+
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 150, 5.0, (150.0, 172.0), np.random.default_rng(0))
+
+    def fitted(stiffer):
+        monkeypatch.setattr(marker_mod, "STIFFER", stiffer)
+        est = MarkerEstimator(model, cutoff=8.0, bias_correction="none", jackknife=False, outlier_threshold=None,
+                              rng=0).fit(trial.data)
+        f = est.fit_info_
+        return f, f.rss + f.pose.ravel() @ (f.penalty @ f.pose.ravel())
+
+    f, cost = fitted(marker_mod.STIFFER)
+    ref = joint_fit(model, trial.data.positions, trial.theta, trial.pose, rate=100.0, cutoff=8.0)
+    ref_cost = ref.rss + ref.pose.ravel() @ (ref.penalty @ ref.pose.ravel())
+    assert cost <= ref_cost + 10.0 and f.theta[0] == pytest.approx(ref.theta[0], abs=0.05)
+    _, cost_plain = fitted(1.0)  # without the stiffer start: a local minimum
+    assert cost_plain > ref_cost + 100.0

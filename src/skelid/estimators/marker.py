@@ -94,6 +94,7 @@ from skelid.result import FitResult, NoiseEstimate, Warning
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
+STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
@@ -382,10 +383,14 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Mot
                             min(MIN_AUTO_CUTOFF, rate / 2))
     if cutoff is None:
         return Motion(sc.fit, None)
-    # the motion model makes pose branches stick: keep the start with the lower penalised cost
+    # the motion model makes pose branches stick: keep the start with the lower penalised cost. Near a
+    # singular pose the per-frame fits jump between branches; a fit whose motion model is STIFFER times
+    # stiffer (graduated smoothing) first carries one smooth trajectory through them
+    stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                      rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER)
     fits = [joint_fit(model, sc.y, th, qq, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
                       cutoff=cutoff)
-            for th, qq in ((st.theta0, st.pose0), (sc.fit.theta, sc.fit.pose))]
+            for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
     fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
     return Motion(fit, cutoff)
 
