@@ -287,6 +287,7 @@ class Bias(NamedTuple):
     bias: np.ndarray  # (P,)
     method: str
     fallback: dict | None = None  # the second-order bias that was too large to trust, and the bootstrap's
+    cov: np.ndarray | float = 0.0  # (P, P) added to the interval: the bootstrap's spread beyond sigma^2 S^-1
 
 
 class Covariance(NamedTuple):
@@ -487,14 +488,40 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
         if est.bias_correction in ("auto", True) and np.any(np.abs(b) > BIAS_RELIABLE * sd):
             # the second-order expansion is unreliable here (near a singular pose): the bias of this
             # fit under the fitted model is measured by simulation instead
-            boot = est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng)
+            boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
             k = int(np.argmax(np.abs(b) / np.maximum(sd, 1e-300)))
             return Bias(boot, "bootstrap", {"box": b.tolist(), "bootstrap": boot.tolist(), "n_boot": est.n_boot,
-                                            "parameter": model.parameter_names[k], "sd": float(sd[k])})
+                                            "parameter": model.parameter_names[k], "sd": float(sd[k]),
+                                            "sd_bootstrap": np.sqrt(np.diag(extra + noise.sigma**2
+                                                                            * np.linalg.inv(fit.info))).tolist()},
+                        extra)
         return Bias(b, method)
     if method == "bootstrap":
-        return Bias(est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng), method)
+        boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
+        return Bias(boot, method, None, extra)
     return Bias(np.zeros(model.n_params), method)
+
+
+def bootstrap_bias(est: MarkerEstimator, y, fit: JointFit, noise: Noise, st: Start, mo: Motion, rng):
+    """Parametric bootstrap of the bias, and the covariance it adds to ``sigma^2 S^{-1}``.
+
+    ``B = n_boot`` data sets are simulated from the fit and refitted; the bias is the mean
+    shift ``b* = mean(theta*_b) - theta_hat``. Where the local approximation fails, the
+    refits also spread more than ``sigma^2 S^{-1}`` says: the covariance added is the
+    excess of their covariance ``C*`` over it (eigenvalues clipped at zero), plus ``C*/B``,
+    the Monte Carlo variance of ``b*``.
+
+    Returns
+    -------
+    bias : (P,) float
+    extra : (P, P) float
+    """
+    shifts = est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng)
+    B = len(shifts)
+    c_boot = np.atleast_2d(np.cov(shifts, rowvar=False)) if B > 1 else np.zeros((len(fit.theta),) * 2)
+    w, V = np.linalg.eigh(c_boot - noise.sigma**2 * np.linalg.inv(fit.info))
+    extra = (V * np.clip(w, 0.0, None)) @ V.T + c_boot / B
+    return shifts.mean(axis=0), extra
 
 
 def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise,
@@ -654,7 +681,8 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
         out.append(Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
                            f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
                            f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
-                           "refits) instead", (fb["parameter"],)))
+                           f"refits) instead, and the interval uses the refits' spread (sd {fb['sd_bootstrap'][k]:.3g})",
+                           (fb["parameter"],)))
     jk = f.cov.jackknife
     if jk.get("folded"):
         k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
@@ -710,7 +738,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
-    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data))
+    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
                      summary_stage(model, ident, estimate))
 
@@ -902,7 +930,7 @@ class MarkerEstimator:
         self.placement_ = f.cov.placement
         self.misfit_ = f.residuals.misfit
         self.bias_fallback_ = f.bias.fallback
-        self.cov_data_ = f.cov.data
+        self.cov_data_ = f.cov.data + f.bias.cov  # with the bootstrap's spread when it stood in
         self.theta_, self.cov_ = f.estimate
         self.pose_ = fit.pose
         self.y_ = np.where(used[:, None, None], f.screen.y, np.nan)
@@ -912,7 +940,7 @@ class MarkerEstimator:
         self.warnings_ = tuple(found)
 
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
-        """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate."""
+        """Parametric bootstrap: simulate from the fit, refit; the shifts of the estimate, (n_boot, P)."""
         clean = marker_positions(self.model, fit.theta, fit.pose)
         miss = ~np.isfinite(y)
         shifts = []
@@ -922,7 +950,7 @@ class MarkerEstimator:
             f = joint_fit(self.model, ys, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
                           rate=rate, cutoff=cutoff)
             shifts.append(f.theta - fit.theta)
-        return np.mean(shifts, axis=0)
+        return np.array(shifts)
 
     def result(self) -> FitResult:
         """The typed result (:class:`~skelid.result.FitResult`)."""
