@@ -12,6 +12,11 @@ frames. Methods:
   every revolute joint kept within 0-25 or 150-172 degrees, near the poses where
   the markers across a joint line up (the second-order bias expansion is least
   accurate there);
+* cell ``coupled`` (``--noises coupled``): a thigh and shank whose knee is a coupled
+  (``custom``) joint whose centre slides with flexion (by ``MOVING_CENTRE`` (q^2/2, q/2) mm,
+  q the flexion in radians, 0-90 degrees), fitted with a hinge whose centre (x, y) is
+  unknown; the truth is the centre at zero flexion, rows ``final:1`` give the second
+  coordinate; the rows count how often the model-misfit warning fired;
 * ``final-artefact`` the same with the soft-tissue artefact's size stated
   (``artefact_rms``: the simulator's expected rms displacement of a marker
   coordinate, :func:`skelid.simulate.sta_rms`); soft-tissue cells only.
@@ -21,7 +26,13 @@ the true sigma. Results are written cell by cell to
 ``benchmarks/results/accuracy.json`` and ``accuracy.md``; a re-run skips the
 cells already there (``--fresh`` starts over).
 
+Each run's rows carry a ``tag`` (``--tag before`` for a run of the code before a change,
+``after`` by default) and each cell the CPU seconds of all its processes, its wall time
+and the load average when it ended. ``--jobs 2`` fits in this process and one worker.
+
     python benchmarks/accuracy.py --reps 100 --jobs 2
+    python benchmarks/accuracy.py --noises folded straight --truths 250 --methods final --reps 20
+    python benchmarks/accuracy.py --cases case-a --sigmas 1 5 --noises coupled --methods final --reps 20
     python benchmarks/accuracy.py --frames-study --reps 20
 """
 
@@ -239,6 +250,22 @@ def write(rows):
                  "subtracted; `fallback`: trials whose correction came from a check's fallback rather than "
                  "the second-order expansion. Tags: `previous` = results of an earlier version kept for "
                  "reference, `before` = this version's code before the near-singular fix, `after` = now.\n\n")
+        pairs = {}
+        for r in rows:
+            if r.get("tag") in ("before", "after"):
+                pairs.setdefault((r["case"], r["sigma"], r["truth"], r["noise"], r["method"]), {})[r["tag"]] = r
+        pairs = {k: v for k, v in pairs.items() if len(v) == 2}
+        if pairs:
+            fh.write("## Before and after\n\n| case | sigma | truth | noise | method | reps | coverage95 | "
+                     "bias / crlb | rmse / crlb | abs(z)>3 |\n|" + "---|" * 10 + "\n")
+            for (case, sigma, truth, noise, method), v in pairs.items():
+                b, a = v["before"], v["after"]
+                fh.write(f"| {case} | {sigma:g} | {truth:g} | {noise} | {method} | {b['reps']} / {a['reps']} | "
+                         f"{b['coverage95']:.2f} -> {a['coverage95']:.2f} | "
+                         f"{b['bias'] / b['crlb']:.2f} -> {a['bias'] / a['crlb']:.2f} | "
+                         f"{b['rmse_over_crlb']:.2f} -> {a['rmse_over_crlb']:.2f} | "
+                         f"{b.get('z_gt3', float('nan')):.2f} -> {a.get('z_gt3', float('nan')):.2f} |\n")
+            fh.write("\n")
         for tag in sorted({r.get("tag", "previous") for r in rows}, key=lambda t: tags.get(t, 9)):
             fh.write(f"## {tag}\n\n{head}\n" + "|" + "---|" * 18 + "\n")
             for r in rows:
