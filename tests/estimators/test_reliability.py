@@ -87,12 +87,12 @@ def test_near_a_singular_pose_the_fit_reaches_the_minimum_a_start_at_the_truth_r
     def cost(f):
         return f.rss + f.pose.ravel() @ (f.penalty @ f.pose.ravel())
 
-    def fit(start, cutoff):
+    def fit(start, cutoff, n_iter=100):
         return joint_fit(model, sc.y, start.theta, start.pose, bounds=st.bounds, frames=sc.fixed, rate=100.0,
-                         cutoff=cutoff)
+                         cutoff=cutoff, n_iter=n_iter)
 
     ref = joint_fit(model, y, trial.theta, trial.pose, rate=100.0, cutoff=8.0)
-    graduated = fit(fit(sc.fit, 8.0 / marker_mod.STIFFER), 8.0)  # the start the motion stage adds
+    graduated = fit(fit(sc.fit, 8.0 / marker_mod.STIFFER, marker_mod.STIFF_ITER), 8.0)  # the motion stage's start
     assert cost(graduated) <= cost(ref) + 10.0 and graduated.theta[0] == pytest.approx(ref.theta[0], abs=0.05)
     assert cost(fit(sc.fit, 8.0)) > cost(ref) + 100.0  # without the stiffer fit first: a local minimum
 

@@ -95,6 +95,7 @@ NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
 STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
+STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
@@ -387,8 +388,8 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Mot
     # the motion model makes pose branches stick: keep the start with the lower penalised cost. Near a
     # singular pose the per-frame fits jump between branches; a fit whose motion model is STIFFER times
     # stiffer (graduated smoothing) first carries one smooth trajectory through them
-    stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                      rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER)
+    stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
+                      frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER)
     fits = [joint_fit(model, sc.y, th, qq, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
                       cutoff=cutoff)
             for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
@@ -681,7 +682,8 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
         out.append(Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
                            f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
                            f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
-                           f"refits) instead, and the interval uses the refits' spread (sd {fb['sd_bootstrap'][k]:.3g})",
+                           f"refits) instead, and the interval uses the refits' spread "
+                           f"(sd {fb['sd_bootstrap'][k]:.3g})",
                            (fb["parameter"],)))
     jk = f.cov.jackknife
     if jk.get("folded"):
