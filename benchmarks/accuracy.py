@@ -12,6 +12,11 @@ frames. Methods:
   every revolute joint kept within 0-25 or 150-172 degrees, near the poses where
   the markers across a joint line up (the second-order bias expansion is least
   accurate there);
+* cell ``coupled`` (``--noises coupled``): a thigh and shank whose knee is a coupled
+  (``custom``) joint whose centre slides with flexion (by ``MOVING_CENTRE`` (q^2/2, q/2) mm,
+  q the flexion in radians, 0-90 degrees), fitted with a hinge whose centre (x, y) is
+  unknown; the truth is the centre at zero flexion, rows ``final:1`` give the second
+  coordinate; the rows count how often the model-misfit warning fired;
 * ``final-artefact`` the same with the soft-tissue artefact's size stated
   (``artefact_rms``: the simulator's expected rms displacement of a marker
   coordinate, :func:`skelid.simulate.sta_rms`); soft-tissue cells only.
@@ -21,7 +26,13 @@ the true sigma. Results are written cell by cell to
 ``benchmarks/results/accuracy.json`` and ``accuracy.md``; a re-run skips the
 cells already there (``--fresh`` starts over).
 
+Each run's rows carry a ``tag`` (``--tag before`` for a run of the code before a change,
+``after`` by default) and each cell the CPU seconds of all its processes, its wall time
+and the load average when it ended. ``--jobs 2`` fits in this process and one worker.
+
     python benchmarks/accuracy.py --reps 100 --jobs 2
+    python benchmarks/accuracy.py --noises folded straight --truths 250 --methods final --reps 20
+    python benchmarks/accuracy.py --cases case-a --sigmas 1 5 --noises coupled --methods final --reps 20
     python benchmarks/accuracy.py --frames-study --reps 20
 """
 
@@ -29,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -44,12 +56,14 @@ NOISES = ("iid", "sta")
 #: i.i.d. noise with every revolute joint kept near a singular pose (markers across it nearly in line)
 POSTURES = {"straight": (0.0, 25.0), "folded": (150.0, 172.0)}  # degrees
 METHODS = ("paper", "profile", "laplace", "final")
+Z95 = 1.959964
 EXTRA_METHODS = ("final-artefact",)
 
 
 def one_trial(args):
     """Fit every method to one simulated trial; returns estimates, intervals, bound."""
     case, sigma, truth, noise, rep, n_frames, methods = args
+    cpu0 = time.process_time()
     warnings.simplefilter("ignore")
     from skelid.errors import SkelidError
     from skelid.estimators.grid import MarkerGridFilter
@@ -58,16 +72,19 @@ def one_trial(args):
     from skelid.estimators.paper import PaperFilter
     from skelid.simulate import builtin_model, simulate, sta_rms
 
-    model = builtin_model(case)
-    seed = [CASES.index(case), int(sigma), int(truth), (NOISES + tuple(POSTURES)).index(noise), rep]
-    if noise in POSTURES:
+    model = knee_model(coupled=False) if noise == "coupled" else builtin_model(case)
+    seed = [CASES.index(case), int(sigma), int(truth), (NOISES + tuple(POSTURES) + ("coupled",)).index(noise), rep]
+    if noise == "coupled":
+        trial = coupled_knee_trial(model, n_frames, sigma, np.random.default_rng(seed))
+    elif noise in POSTURES:
         trial = singular_trial(model, truth, n_frames, sigma, POSTURES[noise], np.random.default_rng(seed))
     else:
         trial = simulate(model, theta=[truth], n_frames=n_frames, sigma=sigma, noise=noise,
                          sta_amplitude=10.0, rng=np.random.default_rng(seed))
     _, Jq, Jt = frame_terms(model, trial.theta, trial.pose, trial.clean)
-    bound = float(crlb_sd(efficient_information(Jq, Jt, sigma))[0])
-    out = {"crlb": bound}
+    bounds = crlb_sd(efficient_information(Jq, Jt, sigma))
+    bound = float(bounds[0])
+    out = {"crlb": bound, "crlb_all": bounds.tolist()}
     centre = float(model.theta_center[0])
     for name in methods:
         t0 = time.perf_counter()
@@ -93,35 +110,89 @@ def one_trial(args):
             else:
                 est = MarkerEstimator(model).fit(trial.data)
                 post, dropped = est.posterior_, int((~est.frames_used_).sum())
-            lo, hi = post.credible_interval(0.95)[0]
-            out[name] = {"est": float(post.mean[0]), "lo": float(lo), "hi": float(hi),
-                         "dropped": dropped, "seconds": time.perf_counter() - t0}
+            ci = post.credible_interval(0.95)
+            out[name] = {"est": float(post.mean[0]), "lo": float(ci[0, 0]), "hi": float(ci[0, 1]),
+                         "dropped": dropped, "seconds": time.perf_counter() - t0,
+                         "est_all": post.mean.tolist(), "lo_all": ci[:, 0].tolist(), "hi_all": ci[:, 1].tolist()}
+            if isinstance(est, MarkerEstimator):
+                out[name].update(profile=float(est.theta_profile_[0]), bias=float(est.bias_[0]),
+                                 bias_method=est.bias_method_, flags=sorted({w.code for w in est.warnings_}))
         except SkelidError as exc:
             out[name] = {"error": exc.one_line(), "dropped": n_frames}
+    out["cpu"] = time.process_time() - cpu0
     return out
 
 
-def singular_trial(model, truth, n_frames, sigma, degrees, rng):
-    """A trial whose revolute joints stay within ``degrees`` (near the straight or folded pose)."""
+#: how far the coupled knee's centre slides: (x, y) = MOVING_CENTRE * (q^2 / 2, q / 2), q the flexion (rad)
+MOVING_CENTRE = 10.0
+
+
+def knee_model(coupled: bool):
+    """Thigh (free) and shank; the knee a hinge whose centre (x, y) is unknown, or a coupled joint
+    (``custom``, as an OpenSim knee) whose centre slides with flexion and has no unknowns."""
+    from skelid.model.description import model_from_dict
+
+    mc = MOVING_CENTRE
+    hinge = {"name": "knee", "type": "hinge", "axis": [0.0, 0.0, 1.0], "position": [0.0, -400.0, 0.0],
+             "range": [0.0, 100.0]}
+    poly = {"type": "polynomial"}
+    custom = {"name": "knee", "type": "custom", "position": [0.0, -400.0, 0.0], "coordinates": ["flex"],
+              "motions": [
+                  {"kind": "translation", "axis": [1, 0, 0], "coordinate": "flex",
+                   "function": dict(poly, coefficients=[mc / 2, 0.0, 0.0])},
+                  {"kind": "translation", "axis": [0, 1, 0], "coordinate": "flex",
+                   "function": dict(poly, coefficients=[mc / 2, 0.0])},
+                  {"kind": "rotation", "axis": [0, 0, 1], "coordinate": "flex",
+                   "function": {"type": "linear", "coefficients": [1.0, 0.0]}}]}
+    spec = {"model": {"name": "knee", "dim": 3, "units": "mm"},
+            "segments": [{"name": "thigh", "parent": "ground",
+                          "joint": {"name": "hip", "type": "free", "position": [0.0, 0.0, 0.0]}},
+                         {"name": "shank", "parent": "thigh", "joint": custom if coupled else hinge}],
+            "markers": [{"name": n, "segment": seg, "position": p} for n, seg, p in (
+                ("T1", "thigh", [60.0, -100.0, 20.0]), ("T2", "thigh", [-40.0, -250.0, 50.0]),
+                ("T3", "thigh", [50.0, -350.0, -40.0]), ("S1", "shank", [50.0, -80.0, 40.0]),
+                ("S2", "shank", [-30.0, -200.0, 50.0]), ("S3", "shank", [40.0, -330.0, -40.0]))]}
+    if not coupled:
+        spec["parameters"] = [{"name": "knee", "kind": "joint_centre", "joint": "knee", "axes": ["x", "y"],
+                               "prior": {"type": "uniform", "lower": -40.0, "upper": 40.0}}]
+    return model_from_dict(spec)
+
+
+def coupled_knee_trial(model, n_frames, sigma, rng):
+    """Markers of the coupled knee (flexion 0-90 degrees), to be fitted with the hinge ``model``.
+
+    The truth for the hinge's centre is the coupled knee's centre at zero flexion, (0, 0)."""
     from skelid.data import MarkerData
     from skelid.model.kinematics import marker_positions
     from skelid.simulate import Trial, simulate_motion
 
     pose = simulate_motion(model, n_frames, 100.0, rng)
-    lo, hi = np.radians(degrees)
-    for k, d in enumerate(model.dofs):
-        if d.kind == "R" and model.segments[d.segment].joint.type in ("revolute", "hinge"):
-            u = pose[:, k] - pose[:, k].min()
-            pose[:, k] = lo + (hi - lo) * u / max(float(np.ptp(pose[:, k])), 1e-12)
-    theta = np.array([truth], float)
-    clean = marker_positions(model, theta, pose)
+    k = [i for i, d in enumerate(model.dofs) if d.segment == 1][0]
+    u = (pose[:, k] - pose[:, k].min()) / max(float(np.ptp(pose[:, k])), 1e-12)
+    pose[:, k] = np.radians(90.0) * u
+    clean = marker_positions(knee_model(coupled=True), np.zeros(0), pose)
     noisy = clean + rng.normal(0.0, sigma, size=clean.shape)
     return Trial(model, MarkerData(noisy, model.marker_names, 100.0, model.units, source="simulated"),
-                 theta, pose, clean)
+                 np.zeros(model.n_params), pose, clean)
+
+
+def singular_trial(model, truth, n_frames, sigma, degrees, rng):
+    """A trial whose revolute joints stay within ``degrees`` (near the straight or folded pose)."""
+    from skelid.simulate import simulate_posture
+
+    return simulate_posture(model, [truth], n_frames, sigma, degrees, rng)
 
 
 def summarise(case, sigma, truth, noise, trials, methods):
+    """One row per method (the first parameter); for a model with several, also ``method:k`` rows."""
     rows = []
+    n_par = max((len(t[m].get("est_all", [0])) for t in trials for m in methods if "est" in t[m]), default=1)
+    for k in range(1, n_par):
+        alias = [dict(t, **{f"{m}:{k}": dict(t[m], est=t[m]["est_all"][k], lo=t[m]["lo_all"][k],
+                                             hi=t[m]["hi_all"][k]) if "est" in t[m] else t[m] for m in methods})
+                 for t in trials]
+        rows += summarise(case, sigma, truth, noise, [dict(a, crlb=a.get("crlb_all", [a["crlb"]] * n_par)[k])
+                                                     for a in alias], [f"{m}:{k}" for m in methods])
     bound = float(np.sqrt(np.mean([t["crlb"] ** 2 for t in trials])))
     for name in methods:
         ok = [t[name] for t in trials if "est" in t[name]]
@@ -129,7 +200,8 @@ def summarise(case, sigma, truth, noise, trials, methods):
         n = len(err)
         cover = np.mean([o["lo"] <= truth <= o["hi"] for o in ok]) if n else float("nan")
         rmse = float(np.sqrt(np.mean(err**2))) if n else float("nan")
-        rows.append({
+        half = np.array([(o["hi"] - o["lo"]) / 2 for o in ok])
+        row = {
             "case": case, "sigma": sigma, "truth": truth, "noise": noise, "method": name,
             "reps": n, "failed": len(trials) - n,
             "bias": float(err.mean()) if n else float("nan"),
@@ -137,41 +209,112 @@ def summarise(case, sigma, truth, noise, trials, methods):
             "sd": float(err.std(ddof=1)) if n > 1 else float("nan"),
             "rmse": rmse, "crlb": bound, "rmse_over_crlb": rmse / bound,
             "coverage95": float(cover),
+            "z_gt3": float(np.mean(np.abs(err) > 3 * half / Z95)) if n else float("nan"),
             "frames_dropped": float(np.mean([t[name]["dropped"] for t in trials])),
             "seconds_per_fit": float(np.mean([o["seconds"] for o in ok])) if n else float("nan"),
-        })
+        }
+        if n and "bias_method" in ok[0]:
+            row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
+            row["bias_removed"] = float(np.mean([o["bias"] for o in ok]))
+            methods_used = [o["bias_method"] for o in ok]
+            row["bias_methods"] = {m: methods_used.count(m) for m in sorted(set(methods_used))}
+            flags = [f for o in ok for f in o["flags"]]
+            row["warnings"] = {f: flags.count(f) for f in sorted(set(flags))}
+        rows.append(row)
     return rows
 
 
 def write(rows):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
-    rows = sorted(rows, key=lambda r: (r["case"], r["noise"], r["sigma"], r["truth"], order.get(r["method"], 99)))
+    tags = {"previous": 0, "before": 1, "after": 2}
+    rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
+                                       order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
     from skelid.io.atomic import atomic_write
 
-    with atomic_write(RESULTS / "accuracy.json") as fh:
+    path = RESULTS / "accuracy.json"
+    if path.exists():  # another run may have written cells meanwhile: keep them
+        key = lambda r: (r.get("tag", "previous"), r["case"], r["sigma"], r["truth"], r["noise"], r["method"])  # noqa: E731
+        mine = {key(r) for r in rows}
+        rows = rows + [r for r in json.loads(path.read_text()) if key(r) not in mine]
+        rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"],
+                                           r["truth"], order.get(r["method"], 99)))
+    with atomic_write(path) as fh:
         json.dump(rows, fh, indent=1)
     head = ("| case | sigma | truth | noise | method | reps | bias | bias_se | sd | rmse | crlb | "
-            "rmse/crlb | coverage95 | frames dropped | s/fit |")
-    lines = [head, "|" + "---|" * 15]
-    for r in rows:
-        lines.append(
-            f"| {r['case']} | {r['sigma']:g} | {r['truth']:g} | {r['noise']} | {r['method']} | {r['reps']} | "
-            f"{r['bias']:.2f} | {r['bias_se']:.2f} | {r['sd']:.2f} | {r['rmse']:.2f} | {r['crlb']:.2f} | "
-            f"{r['rmse_over_crlb']:.2f} | {r['coverage95']:.2f} | {r['frames_dropped']:.0f} | "
-            f"{r['seconds_per_fit']:.2f} |")
+            "rmse/crlb | coverage95 | abs(z)>3 | profile bias | removed | fallback | s/fit |")
     with atomic_write(RESULTS / "accuracy.md") as fh:
         fh.write("# Accuracy study\n\nGenerated by `python benchmarks/accuracy.py`; lengths in mm. "
-                 "`crlb`: Cramér-Rao bound with every pose unknown, at the true poses.\n\n")
-        fh.write("\n".join(lines) + "\n")
+                 "`crlb`: Cramér-Rao bound with every pose unknown, at the true poses. `profile bias`: mean "
+                 "error of the joint least-squares estimate before correction; `removed`: mean correction "
+                 "subtracted; `fallback`: trials whose correction came from a check's fallback rather than "
+                 "the second-order expansion. Tags: `previous` = results of an earlier version kept for "
+                 "reference, `before` = this version's code before the near-singular fix, `after` = now.\n\n")
+        pairs = {}
+        for r in rows:
+            if r.get("tag") in ("before", "after"):
+                pairs.setdefault((r["case"], r["sigma"], r["truth"], r["noise"], r["method"]), {})[r["tag"]] = r
+        pairs = {k: v for k, v in pairs.items() if len(v) == 2}
+        if pairs:
+            fh.write("## Before and after\n\n| case | sigma | truth | noise | method | reps | coverage95 | "
+                     "bias / crlb | rmse / crlb | abs(z)>3 |\n|" + "---|" * 10 + "\n")
+            for (case, sigma, truth, noise, method), v in pairs.items():
+                b, a = v["before"], v["after"]
+                fh.write(f"| {case} | {sigma:g} | {truth:g} | {noise} | {method} | {b['reps']} / {a['reps']} | "
+                         f"{b['coverage95']:.2f} -> {a['coverage95']:.2f} | "
+                         f"{b['bias'] / b['crlb']:.2f} -> {a['bias'] / a['crlb']:.2f} | "
+                         f"{b['rmse_over_crlb']:.2f} -> {a['rmse_over_crlb']:.2f} | "
+                         f"{b.get('z_gt3', float('nan')):.2f} -> {a.get('z_gt3', float('nan')):.2f} |\n")
+            fh.write("\n")
+        for tag in sorted({r.get("tag", "previous") for r in rows}, key=lambda t: tags.get(t, 9)):
+            fh.write(f"## {tag}\n\n{head}\n" + "|" + "---|" * 18 + "\n")
+            for r in rows:
+                if r.get("tag", "previous") != tag:
+                    continue
+                fb = sum(v for k, v in r.get("bias_methods", {}).items() if k not in ("box", "none"))
+                fh.write(
+                    f"| {r['case']} | {r['sigma']:g} | {r['truth']:g} | {r['noise']} | {r['method']} | "
+                    f"{r['reps']} | {r['bias']:.2f} | {r['bias_se']:.2f} | {r['sd']:.2f} | {r['rmse']:.2f} | "
+                    f"{r['crlb']:.2f} | {r['rmse_over_crlb']:.2f} | {r['coverage95']:.2f} | "
+                    f"{r.get('z_gt3', float('nan')):.2f} | {r.get('profile_bias', float('nan')):.2f} | "
+                    f"{r.get('bias_removed', float('nan')):.2f} | {fb if 'bias_methods' in r else ''} | "
+                    f"{r['seconds_per_fit']:.2f} |\n")
+            fh.write("\n")
+        runs = [r for r in rows if "cpu_seconds" in r]
+        if runs:
+            fh.write("## Cost of each cell (this machine, shared)\n\n| tag | case | sigma | truth | noise | "
+                     "reps | CPU s (all processes) | wall s | load average (1, 5, 15 min) |\n|" + "---|" * 9 + "\n")
+            seen = set()
+            for r in runs:
+                key = (r.get("tag"), r["case"], r["sigma"], r["truth"], r["noise"])
+                if key in seen:
+                    continue
+                seen.add(key)
+                fh.write(f"| {key[0]} | {r['case']} | {r['sigma']:g} | {r['truth']:g} | {r['noise']} | {r['reps']} | "
+                         f"{r['cpu_seconds']:.0f} | {r['wall_seconds']:.0f} | "
+                         f"{', '.join(f'{v:.2f}' for v in r['load_average'])} |\n")
+
+
+def run_tasks(tasks, jobs):
+    """Run ``one_trial`` over ``tasks``: in this process and ``jobs - 1`` worker processes."""
+    if jobs <= 1:
+        return [one_trial(t) for t in tasks]
+    out = [None] * len(tasks)
+    with ProcessPoolExecutor(jobs - 1) as pool:
+        mine = list(range(0, len(tasks), jobs))
+        futures = {i: pool.submit(one_trial, tasks[i]) for i in range(len(tasks)) if i % jobs}
+        for i in mine:
+            out[i] = one_trial(tasks[i])
+        for i, f in futures.items():
+            out[i] = f.result()
+    return out
 
 
 def frames_study(reps, jobs, frames=(100, 300, 1000, 3000, 5000)):
     """RMSE against the number of frames (case A, sigma 15, i.i.d.), with the bound."""
     tasks = [("case-a", 15.0, 250.0, "iid", r, F, ("paper", "profile", "final"))
              for F in frames for r in range(reps)]
-    with ProcessPoolExecutor(jobs) as pool:
-        res = list(pool.map(one_trial, tasks))
+    res = run_tasks(tasks, jobs)
     table = {}
     for (_, _, _, _, _, F, _), r in zip(tasks, res, strict=True):
         table.setdefault(F, []).append(r)
@@ -207,11 +350,13 @@ def main():
     ap.add_argument("--frames", type=int, default=500)
     ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--sigmas", nargs="*", type=float, default=list(SIGMAS))
-    ap.add_argument("--noises", nargs="*", default=list(NOISES), choices=NOISES + tuple(POSTURES),
-                    help="'straight' and 'folded': i.i.d. noise near a singular pose")
+    ap.add_argument("--noises", nargs="*", default=list(NOISES), choices=NOISES + tuple(POSTURES) + ("coupled",),
+                    help="'straight' and 'folded': i.i.d. noise near a singular pose; 'coupled': markers "
+                    "of a knee whose centre slides with flexion, fitted with a hinge (the truths are ignored)")
     ap.add_argument("--truths", nargs="*", type=float, default=list(TRUTHS))
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS + EXTRA_METHODS)
     ap.add_argument("--fresh", action="store_true", help="ignore results already written")
+    ap.add_argument("--tag", default="after", help="label of this run's rows (e.g. 'before' a change)")
     ap.add_argument("--frames-study", action="store_true")
     a = ap.parse_args()
     if a.frames_study:
@@ -219,27 +364,34 @@ def main():
         return
     path = RESULTS / "accuracy.json"
     rows = [] if a.fresh or not path.exists() else json.loads(path.read_text())
-    done = {(r["case"], r["sigma"], r["truth"], r["noise"], r["method"]) for r in rows}
+    for r in rows:
+        r.setdefault("tag", "previous")
+    done = {(r["tag"], r["case"], r["sigma"], r["truth"], r["noise"], r["method"]) for r in rows}
     for case in a.cases:
         for sigma in a.sigmas:
             for noise in a.noises:
-                for truth in a.truths:
-                    todo = tuple(m for m in a.methods if (case, sigma, truth, noise, m) not in done)
+                for truth in ([0.0] if noise == "coupled" else a.truths):
+                    todo = tuple(m for m in a.methods if (a.tag, case, sigma, truth, noise, m) not in done)
                     if not todo:
                         continue
                     t0 = time.time()
                     tasks = [(case, sigma, truth, noise, r, a.frames, todo) for r in range(a.reps)]
-                    with ProcessPoolExecutor(a.jobs) as pool:
-                        trials = list(pool.map(one_trial, tasks))
-                    cell = summarise(case, sigma, truth, noise, trials, todo)
+                    trials = run_tasks(tasks, a.jobs)
+                    cost = {"cpu_seconds": float(sum(t["cpu"] for t in trials)), "wall_seconds": time.time() - t0,
+                            "load_average": [round(v, 2) for v in os.getloadavg()], "jobs": a.jobs, "tag": a.tag}
+                    cell = [dict(r, **cost) for r in summarise(case, sigma, truth, noise, trials, todo)]
                     rows.extend(cell)
                     write(rows)
                     for r in cell:
                         print(f"{case} s={sigma:g} L2={truth:g} {noise:<3} {r['method']:<8} "
                               f"bias {r['bias']:7.2f}±{r['bias_se']:.2f} sd {r['sd']:6.2f} "
                               f"rmse {r['rmse']:6.2f} crlb {r['crlb']:5.2f} ratio {r['rmse_over_crlb']:5.2f} "
-                              f"cover {r['coverage95']:.2f} dropped {r['frames_dropped']:.0f}", flush=True)
-                    print(f"  cell took {time.time() - t0:.0f} s", flush=True)
+                              f"cover {r['coverage95']:.2f} |z|>3 {r['z_gt3']:.2f} "
+                              f"profile {r.get('profile_bias', float('nan')):.2f} "
+                              f"removed {r.get('bias_removed', float('nan')):.2f} {r.get('bias_methods', '')} "
+                              f"{r.get('warnings', '')}", flush=True)
+                    print(f"  cell took {cost['wall_seconds']:.0f} s wall, {cost['cpu_seconds']:.0f} s CPU, "
+                          f"load {cost['load_average']}", flush=True)
 
 
 if __name__ == "__main__":

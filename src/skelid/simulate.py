@@ -11,7 +11,10 @@ sweeps each joint through its range a few times. A rotation with a range
 ``c = (lo + hi)/2`` and amplitude ``a = (hi - lo)/2``; root rotations swing
 ±25°, root translations ±20 % of the model's size. With ``hard_poses`` every
 one-axis joint also passes through the straight position (0°) where markers on
-either side of the joint line up with its centre.
+either side of the joint line up with its centre; :func:`simulate_posture` keeps
+every one-axis joint inside a given span instead (near the straight or the folded
+pose, where the markers across the joint nearly line up and the per-frame pose is
+ill-determined).
 
 Noise: ``"iid"`` adds independent Gaussian noise of standard deviation
 ``sigma`` to every coordinate. ``"sta"`` adds soft-tissue artefact on top: each
@@ -190,3 +193,27 @@ def simulate(model: Model, theta=None, n_frames: int = 500, rate: float = 100.0,
         noisy = noisy + soft_tissue_artefact(model, pose, sta_amplitude, rate, rng)
     data = MarkerData(noisy, model.marker_names, rate, model.units, source="simulated")
     return Trial(model, data, theta, pose, clean)
+
+
+def simulate_posture(model: Model, theta, n_frames: int, sigma: float, degrees: tuple[float, float],
+                     rng: np.random.Generator, rate: float = 100.0) -> Trial:
+    """A trial (i.i.d. noise) whose one-axis joints stay within ``degrees`` (e.g. near a singular pose).
+
+    The motion is :func:`simulate_motion`'s, with each one-axis joint's curve rescaled
+    to span ``degrees = (lo, hi)`` exactly.
+
+    Returns
+    -------
+    Trial
+    """
+    theta = np.asarray(theta, dtype=float)
+    pose = simulate_motion(model, n_frames, rate, rng)
+    lo, hi = np.radians(degrees)
+    for k, d in enumerate(model.dofs):
+        if d.kind == "R" and model.segments[d.segment].joint.type in ("revolute", "hinge"):
+            u = pose[:, k] - pose[:, k].min()
+            pose[:, k] = lo + (hi - lo) * u / max(float(np.ptp(pose[:, k])), 1e-12)
+    clean = marker_positions(model, theta, pose)
+    noisy = clean + rng.normal(0.0, sigma, size=clean.shape)
+    return Trial(model, MarkerData(noisy, model.marker_names, rate, model.units, source="simulated"),
+                 theta, pose, clean)

@@ -69,3 +69,44 @@ def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
                            rng=np.random.default_rng(0)).fit(data)
     assert np.allclose(est.cov_data_ - bare.cov_data_, 25.0 * place["cov_per_unit"], rtol=1e-6, atol=1e-12)
     assert np.all(est.posterior_.sd > bare.posterior_.sd)
+
+
+def test_near_a_singular_pose_the_fit_reaches_the_minimum_a_start_at_the_truth_reaches():
+    # an elbow kept near the folded pose: per-frame fits jump between pose branches, and a motion-model
+    # fit started from them sticks in a local minimum unless a stiffer motion model is fitted first
+    from skelid.estimators.joint import joint_fit
+    from skelid.simulate import simulate_posture
+
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 80, 5.0, (150.0, 172.0), np.random.default_rng(0))
+    est = MarkerEstimator(model, cutoff=8.0, outlier_threshold=None)
+    y = trial.data.positions
+    st = marker_mod.start_stage(model, y, 100.0, est, np.random.default_rng(0))
+    sc = marker_mod.screen_stage(model, st, est)
+
+    def cost(f):
+        return f.rss + f.pose.ravel() @ (f.penalty @ f.pose.ravel())
+
+    def fit(start, cutoff, n_iter=100):
+        return joint_fit(model, sc.y, start.theta, start.pose, bounds=st.bounds, frames=sc.fixed, rate=100.0,
+                         cutoff=cutoff, n_iter=n_iter)
+
+    ref = joint_fit(model, y, trial.theta, trial.pose, rate=100.0, cutoff=8.0)
+    graduated = fit(fit(sc.fit, 8.0 / marker_mod.STIFFER, marker_mod.STIFF_ITER), 8.0)  # the motion stage's start
+    assert cost(graduated) <= cost(ref) + 10.0 and graduated.theta[0] == pytest.approx(ref.theta[0], abs=0.05)
+    assert cost(fit(sc.fit, 8.0)) > cost(ref) + 100.0  # without the stiffer fit first: a local minimum
+
+
+def test_the_bootstrap_that_stands_in_for_the_correction_also_widens_the_interval(monkeypatch):
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=120, sigma=5.0, rng=np.random.default_rng(1))
+    monkeypatch.setattr(marker_mod, "BIAS_RELIABLE", 0.0)  # every correction counts as large
+    shifts = np.array([[1.0], [3.0], [5.0], [7.0]])  # refits' shifts: mean 4, variance 20/3
+    monkeypatch.setattr(MarkerEstimator, "_bootstrap_bias", lambda self, *a: shifts)
+    est = MarkerEstimator(model, cutoff=None, jackknife=False, rng=0).fit(trial.data)
+    assert est.bias_[0] == pytest.approx(4.0)
+    plain = est.cov_plain_[0, 0]
+    extra = max(20.0 / 3.0 - plain, 0.0) + 20.0 / 3.0 / 4
+    assert est.cov_data_[0, 0] == pytest.approx(est.fit_.cov.data[0, 0] + extra)
+    assert est.posterior_.sd[0] == pytest.approx(np.sqrt(est.fit_.cov.data[0, 0] + extra))
+    assert any("spread" in w.message for w in est.warnings_)

@@ -94,6 +94,8 @@ from skelid.result import FitResult, NoiseEstimate, Warning
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
+STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
+STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
@@ -291,6 +293,7 @@ class Bias(NamedTuple):
     bias: np.ndarray  # (P,)
     method: str
     fallback: dict | None = None  # the second-order bias that was too large to trust, and the bootstrap's
+    cov: np.ndarray | float = 0.0  # (P, P) added to the interval: the bootstrap's spread beyond sigma^2 S^-1
 
 
 class Covariance(NamedTuple):
@@ -390,11 +393,15 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
                             min(MIN_AUTO_CUTOFF, rate / 2))
     if cutoff is None:
         return Motion(sc.fit, None)
-    # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
-    # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays)
+    # the motion model makes pose branches stick. Near a singular pose the per-frame fits jump between
+    # branches; a fit whose motion model is STIFFER times stiffer (graduated smoothing) first carries one
+    # smooth trajectory through them. Both starts race for RACE_ITER iterations, and the one with the lower
+    # penalised cost is continued (with its own penalty, so the cost it minimises stays)
+    stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
+                      frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER, ws=ws, summary=False)
     fits = [joint_fit(model, sc.y, th, qq, n_iter=min(RACE_ITER, s.n_iter), bounds=st.bounds, frames=sc.fixed,
                       rate=rate, cutoff=cutoff, ws=ws, summary=False)
-            for th, qq in ((st.theta0, st.pose0), (sc.fit.theta, sc.fit.pose))]
+            for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
     best = min(fits, key=_penalised_cost)
     more = s.n_iter - RACE_ITER if not best.converged else 0  # 0: only the information at the estimate
     fit = joint_fit(model, sc.y, best.theta, best.pose, n_iter=max(more, 0), bounds=st.bounds, frames=sc.fixed,
@@ -501,14 +508,40 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
         if est.bias_correction in ("auto", True) and np.any(np.abs(b) > BIAS_RELIABLE * sd):
             # the second-order expansion is unreliable here (near a singular pose): the bias of this
             # fit under the fitted model is measured by simulation instead
-            boot = est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng)
+            boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
             k = int(np.argmax(np.abs(b) / np.maximum(sd, 1e-300)))
             return Bias(boot, "bootstrap", {"box": b.tolist(), "bootstrap": boot.tolist(), "n_boot": est.n_boot,
-                                            "parameter": model.parameter_names[k], "sd": float(sd[k])})
+                                            "parameter": model.parameter_names[k], "sd": float(sd[k]),
+                                            "sd_bootstrap": np.sqrt(np.diag(extra + noise.sigma**2
+                                                                            * np.linalg.inv(fit.info))).tolist()},
+                        extra)
         return Bias(b, method)
     if method == "bootstrap":
-        return Bias(est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng), method)
+        boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
+        return Bias(boot, method, None, extra)
     return Bias(np.zeros(model.n_params), method)
+
+
+def bootstrap_bias(est: MarkerEstimator, y, fit: JointFit, noise: Noise, st: Start, mo: Motion, rng):
+    """Parametric bootstrap of the bias, and the covariance it adds to ``sigma^2 S^{-1}``.
+
+    ``B = n_boot`` data sets are simulated from the fit and refitted; the bias is the mean
+    shift ``b* = mean(theta*_b) - theta_hat``. Where the local approximation fails, the
+    refits also spread more than ``sigma^2 S^{-1}`` says: the covariance added is the
+    excess of their covariance ``C*`` over it (eigenvalues clipped at zero), plus ``C*/B``,
+    the Monte Carlo variance of ``b*``.
+
+    Returns
+    -------
+    bias : (P,) float
+    extra : (P, P) float
+    """
+    shifts = est._bootstrap_bias(y, fit, noise.sigma, st.rate, mo.cutoff, st.bounds, rng)
+    B = len(shifts)
+    c_boot = np.atleast_2d(np.cov(shifts, rowvar=False)) if B > 1 else np.zeros((len(fit.theta),) * 2)
+    w, V = np.linalg.eigh(c_boot - noise.sigma**2 * np.linalg.inv(fit.info))
+    extra = (V * np.clip(w, 0.0, None)) @ V.T + c_boot / B
+    return shifts.mean(axis=0), extra
 
 
 def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise,
@@ -709,7 +742,8 @@ def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warni
     return [Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
                     f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
                     f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
-                    "refits) instead", (fb["parameter"],))]
+                    f"refits) instead, and the interval uses the refits' spread (sd {fb['sd_bootstrap'][k]:.3g})",
+                    (fb["parameter"],))]
 
 
 def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
@@ -771,7 +805,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
-    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data))
+    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
                      summary_stage(model, ident, estimate), ws.path)
 
@@ -963,7 +997,7 @@ class MarkerEstimator:
         self.placement_ = f.cov.placement
         self.misfit_ = f.residuals.misfit
         self.bias_fallback_ = f.bias.fallback
-        self.cov_data_ = f.cov.data
+        self.cov_data_ = f.cov.data + f.bias.cov  # with the bootstrap's spread when it stood in
         self.theta_, self.cov_ = f.estimate
         self.pose_ = fit.pose
         self.y_ = np.where(used[:, None, None], f.screen.y, np.nan)
@@ -973,7 +1007,7 @@ class MarkerEstimator:
         self.warnings_ = tuple(found)
 
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
-        """Parametric bootstrap: simulate from the fit, refit, mean shift of the estimate.
+        """Parametric bootstrap: simulate from the fit, refit; the shifts of the estimate, (n_boot, P).
 
         Each refit stops at steps below ``BOOT_STEP_TOL`` of the sd: the mean of
         ``n_boot`` shifts has a Monte Carlo error of about ``sd / sqrt(n_boot)``, far
@@ -989,7 +1023,7 @@ class MarkerEstimator:
             f = joint_fit(self.model, ys, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
                           rate=rate, cutoff=cutoff, step_tol=BOOT_STEP_TOL, tol=BOOT_TOL, ws=ws, summary=False)
             shifts.append(f.theta - fit.theta)
-        return np.mean(shifts, axis=0)
+        return np.array(shifts)
 
     def result(self) -> FitResult:
         """The typed result (:class:`~skelid.result.FitResult`)."""
