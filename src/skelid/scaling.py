@@ -177,7 +177,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         parts = [MarkerData(sub.positions[a:b], sub.names, sub.rate, sub.units, t.source)
                  for (a, b), t in zip(data.meta["trial_frames"], trials, strict=True)]
         est = MultiTrialEstimator(model, sigma=sigma, rng=np.random.default_rng(seed)).fit(parts)
-        res, theta = est.result(), np.asarray(est.theta_, float)
+        res, theta = summary_dict(est.result()), np.asarray(est.theta_, float)
         edges = np.cumsum([0] + [len(p.positions) for p in parts])
         pose = np.full((sub.positions.shape[0], model.n_pose), np.nan)
         for (a, b), e0, e1 in zip(data.meta["trial_frames"], edges[:-1], edges[1:], strict=True):
