@@ -238,6 +238,10 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _echo_json(result)
     elif not quiet:
         click.echo(workflows.table(result))
+        if len(data_paths) > 1:
+            from skelid.sensitivity import trials_text
+
+            click.echo(trials_text(result))
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")

@@ -25,6 +25,36 @@ from skelid.model.description import Model
 from skelid.result import FitResult
 
 
+def trials_text(result: Mapping) -> str:
+    """Each trial's own estimate and the consistency test, as text (empty for a one-trial result).
+
+    Parameters
+    ----------
+    result : dict
+        What :func:`run_fit_trials` returns (``methods.marker`` holds ``trials``,
+        ``consistency`` and ``heterogeneity``).
+    """
+    m = (result.get("methods") or {}).get("marker") or {}
+    rows, cons = m.get("trials"), m.get("consistency")
+    if not rows or not cons:
+        return ""
+    names = list(rows[0]["parameters"])
+    width = max(len(str(r.get("trial", ""))) for r in rows) + 2
+    head = f"{'trial':<{width}}" + "".join(f"{n:>24}" for n in names)
+    lines = ["", "each trial's own estimate (sd with the between-trial spread):", head, "-" * len(head)]
+    for r in rows:
+        cells = "".join(f"{p['mean']:>14.5g} ± {p['sd_with_between_trial']:<7.3g}" for p in r["parameters"].values())
+        lines.append(f"{str(r.get('trial', '')):<{width}}" + cells)
+    het = m.get("heterogeneity") or {}
+    if het:
+        lines.append(f"{'between-trial sd':<{width}}" + "".join(
+            f"{het[n]['tau']:>24.3g}" for n in names if n in het))
+    verdict = "the trials agree" if cons["p_value"] >= 0.01 else "the trials disagree beyond their own intervals"
+    lines.append(f"consistency of the trials with the joint estimate: chi-square {cons['statistic']:.1f} on "
+                 f"{cons['dof']} degrees of freedom, p = {cons['p_value']:.2g} ({verdict})")
+    return "\n".join(lines)
+
+
 def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):
     """One fitted estimator for ``datas``: the single-trial one for one file, else the multi-trial one."""
     from skelid.estimators.marker import MarkerEstimator

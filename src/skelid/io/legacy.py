@@ -112,7 +112,8 @@ def _result(method: str, m: Mapping, units: str, frames_total, arrays: Mapping, 
     if frames_total is not None:
         used = m.get("frames_used", frames_total)
         frames = FrameCounts(int(frames_total), int(used if isinstance(used, int | float) else frames_total))
-    diagnostics = {k: m[k] for k in ("identifiability", "counting", "joint_range_deg") if m.get(k) is not None}
+    diagnostics = {k: m[k] for k in ("identifiability", "counting", "joint_range_deg", "trials", "consistency",
+                                     "heterogeneity") if m.get(k) is not None}
     if "posterior.points" in own:  # the names a typed result uses
         own["samples"] = own["posterior.points"]
         if "posterior.weights" in own:
