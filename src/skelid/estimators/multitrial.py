@@ -34,7 +34,7 @@ estimated per parameter by DerSimonian and Laird's method of moments: with
 
 .. math:: \\tau^2 = \\max\\Big(0, \\frac{Q - (K - 1)}{\\sum w_k - \\sum w_k^2 / \\sum w_k}\\Big),
 
-and then replaces the stacked fit by the random-effects combination
+and then replaces the stacked fit (which is then not run) by the random-effects combination
 ``theta = (sum_k W_k)^{-1} sum_k W_k theta_k`` with ``W_k = (C_k + Omega)^{-1}``
 and covariance ``(sum_k W_k)^{-1}``: a trial with a tiny within-trial variance
 (a static trial, whose lengths follow the markers' nominal placement) no longer
@@ -347,8 +347,13 @@ class MultiTrialEstimator:
         Per parameter: Cochran's ``Q``, ``I^2``, ``tau`` and the degrees of freedom.
     lengths_ : dict
         Derived lengths of the joint estimate.
-    fit_info_ : JointFit
-        The stacked fit.
+    fit_info_ : JointFit or None
+        The stacked fit (all frames, one geometry); None when the trials disagree
+        (some ``tau^2 > 0``) and the joint estimate combines the trials' own.
+    pose_ : (sum F_k, Q) float
+        Poses of the stacked fit, or each trial's own when there is none.
+    converged_ : bool
+        Whether the stacked fit (or, without one, every trial's fit) converged.
     warnings_ : tuple of Warning
     """
 
@@ -420,16 +425,23 @@ class MultiTrialEstimator:
         self.trial_labels_ = list(labels) if labels is not None else [f"trial {k + 1}" for k in range(len(ests))]
         self.trial_theta_ = np.array([e.theta_profile_ - e.bias_ for e in ests])
         self.trial_cov_ = np.array([e.cov_data_ for e in ests])
-        fit = self._stacked_fit(ests, [float(r) for r in rates])
-        self._combine(fit)
+        self._within(ests)
+        fit = self._combine(lambda: self._stacked_fit(ests, [float(r) for r in rates]))
         self._publish(fit, ests)
         return self
+
+    def _within(self, ests) -> None:
+        """Bias and covariance of the information-weighted combination (no between-trial variance)."""
+        S = np.array([np.linalg.inv(e.cov_plain_) for e in ests])  # (K, P, P) information
+        A_inv = np.linalg.inv(S.sum(axis=0))
+        self.bias_ = A_inv @ np.einsum("kpq,kq->p", S, np.array([e.bias_ for e in ests]))
+        sandwich = np.einsum("kpq,kqr,krs->ps", S, self.trial_cov_, S)
+        self.cov_within_ = A_inv @ sandwich @ A_inv
 
     def _stacked_fit(self, ests, rates):
         """All trials' frames at once with one geometry (block-diagonal motion model, per-trial weights)."""
         model = self.model
-        S = np.array([np.linalg.inv(e.cov_plain_) for e in ests])  # (K, P, P) information
-        self._information = S
+        S = np.array([np.linalg.inv(e.cov_plain_) for e in ests])
         A_inv = np.linalg.inv(S.sum(axis=0))
         lengths = [len(e.pose_) for e in ests]
         edges = np.concatenate([[0], np.cumsum(lengths)])
@@ -445,14 +457,17 @@ class MultiTrialEstimator:
         lo = np.array([p.prior.lower for p in model.parameters])
         hi = np.array([p.prior.upper for p in model.parameters])
         theta0 = np.clip(A_inv @ np.einsum("kpq,kq->p", S, np.array([e.theta_profile_ for e in ests])), lo, hi)
-        self.bias_ = A_inv @ np.einsum("kpq,kq->p", S, np.array([e.bias_ for e in ests]))
-        sandwich = np.einsum("kpq,kqr,krs->ps", S, self.trial_cov_, S)
-        self.cov_within_ = A_inv @ sandwich @ A_inv
         return joint_fit(model, y, theta0, pose, n_iter=self.n_iter, bounds=(lo, hi), frames=used,
                          blocks=blocks, weights=weights)
 
-    def _combine(self, fit) -> None:
-        """Between-trial variance, the joint estimate and its interval, each trial's own interval."""
+    def _combine(self, stacked):
+        """Between-trial variance, the joint estimate and its interval, each trial's own interval.
+
+        ``stacked()`` runs the stacked fit; it is needed (and run) only when the trials agree
+        (every ``tau^2 = 0``): otherwise the joint estimate is the random-effects combination of
+        the trials' own estimates. Returns the stacked fit or None.
+        """
+        fit = None
         P, K = self.model.n_params, len(self.trials_)
         var = np.einsum("kpp->kp", self.trial_cov_)
         method = "dl" if self.between_trial == "none" else self.between_trial
@@ -466,6 +481,7 @@ class MultiTrialEstimator:
             # tiny within-trial variance no longer decides alone)
             theta, cov, dof = random_effects(self.trial_theta_, self.trial_cov_, tau2)
         else:
+            fit = stacked()
             theta, cov, dof = fit.theta - self.bias_, self.cov_within_, np.full(P, np.inf)
         f = t_factor(dof)
         self.dof_ = dof
@@ -482,18 +498,22 @@ class MultiTrialEstimator:
                                    "t_factor": float(f[k])}
                                for k, n in enumerate(self.model.parameter_names)}
         self.theta_data_, self.cov_data_ = theta, cov
+        return fit
 
     def _publish(self, fit, ests) -> None:
         model = self.model
         theta, cov = _combine_normal_priors(model, self.theta_data_, self.cov_data_)
         self.fit_info_ = fit
+        self.converged_ = bool(fit.converged) if fit is not None else all(e.fit_info_.converged for e in ests)
+        self.n_iter_ = int(fit.n_iter) if fit is not None else 0
         self.theta_, self.cov_ = theta, cov
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
         self.frames_used_ = np.concatenate([e.frames_used_ for e in ests])
         n_used = np.array([e.frames_used_.sum() for e in ests], float)
         sig = np.array([e.sigma_ for e in ests])
         self.sigma_ = float(np.sqrt(np.sum(n_used * sig**2) / max(n_used.sum(), 1.0)))
-        self.pose_ = fit.pose
+        # the joint fit's poses, or (random-effects combination) each trial's own
+        self.pose_ = fit.pose if fit is not None else np.concatenate([e.pose_ for e in ests])
         lens, grad = joint_distances(model, theta)
         sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
         self.lengths_ = {name: {"value": float(v), "sd": float(e), "ci95": [float(v - Z95 * e), float(v + Z95 * e)]}
@@ -502,7 +522,7 @@ class MultiTrialEstimator:
         for label, e in zip(self.trial_labels_, ests, strict=True):
             found += [Warning(w.code, f"{label}: {w.message}", w.parameters) for w in e.warnings_]
         new = []
-        if not fit.converged:
+        if fit is not None and not fit.converged:
             new.append(Warning("not-converged", "the joint fit of all trials stopped before converging; "
                                "the estimate may be off"))
         c = self.consistency_
@@ -572,7 +592,7 @@ class MultiTrialEstimator:
             "heterogeneity": self.heterogeneity_,
             "between_trial": {"method": self.between_trial, "n_trials": len(self.trials_),
                               "interval": "t quantile with Satterthwaite degrees of freedom"},
-            "converged": bool(self.fit_info_.converged), "iterations": int(self.fit_info_.n_iter)}
+            "converged": self.converged_, "stacked_fit_iterations": self.n_iter_}
         return build_result(self, self.posterior_, extra=extra, noise=noise, skipped=skipped,
                             diagnostics=diagnostics, derived=self.lengths_, status={},
                             arrays={"pose": self.pose_, "trial_theta": self.trial_theta_,
