@@ -33,3 +33,24 @@ def test_several_trials_alternatives_and_per_marker_noise(tmp_path, capsys):
     assert set(spread["values"]) == {"case_b", "case_b_alt"} and spread["spread"] < 1e-6
     # another method with several trials is refused in one line
     assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--method", "paper"]) == 2
+    # the text output shows each trial's own estimate and the consistency test
+    capsys.readouterr()
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--cutoff", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "each trial's own estimate" in out and "consistency of the trials" in out
+    assert all(f"t{seed}.trc" in out for seed in (1, 2))
+
+
+def test_trials_text_closed_form():
+    from skelid.result import FitResult, ParameterEstimate
+    from skelid.sensitivity import trials_text
+
+    p = {"L": ParameterEstimate("L", "mm", 1.5, 1.5, 0.5, (0.5, 2.5))}
+    diag = {
+        "trials": [{"trial": "a.trc", "parameters": {"L": {"mean": 1.0, "sd": 0.1, "sd_with_between_trial": 0.2}}},
+                   {"trial": "b.trc", "parameters": {"L": {"mean": 2.0, "sd": 0.1, "sd_with_between_trial": 0.2}}}],
+        "consistency": {"statistic": 50.0, "dof": 1, "p_value": 1e-12},
+        "heterogeneity": {"L": {"tau": 0.7}}}
+    text = trials_text(FitResult("marker", p, diagnostics=diag))
+    assert "a.trc" in text and "± 0.2" in text and "0.7" in text and "disagree" in text
+    assert trials_text(FitResult("marker", p)) == ""

@@ -241,6 +241,10 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _echo_json(run_to_dict(run))
     elif not quiet:
         click.echo(workflows.table(run))
+        if len(data_paths) > 1 and "marker" in run.results:
+            from skelid.sensitivity import trials_text
+
+            click.echo(trials_text(run.results["marker"]))
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")

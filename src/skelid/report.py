@@ -487,6 +487,54 @@ def _noise_line(r, units: str) -> str:
     return f"<p>Marker noise σ = {_fmt(n.sigma)} {_e(units)} ({how}){ci}.</p>"
 
 
+def _num(x) -> float | None:
+    """A finite number from an untrusted JSON value, else None."""
+    if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
+        return None
+    return float(x)
+
+
+def per_trial_html(r, units: str) -> str:
+    """Each trial's own estimate beside the joint one and the trials' consistency test (several-trial fits).
+
+    Reads ``diagnostics['trials']``, ``['consistency']`` and ``['heterogeneity']`` of a
+    :class:`~skelid.result.FitResult`; anything missing or of the wrong type is left out,
+    and a result without trials gives ``""``.
+    """
+    d = r.diagnostics
+    rows = d.get("trials")
+    if not isinstance(rows, list) or not rows or not all(isinstance(t, Mapping) for t in rows):
+        return ""
+    names = list(r.parameters)
+    out = ["<h4>Each trial's own estimate</h4>",
+           f"<p>Mean ± sd [{_e(units)}]; the sd includes the between-trial spread (and the t factor "
+           "for a spread estimated from few trials). The joint estimate is the table above.</p>"]
+    body = []
+    for t in rows:
+        ps = t.get("parameters") if isinstance(t.get("parameters"), Mapping) else {}
+        cells = []
+        for n in names:
+            p = ps.get(n) if isinstance(ps.get(n), Mapping) else {}
+            m, sd = _num(p.get("mean")), _num(p.get("sd_with_between_trial", p.get("sd")))
+            cells.append("–" if m is None else f"{_fmt(m)} ± {_fmt(sd)}")
+        body.append((_e(t.get("trial", t.get("data", "–"))), _fmt(_num(t.get("frames_used"))),
+                     _fmt(_num(t.get("sigma"))), *cells))
+    het = d.get("heterogeneity") if isinstance(d.get("heterogeneity"), Mapping) else {}
+    if het:
+        body.append(("<em>between-trial sd</em>", "", "", *[
+            _fmt(_num(het[n].get("tau"))) if isinstance(het.get(n), Mapping) else "–" for n in names]))
+    out.append(_table(["trial", "frames used", f"σ [{units}]", *names], body))
+    c = d.get("consistency")
+    if isinstance(c, Mapping) and _num(c.get("statistic")) is not None and _num(c.get("p_value")) is not None:
+        p = _num(c["p_value"])
+        verdict = ("the trials agree within their own intervals" if p >= 0.01 else
+                   "the trials disagree beyond their own intervals; the between-trial spread is in the "
+                   "joint interval")
+        out.append(f"<p>Consistency of the trials with the joint estimate: χ² = {_fmt(_num(c['statistic']))} on "
+                   f"{_fmt(_num(c.get('dof')))} degrees of freedom, p = {_fmt(p, 2)} ({verdict}).</p>")
+    return "\n".join(out)
+
+
 def _final(b: _Builder, run, units: str):
     ctx = run.context
     mpars = ctx.get("model_parameters") or {}
@@ -524,6 +572,7 @@ def _final(b: _Builder, run, units: str):
         b.add(_table(["parameter", f"MAP [{units}]", f"mean [{units}]", f"sd [{units}]", "95 % interval",
                       f"Cramér–Rao sd [{units}]", "prior interval", ref_head], rows))
         b.add(_noise_line(r, units))
+        b.add(per_trial_html(r, units))
         if r.frames is not None:
             dropped = f", {_fmt(r.frames.dropped)} dropped" if r.frames.dropped else ""
             b.add(f"<p>Frames used: {_fmt(r.frames.used)} of {_fmt(r.frames.total)}{dropped}.</p>")

@@ -25,6 +25,38 @@ from skelid.model.description import Model
 from skelid.result import FitResult, FitRun
 
 
+def trials_text(result: FitResult) -> str:
+    """Each trial's own estimate and the consistency test, as text (empty for a one-trial result).
+
+    Parameters
+    ----------
+    result : FitResult
+        A several-trial result: ``diagnostics`` holds ``trials``, ``consistency`` and
+        ``heterogeneity`` (:meth:`~skelid.estimators.multitrial.MultiTrialEstimator.result`).
+    """
+    d = result.diagnostics
+    rows, cons = d.get("trials"), d.get("consistency")
+    if not rows or not cons:
+        return ""
+    names = list(result.parameters)
+    label = [str(r.get("data") or r.get("trial", "")) for r in rows]
+    width = max(len(x) for x in [*label, "between-trial sd"]) + 2
+    head = f"{'trial':<{width}}" + "".join(f"{n:>24}" for n in names)
+    lines = ["", "each trial's own estimate (sd with the between-trial spread):", head, "-" * len(head)]
+    for lab, r in zip(label, rows, strict=True):
+        cells = "".join(f"{r['parameters'][n]['mean']:>14.5g} ± {r['parameters'][n]['sd_with_between_trial']:<7.3g}"
+                        for n in names)
+        lines.append(f"{lab:<{width}}" + cells)
+    het = d.get("heterogeneity") or {}
+    if het:
+        lines.append(f"{'between-trial sd':<{width}}" + "".join(
+            f"{het[n]['tau']:>24.3g}" for n in names if n in het))
+    verdict = "the trials agree" if cons["p_value"] >= 0.01 else "the trials disagree beyond their own intervals"
+    lines.append(f"consistency of the trials with the joint estimate: chi-square {cons['statistic']:.1f} on "
+                 f"{cons['dof']} degrees of freedom, p = {cons['p_value']:.2g} ({verdict})")
+    return "\n".join(lines)
+
+
 def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):
     """One fitted estimator for ``datas``: the single-trial one for one file, else the multi-trial one."""
     from skelid.estimators.marker import MarkerEstimator
@@ -181,6 +213,8 @@ def trials_result(model: Model, est, data_paths, frames_total: int) -> FitResult
         res = conv.replace(diagnostics={**conv.diagnostics, **diag})
     else:
         res = workflows.method_result(model, est)
+    # one method key per run: the several-trial fit is the marker method given several files
+    res = res.replace(method="marker")
     trials = res.diagnostics.get("trials")
     if isinstance(trials, list) and len(trials) == len(data_paths) > 1:
         rows = [{**row, "data": str(p)} for row, p in zip(trials, data_paths, strict=True)]

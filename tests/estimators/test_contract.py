@@ -14,7 +14,8 @@ import pytest
 
 from skelid.data import MarkerData
 from skelid.errors import DataError, NotFittedError, SettingError, SkelidError, SkelidWarning
-from skelid.estimators.base import get_settings
+from skelid.estimators.base import check_settings, get_settings
+from skelid.estimators.multitrial import MultiTrialEstimator
 from skelid.io.results import read_run, write_run
 from skelid.model import model_from_dict
 from skelid.registry import estimators, make_estimator
@@ -27,7 +28,10 @@ FAST = {
     "paper": {"rng": 0},
     "marker-grid": {"rng": 0, "axes": (np.linspace(220.0, 280.0, 9),)},
     "marker-smc": {"rng": 0, "n_particles": 24, "n_moves": 1},
+    "marker-multi": {"rng": 0, "cutoff": None, "jackknife": False},
 }
+#: the registered estimators and the several-trial one (not a --method: it runs when several files are given)
+ESTIMATORS = {**estimators(), MultiTrialEstimator.name: MultiTrialEstimator}
 #: a bad value per common setting, and the error it must raise
 BAD_SETTINGS = [("sigma", -1.0), ("sigma", float("nan")), ("sigma", "15"), ("rng", "seed"), ("rate", "100"),
                 ("rate", -5.0)]
@@ -42,11 +46,31 @@ def _model():
 
 MODEL = _model()
 TRIAL = simulate(MODEL, n_frames=60, sigma=5.0, rng=np.random.default_rng(11))
+#: the several-trial estimator sees the same frames as two trials
+HALVES = [MarkerData(TRIAL.data.positions[a:b], TRIAL.data.names, TRIAL.data.rate, TRIAL.data.units,
+                     source=f"half{k + 1}.trc") for k, (a, b) in enumerate([(0, 30), (30, 60)])]
 _FITTED: dict = {}
 
 
 def _new(name, **kw):
-    return make_estimator(name, MODEL, **{**FAST[name], **kw})
+    if name in estimators():
+        return make_estimator(name, MODEL, **{**FAST[name], **kw})
+    est = ESTIMATORS[name](MODEL, **{**FAST[name], **kw})
+    check_settings(est)  # as the registry does
+    return est
+
+
+def _data(name):
+    """The trial(s) an estimator is fitted to: one, or the two halves for the several-trial one."""
+    return HALVES if name == MultiTrialEstimator.name else TRIAL.data
+
+
+def _array(name, narrow=False):
+    """The same as plain arrays (``narrow``: of a shape that does not fit the model)."""
+    cut = (lambda a: a[:, :2]) if narrow else (lambda a: a)
+    if name == MultiTrialEstimator.name:
+        return [cut(np.asarray(h.positions)) for h in HALVES]
+    return cut(np.asarray(TRIAL.data.positions))
 
 
 def _fitted(name):
@@ -54,14 +78,14 @@ def _fitted(name):
     if name not in _FITTED:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SkelidWarning)
-            _FITTED[name] = _new(name).fit(TRIAL.data)
+            _FITTED[name] = _new(name).fit(_data(name))
     return _FITTED[name]
 
 
-def _fit(est, data=TRIAL.data, **kw):
+def _fit(est, data=None, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SkelidWarning)
-        return est.fit(data, **kw)
+        return est.fit(_data(est.name) if data is None else data, **kw)
 
 
 def _same(a, b) -> bool:
@@ -78,7 +102,7 @@ def _public_fitted(est) -> list[str]:
 
 # ---------------------------------------------------------------------------- checks
 def check_declares_settings(name):
-    cls = estimators()[name]
+    cls = ESTIMATORS[name]
     assert cls.name == name and cls.settings, "every estimator declares its settings"
     est = _new(name)
     assert set(get_settings(est)) == {s.name for s in cls.settings}
@@ -151,22 +175,21 @@ def check_result_round_trips(name, tmp_path):
 
 
 def check_array_needs_rate(name):
-    y = np.asarray(TRIAL.data.positions)
     with pytest.raises(SettingError, match="rate"):
-        _fit(_new(name), y)
+        _fit(_new(name), _array(name))
     with pytest.raises(DataError, match="does not fit model"):
-        _fit(_new(name, rate=100.0), y[:, :2])
+        _fit(_new(name, rate=100.0), _array(name, narrow=True))
 
 
 def check_array_with_rate_equals_marker_data(name):
-    est = _fit(_new(name, rate=TRIAL.data.rate), np.asarray(TRIAL.data.positions))
+    est = _fit(_new(name, rate=TRIAL.data.rate), _array(name))
     np.testing.assert_allclose(est.result().values("mean"), _fitted(name).result().values("mean"),
                                rtol=1e-12)
 
 
 def check_bad_settings_name_the_setting(name):
     for setting, value in BAD_SETTINGS:
-        est = estimators()[name](MODEL, **{**FAST[name], setting: value})  # __init__ only stores it
+        est = ESTIMATORS[name](MODEL, **{**FAST[name], setting: value})  # __init__ only stores it
         with pytest.raises(SettingError, match=setting) as err:
             _fit(est)
         assert isinstance(err.value, ValueError) and isinstance(err.value, SkelidError)
@@ -207,7 +230,7 @@ CHECKS = [check_declares_settings, check_init_stores_settings_only, check_fit_re
 
 
 @pytest.mark.parametrize("check", CHECKS, ids=lambda c: c.__name__.removeprefix("check_"))
-@pytest.mark.parametrize("name", list(estimators()))
+@pytest.mark.parametrize("name", list(ESTIMATORS))
 def test_contract(name, check, tmp_path):
     if "tmp_path" in check.__code__.co_varnames[:check.__code__.co_argcount]:
         check(name, tmp_path)
@@ -216,7 +239,7 @@ def test_contract(name, check, tmp_path):
 
 
 def test_every_registered_estimator_has_fast_settings():
-    assert set(FAST) == set(estimators())
+    assert set(FAST) == set(ESTIMATORS)
 
 
 def test_reserved_looking_parameter_names_survive_a_marker_fit(tmp_path):

@@ -1,7 +1,9 @@
+import warnings
+
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
-from scipy.stats import chi2
+from scipy.stats import chi2, t
 
 from skelid.data import MarkerData
 from skelid.estimators.joint import joint_fit, weighted_terms
@@ -11,6 +13,10 @@ from skelid.estimators.multitrial import (
     consistency_test,
     dersimonian_laird,
     pairwise_z,
+    paule_mandel,
+    random_effects,
+    satterthwaite_dof,
+    t_factor,
 )
 from skelid.simulate import simulate
 from tests.estimators.test_noise import two_link
@@ -98,8 +104,8 @@ def test_two_trials_different_rates_and_markers():
     # without between-trial variance the joint interval is narrower than either trial's
     assert np.all(fe.posterior_.sd < np.min([e.posterior_.sd for e in one], axis=0))
     res = multi.result()
-    assert len(res["trials"]) == 2 and res["consistency"]["dof"] == 2
-    assert res["trials"][1]["sigma"] == pytest.approx(2.0, rel=0.15)
+    assert len(res.diagnostics["trials"]) == 2 and res.diagnostics["consistency"]["dof"] == 2
+    assert res.diagnostics["trials"][1]["sigma"] == pytest.approx(2.0, rel=0.15)
 
 
 def test_between_trial_variance_widens_the_joint_interval():
@@ -118,7 +124,80 @@ def test_between_trial_variance_widens_the_joint_interval():
     assert re.consistency_["p_value"] < 1e-6
     # random-effects combination: weights (C_k + Omega)^{-1}, covariance their summed inverse
     W = np.linalg.inv(re.trial_cov_ + np.diag(re.tau2_))
-    np.testing.assert_allclose(re.cov_, np.linalg.inv(W.sum(0)), rtol=1e-9)
-    np.testing.assert_allclose(re.theta_, re.cov_ @ np.einsum("kpq,kq->p", W, re.trial_theta_), rtol=1e-9)
+    np.testing.assert_allclose(re.cov_unscaled_, np.linalg.inv(W.sum(0)), rtol=1e-9)
+    np.testing.assert_allclose(re.theta_, re.cov_unscaled_ @ np.einsum("kpq,kq->p", W, re.trial_theta_),
+                               rtol=1e-9)
+    # tau^2 from four trials: the interval takes a t quantile (Satterthwaite), wider than the normal one
+    f = t_factor(re.dof_)
+    assert np.all(np.isfinite(re.dof_[re.tau2_ > 0])) and np.all(f[re.tau2_ > 0] > 1.0)
+    np.testing.assert_allclose(re.cov_, re.cov_unscaled_ * np.outer(f, f), rtol=1e-12)
     # the elbow x estimates spread about their mean shift (1.5 mm): the joint one is near it
     assert abs(re.theta_[0] - (model.theta_center[0] + 1.5)) < 3 * re.posterior_.sd[0]
+
+
+def test_paule_mandel_solves_its_equation_and_equals_dl_for_equal_variances():
+    y = np.array([[0.0, 1.0], [1.0, 1.2], [3.0, 0.9], [2.0, 1.1]])
+    v = np.array([[1.0, 0.5], [1.0, 0.5], [1.0, 0.5], [1.0, 0.5]])
+    dl, _, _ = dersimonian_laird(y, v)
+    pm, _, df = paule_mandel(y, v)
+    np.testing.assert_allclose(pm, dl, atol=1e-9)  # equal variances: both are the moment estimator
+    assert pm[1] == 0.0
+    # unequal variances: the generalised Q with weights 1 / (v + tau^2) equals K - 1 at the solution
+    v2 = np.array([[0.01], [1.0], [2.0], [0.5]])
+    tau2, _, df = paule_mandel(y[:, :1], v2)
+    w = 1.0 / (v2[:, 0] + tau2[0])
+    m = (w * y[:, 0]).sum() / w.sum()
+    assert tau2[0] > 0 and (w * (y[:, 0] - m) ** 2).sum() == pytest.approx(df, rel=1e-9)
+
+
+def test_t_factor_and_satterthwaite_degrees_of_freedom():
+    np.testing.assert_allclose(t_factor([np.inf, 3.0]), [1.0, t.ppf(0.975, 3) / t.ppf(0.975, np.inf)])
+    # all of the variance between trials: K - 1 degrees of freedom; none: infinite
+    np.testing.assert_allclose(satterthwaite_dof([2.0, 2.0, 2.0], [2.0, 1.0, 0.0], 3), [3.0, 12.0, np.inf])
+
+
+def test_random_effects_degrees_of_freedom_closed_form():
+    # two trials, within variances 1 and 3, tau^2 = 1: w = (1/2, 1/4), V = 4/3,
+    # V_b = tau^2 (1/4 + 1/16) / (3/4)^2 = 5/9, nu = 1 * (4/3)^2 / (5/9)^2 = 5.76
+    th, cov, dof = random_effects(np.array([[0.0], [3.0]]), np.array([[[1.0]], [[3.0]]]), np.array([1.0]))
+    assert cov[0, 0] == pytest.approx(4.0 / 3.0) and th[0] == pytest.approx(1.0)
+    assert dof[0] == pytest.approx((4.0 / 3.0) ** 2 / (5.0 / 9.0) ** 2)
+
+
+def test_result_is_typed_and_round_trips(tmp_path):
+    from skelid.io.results import read_run, write_run
+    from skelid.result import FitResult, FitRun
+
+    model = two_link()
+    datas = [_data(model, 25, 20 + k, sigma=1.0).data for k in range(3)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = MultiTrialEstimator(model, outlier_threshold=None, jackknife=False, cutoff=None).fit(datas)
+    r = est.result()
+    assert isinstance(r, FitResult) and r.method == "marker-multi"
+    assert r.names == model.parameter_names  # nothing but the parameters beside each other
+    d = r.diagnostics
+    assert len(d["trials"]) == 3 and d["consistency"]["dof"] == 2 * model.n_params
+    assert set(d["heterogeneity"]) == set(model.parameter_names)
+    for row, k in zip(d["trials"], range(3), strict=True):
+        for p, n in enumerate(model.parameter_names):
+            assert row["parameters"][n]["mean"] == est.trial_theta_[k, p]
+            assert row["parameters"][n]["sd_with_between_trial"] >= row["parameters"][n]["sd"]
+    write_run(tmp_path, FitRun({"marker-multi": r}))
+    back = read_run(tmp_path).results["marker-multi"]
+    assert back.diagnostics["trials"] == d["trials"] and back.diagnostics["consistency"] == d["consistency"]
+    np.testing.assert_array_equal(back.arrays["trial_theta"], est.trial_theta_)
+    assert back.parameters == r.parameters
+
+
+def test_combine_equals_fit():
+    model = two_link()
+    datas = [_data(model, 25, 30 + k, sigma=1.0).data for k in range(2)]
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = MultiTrialEstimator(model, **kw).fit(datas)
+        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
+        b = MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas])
+    np.testing.assert_array_equal(a.theta_, b.theta_)
+    np.testing.assert_array_equal(a.cov_, b.cov_)

@@ -34,12 +34,30 @@ estimated per parameter by DerSimonian and Laird's method of moments: with
 
 .. math:: \\tau^2 = \\max\\Big(0, \\frac{Q - (K - 1)}{\\sum w_k - \\sum w_k^2 / \\sum w_k}\\Big),
 
-and then replaces the stacked fit by the random-effects combination
+and then replaces the stacked fit (which is then not run) by the random-effects combination
 ``theta = (sum_k W_k)^{-1} sum_k W_k theta_k`` with ``W_k = (C_k + Omega)^{-1}``
 and covariance ``(sum_k W_k)^{-1}``: a trial with a tiny within-trial variance
 (a static trial, whose lengths follow the markers' nominal placement) no longer
 decides the answer alone. A trial's own interval that includes it uses
 ``C_k + Omega``.
+
+**Intervals with an estimated between-trial variance.** ``tau^2`` estimated
+from ``K`` trials has about ``K - 1`` degrees of freedom, so a statistic
+standardised by it follows a Student ``t`` rather than a normal law (with four
+trials, ``t_3``: sd 1.7 instead of 1). Each interval therefore uses a ``t``
+quantile with Satterthwaite's effective degrees of freedom for a variance
+``V = V_w + V_b`` of which only the between-trial part ``V_b`` is estimated
+with ``K - 1`` degrees of freedom:
+
+.. math:: \\nu = (K - 1) \\, V^2 / V_b^2, \\qquad
+          \\text{interval} = \\hat\\theta \\pm t_{\\nu, 0.975} \\sqrt{V}.
+
+``nu`` is infinite (the normal interval) when ``tau^2 = 0`` and ``K - 1`` when
+the between-trial part dominates. For the joint estimate ``V = 1 / sum_k w_k``
+and ``V_b = tau^2 sum_k w_k^2 / (sum_k w_k)^2`` with ``w_k = 1 / (C_{k,pp} +
+tau^2)``; for one trial's own interval ``V = C_{k,pp} + tau^2`` and ``V_b =
+tau^2``. The reported sd is the interval's half-width over 1.959964, so that
+anything that forms ``mean +- 1.96 sd`` gets the ``t`` interval.
 
 Example
 -------
@@ -52,18 +70,27 @@ Example
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
+from scipy.optimize import brentq
 from scipy.stats import chi2
+from scipy.stats import t as student_t
 
 from skelid.data import MarkerData
 from skelid.errors import DataError, SkelidError
+from skelid.estimators.base import (
+    Setting,
+    check_fitted,
+    check_settings,
+    emit,
+    get_settings,
+    one_of,
+)
 from skelid.estimators.joint import joint_fit
 from skelid.estimators.marker import MarkerEstimator, _combine_normal_priors
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances
+from skelid.result import FitResult, NoiseEstimate, Warning
 
 Z95 = 1.959963984540054
 
@@ -134,86 +161,292 @@ def pairwise_z(estimates, sds) -> np.ndarray:
     return (x[i] - x[j]) / np.sqrt(s[i] ** 2 + s[j] ** 2)
 
 
+
+
+def paule_mandel(estimates, variances):
+    """Between-trial variance of each parameter by Paule and Mandel's method.
+
+    ``tau^2`` solves ``sum_k w_k (theta_k - bar theta_w)^2 = K - 1`` with
+    ``w_k = 1 / (v_k + tau^2)`` (0 when the left side is below ``K - 1`` at
+    ``tau^2 = 0``). Unlike DerSimonian-Laird's moments with the fixed-effect
+    weights, it is not dominated by one trial with a tiny variance.
+
+    Parameters
+    ----------
+    estimates, variances : (K, P) float
+
+    Returns
+    -------
+    tau2 : (P,) float
+    q : (P,) float
+        Cochran's ``Q`` (fixed-effect weights), as :func:`dersimonian_laird`.
+    df : int
+
+    References
+    ----------
+    Paule RC, Mandel J (1982). Consensus values and weighting factors. J Res Natl Bur Stand 87:377-385.
+    Veroniki AA et al. (2016). Methods to estimate the between-study variance and its uncertainty
+    in meta-analysis. Res Synth Methods 7:55-79.
+
+    Examples
+    --------
+    >>> tau2, _, _ = paule_mandel(np.array([[0.0], [1.0], [3.0]]), np.ones((3, 1)))
+    >>> round(float(tau2[0]), 6)  # equal variances: the sample variance minus the within one
+    1.333333
+    """
+    y = np.atleast_2d(np.asarray(estimates, float))
+    v = np.atleast_2d(np.asarray(variances, float))
+    _, q, df = dersimonian_laird(y, v)
+    tau2 = np.zeros(y.shape[1])
+    if df < 1:
+        return tau2, q, df
+
+    def excess(t2, yp, vp):
+        w = 1.0 / (vp + t2)
+        m = (w * yp).sum() / w.sum()
+        return (w * (yp - m) ** 2).sum() - df
+
+    for p in range(y.shape[1]):
+        yp, vp = y[:, p], v[:, p]
+        if excess(0.0, yp, vp) <= 0:
+            continue
+        hi = max(float(np.var(yp, ddof=1)), 1e-12)
+        while excess(hi, yp, vp) > 0:
+            hi *= 4.0
+        tau2[p] = brentq(excess, 0.0, hi, args=(yp, vp), xtol=1e-12 * hi, rtol=1e-12)
+    return tau2, q, df
+
+
+#: between-trial variance estimators by name
+BETWEEN_TRIAL = {"dl": dersimonian_laird, "pm": paule_mandel}
+
+
+def t_factor(dof) -> np.ndarray:
+    """``t_{dof, 0.975} / z_{0.975}``: how much wider a ``t`` interval is than the normal one (1 at infinity)."""
+    d = np.asarray(dof, float)
+    out = np.ones_like(d)
+    fin = np.isfinite(d)
+    out[fin] = student_t.ppf(0.975, np.maximum(d[fin], 1e-6)) / Z95
+    return out
+
+
+def satterthwaite_dof(total, between, df) -> np.ndarray:
+    """Effective degrees of freedom of a variance ``total`` of which ``between`` is estimated with ``df``.
+
+    ``nu = df * total^2 / between^2`` (infinite where ``between`` is 0).
+    """
+    total, between = np.broadcast_arrays(np.asarray(total, float), np.asarray(between, float))
+    out = np.full(total.shape, np.inf)
+    pos = between > 0
+    out[pos] = df * (total[pos] / between[pos]) ** 2
+    return out
+
+
+def random_effects(estimates, covs, tau2):
+    """Random-effects combination of the trials and the ``t`` widening of its interval.
+
+    Parameters
+    ----------
+    estimates : (K, P) float
+    covs : (K, P, P) float
+        Within-trial covariances ``C_k``.
+    tau2 : (P,) float
+        Between-trial variances.
+
+    Returns
+    -------
+    theta : (P,) float
+        ``(sum W_k)^{-1} sum W_k theta_k`` with ``W_k = (C_k + diag tau2)^{-1}``.
+    cov : (P, P) float
+        ``(sum W_k)^{-1}``.
+    dof : (P,) float
+        Satterthwaite degrees of freedom of each variance (see the module notes).
+
+    Examples
+    --------
+    >>> th, cov, dof = random_effects(np.array([[0.0], [2.0]]), np.ones((2, 1, 1)), np.array([1.0]))
+    >>> float(th[0]), float(cov[0, 0]), float(dof[0])  # V = 1, V_b = 1/2: nu = 1 * (1 / 0.5)^2
+    (1.0, 1.0, 4.0)
+    """
+    y = np.asarray(estimates, float)
+    C = np.asarray(covs, float)
+    tau2 = np.asarray(tau2, float)
+    K = y.shape[0]
+    W = np.linalg.inv(C + np.diag(tau2))
+    cov = np.linalg.inv(W.sum(axis=0))
+    theta = cov @ np.einsum("kpq,kq->p", W, y)
+    w = 1.0 / (np.einsum("kpp->kp", C) + tau2)  # per-parameter weights for the degrees of freedom
+    total = 1.0 / w.sum(axis=0)
+    between = tau2 * (w**2).sum(axis=0) / w.sum(axis=0) ** 2
+    return theta, cov, satterthwaite_dof(total, between, K - 1)
+
+
+def _trial_label(data, k: int) -> str:
+    src = getattr(data, "source", None)
+    if src:
+        return str(src).replace("\\", "/").rsplit("/", 1)[-1]
+    return f"trial {k + 1}"
+
+
+def _as_trials(trials) -> list:
+    """A list of trials from one MarkerData or array, or a sequence of them."""
+    if isinstance(trials, MarkerData) or (isinstance(trials, np.ndarray) and trials.ndim == 3):
+        return [trials]
+    try:
+        return list(trials)
+    except TypeError:
+        raise DataError(f"trials must be MarkerData, an array or a list of them, got {type(trials).__name__}",
+                        "give a list of MarkerData, one per trial") from None
+
+
 class MultiTrialEstimator:
     """One geometry from several trials of one body.
 
     Parameters
     ----------
     model : Model
-    between_trial : {'dl', 'none'}
-        Estimate the between-trial excess variance per parameter
-        (DerSimonian-Laird) and add it to the interval, or not.
+    between_trial : {'dl', 'pm', 'none'}
+        Estimate the between-trial excess variance per parameter (DerSimonian-Laird
+        or Paule-Mandel) and add it to the interval, or not.
     **settings
-        Passed to :class:`~skelid.estimators.marker.MarkerEstimator` for each
-        trial (``sigma``, ``cutoff``, ``noise``, ``marker_groups``,
-        ``artefact_rms``, ``outlier_threshold``, ``rng`` ...).
+        Every setting of :class:`~skelid.estimators.marker.MarkerEstimator` (``sigma``,
+        ``cutoff``, ``noise``, ``marker_groups``, ``artefact_rms``, ``outlier_threshold``,
+        ``rng``, ``rate`` ...), used for each trial; they become attributes of this
+        estimator as well.
 
     Attributes
     ----------
     theta_ : (P,) float
         Joint estimate (bias removed, normal priors combined).
     cov_ : (P, P) float
-        Its covariance, between-trial variance included.
+        Its covariance, between-trial variance included and scaled by the ``t``
+        factor of each parameter (so that ``theta_ +- 1.96 sd`` is the ``t`` interval).
     cov_within_ : (P, P) float
         Without the between-trial variance.
+    dof_ : (P,) float
+        Satterthwaite degrees of freedom of the joint interval (inf: normal).
     posterior_ : GaussianPosterior
+    sigma_ : float
+        Root-mean-square of the trials' noise levels, weighted by their frames used.
+    frames_used_ : (sum F_k,) bool
+        The trials' frames, one after the other.
     trials_ : list of MarkerEstimator
         Each trial's own fit.
+    trial_labels_ : list of str
     trial_theta_ : (K, P) float
         Each trial's own estimate (bias removed, before priors).
     trial_cov_ : (K, P, P) float
         Their covariances.
+    trial_sd_ : (K, P) float
+        Each trial's own sd with the between-trial variance and its ``t`` factor.
     tau2_ : (P,) float
         Between-trial variance of each parameter.
     consistency_ : dict
         :func:`consistency_test` of the trials against the joint estimate.
     heterogeneity_ : dict
-        Per parameter: Cochran's ``Q``, ``I^2`` and ``tau``.
+        Per parameter: Cochran's ``Q``, ``I^2``, ``tau`` and the degrees of freedom.
     lengths_ : dict
         Derived lengths of the joint estimate.
-    fit_info_ : JointFit
-        The stacked fit.
-    warnings_ : list of str
+    fit_info_ : JointFit or None
+        The stacked fit (all frames, one geometry); None when the trials disagree
+        (some ``tau^2 > 0``) and the joint estimate combines the trials' own.
+    pose_ : (sum F_k, Q) float
+        Poses of the stacked fit, or each trial's own when there is none.
+    converged_ : bool
+        Whether the stacked fit (or, without one, every trial's fit) converged.
+    warnings_ : tuple of Warning
     """
 
     name = "marker-multi"
+    settings = (Setting("between_trial", one_of("dl", "pm", "none"), "'dl', 'pm' or 'none'"),
+                *MarkerEstimator.settings)
 
     def __init__(self, model: Model, between_trial: str = "dl", **settings):
         self.model = model
         self.between_trial = between_trial
-        self.settings = settings
+        # the single-trial estimator's declared settings and defaults, stored here as well
+        for k, v in get_settings(MarkerEstimator(model, **settings)).items():
+            setattr(self, k, v)
 
-    def fit(self, trials: Sequence[MarkerData]) -> MultiTrialEstimator:
-        """Fit every trial alone, then all of them at once with one geometry."""
-        if self.between_trial not in ("dl", "none"):
-            raise ValueError("between_trial must be 'dl' or 'none'")
-        if isinstance(trials, MarkerData):
-            trials = [trials]
-        trials = list(trials)
+    def _trial_settings(self) -> dict:
+        return {s.name: getattr(self, s.name) for s in MarkerEstimator.settings}
+
+    def fit(self, trials, *, progress=None) -> MultiTrialEstimator:
+        """Fit every trial alone, then all of them at once with one geometry.
+
+        Parameters
+        ----------
+        trials : MarkerData, (F, M, D) array, or a sequence of them
+            The trials (arrays with the ``rate`` setting).
+        progress : callable, optional
+            Called with each trial's number of frames once it is fitted.
+        """
+        check_settings(self)
+        trials = _as_trials(trials)
         if not trials:
             raise DataError("no trials to fit", "give at least one marker file")
         model = self.model
-        P = model.n_params
-        self.trials_ = []
+        ests, labels = [], []
         for k, data in enumerate(trials):
-            est = MarkerEstimator(model, **self.settings)
+            est = MarkerEstimator(model, **self._trial_settings())
+            label = _trial_label(data, k)
             try:
                 est.fit(data)
             except SkelidError as exc:
-                name = getattr(data, "source", None) or f"trial {k + 1}"
-                raise type(exc)(f"{name}: {exc.problem}", exc.fix) from None
-            self.trials_.append(est)
-        ests = self.trials_
+                raise type(exc)(f"{label}: {exc.problem}", exc.fix) from None
+            ests.append(est)
+            labels.append(label if label not in labels else f"{label} ({k + 1})")
+            if progress is not None:
+                progress(len(est.frames_used_))
+        rates = [d.rate if isinstance(d, MarkerData) else float(self.rate) for d in trials]
+        return self.combine(ests, rates, labels)
+
+    def combine(self, fitted, rates, labels=None) -> MultiTrialEstimator:
+        """One geometry from trials already fitted one by one (what :meth:`fit` does after its trial fits).
+
+        Parameters
+        ----------
+        fitted : sequence of fitted MarkerEstimator
+            One per trial, fitted to the same model with this estimator's settings.
+        rates : sequence of float
+            Each trial's sampling rate (Hz).
+        labels : sequence of str, optional
+            Names of the trials in the result (default ``trial 1``, ``trial 2``, ...).
+        """
+        check_settings(self)
+        ests = list(fitted)
+        if not ests:
+            raise DataError("no trials to combine", "give at least one fitted trial")
+        key = (self.model.parameter_names, self.model.marker_names)
+        if any((e.model.parameter_names, e.model.marker_names) != key for e in ests):
+            raise DataError("the fitted trials use another model than this estimator",
+                            "fit every trial with the same model")
+        self.trials_ = ests
+        self.trial_labels_ = list(labels) if labels is not None else [f"trial {k + 1}" for k in range(len(ests))]
         self.trial_theta_ = np.array([e.theta_profile_ - e.bias_ for e in ests])
         self.trial_cov_ = np.array([e.cov_data_ for e in ests])
+        self._within(ests)
+        fit = self._combine(lambda: self._stacked_fit(ests, [float(r) for r in rates]))
+        self._publish(fit, ests)
+        return self
+
+    def _within(self, ests) -> None:
+        """Bias and covariance of the information-weighted combination (no between-trial variance)."""
         S = np.array([np.linalg.inv(e.cov_plain_) for e in ests])  # (K, P, P) information
-        A = S.sum(axis=0)
-        A_inv = np.linalg.inv(A)
-        # stacked fit: every trial's frames, poses, motion model and weights, one geometry
+        A_inv = np.linalg.inv(S.sum(axis=0))
+        self.bias_ = A_inv @ np.einsum("kpq,kq->p", S, np.array([e.bias_ for e in ests]))
+        sandwich = np.einsum("kpq,kqr,krs->ps", S, self.trial_cov_, S)
+        self.cov_within_ = A_inv @ sandwich @ A_inv
+
+    def _stacked_fit(self, ests, rates):
+        """All trials' frames at once with one geometry (block-diagonal motion model, per-trial weights)."""
+        model = self.model
+        S = np.array([np.linalg.inv(e.cov_plain_) for e in ests])
+        A_inv = np.linalg.inv(S.sum(axis=0))
         lengths = [len(e.pose_) for e in ests]
         edges = np.concatenate([[0], np.cumsum(lengths)])
-        blocks = [(int(a), int(b), trials[k].rate if isinstance(trials[k], MarkerData) else e.rate,
-                   e.cutoff_) for k, (a, b, e) in enumerate(zip(edges[:-1], edges[1:], ests, strict=True))]
+        blocks = [(int(a), int(b), rates[k], e.cutoff_)
+                  for k, (a, b, e) in enumerate(zip(edges[:-1], edges[1:], ests, strict=True))]
         M = len(model.marker_names)
         weights = np.concatenate([
             np.broadcast_to((np.ones(M) if e.marker_weights_ is None else e.marker_weights_) / e.sigma_**2,
@@ -221,95 +454,147 @@ class MultiTrialEstimator:
         y = np.concatenate([e.y_ for e in ests])
         pose = np.concatenate([e.pose_ for e in ests])
         used = np.concatenate([e.frames_used_ for e in ests])
-        theta0 = A_inv @ np.einsum("kpq,kq->p", S, np.array([e.theta_profile_ for e in ests]))
-        bounds = (np.array([p.prior.lower for p in model.parameters]),
-                  np.array([p.prior.upper for p in model.parameters]))
-        lo, hi = bounds
-        theta0 = np.clip(theta0, lo, hi)
-        fit = joint_fit(model, y, theta0, pose, n_iter=self.settings.get("n_iter", 100), bounds=bounds,
-                        frames=used, blocks=blocks, weights=weights)
-        self.fit_info_ = fit
-        self.bias_ = A_inv @ np.einsum("kpq,kq->p", S, np.array([e.bias_ for e in ests]))
-        theta = fit.theta - self.bias_
-        sandwich = np.einsum("kpq,kqr,krs->ps", S, self.trial_cov_, S)
-        self.cov_within_ = A_inv @ sandwich @ A_inv
+        lo = np.array([p.prior.lower for p in model.parameters])
+        hi = np.array([p.prior.upper for p in model.parameters])
+        theta0 = np.clip(A_inv @ np.einsum("kpq,kq->p", S, np.array([e.theta_profile_ for e in ests])), lo, hi)
+        return joint_fit(model, y, theta0, pose, n_iter=self.n_iter, bounds=(lo, hi), frames=used,
+                         blocks=blocks, weights=weights)
+
+    def _combine(self, stacked):
+        """Between-trial variance, the joint estimate and its interval, each trial's own interval.
+
+        ``stacked()`` runs the stacked fit; it is needed (and run) only when the trials agree
+        (every ``tau^2 = 0``): otherwise the joint estimate is the random-effects combination of
+        the trials' own estimates. Returns the stacked fit or None.
+        """
+        fit = None
+        P, K = self.model.n_params, len(self.trials_)
         var = np.einsum("kpp->kp", self.trial_cov_)
-        if self.between_trial == "dl":
-            tau2, q, df = dersimonian_laird(self.trial_theta_, var)
-        else:
-            tau2, q, df = np.zeros(P), dersimonian_laird(self.trial_theta_, var)[1], len(ests) - 1
+        method = "dl" if self.between_trial == "none" else self.between_trial
+        tau2, q, df = BETWEEN_TRIAL[method](self.trial_theta_, var)
+        if self.between_trial == "none":
+            tau2 = np.zeros(P)
         self.tau2_ = tau2
-        Omega = np.diag(tau2)
         if np.any(tau2 > 0):
             # trials differ beyond their own noise: each trial's estimate is the geometry plus its own
             # random shift, so they are combined with the weights (C_k + Omega)^{-1} (a trial with a
-            # tiny within-trial variance no longer decides alone) and the variance that goes with them
-            W = np.linalg.inv(self.trial_cov_ + Omega)
-            cov = np.linalg.inv(W.sum(axis=0))
-            theta = cov @ np.einsum("kpq,kq->p", W, self.trial_theta_)
+            # tiny within-trial variance no longer decides alone)
+            theta, cov, dof = random_effects(self.trial_theta_, self.trial_cov_, tau2)
         else:
-            cov = self.cov_within_
+            fit = stacked()
+            theta, cov, dof = fit.theta - self.bias_, self.cov_within_, np.full(P, np.inf)
+        f = t_factor(dof)
+        self.dof_ = dof
+        self.cov_unscaled_ = cov
+        cov = cov * np.outer(f, f)
+        trial_var = var + tau2
+        self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), max(K - 1, 1))
+        self.trial_sd_ = np.sqrt(np.clip(trial_var, 0.0, None)) * t_factor(self.trial_dof_)
         self.consistency_ = consistency_test(self.trial_theta_, self.trial_cov_, theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             i2 = np.where(q > 0, np.maximum(0.0, (q - df) / q), 0.0)
         self.heterogeneity_ = {n: {"q": float(q[k]), "dof": int(df), "i2": float(i2[k]),
-                                   "tau": float(np.sqrt(tau2[k]))}
-                               for k, n in enumerate(model.parameter_names)}
-        self.theta_data_ = theta
-        self.cov_data_ = cov
-        theta, cov = _combine_normal_priors(model, theta, cov)
+                                   "tau": float(np.sqrt(tau2[k])), "t_dof": float(dof[k]),
+                                   "t_factor": float(f[k])}
+                               for k, n in enumerate(self.model.parameter_names)}
+        self.theta_data_, self.cov_data_ = theta, cov
+        return fit
+
+    def _publish(self, fit, ests) -> None:
+        model = self.model
+        theta, cov = _combine_normal_priors(model, self.theta_data_, self.cov_data_)
+        self.fit_info_ = fit
+        self.converged_ = bool(fit.converged) if fit is not None else all(e.fit_info_.converged for e in ests)
+        self.n_iter_ = int(fit.n_iter) if fit is not None else 0
         self.theta_, self.cov_ = theta, cov
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
-        self.frames_used_ = used
-        self.pose_ = fit.pose
+        self.frames_used_ = np.concatenate([e.frames_used_ for e in ests])
+        n_used = np.array([e.frames_used_.sum() for e in ests], float)
+        sig = np.array([e.sigma_ for e in ests])
+        self.sigma_ = float(np.sqrt(np.sum(n_used * sig**2) / max(n_used.sum(), 1.0)))
+        # the joint fit's poses, or (random-effects combination) each trial's own
+        self.pose_ = fit.pose if fit is not None else np.concatenate([e.pose_ for e in ests])
         lens, grad = joint_distances(model, theta)
         sd_len = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, cov, grad), 0.0, None))
         self.lengths_ = {name: {"value": float(v), "sd": float(e), "ci95": [float(v - Z95 * e), float(v + Z95 * e)]}
                          for (name, _), v, e in zip(model.derived_lengths, lens, sd_len, strict=True)}
-        self.warnings_ = list(dict.fromkeys(w.message for e in ests for w in e.warnings_))
-        if not fit.converged:
-            self.warnings_.append("the joint fit of all trials stopped before converging; the estimate may be off")
-        if self.consistency_["p_value"] < 0.01:
-            self.warnings_.append(
-                f"the trials disagree about the geometry beyond their own intervals (chi-square "
-                f"{self.consistency_['statistic']:.1f} on {self.consistency_['dof']} degrees of freedom, "
-                f"p = {self.consistency_['p_value']:.2g}): the between-trial spread "
-                + ("was added to the interval" if self.between_trial == "dl" else "is not in the interval"))
-        return self
+        found = []
+        for label, e in zip(self.trial_labels_, ests, strict=True):
+            found += [Warning(w.code, f"{label}: {w.message}", w.parameters) for w in e.warnings_]
+        new = []
+        if fit is not None and not fit.converged:
+            new.append(Warning("not-converged", "the joint fit of all trials stopped before converging; "
+                               "the estimate may be off"))
+        c = self.consistency_
+        if c["p_value"] < 0.01:
+            how = ("was added to the interval" if self.between_trial != "none" else "is not in the interval")
+            new.append(Warning("trials-disagree", f"the trials disagree about the geometry beyond their own "
+                               f"intervals (chi-square {c['statistic']:.1f} on {c['dof']} degrees of freedom, "
+                               f"p = {c['p_value']:.2g}): the between-trial spread {how}",
+                               tuple(n for n, h in self.heterogeneity_.items() if h["tau"] > 0)))
+        self.warnings_ = tuple(found) + emit(new)
 
     def trial_table(self) -> list[dict]:
-        """Each trial's own estimate, sd, and sd with the between-trial variance."""
+        """Each trial's own estimate, its sd, and its sd with the between-trial variance (``t``-scaled)."""
+        check_fitted(self)
         rows = []
-        sd_tau = np.sqrt(self.tau2_)
         for k, e in enumerate(self.trials_):
             sd = np.sqrt(np.clip(np.diag(self.trial_cov_[k]), 0.0, None))
+            params = {}
+            for p, n in enumerate(self.model.parameter_names):
+                m, s = float(self.trial_theta_[k, p]), float(self.trial_sd_[k, p])
+                params[n] = {"mean": m, "sd": float(sd[p]), "sd_with_between_trial": s,
+                             "interval": [m - Z95 * s, m + Z95 * s],
+                             "t_dof": float(self.trial_dof_[k, p]) if np.isfinite(self.trial_dof_[k, p]) else None}
+            ms = e.marker_sigma_
             rows.append({
+                "trial": self.trial_labels_[k],
+                "frames": int(len(e.frames_used_)),
                 "frames_used": int(e.frames_used_.sum()),
-                "sigma": e.sigma_,
-                "parameters": {n: {"mean": float(self.trial_theta_[k, p]), "sd": float(sd[p]),
-                                   "sd_with_between_trial": float(np.hypot(sd[p], sd_tau[p]))}
-                               for p, n in enumerate(self.model.parameter_names)},
+                "sigma": float(e.sigma_),
+                "per_marker_sigma": ({} if ms is None else
+                                     {n: float(v) for n, v in zip(self.model.marker_names, ms, strict=True)
+                                      if np.isfinite(v)}),
+                "parameters": params,
                 "lengths": {n: dict(v) for n, v in e.lengths_.items()},
                 "warnings": [w.message for w in e.warnings_],
             })
         return rows
 
-    def result(self) -> dict:
-        """JSON-ready summary: the joint estimate, then the trials and the consistency test."""
-        out = {"frames_used": int(self.frames_used_.sum()),
-               "frames_dropped": int((~self.frames_used_).sum())}
-        summ = self.posterior_.summary()
+    def result(self) -> FitResult:
+        """The typed result: the joint estimate; trials, consistency and heterogeneity in ``diagnostics``."""
+        from skelid.estimators.base import build_result
+
+        check_fitted(self)
+        model = self.model
         sd_within = np.sqrt(np.clip(np.diag(self.cov_within_), 0.0, None))
-        for k, n in enumerate(self.model.parameter_names):
-            summ[n]["bias_removed"] = float(self.bias_[k])
-            summ[n]["sd_within_trials"] = float(sd_within[k])
-            summ[n]["sd_between_trials"] = float(np.sqrt(self.tau2_[k]))
-        out.update(summ)
-        out["sigma"] = {"per_trial": [e.sigma_ for e in self.trials_]}
-        if self.lengths_:
-            out["lengths"] = self.lengths_
-        out["trials"] = self.trial_table()
-        out["consistency"] = dict(self.consistency_)
-        out["heterogeneity"] = self.heterogeneity_
-        out["warnings"] = list(self.warnings_)
-        return out
+        extra = {n: {"bias_removed": float(self.bias_[k]), "sd_within_trials": float(sd_within[k]),
+                     "sd_between_trials": float(np.sqrt(self.tau2_[k])),
+                     "t_dof": float(self.dof_[k]) if np.isfinite(self.dof_[k]) else None}
+                 for k, n in enumerate(model.parameter_names)}
+        per = {}
+        ms = [e.marker_sigma_ for e in self.trials_]
+        if all(m is not None for m in ms):
+            n_used = np.array([e.frames_used_.sum() for e in self.trials_], float)[:, None]
+            s2 = np.array(ms) ** 2
+            ok = np.isfinite(s2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rms = np.sqrt(np.where(ok, n_used * s2, 0.0).sum(0) / np.where(ok, n_used, 0.0).sum(0))
+            per = {n: float(v) for n, v in zip(model.marker_names, rms, strict=True) if np.isfinite(v)}
+        noise = NoiseEstimate(self.sigma_, None, fixed=self.sigma is not None, per_marker=per,
+                              extra={"per_trial": [float(e.sigma_) for e in self.trials_]})
+        skipped: dict[str, int] = {}
+        for e in self.trials_:
+            for k, v in e.frames_skipped_.items():
+                skipped[k] = skipped.get(k, 0) + int(v)
+        diagnostics = {
+            "trials": self.trial_table(), "consistency": dict(self.consistency_),
+            "heterogeneity": self.heterogeneity_,
+            "between_trial": {"method": self.between_trial, "n_trials": len(self.trials_),
+                              "interval": "t quantile with Satterthwaite degrees of freedom"},
+            "converged": self.converged_, "stacked_fit_iterations": self.n_iter_}
+        return build_result(self, self.posterior_, extra=extra, noise=noise, skipped=skipped,
+                            diagnostics=diagnostics, derived=self.lengths_, status={},
+                            arrays={"pose": self.pose_, "trial_theta": self.trial_theta_,
+                                    "trial_cov": self.trial_cov_, "trial_sd": self.trial_sd_,
+                                    "trial_frames": np.array([len(e.frames_used_) for e in self.trials_])})
