@@ -390,9 +390,13 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Mot
     # stiffer (graduated smoothing) first carries one smooth trajectory through them
     stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
                       frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER)
-    fits = [joint_fit(model, sc.y, th, qq, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
-                      cutoff=cutoff)
-            for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
+    def fit_from(th, qq):
+        return joint_fit(model, sc.y, th, qq, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
+                         cutoff=cutoff)
+
+    # the penalty's weights come from the starting poses: from the stiff fit's, once more from its own
+    graduated = fit_from(stiff.theta, stiff.pose)
+    fits = [fit_from(st.theta0, st.pose0), fit_from(graduated.theta, graduated.pose)]
     fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
     return Motion(fit, cutoff)
 
