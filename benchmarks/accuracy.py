@@ -190,8 +190,9 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
     n_par = max((len(t[m].get("est_all", [0])) for t in trials for m in methods if "est" in t[m]), default=1)
     n_par = n_par if split else 1
     for k in range(1, n_par):
-        alias = [dict(t, **{f"{m}:{k}": dict(t[m], est=t[m]["est_all"][k], lo=t[m]["lo_all"][k],
-                                             hi=t[m]["hi_all"][k]) if "est" in t[m] else t[m] for m in methods})
+        alias = [dict(t, **{f"{m}:{k}": dict({c: v for c, v in t[m].items() if c not in ("profile", "bias")},
+                                             est=t[m]["est_all"][k], lo=t[m]["lo_all"][k], hi=t[m]["hi_all"][k])
+                            if "est" in t[m] else t[m] for m in methods})
                  for t in trials]
         rows += summarise(case, sigma, truth, noise, [dict(a, crlb=a.get("crlb_all", [a["crlb"]] * n_par)[k])
                                                      for a in alias], [f"{m}:{k}" for m in methods], False)
@@ -216,8 +217,9 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
             "seconds_per_fit": float(np.mean([o["seconds"] for o in ok])) if n else float("nan"),
         }
         if n and "bias_method" in ok[0]:
-            row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
-            row["bias_removed"] = float(np.mean([o["bias"] for o in ok]))
+            if "profile" in ok[0]:  # first parameter only
+                row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
+                row["bias_removed"] = float(np.mean([o["bias"] for o in ok]))
             methods_used = [o["bias_method"] for o in ok]
             row["bias_methods"] = {m: methods_used.count(m) for m in sorted(set(methods_used))}
             flags = [f for o in ok for f in o["flags"]]

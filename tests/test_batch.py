@@ -76,7 +76,7 @@ def _rows(cols):
     key = {"method": "paper", "settings": '{"seed": 0}', "skelid_version": "0.1.0"}
     return [dict.fromkeys(cols) | key | {"file": "/b.trc", "file_sha256": "bb", "n_frames": 10, "frames_used": 9,
                                          "L2": 250.5, "L2_sd": 1.25, "L2_ci_low": 248.0, "L2_ci_high": 253.0,
-                                         "sigma": 15.0, "seconds": 0.5},
+                                         "L2_crlb_sd": 1.1, "L2_status": "poor", "sigma": 15.0, "seconds": 0.5},
             dict.fromkeys(cols) | key | {"file": "/a.trc", "file_sha256": "aa",
                                          "error": "a, \"quoted\" problem"}]
 
@@ -139,8 +139,22 @@ def test_exactly_once_keyed_by_content_method_and_settings(tmp_path, monkeypatch
     assert run(sigma=10.0)["fitted"] == 2
     rows = read_table(out, columns(builtin_model("case-a")))
     assert len(rows) == 6 and len({batch.row_key(r) for r in rows}) == 6
+    # each parameter's columns are those of to_dataframe: estimate, sd, interval, bound, status
+    assert all(r["L2_status"] == "identified" and r["L2_crlb_sd"] is None for r in rows)  # paper: no bound
+    assert all(r["L2_ci_low"] < r["L2"] < r["L2_ci_high"] and r["L2_sd"] > 0 for r in rows)
     (trials / "t0.trc").rename(trials / "renamed.trc")  # the same content under another name: not again
     assert run()["skipped"] == 2
+
+
+def test_parameter_names_whose_columns_collide_are_one_line():
+    from skelid.errors import SkelidError
+    from skelid.model import model_from_dict
+
+    spec = builtin_model("case-a").to_dict()
+    extra = dict(spec["parameters"][0], name="L2_sd")
+    spec["parameters"].append(extra)
+    with pytest.raises(SkelidError, match="column 'L2_sd' twice"):
+        columns(model_from_dict(spec, "clash"))
 
 
 def test_missing_extra_is_one_line(tmp_path, capsys, monkeypatch):

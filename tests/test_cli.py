@@ -29,11 +29,11 @@ def test_demo_writes_figures_and_documented_json(tmp_path, capsys):
     assert set(summary) == {"case_a", "case_b"}
     for case in summary.values():
         assert case["truth"] == {"L2": 250.0}
-        assert case["frames_total"] == 150
-        paper = case["methods"]["paper"]
-        assert 0 < paper["frames_used"] <= 150
-        assert set(paper["L2"]) >= {"map", "mean", "sd", "ci95"}
-        assert len(paper["L2"]["ci95"]) == 2
+        assert case["frames_total"] == 150 and case["model"] in ("case_a", "case_b")
+        paper = case["results"]["paper"]
+        assert 0 < paper["frames"]["used"] <= 150
+        assert set(paper["parameters"]["L2"]) >= {"map", "mean", "sd", "interval", "crlb_sd", "status"}
+        assert len(paper["parameters"]["L2"]["interval"]) == 2
     for case in ("case_a", "case_b"):
         for fig in ("trajectories", "posterior", "map_per_step"):
             _png_ok(out / f"{case}_{fig}.png")
@@ -47,8 +47,8 @@ def test_simulate_then_fit_json(tmp_path, capsys):
     assert "true L2 = 250 mm" in capsys.readouterr().out
     assert main(["fit", str(EXAMPLES / "case_a.toml"), str(trc), "--method", "paper", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
-    assert res["frames_total"] == 120
-    lo, hi = res["methods"]["paper"]["L2"]["ci95"]
+    assert res["context"]["frames_total"] == 120
+    lo, hi = res["results"]["paper"]["parameters"]["L2"]["interval"]
     assert 200 <= lo < hi <= 300
     csv = tmp_path / "a.csv"
     assert main(["simulate", "case-b", "--frames", "20", "--out", str(csv)]) == 0
@@ -131,7 +131,7 @@ def test_cutoff_option_sets_the_motion_model(tmp_path, capsys):
     for cutoff in ("0", "4"):
         assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--cutoff", cutoff, "--json"]) == 0
         res = json.loads(capsys.readouterr().out)
-        lo, hi = res["methods"]["marker"]["L2"]["ci95"]
+        lo, hi = res["results"]["marker"]["parameters"]["L2"]["interval"]
         assert lo < 250.0 < hi
     assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--cutoff", "-1"]) == 2
 
@@ -143,11 +143,12 @@ def test_artefact_option_widens_the_interval(tmp_path, capsys):
     widths = []
     for rms in ("0", "5"):
         assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", rms, "--json"]) == 0
-        res = json.loads(capsys.readouterr().out)["methods"]["marker"]
-        widths.append(res["L2"]["ci95"][1] - res["L2"]["ci95"][0])
-        assert ("artefact" in res) == (rms != "0")
+        res = json.loads(capsys.readouterr().out)["results"]["marker"]
+        lo, hi = res["parameters"]["L2"]["interval"]
+        widths.append(hi - lo)
+        assert ("artefact" in res["diagnostics"]) == (rms != "0")
     assert widths[1] > 1.5 * widths[0]
-    assert res["artefact"]["rms"] == 5.0 and res["artefact"]["sd_added"][0] > 0
+    assert res["diagnostics"]["artefact"]["rms"] == 5.0 and res["diagnostics"]["artefact"]["sd_added"][0] > 0
     for bad in ("-1", "nan"):
         assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", bad]) == 2
         err = capsys.readouterr().err
@@ -162,8 +163,9 @@ def test_artefact_option_works_with_the_sampler_and_is_refused_where_it_cannot_a
     for rms in ("0", "5"):
         assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", rms, "--json",
                      "--method", "marker-smc"]) == 0
-        res = json.loads(capsys.readouterr().out)["methods"]["marker-smc"]
-        widths.append(res["L2"]["ci95"][1] - res["L2"]["ci95"][0])
+        res = json.loads(capsys.readouterr().out)["results"]["marker-smc"]
+        lo, hi = res["parameters"]["L2"]["interval"]
+        widths.append(hi - lo)
     assert widths[1] > 1.5 * widths[0]
     assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trc), "--artefact-rms", "5", "--method", "paper"]) == 2
     err = capsys.readouterr().err

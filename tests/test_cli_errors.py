@@ -42,8 +42,11 @@ def files(tmp_path_factory):
     f["broken_result"].mkdir()
     (f["broken_result"] / "result.json").write_text('{"methods": {"paper": ')
     f["no_result"].mkdir()
+    from skelid.io.results import write_run
+    from skelid.result import FitRun
+
     f["ok_result"].mkdir()
-    (f["ok_result"] / "result.json").write_text('{"methods": {}}')
+    write_run(f["ok_result"], FitRun())
     return {k: str(v) for k, v in f.items()}
 
 
@@ -153,9 +156,10 @@ def test_warnings_printed_once_and_recorded(tmp_path, capfd):
     result = json.loads(cap.out)  # stdout holds only JSON
     on_disk = json.loads((tmp_path / "fit" / "result.json").read_text())
     assert result["warnings"] == on_disk["warnings"]
-    gap = next(w for w in result["warnings"] if w.startswith("marker B is missing in 10 of 60 frames"))
+    messages = [w["message"] for w in result["warnings"]]
+    gap = next(w for w in messages if w.startswith("marker B is missing in 10 of 60 frames"))
     assert cap.err.count(gap) == 1
-    for w in result["warnings"]:
+    for w in messages:
         assert cap.err.count(f"skelid: warning: {w}\n") == 1
     assert all(line.startswith("skelid: warning: ") for line in cap.err.strip().splitlines())
 

@@ -16,14 +16,20 @@ def test_several_trials_alternatives_and_per_marker_noise(tmp_path, capsys):
     alt.write_text((EXAMPLES / "case_b.toml").read_text().replace('name = "case_b"', 'name = "case_b_alt"'))
     capsys.readouterr()
     assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--cutoff", "0", "--noise", "per-marker",
-                 "--alternative", str(alt), "--json"]) == 0
+                 "--alternative", str(alt), "--json", "--out", str(tmp_path / "fit")]) == 0
     res = json.loads(capsys.readouterr().out)
-    m = res["methods"]["marker"]
-    assert len(m["trials"]) == 2 and [t["data"] for t in m["trials"]] == paths
-    assert m["consistency"]["dof"] == 1 and 0.0 <= m["consistency"]["p_value"] <= 1.0
-    lo, hi = m["L2"]["ci95"]
+    from skelid.io.results import read_run
+
+    run = read_run(tmp_path / "fit")  # the folder holds what was printed, through the one serializer
+    assert run.results["marker"].diagnostics["model_sensitivity"]["models"] == ["case_b", "case_b_alt"]
+    m = res["results"]["marker"]
+    diag = m["diagnostics"]
+    assert len(diag["trials"]) == 2 and [t["data"] for t in diag["trials"]] == paths
+    assert diag["consistency"]["dof"] == 1 and 0.0 <= diag["consistency"]["p_value"] <= 1.0
+    lo, hi = m["parameters"]["L2"]["interval"]
     assert lo < 250.0 < hi
-    spread = res["alternatives"]["spread"]["L2"]
+    assert res["context"]["data"] == paths
+    spread = diag["model_sensitivity"]["spread"]["L2"]
     assert set(spread["values"]) == {"case_b", "case_b_alt"} and spread["spread"] < 1e-6
     # another method with several trials is refused in one line
     assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--method", "paper"]) == 2

@@ -74,13 +74,13 @@ def test_cli_fits_example_models(shared_data, tmp_path, capsys):
     rc = main(["fit", str(EXAMPLES / "arm.toml"), str(shared_data / "pyomeca-upperlimb" / "markers.trc"),
                "--json", "--method", "marker"])
     assert rc == 0
-    res = json.loads(capsys.readouterr().out)["methods"]["marker"]
-    assert res["frames_used"] == 93 and "shoulder-elbow" in res["lengths"]
+    res = json.loads(capsys.readouterr().out)["results"]["marker"]
+    assert res["frames"]["used"] == 93 and "shoulder-elbow" in res["derived"]
     # the pendulum through a TRC copy of its text file: noise-free, so no tissue-artefact warning
     trc = tmp_path / "pendulum.trc"
     write_trc(trc, read(shared_data / "bmc-pendulum" / "3dPendulum.txt"))
     assert main(["fit", str(EXAMPLES / "pendulum.toml"), str(trc), "--json", "--method", "marker"]) == 0
     out = json.loads(capsys.readouterr().out)
-    res = out["methods"]["marker"]
-    assert res["pivot_to_com"]["mean"] == pytest.approx(0.5, abs=1e-4)
+    res = out["results"]["marker"]
+    assert res["parameters"]["pivot_to_com"]["mean"] == pytest.approx(0.5, abs=1e-4)
     assert "soft-tissue" not in json.dumps(out)

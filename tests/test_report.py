@@ -16,6 +16,7 @@ import pytest
 
 from skelid import registry
 from skelid.cli import main
+from skelid.errors import SkelidError
 from skelid.estimators.base import RNG, Setting, positive_or_none
 from skelid.estimators.paper import PaperFilter
 from skelid.estimators.posterior import GridPosterior
@@ -138,18 +139,20 @@ def paper_fit(tmp_path_factory):
 
 def test_fit_out_writes_what_the_report_needs(paper_fit):
     res = json.loads((paper_fit / "fit" / "result.json").read_text())
-    assert res["command"][:2] == ["skelid", "fit"] and "--out" in res["command"]
-    assert set(res["versions"]) >= {"python", "numpy", "scipy", "skelid", "ezc3d"}
-    ov = res["data_overview"]
+    assert res["schema_version"] == 1 and set(res["results"]) == {"paper"}
+    prov = res["context"]["provenance"]
+    assert prov["command"][:2] == ["skelid", "fit"] and "--out" in prov["command"]
+    assert set(prov["versions"]) >= {"python", "numpy", "scipy", "skelid", "ezc3d"}
+    ov = res["context"]["data_overview"]
     assert (ov["n_frames"], ov["n_markers"], ov["rate_hz"], ov["units"]) == (160, 3, 100.0, "mm")
     gaps = {m["name"]: (m["frames_missing"], m["gaps"], m["longest_gap"]) for m in ov["markers"]}
     assert gaps == {"A": (0, 0, 0), "B": (0, 0, 0), "C": (20, 1, 20)}
     with np.load(paper_fit / "fit" / "arrays.npz") as z:
-        assert z["markers"].shape == (160, 3, 2) and list(z["marker_names"]) == ["A", "B", "C"]
-        assert float(z["rate"]) == 100.0 and str(z["units"]) == "mm"
-        assert list(z["paper.posterior.history_steps"]) == [50, 100]
-        assert z["paper.posterior.history.0"].shape == (2, z["paper.posterior.axis.0"].size)
-        assert z["paper.measured"].shape == (160,)
+        assert z["run/markers"].shape == (160, 3, 2) and list(z["run/marker_names"]) == ["A", "B", "C"]
+        assert float(z["run/rate"]) == 100.0 and str(z["run/units"]) == "mm"
+        assert list(z["paper/posterior.history_steps"]) == [50, 100]
+        assert z["paper/posterior.history.0"].shape == (2, z["paper/posterior.axis.0"].size)
+        assert z["paper/measured"].shape == (160,)
 
 
 def test_report_of_a_paper_fit(paper_fit, capfd):
@@ -177,6 +180,16 @@ def test_report_without_arrays_still_works(paper_fit, tmp_path):
 
 
 # ----------------------------------------------------------------------------- a fuller result, by hand
+def write_legacy(d, result: dict, arrays: dict):
+    """Write a result given in the flat layout before schema version 1 through the serializer."""
+    from skelid.io.legacy import run_from_legacy
+    from skelid.io.results import write_run
+
+    d.mkdir(parents=True)
+    write_run(d, run_from_legacy(result, arrays))
+    return d
+
+
 def _handmade(d):
     rng = np.random.default_rng(0)
     F, t = 200, np.arange(200) / 100.0
@@ -231,10 +244,7 @@ def _handmade(d):
         "laplace.posterior.history_cov": np.stack([np.diag([4.0, 200.0]), np.diag([2.0, 120.0]),
                                                    np.diag([0.64, 81.0])]),
     }
-    d.mkdir()
-    (d / "result.json").write_text(json.dumps(result))
-    np.savez(d / "arrays.npz", **arrays)
-    return d
+    return write_legacy(d, result, arrays)
 
 
 def test_report_of_a_fuller_result(tmp_path):
@@ -296,7 +306,8 @@ class _MarkerLike:
         F = len(self.residuals_)
         return FitResult("marker", {name: p}, noise=NoiseEstimate(self.sigma_, (2.8, 3.2)), frames=FrameCounts(F, F),
                          diagnostics={"identifiability": [{"parameter": name, "crlb_sd": float(self.crlb_sd_[0]),
-                                                           "status": "identified"}]})
+                                                           "status": "identified"}]},
+                         arrays={"residuals": self.residuals_})
 
 
 def test_fit_and_report_with_a_fuller_estimator(tmp_path, monkeypatch, capfd):
@@ -309,10 +320,11 @@ def test_fit_and_report_with_a_fuller_estimator(tmp_path, monkeypatch, capfd):
     err = capfd.readouterr().err
     assert err.count("residuals of marker A (marker method") == 1 and "soft-tissue artefact" in err
     with np.load(out / "arrays.npz") as z:
-        assert z["marker.residuals"].shape == (120, 3) and z["marker.crlb_sd"].shape == (1,)
-        assert list(z["marker.posterior.history_steps"]) == [50, 100]
+        assert z["marker/residuals"].shape == (120, 3)
+        assert list(z["marker/posterior.history_steps"]) == [50, 100]
     res = json.loads((out / "result.json").read_text())
-    assert any("residuals of marker A" in w for w in res["warnings"])
+    assert res["results"]["marker"]["parameters"]["L2"]["crlb_sd"] > 0
+    assert any("residuals of marker A" in w["message"] for w in res["warnings"])
     path, _ = write_report(out)
     text, _ = _check_html(path, min_images=6)
     residuals = _section(text, "Residuals per marker")
@@ -369,10 +381,7 @@ def odd_result(d, n_frames: int = 90, with_pose: bool = True):
               "units": np.array("mm"), "marker.crlb_sd": np.full(len(names), 0.9)}
     if with_pose:
         arrays["marker.pose"] = trial.pose
-    d.mkdir(parents=True)
-    (d / "result.json").write_text(json.dumps(result))
-    np.savez(d / "arrays.npz", **arrays)
-    return d
+    return write_legacy(d, result, arrays)
 
 
 def test_summary_answers_first(tmp_path):
@@ -421,10 +430,10 @@ def test_the_view_follows_the_fitted_poses(tmp_path):
 
     d = odd_result(tmp_path / "odd")
     res = json.loads((d / "result.json").read_text())
-    model = model_from_dict(res["model_description"])
+    model = model_from_dict(res["context"]["model_description"])
     with np.load(d / "arrays.npz") as z:
-        pose, y = z["marker.pose"], z["markers"]
-    theta = [res["methods"]["marker"][n]["mean"] for n in model.parameter_names]
+        pose, y = z["marker/pose"], z["run/markers"]
+    theta = [res["results"]["marker"]["parameters"][n]["mean"] for n in model.parameter_names]
     spec = figure_spec(model, theta, pose, y, max_frames=30)
     assert spec["meta"] == {"dim": 3, "frames_total": 90, "frames_shown": 30, "stride": 3, "n_segments": 5,
                             "n_markers": 10}
@@ -471,16 +480,76 @@ def test_report_of_a_typed_result(tmp_path):
 
 def test_a_warning_stays_with_its_method(tmp_path):
     """A run-level copy of one method's warning is not shown beside another method's estimates."""
+    from skelid.io.results import read_run, write_run
+    from skelid.result import FitRun
+    from skelid.result import Warning as FitWarning
+
     d = odd_result(tmp_path / "odd")
-    res = json.loads((d / "result.json").read_text())
-    res["methods"]["paper"] = {"L": {"map": 1.0, "mean": 1.0, "sd": 0.1, "ci95": [0.8, 1.2]},
-                               "warnings": ["paper method dropped 9 of 90 frames (no converged solution inside "
-                                            "the interval)"]}
-    res["warnings"] += res["methods"]["marker"]["warnings"] + res["methods"]["paper"]["warnings"]
-    (d / "result.json").write_text(json.dumps(res))
+    run = read_run(d)
+    dropped = FitWarning("frames-skipped", "paper method dropped 9 of 90 frames (no converged solution inside "
+                         "the interval)")
+    paper = FitResult("paper", {"L": ParameterEstimate("L", "mm", 1.0, 1.0, 0.1, (0.8, 1.2))}, warnings=(dropped,))
+    results = {**run.results, "paper": paper}
+    write_run(d, FitRun(results, run.context, (*run.warnings, *run.results["marker"].warnings, dropped),
+                        run.arrays))
     path, _ = write_report(d, tmp_path / "two.html")
     text, _ = _check_html(path, min_images=3)
     summary = _section(text, "Summary")
     paper = summary[summary.index("Method: paper"):]
     assert "stopped before converging" not in paper and "dropped 9 of 90 frames" in paper
     assert 'class="severe">paper method dropped' not in paper  # frames dropped: a warning, not a broken fit
+
+
+def test_summary_shows_model_spread_and_noise_per_marker(tmp_path):
+    """With model alternatives, each estimate's spread over the models sits in its row; the noise of
+    each marker is listed under the table, highest first."""
+    from skelid.io.results import write_run
+    from skelid.result import FitRun
+
+    def est(name, mean):
+        return ParameterEstimate(name, "mm", mean, mean, 1.0, (mean - 2, mean + 2), 0.9)
+
+    spread = {"L": {"values": {"main": 250.0, "other": 256.0}, "spread": 6.0, "sd_over_models": 4.2,
+                    "largest_sd": 1.0},
+              "off": {"values": {"main": 10.0, "other": 10.5}, "spread": 0.5, "sd_over_models": 0.35,
+                      "largest_sd": 1.0}}
+    sens = {"models": ["main", "other"], "estimates": {m: {k: {"value": v["values"][m], "sd": 1.0}
+                                                           for k, v in spread.items()} for m in ("main", "other")},
+            "spread": spread}
+    r = FitResult("marker", {"L": est("L", 250.0), "off": est("off", 10.0)},
+                  noise=NoiseEstimate(2.0, (1.9, 2.1), per_marker={"KNE": 1.5, "<ANK>": 4.5, "HIP": 2.0}),
+                  diagnostics={"model_sensitivity": sens})
+    write_run(tmp_path / "fit", FitRun({"marker": r}, {"model": "m", "units": "mm"}))
+    path, _ = write_report(tmp_path / "fit")
+    text, _ = _check_html(path, min_images=1)
+    summary = _section(text, "Summary")
+    assert "spread over models [mm]" in summary
+    row = summary[summary.index('<td class="l">L</td>'):]
+    row = row[:row.index("</tr>")]
+    assert 'class="warn" title="main: 250, other: 256">6<' in row  # wider than any model's own sd
+    row = summary[summary.index('<td class="l">off</td>'):]
+    assert 'class="" title="main: 10, other: 10.5">0.5<' in row[:row.index("</tr>")]
+    noise = summary[summary.index("Marker noise per marker"):]
+    assert noise.index("&lt;ANK&gt; 4.5") < noise.index("HIP 2") < noise.index("KNE 1.5")
+    assert '<span class="warn">&lt;ANK&gt; 4.5</span>' in noise  # above 1.5 times the pooled level
+    # a malformed spread record is refused before the report is written
+    doc = json.loads((tmp_path / "fit" / "result.json").read_text())
+    doc["results"]["marker"]["diagnostics"]["model_sensitivity"]["spread"]["L"]["spread"] = "wide"
+    (tmp_path / "fit" / "result.json").write_text(json.dumps(doc))
+    with pytest.raises(SkelidError, match=r"model_sensitivity\.spread\.L\.spread: expected a number"):
+        write_report(tmp_path / "fit")
+
+
+def test_old_layout_and_demo_folders_are_refused_in_one_line(tmp_path, capfd):
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "result.json").write_text(json.dumps({"units": "mm", "methods": {"marker": {
+        "L2": {"map": 250.0, "mean": 250.0, "sd": 1.0, "ci95": [248.0, 252.0]}}}}))
+    demo = tmp_path / "demo"
+    demo.mkdir()
+    (demo / "summary.json").write_text("{}")
+    for folder, needle in ((old, "before result schema version 1"), (demo, "holds demo output")):
+        assert main(["report", str(folder), "--out", str(tmp_path / "r.html")]) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and "skelid fit" in err[0], err
+    assert not (tmp_path / "r.html").exists()

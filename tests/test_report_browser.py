@@ -121,9 +121,8 @@ def test_3d_view_in_a_browser(browser, tmp_path, capsys):
 
 def _planar_result(d):
     """The seed's planar arm fitted by a method that estimates no poses (the report fits them for the view)."""
-    import json
-
     from skelid.simulate import builtin_model, simulate
+    from tests.test_report import write_legacy
 
     model = builtin_model("case-a")
     trial = simulate(model, n_frames=120, sigma=5.0, rng=np.random.default_rng(2))
@@ -131,11 +130,8 @@ def _planar_result(d):
            for n, v in zip(model.parameter_names, trial.theta, strict=True)}
     result = {"model": model.name, "data": "arm.trc", "units": model.units, "frames_total": 120,
               "methods": {"paper": est}, "model_description": model.to_dict()}
-    d.mkdir()
-    (d / "result.json").write_text(json.dumps(result))
-    np.savez(d / "arrays.npz", markers=trial.data.positions, marker_names=np.array(model.marker_names),
-             rate=np.array(100.0), units=np.array(model.units))
-    return d
+    return write_legacy(d, result, {"markers": trial.data.positions, "marker_names": np.array(model.marker_names),
+                                    "rate": np.array(100.0), "units": np.array(model.units)})
 
 
 def test_planar_view_in_a_browser(browser, tmp_path, capsys):

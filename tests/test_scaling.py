@@ -160,7 +160,12 @@ def test_cli_fit_osim_writes_the_scaled_model(leg, tmp_path, capsys):
     table = json.loads(capsys.readouterr().out)
     assert table["scales"]["thigh"]["xyz"]["value"] == pytest.approx(1.1, abs=1e-3)
     assert {p.name for p in out.iterdir()} >= {"scaled.osim", "scaled_scale_set.xml", "scaled_scaling.json",
-                                               "result.json"}
+                                               "result.json", "arrays.npz"}
+    from skelid.io.results import read_run
+
+    run = read_run(out)
+    assert run.context["scaling"]["scales"]["thigh"]["xyz"]["value"] == pytest.approx(1.1, abs=1e-3)
+    assert run.results["marker"].parameters  # the scale and offset estimates, typed
 
 
 @pytest.mark.parametrize("text,words", [
@@ -197,3 +202,98 @@ def test_cli_model_import_writes_a_model_that_loads(leg, tmp_path):
     q = np.linspace(-0.5, 0.3, base.n_pose)
     np.testing.assert_allclose(marker_positions(model, model.theta_nominal, q),
                                marker_positions(base, np.zeros(0), q), atol=1e-9)
+
+
+def test_marker_set_is_found_beside_the_model(shared_data):
+    from skelid.io.osim import find_marker_set
+
+    path = shared_data / "opensim-subject01" / "gait2354_simbody.osim"
+    ms, how = find_marker_set(path)
+    assert ms.name == "gait2354_Scale_MarkerSet.xml" and "subject01_Setup_Scale.xml" in how
+    model, info = read_osim(path)
+    assert len(model.markers) == 39 and info.marker_set == str(ms)
+
+
+def test_a_lone_marker_set_file_is_taken_two_are_refused_in_one_line(tmp_path):
+    from skelid.errors import ModelError
+
+    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+                     f'<location>{x} {y} {z}</location></Marker>'
+                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
+    (tmp_path / "leg.osim").write_text(MODEL.format(markers=""))
+    (tmp_path / "notes.xml").write_text("<OpenSimDocument><IKTaskSet/></OpenSimDocument>")
+    (tmp_path / "broken.xml").write_text("<OpenSimDocument><MarkerSet")
+    with pytest.raises(ModelError, match="--marker-set"):
+        read_osim(tmp_path / "leg.osim")
+    (tmp_path / "leg_markers.xml").write_text(f"<OpenSimDocument><MarkerSet><objects>{text}</objects>"
+                                              "</MarkerSet></OpenSimDocument>")
+    model, info = read_osim(tmp_path / "leg.osim")
+    assert len(model.markers) == 12 and info.marker_set.endswith("leg_markers.xml")
+    (tmp_path / "other.xml").write_text((tmp_path / "leg_markers.xml").read_text())
+    with pytest.raises(ModelError) as exc:
+        read_osim(tmp_path / "leg.osim")
+    line = str(exc.value)
+    assert "leg_markers.xml" in line and "other.xml" in line and "--marker-set" in line and "\n" not in line
+
+
+def test_the_first_example_runs_as_written_on_a_few_frames(shared_data, tmp_path, capsys):
+    """``skelid fit gait2354_simbody.osim static.trc walk.trc --out DIR`` (no marker set named): a scaled
+    model OpenSim loads and runs inverse kinematics with, a ScaleSet and a report."""
+    osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    osim.Logger.removeFileSink()
+    from skelid.cli import main
+    from skelid.io import read_markers, write_trc
+    from skelid.scaling import opensim_ik
+
+    s01 = shared_data / "opensim-subject01"
+    static, walk = read_markers(s01 / "subject01_static.trc"), read_markers(s01 / "subject01_walk1.trc")
+    write_trc(tmp_path / "static.trc", MarkerData(static.positions[:4], static.names, static.rate, static.units))
+    write_trc(tmp_path / "walk.trc", MarkerData(walk.positions[:24:2], walk.names, walk.rate / 2, walk.units))
+    out = tmp_path / "fit"
+    assert main(["fit", str(s01 / "gait2354_simbody.osim"), str(tmp_path / "static.trc"),
+                 str(tmp_path / "walk.trc"), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "gait2354_Scale_MarkerSet.xml" in err
+    assert {"scaled.osim", "scaled_scale_set.xml", "scaled_report.md"} <= {p.name for p in out.iterdir()}
+    assert osim.ScaleSet(str(out / "scaled_scale_set.xml")).getSize() == 8
+    assert "femur_r" in (out / "scaled_report.md").read_text()
+    ik = opensim_ik(out / "scaled.osim", tmp_path / "walk.trc", tmp_path / "ik")
+    assert ik["frames"] == 12 and ik["markers"] == 31 and ik["rmse_mm"] < 60.0
+    assert not list(s01.glob("*.log"))
+
+
+def test_free_markers_at_a_placeholder_are_placed_before_they_can_drive_the_scales(tmp_path):
+    """Cluster markers a generic model holds at one placeholder point: the static trial's fixed markers scale
+    the bodies first, and the free markers go where the static trial saw them."""
+    from skelid.scaling import place_free_markers_first
+
+    fixed = {"pelvis0", "pelvis1", "pelvis2", "pelvis3", "thigh0", "thigh3", "shank0", "shank3"}
+    placeholder = {"thigh": (0.0, -0.2, 0.05), "shank": (0.0, -0.2, 0.05)}
+
+    def write(path, true_places):
+        path.write_text(MODEL.format(markers="\n".join(
+            f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+            f'<location>{" ".join(map(str, loc if true_places or f"{b}{i}" in fixed else placeholder[b]))}'
+            f'</location><fixed>{str(f"{b}{i}" in fixed).lower()}</fixed></Marker>'
+            for b, locs in MARKERS.items() for i, loc in enumerate(locs))))
+        return path
+
+    truth = {"pelvis": 1.05, "thigh": 1.1, "shank": 0.95}
+    static, _ = _trials(write(tmp_path / "true.osim", True), truth, frames=(6, 2))
+    generic = write(tmp_path / "generic.osim", False)
+    full, info = read_osim(generic)
+    assert info.fixed_markers == fixed
+    moved, note = place_free_markers_first(full, info, "bodies", static)
+    assert set(moved) == {"thigh1", "thigh2", "shank1", "shank2"} and "8 fixed markers" in note
+    true_model, _ = read_osim(tmp_path / "true.osim")
+    for name, r in moved.items():  # the true place (mm, from the body's joint centre) up to the noise
+        expected = true_model.markers[true_model.marker_names.index(name)].position
+        np.testing.assert_allclose(r, expected, atol=0.5, err_msg=name)
+
+
+def test_batch_and_other_commands_read_an_osim_model_with_body_scales(shared_data):
+    from skelid.simulate import resolve_model
+
+    model = resolve_model(shared_data / "opensim-subject01" / "gait2354_simbody.osim")
+    assert {p.kind for p in model.parameters} == {"scale"} and len(model.parameters) == 8
+    assert len(model.markers) == 39  # the MarkerSet found beside the model

@@ -1,5 +1,8 @@
 """Many trials on a Dask cluster: one row per trial in a Parquet or CSV table.
 
+Each row is read from the trial's typed result (:class:`~skelid.result.FitResult`),
+with the values of :func:`skelid.io.frames.to_dataframe` per parameter.
+
 ``skelid batch MODEL 'DIR/*.trc' --out results.parquet`` fits every matching
 file with one method on a ``dask.distributed`` cluster (a local one with one
 single-threaded process per worker by default, or an existing one given by
@@ -18,6 +21,9 @@ column                    meaning
 ``<param>``               the estimate (posterior mean) of each parameter
 ``<param>_sd``            its posterior standard deviation
 ``<param>_ci_low/high``   its 95 % interval
+``<param>_crlb_sd``       its Cramér-Rao bound, or null where the method computes none
+``<param>_status``        ``identified``, ``poor``, ``unidentified`` or ``prior``, or null where
+                          the method gives none
 ``sigma``                 marker noise (estimated, or as given)
 ``seconds``               time to read and fit the trial
 ``error``                 one line saying why the trial failed, or null
@@ -63,7 +69,12 @@ TAIL = ("sigma", "seconds", "error", "warnings", "row_sha256")
 KEY = ("file_sha256", "method", "settings", "skelid_version")
 STRING_COLUMNS = ("file", "file_sha256", "method", "settings", "skelid_version", "error", "warnings", "row_sha256")
 INT_COLUMNS = ("n_frames", "frames_used")
-PARAM_SUFFIXES = ("", "_sd", "_ci_low", "_ci_high")
+#: per-parameter columns ``<param><suffix>`` and the field of :func:`skelid.io.frames.estimate_fields` each holds
+PARAM_FIELDS = {"": "estimate", "_sd": "sd", "_ci_low": "lower", "_ci_high": "upper", "_crlb_sd": "crlb_sd",
+                "_status": "status"}
+PARAM_SUFFIXES = tuple(PARAM_FIELDS)
+#: per-parameter columns that hold text
+PARAM_STRING_SUFFIXES = ("_status",)
 #: rewrite the table at most this often while trials finish (seconds)
 WRITE_INTERVAL = 2.0
 
@@ -86,8 +97,28 @@ def require_dask(parquet: bool = True) -> None:
 
 
 def columns(model) -> list[str]:
-    """The table's columns for ``model``, in order."""
-    return [*HEAD, *(f"{p}{s}" for p in model.parameter_names for s in PARAM_SUFFIXES), *TAIL]
+    """The table's columns for ``model``, in order.
+
+    Raises
+    ------
+    SkelidError
+        Two parameters' columns would share a name (``a_sd`` beside ``a``'s sd).
+    """
+    cols = [*HEAD, *(f"{p}{s}" for p in model.parameter_names for s in PARAM_SUFFIXES), *TAIL]
+    if len(set(cols)) != len(cols):
+        twice = sorted({c for c in cols if cols.count(c) > 1})
+        raise SkelidError(f"model {model.name!r} has parameter names that give the batch table the column "
+                          f"{twice[0]!r} twice", "rename the parameter so that no name is another's plus "
+                          f"{', '.join(s for s in PARAM_SUFFIXES if s)}")
+    return cols
+
+
+def string_columns(cols) -> set[str]:
+    """The columns of ``cols`` that hold text (the others hold numbers)."""
+    block = list(cols[len(HEAD):len(cols) - len(TAIL)])
+    n = len(PARAM_SUFFIXES)
+    text = {i for i, s in enumerate(PARAM_SUFFIXES) if s in PARAM_STRING_SUFFIXES}
+    return set(STRING_COLUMNS) | {c for i, c in enumerate(block) if i % n in text}
 
 
 def _one_line(text) -> str:
@@ -144,8 +175,8 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
     from skelid.checks import check_data
     from skelid.estimators.base import prepare
     from skelid.io import read_markers
-    from skelid.io.results import summary_dict
-    from skelid.workflows import check_cost, check_input_file, check_units, make_estimator
+    from skelid.io.frames import estimate_fields
+    from skelid.workflows import check_cost, check_input_file, check_units, make_estimator, method_result
 
     t0 = time.perf_counter()
     row = dict.fromkeys(columns(model))
@@ -162,29 +193,33 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             check_data(model, prepare(model, data), [method], str(path))
             check_cost(model, method, data.n_frames, limits)
             est.fit(data)
-            res = summary_dict(est.result())
-        row["frames_used"] = int(res.get("frames_used", 0))
-        for name in model.parameter_names:
-            v = res[name]
-            row[name], row[f"{name}_sd"] = float(v["mean"]), float(v["sd"])
-            row[f"{name}_ci_low"], row[f"{name}_ci_high"] = (float(c) for c in v["ci95"])
-            if not all(math.isfinite(row[f"{name}{s}"]) for s in PARAM_SUFFIXES):
-                raise FloatingPointError(f"non-finite estimate of {name}: {v}")
-        sig = res.get("sigma", {})
-        row["sigma"] = float(sig["value"]) if isinstance(sig, dict) and sig.get("value") is not None else None
-        notes = list(dict.fromkeys([*res.get("warnings", []),
+            res = method_result(model, est)
+        row.update(result_values(res, model.parameter_names, estimate_fields))
+        notes = list(dict.fromkeys([*(w.message for w in res.warnings),
                                     *(str(w.message) for w in caught if issubclass(w.category, SkelidWarning))]))
         row["warnings"] = " | ".join(_one_line(w) for w in notes) or None
     except SkelidError as exc:
         row["error"] = exc.one_line()
     except Exception as exc:  # a bug or a broken file: recorded, the batch goes on
         row["error"] = _one_line(f"internal error {type(exc).__name__}: {exc}")
-    for name in model.parameter_names:  # a failed trial has no estimate at all
-        if row["error"] is not None:
-            for s in PARAM_SUFFIXES:
-                row[f"{name}{s}"] = None
+    if row["error"] is not None:  # a failed trial has no estimate at all
+        row.update({f"{name}{s}": None for name in model.parameter_names for s in PARAM_SUFFIXES})
     row["seconds"] = round(time.perf_counter() - t0, 4)
     return row
+
+
+def result_values(res, names, estimate_fields) -> dict:
+    """The row's values from a trial's :class:`~skelid.result.FitResult`: frames used, each
+    parameter's fields (:data:`PARAM_FIELDS`), the noise level."""
+    out = {"frames_used": None if res.frames is None else int(res.frames.used),
+           "sigma": None if res.noise is None or not math.isfinite(res.noise.sigma) else float(res.noise.sigma)}
+    for name in names:
+        fields = estimate_fields(res.parameters[name])
+        if not all(math.isfinite(fields[f]) for f in ("estimate", "sd", "lower", "upper")):
+            raise FloatingPointError(f"non-finite estimate of {name}: {res.parameters[name]}")
+        out.update({f"{name}{s}": fields[f] for s, f in PARAM_FIELDS.items()})
+        out[f"{name}_crlb_sd"] = None if math.isnan(fields["crlb_sd"]) else fields["crlb_sd"]
+    return out
 
 
 # --------------------------------------------------------------------------- the table
@@ -201,7 +236,7 @@ def _fmt(out: Path) -> str:
 def _schema(cols):
     import pyarrow as pa
 
-    kinds = {**{c: pa.string() for c in STRING_COLUMNS}, **{c: pa.int64() for c in INT_COLUMNS}}
+    kinds = {**{c: pa.string() for c in string_columns(cols)}, **{c: pa.int64() for c in INT_COLUMNS}}
     return pa.schema([(c, kinds.get(c, pa.float64())) for c in cols])
 
 
@@ -232,13 +267,13 @@ def read_table(out: Path, cols) -> list[dict]:
                 reader = csv.DictReader(fh)
                 names = list(reader.fieldnames or [])
                 _check_columns(out, names, cols)
-                rows = []
+                rows, text = [], string_columns(cols)
                 for r in reader:
                     if None in r or None in r.values():
                         raise SkelidError(f"table {out} is truncated or corrupt: line {reader.line_num} has "
                                           f"{len(r) - (None in r) - sum(v is None for v in r.values())} fields "
                                           f"for {len(names)} columns", fix)
-                    rows.append({k: _from_csv(k, v, out, reader.line_num) for k, v in r.items()})
+                    rows.append({k: _from_csv(k, v, out, reader.line_num, k in text) for k, v in r.items()})
     except SkelidError:
         raise
     except Exception as exc:
@@ -264,10 +299,10 @@ def _check_columns(out, names, cols) -> None:
                           "those of a skelid batch table of this model", "choose another --out file for this model")
 
 
-def _from_csv(col: str, text: str, out, line: int):
+def _from_csv(col: str, text: str, out, line: int, is_text: bool):
     if text == "":
         return None
-    if col in STRING_COLUMNS:
+    if is_text:
         return text
     try:
         return int(text) if col in INT_COLUMNS else float(text)

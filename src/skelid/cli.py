@@ -11,7 +11,6 @@ only JSON on stdout; progress bars go to stderr and only to a terminal.
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import signal
 import sys
@@ -57,9 +56,9 @@ def _echo_warnings(messages) -> None:
 
 
 def _echo_json(obj) -> None:
-    from skelid.workflows import _json_default
+    from skelid.io.results import dumps
 
-    click.echo(json.dumps(obj, indent=2, default=_json_default))
+    click.echo(dumps(obj), nl=False)
 
 
 def _finite(name: str, value):
@@ -109,12 +108,14 @@ def demo(out_dir, seed, frames, sigma, as_json, quiet, overwrite, max_memory, ma
     from skelid import workflows
 
     _finite("--sigma", sigma)
-    summary = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
-                             limits=_limits(max_memory, max_time), overwrite=overwrite)
+    from skelid.demo import summary_document
+
+    runs = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
+                          limits=_limits(max_memory, max_time), overwrite=overwrite)
     if as_json:
-        _echo_json(summary)
+        _echo_json(summary_document(runs))
     elif not quiet:
-        click.echo(workflows.table(summary))
+        click.echo(workflows.table(runs))
         click.echo(f"figures and summary.json written to {out_dir}")
 
 
@@ -215,7 +216,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     from skelid import workflows
 
     if str(model_path).lower().endswith(".osim"):
-        _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
+        _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite)
         return
     _finite("--sigma", sigma)
@@ -224,31 +225,34 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     if len(data_paths) > 1 or alternatives or noise != "pooled":
         from skelid.sensitivity import run_fit_trials
 
-        result = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
+        run = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
                                 out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
                                 artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
                                 alternatives=alternatives, overwrite=overwrite)
     else:
-        result = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
+        run = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
                                    out_dir=out_dir, command=_command(ctx), progress=not quiet,
                                    cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time),
                                    overwrite=overwrite)
-    _echo_warnings(result["warnings"])
+    from skelid.io.results import run_to_dict
+
+    _echo_warnings(w.message for w in run.warnings)
     if as_json:
-        _echo_json(result)
+        _echo_json(run_to_dict(run))
     elif not quiet:
-        click.echo(workflows.table(result))
+        click.echo(workflows.table(run))
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")
 
 
-def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
+def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
               as_json, quiet, overwrite=False):
     """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim."""
     from skelid import scaling, workflows
     from skelid.io import read_markers
     from skelid.io.atomic import atomic_dir, check_output_dir
+    from skelid.io.results import write_run
 
     if len(method_names) > 1:
         raise click.UsageError("an .osim model is fitted with one method; give --method once")
@@ -267,8 +271,7 @@ def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_
     if out_dir is not None:
         with atomic_dir(out_dir, protect=[model_path, *data_paths], overwrite=overwrite) as tmp:
             paths = scaling.write_outputs(fit_, tmp)
-            workflows.write_json(Path(tmp) / "result.json", {"method": "marker", **fit_.result,
-                                                            "scaling": table})
+            write_run(tmp, workflows.scaling_run(fit_, table, _command(ctx)))
         table["written"] = {k: str(Path(out_dir) / v.name) for k, v in paths.items()}
     if as_json:
         _echo_json(table)
@@ -279,7 +282,7 @@ def _fit_osim(model_path, data_paths, method_names, sigma, out_dir, seed, scale_
                 click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
         click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
         if out_dir:
-            click.echo(f"scaled model, ScaleSet and scaling.json written to {out_dir}")
+            click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")
 
 
 @cli.group("model")
@@ -308,6 +311,8 @@ def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_b
 
     workflows.check_input_file(osim_path, "model file")
     model, info = read_osim(osim_path, marker_set, keep="all" if all_bodies else "markers")
+    if info.marker_set_found_by:
+        _echo_warnings([f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}"])
     model = osim_parameters(model, info, scale_kind, marker_kind)
     head = (f"# imported from {Path(osim_path).name} by skelid model import: frames keep the OpenSim bodies'\n"
             "# orientation with their origin at the joint centre; lengths in mm\n")
@@ -392,11 +397,18 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def _one_blas_thread():
+    """One BLAS thread for the command: a fit is many small factorisations, which threads only slow down."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1, user_api="blas")
+
+
 def main(argv=None) -> int:
     """Entry point: run the CLI, turning user errors into one line and exit status 2."""
     args = list(sys.argv[1:] if argv is None else argv)
     try:
-        with _sigterm_as_exit():
+        with _sigterm_as_exit(), _one_blas_thread():
             cli.main(args=args, prog_name="skelid", standalone_mode=False, obj={"argv": ["skelid", *args]})
     except SkelidError as exc:
         click.echo(f"skelid: error: {exc.one_line()}", err=True)

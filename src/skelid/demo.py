@@ -9,8 +9,9 @@ import numpy as np
 
 from skelid.errors import SkelidError
 from skelid.io.atomic import atomic_dir, check_output_dir
-from skelid.io.results import write_json
+from skelid.io.results import result_to_dict, write_json
 from skelid.plots import fit_figures as figures
+from skelid.result import FitRun
 from skelid.workflows import check_cost, fit_file
 
 DEMO_METHODS = ("paper", "marker")
@@ -21,6 +22,11 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     """Simulate cases A and B with the seed paper's settings, fit, draw, summarise.
 
     Nothing appears in ``out_dir`` until every figure and ``summary.json`` are complete.
+
+    Returns
+    -------
+    dict of str to FitRun
+        ``{"case_a": run, "case_b": run}``; each context holds the ``truth``.
     """
     from tqdm import tqdm
 
@@ -33,7 +39,7 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
     for case in ("case-a", "case-b"):
         for n in method_names:
             check_cost(builtin_model(case), n, n_frames, limits)
-    summary, drawn = {}, []
+    runs, drawn = {}, []
     cases = ("case-a", "case-b")
     bar = tqdm(total=len(cases) + 1, desc="demo", unit="step", file=sys.stderr,
                disable=not progress or not sys.stderr.isatty())
@@ -42,16 +48,25 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0,
         model = builtin_model(case)
         trial = simulate(model, n_frames=n_frames, sigma=sigma,
                          rng=np.random.default_rng([seed, k]))
-        res, fitted = fit_file(model, trial.data, method_names, seed=seed, progress=progress)
+        results, fitted = fit_file(model, trial.data, method_names, seed=seed, progress=progress)
         key = case.replace("-", "_")
         drawn.append((model, trial, fitted, key))
-        summary[key] = {"truth": trial.truth, "sigma_noise": sigma, "frames_total": res["frames_total"],
-                        "methods": res["methods"]}
+        runs[key] = FitRun(results, {"model": model.name, "units": model.units,
+                                     "frames_total": trial.data.n_frames, "truth": trial.truth,
+                                     "sigma_noise": sigma})
         bar.update(1)
     bar.set_postfix_str("figures")
     with bar, atomic_dir(out_dir, overwrite=overwrite) as tmp:
         for model, trial, fitted, key in drawn:
             figures(model, trial.data, fitted, tmp, prefix=f"{key}_", truth=trial.truth)
-        write_json(tmp / "summary.json", summary)
+        write_json(tmp / "summary.json", summary_document(runs))
         bar.update(1)
-    return summary
+    return runs
+
+
+def summary_document(runs) -> dict:
+    """``summary.json`` of the demo: per case, the run's context and each method's result
+    (as in ``result.json``, without arrays; see ``docs/result-format.md``)."""
+    return {case: {**run.context, "results": {m: result_to_dict(r.replace(arrays={}))
+                                              for m, r in run.results.items()}}
+            for case, run in runs.items()}

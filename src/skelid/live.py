@@ -76,9 +76,15 @@ from scipy.stats import norm
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
 from skelid.estimators.grid import MarkerGridFilter
-from skelid.estimators.pose import _model_size, fit_pose, initial_pose
+from skelid.estimators.pose import _model_size, fit_pose, initial_pose, workspace
 from skelid.model.description import Model
-from skelid.model.kinematics import forward_kinematics, marker_jacobian, pose_jacobian, theta_jacobian
+from skelid.model.kinematics import (
+    Workspace,
+    forward_kinematics,
+    marker_jacobian,
+    pose_jacobian,
+    theta_jacobian,
+)
 from skelid.result import ParameterEstimate
 
 _Z95 = float(norm.ppf(0.975))
@@ -152,7 +158,8 @@ def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | No
     return fallback
 
 
-def gaussian_update(model: Model, state: GaussianState, y, prior, sigma2: float, n_iter: int = 10):
+def gaussian_update(model: Model, state: GaussianState, y, prior, sigma2: float, n_iter: int = 10,
+                    ws: Workspace | None = None):
     """One frame ``y (M, D)`` (model units, NaN where missing) folded into ``state``.
 
     Parameters
@@ -167,11 +174,13 @@ def gaussian_update(model: Model, state: GaussianState, y, prior, sigma2: float,
     state : GaussianState
     """
     q0 = state.pose if state.pose_prev is None else 2.0 * state.pose - state.pose_prev
-    q, _ = fit_pose(model, state.mean, y, q0, n_iter=n_iter)
-    return _fold(model, state, y, q, forward_kinematics(model, state.mean, q), prior, sigma2)
+    if ws is None:
+        ws = workspace(model)
+    q, _ = fit_pose(model, state.mean, y, q0, n_iter=n_iter, ws=ws)
+    return _fold(model, state, y, q, forward_kinematics(model, state.mean, q, ws), prior, sigma2, ws)
 
 
-def _fold(model, state, y, q, kin, prior, sigma2):
+def _fold(model, state, y, q, kin, prior, sigma2, ws=None):
     """The update of :func:`gaussian_update` at the fitted pose ``q`` with its kinematics ``kin``."""
     _, L0, lo, hi = prior
     theta = state.mean
@@ -179,8 +188,8 @@ def _fold(model, state, y, q, kin, prior, sigma2):
     w = present[:, None].astype(float)
     r = (np.where(present[:, None], y, 0.0) - kin.markers) * w
     N = r.size
-    Jq = (pose_jacobian(model, kin) * w[..., None]).reshape(N, -1)
-    Kt = marginal_theta_jacobian(Jq, (theta_jacobian(model, kin) * w[..., None]).reshape(N, -1))
+    Jq = (pose_jacobian(model, kin, ws) * w[..., None]).reshape(N, -1)
+    Kt = marginal_theta_jacobian(Jq, (theta_jacobian(model, kin, ws) * w[..., None]).reshape(N, -1))
     rv = r.reshape(N)
     A = state.info_data + Kt.T @ Kt
     step = np.linalg.solve(L0 + A / sigma2, Kt.T @ rv / sigma2)
@@ -190,7 +199,8 @@ def _fold(model, state, y, q, kin, prior, sigma2):
                          state.n_obs + int(present.sum()) * model.dim, state.n_used + 1)
 
 
-def relinearise(model: Model, state: GaussianState, frames, prior, sigma: float | None, n_iter: int = 2):
+def relinearise(model: Model, state: GaussianState, frames, prior, sigma: float | None, n_iter: int = 2,
+                ws: Workspace | None = None):
     """The state recomputed from ``frames`` (every frame used so far) by Gauss-Newton at the current mean.
 
     The recursive update linearises each frame at the mean of its time; the
@@ -214,11 +224,11 @@ def relinearise(model: Model, state: GaussianState, frames, prior, sigma: float 
     mean = state.mean
     n_obs = int(present.sum()) * D
     for _ in range(n_iter):
-        q, _ = fit_pose(model, mean, Y, Q0, n_iter=10)
-        kin = forward_kinematics(model, mean, q)
+        q, _ = fit_pose(model, mean, Y, Q0, n_iter=10, ws=ws)
+        kin = forward_kinematics(model, mean, q, ws)
         r = ((Y0 - kin.markers) * w).reshape(B, M * D)
-        Jq = (pose_jacobian(model, kin) * w[..., None]).reshape(B, M * D, -1)
-        Kt = marginal_theta_jacobian(Jq, (theta_jacobian(model, kin) * w[..., None]).reshape(B, M * D, -1))
+        Jq = (pose_jacobian(model, kin, ws) * w[..., None]).reshape(B, M * D, -1)
+        Kt = marginal_theta_jacobian(Jq, (theta_jacobian(model, kin, ws) * w[..., None]).reshape(B, M * D, -1))
         A = np.einsum("bnp,bnq->pq", Kt, Kt)
         g = np.einsum("bnp,bn->p", Kt, r)
         rss = float(np.sum(r**2))
@@ -352,6 +362,7 @@ class Session:
         self._index = self._name_index(labels)
         self._order = self._array_order(labels)
         self._prior = prior_moments(model)
+        self._ws = workspace(model)  # the session's tables; its pose fits keep one path throughout
         self._frame = 0
         self._early: list = []  # the first frames used, (y, pose), for re-linearisation
         self.estimate: LiveEstimate | None = None
@@ -460,7 +471,7 @@ class Session:
         return bad
 
     def _push_gaussian(self, y) -> LiveEstimate:
-        model = self.model
+        model, ws = self.model, self._ws
         problems = []
         missing = int((~np.isfinite(y).all(axis=-1)).sum())
         if missing:
@@ -471,13 +482,13 @@ class Session:
         st = self._state
         s2 = self._current_sigma2()
         if st.pose is None:
-            q, _ = initial_pose(model, st.mean, y, self.rng)
+            q, _ = initial_pose(model, st.mean, y, self.rng, ws=ws)
         else:
             q0 = st.pose if st.pose_prev is None else 2.0 * st.pose - st.pose_prev
-            q, _ = fit_pose(model, st.mean, y, q0, n_iter=10)
+            q, _ = fit_pose(model, st.mean, y, q0, n_iter=10, ws=ws)
         rejected = []
         for _ in range(3):  # leave out up to three markers that do not fit (a swapped pair needs two)
-            kin = forward_kinematics(model, st.mean, q)
+            kin = forward_kinematics(model, st.mean, q, ws)
             resid = _distances(kin.markers, y)
             bad = self._screen(resid, s2, np.isfinite(y).all(axis=-1))
             if not bad.any():
@@ -489,22 +500,22 @@ class Session:
                 return self._estimate(st.pose, resid, False, problems + [
                     f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too few "
                     "markers remain: frame not used"], tuple(rejected))
-            q, _ = fit_pose(model, st.mean, y, q, n_iter=10)
+            q, _ = fit_pose(model, st.mean, y, q, n_iter=10, ws=ws)
         else:
-            kin = forward_kinematics(model, st.mean, q)
+            kin = forward_kinematics(model, st.mean, q, ws)
             resid = _distances(kin.markers, y)
         if rejected:
             problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
                             "(swapped or wrong label?)")
-        self._state = _fold(model, st, y, q, kin, self._prior, s2)
+        self._state = _fold(model, st, y, q, kin, self._prior, s2, ws)
         if self._state.n_used <= _RELINEARISE[-1]:
             self._early.append((y, q))
             if self._state.n_used in _RELINEARISE:
-                self._state = relinearise(model, self._state, self._early, self._prior, self.sigma)
+                self._state = relinearise(model, self._state, self._early, self._prior, self.sigma, ws=ws)
         return self._estimate(q, resid, not problems, problems, tuple(rejected), kin.p_world_seg)
 
     def _push_grid(self, y) -> LiveEstimate:
-        model = self.model
+        model, ws = self.model, self._ws
         problems = []
         missing = int((~np.isfinite(y).all(axis=-1)).sum())
         if missing:
@@ -520,7 +531,7 @@ class Session:
             k = int(np.argmax(lw))
             q = st.pose[k]
             if self._usable(y):
-                kin = forward_kinematics(model, self._grid._points()[1][k], q)
+                kin = forward_kinematics(model, self._grid._points()[1][k], q, ws)
                 resid = _distances(kin.markers, y)
                 return self._estimate(q, resid, not problems, problems, (), kin.p_world_seg)
         return self._estimate(q, resid, not problems, problems, ())
@@ -545,7 +556,7 @@ class Session:
         return self._state.mean.copy(), np.linalg.inv(Lam)
 
     def _estimate(self, q, resid, healthy, problems, rejected, centres=None) -> LiveEstimate:
-        model = self.model
+        model, ws = self.model, self._ws
         mean, cov = self.posterior()
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         z = _Z95
@@ -561,7 +572,7 @@ class Session:
         joints = {}
         if q is not None:
             if centres is None:
-                centres = forward_kinematics(model, mean, q).p_world_seg
+                centres = forward_kinematics(model, mean, q, ws).p_world_seg
             joints = {s.joint.name: _frozen(centres[i]) for i, s in enumerate(model.segments)}
         return LiveEstimate(
             frame=self._frame, time=self._frame / self.rate, parameters=MappingProxyType(params),
@@ -601,7 +612,7 @@ class Session:
         """
         if self.estimate is None or self.estimate.pose is None:
             return []
-        model = self.model
+        model, ws = self.model, self._ws
         mean, cov = self.posterior()
         _, L0, _, _ = self._prior
         prior_sd = 1.0 / np.sqrt(np.diag(L0))
@@ -612,7 +623,7 @@ class Session:
         cands, poses = _sweeps(model, q_now, amplitudes_deg, n_frames)
         if not cands:
             return []
-        _, Jq, Jt = marker_jacobian(model, mean, np.concatenate(poses))
+        _, Jq, Jt = marker_jacobian(model, mean, np.concatenate(poses), ws)
         N = Jq.shape[-3] * Jq.shape[-2]
         Kt = marginal_theta_jacobian(Jq.reshape(-1, N, model.n_pose), Jt.reshape(-1, N, model.n_params))
         info = np.einsum("fnp,fnq->fpq", Kt, Kt).reshape(len(cands), n_frames, model.n_params, model.n_params)

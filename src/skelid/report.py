@@ -1,7 +1,9 @@
 """One self-contained HTML report of a fit, answering first.
 
 ``write_report(result_dir)`` reads what ``skelid fit --out RESULT_DIR`` wrote
-(``result.json`` and, if present, ``arrays.npz``) and writes one HTML file that
+(``result.json`` and, if present, ``arrays.npz``, through
+:func:`skelid.io.results.read_run`, which refuses a damaged, foreign or old
+folder in one line before anything is drawn) and writes one HTML file that
 opens from disk or travels by mail: figures are embedded as base64 PNGs and
 the interactive view's library (plotly.js) is inlined, so nothing is fetched.
 Sections:
@@ -9,7 +11,10 @@ Sections:
 1. Summary: each parameter's estimate, 95 % interval, Cramér–Rao bound and
    status, with the warnings that concern it beside it (a fit that did not
    converge or whose approximation broke is shown there, in red), the derived
-   lengths and the marker noise; then every other warning.
+   lengths and the marker noise; with model alternatives (``skelid fit
+   --alternative``), each estimate's spread over the models in its row; the
+   noise level of each marker where it was estimated (``--noise per-marker``);
+   then every other warning.
 2. The fitted body: an interactive view (:mod:`skelid.viewer`) of the fitted
    skeleton (segments, joint centres, model markers) against the measured
    markers over time, 3-D or planar, with a frame slider and a play button.
@@ -37,11 +42,9 @@ import base64
 import datetime
 import html
 import io
-import json
 import math
 import re
 import sys
-import zipfile
 from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
@@ -87,48 +90,6 @@ tr.fit td { background: #fff0f0; }
 .viewer { width: 100%; min-height: 620px; border: 1px solid #eee; }
 nav ol { columns: 2; }
 """
-
-
-# ----------------------------------------------------------------------------- reading
-def load_result_dir(result_dir) -> tuple[dict, dict, list[str]]:
-    """``(result, arrays, notes)`` from a folder written by ``skelid fit --out``.
-
-    Raises
-    ------
-    SkelidError
-        The folder, its ``result.json`` or its ``arrays.npz`` is missing or unreadable.
-    """
-    d = Path(result_dir)
-    fix = f"run 'skelid fit MODEL DATA --out {d}' first"
-    if not d.exists():
-        raise SkelidError(f"result folder {d} does not exist", fix)
-    if not d.is_dir():
-        raise SkelidError(f"{d} is a file, not a result folder", f"give the folder that holds result.json; {fix}")
-    path = d / "result.json"
-    if not path.is_file():
-        hint = " (it holds demo output, which has no single fit)" if (d / "summary.json").exists() else ""
-        raise SkelidError(f"{d} has no result.json{hint}", fix)
-    try:
-        result = json.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise SkelidError(f"cannot read {path}: {exc.strerror or exc}", "check the file's permissions") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise SkelidError(f"{path} is not valid JSON ({exc})", f"the file is damaged; {fix}") from None
-    if not isinstance(result, dict) or not isinstance(result.get("methods"), dict):
-        raise SkelidError(f"{path} is not a skelid fit result (no 'methods' table)", fix)
-    notes = []
-    arrays = {}
-    npz = d / "arrays.npz"
-    if npz.is_file():
-        try:
-            with np.load(npz, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-            raise SkelidError(f"{npz} is unreadable ({exc})", f"the file is damaged; {fix}") from None
-    else:
-        notes.append(f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
-                     "residual figures (rerun skelid fit with --out to get them)")
-    return result, arrays, notes
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -551,8 +512,8 @@ def _final(b: _Builder, run, units: str):
             k = post_names.index(name) if name in post_names else None
             if k is not None and f"posterior.axis.{k}" in a:
                 panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
-            elif k is not None and "posterior.points" in a:
-                panel.update(_histogram(a["posterior.points"][:, k], a.get("posterior.weights")))
+            elif k is not None and "samples" in a:
+                panel.update(_histogram(a["samples"][:, k], a.get("sample_weights")))
             elif k is not None and "posterior.cov" in a:
                 panel.update(mean=float(a["posterior.mean"][k]), sd=float(np.sqrt(max(a["posterior.cov"][k, k], 0))),
                              kind_label="posterior (Gaussian)")
@@ -706,40 +667,111 @@ def _status_cell(p) -> str:
 
 
 def _summary(b: _Builder, run, units: str, notes: list[str]):
-    """The answer: every estimate with its interval, bound, status and warnings; then the other warnings."""
+    """The answer: every estimate with its interval, bound, status and warnings (and, with model
+    alternatives, its spread over the models); the noise of each marker; then the other warnings."""
     for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
         warns = _method_warnings(run, method)
-        rows, cls = [], []
-        fit_wide = [w for w in warns if not w["parameters"] and w["severe"]]
-        if fit_wide:
-            rows.append(("<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)))
-            cls.append("fit")
-        for name, p in r.parameters.items():
-            mine = [w for w in warns if name in w["parameters"]]
-            unit = "" if p.unit == units else f" {_e(p.unit)}"
-            rows.append((_e(name), _fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
-                         _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>',
-                         _status_cell(p), _warning_list(mine)))
-            cls.append("")
-        for name, p in r.derived.items():
-            rows.append((f"{_e(name)} <small>(derived length)</small>", _fmt(p.mean), _interval(p.interval),
-                         _fmt(p.crlb_sd) if p.crlb_sd is not None else "–", _status_cell(p), ""))
-            cls.append("")
-        if r.noise is not None:
-            rows.append(("marker noise σ" + (" <small>(fixed)</small>" if r.noise.fixed else ""),
-                         _fmt(r.noise.sigma), _interval(r.noise.interval), "–", "–", ""))
-            cls.append("")
+        spread = _model_spread(r)
+        rows, cls = _summary_rows(r, warns, units, spread)
         if not rows:
             b.add(_na("parameter estimates"))
             continue
-        b.add(_table(["parameter", f"estimate [{units}]", "95 % interval", f"Cramér–Rao sd [{units}]", "status",
-                      "warnings"], rows, left=(0, 5), row_class=cls, cell_class={5: "w"}))
+        head = ["parameter", f"estimate [{units}]", "95 % interval", f"Cramér–Rao sd [{units}]", "status",
+                *([f"spread over models [{units}]"] if spread else []), "warnings"]
+        last = len(head) - 1
+        b.add(_table(head, rows, left=(0, last), row_class=cls, cell_class={last: "w"}))
+        if spread:
+            b.add(_spread_note(r.diagnostics["model_sensitivity"]))
+        if r.noise is not None and r.noise.per_marker:
+            b.add(_per_marker_noise(r.noise, units))
         rest = [w for w in warns if not w["parameters"] and not w["severe"]]
         if rest:
             b.add(f"<p>Other warnings about this fit:</p>{_warning_list(rest)}")
     if notes:
         b.add(_warning_list([{"message": n, "severe": False} for n in notes]))
+
+
+def _summary_rows(r, warns: list[dict], units: str, spread: dict | None) -> tuple[list, list]:
+    """Rows of the summary table (and their classes): the whole fit's severe warnings, then each
+    parameter, derived length and the noise level; with ``spread``, its column before the warnings."""
+    rows, cls = [], []
+
+    def add(cells, key, row_class=""):
+        *main, warn = cells
+        extra = [] if spread is None else ["–" if key is None else _spread_cell(spread.get(key))]
+        rows.append((*main, *extra, warn))
+        cls.append(row_class)
+
+    fit_wide = [w for w in warns if not w["parameters"] and w["severe"]]
+    if fit_wide:
+        add(["<b>the whole fit</b>", "", "", "", "", _warning_list(fit_wide)], None, "fit")
+    for name, p in r.parameters.items():
+        mine = [w for w in warns if name in w["parameters"]]
+        add([_e(name), *_estimate_cells(p, units), _warning_list(mine)], name)
+    for name, p in r.derived.items():
+        add([f"{_e(name)} <small>(derived length)</small>", *_estimate_cells(p, units), ""], name)
+    if r.noise is not None:
+        add(["marker noise σ" + (" <small>(fixed)</small>" if r.noise.fixed else ""), _fmt(r.noise.sigma),
+             _interval(r.noise.interval), "–", "–", ""], None)
+    return rows, cls
+
+
+def _estimate_cells(p, units: str) -> list[str]:
+    """Estimate (with its unit where it is not the model's), interval, Cramér–Rao sd and status."""
+    unit = "" if p.unit == units else f" {_e(p.unit)}"
+    return [_fmt(p.mean if math.isfinite(p.mean) else p.map) + unit, _interval(p.interval),
+            _fmt(p.crlb_sd) if p.crlb_sd is not None else '<span class="na">–</span>', _status_cell(p)]
+
+
+def _model_spread(r) -> dict | None:
+    """``{quantity: spread record}`` of ``skelid fit --alternative`` (see :mod:`skelid.sensitivity`), or None."""
+    sens = r.diagnostics.get("model_sensitivity")
+    spread = sens.get("spread") if isinstance(sens, Mapping) else None
+    return dict(spread) if isinstance(spread, Mapping) and spread else None
+
+
+def _spread_cell(rec) -> str:
+    """The range of one quantity's estimates over the models, with each model's value on hover;
+    in colour where it is wider than the widest of the models' own sds."""
+    if not isinstance(rec, Mapping):
+        return '<span class="na">–</span>'
+    values = ", ".join(f"{k}: {_fmt(v)}" for k, v in (rec.get("values") or {}).items())
+    wide = _finite(rec.get("spread")) > _finite(rec.get("largest_sd"), math.inf)
+    return f'<span class="{"warn" if wide else ""}" title="{_e(values)}">{_fmt(rec.get("spread"))}</span>'
+
+
+def _finite(x, default: float = math.nan) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return default
+    return v if math.isfinite(v) else default
+
+
+def _spread_note(sens: Mapping) -> str:
+    models = ", ".join(_e(m) for m in sens.get("models") or [])
+    return (f"<p>Model sensitivity: the data were fitted again under each model ({models}); the spread is the "
+            "range of an estimate over them (hover for each model's value). It measures how much the answer "
+            "depends on modelling choices the data cannot settle, which no interval from one model contains; "
+            'a spread <span class="warn">in colour</span> exceeds the largest of the models\' own sds.</p>')
+
+
+def _per_marker_noise(noise, units: str, show: int = 12) -> str:
+    """The noise level of each marker, highest first (the rest folded away beyond ``show``)."""
+    items = sorted(noise.per_marker.items(), key=lambda kv: -_finite(kv[1], -math.inf))
+    pooled = noise.sigma
+
+    def cell(k, v):
+        high = math.isfinite(pooled) and _finite(v) > 1.5 * pooled
+        return f'<span class="{"warn" if high else ""}">{_e(k)} {_fmt(v, 3)}</span>'
+
+    text = ", ".join(cell(k, v) for k, v in items[:show])
+    if len(items) > show:
+        text += (f"<details><summary>{len(items) - show} more markers</summary>"
+                 + ", ".join(cell(k, v) for k, v in items[show:]) + "</details>")
+    return (f"<p>Marker noise per marker (σ in {_e(units)}, highest first; in colour: more than 1.5 times the "
+            f"pooled σ {_fmt(pooled)}): {text}</p>")
 
 
 # ----------------------------------------------------------------------------- the fitted body
@@ -817,22 +849,20 @@ def _body(b: _Builder, run, units: str):
 def load_run(result_dir):
     """``(run, notes)``: the :class:`~skelid.result.FitRun` a result folder holds and what it lacks.
 
-    A folder with a ``schema_version`` is read by :func:`skelid.io.results.read_run`; an
-    older one by :func:`load_result_dir` and :func:`skelid.io.legacy.run_from_legacy`.
+    Read by :func:`skelid.io.results.read_run`, which checks everything first: a
+    damaged, foreign or old folder is refused in one line (:class:`~skelid.errors.FormatError`).
     """
-    from skelid.io.legacy import has_schema, run_from_legacy
+    from skelid.io.results import read_run
 
     d = Path(result_dir)
-    if has_schema(d):
-        from skelid.io.results import read_run
-
-        run = read_run(d)
-        notes = [] if (d / "arrays.npz").is_file() else [
-            f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
-            "residual figures (rerun skelid fit with --out to get them)"]
-        return run, notes
-    result, arrays, notes = load_result_dir(d)
-    return run_from_legacy(result, arrays), notes
+    if d.is_dir() and not (d / "result.json").exists() and (d / "summary.json").exists():
+        raise SkelidError(f"{d} holds demo output, which has no single fit",
+                          "run 'skelid fit MODEL DATA --out DIR' and give DIR")
+    run = read_run(d)
+    notes = [] if (d / "arrays.npz").is_file() else [
+        f"{d} has no arrays.npz: the report has no trajectory, posterior-evolution or "
+        "residual figures (rerun skelid fit with --out to get them)"]
+    return run, notes
 
 
 def build_html(result, arrays=None, notes=(), progress: bool = False) -> str:

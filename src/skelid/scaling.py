@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import DataError
+from skelid.errors import DataError, SkelidWarning
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
@@ -114,90 +115,117 @@ class ScalingFit:
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
-STATIC_FRAMES = 30
+STATIC_FRAMES = 20
+MOVEMENT_FRAMES = 80
+
+
+def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -> MarkerData:
+    """A trial cut to at most ``max_frames`` frames.
+
+    Parameters
+    ----------
+    max_frames : int or None
+        None: the trial as it is.
+    uniform : bool
+        True: every ``k``-th frame with ``k = ceil(F / max_frames)`` and the
+        rate divided by ``k`` (the motion model needs equal steps); False:
+        ``max_frames`` evenly spaced frames at the original rate.
+    """
+    F = data.positions.shape[0]
+    if max_frames is None or F <= max_frames:
+        return data
+    if uniform:
+        k = -(-F // int(max_frames))
+        return MarkerData(data.positions[::k], data.names, data.rate / k, data.units, data.source, data.meta)
+    idx = np.unique(np.linspace(0, F - 1, int(max_frames)).round().astype(int))
+    return MarkerData(data.positions[idx], data.names, data.rate, data.units, data.source, data.meta)
 
 
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
-             static_frames: int | None = STATIC_FRAMES, joined: bool = False) -> ScalingFit:
+             static_frames: int | None = STATIC_FRAMES, movement_frames: int | None = MOVEMENT_FRAMES,
+             joined: bool = False) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
     ----------
     osim_path : path
     trials : sequence of MarkerData
-        A static trial and movement trials of one subject (joined by :func:`join_trials`).
+        A static trial first, then movement trials of one subject.
     marker_set : path, optional
-        A MarkerSet file for models without markers.
+        A MarkerSet file for models without markers (default: the one
+        :func:`skelid.io.osim.find_marker_set` finds next to the model).
     scale : {'bodies', 'axes', 'none'}
         See :func:`skelid.io.osim.osim_parameters`.
     markers : {'offsets', 'none'}
         Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
     static_frames : int or None
-        The first trial, when it has more frames, contributes this many evenly
-        spaced ones (a static trial repeats one pose: more frames add time, not
-        information, since its residuals are serially correlated). None: all.
+        The first trial, when it has more frames, contributes every ``k``-th
+        frame, at most this many (a static trial repeats one pose: more frames
+        add time, not information, since its residuals are serially
+        correlated). None: all.
+    movement_frames : int or None
+        Each later trial, when it has more frames, contributes every ``k``-th
+        frame, at most this many (:func:`thin_trial`; the residuals of
+        neighbouring frames at motion-capture rates are strongly correlated,
+        so thinning costs little information and the serial-correlation
+        correction of the interval still applies). None: all.
     joined : bool
-        Fit the trials as one recording with gaps (one marker fit) instead of
-        the multi-trial fit (each trial alone, then together).
+        Fit the trials as one recording with gaps (one marker fit, :func:`join_trials`)
+        instead of the multi-trial fit (each trial alone, then together).
 
     Returns
     -------
     ScalingFit
     """
-    from skelid.io.results import summary_dict
-    from skelid.workflows import make_estimator
-
     trials = list(trials)
-    if static_frames is not None and trials and trials[0].positions.shape[0] > static_frames:
-        t = trials[0]
-        idx = np.unique(np.linspace(0, t.positions.shape[0] - 1, static_frames).round().astype(int))
-        trials[0] = MarkerData(t.positions[idx], t.names, t.rate, t.units, t.source, t.meta)
-    data = join_trials(trials)
+    if not trials:
+        raise DataError("no trial given", "give at least one marker file")
     full, info = read_osim(osim_path, marker_set)
+    marker_set = info.marker_set
+    trials = [thin_trial(trials[0], static_frames)] + [
+        thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
     multi = len(trials) > 1 and method == "marker" and not joined
+    data = join_trials(trials) if not multi else None
     # the multi-trial fit needs every marker in every trial; a joined recording, in any
-    spans = data.meta["trial_frames"] if multi else [(0, data.positions.shape[0])]
-    present = [n for n in full.marker_names if n in data.names
-               and all(np.isfinite(data.positions[a:b, data.names.index(n)]).all(axis=-1).any() for a, b in spans)]
+    if multi:
+        def seen(n):
+            return all(n in t.names and np.isfinite(t.positions[:, t.names.index(n)]).all(axis=-1).any()
+                       for t in trials)
+    else:
+        def seen(n):
+            return n in data.names and np.isfinite(data.positions[:, data.names.index(n)]).all(axis=-1).any()
+    present = [n for n in full.marker_names if seen(n)]
     if not present:
+        names = trials[0].names
         raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
-                        f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(data.names[:4])} ...)",
+                        f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(names[:4])} ...)",
                         "rename the markers in the model's MarkerSet or in the data so that they match")
-    base, info = read_osim(osim_path, marker_set)
-    base = keep_markers(base, present)
-    model = osim_parameters(base, info, scale, "none", present)
+    original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
-    sub = MarkerData(data.positions[:, [data.names.index(n) for n in model.marker_names]],
-                     model.marker_names, data.rate, data.units, data.source, data.meta)
     t0 = time.perf_counter()
-    if model.n_params and multi:
-        from skelid.estimators.multitrial import MultiTrialEstimator
-
-        parts = [MarkerData(sub.positions[a:b], sub.names, sub.rate, sub.units, t.source)
-                 for (a, b), t in zip(data.meta["trial_frames"], trials, strict=True)]
-        est = MultiTrialEstimator(model, sigma=sigma, rng=np.random.default_rng(seed)).fit(parts)
-        res, theta = est.result(), np.asarray(est.theta_, float)
-        edges = np.cumsum([0] + [len(p.positions) for p in parts])
-        pose = np.full((sub.positions.shape[0], model.n_pose), np.nan)
-        for (a, b), e0, e1 in zip(data.meta["trial_frames"], edges[:-1], edges[1:], strict=True):
-            pose[a:b] = est.pose_[e0:e1]
-    elif model.n_params:
-        est = make_estimator(method, model, sigma, rng=np.random.default_rng(seed))
-        est.fit(sub)
-        res, theta, pose = summary_dict(est.result()), np.asarray(est.theta_, float), est.pose_
-    else:  # nothing to scale: poses of the nominal model only
-        from skelid.estimators.pose import track_poses
-
-        est, res, theta = None, {"warnings": []}, np.zeros(0)
-        static = slice(*data.meta["trial_frames"][0])
-        pose = np.zeros((sub.positions.shape[0], model.n_pose))
-        pose[static] = track_poses(model, theta, sub.positions[static], np.random.default_rng(seed))[0]
+    notes, moved = [], {}
+    with warnings.catch_warnings(), _one_blas_thread():
+        warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
+        if markers == "offsets" and scale != "none":
+            moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed)
+            notes += [note] if note else []
+        base = _with_marker_positions(original, moved)
+        model = osim_parameters(base, info, scale, "none", present)
+        parts = [_select(t, model.marker_names) for t in trials]
+        est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed)
+    static = parts[0]
     if markers == "offsets":
-        static = data.meta["trial_frames"][0]
-        offsets, sd, n_eff = place_markers(model, theta, pose, sub.positions, static,
+        offsets, sd, n_eff = place_markers(model, theta, poses[0], static.positions,
+                                           (0, static.positions.shape[0]),
                                            [m.name not in info.fixed_markers for m in model.markers])
-        model = osim_parameters(base, info, scale, "offsets", present)
+        if moved:  # offsets from the model's own marker places: the first placement, scaled, plus the last
+            s_body = body_scales(model, theta)
+            for i, m in enumerate(model.markers):
+                if m.name in moved:
+                    r0 = np.asarray(original.markers[original.marker_names.index(m.name)].position)
+                    offsets[i] += s_body.get(m.segment, np.ones(3)) * (np.asarray(m.position) - r0)
+        model = osim_parameters(original, info, scale, "offsets", present)
         theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
         for k, p in enumerate(model.parameters):
             if p.kind == "marker_offset":
@@ -209,12 +237,143 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                                                                    float(offsets[i, p.axis] + half)],
                                "n_eff": float(n_eff[i]), "method": "placed on the static trial"}
     seconds = time.perf_counter() - t0
-    warns = list(res.get("warnings", []))
+    warns = []
+    if info.marker_set_found_by:
+        warns.append(f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}")
+    warns += notes + list(res.get("warnings", []))
     if dropped:
         warns.append(f"{len(dropped)} model markers are not in the data"
                      + (" (of every trial)" if multi else "") + f" and were left out: {', '.join(dropped)}")
-    return ScalingFit(model, info, str(osim_path), None if marker_set is None else str(marker_set),
-                      sub, est, res, seconds, dropped, warns, theta)
+    frames = [int(t.positions.shape[0]) for t in trials]
+    source = " + ".join(t.source or f"trial {k + 1}" for k, t in enumerate(trials))
+    shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
+                       parts[0].units, source, {"trial_frames_used": frames})
+    return ScalingFit(model, info, str(osim_path), marker_set, shown, est, res, seconds, dropped,
+                      list(dict.fromkeys(warns)), theta)
+
+
+def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
+                             seed: int = 0) -> tuple[dict, str | None]:
+    """Free markers placed on the static trial after a scale fit to its fixed (anatomical) markers.
+
+    OpenSim marks a marker ``fixed`` when its place on the body is known (a
+    bony landmark) and leaves the others (clusters on the thigh or shank) to
+    be placed on the subject; a generic model may hold them at one
+    placeholder point. Fitted at their nominal places they would drive the
+    scales. So first the static trial is fitted with the fixed markers only
+    (OpenSim's order: scale on the landmarks, then place the others), and each
+    free marker on a body that pass reaches is moved to where the static
+    trial saw it: ``r_m^0 = S_b^{-1} mean_t R_t^T (y_mt - p_t)``. The fit of
+    all trials then starts from those places.
+
+    Returns
+    -------
+    moved : dict
+        Marker name -> new nominal position (segment frame, mm); empty when
+        the model has no fixed markers or no free ones, or the static trial
+        does not fix the poses with its fixed markers alone.
+    note : str or None
+        What was done, for the warnings.
+    """
+    from skelid.errors import SkelidError
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.model.kinematics import forward_kinematics
+
+    def seen(n):
+        return n in static.names and np.isfinite(static.positions[:, static.names.index(n)]).all(axis=-1).any()
+
+    fixed = [m.name for m in full.markers if m.name in info.fixed_markers and seen(m.name)]
+    free = [m.name for m in full.markers if m.name not in info.fixed_markers and seen(m.name)]
+    if not fixed or not free:
+        return {}, None
+    m1 = osim_parameters(keep_markers(full, fixed), info, scale, "none", fixed)
+    if not m1.n_params:
+        return {}, None
+    try:
+        with warnings.catch_warnings():  # a first pass: its warnings are not the answer's
+            warnings.simplefilter("ignore", SkelidWarning)
+            est = MarkerEstimator(m1, sigma=sigma, rng=np.random.default_rng(seed)).fit(
+                _select(static, m1.marker_names))
+    except SkelidError as exc:
+        return {}, ("free markers placed after the scale fit only: a fit of the static trial's fixed markers "
+                    f"failed ({exc.problem})")
+    kin = forward_kinematics(m1, est.theta_, est.pose_)
+    seg = {s.name: i for i, s in enumerate(m1.segments)}
+    scales = body_scales(m1, est.theta_)
+    y = _select(static, free).positions
+    moved = {}
+    for j, n in enumerate(free):
+        b = full.markers[full.marker_names.index(n)].segment
+        if b not in seg:
+            continue
+        i = seg[b]
+        r = np.einsum("tji,tj->ti", kin.R_world_seg[:, i], y[:, j] - kin.p_world_seg[:, i])
+        ok = np.isfinite(r).all(axis=-1) & np.asarray(est.frames_used_, bool)
+        if ok.any():
+            moved[n] = tuple(float(v) for v in r[ok].mean(axis=0) / scales.get(b, np.ones(3)))
+    return moved, (f"{len(moved)} free markers were placed on the static trial after a scale fit to its "
+                   f"{len(fixed)} fixed markers, before the fit of every trial")
+
+
+def _with_marker_positions(model: Model, moved: dict) -> Model:
+    """``model`` with the markers in ``moved`` at their new positions."""
+    if not moved:
+        return model
+    mk = tuple(replace(m, position=moved[m.name]) if m.name in moved else m for m in model.markers)
+    return Model(model.name, model.dim, model.units, model.segments, mk)
+
+
+def _one_blas_thread():
+    """One BLAS thread while fitting: the fit is many small factorisations, which threads only slow down.
+
+    Measured on the gait2354 fit on two busy cores: 8.5 s CPU with one thread,
+    84 s with OpenBLAS' default (its threads spin while they wait). A no-op
+    without ``threadpoolctl``.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(1, user_api="blas")
+
+
+def _select(t: MarkerData, names) -> MarkerData:
+    """``t`` with the columns ``names`` in that order, in millimetres."""
+    f = unit_scale(t.units, "mm")
+    return MarkerData(t.positions[:, [t.names.index(n) for n in names]] * f, tuple(names), t.rate, "mm",
+                      t.source, t.meta)
+
+
+def _as_dict(r) -> dict:
+    from skelid.io.legacy import summary_dict
+
+    return dict(r) if isinstance(r, dict) else summary_dict(r)
+
+
+def _fit_scales(model, parts, data, multi, method, sigma, seed):
+    """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``."""
+    rng = np.random.default_rng(seed)
+    if not model.n_params:  # nothing to scale: poses of the nominal model on the static trial only
+        from skelid.estimators.pose import track_poses
+
+        theta = np.zeros(0)
+        return None, {"warnings": []}, theta, [track_poses(model, theta, parts[0].positions, rng)[0]]
+    if multi:
+        from skelid.estimators.multitrial import MultiTrialEstimator
+
+        est = MultiTrialEstimator(model, sigma=sigma, rng=rng).fit(parts)
+        edges = np.cumsum([0] + [len(p.positions) for p in parts])
+        poses = [est.pose_[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
+        return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
+    from skelid.workflows import make_estimator
+
+    sub = _select(data, model.marker_names)
+    est = make_estimator(method, model, sigma, rng=rng)
+    est.fit(sub)
+    poses = [est.pose_[a:b] for a, b in data.meta["trial_frames"]]
+    return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
 
 
 def place_markers(model: Model, theta, pose, y, frames, movable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -296,15 +455,73 @@ def scaling_table(fit: ScalingFit) -> dict:
 
 
 def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, Path]:
-    """Write ``<name>.osim``, ``<name>_scale_set.xml`` and ``<name>_scaling.json`` into ``out_dir``."""
+    """Write ``<name>.osim``, ``<name>_scale_set.xml``, ``<name>_scaling.json`` and ``<name>_report.md``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"osim": out_dir / f"{name}.osim", "scale_set": out_dir / f"{name}_scale_set.xml",
-             "json": out_dir / f"{name}_scaling.json"}
+             "json": out_dir / f"{name}_scaling.json", "report": out_dir / f"{name}_report.md"}
     write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set)
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
-    paths["json"].write_text(json.dumps(_finite_or_none(scaling_table(fit)), indent=1, allow_nan=False) + "\n")
+    table = scaling_table(fit)
+    paths["json"].write_text(json.dumps(_finite_or_none(table), indent=1, allow_nan=False) + "\n")
+    paths["report"].write_text(report_markdown(fit, table, {k: v.name for k, v in paths.items()}))
     return paths
+
+
+def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | None = None) -> str:
+    """A short human-readable report of a scaling fit (Markdown).
+
+    The trials and frames used, each body's scale factor with its 95 %
+    interval, the fitted distances between joint centres, the placed marker
+    offsets, the markers left out, the warnings, and how to check the scaled
+    model in OpenSim.
+    """
+    table = scaling_table(fit) if table is None else table
+    res = fit.result
+    lines = [f"# Scaling of {Path(fit.source).name}", "",
+             f"Model: `{fit.source}`" + (f" with the markers of `{fit.marker_set}`" if fit.marker_set else ""),
+             f"Data: {fit.data.source}", ""]
+    frames = fit.data.meta.get("trial_frames_used", [])
+    sig = (res.get("sigma") or {}).get("per_trial") if isinstance(res.get("sigma"), dict) else None
+    if frames:
+        lines += ["| trial | frames used | marker noise sd (mm) |", "|---|---|---|"]
+        for k, (src, n) in enumerate(zip(fit.data.source.split(" + "), frames, strict=False)):
+            s = f"{sig[k]:.1f}" if sig and k < len(sig) and sig[k] is not None else "-"
+            lines.append(f"| {Path(src).name} | {n} | {s} |")
+        lines.append("")
+    if table["scales"]:
+        lines += ["## Body scale factors", "", "| body | axis | scale | 95 % interval |", "|---|---|---|---|"]
+        for body, axes in table["scales"].items():
+            for ax, e in axes.items():
+                lo, hi = e["ci95"]
+                lines.append(f"| {body} | {ax} | {e['value']:.4f} | [{lo:.4f}, {hi:.4f}] |")
+        lines.append("")
+    lengths = res.get("lengths") or {}
+    if lengths:
+        lines += ["## Distances between joint centres (mm)", "", "| between | value | 95 % interval |",
+                  "|---|---|---|"]
+        for n, e in lengths.items():
+            lo, hi = e.get("ci95", (np.nan, np.nan))
+            lines.append(f"| {n} | {e['value']:.1f} | [{lo:.1f}, {hi:.1f}] |")
+        lines.append("")
+    if table["marker_offsets_mm"]:
+        lines += ["## Marker offsets placed on the static trial (mm, in the body frame)", "",
+                  "| marker | x | y | z | largest sd |", "|---|---|---|---|---|"]
+        for m, e in table["marker_offsets_mm"].items():
+            v = [e[a]["value"] if a in e else 0.0 for a in "xyz"]
+            sd = max(e[a]["sd"] for a in e)
+            lines.append(f"| {m} | {v[0]:.1f} | {v[1]:.1f} | {v[2]:.1f} | {sd:.1f} |")
+        lines.append("")
+    if table["markers_left_out"]:
+        lines += ["Markers of the model left out (not in every trial): "
+                  + ", ".join(table["markers_left_out"]), ""]
+    if table["warnings"]:
+        lines += ["## Warnings", ""] + [f"- {w}" for w in table["warnings"]] + [""]
+    if files:
+        lines += ["## Files", "", f"- `{files['osim']}`: the scaled model (load it in OpenSim and run "
+                  "inverse kinematics with it);", f"- `{files['scale_set']}`: the scale factors as an OpenSim "
+                  "ScaleSet;", f"- `{files['json']}`: every factor and offset with its sd and 95 % interval.", ""]
+    return "\n".join(lines)
 
 
 def _finite_or_none(obj):

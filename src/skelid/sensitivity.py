@@ -20,9 +20,9 @@ import numpy as np
 
 from skelid.data import MarkerData
 from skelid.errors import DataError
-from skelid.io.results import summary_dict
+from skelid.io.results import write_run
 from skelid.model.description import Model
-from skelid.result import FitResult
+from skelid.result import FitResult, FitRun
 
 
 def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):
@@ -93,19 +93,19 @@ def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings
 def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None = None, seed: int = 0,
                    out_dir=None, command=None, cutoff: float | None = None,
                    artefact_rms: float | None = None, noise: str = "pooled", alternatives=(),
-                   overwrite: bool = False) -> dict:
+                   overwrite: bool = False) -> FitRun:
     """``skelid fit`` with several trials, per-marker noise or model alternatives (marker method only).
 
     Returns
     -------
-    dict
-        ``{"model", "data": [files], "units", "frames_total", "methods": {"marker": result}}``
-        with ``warnings``, provenance and, with alternatives, ``alternatives``
-        (:func:`sensitivity` without the main fit repeated).
+    FitRun
+        The ``marker`` result (with several trials, each trial's estimate and the
+        consistency test under ``diagnostics``; with alternatives,
+        ``diagnostics["model_sensitivity"]``: :func:`sensitivity` without the main fit
+        repeated), written to ``out_dir`` through :func:`skelid.io.results.write_run`.
     """
     from skelid import workflows
     from skelid.errors import SkelidError
-    from skelid.estimators.base import prepare
     from skelid.io import read_markers
     from skelid.io.atomic import atomic_dir, check_output_dir
     from skelid.simulate import BUILTIN_MODELS, resolve_model
@@ -138,13 +138,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
             workflows.check_units(model, d)
     with workflows.collect_warnings():
         est = fit_trials(model, datas, **settings)
-    res = est.result()
-    res = summary_dict(res) if isinstance(res, FitResult) else res
-    out = {"model": model.name, "data": [str(p) for p in data_paths], "units": model.units,
-           "frames_total": int(sum(d.n_frames for d in datas)), "methods": {"marker": res}}
-    if len(datas) > 1:
-        for row, p in zip(res["trials"], data_paths, strict=True):
-            row["data"] = str(p)
+    result = trials_result(model, est, data_paths, sum(d.n_frames for d in datas))
     if others:
         with workflows.collect_warnings():
             fits = {model.name: quantities(model, est)}
@@ -155,16 +149,40 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
                                     "give each model file its own [model] name")
                 seen.add(m.name)
                 fits[m.name] = quantities(m, fit_trials(m, datas, **settings))
-        out["alternatives"] = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
-    out["warnings"] = list(dict.fromkeys(read_warnings + res.get("warnings", [])))
-    out.update(workflows.provenance(command))
-    out["model_parameters"] = workflows.model_parameters(model)
+        sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+        result = result.replace(diagnostics={**result.diagnostics, "model_sensitivity": sens})
+    data = str(data_paths[0]) if len(datas) == 1 else [str(p) for p in data_paths]
+    arrays = workflows.run_arrays(model, datas[0]) if len(datas) == 1 else {}
+    run = FitRun({"marker": result},
+                 workflows.run_context(model, data, sum(d.n_frames for d in datas), command),
+                 workflows.unique_warnings([*read_warnings, *result.warnings]), arrays)
     if out_dir is not None:
-        if len(datas) == 1:
-            arrays = workflows.fit_arrays(model, prepare(model, datas[0]), datas[0].rate, {"marker": est})
-        else:
-            arrays = {f"marker.{k}": v for k, v in workflows.estimator_arrays(est).items()}
         with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
-            workflows.write_npz(tmp / "arrays.npz", arrays)
-            workflows.write_json(tmp / "result.json", out)
-    return out
+            write_run(tmp, run)
+    return run
+
+
+def trials_result(model: Model, est, data_paths, frames_total: int) -> FitResult:
+    """The typed result of :func:`fit_trials`, each trial's row naming its file.
+
+    A multi-trial estimator that still returns the flat dict of the layout before
+    result schema version 1 is converted (:func:`skelid.io.legacy.run_from_legacy`),
+    its trials, consistency test and heterogeneity kept under ``diagnostics``.
+    """
+    from skelid import workflows
+
+    res = est.result()
+    if not isinstance(res, FitResult):
+        from skelid.io.legacy import run_from_legacy
+
+        doc = {"units": model.units, "frames_total": int(frames_total), "methods": {"marker": res}}
+        conv = run_from_legacy(doc).results["marker"]
+        diag = {k: res[k] for k in ("trials", "consistency", "heterogeneity") if k in res}
+        res = conv.replace(diagnostics={**conv.diagnostics, **diag})
+    else:
+        res = workflows.method_result(model, est)
+    trials = res.diagnostics.get("trials")
+    if isinstance(trials, list) and len(trials) == len(data_paths) > 1:
+        rows = [{**row, "data": str(p)} for row, p in zip(trials, data_paths, strict=True)]
+        res = res.replace(diagnostics={**res.diagnostics, "trials": rows})
+    return res.replace(arrays={**workflows.posterior_arrays(est), **res.arrays})

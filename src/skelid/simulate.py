@@ -56,10 +56,19 @@ def builtin_model(name: str) -> Model:
 
 
 def resolve_model(name_or_path) -> Model:
-    """A built-in model name or the path of a TOML model file."""
+    """A built-in model name, the path of a TOML model file, or an OpenSim ``.osim`` model.
+
+    An ``.osim`` model comes with one scale factor per body that carries
+    markers (:func:`skelid.io.osim.load_osim`; its MarkerSet found beside it
+    when the model has none).
+    """
     s = str(name_or_path)
     if s.lower().replace("_", "-") in BUILTIN_MODELS:
         return builtin_model(s)
+    if s.lower().endswith(".osim"):
+        from skelid.io.osim import load_osim
+
+        return load_osim(s, scale="bodies", markers="none")
     return load_model(s)
 
 

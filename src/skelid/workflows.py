@@ -9,12 +9,11 @@ An output folder (``fit --out DIR``, ``demo --out DIR``) is built in a hidden
 temporary sibling and moved in when complete (:func:`skelid.io.atomic.atomic_dir`).
 ``fit`` writes into it:
 
-``result.json``
-    The summary (:func:`fit_file`: :func:`skelid.io.results.summary_dict` per method) plus
-    ``command``, ``cwd``, ``versions``, ``data_overview``, ``model_parameters``, ``model_description``
-    (the model as a dict, for the report's view of the fitted body) and ``warnings``.
-``arrays.npz``
-    What is not JSON-friendly (:func:`skelid.io.results.fit_arrays`).
+``result.json`` and ``arrays.npz``
+    The run (:class:`~skelid.result.FitRun`: one :class:`~skelid.result.FitResult` per
+    method, with its posterior arrays) written by :func:`skelid.io.results.write_run`;
+    the context holds the model, the data file, the data overview, the priors, the model
+    description (for the report's view of the fitted body) and the provenance.
 ``*.png``
     The seed paper's figures (:func:`skelid.plots.fit_figures`).
 
@@ -34,18 +33,19 @@ import numpy as np
 from skelid import checks, registry, resources
 from skelid.checks import check_input_file, check_units, data_overview
 from skelid.data import MarkerData, unit_scale
-from skelid.diagnostics import collect_warnings, fit_warnings, lag1_autocorrelation, overview_warnings, unique
+from skelid.diagnostics import collect_warnings, fit_warnings, lag1_autocorrelation, overview_warnings
 from skelid.errors import SkelidError, SkelidWarning
 from skelid.estimators.base import prepare
 from skelid.io.atomic import atomic_dir, check_output_dir
-from skelid.io.results import _json_default, estimator_arrays, fit_arrays, summary_dict, write_json, write_npz
+from skelid.io.results import posterior_arrays, write_json, write_run
 from skelid.model.description import Model
 from skelid.plots import fit_figures as figures
 from skelid.provenance import model_parameters, provenance, versions
+from skelid.result import FitResult, FitRun, Warning
 
-__all__ = ["methods", "make_estimator", "fit_file", "run_fit", "demo", "table", "figures", "check_input_file",
-           "check_units", "data_overview", "lag1_autocorrelation", "estimator_arrays", "fit_arrays", "versions",
-           "write_json", "write_npz", "_json_default"]
+__all__ = ["methods", "make_estimator", "fit_file", "run_fit", "run_arrays", "demo", "table", "figures",
+           "check_input_file", "check_units", "data_overview", "lag1_autocorrelation", "posterior_arrays",
+           "versions", "write_json", "write_run"]
 
 
 def methods() -> dict:
@@ -101,51 +101,82 @@ def _progress_bar(total: int, desc: str, enabled: bool):
                 disable=not enabled or not sys.stderr.isatty(), mininterval=0.25)
 
 
+def method_result(model: Model, est, seconds: float | None = None) -> FitResult:
+    """The typed result of a fitted estimator as ``skelid fit`` writes it.
+
+    The estimator's own :class:`~skelid.result.FitResult`, with the warnings of
+    :func:`skelid.diagnostics.fit_warnings` added (each once), its posterior as
+    arrays (:func:`skelid.io.results.posterior_arrays`) and the seconds it took.
+
+    Raises
+    ------
+    FloatingPointError
+        The method returned a non-finite estimate (a bug, said loudly rather than written).
+    """
+    r = est.result()
+    for p in r.parameters.values():
+        if not all(math.isfinite(x) for x in (p.map, p.mean, *p.interval)):
+            raise FloatingPointError(f"the {r.method} method returned non-finite estimates for {p.name}: {p}")
+    warns = unique_warnings([*r.warnings, *fit_warnings(model, r, est)])
+    prov = dict(r.provenance) if seconds is None else {**r.provenance, "seconds": round(seconds, 4)}
+    return r.replace(warnings=warns, arrays={**posterior_arrays(est), **r.arrays}, provenance=prov)
+
+
+def unique_warnings(items) -> tuple[Warning, ...]:
+    """Warnings (or plain messages) each once by message, in order."""
+    out = {}
+    for w in items:
+        w = w if isinstance(w, Warning) else Warning("note", str(w))
+        out.setdefault(w.message, w)
+    return tuple(out.values())
+
+
 def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None = None,
              seed: int = 0, progress: bool = False, cutoff: float | None = None,
-             artefact_rms: float | None = None) -> tuple[dict, dict]:
+             artefact_rms: float | None = None) -> tuple[dict[str, FitResult], dict]:
     """Fit ``model`` to ``data`` with each method.
 
     Returns
     -------
-    result : dict
-        ``{"frames_total": F, "methods": {name: summary}}``.
+    results : dict of str to FitResult
+        By method name (see :func:`method_result`).
     fitted : dict
         The fitted estimators by name (for figures).
     """
     estimators = {name: make_estimator(name, model, sigma=sigma, rng=np.random.default_rng(seed),
                                        cutoff=cutoff, artefact_rms=artefact_rms)
                   for name in method_names}  # unknown methods fail before any work
-    y = prepare(model, data)
-    out = {"model": model.name, "data": data.source, "units": model.units,
-           "frames_total": int(y.shape[0]), "methods": {}}
-    fitted = {}
+    n_frames = data.n_frames
+    results, fitted = {}, {}
     for name, est in estimators.items():
         t0 = time.perf_counter()
-        bar = _progress_bar(len(y), f"fit {name}", progress)
+        bar = _progress_bar(n_frames, f"fit {name}", progress)
         with bar, warnings.catch_warnings():
             warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
             est.fit(data, progress=bar.update)
-        res = summary_dict(est.result())
-        _check_finite(name, res)
-        res["seconds"] = round(time.perf_counter() - t0, 4)
-        out["methods"][name] = res
+        results[name] = method_result(model, est, time.perf_counter() - t0)
         fitted[name] = est
-    return out, fitted
+    return results, fitted
 
 
-def _check_finite(method: str, res: dict) -> None:
-    """A method that returns NaN estimates has a bug; say so loudly rather than write NaN."""
-    for pname, v in res.items():
-        if isinstance(v, dict) and "map" in v:
-            vals = [v["map"], v.get("mean", 0.0), *v.get("ci95", ())]
-            if not all(isinstance(x, int | float) and math.isfinite(x) for x in vals):
-                raise FloatingPointError(f"the {method} method returned non-finite estimates for {pname}: {v}")
+def run_arrays(model: Model, data: MarkerData) -> dict[str, np.ndarray]:
+    """The arrays every method of a run shares: the model's markers ``(F, M, D)`` in model units,
+    their names, the rate and the units."""
+    return {"markers": np.asarray(prepare(model, data), float),
+            "marker_names": np.array(model.marker_names, dtype=str),
+            "rate": np.array(float(data.rate)), "units": np.array(model.units)}
+
+
+def run_context(model: Model, data_source, frames_total: int, command=None, **more) -> dict:
+    """The context of a run: model, data, units, frames, priors, model description, provenance."""
+    return {"model": model.name, "data": data_source, "units": model.units, "frames_total": int(frames_total),
+            **more, "model_parameters": model_parameters(model), "model_description": model.to_dict(),
+            "provenance": provenance(command)}
 
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
             out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
-            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> dict:
+            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> FitRun:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
 
     An existing ``out_dir`` is refused unless ``overwrite``, which replaces it whole.
@@ -156,8 +187,9 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
 
     Returns
     -------
-    dict
-        The result, with ``warnings`` (each message once) and provenance.
+    FitRun
+        One result per method; the run's warnings (reading the data, its gaps, every
+        method's), each once. ``out_dir`` receives it through :func:`skelid.io.results.write_run`.
     """
     from skelid.io import read_markers
     from skelid.simulate import BUILTIN_MODELS, resolve_model
@@ -187,24 +219,32 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
         sys.stderr.write(f"skelid: this fit may take about {resources.format_seconds(sum(c.seconds for c in cost))} "
                          f"and {resources.format_size(max(c.memory for c in cost))} of memory\n")
     overview = data_overview(data, model)
-    result, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
-                              cutoff=cutoff, artefact_rms=artefact_rms)
-    extra = []
-    for name, est in fitted.items():
-        extra += fit_warnings(model, name, result["methods"][name], est)
-    method_w = [w for m in result["methods"].values() for w in m.get("warnings", [])]
-    result["warnings"] = unique(read_warnings + overview_warnings(overview) + method_w + extra)
-    result.update(provenance(command))
-    result["data_overview"] = overview
-    result["model_parameters"] = model_parameters(model)
-    result["model_description"] = model.to_dict()
+    results, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
+                               cutoff=cutoff, artefact_rms=artefact_rms)
+    warns = [*(Warning("reading", w) for w in read_warnings),
+             *(Warning("marker-gaps", w) for w in overview_warnings(overview)),
+             *(w for r in results.values() for w in r.warnings)]
+    run = FitRun(results, run_context(model, data.source, data.n_frames, command, data_overview=overview),
+                 unique_warnings(warns), run_arrays(model, data))
     if out_dir is not None:
-        y = prepare(model, data)
         with atomic_dir(out_dir, protect=[model_path, data_path], overwrite=overwrite) as tmp:
             figures(model, data, fitted, tmp)
-            write_npz(tmp / "arrays.npz", fit_arrays(model, y, data.rate, fitted))
-            write_json(tmp / "result.json", result)
-    return result
+            write_run(tmp, run)
+    return run
+
+
+def scaling_run(fit_, table: dict, command):
+    """The run ``skelid fit MODEL.osim`` writes as ``result.json``: the scale and offset estimates
+    (converted from the scaling fit's flat dict), the scaling table in the context."""
+    from skelid.io.legacy import run_from_legacy
+
+    doc = {"units": fit_.model.units, "frames_total": int(fit_.data.positions.shape[0]),
+           "methods": {"marker": fit_.result}}
+    run = run_from_legacy(doc)
+    context = {"model": fit_.model.name, "data": str(fit_.data.source), "units": fit_.model.units,
+               "frames_total": int(fit_.data.positions.shape[0]), "scaling": table,
+               "provenance": provenance(command)}
+    return FitRun(run.results, context, tuple(fit_.warnings))
 
 
 def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0, method_names=None,
@@ -215,21 +255,20 @@ def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0, metho
     return run_demo(out_dir, seed, n_frames, sigma, method_names, progress, limits, overwrite)
 
 
-def table(summary: dict) -> str:
-    """A short text table of a demo or fit summary."""
+def table(runs) -> str:
+    """A short text table of a fit (a :class:`FitRun`) or of the demo (``{case: FitRun}``)."""
     rows = []
-    cases = summary if "methods" not in summary else {"fit": summary}
-    for case, res in cases.items():
-        truth = res.get("truth", {})
-        for mname, m in res["methods"].items():
-            for pname, v in m.items():
-                if not isinstance(v, dict) or "map" not in v:
-                    continue
+    cases = {"fit": runs} if isinstance(runs, FitRun) else runs
+    for case, run in cases.items():
+        truth = run.context.get("truth") or {}
+        for mname, r in run.results.items():
+            used = "" if r.frames is None else r.frames.used
+            for pname, p in r.parameters.items():
                 t = truth.get(pname)
                 rows.append(
-                    f"{case:<8} {mname:<8} {pname:<14} {v['mean']:>9.5g} {v['sd']:>8.3g} "
-                    f"[{v['ci95'][0]:8.5g}, {v['ci95'][1]:8.5g}] "
-                    f"{'' if t is None else f'{t:8.5g}':>8} {m.get('frames_used', ''):>6}"
+                    f"{case:<8} {mname:<8} {pname:<14} {p.mean:>9.5g} {p.sd:>8.3g} "
+                    f"[{p.interval[0]:8.5g}, {p.interval[1]:8.5g}] "
+                    f"{'' if t is None else f'{t:8.5g}':>8} {used:>6}"
                 )
     head = (f"{'case':<8} {'method':<8} {'param':<14} {'mean':>9} {'sd':>8} {'95% interval':^22} "
             f"{'truth':>8} {'frames':>6}")

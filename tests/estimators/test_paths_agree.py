@@ -66,3 +66,22 @@ def test_tennis_forearm_first_pose_is_the_same_on_both_paths(shared_data, monkey
 
     a, b = _both_paths(first, monkeypatch)
     np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_a_fit_takes_the_path_ready_at_its_start_and_says_which(monkeypatch):
+    from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.pose import fit_pose, workspace
+    from skelid.simulate import builtin_model
+
+    model = builtin_model("case-a")
+    trial = simulate(model, sigma=5.0, n_frames=40, rng=np.random.default_rng(2))
+    with monkeypatch.context() as mp:
+        mp.setattr(_lm_kernel, "ready", lambda planar: False)  # the kernel still compiling at the start
+        ws = workspace(model)
+        est = MarkerEstimator(model).fit(trial.data)
+    assert ws.path == "numpy" and est.result().diagnostics["pose_path"] == "numpy"
+    # ready now, but a workspace made before stays on its path
+    fit_pose(model, model.theta_center, trial.data.positions[:3], trial.pose[:3], ws=ws)
+    assert ws.kernel_tables is None
+    expected = "compiled" if _lm_kernel.ready(True) else "numpy"
+    assert MarkerEstimator(model).fit(trial.data).result().diagnostics["pose_path"] == expected

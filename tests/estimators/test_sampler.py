@@ -12,7 +12,6 @@ from skelid.errors import IdentifiabilityError, SkelidWarning
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.posterior import SamplePosterior
 from skelid.estimators.sampler import ProfileLikelihood, SamplerEstimator, sample_prior
-from skelid.io.results import summary_dict
 from skelid.model import model_from_dict
 from skelid.registry import estimators as methods
 from skelid.simulate import builtin_model, simulate
@@ -89,14 +88,15 @@ def test_result_has_the_default_keys_and_the_sampler(case_a_fit):
     model, trial, est = case_a_fit
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SkelidWarning)
-        ref = summary_dict(MarkerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data).result())
-    out = summary_dict(est.result())
-    assert set(out) == set(ref) | {"sampler"}
-    assert set(out["L2"]) == set(ref["L2"])
-    assert set(out["sampler"]) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
-    assert out["sampler"]["particles"] == 300 and 0 < out["sampler"]["ess"] <= 300
-    assert np.isfinite(out["sampler"]["log_evidence"])
-    json.dumps(out)
+        ref = MarkerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data).result()
+    out = est.result()
+    assert set(out.diagnostics) == set(ref.diagnostics) | {"sampler"}
+    assert set(out.parameters["L2"].extra) == set(ref.parameters["L2"].extra)
+    sampler = out.diagnostics["sampler"]
+    assert set(sampler) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
+    assert sampler["particles"] == 300 and 0 < sampler["ess"] <= 300
+    assert np.isfinite(sampler["log_evidence"])
+    json.dumps(out.to_dict())
 
 
 def test_posterior_against_a_prior_bound_stays_inside_it():
@@ -172,13 +172,15 @@ def test_fit_from_the_command_line(tmp_path, capsys):
     out = tmp_path / "fit"
     assert main(["fit", str(EXAMPLES / "case_a.toml"), str(trc), "--method", "marker-smc", "--json",
                  "--out", str(out)]) == 0
-    res = json.loads(capsys.readouterr().out)["methods"]["marker-smc"]
-    assert set(res["L2"]) >= {"map", "mean", "sd", "ci95", "crlb_sd", "bias_removed"}
-    assert set(res["sampler"]) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
-    assert 200 <= res["L2"]["ci95"][0] < res["L2"]["ci95"][1] <= 300
+    res = json.loads(capsys.readouterr().out)["results"]["marker-smc"]
+    l2 = res["parameters"]["L2"]
+    assert l2["crlb_sd"] > 0 and "bias_removed" in l2["extra"]
+    sampler = res["diagnostics"]["sampler"]
+    assert set(sampler) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
+    assert 200 <= l2["interval"][0] < l2["interval"][1] <= 300
     arrays = np.load(out / "arrays.npz")
-    assert str(arrays["marker-smc.posterior.kind"]) == "samples"
-    assert arrays["marker-smc.posterior.points"].shape == (res["sampler"]["particles"], 1)
+    assert str(arrays["marker-smc/posterior.kind"]) == "samples"
+    assert arrays["marker-smc/samples"].shape == (sampler["particles"], 1)
     assert main(["report", str(out)]) == 0
     html = (out / "report.html").read_text()
     assert "marker-smc" in html

@@ -42,14 +42,14 @@ def test_dataframe_has_a_row_per_parameter_derived_length_and_noise(odd):
     res, _ = _doc(odd)
     df = to_dataframe(odd)
     assert list(df.columns) == list(COLUMNS)
-    m = res["methods"]["marker"]
-    params = [k for k, v in m.items() if isinstance(v, dict) and "map" in v]
+    m = res["results"]["marker"]["parameters"]
+    params = list(m)
     assert list(df["name"]) == [*params, "hip-knee", "sigma"]
     assert list(df["kind"]) == ["parameter"] * len(params) + ["derived", "noise"]
     for name in params:
         row = df[df["name"] == name].iloc[0]
         assert (row["estimate"], row["map"], row["sd"]) == (m[name]["mean"], m[name]["map"], m[name]["sd"])
-        assert (row["lower"], row["upper"], row["crlb_sd"]) == (*m[name]["ci95"], 0.9)
+        assert (row["lower"], row["upper"], row["crlb_sd"]) == (*m[name]["interval"], 0.9)
     assert df.set_index("name").loc["$\\alpha$", "status"] == "poor"
     assert df.set_index("name").loc["sigma", "estimate"] == 2.0
     assert np.isnan(df.set_index("name").loc["hip-knee", "crlb_sd"])
@@ -75,9 +75,9 @@ def test_dataframe_of_a_typed_result():
 def test_xarray_has_named_dims(odd):
     res, arrays = _doc(odd)
     ds = to_xarray(odd)
-    assert dict(ds.sizes) == {"frame": 90, "marker": 10, "axis": 3, "coordinate": arrays["marker.pose"].shape[1]}
-    np.testing.assert_array_equal(ds["pose"].values, arrays["marker.pose"])
-    np.testing.assert_array_equal(ds["markers"].values, arrays["markers"])
+    assert dict(ds.sizes) == {"frame": 90, "marker": 10, "axis": 3, "coordinate": arrays["marker/pose"].shape[1]}
+    np.testing.assert_array_equal(ds["pose"].values, arrays["marker/pose"])
+    np.testing.assert_array_equal(ds["markers"].values, arrays["run/markers"])
     assert list(ds["marker"].values[:2]) == ["$\\foo$", "<script>alert(1)</script>"]
     assert list(ds["coordinate"].values[:6]) == ["root.tx", "root.ty", "root.tz", "root.rz", "root.rx", "root.ry"]
     assert ds["time"].values[10] == pytest.approx(0.1) and ds.attrs["units"] == "mm"
@@ -86,21 +86,21 @@ def test_xarray_has_named_dims(odd):
 
 def test_inference_data_from_the_gaussian_posterior(odd):
     res, arrays = _doc(odd)
-    model = model_from_dict(res["model_description"])
+    model = model_from_dict(res["context"]["model_description"])
     idata = to_inference_data(odd, n_draws=4000, rng=np.random.default_rng(1))
     post = idata.posterior
     names = list(model.parameter_names)
     assert set(post.data_vars) == {*names, "hip-knee"}
     theta = np.stack([post[n].values[0] for n in names], axis=-1)
     assert theta.shape == (4000, len(names))
-    mean = np.array([res["methods"]["marker"][n]["mean"] for n in names])
+    mean = np.array([res["results"]["marker"]["parameters"][n]["mean"] for n in names])
     # sd 1 each: the mean of 4000 draws is within 5 standard errors (0.08) of it
     assert np.abs(theta.mean(axis=0) - mean).max() < 0.08
     assert np.abs(theta.std(axis=0) - 1.0).max() < 0.06
     # identical draws from an identical generator
     again = to_inference_data(odd, n_draws=4000, rng=np.random.default_rng(1))
     assert again.posterior[names[0]].equals(post[names[0]])
-    np.testing.assert_array_equal(idata.observed_data["markers"].values, arrays["markers"])
+    np.testing.assert_array_equal(idata.observed_data["markers"].values, arrays["run/markers"])
     assert "independent normals" in post.attrs["draws_from"]
 
 

@@ -8,6 +8,7 @@ from scipy.linalg import expm
 
 from skelid.model import load_model
 from skelid.model.kinematics import (
+    Workspace,
     _forward_general,
     _forward_planar,
     forward_kinematics,
@@ -132,9 +133,17 @@ def test_general_path_without_omega_leaves_the_rest_unchanged():
         _forward_general(plan, g, pose)
 
 
-def test_plan_is_built_once_and_leaves_the_model_equal():
+def test_plan_lives_in_the_workspace_never_in_the_model():
     model = builtin_model("case-a")
     other = builtin_model("case-a")
+    before = set(vars(model))
+    ws = Workspace(model)
+    forward_kinematics(model, model.theta_nominal, np.zeros(model.n_pose), ws)
     forward_kinematics(model, model.theta_nominal, np.zeros(model.n_pose))
-    assert kinematics_plan(model) is kinematics_plan(model)
+    assert kinematics_plan(model, ws) is ws.plan is kinematics_plan(model, ws)
+    assert set(vars(model)) - before <= {"dofs", "geometry_map", "parent_index", "marker_segment", "ancestor",
+                                         "dof_moves_marker", "nominal_geometry", "axis_tilts", "derived_lengths",
+                                         "coupled_translations"}  # the description's own derived fields only
     assert model == other and hash(model) == hash(other)
+    with pytest.raises(ValueError, match="workspace belongs"):
+        kinematics_plan(builtin_model("case-b"), ws)

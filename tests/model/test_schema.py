@@ -75,7 +75,10 @@ BAD = [
 ]
 
 
-@pytest.mark.parametrize("path, value, message", BAD, ids=[f"{b[0]}=" + ("<deleted>" if b[1] is _DEL else repr(b[1]))[:50] for b in BAD])
+_IDS = [f"{b[0]}=" + ("<deleted>" if b[1] is _DEL else repr(b[1]))[:50] for b in BAD]
+
+
+@pytest.mark.parametrize("path, value, message", BAD, ids=_IDS)
 def test_bad_model_gives_one_line_with_key_path(path, value, message):
     d = _base()
     _set(d, path, value)

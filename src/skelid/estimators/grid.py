@@ -203,7 +203,8 @@ class MarkerGridFilter:
         usable = bool(usable_frames(self.model, frame[None])[0])
         q = state.pose
         if usable and q is None:
-            q0, _ = initial_pose(self.model, self.model.theta_center, frame, make_rng(self.rng))
+            q0, _ = initial_pose(self.model, self.model.theta_center, frame, make_rng(self.rng),
+                                 ws=self._fitter(pts).ws)  # the fitter's workspace: one pose path
             q = np.broadcast_to(q0, (len(pts), self.model.n_pose))
         if usable:
             q, rss, logdet = self._frame_loglik_terms(pts, q, frame)

@@ -42,18 +42,28 @@ import numpy as np
 
 from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from skelid.model.description import Model
-from skelid.model.kinematics import marker_jacobian
+from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions
 
 
-def _banded(Hqq, R):
-    """Upper banded form (for ``scipy.linalg.cholesky_banded``) of ``blockdiag(Hqq) + R``."""
-    T, Q = Hqq.shape[:2]
+def penalty_band(R, Q: int) -> np.ndarray:
+    """The penalty ``R`` in upper banded form, with at least ``Q - 1`` superdiagonals.
+
+    A fit whose penalty stays the same computes this once and passes it as
+    ``R_band`` to the banded solvers, which then only add the pose blocks.
+    """
     coo = R.tocoo()
     u = max(Q - 1, int(np.max(coo.col - coo.row)) if coo.nnz else 0)
-    n = T * Q
-    ab = np.zeros((u + 1, n))
+    ab = np.zeros((u + 1, R.shape[0]))
     keep = coo.row <= coo.col
     np.add.at(ab, (u + coo.row[keep] - coo.col[keep], coo.col[keep]), coo.data[keep])
+    return ab
+
+
+def _banded(Hqq, R, R_band=None):
+    """Upper banded form (for ``scipy.linalg.cholesky_banded``) of ``blockdiag(Hqq) + R``."""
+    T, Q = Hqq.shape[:2]
+    ab = (penalty_band(R, Q) if R_band is None else R_band).copy()
+    u = ab.shape[0] - 1
     base = np.arange(T)[:, None] * Q
     for off in range(Q):
         b = np.arange(off, Q)
@@ -61,18 +71,18 @@ def _banded(Hqq, R):
     return ab
 
 
-def _banded_system(Hqq, R):
+def _banded_system(Hqq, R, ridge: float = 1e-10, R_band=None):
     """``blockdiag(Hqq) + R`` in upper banded form, with a tiny ridge that keeps it definite.
 
     The ridge is relative to each pose coordinate's own mean diagonal (angles and
     translations have different units: one ridge for all would perturb the
     solution along the translations by a fraction of a percent).
     """
-    ab = _banded(Hqq, R)
+    ab = _banded(Hqq, R, R_band)
     u = ab.shape[0] - 1
     T, Q = Hqq.shape[:2]
     scale = np.maximum(ab[u].reshape(T, Q).mean(axis=0), 1e-300)
-    ab[u] += 1e-10 * np.tile(scale, T)  # frames without markers: keep it definite
+    ab[u] += ridge * np.tile(scale, T)  # frames without markers: keep it definite
     return ab
 
 
@@ -88,11 +98,11 @@ def _dense_from_banded(ab):
 DENSE_MAX = 1500  # below this many unknowns dense LAPACK beats the banded routines
 
 
-def _banded_solver(Hqq, R):
+def _banded_solver(Hqq, R, R_band=None):
     """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky."""
     from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
 
-    ab = _banded_system(Hqq, R)
+    ab = _banded_system(Hqq, R, R_band=R_band)
     if ab.shape[1] <= DENSE_MAX:
         cf = cho_factor(_dense_from_banded(ab), lower=False, check_finite=False)
         return lambda rhs: cho_solve(cf, rhs, check_finite=False)
@@ -168,7 +178,7 @@ def _spd_inverse(A) -> np.ndarray:
     return np.triu(Z) + np.triu(Z, 1).T
 
 
-def pose_edf(Jq, R) -> float:
+def pose_edf(Jq, R, R_band=None) -> float:
     """Effective number of pose parameters ``tr((H + R)^{-1} H)`` under the penalty ``R``.
 
     ``H`` is block diagonal (per-frame ``J^T J``), so only the diagonal blocks of
@@ -177,7 +187,7 @@ def pose_edf(Jq, R) -> float:
     """
     Hqq = pose_information(Jq)
     Q = Hqq.shape[-1]
-    return float(np.einsum("tij,tji->", band_inverse_blocks(_banded_system(Hqq, R), Q), Hqq))
+    return float(np.einsum("tij,tji->", band_inverse_blocks(_banded_system(Hqq, R, R_band=R_band), Q), Hqq))
 
 
 class JointFit(NamedTuple):
@@ -227,8 +237,7 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     A = Hqq + (lam * dq_)[..., None] * np.eye(Q) + 1e-12 * scale[:, None, None] * np.eye(Q)
     sol = np.linalg.solve(A, np.concatenate([Hqt, gq[..., None]], axis=-1))
     G, u = sol[..., :P], sol[..., P]
-    dtheta, dq, _ = _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
-    return dtheta, dq
+    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
 
 
 UNDERSMOOTH = 2.0
@@ -332,12 +341,12 @@ def block_penalty(model: Model, Hqq, blocks):
     return sp.block_diag(parts, format="csc")
 
 
-def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q):
+def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band=None):
     """Like :func:`_schur_step` with the pose blocks coupled by the penalty ``R``."""
     T, Q = gq.shape
     P = Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
-    solve = _banded_solver(Hqq + (lam * dq_)[..., None] * np.eye(Q), R)
+    solve = _banded_solver(Hqq + (lam * dq_)[..., None] * np.eye(Q), R, R_band)
     rhs_q = (gq.ravel() - R @ q.ravel()).reshape(T, Q)
     sol = solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).reshape(T * Q, P + 1))
     sol = sol.reshape(T, Q, P + 1)
@@ -378,17 +387,64 @@ def row_weights(weights, y) -> np.ndarray | None:
     return np.repeat(np.sqrt(np.broadcast_to(w, (T, M))), D, axis=1)
 
 
-def weighted_terms(model: Model, theta, q, y, sw=None):
+def weighted_terms(model: Model, theta, q, y, sw=None, ws: Workspace | None = None):
     """:func:`~skelid.estimators.likelihood.frame_terms` with rows scaled by ``sw`` (T, M*D)."""
-    r, Jq, Jt = frame_terms(model, theta, q, y)
+    r, Jq, Jt = frame_terms(model, theta, q, y, ws)
     if sw is None:
         return r, Jq, Jt
     return r * sw, Jq * sw[..., None], Jt * sw[..., None]
 
 
+STEP_TOL = 1e-7  # a step in theta below this many standard errors (after the damping is gone) ends the fit
+
+
+def _residuals(model: Model, theta, q, y, sw=None, ws: Workspace | None = None) -> np.ndarray:
+    """Residuals ``(T, M*D)`` of :func:`weighted_terms` without the Jacobians (missing markers: 0)."""
+    mask = np.isfinite(y).all(axis=-1)
+    r = (np.where(mask[..., None], y, 0.0) - marker_positions(model, theta, q, ws)) * mask[..., None]
+    r = r.reshape(r.shape[:-2] + (-1,))
+    return r if sw is None else r * sw
+
+
+def _anderson_step(theta, q, dtheta, dq, prev, Htt, Hqq):
+    """Step from ``(theta, q)`` that mixes this Gauss-Newton step with the last one (Anderson, depth 1).
+
+    Where the iterates zig-zag or crawl along one direction (the Gauss-Newton map
+    contracts slowly there), the two last steps show that direction and its rate,
+    and ``x + f - gamma (dx + df)`` with ``gamma = <f, df> / <df, df>`` jumps to
+    where the map's linearisation along it is fixed. Inner products are scaled by
+    the diagonal of ``J^T J`` (angles and lengths compare). None if undefined.
+    """
+    theta0, q0, dtheta0, dq0 = prev
+    w_t = np.diag(Htt)
+    w_q = np.einsum("tii->ti", Hqq)
+    df_t, df_q = dtheta - dtheta0, dq - dq0
+    den = float(w_t @ df_t**2 + np.sum(w_q * df_q**2))
+    if not den > 0.0:
+        return None
+    gamma = float(w_t @ (dtheta * df_t) + np.sum(w_q * dq * df_q)) / den
+    return (dtheta - gamma * (theta - theta0 + df_t), dq - gamma * (q - q0 + df_q))
+
+
+def _line_minimum(c0: float, slope: float, c1: float):
+    """Minimum of the parabola through ``c(0) = c0``, ``c'(0) = slope``, ``c(1) = c1``, or None.
+
+    A Gauss-Newton step lands at ``alpha = 1`` when the cost is as curved along it as the
+    Gauss-Newton model says; where residual curvature makes it twice as curved the iterates
+    zig-zag across the valley (and crawl where it is flatter). Returns the step length to try
+    instead (between 0.1 and 16), or None when 1 is close enough.
+    """
+    if not (np.isfinite(c1) and slope < 0.0):
+        return None
+    a = c1 - c0 - slope
+    alpha = 16.0 if a <= 0.0 else min(-slope / (2.0 * a), 16.0)
+    return max(alpha, 0.1) if abs(alpha - 1.0) > 0.2 else None
+
+
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
-              cutoff: float | None = None, frames=None, weights=None, blocks=None) -> JointFit:
+              cutoff: float | None = None, frames=None, weights=None, blocks=None, penalty=None,
+              step_tol: float = STEP_TOL, ws: Workspace | None = None, summary: bool = True) -> JointFit:
     """Least squares over ``theta`` and all poses.
 
     Parameters
@@ -416,8 +472,24 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         Several trials stacked along the frame axis: each block of frames gets
         its own motion-model penalty (rate and cutoff; cutoff None for none)
         and no smoothing crosses a block boundary. Replaces ``rate``/``cutoff``.
+    penalty : scipy.sparse matrix, optional
+        The motion-model penalty of an earlier fit (its ``penalty``), used as it
+        is instead of one built from the starting poses (with ``rate`` and
+        ``cutoff``): continuing a fit then minimises the same cost.
+    step_tol : float
+        The fit has converged when, with the damping gone, the cost falls by less
+        than ``tol`` (relative) or a step moves no parameter by more than
+        ``step_tol`` of its standard error (the noise taken from the residuals).
+        A loose value (``1e-3``) suffices for a fit whose estimate is not reported.
+    ws : Workspace, optional
+        The model's workspace (one is made for this fit without it).
+    summary : bool
+        Compute ``info`` and ``pose_dof`` at the end (False: None and NaN, for a
+        fit that is only compared by its cost).
     """
     y = np.asarray(y, dtype=float)
+    if ws is None:
+        ws = Workspace(model)
     use = usable_frames(model, y)
     if frames is not None:
         use &= np.asarray(frames, dtype=bool)
@@ -430,72 +502,95 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         blocks = None  # no trial smoothed: the per-frame fit
     if blocks is not None:
         q = np.concatenate([_continuous_poses(model, q[a:b], use[a:b]) for a, b, *_ in blocks])
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
         R = block_penalty(model, pose_information(Jq), blocks)
-    elif cutoff is not None and rate is not None:
-        q = _continuous_poses(model, q, use)
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
-        R = smoothing_penalty(model, pose_information(Jq), rate, cutoff)
+    elif penalty is not None or (cutoff is not None and rate is not None):
+        if penalty is None:  # a continued fit's poses already follow its motion model
+            q = _continuous_poses(model, q, use)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+        R = penalty if penalty is not None else smoothing_penalty(model, pose_information(Jq), rate, cutoff)
     else:
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
 
     def total(r_, q_):
         c = float(np.sum(r_**2))
         return c + float(q_.ravel() @ (R @ q_.ravel())) if R is not None else c
 
+    def trial(alpha, dtheta, dq):
+        th = theta + alpha * dtheta
+        if bounds is not None:
+            th = np.clip(th, bounds[0], bounds[1])
+        qq = q + alpha * dq
+        rr = _residuals(model, th, qq, y, sw, ws)
+        return th, qq, rr, total(rr, qq)
+
+    R_band = None if R is None else penalty_band(R, model.n_pose)
     cost = total(r, q)
+    n_rows = max(int(np.isfinite(y).all(axis=-1).sum() * model.dim), 1)
+    # the cost of residuals at the data's rounding level: noise-free data converge to it
+    floor = n_rows * (1e-12 * max(float(np.nanmax(np.abs(y))) if np.isfinite(y).any() else 1.0, 1e-300)) ** 2
     lam = 1e-3
-    converged = False
+    converged = stalled = False
+    prev = None  # (theta, q, dtheta, dq) of the last accepted iteration, for the Anderson step
     it = 0
     for it in range(1, n_iter + 1):  # noqa: B007 - the count is reported
+        if cost <= floor:  # the residuals are rounding: nothing left to fit
+            converged = True
+            break
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
         try:
             if R is None:
-                dtheta, dq = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
+                dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
+                slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)))
             else:
-                dtheta, dq, _ = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q)
+                dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band)
+                slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)) - float(q.ravel() @ (R @ dq.ravel())))
         except (np.linalg.LinAlgError, RuntimeError, ValueError):
             lam *= 10.0
             continue
-        theta_new = theta + dtheta
-        if bounds is not None:
-            theta_new = np.clip(theta_new, bounds[0], bounds[1])
-        q_new = q + dq
-        r_new, Jq_new, Jt_new = weighted_terms(model, theta_new, q_new, y, sw)
-        cost_new = total(r_new, q_new)
-        if np.isfinite(cost_new) and cost_new <= cost:
-            # along a long curved valley Gauss-Newton steps come out short: extrapolate while it pays
-            mult = 1.0
-            while mult < 16.0:
-                th2 = theta + 2.0 * mult * dtheta
-                if bounds is not None:
-                    th2 = np.clip(th2, bounds[0], bounds[1])
-                q2 = q + 2.0 * mult * dq
-                r2, Jq2, Jt2 = weighted_terms(model, th2, q2, y, sw)
-                c2 = total(r2, q2)
-                if not (np.isfinite(c2) and c2 < cost_new):
-                    break
-                theta_new, q_new, r_new, Jq_new, Jt_new, cost_new = th2, q2, r2, Jq2, Jt2, c2
-                mult *= 2.0
-            small = (cost - cost_new) <= tol * max(cost, 1e-300)
-            theta, q, r, Jq, Jt, cost = theta_new, q_new, r_new, Jq_new, Jt_new, cost_new
+        best = trial(1.0, dtheta, dq)
+        alpha = _line_minimum(cost, slope, best[3])
+        if alpha is not None:  # the cost along the step is far from the Gauss-Newton model's
+            other = trial(alpha, dtheta, dq)
+            if np.isfinite(other[3]) and not other[3] >= best[3]:
+                best = other
+        if prev is not None and lam <= 1e-4:
+            mixed = _anderson_step(theta, q, dtheta, dq, prev, Htt, Hqq)
+            if mixed is not None:
+                other = trial(1.0, *mixed)
+                if np.isfinite(other[3]) and not other[3] >= best[3]:
+                    best = other
+        if np.isfinite(best[3]) and best[3] <= cost:
+            prev = (theta, q, dtheta, dq)
+            theta_new, q_new, r_new, cost_new = best
+            small = (cost - cost_new) <= tol * cost + floor
+            # the step in theta against theta's standard error (noise from the residuals)
+            sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(S)), 0.0, None) * max(cost_new, floor) / n_rows)
+            still = bool(np.all(np.abs(theta_new - theta) <= step_tol * sd + 1e-12 * np.maximum(np.abs(theta), 1.0)))
+            theta, q, cost = theta_new, q_new, cost_new
+            r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
             lam = max(lam * 0.3, 1e-12)
-            if small and lam <= 1e-4:  # a damped step's small gain says nothing about convergence
+            stalled = small
+            if small and still and lam <= 1e-4:  # a damped step's small gain says nothing about convergence
                 converged = True
                 break
         else:
+            prev = None
             lam *= 10.0
-            if lam > 1e12:
-                converged = True  # no descent direction left: at a minimum to precision
+            if lam > 1e12 or (stalled and lam > 1e2):
+                # no descent direction left, or only steps the cost's rounding cannot tell apart
+                converged = True
                 break
-    if R is None:
+    if not summary:
+        info, pose_dof = None, float("nan")
+    elif R is None:
         Kp = projected_theta_jacobian(Jq, Jt)
         info = np.einsum("tkp,tkq->pq", Kp, Kp)
         pose_dof = float(model.n_pose * use.sum())
     else:
         Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
-        *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q)
-        pose_dof = pose_edf(Jq, R)  # skipped frames have no rows: they add nothing
+        *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q, R_band)
+        pose_dof = pose_edf(Jq, R, R_band)  # skipped frames have no rows: they add nothing
     return JointFit(theta, q, float(np.sum(r**2)), np.sum(r**2, axis=1), info,
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 
@@ -675,34 +770,73 @@ def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
     return R[a * Q:b * Q, a * Q:b * Q]
 
 
+def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
+    """Diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` for the arrow matrix of a smoothed joint fit.
+
+    ``N = s [[Htt, Hqt^T], [Hqt, blockdiag(Hqq)]] + [[0, 0], [0, R]]`` with ``s = scale``.
+    Eliminating the poses, ``A = s blockdiag(Hqq) + R`` (banded), ``G = A^{-1} s Hqt``,
+    ``S = s Htt - s Hqt^T G``; then ``C_{theta theta} = S^{-1}``,
+    ``C_{q_t theta} = -G_t S^{-1}`` and ``C_{q_t q_t} = (A^{-1})_{tt} + G_t S^{-1} G_t^T``,
+    with the diagonal blocks of ``A^{-1}`` from :func:`band_inverse_blocks` (linear in frames).
+
+    Returns
+    -------
+    blocks : (T, P+Q, P+Q) float
+    S_inv : (P, P) float
+    G : (T, Q, P) float
+    """
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    T, Q = Hqq.shape[:2]
+    P = Htt.shape[0]
+    for ridge in (0.0, 1e-10):  # exact unless a frame without markers leaves it singular
+        ab = _banded_system(scale * Hqq, R, ridge)
+        try:
+            U = cholesky_banded(ab, lower=False, check_finite=False)
+            break
+        except np.linalg.LinAlgError:
+            continue
+    G = cho_solve_banded((U, False), scale * Hqt.reshape(T * Q, P), check_finite=False).reshape(T, Q, P)
+    S = scale * Htt - scale * np.einsum("tip,tiq->pq", Hqt, G)
+    S_inv = np.linalg.inv(0.5 * (S + S.T))
+    GS = G @ S_inv  # (T, Q, P)
+    out = np.empty((T, P + Q, P + Q))
+    out[:, :P, :P] = S_inv
+    out[:, P:, :P] = -GS
+    out[:, :P, P:] = -np.swapaxes(GS, 1, 2)
+    out[:, P:, P:] = band_inverse_blocks(ab, Q) + GS @ np.swapaxes(G, 1, 2)
+    return out, S_inv, G
+
+
+#: relative step of the derivative that gives the diagonal blocks of C J^T J C (see _smoothed_bias_terms)
+_SANDWICH_STEP = 1e-4
+
+
 def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
+    """The bias of one piece of a trial (see :func:`smoothed_bias`) and its information ``S``.
+
+    Linear in frames: only diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` and of
+    ``C R C`` are needed. The first come from :func:`_arrow_inverse_blocks`; for
+    the second, ``C J^T J C = -dC(s)/ds`` at ``s = 1`` where ``C(s)`` is the inverse
+    with ``J^T J`` scaled by ``s``, so its diagonal blocks are a central difference of
+    two more :func:`_arrow_inverse_blocks` (relative error ``~ _SANDWICH_STEP^2``), and
+    ``C R C = C - C J^T J C``.
+    """
     P, Q = model.n_params, model.n_pose
     T = len(q)
     sw = row_weights(weights, np.asarray(y, float))
     _, Jq, Jt = weighted_terms(model, theta, q, y, sw)
     m = Jq.shape[1]
-    n = P + T * Q
-    N = np.zeros((n, n))
-    N[:P, :P] = np.einsum("tkp,tkq->pq", Jt, Jt)
+    Hqq = pose_information(Jq)
     Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    for t in range(T):  # block assembly; T blocks of (Q, Q) and (Q, P)
-        s = slice(P + t * Q, P + (t + 1) * Q)
-        N[s, s] = Jq[t].T @ Jq[t]
-        N[s, :P] = Hqt[t]
-        N[:P, s] = Hqt[t].T
-    N[P:, P:] += R.toarray()
-    C = _spd_inverse(N)
-    X = np.zeros_like(C)
-    X[P:] = R @ C[P:]
-    # (theta, q_t) index sets for every frame
-    idx = np.concatenate([np.broadcast_to(np.arange(P), (T, P)),
-                          P + np.arange(T)[:, None] * Q + np.arange(Q)], axis=1)  # (T, P+Q)
-    Cb = C[:, idx]  # (n, T, P+Q)
-    Xb = X[:, idx]
-    CRC = np.einsum("ntk,ntl->tkl", Cb, Xb)  # diagonal blocks of C R C
-    Cdiag = C[idx[:, :, None], idx[:, None, :]]  # (T, P+Q, P+Q)
-    Sig = Cdiag - CRC  # blocks of C J^T J C (unit noise)
+    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
+    h = _SANDWICH_STEP
+    plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h)
+    minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h)
+    Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R)
+    Sig = (minus - plus) / (2.0 * h)  # blocks of C J^T J C (unit noise)
     Sig = 0.5 * (Sig + np.swapaxes(Sig, 1, 2))
+    CRC = Cdiag - Sig  # blocks of C R C
     mask = np.isfinite(y).all(axis=-1)
     wmask = np.repeat(mask, model.dim, axis=1).astype(float)  # (T, m)
     if sw is not None:
@@ -724,8 +858,6 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
     v = np.einsum("tkl,til->tik", CRC, Jfull)  # (T, m, P+Q): v_i restricted to the frame block
     u = np.einsum("tjil,til->tj", DJ, v * wmask[..., None])  # sum_i H_i v_i per frame block
     wvec = -0.5 * np.einsum("tij,ti->tj", Jfull, d) + u  # (T, P+Q)
-    full = np.zeros(n)
-    full[:P] = wvec[:, :P].sum(axis=0)
-    full[P:] = wvec[:, P:].ravel()
-    b = sigma2 * (C[:P] @ full)
-    return b, np.linalg.inv(C[:P, :P])
+    # b = sigma^2 C[:P] w with C[theta, theta] = S^{-1}, C[theta, q_t] = -S^{-1} G_t^T
+    b = sigma2 * (S_inv @ (wvec[:, :P].sum(axis=0) - np.einsum("tqp,tq->p", G, wvec[:, P:])))
+    return b, np.linalg.inv(S_inv)

@@ -33,7 +33,7 @@ from skelid.model.description import Model
 from skelid.model.kinematics import marker_jacobian
 
 
-def frame_terms(model: Model, theta, q, y):
+def frame_terms(model: Model, theta, q, y, ws=None):
     """Residuals and Jacobians with missing markers zeroed.
 
     Parameters
@@ -41,6 +41,8 @@ def frame_terms(model: Model, theta, q, y):
     theta : (..., P) float
     q : (..., Q) float
     y : (..., M, D) float, NaN where missing
+    ws : skelid.model.kinematics.Workspace, optional
+        The model's workspace.
 
     Returns
     -------
@@ -50,7 +52,7 @@ def frame_terms(model: Model, theta, q, y):
     """
     mask = np.isfinite(y).all(axis=-1)
     y0 = np.where(mask[..., None], y, 0.0)
-    x, Jq, Jt = marker_jacobian(model, theta, q)
+    x, Jq, Jt = marker_jacobian(model, theta, q, ws)
     w = mask[..., None].astype(float)
     batch = x.shape[:-2]
     r = ((y0 - x) * w).reshape(batch + (-1,))

@@ -85,10 +85,10 @@ from skelid.estimators.joint import (
 )
 from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
 from skelid.estimators.noise import marker_groups, per_marker_fit
-from skelid.estimators.pose import track_poses
+from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
-from skelid.model.kinematics import joint_distances, marker_positions
+from skelid.model.kinematics import Workspace, joint_distances, marker_positions
 from skelid.result import FitResult, NoiseEstimate, Warning
 
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
@@ -100,6 +100,11 @@ STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little function
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
 CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each
+SCREEN_STEP_TOL = 1e-3  # the screening fit (no motion model) stops at steps below this many sd ...
+SCREEN_TOL = 1e-7  # ... that lower its cost by less than this fraction
+BOOT_STEP_TOL = 1e-3  # a bootstrap refit stops at steps below this many sd ...
+BOOT_TOL = 1e-7  # ... that lower its cost by less than this fraction
+RACE_ITER = 10  # iterations each start of the motion-model fit gets before the better one is continued
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
 Z95 = 1.959964  # two-sided 95 % normal quantile
@@ -332,10 +337,11 @@ class MarkerFit(NamedTuple):
     cov: Covariance
     estimate: Estimate
     summary: Summary
+    pose_path: str = "numpy"  # "compiled" or "numpy": the path every pose fit took (see pose.workspace)
 
 
 # ================================================================================ stages
-def start_stage(model: Model, y, rate, s: MarkerEstimator, rng) -> Start:
+def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | None = None) -> Start:
     """Starting geometry and poses; which frames' markers fix the pose."""
     if model.n_params == 0:
         raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
@@ -346,9 +352,9 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng) -> Start:
     pose0 = s.pose0
     if pose0 is None:
         stride = max(1, int(rate // 25))  # track at about 25 Hz, interpolate between
-        pose0, _ = track_poses(model, theta0, y, rng, stride=stride)
+        pose0, _ = track_poses(model, theta0, y, rng, stride=stride, ws=ws)
     pose0 = np.asarray(pose0, float)
-    _, Jq0, _ = frame_terms(model, theta0, pose0, y)
+    _, Jq0, _ = frame_terms(model, theta0, pose0, y, ws)
     fixed = pose_fixed(Jq0)
     if not fixed.any():
         raise IdentifiabilityError(
@@ -358,23 +364,25 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng) -> Start:
     return Start(y, float(rate), theta0, pose0, bounds, fixed)
 
 
-def screen_stage(model: Model, st: Start, s: MarkerEstimator) -> Screen:
+def screen_stage(model: Model, st: Start, s: MarkerEstimator, ws: Workspace | None = None) -> Screen:
     """Fit without motion model (a smoother would spread a glitch over its neighbours); leave out glitches."""
     y, fixed = st.y, st.fixed
-    fit = joint_fit(model, y, st.theta0, st.pose0, n_iter=s.n_iter, bounds=st.bounds, frames=fixed)
+    fit = joint_fit(model, y, st.theta0, st.pose0, n_iter=s.n_iter, bounds=st.bounds, frames=fixed,
+                    tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws)
     out = np.zeros(y.shape[:2], dtype=bool)
     if s.outlier_threshold is not None:
-        found = _outlying_markers(model, y, fit, s.outlier_threshold)
+        found = _outlying_markers(model, y, fit, s.outlier_threshold, ws=ws)
         if found.any():  # drop them (they become missing, not replaced) and fit again
             out = found
             y = np.where(out[..., None], np.nan, y)
-            _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y)
+            _, Jq0, _ = frame_terms(model, fit.theta, fit.pose, y, ws)
             fixed = pose_fixed(Jq0)
-            fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed)
+            fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed,
+                            tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws)
     return Screen(y, fit, fixed, out)
 
 
-def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Motion:
+def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Workspace | None = None) -> Motion:
     """The joint fit with the motion model, from the tracked poses and from the screening fit."""
     rate = st.rate
     cutoff = s.cutoff or None  # 0: no motion model
@@ -385,30 +393,37 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator) -> Mot
                             min(MIN_AUTO_CUTOFF, rate / 2))
     if cutoff is None:
         return Motion(sc.fit, None)
-    # the motion model makes pose branches stick: keep the start with the lower penalised cost. Near a
-    # singular pose the per-frame fits jump between branches; a fit whose motion model is STIFFER times
-    # stiffer (graduated smoothing) first carries one smooth trajectory through them
+    # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
+    # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays).
+    # Near a singular pose the per-frame fits jump between branches, so the second start is a fit whose
+    # motion model is STIFFER times stiffer (graduated smoothing): it carries one smooth trajectory through
     stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
-                      frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER)
-    def fit_from(th, qq):
-        return joint_fit(model, sc.y, th, qq, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
-                         cutoff=cutoff)
-
-    # the penalty's weights come from the starting poses: from the stiff fit's, once more from its own
-    graduated = fit_from(stiff.theta, stiff.pose)
-    fits = [fit_from(st.theta0, st.pose0), fit_from(graduated.theta, graduated.pose)]
-    fit = min(fits, key=lambda f: f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel())))
+                      frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER, ws=ws, summary=False)
+    fits = [joint_fit(model, sc.y, th, qq, n_iter=min(RACE_ITER, s.n_iter), bounds=st.bounds, frames=sc.fixed,
+                      rate=rate, cutoff=cutoff, ws=ws, summary=False)
+            for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
+    best = min(fits, key=_penalised_cost)
+    more = s.n_iter - RACE_ITER if not best.converged else 0  # 0: only the information at the estimate
+    fit = joint_fit(model, sc.y, best.theta, best.pose, n_iter=max(more, 0), bounds=st.bounds, frames=sc.fixed,
+                    penalty=best.penalty, ws=ws)
+    if not more:
+        fit = fit._replace(converged=best.converged, n_iter=best.n_iter)
     return Motion(fit, cutoff)
 
 
-def weights_stage(model: Model, st: Start, sc: Screen, mo: Motion, s: MarkerEstimator) -> Weights:
+def _penalised_cost(f: JointFit) -> float:
+    return f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel()))
+
+
+def weights_stage(model: Model, st: Start, sc: Screen, mo: Motion, s: MarkerEstimator,
+                  ws: Workspace | None = None) -> Weights:
     """Per-marker noise levels and the weighted refit (see :mod:`skelid.estimators.noise`)."""
     if s.noise == "pooled":
         return Weights(mo.fit, None, None, None)
 
     def refit(weights, prev):
         return joint_fit(model, sc.y, prev.theta, prev.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                         rate=st.rate, cutoff=mo.cutoff, weights=weights)
+                         rate=st.rate, cutoff=mo.cutoff, weights=weights, ws=ws)
 
     groups = marker_groups(model.marker_names, s.marker_groups)
     fit, w, sig, dof, _ = per_marker_fit(model, sc.y, refit, mo.fit, groups)
@@ -564,7 +579,8 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
     return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place)
 
 
-def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator) -> Weights:
+def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator,
+                   ws: Workspace | None = None) -> Weights:
     """A fit that stopped early is continued (up to ``CONTINUE_ROUNDS`` times ``n_iter`` more
     iterations); if its estimate still moves by more than ``CONVERGED_SD`` of its sd in the last
     round, no interval is reported (one line)."""
@@ -573,7 +589,7 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
         if fit.converged:
             break
         more = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                         rate=st.rate if mo.cutoff is not None else None, cutoff=mo.cutoff, weights=wt.weights)
+                         penalty=fit.penalty, weights=wt.weights, ws=ws)
         dof = max(more.n_obs - more.pose_dof - model.n_params, 1.0)
         try:
             sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
@@ -644,9 +660,15 @@ def derived_lengths(model: Model, theta, cov) -> dict:
 
 
 def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
-    """The warnings a marker fit deserves, decided from its values."""
+    """The warnings a marker fit deserves, decided from its values (one small check per concern)."""
+    checks = (_data_warnings, _bound_warnings, _identification_warnings, _residual_warnings, _bias_warnings,
+              _jackknife_warnings, _placement_warnings, _motion_warnings)
+    return [w for check in checks for w in check(model, s, f)]
+
+
+def _data_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Marker positions left out as outliers; frames skipped."""
     out = []
-    names = np.array(model.parameter_names)
     out_ = f.screen.outliers
     if out_.any():
         out.append(Warning("outliers", f"{int(out_.sum())} marker positions in {int(out_.any(axis=1).sum())} "
@@ -656,18 +678,46 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
     if n_skip:
         out.append(Warning("frames-skipped", f"{n_skip} of {len(f.frames.used)} frames have too few markers "
                            "to fix the pose and were skipped"))
+    return out
+
+
+def _bound_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Parameters pinned on a bound of their prior, or lying outside it."""
+    out = []
     if f.pinned.any():
-        pinned = tuple(names[f.pinned])
+        pinned = tuple(np.array(model.parameter_names)[f.pinned])
         out.append(Warning("on-bound", f"parameter(s) {', '.join(pinned)} ended on a bound of their prior "
                            "interval: the data do not pin them inside it", pinned) if model.n_params > 1 else
                    Warning("on-bound", f"parameter {pinned[0]} ended on a bound of its prior interval: the "
                            "data do not pin it inside it", pinned))
+    theta = f.estimate.theta
+    for k, p in enumerate(model.parameters):
+        if not p.prior.lower <= theta[k] <= p.prior.upper:
+            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
+                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
+    return out
+
+
+def _identification_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Parameters poorly identified by the Cramér-Rao bound, or only once the interval is final."""
+    out = []
     for k, row in enumerate(f.ident["table"]):
         if row["status"] == "poor":
             out.append(Warning("poorly-identified", f"parameter {row['parameter']} is poorly identified for "
                                f"this motion (Cramér-Rao sd {row['crlb_sd']:.3g} {_unit(model, k)} is more than "
                                "a quarter of its prior range)", (row["parameter"],)))
+    for k, (before, after) in enumerate(zip(f.ident["table"], f.summary.table, strict=True)):
+        if before["status"] == "identified" and after["status"] == "poor":
+            out.append(Warning("poorly-identified", f"parameter {after['parameter']} is poorly identified for "
+                               f"this motion (sd {after['sd']:.3g} {_unit(model, k)} is more than a quarter of "
+                               "its prior range)", (after["parameter"],)))
+    return out
+
+
+def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Model misfit at a joint; serially correlated residuals and whether the interval was widened."""
     misfit = [j for j, v in f.residuals.misfit.items() if v["flagged"]]
+    out = []
     for j in misfit:
         v = f.residuals.misfit[j]
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
@@ -680,48 +730,58 @@ def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
         out.append(Warning("model-misfit" if misfit else "soft-tissue-artefact",
                            f"residuals are serially correlated (lag-1 autocorrelation "
                            f"{f.residuals.sta_score:.2f}): they look like {what}, {then}"))
+    return out
+
+
+def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """A second-order bias correction too large for its approximation (bootstrap fallback)."""
     fb = f.bias.fallback
-    if fb:
-        k = model.parameter_names.index(fb["parameter"])
-        out.append(Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
-                           f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
-                           f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
-                           f"refits) instead, and the interval uses the refits' spread "
-                           f"(sd {fb['sd_bootstrap'][k]:.3g})",
-                           (fb["parameter"],)))
+    if not fb:
+        return []
+    k = model.parameter_names.index(fb["parameter"])
+    return [Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
+                    f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
+                    f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
+                    f"refits) instead, and the interval uses the refits' spread (sd {fb['sd_bootstrap'][k]:.3g})",
+                    (fb["parameter"],))]
+
+
+def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Markers that disagree beyond their noise (the interval widened by the marker jackknife)."""
     jk = f.cov.jackknife
-    if jk.get("folded"):
-        k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
-        v = jk["parameters"][k]
-        out.append(Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
-                           f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
-                           f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,)))
+    if not jk.get("folded"):
+        return []
+    k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
+    v = jk["parameters"][k]
+    return [Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
+                    f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
+                    f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,))]
+
+
+def _placement_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Parameters informed by the markers' nominal placement rather than by motion."""
     pl = f.cov.placement
     flagged_p = tuple(n for n, v in pl["parameters"].items() if v["informed_by_placement"])
-    if flagged_p and (pl["static"] or pl["placement_sd"] > 0):  # with motion the flag stays in the result
-        tail = (f"; a marker placement uncertainty of {pl['placement_sd']:.3g} {model.units} per coordinate was "
-                "added to the interval" if pl["placement_sd"] > 0 else
-                "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
-        out.append(Warning("placement-informed", f"parameter(s) {', '.join(flagged_p)} are informed by the "
-                           "markers' nominal placement on their segments, not by motion (one still pose gives "
-                           f"{100 * pl['min_share']:.0f} % or more of their precision): their value follows "
-                           f"from the model's marker positions{tail}", flagged_p))
-    for k, (before, after) in enumerate(zip(f.ident["table"], f.summary.table, strict=True)):
-        if before["status"] == "identified" and after["status"] == "poor":
-            out.append(Warning("poorly-identified", f"parameter {after['parameter']} is poorly identified for "
-                               f"this motion (sd {after['sd']:.3g} {_unit(model, k)} is more than a quarter of "
-                               "its prior range)", (after["parameter"],)))
+    if not flagged_p or not (pl["static"] or pl["placement_sd"] > 0):  # with motion the flag stays in the result
+        return []
+    tail = (f"; a marker placement uncertainty of {pl['placement_sd']:.3g} {model.units} per coordinate was "
+            "added to the interval" if pl["placement_sd"] > 0 else
+            "; state the markers' placement uncertainty (placement_sd) to carry it into the interval")
+    return [Warning("placement-informed", f"parameter(s) {', '.join(flagged_p)} are informed by the "
+                    "markers' nominal placement on their segments, not by motion (one still pose gives "
+                    f"{100 * pl['min_share']:.0f} % or more of their precision): their value follows "
+                    f"from the model's marker positions{tail}", flagged_p)]
+
+
+def _motion_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Joints that hardly moved; a joint fit that did not converge."""
+    out = []
     if f.summary.still:
         out.append(Warning("still-joint", f"joint(s) {', '.join(f.summary.still)} moved less than "
                            f"{STILL_JOINT_DEG:g} degrees: their centres and axes are informed only by tiny "
                            "motions (a static trial cannot locate a joint functionally)"))
     if not f.weights.fit.converged:
         out.append(Warning("not-converged", "the joint fit stopped before converging; the estimate may be off"))
-    theta = f.estimate.theta
-    for k, p in enumerate(model.parameters):
-        if not p.prior.lower <= theta[k] <= p.prior.upper:
-            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
-                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
     return out
 
 
@@ -732,11 +792,12 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
     """
     model = est.model
-    st = start_stage(model, y, rate, est, rng)
-    sc = screen_stage(model, st, est)
-    mo = motion_stage(model, st, sc, est)
-    wt = weights_stage(model, st, sc, mo, est)
-    wt = converge_stage(model, st, sc, mo, wt, est)
+    ws = workspace(model)  # one path (compiled or numpy) for every pose fit of this fit
+    st = start_stage(model, y, rate, est, rng, ws)
+    sc = screen_stage(model, st, est, ws)
+    mo = motion_stage(model, st, sc, est, ws)
+    wt = weights_stage(model, st, sc, mo, est, ws)
+    wt = converge_stage(model, st, sc, mo, wt, est, ws)
     fit = wt.fit
     fr = frames_stage(model, sc, fit)
     noise = noise_stage(model, fit, est.sigma)
@@ -746,7 +807,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate))
+                     summary_stage(model, ident, estimate), ws.path)
 
 
 # ============================================================================== estimator
@@ -946,15 +1007,21 @@ class MarkerEstimator:
         self.warnings_ = tuple(found)
 
     def _bootstrap_bias(self, y, fit, sigma, rate, cutoff, bounds, rng):
-        """Parametric bootstrap: simulate from the fit, refit; the shifts of the estimate, (n_boot, P)."""
-        clean = marker_positions(self.model, fit.theta, fit.pose)
+        """Parametric bootstrap: simulate from the fit, refit; the shifts of the estimate, (n_boot, P).
+
+        Each refit stops at steps below ``BOOT_STEP_TOL`` of the sd: the mean of
+        ``n_boot`` shifts has a Monte Carlo error of about ``sd / sqrt(n_boot)``, far
+        above that.
+        """
+        ws = Workspace(self.model)  # kinematics only: no pose fit here
+        clean = marker_positions(self.model, fit.theta, fit.pose, ws)
         miss = ~np.isfinite(y)
         shifts = []
         for _ in range(self.n_boot):
             ys = clean + rng.normal(0.0, sigma, size=clean.shape)
             ys[miss] = np.nan
             f = joint_fit(self.model, ys, fit.theta, fit.pose, n_iter=self.n_iter, bounds=bounds,
-                          rate=rate, cutoff=cutoff)
+                          rate=rate, cutoff=cutoff, step_tol=BOOT_STEP_TOL, tol=BOOT_TOL, ws=ws)
             shifts.append(f.theta - fit.theta)
         return np.array(shifts)
 
@@ -976,6 +1043,7 @@ class MarkerEstimator:
             "cutoff_hz": None if self.cutoff_ is None else np.atleast_1d(self.cutoff_).tolist(),
             "outlying_marker_positions": int(self.outliers_.sum()),
             "converged": bool(self.fit_info_.converged), "iterations": int(self.fit_info_.n_iter),
+            "pose_path": self.fit_.pose_path,
             "bias_method": self.bias_method_, "bias_fallback": self.bias_fallback_,
             "marker_jackknife": self.jackknife_, "placement": self.placement_, "model_misfit": self.misfit_}
         if self.artefact_rms:
@@ -995,14 +1063,14 @@ class MarkerEstimator:
                                     "outliers": self.outliers_})
 
 
-def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4) -> np.ndarray:
+def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4, ws=None) -> np.ndarray:
     """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
     See :func:`skelid.estimators.screen.outlying_markers`.
     """
     from skelid.estimators.screen import outlying_markers
 
-    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds)
+    return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds, ws)
 
 
 def _unit(model: Model, k: int) -> str:

@@ -38,6 +38,7 @@ import numpy as np
 from skelid.estimators import _lm_kernel
 from skelid.model.description import Model
 from skelid.model.kinematics import (
+    Workspace,
     _forward_general,
     _forward_planar,
     _rotation,
@@ -49,7 +50,24 @@ from skelid.model.kinematics import (
 )
 
 
-def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3):
+def workspace(model: Model) -> Workspace:
+    """A :class:`~skelid.model.kinematics.Workspace` for ``model`` whose pose fits take one path.
+
+    The compiled kernel is used if it can run now (see
+    :func:`skelid.estimators._lm_kernel.ready`: numba installed, not
+    ``SKELID_NUMBA=0``, the kernel compiled or in numba's cache); otherwise
+    every pose fit with this workspace takes the numpy path, even if the
+    kernel's background compilation finishes meanwhile. An estimator creates
+    one at the start of a fit, so a fit never switches path halfway and
+    reports which one it took (``Workspace.path``).
+    """
+    ws = Workspace(model)
+    ws.compiled = _lm_kernel.ready(bool(ws.plan.planar))
+    return ws
+
+
+def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3,
+             ws: Workspace | None = None):
     """Least-squares pose for each frame (and hypothesis).
 
     Parameters
@@ -88,11 +106,12 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, d
     the same iteration once it is compiled (see
     :mod:`skelid.estimators._lm_kernel`); set ``SKELID_NUMBA=0`` to use numpy.
     """
-    q, cost, _ = _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet=False)
+    q, cost, _ = _fit(model, theta, y, q0, n_iter, tol, damping, False, ws)
     return q, cost
 
 
-def fit_pose_logdet(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3):
+def fit_pose_logdet(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, damping: float = 1e-3,
+                    ws: Workspace | None = None):
     """:func:`fit_pose` plus ``log det J^T J`` at the fitted pose.
 
     Returns
@@ -103,38 +122,39 @@ def fit_pose_logdet(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1
         ``log det J^T J`` of the pose Jacobian (missing markers give zero rows);
         ``-inf`` where it is not positive (the pose is not determined).
     """
-    return _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet=True)
+    return _fit(model, theta, y, q0, n_iter, tol, damping, True, ws)
 
 
-def _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet):
+def _fit(model, theta, y, q0, n_iter, tol, damping, want_logdet, ws=None):
     y = np.asarray(y, dtype=float)
     theta = np.asarray(theta, dtype=float)
     mask = np.isfinite(y).all(axis=-1)
     y0 = np.where(mask[..., None], y, 0.0)
     q = np.array(q0, dtype=float)
     batch = np.broadcast_shapes(q.shape[:-1], y.shape[:-2], theta.shape[:-1])
-    plan = kinematics_plan(model)
+    if ws is None:
+        ws = workspace(model)
+    plan = kinematics_plan(model, ws)
     g = geometry(model, theta)
     tilt = tilt_tables(model, theta)
-    tables = _kernel_tables(model, plan)
+    tables = _kernel_tables(ws)
     if tables is not None:
         return _fit_compiled(plan, tables, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet)
     return _fit_numpy(plan, g, tilt, y0, mask, q, batch, n_iter, tol, damping, want_logdet)
 
 
-def _kernel_tables(model, plan) -> tuple | None:
-    """The compiled kernel's model tables (kept with the model like its plan).
+def _kernel_tables(ws: Workspace) -> tuple | None:
+    """The compiled kernel's model tables (made once, kept in the workspace).
 
-    None where the numpy path fits: without numba, while the kernel is not
-    yet compiled (see :func:`skelid.estimators._lm_kernel.ready`), or for a
-    model the kernel cannot represent.
+    None where the numpy path fits: the workspace was made for it (without
+    numba, or while the kernel was not yet compiled; see :func:`workspace`),
+    or a model the kernel cannot represent.
     """
-    if not _lm_kernel.ready(bool(plan.planar)):
+    if not ws.compiled:
         return None
-    tables = model.__dict__.get("_lm_kernel_tables", False)
-    if tables is False:
-        tables = model.__dict__["_lm_kernel_tables"] = _lm_kernel.plan_arrays(plan)
-    return tables
+    if ws.kernel_tables is None:
+        ws.kernel_tables = _lm_kernel.plan_arrays(ws.plan)
+    return ws.kernel_tables
 
 
 def _batch_last(a, batch, tail) -> np.ndarray:
@@ -180,9 +200,10 @@ class FramePoseFitter:
         The hypotheses.
     """
 
-    def __init__(self, model: Model, theta):
+    def __init__(self, model: Model, theta, ws: Workspace | None = None):
         self.model = model
-        self.plan = kinematics_plan(model)
+        self.ws = workspace(model) if ws is None else ws
+        self.plan = kinematics_plan(model, self.ws)
         self.theta = np.asarray(theta, dtype=float)
         self.g = geometry(model, self.theta)  # (K, G)
         self.tilt = tilt_tables(model, self.theta)
@@ -193,7 +214,7 @@ class FramePoseFitter:
     def _use_kernel(self) -> bool:
         """Whether to call the compiled kernel now (its batch-last arrays are made the first time)."""
         if self.tables is None:
-            self.tables = _kernel_tables(self.model, self.plan)
+            self.tables = _kernel_tables(self.ws)
             if self.tables is None:
                 return False
             self.gT = np.ascontiguousarray(self.g.T)
@@ -421,7 +442,7 @@ def _euler_zxy(R_rel) -> np.ndarray:
     return np.stack([a, b, c], -1)
 
 
-def rigid_poses(model: Model, theta, y):
+def rigid_poses(model: Model, theta, y, ws: Workspace | None = None):
     """Pose coordinates from per-segment rigid fits and inverse kinematics.
 
     Parameters
@@ -467,7 +488,7 @@ def rigid_poses(model: Model, theta, y):
             vals = list(eul) if kind == "spherical" else \
                 [*np.moveaxis(p[:, s] - offsets[s], -1, 0), *eul]
         elif kind == "custom":
-            vals = custom_joint_coordinates(model, s, R_rel, p[:, s] - offsets[s] if par < 0 else None)
+            vals = custom_joint_coordinates(model, s, R_rel, p[:, s] - offsets[s] if par < 0 else None, ws)
             if vals is None:
                 continue
         elif kind == "hinge":
@@ -487,16 +508,14 @@ def rigid_poses(model: Model, theta, y):
     return q, known
 
 
-def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None):
+def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None, ws: Workspace | None = None):
     """Coordinates of custom joint ``s`` from its relative rotation, or None if not plain.
 
     Handled: every coordinate drives one motion as itself; the rotations, one
     to three, about mutually perpendicular axes; translations (of the root,
     ``shift (F, 3)`` in the world) along independent axes.
     """
-    from skelid.model.kinematics import kinematics_plan
-
-    plan = kinematics_plan(model)
+    plan = kinematics_plan(model, ws)
     rows = plan.custom[s]
     if any(k >= 0 and not f.is_identity for _t, _a, k, f, *_ in rows) \
             or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, *_ in rows):
@@ -534,7 +553,7 @@ def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None):
 
 
 def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_starts: int = 64,
-                 q_known=None, known=None):
+                 q_known=None, known=None, ws: Workspace | None = None):
     """Best pose of one frame from many random starts.
 
     Parameters
@@ -553,7 +572,7 @@ def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_start
     if known is not None:
         q0 = np.where(known, q_known, q0)
         q0[0] = np.where(known, q_known, 0.0)  # and one start at the reference pose
-    q, cost = fit_pose(model, np.asarray(theta)[None], y_frame[None], q0, n_iter=60)
+    q, cost = fit_pose(model, np.asarray(theta)[None], y_frame[None], q0, n_iter=60, ws=ws)
     best = _canonical_best(model, q, cost, y_frame)
     return _wrap_angles(model, q[best]), float(cost[best])
 
@@ -589,7 +608,7 @@ def pose_determined(model: Model, y) -> np.ndarray:
 
 
 def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
-                n_refine: int = 30, n_starts: int = 64, stride: int = 1):
+                n_refine: int = 30, n_starts: int = 64, stride: int = 1, ws: Workspace | None = None):
     """Poses of every frame of a trial for fixed ``theta``.
 
     Rigid fits and inverse kinematics give every coordinate they can, in all
@@ -609,6 +628,8 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
         Of the frames that rigid fits do not settle, track only every
         ``stride``-th sequentially and start the others from linear
         interpolation between resolved frames (for densely sampled, smooth motion).
+    ws : Workspace, optional
+        The model's workspace (:func:`workspace`; one is made for this call without it).
 
     Returns
     -------
@@ -618,7 +639,9 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
     theta = np.asarray(theta, dtype=float)
     y = np.asarray(y, dtype=float)
     F = y.shape[0]
-    q, known = rigid_poses(model, theta, y)
+    if ws is None:
+        ws = workspace(model)
+    q, known = rigid_poses(model, theta, y, ws)
     enough = pose_determined(model, y)
     todo = ~known.all(axis=1) & enough
     if q_first is not None:
@@ -637,10 +660,10 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
                 prev2, prev = prev, q[t]
             continue
         if prev is None:
-            q[t], _ = initial_pose(model, theta, y[t], rng, n_starts, q[t], known[t])
+            q[t], _ = initial_pose(model, theta, y[t], rng, n_starts, q[t], known[t], ws=ws)
         else:
             pred = prev if prev2 is None else prev + 0.5 * (prev - prev2)
-            q[t], _ = fit_pose(model, theta, y[t], np.where(known[t], q[t], pred), n_iter=5)
+            q[t], _ = fit_pose(model, theta, y[t], np.where(known[t], q[t], pred), n_iter=5, ws=ws)
         prev2, prev = prev, q[t]
     if later.any():
         anchors = np.flatnonzero(enough & ~later)
@@ -650,7 +673,7 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
             interp = np.stack([np.interp(np.flatnonzero(later), anchors, qa[:, k])
                                for k in range(model.n_pose)], axis=-1)
             q[later] = np.where(known[later], q[later], interp)
-    q, rss = fit_pose(model, theta, y, q, n_iter=n_refine)
+    q, rss = fit_pose(model, theta, y, q, n_iter=n_refine, ws=ws)
     # frames that ended in a poor local minimum: random restarts (batched over those frames)
     ok = enough & np.isfinite(rss)
     if ok.sum() >= 3:
@@ -662,7 +685,7 @@ def track_poses(model: Model, theta, y, rng: np.random.Generator, q_first=None,
             starts = random_poses(model, y[bad], rng, n_starts)  # (B, n, Q)
             starts = np.where(known[bad, None], q[bad, None], starts)
             starts[:, 0] = q[bad]
-            qb, cb = fit_pose(model, theta, y[bad, None], starts, n_iter=60)
+            qb, cb = fit_pose(model, theta, y[bad, None], starts, n_iter=60, ws=ws)
             # of the starts that reach the lowest cost (to rounding), keep the one nearest the tracked
             # pose: equal-cost poses on another angle branch would break the trial's continuity
             low = cb <= np.nanmin(cb, axis=1, keepdims=True) * (1.0 + 1e-6) + floor[bad, None]

@@ -41,6 +41,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.special import chdtr
 from scipy.stats import chi2, norm
 
 from skelid.estimators.likelihood import frame_terms
@@ -116,7 +117,7 @@ def robust_variance(z, dof) -> float:
     lo, hi = np.log(max(np.min(ratio[ratio > 0], initial=1e-300), 1e-300)), np.log(max(ratio.max(), 1e-300))
     for _ in range(60):  # bisection in log sigma^2 on the fraction below the median
         mid = 0.5 * (lo + hi)
-        frac = np.mean(chi2.cdf(zz / np.exp(mid), dd))
+        frac = np.mean(chdtr(dd, zz / np.exp(mid)))  # chi2.cdf without its per-call argument checks
         if frac > 0.5:
             lo = mid
         else:
@@ -124,7 +125,7 @@ def robust_variance(z, dof) -> float:
     return float(np.exp(0.5 * (lo + hi)))
 
 
-def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rounds: int = 4) -> np.ndarray:
+def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rounds: int = 4, ws=None) -> np.ndarray:
     """(T, M) bool: marker positions whose standardised residual is an outlier.
 
     Parameters
@@ -138,6 +139,8 @@ def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rou
         spread to its neighbours through a motion model).
     used : (T,) bool
         Frames in the first fit.
+    ws : skelid.model.kinematics.Workspace, optional
+        The fit's workspace (its pose fits keep the fit's path).
     threshold : float
         In standard deviations of one Gaussian coordinate; converted to the tail
         probability ``2 Phi(-threshold)`` of each position's chi-square.
@@ -152,7 +155,7 @@ def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rou
     used = np.asarray(used, bool)
     if not used.any():
         return out
-    pose, _ = fit_pose(model, theta, y, pose, n_iter=20)
+    pose, _ = fit_pose(model, theta, y, pose, n_iter=20, ws=ws)
     y = np.where(used[:, None, None], y, np.nan)
     z, dof = standardised_residuals(model, theta, pose, y)
     s2 = robust_variance(z, dof)
@@ -178,7 +181,7 @@ def outlying_markers(model: Model, y, theta, pose, used, threshold: float, n_rou
             break
         out[flag, worst[flag]] = True
         yy = np.where(out[flag][..., None], np.nan, y[flag])
-        pf, _ = fit_pose(model, theta, yy, pose[flag], n_iter=20)
+        pf, _ = fit_pose(model, theta, yy, pose[flag], n_iter=20, ws=ws)
         pose[flag] = pf
         zf, df = standardised_residuals(model, theta, pf, yy)
         lp[flag] = np.where(isolated[flag] & ~out[flag], log_tail(zf, df, s2), 0.0)

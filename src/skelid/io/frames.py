@@ -73,8 +73,13 @@ def as_run(result, arrays: Mapping | None = None):
     result : FitRun, FitResult, path of a result folder, or ``result.json`` dict
     arrays : mapping, optional
         The arrays of a ``result.json`` dict (``arrays.npz``'s content).
+
+    A folder is read by :func:`skelid.io.results.read_run` (checked; an old or
+    damaged one is refused in one line); a dict without ``schema_version`` is
+    taken as the layout before version 1 (:func:`skelid.io.legacy.run_from_legacy`).
     """
-    from skelid.io.legacy import has_schema, run_from_legacy
+    from skelid.io.legacy import run_from_legacy
+    from skelid.io.results import read_run, run_from_dict
     from skelid.result import FitResult, FitRun
 
     if isinstance(result, FitRun):
@@ -82,18 +87,9 @@ def as_run(result, arrays: Mapping | None = None):
     if isinstance(result, FitResult):
         return FitRun({result.method: result})
     if isinstance(result, str | Path):
-        if has_schema(result):
-            from skelid.io.results import read_run
-
-            return read_run(result)
-        from skelid.report import load_result_dir
-
-        doc, arr, _ = load_result_dir(result)
-        return run_from_legacy(doc, arr)
+        return read_run(result)
     if isinstance(result, Mapping):
         if "schema_version" in result:
-            from skelid.io.results import run_from_dict
-
             return run_from_dict(result, arrays)
         return run_from_legacy(result, arrays)
     raise SkelidError(f"cannot convert a {type(result).__name__}",
@@ -125,6 +121,19 @@ def _model(run):
 
 
 # ----------------------------------------------------------------------------- pandas
+def estimate_fields(p) -> dict:
+    """One :class:`~skelid.result.ParameterEstimate` as the values of a table row.
+
+    ``estimate`` (posterior mean), ``map``, ``sd``, ``lower``/``upper`` (95 % interval),
+    ``crlb_sd`` (NaN where not computed) and ``status`` (None where the method gives
+    none), in the order of :data:`COLUMNS`. :func:`to_dataframe` and the batch table
+    (:mod:`skelid.batch`) both take their values from here.
+    """
+    return {"estimate": p.mean, "map": p.map, "sd": p.sd, "lower": p.interval[0], "upper": p.interval[1],
+            "crlb_sd": math.nan if p.crlb_sd is None else p.crlb_sd,
+            "status": p.status if p.extra.get("status_given", True) else None}
+
+
 def to_dataframe(result, arrays: Mapping | None = None):
     """One row per parameter, derived quantity and noise level of every method.
 
@@ -148,9 +157,7 @@ def to_dataframe(result, arrays: Mapping | None = None):
     for method, r in run.results.items():
         for kind, table in (("parameter", r.parameters), ("derived", r.derived)):
             for name, p in table.items():
-                rows.append((method, name, kind, p.unit, p.mean, p.map, p.sd, p.interval[0], p.interval[1],
-                             math.nan if p.crlb_sd is None else p.crlb_sd,
-                             p.status if p.extra.get("status_given", True) else None))
+                rows.append((method, name, kind, p.unit, *estimate_fields(p).values()))
         n = getattr(r, "noise", None)
         if n is not None:
             lo, hi = n.interval if n.interval is not None else (math.nan, math.nan)
@@ -258,14 +265,14 @@ def _draws(r, names: list[str], n_draws: int, rng: np.random.Generator) -> tuple
     P = len(names)
     if samples is not None and np.ndim(samples) == 2 and np.shape(samples)[1] == P and len(samples):
         samples = np.asarray(samples, float)
-        w = own.get("weights")
+        w = own.get("sample_weights", own.get("weights"))
         if w is not None and np.shape(w) == (len(samples),) and np.ptp(w) > 0:
             return samples[_systematic(w, n_draws, rng)], "the sampler's weighted samples, resampled systematically"
         if len(samples) >= n_draws:
             return samples[rng.choice(len(samples), n_draws, replace=False)], "the sampler's samples"
         return samples, "the sampler's samples"
     mean = np.array([r.parameters[n].mean for n in names])
-    cov = own.get("cov")
+    cov = own.get("cov", own.get("posterior.cov"))
     how = "the Gaussian posterior (mean and covariance)"
     if cov is None or np.shape(cov) != (P, P):
         cov = np.diag([r.parameters[n].sd ** 2 for n in names])

@@ -4,9 +4,11 @@ Until version 1, ``result.json`` held one dict per method in which parameter
 estimates (``{"map", "mean", "sd", "ci95"}``) sat beside reserved keys
 (``sigma``, ``lengths``, ``identifiability``, ``warnings``, ...), and
 ``arrays.npz`` named a method's arrays ``METHOD.KEY``. :func:`run_from_legacy`
-turns such a dict into the typed result, so the report and the conversions
-read one shape. A folder with a ``schema_version`` goes to
-:func:`skelid.io.results.read_run`.
+turns such a dict into the typed result (for a program holding one in
+memory); :func:`summary_dict` is its inverse. Result *folders* of that layout
+are not read: :func:`skelid.io.results.read_run` refuses them in one line
+naming the version (a damaged one cannot be told from an old one reliably,
+so the fix is to fit again).
 
 Plain-text warnings name their parameters in the text; a warning that
 contains ``parameter NAME`` (as a whole token) is attached to ``NAME``. A
@@ -26,11 +28,9 @@ Examples
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
 
@@ -149,10 +149,40 @@ def run_from_legacy(doc: Mapping, arrays: Mapping | None = None) -> FitRun:
                   {k: v for k, v in arrays.items() if "." not in k})
 
 
-def has_schema(result_dir) -> bool:
-    """Whether ``result_dir/result.json`` declares a ``schema_version`` (False if unreadable)."""
-    try:
-        doc = json.loads((Path(result_dir) / "result.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and "schema_version" in doc
+def summary_dict(r: FitResult) -> dict:
+    """A :class:`FitResult` as one method's flat dict of the layout before schema version 1.
+
+    ``frames_used``, ``frames_dropped``, ``frames_skipped``; one entry per parameter
+    (``map``, ``mean``, ``sd``, ``ci95``, ``crlb_sd`` and the estimator's extras);
+    ``sigma``; ``lengths``; every diagnostic under its own key; ``warnings`` (messages).
+    In this flat shape a parameter named like a reserved key shadows it, which is why
+    result files hold the typed form (:func:`skelid.io.results.write_run`); the OpenSim
+    scaling table is still built from this shape.
+    """
+    out: dict = {}
+    if r.frames is not None:
+        out.update(frames_used=r.frames.used, frames_dropped=r.frames.dropped, frames_skipped=dict(r.frames.skipped))
+    out.update({k: v for k, v in r.diagnostics.items() if k != "identifiability"})
+    for k, p in r.parameters.items():
+        entry = {"map": p.map, "mean": p.mean, "sd": p.sd, "ci95": list(p.interval)}
+        if p.crlb_sd is not None:
+            entry["crlb_sd"] = p.crlb_sd
+        out[k] = {**entry, **p.extra}
+    if r.noise is not None:
+        out["sigma"] = _noise_dict(r.noise)
+    if r.derived:
+        out["lengths"] = {k: {"value": p.mean, "sd": p.sd, "ci95": list(p.interval)} for k, p in r.derived.items()}
+    if "identifiability" in r.diagnostics:
+        out["identifiability"] = r.diagnostics["identifiability"]
+    out["warnings"] = [w.message for w in r.warnings]
+    return out
+
+
+def _noise_dict(n: NoiseEstimate) -> dict:
+    sig = {"value": n.sigma, "fixed": n.fixed}
+    if n.interval is not None or n.extra:
+        sig["ci95"] = list(n.interval) if n.interval is not None else [n.sigma] * 2
+    sig.update(n.extra)
+    if n.per_marker:
+        sig["per_marker"] = dict(n.per_marker)
+    return sig

@@ -42,7 +42,7 @@ from __future__ import annotations
 import copy
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -405,6 +405,8 @@ class OsimInfo:
     child_offset: dict  # body -> (R_BM (3,3), p_BM (3,)) in metres
     joint_of: dict  # body -> joint name
     fixed_markers: frozenset
+    marker_set: str | None = None  # the MarkerSet file read (given, or found next to the model)
+    marker_set_found_by: str | None = None  # how it was found when not given
 
 
 def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = None) -> tuple[Model, OsimInfo]:
@@ -416,7 +418,9 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
         The .osim file.
     marker_set : str or Path, optional
         An OpenSim MarkerSet XML file whose markers replace the model's (the
-        gait2354 model, for instance, ships its markers separately).
+        gait2354 model, for instance, ships its markers separately). Not given
+        for a model without markers: the one :func:`find_marker_set` finds next
+        to the model, if any (``info.marker_set`` names the file read).
     keep : {'markers', 'all'}
         Keep only the bodies that carry markers or lead to one (default), or all.
 
@@ -434,6 +438,9 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
     tree = _parse(path)
     rd = _Reader(tree.getroot(), str(path))
     rd.read()
+    found_by = None
+    if marker_set is None and not rd.markers:
+        marker_set, found_by = find_marker_set(path)
     if marker_set is not None:
         ms_root = _parse(marker_set).getroot()
         ms = ms_root if ms_root.tag == "MarkerSet" else ms_root.find("MarkerSet")
@@ -442,9 +449,74 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
         rd.markers = []
         rd._read_markers(ms)
     if not rd.markers:
-        raise ModelError(f"{path} has no markers",
-                         "add a MarkerSet to the model, or give the marker-set file (--marker-set FILE)")
-    return _to_model(rd, keep, name or rd.model_el.get("name") or Path(path).stem)
+        raise ModelError(f"{path} has no markers" + (f" and {found_by}" if marker_set is None and found_by else ""),
+                         "give the model's MarkerSet file with --marker-set FILE (or add a MarkerSet to the model)")
+    model, info = _to_model(rd, keep, name or rd.model_el.get("name") or Path(path).stem)
+    return model, replace(info, marker_set=None if marker_set is None else str(marker_set),
+                          marker_set_found_by=found_by)
+
+
+def _document_kind(path: Path) -> str | None:
+    """The tag of an OpenSim XML document's top object (``ScaleTool``, ``MarkerSet``, ``Model`` ...), cheaply."""
+    try:
+        for depth, (_, el) in enumerate(ET.iterparse(path, events=("start",))):
+            if el.tag != "OpenSimDocument" or depth > 0:
+                return el.tag
+    except (ET.ParseError, OSError, UnicodeDecodeError):
+        return None
+    return None
+
+
+def find_marker_set(path) -> tuple[Path | None, str | None]:
+    """The MarkerSet file that goes with a model without markers, found next to the model.
+
+    Looked for among the ``*.xml`` files in the model's folder, in this order:
+
+    1. the ``marker_set_file`` of an OpenSim ScaleTool setup whose
+       ``GenericModelMaker`` names this model as its ``model_file`` (how
+       OpenSim's own example folders pair a model with its markers);
+    2. the only file whose document is a ``<MarkerSet>``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The .osim file.
+
+    Returns
+    -------
+    marker_set : Path or None
+        None when neither rule gives exactly one file.
+    how : str or None
+        How it was found (for the user), or why none was taken.
+    """
+    path = Path(path)
+    folder = path.resolve().parent
+    setups, sets = [], []
+    for f in sorted(folder.glob("*.xml")):
+        if not f.is_file() or f.stat().st_size > 5_000_000:
+            continue
+        kind = _document_kind(f)
+        if kind == "MarkerSet":
+            sets.append(f)
+        elif kind == "ScaleTool":
+            setups.append(f)
+    for f in setups:
+        try:
+            gm = ET.parse(f).getroot().find(".//GenericModelMaker")
+        except (ET.ParseError, OSError):
+            continue
+        model_file = (_text(gm, "model_file", "") or "").strip() if gm is not None else ""
+        ms_file = (_text(gm, "marker_set_file", "") or "").strip() if gm is not None else ""
+        if not model_file or not ms_file or ms_file == "Unassigned":
+            continue
+        if (f.parent / model_file).resolve() == path.resolve() and (f.parent / ms_file).is_file():
+            return f.parent / ms_file, (f"its markers come from {ms_file}, which the ScaleTool setup {f.name} "
+                                        "beside it pairs with it")
+    if len(sets) == 1:
+        return sets[0], f"its markers come from {sets[0].name}, the only MarkerSet file beside it"
+    if sets:
+        return None, f"{len(sets)} MarkerSet files lie beside it ({', '.join(s.name for s in sets)})"
+    return None, None
 
 
 def _to_model(rd: _Reader, keep: str, name: str) -> tuple[Model, OsimInfo]:

@@ -356,11 +356,13 @@ def _result(d, arrays, where: str, prefix: str) -> FitResult:
         skipped = {k: _int(v, f"{wf}.skipped.{k}")
                    for k, v in _obj(f.get("skipped", {}), f"{wf}.skipped").items()}
         frames = FrameCounts(total, used, skipped)
+    diagnostics = _json_object(d.get("diagnostics", {}), f"{where}.diagnostics")
+    _check(diagnostics, DIAGNOSTIC_KEYS, f"{where}.diagnostics")
     specs = _array_specs(d.get("arrays", {}), f"{where}.arrays")
     arr = {} if arrays is None else _take_arrays(specs, arrays, prefix, f"{where}.arrays")
     return FitResult(
         method=_str(d["method"], f"{where}.method"), parameters=params, derived=derived, noise=noise,
-        frames=frames, diagnostics=_json_object(d.get("diagnostics", {}), f"{where}.diagnostics"),
+        frames=frames, diagnostics=diagnostics,
         warnings=_warnings(d.get("warnings", []), f"{where}.warnings"),
         settings=_json_object(d.get("settings", {}), f"{where}.settings"),
         provenance=_json_object(d.get("provenance", {}), f"{where}.provenance"), arrays=arr)
@@ -410,8 +412,10 @@ def _run(doc, arrays) -> FitRun:
             raise _Bad(f"$.results.{k}.method", f"{r.method!r} under the key {k!r}")
     specs = _array_specs(doc.get("arrays", {}), "$.arrays")
     arr = {} if arrays is None else _take_arrays(specs, arrays, "run/", "$.arrays")
-    return FitRun(results, _json_object(doc.get("context", {}), "$.context"),
-                  _warnings(doc.get("warnings", []), "$.warnings"), arr)
+    _check_run_arrays(arr)
+    context = _json_object(doc.get("context", {}), "$.context")
+    _check(context, CONTEXT_KEYS, "$.context")
+    return FitRun(results, context, _warnings(doc.get("warnings", []), "$.warnings"), arr)
 
 
 def _no_duplicates(pairs):
@@ -510,119 +514,145 @@ def read_run(result_dir) -> FitRun:
         raise FormatError(f"{js}: {exc}", _FIX) from None
 
 
-# ==================================================================== JSON summary
-def summary_dict(r: FitResult) -> dict:
-    """The per-method JSON summary ``skelid fit`` prints and writes under ``methods``.
+# ============================================================ the keys readers rely on
+# ``context`` and ``diagnostics`` are open objects (any JSON value under a new key), but the
+# keys below are read by the report and the conversions, so their shapes are checked too.
+# A spec is a type (str, int, float, bool), ``_Opt(spec)`` (null allowed), ``[spec]`` (a list),
+# ``_MapOf(spec)`` (an object with any keys) or a dict (an object with these optional keys).
+class _Opt(tuple):
+    pass
 
-    ``frames_used``, ``frames_dropped``, ``frames_skipped``; one entry per parameter
-    (``map``, ``mean``, ``sd``, ``ci95``, ``crlb_sd`` and the estimator's extras);
-    ``sigma``; ``lengths``; every diagnostic under its own key; ``warnings`` (messages).
-    In this flat shape a parameter named like a reserved key shadows it; the typed
-    :class:`~skelid.result.FitResult` and :func:`write_run` keep them apart.
+
+class _MapOf(tuple):
+    pass
+
+
+_NUMBER = _Opt((float,))
+_MARKER_ROW = {"name": str, "used_by_model": bool, "frames_missing": int, "gaps": int, "longest_gap": int}
+_PRIOR = _MapOf((_Opt((float, str)),))
+CONTEXT_KEYS = {
+    "model": str, "units": str, "frames_total": int,
+    "data": _Opt((str, [str])),
+    "data_overview": {"source": _Opt((str,)), "format": str, "n_frames": int, "n_markers": int, "dim": int,
+                      "rate_hz": _NUMBER, "units": str, "duration_s": _NUMBER, "model_markers": _MapOf((str,)),
+                      "markers": [_MARKER_ROW]},
+    "model_parameters": _MapOf(({"kind": str, "target": _Opt((str,)), "prior": _PRIOR, "nominal": _NUMBER,
+                                 "units": str},)),
+    "model_description": _MapOf((_Opt((object,)),)),
+    "provenance": {"command": [str], "cwd": str, "created": str, "versions": _MapOf((str,))},
+    "truth": _MapOf((_NUMBER,)),
+}
+#: the model-sensitivity record of ``skelid fit --alternative`` (see :mod:`skelid.sensitivity`)
+SENSITIVITY = {"models": [str], "estimates": _MapOf((_MapOf(({"value": _NUMBER, "sd": _NUMBER},)),)),
+               "spread": _MapOf(({"values": _MapOf((_NUMBER,)), "spread": _NUMBER, "sd_over_models": _NUMBER,
+                                  "largest_sd": _NUMBER},))}
+DIAGNOSTIC_KEYS = {
+    "identifiability": [{"parameter": str, "status": str, "crlb_sd": _NUMBER}],
+    "model_sensitivity": SENSITIVITY,
+}
+#: the run's arrays: (dtype kinds, dimensions)
+RUN_ARRAYS = {"markers": ("f", 3), "marker_names": ("U", 1), "rate": ("fiu", 0), "units": ("U", 0)}
+
+
+def _check(v, spec, where: str) -> None:
+    """``v`` has the shape ``spec`` describes (see above); raises _Bad naming the key path otherwise."""
+    if isinstance(spec, _Opt):
+        _check_opt(v, spec, where)
+    elif isinstance(spec, _MapOf):
+        for k, x in _obj(v, where).items():
+            _check(x, spec[0], f"{where}.{k}")
+    elif isinstance(spec, dict):
+        d = _obj(v, where)
+        for k in spec.keys() & d.keys():
+            _check(d[k], spec[k], f"{where}.{k}")
+    elif isinstance(spec, list):
+        if not isinstance(v, list):
+            raise _Bad(where, f"expected a list, got {_type_name(v)}")
+        for i, x in enumerate(v):
+            _check(x, spec[0], f"{where}[{i}]")
+    elif spec in _SCALARS:
+        _SCALARS[spec](v, where)
+
+
+def _check_opt(v, spec: _Opt, where: str) -> None:
+    """``v`` is null or has one of the shapes in ``spec`` (the first one's complaint otherwise)."""
+    if v is None:
+        return
+    errors = []
+    for s in spec:
+        try:
+            return _check(v, s, where)
+        except _Bad as exc:
+            errors.append(exc)
+    raise errors[0]
+
+
+_SCALARS = {float: _float, int: _int, str: _str, bool: _bool}
+
+
+def _check_run_arrays(arrays: Mapping[str, np.ndarray]) -> None:
+    for k, (kinds, ndim) in RUN_ARRAYS.items():
+        a = arrays.get(k)
+        if a is not None and (a.dtype.kind not in kinds or a.ndim != ndim):
+            raise _Bad(f"$.arrays.{k}", f"{ARRAYS_NPZ}[run/{k}] is a {a.ndim}-d array of dtype {a.dtype}, "
+                       f"not the {ndim}-d array skelid writes")
+    y, names = arrays.get("markers"), arrays.get("marker_names")
+    if y is not None and names is not None and y.shape[1] != names.shape[0]:
+        raise _Bad("$.arrays.markers", f"{y.shape[1]} markers but {names.shape[0]} marker names")
+
+
+# ============================================================ arrays of a fitted estimator
+def posterior_arrays(est) -> dict[str, np.ndarray]:
+    """The posterior of a fitted estimator as arrays (``posterior.*``), for the report's figures.
+
+    ``posterior.kind`` says which form: ``grid`` (``axis.K``, ``marginal.K`` and
+    ``history.K`` per parameter K with ``history_steps``), ``gaussian`` (``mean``,
+    ``cov`` and, where the estimator keeps one, its history ``history_mean``,
+    ``history_cov``, ``history_steps``) or ``samples`` (``mean``, ``cov``; the
+    samples themselves are the result's ``samples`` and ``sample_weights``).
+    ``posterior.names`` lists the parameters. An estimator without ``posterior_`` gives none.
     """
-    out: dict = {}
-    if r.frames is not None:
-        out.update(frames_used=r.frames.used, frames_dropped=r.frames.dropped, frames_skipped=dict(r.frames.skipped))
-    out.update({k: v for k, v in r.diagnostics.items() if k not in ("identifiability",)})
-    for k, p in r.parameters.items():
-        entry = {"map": p.map, "mean": p.mean, "sd": p.sd, "ci95": list(p.interval)}
-        if p.crlb_sd is not None:
-            entry["crlb_sd"] = p.crlb_sd
-        entry.update(p.extra)
-        out[k] = entry
-    if r.noise is not None:
-        sig = {"value": r.noise.sigma, "fixed": r.noise.fixed}
-        if r.noise.interval is not None or r.noise.extra:
-            sig["ci95"] = list(r.noise.interval) if r.noise.interval is not None else [r.noise.sigma] * 2
-        sig.update(r.noise.extra)
-        if r.noise.per_marker:
-            sig["per_marker"] = dict(r.noise.per_marker)
-        out["sigma"] = sig
-    if r.derived:
-        out["lengths"] = {k: {"value": p.mean, "sd": p.sd, "ci95": list(p.interval)} for k, p in r.derived.items()}
-    if "identifiability" in r.diagnostics:
-        out["identifiability"] = r.diagnostics["identifiability"]
-    out["warnings"] = [w.message for w in r.warnings]
-    return out
-
-
-# ============================================== the folder ``skelid fit --out`` writes today
-# ``result.json`` of :func:`skelid.workflows.run_fit` (per-method :func:`summary_dict` under ``methods``)
-# and ``arrays.npz`` keyed ``METHOD.KEY``; :func:`write_run` / :func:`read_run` are the typed format.
-def fit_arrays(model, y: np.ndarray, rate: float, fitted: dict) -> dict[str, np.ndarray]:
-    """The arrays a report needs that JSON holds badly (see the module docstring)."""
-    out = {"markers": np.asarray(y, float), "marker_names": np.array(model.marker_names, dtype=str),
-           "rate": np.array(float(rate)), "units": np.array(model.units)}
-    for name, est in fitted.items():
-        out.update({f"{name}.{k}": v for k, v in estimator_arrays(est).items()})
-    return out
-
-
-def estimator_arrays(est) -> dict[str, np.ndarray]:
-    """Posterior grid, history, Gaussian moments, residuals and bounds of a fitted estimator.
-
-    Works on any estimator by the attributes it has: ``posterior_`` (a grid
-    posterior with ``axes``, ``history``, ``marginal(k, lw)``; weighted samples
-    with ``points``, ``weights``, whose mean and covariance are stored too; or a
-    Gaussian with ``mean``, ``cov``), ``residuals_ (F, M)``, ``crlb_sd_ (P,)``,
-    ``measured_ (F,)``, ``map_path_ (F,)``, ``pose_ (F, Q)`` (stored as ``pose``).
-    """
-    out: dict[str, np.ndarray] = {}
     post = getattr(est, "posterior_", None)
-    if post is not None:
-        out["posterior.names"] = np.array(tuple(getattr(post, "names", ())), dtype=str)
-        history = tuple(getattr(post, "history", ()) or ())
-        if hasattr(post, "axes") and hasattr(post, "marginal"):
-            out["posterior.kind"] = np.array("grid")
-            steps = [int(h[0]) for h in history]
-            out["posterior.history_steps"] = np.array(steps, dtype=int)
-            for k, ax in enumerate(post.axes):
-                out[f"posterior.axis.{k}"] = np.asarray(ax, float)
-                out[f"posterior.marginal.{k}"] = np.asarray(post.marginal(k), float)
-                if steps:
-                    out[f"posterior.history.{k}"] = np.stack([post.marginal(k, h[1]) for h in history])
-        elif hasattr(post, "points") and hasattr(post, "weights"):
-            out["posterior.kind"] = np.array("samples")
-            out["posterior.points"] = np.asarray(post.points, float)
-            out["posterior.weights"] = np.asarray(post.weights, float)
-            out["posterior.mean"] = np.asarray(post.mean, float)
-            out["posterior.cov"] = np.atleast_2d(np.asarray(post.cov, float))
-        elif hasattr(post, "cov"):
-            out["posterior.kind"] = np.array("gaussian")
-            out["posterior.mean"] = np.asarray(post.mean, float)
-            out["posterior.cov"] = np.asarray(post.cov, float)
-            hist = [h for h in history if len(h) == 3]
-            if hist:
-                out["posterior.history_steps"] = np.array([int(h[0]) for h in hist])
-                out["posterior.history_mean"] = np.stack([np.asarray(h[1], float) for h in hist])
-                out["posterior.history_cov"] = np.stack([np.asarray(h[2], float) for h in hist])
-    for attr in ("residuals_", "crlb_sd_", "measured_", "map_path_", "pose_"):
-        v = getattr(est, attr, None)
-        if v is not None:
-            out[attr.rstrip("_")] = np.asarray(v, float)
+    if post is None:
+        return {}
+    history = tuple(getattr(post, "history", ()) or ())
+    if hasattr(post, "axes") and hasattr(post, "marginal"):
+        out = _grid_arrays(post, history)
+    elif hasattr(post, "points") and hasattr(post, "weights"):
+        out = {"kind": np.array("samples"), "mean": np.asarray(post.mean, float),
+               "cov": np.atleast_2d(np.asarray(post.cov, float))}
+    elif hasattr(post, "cov"):
+        out = _gaussian_arrays(post, history)
+    else:
+        out = {}
+    out["names"] = np.array(tuple(getattr(post, "names", ())), dtype=str)
+    return {f"posterior.{k}": v for k, v in out.items()}
+
+
+def _grid_arrays(post, history) -> dict[str, np.ndarray]:
+    steps = [int(h[0]) for h in history]
+    out = {"kind": np.array("grid"), "history_steps": np.array(steps, dtype=int)}
+    for k, ax in enumerate(post.axes):
+        out[f"axis.{k}"] = np.asarray(ax, float)
+        out[f"marginal.{k}"] = np.asarray(post.marginal(k), float)
+        if steps:
+            out[f"history.{k}"] = np.stack([post.marginal(k, h[1]) for h in history])
+    return out
+
+
+def _gaussian_arrays(post, history) -> dict[str, np.ndarray]:
+    out = {"kind": np.array("gaussian"), "mean": np.asarray(post.mean, float), "cov": np.asarray(post.cov, float)}
+    hist = [h for h in history if len(h) == 3]
+    if hist:
+        out["history_steps"] = np.array([int(h[0]) for h in hist])
+        out["history_mean"] = np.stack([np.asarray(h[1], float) for h in hist])
+        out["history_cov"] = np.stack([np.asarray(h[2], float) for h in hist])
     return out
 
 
 def write_json(path, obj) -> Path:
+    """Write ``obj`` as standard JSON (non-finite numbers as null) atomically."""
     path = Path(path)
-    text = json.dumps(obj, indent=2, default=_json_default, allow_nan=True)
     with atomic_write(path) as fh:
-        fh.write(text + "\n")
+        fh.write(dumps(obj))
     return path
-
-
-def write_npz(path, arrays: dict) -> Path:
-    path = Path(path)
-    with atomic_write(path, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-    return path
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

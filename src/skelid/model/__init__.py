@@ -12,6 +12,7 @@ from skelid.model.description import (
     model_from_dict,
 )
 from skelid.model.kinematics import (
+    Workspace,
     forward_kinematics,
     geometry,
     joint_distances,
@@ -23,5 +24,5 @@ from skelid.model.kinematics import (
 __all__ = [
     "JOINT_TYPES", "Joint", "Marker", "Model", "Parameter", "Prior", "Segment",
     "load_model", "model_from_dict", "forward_kinematics", "geometry", "joint_distances", "joint_positions",
-    "marker_jacobian", "marker_positions",
+    "marker_jacobian", "marker_positions", "Workspace",
 ]

@@ -93,12 +93,12 @@ class CoordinateFunction:
                     f"a spline needs at least two knots with strictly increasing, finite x and as many y "
                     f"(got {len(self.x)} x and {len(self.y)} y)")
 
-    @property
+    @cached_property
     def is_identity(self) -> bool:
         """True for ``f(q) = q`` (the motion is the coordinate itself)."""
         return self.kind == "linear" and self.scale * self.coefficients[0] == 1.0 and self.coefficients[1] == 0.0
 
-    @property
+    @cached_property
     def is_constant(self) -> bool:
         return self.kind == "constant"
 
@@ -148,23 +148,35 @@ class CoordinateFunction:
     def value(self, q) -> np.ndarray:
         return self.value_and_derivative(q)[0]
 
-    def _spline(self, q):
+    @cached_property
+    def _pieces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Knots, bases and power-form coefficients of the pieces, the end tangents included.
+
+        Row 0 is the line left of the first knot, rows ``1 .. n-1`` the cubic
+        on each interval, row ``n`` the line right of the last knot; piece
+        ``i`` is ``c0 + c1 b + c2 b^2 + c3 b^3`` with ``b = q - base_i``.
+        """
         x, y = np.asarray(self.x, float), np.asarray(self.y, float)
         M = self._second
         h = np.diff(x)
-        i = np.clip(np.searchsorted(x, q, side="right") - 1, 0, x.size - 2)
-        hi = h[i]
-        a, b = x[i + 1] - q, q - x[i]
-        v = (M[i] * a**3 + M[i + 1] * b**3) / (6 * hi) + (y[i] / hi - M[i] * hi / 6) * a \
-            + (y[i + 1] / hi - M[i + 1] * hi / 6) * b
-        d = (-M[i] * a**2 + M[i + 1] * b**2) / (2 * hi) - (y[i] / hi - M[i] * hi / 6) \
-            + (y[i + 1] / hi - M[i + 1] * hi / 6)
-        # outside the knots: along the end tangent
-        s0 = -M[0] * h[0] / 2 - y[0] / h[0] + M[0] * h[0] / 6 + y[1] / h[0] - M[1] * h[0] / 6
-        s1 = M[-1] * h[-1] / 2 - y[-2] / h[-1] + M[-2] * h[-1] / 6 + y[-1] / h[-1] - M[-1] * h[-1] / 6
-        lo, hi_ = q < x[0], q > x[-1]
-        v = np.where(lo, y[0] + s0 * (q - x[0]), np.where(hi_, y[-1] + s1 * (q - x[-1]), v))
-        d = np.where(lo, s0, np.where(hi_, s1, d))
+        c1 = np.diff(y) / h - h * (2 * M[:-1] + M[1:]) / 6
+        c2 = M[:-1] / 2
+        c3 = np.diff(M) / (6 * h)
+        s1 = np.diff(y)[-1] / h[-1] + h[-1] * (M[-2] + 2 * M[-1]) / 6  # slope at the last knot
+        coef = np.zeros((x.size + 1, 4))
+        coef[0, :2] = y[0], c1[0]
+        coef[1:-1] = np.stack([y[:-1], c1, c2, c3], axis=-1)
+        coef[-1, :2] = y[-1], s1
+        base = np.concatenate([[x[0]], x[:-1], [x[-1]]])
+        return x, base, np.ascontiguousarray(coef.T)  # (4, n + 1)
+
+    def _spline(self, q):
+        x, base, coef = self._pieces
+        i = np.searchsorted(x, q, side="right")
+        b = q - base[i]
+        c0, c1, c2, c3 = coef[:, i]
+        v = c0 + b * (c1 + b * (c2 + b * c3))
+        d = c1 + b * (2.0 * c2 + 3.0 * b * c3)
         return v, d
 
     def to_dict(self) -> dict:

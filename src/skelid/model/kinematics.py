@@ -33,7 +33,8 @@ segment's orientation is one angle, the sum of the rotation coordinates along
 its chain, and ``R_{ws} = R(\\phi_s)`` needs one cosine and one sine per
 segment instead of a product of matrices. What does not depend on the pose
 (index tables, the parts of ``A`` that move joints and markers, which hinges
-are tilted) is compiled once per model by :func:`kinematics_plan`.
+are tilted) is compiled once per model by :func:`kinematics_plan` and kept in
+the model's :class:`Workspace`, never in the frozen model.
 """
 
 from __future__ import annotations
@@ -99,17 +100,62 @@ class KinematicsPlan(NamedTuple):
     coupled_moves: np.ndarray = np.zeros((0, 0))  # (C, M) float: the translation moves marker m
 
 
-def kinematics_plan(model: Model) -> KinematicsPlan:
-    """The pose-independent tables of ``model``, built on first use and kept with the model.
+class Workspace:
+    """What computing with one model needs besides the model: its tables and scratch.
 
-    The model stays frozen: like its ``cached_property`` attributes, the plan is
-    derived data stored beside the fields, never compared or hashed.
+    The :class:`~skelid.model.description.Model` is a frozen description that no
+    algorithm writes to; like pinocchio's ``Data`` beside its ``Model``, a
+    workspace holds everything derived from it for computing: the
+    :class:`KinematicsPlan` (built once, here) and, for the pose fits, the
+    compiled kernel's tables and which path (compiled or numpy) they take. An
+    estimator creates one per fit and passes it to every function it calls
+    (the ``ws`` argument); a function called without one builds what it needs
+    for that call.
+
+    Parameters
+    ----------
+    model : Model
+    compiled : bool
+        Whether the pose fits of this workspace use the compiled kernel (decided
+        once, by whoever creates it; see :func:`skelid.estimators.pose.workspace`).
+
+    Examples
+    --------
+    >>> from skelid.simulate import builtin_model
+    >>> model = builtin_model("case-a")
+    >>> ws = Workspace(model)
+    >>> marker_positions(model, model.theta_center, [0.0] * model.n_pose, ws=ws).shape
+    (3, 2)
     """
-    plan = model.__dict__.get("_kinematics_plan")
-    if plan is None:
-        plan = _build_plan(model)
-        model.__dict__["_kinematics_plan"] = plan
-    return plan
+
+    def __init__(self, model: Model, compiled: bool = False):
+        self.model = model
+        self.plan = _build_plan(model)
+        self.compiled = bool(compiled)
+        self.kernel_tables = None  # set by skelid.estimators.pose on the compiled path
+
+    @property
+    def path(self) -> str:
+        """``"compiled"`` or ``"numpy"``: the path of this workspace's pose fits."""
+        return "compiled" if self.compiled else "numpy"
+
+    def __repr__(self) -> str:
+        return f"Workspace({self.model.name!r}, path={self.path!r})"
+
+
+def kinematics_plan(model: Model, ws: Workspace | None = None) -> KinematicsPlan:
+    """The pose-independent tables of ``model``: the workspace's, or built for this call.
+
+    Raises
+    ------
+    ValueError
+        If ``ws`` belongs to another model.
+    """
+    if ws is None:
+        return _build_plan(model)
+    if ws.model is not model and ws.model != model:
+        raise ValueError(f"the workspace belongs to model {ws.model.name!r}, not {model.name!r}")
+    return ws.plan
 
 
 def _build_plan(model: Model) -> KinematicsPlan:
@@ -213,19 +259,8 @@ def _rotation(dim: int, axis, angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     if dim == 2:
         return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    axis = np.asarray(axis, dtype=float)
-    if axis.ndim == 1:
-        K = _SKEW_CACHE.get(axis.tobytes())
-        if K is None:
-            K = _SKEW_CACHE.setdefault(axis.tobytes(), (_skew(axis), _skew(axis) @ _skew(axis)))
-        K, K2 = K
-    else:
-        K = _skew(axis)
-        K2 = K @ K
-    return np.eye(3) + s[..., None, None] * K + (1.0 - c)[..., None, None] * K2
-
-
-_SKEW_CACHE: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+    K = _skew(np.asarray(axis, dtype=float))
+    return np.eye(3) + s[..., None, None] * K + (1.0 - c)[..., None, None] * (K @ K)
 
 
 def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
@@ -306,7 +341,7 @@ def tilt_tables(model: Model, theta) -> TiltTables | None:
     return TiltTables(axis, d_axis, K, K @ K)
 
 
-def forward_kinematics(model: Model, theta, pose) -> Kinematics:
+def forward_kinematics(model: Model, theta, pose, ws: Workspace | None = None) -> Kinematics:
     """Segment frames, joint axes and marker positions.
 
     Parameters
@@ -316,6 +351,8 @@ def forward_kinematics(model: Model, theta, pose) -> Kinematics:
         Parameter values.
     pose : (..., Q) float
         Pose coordinates (see the model's joint table); angles in radians.
+    ws : Workspace, optional
+        The model's workspace (its tables are built for this call without one).
 
     Returns
     -------
@@ -323,7 +360,7 @@ def forward_kinematics(model: Model, theta, pose) -> Kinematics:
         The orientation arrays of a planar model are read-only views (shared
         across batch axes that only ``theta`` spans).
     """
-    plan = kinematics_plan(model)
+    plan = kinematics_plan(model, ws)
     g = geometry(model, theta)
     pose = np.asarray(pose, dtype=float)
     if pose.shape[-1:] != (plan.n_pose,):
@@ -536,19 +573,19 @@ def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
     return n, grad
 
 
-def marker_positions(model: Model, theta, pose) -> np.ndarray:
+def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
     """Marker positions ``(..., M, D)`` for ``theta (..., P)`` and ``pose (..., Q)``."""
-    return forward_kinematics(model, theta, pose).markers
+    return forward_kinematics(model, theta, pose, ws).markers
 
 
-def joint_positions(model: Model, theta, pose) -> np.ndarray:
+def joint_positions(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
     """World positions ``(..., S, D)`` of every segment's joint centre."""
-    return forward_kinematics(model, theta, pose).p_world_seg
+    return forward_kinematics(model, theta, pose, ws).p_world_seg
 
 
-def pose_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
+def pose_jacobian(model: Model, kin: Kinematics, ws: Workspace | None = None) -> np.ndarray:
     """``dx/dq`` as ``(..., M, D, Q)`` from a :class:`Kinematics`."""
-    return pose_jacobian_from_plan(kinematics_plan(model), kin)
+    return pose_jacobian_from_plan(kinematics_plan(model, ws), kin)
 
 
 def pose_jacobian_from_plan(plan, kin: Kinematics, mask=None) -> np.ndarray:
@@ -616,9 +653,9 @@ def pose_gradient(model: Model, kin: Kinematics, r) -> np.ndarray:
     return np.where(is_t, g_trans, g_rot)
 
 
-def theta_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
+def theta_jacobian(model: Model, kin: Kinematics, ws: Workspace | None = None) -> np.ndarray:
     """``dx/dtheta`` as ``(..., M, D, P)`` from a :class:`Kinematics`."""
-    plan = kinematics_plan(model)
+    plan = kinematics_plan(model, ws)
     J = np.zeros(kin.markers.shape + (plan.n_params,))
     used_j = plan.used_joints
     if used_j.size:
@@ -643,13 +680,14 @@ def theta_jacobian(model: Model, kin: Kinematics) -> np.ndarray:
     return J
 
 
-def marker_jacobian(model: Model, theta, pose):
+def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
     """Marker positions and both Jacobians.
 
     Parameters
     ----------
     theta : (..., P) float
     pose : (..., Q) float
+    ws : Workspace, optional
 
     Returns
     -------
@@ -660,5 +698,7 @@ def marker_jacobian(model: Model, theta, pose):
     J_theta : (..., M, D, P) float
         ``dx/dtheta``.
     """
-    kin = forward_kinematics(model, theta, pose)
-    return kin.markers, pose_jacobian(model, kin), theta_jacobian(model, kin)
+    if ws is None:
+        ws = Workspace(model)
+    kin = forward_kinematics(model, theta, pose, ws)
+    return kin.markers, pose_jacobian(model, kin, ws), theta_jacobian(model, kin, ws)
