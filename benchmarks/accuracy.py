@@ -57,6 +57,7 @@ NOISES = ("iid", "sta")
 POSTURES = {"straight": (0.0, 25.0), "folded": (150.0, 172.0)}  # degrees
 METHODS = ("paper", "profile", "laplace", "final")
 Z95 = 1.959964
+CHUNK = 20  # trials between two writes of a cell's rows
 EXTRA_METHODS = ("final-artefact",)
 
 
@@ -183,16 +184,18 @@ def singular_trial(model, truth, n_frames, sigma, degrees, rng):
     return simulate_posture(model, [truth], n_frames, sigma, degrees, rng)
 
 
-def summarise(case, sigma, truth, noise, trials, methods):
+def summarise(case, sigma, truth, noise, trials, methods, split=True):
     """One row per method (the first parameter); for a model with several, also ``method:k`` rows."""
     rows = []
     n_par = max((len(t[m].get("est_all", [0])) for t in trials for m in methods if "est" in t[m]), default=1)
+    n_par = n_par if split else 1
     for k in range(1, n_par):
-        alias = [dict(t, **{f"{m}:{k}": dict(t[m], est=t[m]["est_all"][k], lo=t[m]["lo_all"][k],
-                                             hi=t[m]["hi_all"][k]) if "est" in t[m] else t[m] for m in methods})
+        alias = [dict(t, **{f"{m}:{k}": dict({c: v for c, v in t[m].items() if c not in ("profile", "bias")},
+                                             est=t[m]["est_all"][k], lo=t[m]["lo_all"][k], hi=t[m]["hi_all"][k])
+                            if "est" in t[m] else t[m] for m in methods})
                  for t in trials]
         rows += summarise(case, sigma, truth, noise, [dict(a, crlb=a.get("crlb_all", [a["crlb"]] * n_par)[k])
-                                                     for a in alias], [f"{m}:{k}" for m in methods])
+                                                     for a in alias], [f"{m}:{k}" for m in methods], False)
     bound = float(np.sqrt(np.mean([t["crlb"] ** 2 for t in trials])))
     for name in methods:
         ok = [t[name] for t in trials if "est" in t[name]]
@@ -214,8 +217,9 @@ def summarise(case, sigma, truth, noise, trials, methods):
             "seconds_per_fit": float(np.mean([o["seconds"] for o in ok])) if n else float("nan"),
         }
         if n and "bias_method" in ok[0]:
-            row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
-            row["bias_removed"] = float(np.mean([o["bias"] for o in ok]))
+            if "profile" in ok[0]:  # first parameter only
+                row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
+                row["bias_removed"] = float(np.mean([o["bias"] for o in ok]))
             methods_used = [o["bias_method"] for o in ok]
             row["bias_methods"] = {m: methods_used.count(m) for m in sorted(set(methods_used))}
             flags = [f for o in ok for f in o["flags"]]
@@ -376,12 +380,15 @@ def main():
                         continue
                     t0 = time.time()
                     tasks = [(case, sigma, truth, noise, r, a.frames, todo) for r in range(a.reps)]
-                    trials = run_tasks(tasks, a.jobs)
-                    cost = {"cpu_seconds": float(sum(t["cpu"] for t in trials)), "wall_seconds": time.time() - t0,
-                            "load_average": [round(v, 2) for v in os.getloadavg()], "jobs": a.jobs, "tag": a.tag}
-                    cell = [dict(r, **cost) for r in summarise(case, sigma, truth, noise, trials, todo)]
-                    rows.extend(cell)
-                    write(rows)
+                    trials, base = [], list(rows)
+                    for start in range(0, len(tasks), CHUNK):  # a cell's rows are rewritten as trials come in
+                        trials += run_tasks(tasks[start:start + CHUNK], a.jobs)
+                        cost = {"cpu_seconds": float(sum(t["cpu"] for t in trials)),
+                                "wall_seconds": time.time() - t0, "jobs": a.jobs, "tag": a.tag,
+                                "load_average": [round(v, 2) for v in os.getloadavg()]}
+                        cell = [dict(r, **cost) for r in summarise(case, sigma, truth, noise, trials, todo)]
+                        rows = base + cell
+                        write(rows)
                     for r in cell:
                         print(f"{case} s={sigma:g} L2={truth:g} {noise:<3} {r['method']:<8} "
                               f"bias {r['bias']:7.2f}±{r['bias_se']:.2f} sd {r['sd']:6.2f} "

@@ -393,10 +393,10 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
                             min(MIN_AUTO_CUTOFF, rate / 2))
     if cutoff is None:
         return Motion(sc.fit, None)
-    # the motion model makes pose branches stick. Near a singular pose the per-frame fits jump between
-    # branches; a fit whose motion model is STIFFER times stiffer (graduated smoothing) first carries one
-    # smooth trajectory through them. Both starts race for RACE_ITER iterations, and the one with the lower
-    # penalised cost is continued (with its own penalty, so the cost it minimises stays)
+    # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
+    # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays).
+    # Near a singular pose the per-frame fits jump between branches, so the second start is a fit whose
+    # motion model is STIFFER times stiffer (graduated smoothing): it carries one smooth trajectory through
     stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
                       frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER, ws=ws, summary=False)
     fits = [joint_fit(model, sc.y, th, qq, n_iter=min(RACE_ITER, s.n_iter), bounds=st.bounds, frames=sc.fixed,
