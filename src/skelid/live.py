@@ -472,10 +472,7 @@ class Session:
 
     def _push_gaussian(self, y) -> LiveEstimate:
         model, ws = self.model, self._ws
-        problems = []
-        missing = int((~np.isfinite(y).all(axis=-1)).sum())
-        if missing:
-            problems.append(f"{missing} marker(s) missing")
+        problems = _missing(y)
         if not self._usable(y):
             return self._estimate(self._state.pose, np.full(len(model.markers), np.nan), False,
                                   problems + ["too few markers to fix the pose: frame not used"], ())
@@ -516,10 +513,7 @@ class Session:
 
     def _push_grid(self, y) -> LiveEstimate:
         model, ws = self.model, self._ws
-        problems = []
-        missing = int((~np.isfinite(y).all(axis=-1)).sum())
-        if missing:
-            problems.append(f"{missing} marker(s) missing")
+        problems = _missing(y)
         if not self._usable(y):
             problems.append("too few markers to fix the pose: frame not used")
         self._state = self._grid.update(self._state, y)
@@ -680,3 +674,9 @@ def _words(model: Model, k: int, lo: float, hi: float) -> str:
     a = int(np.argmax(np.abs(axis)))
     about = f"its {names[a]} axis" if abs(axis[a]) > 0.99 else f"axis {ks.index(k) + 1} of {len(ks)}"
     return f"turn the {j.name} about {about} through {rng}"
+
+
+def _missing(y) -> list[str]:
+    """The frame's problem line for markers without a position (none when every marker is there)."""
+    n = int((~np.isfinite(y).all(axis=-1)).sum())
+    return [f"{n} marker(s) missing"] if n else []
