@@ -596,7 +596,8 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 
 
-def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weights=None) -> np.ndarray:
+def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weights=None,
+             pose_var: list | None = None) -> np.ndarray:
     """Second-order bias ``b_theta`` (P,) of the joint least-squares estimate.
 
     Parameters
@@ -613,6 +614,9 @@ def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weigh
     weights : (M,) or (T, M) float, optional
         Marker weights of a weighted fit (``sigma2`` is then the variance of a
         weighted residual): every row ``f_i`` becomes ``sqrt(w_i) f_i``.
+    pose_var : list, optional
+        When given, the variance of each pose estimate per frame, ``(T, Q)`` (the diagonal of
+        the pose blocks of ``sigma2 C``), is appended to it.
     """
     P, Q = model.n_params, model.n_pose
     sw = row_weights(weights, np.asarray(y, float))
@@ -630,6 +634,8 @@ def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weigh
     C[:, P:, :P] = -G @ S_inv
     C[:, :P, P:] = np.swapaxes(C[:, P:, :P], 1, 2)
     C[:, P:, P:] = Hqq_inv + G @ S_inv @ np.swapaxes(G, 1, 2)
+    if pose_var is not None:
+        pose_var.append(sigma2 * np.clip(np.diagonal(C[:, P:, P:], axis1=1, axis2=2), 0.0, None))
     w, V = np.linalg.eigh(C)
     L = V * np.sqrt(np.clip(w, 0.0, None))[:, None, :]  # (T, P+Q, K) columns l_k
     # directional second derivatives along each column, all frames and directions at once
@@ -731,7 +737,7 @@ def lag1_autocorrelation(x, used=None) -> float:
 
 
 def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
-                  max_frames: int | None = None, weights=None) -> np.ndarray:
+                  max_frames: int | None = None, weights=None, pose_var: list | None = None) -> np.ndarray:
     """Second-order bias ``b_theta`` (P,) of the joint fit under the motion-model penalty ``R``.
 
     For ``min ||y - f(beta)||^2 + beta^T R beta`` (``R`` acts on the poses) the
@@ -746,8 +752,11 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
     trials are cut into pieces of ``max_frames`` (default: 2400 pose
     coordinates' worth) whose biases are averaged with their information as weights.
     With marker ``weights`` (see :func:`box_bias`) every row is scaled by ``sqrt(w_i)``.
+    With a list ``pose_var``, the variance of each pose estimate per frame ``(T, Q)`` (the
+    diagonal of the pose blocks of ``sigma2 C``, piece by piece) is appended to it.
     """
     T = len(q)
+    pieces = None if pose_var is None else []
     if weights is not None:
         weights = np.broadcast_to(np.asarray(weights, float), np.asarray(y).shape[:2])
     if max_frames is None:
@@ -759,11 +768,16 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
         for a, b in zip(edges[:-1], edges[1:], strict=True):
             Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
             bb, S = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step,
-                                         None if weights is None else weights[a:b])
+                                         None if weights is None else weights[a:b], pieces)
             num = num + S @ bb
             den = den + S
+        if pieces is not None:
+            pose_var.append(np.concatenate(pieces))
         return np.linalg.solve(den, num)
-    return _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights)[0]
+    b = _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights, pieces)[0]
+    if pieces is not None:
+        pose_var.append(pieces[0])
+    return b
 
 
 def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
@@ -813,7 +827,7 @@ def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
 _SANDWICH_STEP = 1e-4
 
 
-def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
+def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose_var=None):
     """The bias of one piece of a trial (see :func:`smoothed_bias`) and its information ``S``.
 
     Linear in frames: only diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` and of
@@ -835,6 +849,8 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None):
     plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h)
     minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h)
     Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R)
+    if pose_var is not None:  # the variance of each pose estimate, for the check of the expansion
+        pose_var.append(sigma2 * np.clip(np.diagonal(Cdiag[:, P:, P:], axis1=1, axis2=2), 0.0, None))
     Sig = (minus - plus) / (2.0 * h)  # blocks of C J^T J C (unit noise)
     Sig = 0.5 * (Sig + np.swapaxes(Sig, 1, 2))
     CRC = Cdiag - Sig  # blocks of C R C

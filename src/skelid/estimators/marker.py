@@ -87,6 +87,7 @@ from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_t
 from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
+from skelid.estimators.singular import POSE_SENSITIVE, fallback_covariance, indirect_bias, pose_check
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, joint_distances, marker_positions
 from skelid.result import FitResult, NoiseEstimate, Warning
@@ -491,30 +492,64 @@ def residual_stage(model: Model, y, fit: JointFit, used, sigma: float, w=None) -
 
 def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weights, used, noise: Noise,
                res: Residuals, rng) -> Bias:
-    """Second-order (Box) bias at the estimate, or a parametric bootstrap, or none."""
+    """Second-order (Box) bias at the estimate, or a parametric bootstrap, or none.
+
+    Under ``'auto'`` the second-order correction is checked (:mod:`skelid.estimators.singular`):
+    when the information about ``theta`` depends on where the poses lie within their own error
+    (near a singular pose), or the correction exceeds ``BIAS_RELIABLE`` sd, a parametric
+    bootstrap at the deconvolved poses stands in for it, and its spread, Monte Carlo error and
+    disagreement with the second-order bias there widen the interval.
+    """
     model, fit, w = est.model, wt.fit, wt.weights
     sigma2 = noise.sigma**2
     sigma2_bias = min(sigma2, res.sigma_white**2) if res.flagged else sigma2
     method = "box" if est.bias_correction in (True, "auto") else est.bias_correction
     method = "none" if method is False else method
     y = sc.y
-    if method == "box":
+    y_used = np.where(used[:, None, None], y, np.nan)
+
+    def second_order(q, pose_var=None):
         if fit.penalty is None:
-            b = box_bias(model, y[used], fit.theta, fit.pose[used], sigma2_bias, weights=w)
-        else:
-            b = smoothed_bias(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
-                              sigma2_bias, fit.penalty, weights=w)
+            var = [] if pose_var is not None else None
+            b = box_bias(model, y[used], fit.theta, q[used], sigma2_bias, weights=w, pose_var=var)
+            if var is not None:  # frames not used: no information, the mean variance
+                full = np.empty(q.shape)
+                full[used] = var[0]
+                full[~used] = var[0].mean(axis=0)
+                pose_var.append(full)
+            return b
+        return smoothed_bias(model, y_used, fit.theta, q, sigma2_bias, fit.penalty, weights=w, pose_var=pose_var)
+
+    if method == "box":
+        checked = est.bias_correction in ("auto", True)
+        pose_var = [] if checked else None
+        b = second_order(fit.pose, pose_var)
+        if not checked:
+            return Bias(b, method)
         sd = noise.sigma * np.sqrt(np.clip(np.diag(np.linalg.inv(fit.info)), 0, None))
-        if est.bias_correction in ("auto", True) and np.any(np.abs(b) > BIAS_RELIABLE * sd):
-            # the second-order expansion is unreliable here (near a singular pose): the bias of this
-            # fit under the fitted model is measured by simulation instead
-            boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
-            k = int(np.argmax(np.abs(b) / np.maximum(sd, 1e-300)))
-            return Bias(boot, "bootstrap", {"box": b.tolist(), "bootstrap": boot.tolist(), "n_boot": est.n_boot,
-                                            "parameter": model.parameter_names[k], "sd": float(sd[k]),
-                                            "sd_bootstrap": np.sqrt(np.diag(extra + noise.sigma**2
-                                                                            * np.linalg.inv(fit.info))).tolist()},
-                        extra)
+        check = pose_check(model, y, fit.theta, fit.pose, pose_var[0], used, row_weights(w, y))
+        large = np.abs(b) > BIAS_RELIABLE * sd
+        if check.sensitive or np.any(large):
+            # the local expansion is unreliable here (near a singular pose): the bias of this fit is
+            # measured by simulation at the deconvolved poses instead
+            b_tilde = second_order(check.q_tilde)
+            seed = int(rng.integers(2**63))  # every step of the fixed point draws the same noise
+
+            def refit(th, qq):
+                return th + est._bootstrap_bias(y, fit._replace(theta=th, pose=qq), noise.sigma, st.rate,
+                                                mo.cutoff, st.bounds, np.random.default_rng(seed))
+
+            boot, shifts = indirect_bias(refit, fit.theta, check.q_tilde)
+            extra = fallback_covariance(shifts, sigma2 * np.linalg.inv(fit.info), boot - b_tilde)
+            k = int(np.argmax(np.maximum(np.abs(check.info_change) / POSE_SENSITIVE,
+                                         np.abs(b) / np.maximum(BIAS_RELIABLE * sd, 1e-300))))
+            reason = "pose" if check.sensitive else "large"
+            return Bias(boot, "bootstrap", {
+                "reason": reason, "box": b.tolist(), "box_deconvolved": b_tilde.tolist(),
+                "bootstrap": boot.tolist(), "n_boot": est.n_boot, "parameter": model.parameter_names[k],
+                "sd": float(sd[k]), "info_change": check.info_change.tolist(),
+                "pose_sd": check.pose_sd.tolist(),
+                "sd_bootstrap": np.sqrt(np.diag(extra + sigma2 * np.linalg.inv(fit.info))).tolist()}, extra)
         return Bias(b, method)
     if method == "bootstrap":
         boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
@@ -734,16 +769,22 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
 
 
 def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
-    """A second-order bias correction too large for its approximation (bootstrap fallback)."""
+    """The second-order bias correction failed its check (bootstrap fallback), and why."""
     fb = f.bias.fallback
     if not fb:
         return []
     k = model.parameter_names.index(fb["parameter"])
-    return [Warning("bias-fallback", f"the second-order bias correction of {fb['parameter']} "
-                    f"({fb['box'][k]:.3g}) is large against its sd ({fb['sd']:.3g}): the local approximation "
-                    f"is unreliable here, so the bias was measured by parametric bootstrap ({fb['n_boot']} "
-                    f"refits) instead, and the interval uses the refits' spread (sd {fb['sd_bootstrap'][k]:.3g})",
-                    (fb["parameter"],))]
+    if fb.get("reason") == "pose":
+        why = (f"the poses are poorly identified (near a singular pose: the information about "
+               f"{fb['parameter']} changes by {100 * abs(fb['info_change'][k]):.0f} % when the fitted poses are "
+               "freed of their estimated scatter), so the local approximation is unreliable")
+    else:
+        why = (f"the second-order bias correction of {fb['parameter']} ({fb['box'][k]:.3g}) is large against "
+               f"its sd ({fb['sd']:.3g}): the local approximation is unreliable here")
+    return [Warning("bias-fallback", f"{why}; the bias was measured by parametric bootstrap ({fb['n_boot']} "
+                    f"refits at the deconvolved poses: {fb['bootstrap'][k]:.3g} against {fb['box'][k]:.3g} from "
+                    f"the second-order expansion) instead, and the interval uses the refits' spread and the "
+                    f"bias estimates' disagreement (sd {fb['sd_bootstrap'][k]:.3g})", (fb["parameter"],))]
 
 
 def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:

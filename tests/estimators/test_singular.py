@@ -1,0 +1,112 @@
+"""The check of the local bias approximation near singular poses, and its fallback, against references."""
+
+import numpy as np
+import pytest
+
+from skelid.estimators.joint import box_bias, smoothed_bias
+from skelid.estimators.marker import MarkerEstimator
+from skelid.estimators.singular import (
+    _N_CUTOFFS,
+    POSE_SENSITIVE,
+    deconvolve_poses,
+    fallback_covariance,
+    indirect_bias,
+    pose_check,
+)
+from skelid.simulate import builtin_model, simulate, simulate_posture
+from tests.estimators.test_joint import _dense_normal_matrix, _small_fit
+
+
+def test_the_pose_variance_of_the_smoothed_bias_is_the_dense_inverse():
+    model, y, theta, q, R = _small_fit()
+    P, Q, T = model.n_params, model.n_pose, len(q)
+    var = []
+    smoothed_bias(model, y, theta, q, 4.0, R, pose_var=var)
+    N, _ = _dense_normal_matrix(model, y, theta, q, R)
+    dense = 4.0 * np.diag(np.linalg.inv(N))[P:].reshape(T, Q)
+    np.testing.assert_allclose(var[0], dense, rtol=1e-7)
+
+
+def test_the_pose_variance_of_the_box_bias_is_the_dense_inverse():
+    model, y, theta, q, R = _small_fit(n_frames=12)
+    P, Q, T = model.n_params, model.n_pose, len(q)
+    var = []
+    box_bias(model, y, theta, q, 4.0, pose_var=var)
+    N, _ = _dense_normal_matrix(model, y, theta, q, R * 0.0)
+    dense = 4.0 * np.diag(np.linalg.inv(N))[P:].reshape(T, Q)
+    np.testing.assert_allclose(var[0], dense, rtol=1e-6)
+
+
+def test_deconvolution_removes_the_stated_variance_and_no_more():
+    rng = np.random.default_rng(0)
+    t = np.arange(400) / 100.0
+    clean = np.stack([np.sin(2 * np.pi * 0.5 * t), 0.3 * np.cos(2 * np.pi * 0.8 * t)], axis=1)
+    noisy = clean + rng.normal(0.0, [0.05, 0.02], size=clean.shape)
+    variance = np.broadcast_to(np.array([0.05, 0.02]) ** 2, clean.shape)
+    out = deconvolve_poses(noisy, variance)
+    removed = np.mean((noisy - out) ** 2, axis=0)
+    # the discrepancy principle: at least the stated variance removed, within one step of the cutoff grid
+    assert np.all(removed >= variance[0]) and np.all(removed < 1.3 * variance[0])
+    assert np.all(np.mean((out - clean) ** 2, axis=0) < 0.5 * variance[0])  # closer to the truth than the data
+    assert _N_CUTOFFS > 50
+
+
+def test_deconvolution_of_a_straight_line_keeps_it():
+    q = np.linspace(0.0, 1.0, 100)[:, None] * np.array([1.0, -2.0])
+    out = deconvolve_poses(q, np.full(q.shape, 1e-6))
+    np.testing.assert_allclose(out, q, atol=1e-9)  # the odd reflection extends a line as a line
+
+
+def test_indirect_bias_solves_the_fixed_point_of_a_linear_bias():
+    # refits of a model whose estimate has mean a * theta + c (fixed noise draws): theta_hat = a theta + c + m
+    a, c = 0.8, np.array([3.0])
+    noise = np.array([[-1.0], [0.5], [2.0], [-0.5]])
+
+    def refit(theta, q):
+        return a * theta + c + noise
+
+    theta_hat = np.array([100.0])
+    b, shifts = indirect_bias(refit, theta_hat, None, n_steps=200)
+    theta_true = (theta_hat - c - noise.mean()) / a  # E[theta* | theta] = theta_hat
+    np.testing.assert_allclose(theta_hat - b, theta_true, rtol=1e-10)
+    np.testing.assert_allclose(shifts, refit(theta_true, None) - theta_true, rtol=1e-8)
+    b0, _ = indirect_bias(refit, theta_hat, None, n_steps=0)  # no step: the bias at theta_hat
+    np.testing.assert_allclose(b0, (a - 1) * theta_hat + c + noise.mean())
+
+
+def test_fallback_covariance_closed_form():
+    shifts = np.array([[1.0, 0.0], [3.0, 2.0], [5.0, 0.0], [7.0, 2.0]])
+    plain = np.diag([1.0, 10.0])
+    c = np.cov(shifts, rowvar=False)
+    got = fallback_covariance(shifts, plain, np.array([2.0, 0.0]))
+    w, V = np.linalg.eigh(c - plain)
+    expected = (V * np.clip(w, 0, None)) @ V.T + c / 4 + np.array([[1.0, 0.0], [0.0, 0.0]])
+    np.testing.assert_allclose(got, expected)
+
+
+def _check(model, trial, **kw):
+    est = MarkerEstimator(model, jackknife=False, rng=0, **kw).fit(trial.data)
+    f = est.fit_
+    fit = f.weights.fit
+    var = []
+    y = np.where(f.frames.used[:, None, None], f.screen.y, np.nan)
+    smoothed_bias(model, y, fit.theta, fit.pose, est.sigma_**2, fit.penalty, pose_var=var)
+    return est, pose_check(model, f.screen.y, fit.theta, fit.pose, var[0], f.frames.used)
+
+
+def test_near_the_straight_pose_the_check_fails_and_the_bootstrap_stands_in():
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 80, 15.0, (0.0, 25.0), np.random.default_rng(7))
+    est, check = _check(model, trial, n_boot=2)
+    assert check.sensitive and np.abs(check.info_change[0]) > POSE_SENSITIVE
+    assert est.bias_method_ == "bootstrap" and est.bias_fallback_["reason"] == "pose"
+    assert est.bias_[0] == pytest.approx(est.bias_fallback_["bootstrap"][0])
+    assert any(w.code == "bias-fallback" and "singular pose" in w.message for w in est.warnings_)
+
+
+def test_away_from_singular_poses_the_check_passes():
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[250.0], n_frames=80, sigma=5.0, rng=np.random.default_rng(7))
+    est, check = _check(model, trial)
+    assert not check.sensitive and est.bias_method_ == "box"
+    assert not any(w.code == "bias-fallback" for w in est.warnings_)
