@@ -79,3 +79,133 @@ def test_noise_free_misfit_keeps_its_markers_and_says_misfit_once():
     assert not est.outliers_.any()
     assert sum("model misfit at joint knee" in w.message for w in est.warnings_) == 1
     assert not any("look like soft-tissue artefact" in w.message for w in est.warnings_)
+
+
+# ---------------------------------------------------------------- with noise; the refits that remove the bias
+def _coupled_source(centre: bool, amount: float = 10.0):
+    """The knee of ``_knee_model`` as a coupled joint: its centre slides by ``amount`` (q^2/2, q/2) mm with
+    flexion q."""
+    d = _knee_model().to_dict()
+    d["segments"][1]["joint"] = {
+        "name": "knee", "type": "custom", "position": [0.0, -400.0, 0.0], "coordinates": ["knee"],
+        "motions": [{"kind": "translation", "axis": [1, 0, 0], "coordinate": "knee",
+                     "function": {"type": "polynomial", "coefficients": [amount / 2, 0.0, 0.0]}},
+                    {"kind": "translation", "axis": [0, 1, 0], "coordinate": "knee",
+                     "function": {"type": "polynomial", "coefficients": [amount / 2, 0.0]}},
+                    {"kind": "rotation", "axis": [0, 0, 1], "coordinate": "knee",
+                     "function": {"type": "linear", "coefficients": [1.0, 0.0]}}]}
+    if not centre:
+        d["parameters"] = []
+    return model_from_dict(d)
+
+
+def _coupled_trial(seed, sigma, n=300, amount=10.0):
+    source = _coupled_source(centre=False, amount=amount)
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / 100.0
+    q = np.zeros((n, source.n_pose))
+    for k, d in enumerate(source.dofs):
+        q[:, k] = (0.3 if d.kind == "R" else 60.0) * np.sin(2 * np.pi * rng.uniform(0.2, 0.6) * t + k)
+    q[:, -1] = np.radians(45.0) - np.radians(45.0) * np.cos(2 * np.pi * 0.7 * t)  # knee 0-90 degrees
+    y = marker_positions(source, np.zeros(0), q)
+    return y + rng.normal(0.0, sigma, size=y.shape), q
+
+
+def test_a_moving_knee_centre_is_flagged_at_5_mm_noise_and_a_hinge_is_not():
+    model = _knee_model()
+    y, q = _coupled_trial(3, 5.0)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50)
+    res = model_misfit(model, y, fit.theta, fit.pose, fit.frames_used)["knee"]
+    assert res["flagged"] and res["log10_p"] < -3, res
+    y0 = marker_positions(model, np.zeros(2), q) + np.random.default_rng(3).normal(0.0, 5.0, size=y.shape)
+    fit0 = joint_fit(model, y0, model.theta_center, q, n_iter=50)
+    res0 = model_misfit(model, y0, fit0.theta, fit0.pose, fit0.frames_used)["knee"]
+    assert not res0["significant"] and res0["log10_p"] > -1.5, res0
+
+
+def test_the_noise_level_of_the_misfit_test_ignores_a_slow_misfit():
+    """Successive differences measure the white noise, not the angle-driven pattern (noise-free: ~0)."""
+    from skelid.estimators.checks import _per_frame_projection, misfit_noise
+
+    model = _knee_model()
+    for sigma in (0.0, 4.0):
+        y, q = _coupled_trial(4, sigma)
+        fit = joint_fit(model, y, model.theta_center, q, n_iter=50)
+        r, Jq, Hinv = _per_frame_projection(model, fit.theta, fit.pose, y)
+        sd, dof = misfit_noise(r, Jq, Hinv, np.ones(r.shape, bool))
+        assert abs(sd - sigma) < 0.05 * sigma + 0.05 and dof > 1000
+
+
+def test_coupled_and_moving_centre_fits_recover_the_centre_from_noise_free_data():
+    """Reference: the source's own knee, and the hinge's moving-centre variant (which contains it), fit exactly."""
+    from skelid.model.variants import moving_centre
+
+    y, q = _coupled_trial(5, 0.0, n=200)
+    coupled = _coupled_source(centre=True)
+    fit = joint_fit(coupled, y, coupled.theta_center + 3.0, q, n_iter=100)
+    assert np.allclose(fit.theta, 0.0, atol=1e-6)
+    moving = moving_centre(_knee_model(), "knee")
+    fit = joint_fit(moving, y, moving.theta_center, q, n_iter=200)
+    # the path 10 (q^2/2, q/2): gain1 (q along x, y) = (0, 5), gain2 (q^2) = (5, 0)
+    assert np.allclose(fit.theta, [0.0, 0.0, 0.0, 5.0, 5.0, 0.0], atol=1e-5)
+    hinge = joint_fit(_knee_model(), y, np.zeros(2), q, n_iter=100)
+    assert np.abs(hinge.theta).max() > 1.0  # the hinge alone is biased
+
+
+def test_the_moving_centre_interval_is_wider_than_the_hinge_interval():
+    from skelid.model.variants import moving_centre
+
+    y, q = _coupled_trial(6, 5.0)
+    sds = []
+    for model in (_knee_model(), moving_centre(_knee_model(), "knee")):
+        fit = joint_fit(model, y, model.theta_center, q, n_iter=100)
+        cov = fit.rss / (fit.n_obs - fit.pose_dof - model.n_params) * np.linalg.inv(fit.info)
+        sds.append(np.sqrt(np.diag(cov))[:2])
+    assert np.all(sds[1] > 3 * sds[0])
+
+
+def test_translation_gain_jacobian_matches_finite_differences_and_round_trips():
+    from skelid.model.kinematics import marker_jacobian
+    from skelid.model.variants import moving_centre
+
+    model = moving_centre(_knee_model(), "knee")
+    assert model_from_dict(model.to_dict()) == model
+    rng = np.random.default_rng(0)
+    theta, q = rng.normal(0.0, 3.0, model.n_params), rng.normal(0.0, 0.5, (4, model.n_pose))
+    _, _, Jt = marker_jacobian(model, theta, q)
+    h = 1e-6
+    for k in range(model.n_params):
+        e = np.zeros(model.n_params)
+        e[k] = h
+        fd = (marker_positions(model, theta + e, q) - marker_positions(model, theta - e, q)) / (2 * h)
+        assert np.allclose(Jt[..., k], fd, atol=1e-5)
+
+
+def test_cli_names_the_misfit_joint_in_one_line(tmp_path, capsys):
+    from skelid.cli import main
+    from skelid.io import write_trc
+
+    y, _ = _coupled_trial(7, 5.0, n=60, amount=30.0)
+    toml = tmp_path / "knee.toml"
+    toml.write_text(_knee_toml())
+    trc = tmp_path / "knee.trc"
+    write_trc(trc, MarkerData(y, _knee_model().marker_names, 100.0, "mm"))
+    assert main(["fit", str(toml), str(trc), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if "model misfit at joint knee" in ln]
+    assert len(lines) == 1 and "not soft-tissue artefact" in lines[0], err
+
+
+def _knee_toml() -> str:
+    m = _knee_model()
+    out = ['[model]\nname = "knee"\ndim = 3\nunits = "mm"\n']
+    for s in m.segments:
+        j = s.joint
+        out.append(f'[[segments]]\nname = "{s.name}"\nparent = "{s.parent or "ground"}"\n'
+                   f'joint = {{ name = "{j.name}", type = "{j.type}", position = {list(j.position)}'
+                   + (f", axis = {list(j.axes[0])}" if j.type == "hinge" else "") + " }\n")
+    for mk in m.markers:
+        out.append(f'[[markers]]\nname = "{mk.name}"\nsegment = "{mk.segment}"\nposition = {list(mk.position)}\n')
+    out.append('[[parameters]]\nname = "knee"\nkind = "joint_centre"\njoint = "knee"\naxes = ["x", "y"]\n'
+               'prior = { type = "uniform", lower = -40.0, upper = 40.0 }\n')
+    return "\n".join(out)

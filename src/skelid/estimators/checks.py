@@ -75,71 +75,203 @@ def joint_ranges(model: Model, pose, used=None, theta=None) -> dict[str, list[fl
     return out
 
 
-#: tail probability below which an angle-driven residual pattern is not noise
-MISFIT_P = 1e-6
+#: family-wise false-alarm rate of the misfit test (split evenly over the joints tested)
+MISFIT_ALPHA = 0.01
 #: share of a segment's angle-driven residual that its markers have in common, above which it is the
 #: joint model, not soft tissue (soft-tissue artefact moves each marker its own way)
 MISFIT_COMMON = 0.5
+#: polynomial degree in each rotation coordinate of the joint for the residual regression
+MISFIT_DEGREE = 3
 
 
-def model_misfit(model: Model, y, theta, pose, used, sigma: float) -> dict[str, dict]:
+def _per_frame_projection(model: Model, theta, pose, y):
+    """Residuals re-projected per frame, and the per-frame pose hat matrices' pieces.
+
+    One Gauss-Newton step of each frame's pose from ``pose`` (no motion model) leaves the
+    residual ``r~_t = (I - P_t) r_t`` with ``P_t = J_t (J_t^T J_t)^+ J_t^T``; under a correct
+    model with white noise, ``r~_t ~ N(0, sigma^2 (I - P_t))`` independently over frames
+    (to first order), whatever smoothing the fit used.
+
+    Returns
+    -------
+    r : (T, M*D) float, zero where missing
+    Jq : (T, M*D, Q) float
+    Hinv : (T, Q, Q) float
+    """
+    from skelid.estimators.likelihood import frame_terms
+
+    r, Jq, _ = frame_terms(model, theta, pose, y)
+    H = np.einsum("tkq,tkp->tqp", Jq, Jq)
+    Hinv = np.linalg.pinv(H, hermitian=True)
+    r = r - np.einsum("tkq,tqp,tp->tk", Jq, Hinv, np.einsum("tkq,tk->tq", Jq, r))
+    return r, Jq, Hinv
+
+
+def misfit_noise(r, Jq, Hinv, present) -> tuple[float, int]:
+    """White-noise sd from successive differences of the re-projected residuals.
+
+    ``E ||r~_{t+1} - r~_t||^2 = sigma^2 sum_k (2 - P_{t+1,kk} - P_{t,kk})`` over the coordinates
+    present in both frames; a residual pattern that follows the (slowly changing) joint angles
+    barely enters the differences, so a misfit does not inflate it.
+
+    Returns
+    -------
+    sigma : float
+    dof : int
+        Coordinates in the differences less their leverage (for an F reference).
+    """
+    lev = np.einsum("tkq,tqp,tkp->tk", Jq, Hinv, Jq)  # (T, K) diagonal of P_t
+    both = present[1:] & present[:-1]
+    d2 = float(np.sum(np.where(both, (r[1:] - r[:-1]) ** 2, 0.0)))
+    expect = float(np.sum(np.where(both, 2.0 - lev[1:] - lev[:-1], 0.0)))
+    return (float(np.sqrt(d2 / expect)) if expect > 0 else float("nan")), int(expect / 2)
+
+
+def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
+                 alpha: float = MISFIT_ALPHA) -> dict[str, dict]:
     """Residual structure that follows a joint angle and moves a segment's markers together.
 
-    For each segment ``s`` with at least two markers and a joint with rotation
-    coordinates ``u``, the residuals of its markers are expressed in the segment's
-    frame and regressed on ``u, u^2, u^3`` (centred and scaled, with a constant).
-    Soft-tissue artefact also follows the joint angles, but moves each marker its
-    own way; a joint model that cannot follow the joint (a knee whose centre
-    moves with flexion, fitted as a fixed hinge) moves all the segment's markers
-    together. So the test is on the *mean* residual of the segment's ``n``
-    markers: its angle-explained sum of squares ``SS_c`` against white noise
-    (``SS_c n / sigma^2 ~ chi^2_{kD}``, tail below ``MISFIT_P``), and its share of the
-    markers' own explained sums, ``n SS_c / sum_m SS_m`` (1 when they move as one,
-    about ``1/n`` for independent artefacts), above ``MISFIT_COMMON``.
+    **Test.** For each joint ``j`` with rotation coordinates ``u`` (not the root's), take
+    the residuals of the markers of the joint's child and parent segments, re-projected per
+    frame (``r~_t = (I - P_t) r_t``, see :func:`_per_frame_projection`) and written in the
+    parent segment's frame, where a joint that cannot follow the data leaves a pattern that
+    depends on ``u`` alone. Regress them on ``B``: the powers ``u_i, u_i^2, ..., u_i^d``
+    (``d = MISFIT_DEGREE``), centred and orthonormalised over the frames. The coefficients
+    ``z = B^T r~`` have, under a correct model with white noise of sd ``sigma``,
+
+    .. math:: \\operatorname{Cov}(z) = \\sigma^2 C, \\quad C = \\sum_t (b_t b_t^\\top) \\otimes
+              (R_t^\\top (I - P_t) R_t)
+
+    (``R_t`` the parent's rotation for each marker). A joint that cannot follow the data moves
+    the child against the parent (the fit shares the error between them), so the test takes the
+    contrast ``L z``: the child's markers' mean pattern less the parent's. Then
+    ``z^T L^T (L C L^T)^+ L z / sigma^2 ~ chi^2`` on the rank of ``L C L^T`` (``k D`` for ``k``
+    basis functions); with ``sigma`` estimated from successive differences
+    (:func:`misfit_noise`) the statistic over its rank is referred to an F distribution. A joint
+    is significant when ``p < alpha / n_joints``.
+
+    **Misfit or soft tissue.** Soft-tissue artefact also follows the joint angles, but moves
+    each marker its own way. The same test on each child marker's pattern about the child's
+    mean, and the share of the child markers' angle-driven sum of squares that their mean
+    carries (``n SS_c / sum_m SS_m``, each with its expected noise part subtracted: 1 when they
+    move as one, about ``1/n`` for independent artefacts), tell them apart: a significant joint
+    is flagged as misfit unless its markers' own patterns are significant too and the share is
+    at most ``MISFIT_COMMON``. A child segment with one marker is never flagged (its artefact
+    and a misfit look alike).
+
+    Parameters
+    ----------
+    y : (T, M, D) float
+    theta : (P,) float
+    pose : (T, Q) float
+    used : (T,) bool
+    sigma : float, optional
+        White-noise sd; estimated from successive differences when not given.
+    alpha : float
+        Family-wise false-alarm rate over the joints tested.
 
     Returns
     -------
     dict
-        joint name -> ``{"rms": rms of the common pattern (model units), "common_share": ...,
-        "log10_p": ..., "segment": ..., "flagged": bool}``.
+        joint name -> ``{"segment": child segment, "rms": rms of the common pattern (model
+        units), "common_share", "statistic", "dof", "log10_p", "log10_p_own" (the markers' own
+        patterns), "significant", "flagged"}``.
     """
-    from scipy.stats import chi2
-
     used = np.asarray(used, bool)
     out: dict[str, dict] = {}
-    if used.sum() < 20 or not np.isfinite(sigma) or sigma <= 0:
+    if used.sum() < 20:
         return out
-    kin = forward_kinematics(model, theta, pose[used])
-    r = np.asarray(y, float)[used] - kin.markers  # (T, M, D)
+    pose_u = np.asarray(pose, float)[used]
+    y_u = np.asarray(y, float)[used]
+    D = model.dim
+    present = np.isfinite(y_u).all(axis=-1)  # (T, M)
+    r, Jq, Hinv = _per_frame_projection(model, theta, pose_u, y_u)
+    pres_k = np.repeat(present, D, axis=1)
+    noise_sd, noise_dof = misfit_noise(r, Jq, Hinv, pres_k)
+    if sigma is None:
+        sigma = noise_sd
+    floor = 1e-7 * float(np.abs(model.nominal_geometry).max())  # below: rounding, not noise
+    if not np.isfinite(sigma):
+        return out
+    sigma = max(float(sigma), floor)
+    kin = forward_kinematics(model, theta, pose_u)
+    seg_of = np.asarray(model.marker_segment)
+    tests = []
     for s, seg in enumerate(model.segments):
-        if seg.parent is None:
-            continue
+        p = int(model.parent_index[s])
         ks = [k for k, d in enumerate(model.dofs) if d.segment == s and d.kind == "R"]
-        ms = np.flatnonzero(np.asarray(model.marker_segment) == s)
-        if not ks or len(ms) < 2:
+        ms = np.flatnonzero((seg_of == s) | (seg_of == p))
+        child = np.flatnonzero(seg_of[ms] == s)
+        if p < 0 or not ks or len(child) == 0:
             continue
-        r_seg = np.einsum("tji,tmj->tmi", kin.R_world_seg[:, s], r[:, ms])  # in the segment's frame
-        ok = np.isfinite(r_seg).all(axis=(1, 2))
-        if ok.sum() < 20:
+        ok = present[:, ms].all(axis=1)
+        T = int(ok.sum())
+        if T < 20:
             continue
-        u = pose[used][ok][:, ks]
+        u = pose_u[ok][:, ks]
         u = (u - u.mean(axis=0)) / np.maximum(u.std(axis=0), 1e-12)
-        X = np.concatenate([np.ones((len(u), 1)), u, u**2, u**3], axis=1)
-        k = X.shape[1] - 1
-        beta, *_ = np.linalg.lstsq(X, r_seg[ok].reshape(len(u), -1), rcond=None)
-        fitted = X[:, 1:] @ beta[1:]  # (T, n*D) angle-driven part (constant left out)
-        fitted = fitted - fitted.mean(axis=0)
-        per_marker = float(np.sum(fitted**2))
-        common = fitted.reshape(len(u), len(ms), -1).mean(axis=1)  # (T, D)
-        ss_c = float(np.sum(common**2))
-        share = len(ms) * ss_c / per_marker if per_marker > 0 else 0.0
-        dfree = k * model.dim
-        log10_p = float(chi2.logsf(ss_c * len(ms) / sigma**2, dfree) / np.log(10))
-        rms = float(np.sqrt(np.mean(np.sum(common**2, axis=1))))
-        out[seg.joint.name] = {"segment": seg.name, "rms": rms, "common_share": round(share, 3),
-                               "log10_p": round(log10_p, 1),
-                               "flagged": bool(log10_p < np.log10(MISFIT_P) and share > MISFIT_COMMON)}
+        X = np.concatenate([u**e for e in range(1, MISFIT_DEGREE + 1)], axis=1)
+        X = X - X.mean(axis=0)
+        Qx, Rx = np.linalg.qr(X)
+        B = Qx[:, np.abs(np.diag(Rx)) > 1e-8 * max(np.abs(np.diag(Rx)).max(), 1e-300)]  # (T, k)
+        rows = (ms[:, None] * D + np.arange(D)).ravel()
+        Rp = kin.R_world_seg[ok, p]  # (T, D, D)
+        r_par = np.einsum("tji,tmj->tmi", Rp, r[ok][:, rows].reshape(T, len(ms), D))  # parent frame
+        z = np.einsum("tj,tma->jma", B, r_par)  # (k, n, D)
+        # per-frame covariance of r~ on these rows, in the parent's frame (unit noise)
+        Jr = Jq[ok][:, rows]
+        Pt = np.einsum("tkq,tqp,tlp->tkl", Jr, Hinv[ok], Jr)
+        Mt = np.eye(len(rows))[None] - Pt
+        Rb = np.zeros((T, len(rows), len(rows)))
+        for i in range(len(ms)):
+            Rb[:, i * D:(i + 1) * D, i * D:(i + 1) * D] = Rp
+        Mt = np.einsum("tka,tkl,tlb->tab", Rb, Mt, Rb)
+        k, nD = B.shape[1], len(rows)
+        C = np.einsum("tj,tl,tab->jalb", B, B, Mt).reshape(k * nD, k * nD)
+        # the contrast: the child's markers' mean pattern less the parent's (a joint that cannot follow
+        # the data moves the child against the parent; the fit shares the error between the two)
+        wts = np.where(seg_of[ms] == s, 1.0 / len(child), 0.0)
+        if len(child) < len(ms):
+            wts = wts - np.where(seg_of[ms] == s, 0.0, 1.0 / (len(ms) - len(child)))
+        L = np.kron(np.eye(k), np.kron(wts[None, :], np.eye(D)))  # (k D, k n D)
+        stat, dof, log_p = _chi2_test(L @ z.reshape(-1), L @ C @ L.T, sigma, noise_dof)
+        # each child marker's own pattern about the child's mean: what soft tissue leaves
+        own = np.zeros((len(ms), len(ms)))
+        own[child[:, None], child[None, :]] = np.eye(len(child)) - 1.0 / len(child)
+        Lo = np.kron(np.eye(k), np.kron(own[child], np.eye(D)))
+        _, _, log_p_own = _chi2_test(Lo @ z.reshape(-1), Lo @ C @ Lo.T, sigma, noise_dof)
+        # common pattern of the child's markers against each marker's own, noise parts removed
+        zc, Cd = z[:, child], C.reshape(k, len(ms), D, k, len(ms), D)
+        ss_m = np.sum(zc**2) - sigma**2 * sum(np.trace(Cd[:, i, :, :, i, :].reshape(k * D, k * D))
+                                              for i in child)
+        avg = Cd[:, child][:, :, :, :, child].mean(axis=(1, 4))
+        ss_c = np.sum(zc.mean(axis=1) ** 2) - sigma**2 * np.trace(avg.reshape(k * D, k * D))
+        share = len(child) * max(ss_c, 0.0) / ss_m if ss_m > 0 else 0.0
+        rms = float(np.sqrt(max(ss_c, 0.0) / T))
+        tests.append((seg.joint.name, seg.name, rms, share, stat, dof, log_p, log_p_own, len(child)))
+    for name, seg_name, rms, share, stat, dof, log_p, log_p_own, n_child in tests:
+        level = np.log(alpha / len(tests))
+        significant = bool(log_p < level)
+        # soft tissue: the markers' own patterns are significant and carry most of the structure
+        tissue = bool(log_p_own < level and share <= MISFIT_COMMON)
+        out[name] = {"segment": seg_name, "rms": rms, "common_share": round(float(share), 3),
+                     "statistic": round(stat, 2), "dof": dof, "log10_p": round(log_p / np.log(10), 2),
+                     "log10_p_own": round(log_p_own / np.log(10), 2), "significant": significant,
+                     "flagged": bool(significant and n_child >= 2 and not tissue)}
     return out
+
+
+def _chi2_test(z, C, sigma: float, noise_dof: int) -> tuple[float, int, float]:
+    """``z^T C^+ z / sigma^2`` (``z ~ N(0, sigma^2 C)``), its rank and the log tail probability (F)."""
+    from scipy.stats import f as f_dist
+
+    w, V = np.linalg.eigh(C)
+    keep = w > 1e-9 * max(w.max(), 1e-300)
+    dof = int(keep.sum())
+    if dof == 0:
+        return 0.0, 0, 0.0
+    stat = float(np.sum((V[:, keep].T @ z) ** 2 / w[keep])) / sigma**2
+    return stat, dof, float(f_dist.logsf(stat / dof, dof, max(noise_dof, 1)))
 
 
 #: a parameter is informed by the nominal marker placement when one still pose gives at least this

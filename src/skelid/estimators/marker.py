@@ -485,7 +485,7 @@ def residual_stage(model: Model, y, fit: JointFit, used, sigma: float, w=None) -
     # which a slow drift barely touches
     dr = np.diff(resid if w is None else resid * np.sqrt(w)[:, None], axis=0)[used[1:] & used[:-1]]
     white = float(np.sqrt(0.5 * np.nanmean(dr**2))) if dr.size else sigma
-    misfit = model_misfit(model, y, fit.theta, fit.pose, used, white)
+    misfit = model_misfit(model, y, fit.theta, fit.pose, used)
     return Residuals(np.where(used[:, None], np.linalg.norm(resid, axis=-1), np.nan), score,
                      bool(score > STA_AUTOCORRELATION and not numerical), white, misfit)
 

@@ -37,6 +37,13 @@ frame, then every marker's position in its segment's frame. Unknown parameters
   so that in the reference pose (every joint coordinate zero) no marker moves.
   Only relative motion at the joint informs it (a functional joint centre).
 
+* ``translation_gain``: the multiplier of one translation of a ``custom`` joint
+  (``motion``: its index in the joint's motions), which moves the child by
+  ``theta f(q)`` along its axis instead of ``f(q)`` (1 is the model as written;
+  it replaces the parent's ``scale`` for that translation). With translations
+  ``q, q^2, ...`` it lets a joint centre slide with the joint's angle by an
+  unknown amount (:func:`skelid.model.variants.moving_centre`).
+
 One kind enters nonlinearly and is handled by the kinematics:
 
 * ``axis_direction``: a tilt (degrees) of a hinge axis away from its nominal
@@ -69,7 +76,7 @@ JOINT_TYPES = {
     3: ("free", "hinge", "universal", "spherical", "fixed", "custom"),
 }
 PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre", "axis_direction",
-                   "scale", "marker_offset")
+                   "scale", "marker_offset", "translation_gain")
 LINEAR_SETTING_KINDS = ("length", "joint_position", "marker_position")  # replace a coordinate
 PRIOR_KINDS = ("uniform", "normal", "lognormal")
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -157,7 +164,8 @@ class Parameter:
         The joint (every kind but ``marker_position``) or marker it moves.
     axis : int or None
         Coordinate index (x, y, z) for the position kinds and ``joint_centre``;
-        tilt index (u, v) for ``axis_direction``; None for ``length``.
+        tilt index (u, v) for ``axis_direction``; the motion's index in its joint's
+        ``motions`` for ``translation_gain``; None for ``length``.
     prior : Prior
     grid_step : float
         Spacing of the candidate grid used by grid filters.
@@ -387,6 +395,13 @@ class Model:
                     raise ModelError(
                         f"parameter {p.name!r}: axis_direction needs a hinge joint, "
                         f"{p.target!r} is {j.type}", "point it at a hinge joint")
+            if p.kind == "translation_gain":
+                _check_gain(p, next(s.joint for s in self.segments if s.joint.name == p.target))
+        gains = [(p.target, p.axis) for p in self.parameters if p.kind == "translation_gain"]
+        for g in gains:
+            if gains.count(g) > 1:
+                raise ModelError(f"joint {g[0]!r} has two translation_gain parameters for motion {g[1]}",
+                                 "give each translation at most one gain")
         tilts = [(p.target, p.axis) for p in self.parameters if p.kind == "axis_direction"]
         for t in tilts:
             if tilts.count(t) > 1:
@@ -461,7 +476,8 @@ class Model:
         factors (``s`` for one factor) and weights ``w`` the motion's
         ``scale_weights`` (an imported OpenSim joint: its axis in the joint's
         parent frame, as OpenSim scales a ``CustomJoint``) or ``a_i^2``.
-        Translations that are a coordinate itself are not scaled.
+        Translations that are a coordinate itself are not scaled. A
+        ``translation_gain`` parameter replaces that factor by its own value.
         """
         out = []
         for i, s in enumerate(self.segments):
@@ -471,6 +487,12 @@ class Model:
                 if m.kind != "T" or m.function.is_identity or m.function.is_constant:
                     continue
                 b = np.zeros(self.n_params)
+                gain = [k for k, p in enumerate(self.parameters)
+                        if p.kind == "translation_gain" and p.target == s.joint.name and p.axis == j]
+                if gain:
+                    b[gain[0]] = 1.0
+                    out.append((i, j, b, 0.0))
+                    continue
                 a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
                 covered = np.zeros(3)
                 for k, p in enumerate(self.parameters):
@@ -641,7 +663,7 @@ class Model:
         out = np.zeros(self.n_params)
         for k, p in enumerate(self.parameters):
             col = A[:, k]
-            if p.kind == "scale":
+            if p.kind in ("scale", "translation_gain"):
                 out[k] = 1.0
             elif p.kind == "length":
                 out[k] = g0[col != 0] @ col[col != 0]
@@ -702,7 +724,9 @@ class Model:
         for p in self.parameters:
             e = {"name": p.name, "kind": p.kind}
             e[PARAMETER_TARGET.get(p.kind, "joint")] = p.target
-            if p.axis is not None:
+            if p.kind == "translation_gain":
+                e["motion"] = p.axis
+            elif p.axis is not None:
                 e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
             e["prior"] = p.prior.to_dict()
             e["grid_step"] = p.grid_step
@@ -825,11 +849,25 @@ def _prior(d, where: str, nominal: float = math.nan) -> Prior:
     return Prior(kind, lo, hi, mean, sd)
 
 
+def _check_gain(p: Parameter, j: Joint) -> None:
+    """A ``translation_gain`` must point at a translation of a custom joint by a non-trivial function."""
+    if j.type != "custom":
+        raise ModelError(f"parameter {p.name!r}: translation_gain needs a custom joint, {j.name!r} is {j.type}",
+                         "point it at a custom joint")
+    if p.axis is None or p.axis >= len(j.motions):
+        raise ModelError(f"parameter {p.name!r}: joint {j.name!r} has no motion {p.axis}",
+                         f"use motion = 0 .. {len(j.motions) - 1}")
+    m = j.motions[p.axis]
+    if m.kind != "T" or m.function.is_identity or m.function.is_constant:
+        raise ModelError(f"parameter {p.name!r}: motion {p.axis} of joint {j.name!r} is not a translation by a "
+                         "function of a coordinate", "point it at such a translation")
+
+
 def _nominal(kind: str, target: str, axis, segments, markers) -> float:
     """Nominal value of a scalar parameter from the parsed geometry (NaN if the target is unknown)."""
     if kind in ("joint_centre", "axis_direction", "marker_offset"):
         return 0.0
-    if kind == "scale":
+    if kind in ("scale", "translation_gain"):
         return 1.0
     if kind == "marker_position":
         pos = next((m.position for m in markers if m.name == target), None)
@@ -859,7 +897,13 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
         raise ModelError(f"{where}: needs {target_key} = '...'")
     names = AXES if kind != "axis_direction" else TILT_AXES
     hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
-    if kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
+    if kind == "translation_gain":
+        motion = p.get("motion")
+        if isinstance(motion, bool) or not isinstance(motion, int) or motion < 0:
+            raise ModelError(f"{where}: needs motion = N, the index (from 0) of a translation in the joint's "
+                             f"motions, got {motion!r}")
+        comps = [(name, motion)]
+    elif kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
         if "axis" in p or "axes" in p:
             raise ModelError(f"{where}: a length has no axis", "remove axis/axes")
         comps = [(name, None)]

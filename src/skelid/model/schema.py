@@ -360,7 +360,8 @@ JOINT_KEYS["custom"] = {
 PARAMETER_TARGET: dict[str, str] = {"marker_position": "marker", "marker_offset": "marker", "scale": "segment"}
 
 #: axis names a parameter kind takes (default: x, y, z); None: no axis
-PARAMETER_AXES: dict[str, tuple[str, ...] | None] = {"length": None, "axis_direction": ("u", "v")}
+PARAMETER_AXES: dict[str, tuple[str, ...] | None] = {"length": None, "axis_direction": ("u", "v"),
+                                                     "translation_gain": None}
 
 _BOUNDS = {"lower": Key(Num(), "lower bound of the search interval"),
            "upper": Key(Num(), "upper bound of the search interval")}
@@ -420,6 +421,8 @@ def _target_keys(kind) -> dict[str, Key]:
     if names is not None:
         keys["axis"] = Key(Str(names), "coordinate or tilt axis")
         keys["axes"] = Key(ListOf(Str(names), min_len=1), "several axes: one parameter each, named NAME_AXIS")
+    if kind == "translation_gain":
+        keys["motion"] = Key(Int(), "index (from 0) of the translation in the joint's motions", required=True)
     return keys
 
 

@@ -1,0 +1,89 @@
+"""Variants of a model that relax one joint, for refits when the joint model does not fit.
+
+**A hinge whose centre slides with its angle.** A hinge about the unit axis ``e``
+with centre ``c`` moves its child's markers ``m`` (parent frame) to
+``c + R_e(q) (m - c)``. Its moving-centre variant is a ``custom`` joint that first
+translates the child by
+
+.. math:: t(q) = \\sum_{k=1}^{d} (a_k u + b_k v)\\, q^k
+
+(``u, v`` unit vectors perpendicular to ``e``; the gains ``a_k, b_k`` unknown
+``translation_gain`` parameters, zero being the hinge) and then rotates it by ``q``
+about ``e``. The joint's ``joint_centre`` parameters keep their meaning: the centre
+at ``q = 0``. A knee whose centre moves with flexion (OpenSim's gait knees,
+whose translations are splines of the flexion angle) is fitted without the bias
+a fixed hinge leaves, at the price of a wider interval: the gains and the centre
+are told apart only by the curvature of the path the child's markers follow.
+
+Examples
+--------
+>>> from skelid.model.description import model_from_dict
+>>> hinge = {"name": "knee", "type": "hinge", "axis": [0, 0, 1], "position": [0, -400, 0]}
+>>> m = model_from_dict({"model": {"name": "leg"},
+...     "segments": [{"name": "thigh", "parent": "ground", "joint": {"name": "hip", "type": "free",
+...                   "position": [0, 0, 0]}}, {"name": "shank", "parent": "thigh", "joint": hinge}],
+...     "markers": [{"name": "S1", "segment": "shank", "position": [50, -80, 40]}]})
+>>> moving_centre(m, "knee").parameter_names
+('knee_gain1_u', 'knee_gain1_v', 'knee_gain2_u', 'knee_gain2_v')
+"""
+
+from __future__ import annotations
+
+from skelid.errors import ModelError
+from skelid.model.description import Model, model_from_dict, tilt_basis
+
+#: bound (model units per radian^k) of the gains of a moving centre's translations
+GAIN_BOUND_MM = 200.0
+_UNIT_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+
+def moving_centre(model: Model, joint: str, degree: int = 2) -> Model:
+    """The model with hinge ``joint`` replaced by a hinge whose centre slides with its angle.
+
+    Parameters
+    ----------
+    model : Model
+        A 3-D model.
+    joint : str
+        Name of a hinge joint.
+    degree : int
+        Highest power of the angle in the centre's path (1 or more).
+
+    Returns
+    -------
+    Model
+        The same segments, markers and parameters, plus ``2 * degree`` parameters
+        ``<joint>_gain<k>_<u|v>`` (uniform priors, centre 0: the hinge).
+
+    Raises
+    ------
+    ModelError
+        If ``joint`` is not a hinge of a 3-D model, or ``degree < 1``.
+    """
+    seg = next((s for s in model.segments if s.joint.name == joint), None)
+    if seg is None or model.dim != 3 or seg.joint.type != "hinge":
+        raise ModelError(f"joint {joint!r} is not a hinge of a 3-D model, so it has no moving-centre variant",
+                         "name a hinge joint")
+    if degree < 1:
+        raise ModelError(f"a moving centre needs degree >= 1, got {degree}")
+    e, u, v = tilt_basis(seg.joint.axes[0])
+    d = model.to_dict()
+    spec = next(s for s in d["segments"] if s["name"] == seg.name)["joint"]
+    motions = []
+    for k in range(1, degree + 1):
+        for direction in (u, v):
+            motions.append({"kind": "translation", "axis": list(direction), "coordinate": joint,
+                            "function": {"type": "polynomial", "coefficients": [1.0] + [0.0] * k}})
+    motions.append({"kind": "rotation", "axis": list(e), "coordinate": joint,
+                    "function": {"type": "linear", "coefficients": [1.0, 0.0]}})
+    custom = {"name": joint, "type": "custom", "position": spec["position"], "coordinates": [joint],
+              "motions": motions}
+    if "range" in spec:
+        custom["range"] = spec["range"]
+    next(s for s in d["segments"] if s["name"] == seg.name)["joint"] = custom
+    bound = GAIN_BOUND_MM / _UNIT_MM[model.units]
+    for n in range(2 * degree):
+        d["parameters"].append({"name": f"{joint}_gain{n // 2 + 1}_{'uv'[n % 2]}", "kind": "translation_gain",
+                                "joint": joint, "motion": n,
+                                "prior": {"type": "uniform", "lower": -bound, "upper": bound}})
+    return model_from_dict(d, f"{model.name} ({joint} with a moving centre)")
