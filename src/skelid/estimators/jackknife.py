@@ -59,7 +59,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skelid.estimators.joint import influence_rows, joint_fit, row_weights
+from skelid.estimators.joint import influence_rows, joint_fit, penalty_band, row_weights
 from skelid.estimators.likelihood import frame_terms
 from skelid.model.description import Model
 
@@ -72,7 +72,8 @@ MIN_MARKERS = 3
 FOLD_LEVEL = 0.05
 #: white-noise draws that give the jackknife's null distribution
 N_NULL = 100
-_CHUNK = 25  # white-noise draws held in memory at once
+_CHUNK = 25  # white-noise draws made at once
+_DRAWS_KEPT = 4_000_000  # white-noise numbers (32 MB) kept for all deletions; a longer trial draws them again
 
 
 class Jackknife(NamedTuple):
@@ -88,16 +89,23 @@ class Jackknife(NamedTuple):
 
 
 def _terms(model, y, theta, pose, R, weights):
-    """Weighted influence rows, information and reduced score of a fit (see the module notes)."""
+    """Weighted residuals and Jacobians of a fit: ``(T, M*D)``, ``(T, M*D, Q)``, ``(T, M*D, P)``."""
     r, Jq, Jt = frame_terms(model, theta, pose, y)
     sw = row_weights(weights, y)
     if sw is not None:
         r, Jq, Jt = r * sw, Jq * sw[..., None], Jt * sw[..., None]
-    A, G = influence_rows(Jq, Jt, R)
-    score = np.einsum("tkp,tk->p", A, r)
+    return r, Jq, Jt
+
+
+def _influence(r, Jq, Jt, pose, R, R_band=None):
+    """Influence rows ``A``, information ``S`` and reduced score of a fit (see the module notes)."""
+    A, G = influence_rows(Jq, Jt, R, R_band)
+    P = A.shape[-1]
+    A2 = A.reshape(-1, P)
+    score = r.ravel() @ A2
     if R is not None:
-        score = score + np.einsum("tqp,tq->p", G, (R @ pose.ravel()).reshape(pose.shape))
-    return A, np.einsum("tkp,tkq->pq", Jt, A), score
+        score = score + (R @ pose.ravel()) @ G.reshape(-1, P)
+    return A, Jt.reshape(-1, P).T @ A2, score
 
 
 def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
@@ -126,16 +134,32 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     Jackknife
     """
     y = np.asarray(y, float)
-    T, M, _ = y.shape
+    T, M, D = y.shape
     P = model.n_params
-    A, S, _ = _terms(model, y, theta, pose, R, weights)
+    # the kinematics once: deleting marker m only zeroes its D rows of every frame (as frame_terms
+    # does for a missing marker), so each deletion reuses the full fit's residuals and Jacobians
+    r, Jq, Jt = _terms(model, y, theta, pose, R, weights)
+    R_band = None if R is None else penalty_band(R, model.n_pose)
+    A, S, _ = _influence(r, Jq, Jt, pose, R, R_band)
     S_isqrt = _inv_sqrt(S)
     rng = np.random.default_rng(0) if rng is None else rng
     seed = int(rng.integers(2**32))
+    chunks = [(c, min(_CHUNK, N_NULL - c)) for c in range(0, N_NULL, _CHUNK)]
+    # the same white-noise draws for every call; kept when they fit in memory, else drawn again
+    keep = N_NULL * A.shape[0] * A.shape[1] <= _DRAWS_KEPT
+    kept = {}
 
-    def response(A_):  # (K, P): sum_t A_t^T e_t for the same white-noise draws every call
-        return np.concatenate([np.einsum("tkp,ntk->np", A_, np.random.default_rng([seed, c]).normal(
-            0.0, sigma, size=(min(_CHUNK, N_NULL - c),) + A_.shape[:2])) for c in range(0, N_NULL, _CHUNK)])
+    def draws(c, n):
+        e = kept.get(c)
+        if e is None:
+            e = np.random.default_rng([seed, c]).normal(0.0, sigma, size=(n, A.shape[0] * A.shape[1]))
+            if keep:
+                kept[c] = e
+        return e
+
+    def response(A_):  # (K, P): sum_t A_t^T e_t
+        A2 = A_.reshape(-1, P)
+        return np.concatenate([draws(c, n) @ A2 for c, n in chunks])
 
     base = response(A) @ np.linalg.inv(S).T  # (K, P) the full fit's response
     null = np.zeros((N_NULL, M, P))
@@ -143,9 +167,12 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     for m in range(M):  # one deletion per marker: each changes every frame's pose projection
         if not np.isfinite(y[:, m]).any():
             continue
-        ym = y.copy()
-        ym[:, m] = np.nan
-        A_m, S_m, score_m = _terms(model, ym, theta, pose, R, weights)
+        rows = slice(m * D, (m + 1) * D)
+        r_m, Jq_m, Jt_m = r.copy(), Jq.copy(), Jt.copy()
+        r_m[:, rows] = 0.0
+        Jq_m[:, rows] = 0.0
+        Jt_m[:, rows] = 0.0
+        A_m, S_m, score_m = _influence(r_m, Jq_m, Jt_m, pose, R, R_band)
         if np.linalg.eigvalsh(S_isqrt @ S_m @ S_isqrt)[0] < ESSENTIAL:
             continue
         S_m_inv = np.linalg.inv(S_m)

@@ -677,7 +677,7 @@ def smoothed_frame_scores(model: Model, y, theta, q, R, weights=None) -> np.ndar
     return np.einsum("tkp,tk->tp", A, r) + np.einsum("tqp,tq->tp", G, Rq)
 
 
-def influence_rows(Jq, Jt, R=None):
+def influence_rows(Jq, Jt, R=None, R_band=None):
     """Rows ``A_t = K_t - J_t G_t`` through which the markers move the fit's ``theta``.
 
     ``G = (blockdiag(J_t^T J_t) + R)^{-1} H_{q theta}`` (per frame when ``R`` is
@@ -689,6 +689,8 @@ def influence_rows(Jq, Jt, R=None):
     Jq : (T, m, Q) float
     Jt : (T, m, P) float
     R : sparse (T*Q, T*Q), optional
+    R_band : (u+1, T*Q) float, optional
+        ``R`` in upper banded form (:func:`penalty_band`), when the caller has it.
 
     Returns
     -------
@@ -698,11 +700,11 @@ def influence_rows(Jq, Jt, R=None):
     T, _, Q = Jq.shape
     P = Jt.shape[-1]
     Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
+    Hqt = np.matmul(np.swapaxes(Jq, -1, -2), Jt)
     if R is None:
         G = np.linalg.pinv(Hqq, hermitian=True) @ Hqt
     else:
-        G = _banded_solver(Hqq, R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
+        G = _banded_solver(Hqq, R, R_band)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
     return Jt - Jq @ G, G
 
 

@@ -594,20 +594,28 @@ def pose_jacobian_from_plan(plan, kin: Kinematics, mask=None) -> np.ndarray:
     ``mask`` ``(..., M)``, optional: the rows of markers where it is 0 (missing) are zeroed.
     """
     x = kin.markers  # (..., M, D)
-    rel = x[..., None, :, :] - kin.dof_pivot[..., :, None, :]  # (..., Q, M, D)
-    if plan.dim == 2:
-        cols = np.empty_like(rel)
-        cols[..., 0] = -rel[..., 1]
-        cols[..., 1] = rel[..., 0]
+    axis, pivot = kin.dof_axis, kin.dof_pivot  # (..., Q, D)
+    batch = np.broadcast_shapes(x.shape[:-2], pivot.shape[:-2])
+    M, D, Q = plan.n_markers, plan.dim, plan.n_pose
+    # written straight into the (..., M, D, Q) layout: one pass per component, no transposed copy
+    cols = np.empty(batch + (M, D, Q))
+    rel = [x[..., :, None, d] - pivot[..., None, :, d] for d in range(D)]  # each (..., M, Q)
+    if D == 2:
+        cols[..., 0, :] = -rel[1]
+        cols[..., 1, :] = rel[0]
     else:
-        cols = _axis_cross(kin.dof_axis[..., :, None, :], rel)
+        a = [axis[..., None, :, d] for d in range(3)]
+        cols[..., 0, :] = a[1] * rel[2] - a[2] * rel[1]
+        cols[..., 1, :] = a[2] * rel[0] - a[0] * rel[2]
+        cols[..., 2, :] = a[0] * rel[1] - a[1] * rel[0]
     if plan.trans_dofs.size:
         t = plan.trans_dofs
-        cols[..., t, :, :] = kin.dof_axis[..., t, None, :]
+        cols[..., t] = np.swapaxes(axis[..., t, :], -1, -2)[..., None, :, :]
     if kin.dof_velocity is not None:
-        cols += kin.dof_velocity[..., :, None, :]
-    cols *= (plan.moves if mask is None else plan.moves * mask[..., None, :])[..., None]
-    return np.moveaxis(cols, -3, -1)
+        cols += np.swapaxes(kin.dof_velocity, -1, -2)[..., None, :, :]
+    moves = plan.moves.T if mask is None else plan.moves.T * mask[..., :, None]  # (..., M, Q)
+    cols *= moves[..., :, None, :]
+    return cols
 
 
 def pose_gradient(model: Model, kin: Kinematics, r) -> np.ndarray:
@@ -656,16 +664,18 @@ def pose_gradient(model: Model, kin: Kinematics, r) -> np.ndarray:
 def theta_jacobian(model: Model, kin: Kinematics, ws: Workspace | None = None) -> np.ndarray:
     """``dx/dtheta`` as ``(..., M, D, P)`` from a :class:`Kinematics`."""
     plan = kinematics_plan(model, ws)
-    J = np.zeros(kin.markers.shape + (plan.n_params,))
+    M, D, P = plan.n_markers, plan.dim, plan.n_params
+    batch = kin.markers.shape[:-2]
     used_j = plan.used_joints
-    if used_j.size:
-        RA = np.einsum("...sij,sjp->...sip", kin.R_world_parent[..., used_j, :, :], plan.A_joint)
-        J += np.einsum("...sip,sm->...mip", RA, plan.ancestor_markers)
+    if used_j.size:  # sum over the joints above each marker: one matrix product
+        RA = np.matmul(kin.R_world_parent[..., used_j, :, :], plan.A_joint)  # (..., s, D, P)
+        RA = np.broadcast_to(RA, batch + RA.shape[-3:]).reshape(batch + (used_j.size, D * P))
+        J = np.matmul(plan.ancestor_markers.T, RA).reshape(batch + (M, D, P))
+    else:
+        J = np.zeros(batch + (M, D, P))
     used_m = plan.used_markers
     if used_m.size:
-        J[..., used_m, :, :] += np.einsum(
-            "...mij,mjp->...mip", kin.R_world_seg[..., plan.marker_segment[used_m], :, :], plan.A_marker
-        )
+        J[..., used_m, :, :] += np.matmul(kin.R_world_seg[..., plan.marker_segment[used_m], :, :], plan.A_marker)
     if plan.n_coupled:
         # d x / d c = f(q) Rp a for the markers the translation moves; c = base + theta @ b
         _, A = model.geometry_map
