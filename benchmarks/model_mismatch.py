@@ -1,10 +1,12 @@
 """Model mismatch: markers from a knee whose centre slides with flexion, fitted with a hinge.
 
-The source model is a thigh (free joint) and a shank whose knee is OpenSim's gait2354
-``knee_r``: a ``custom`` joint that rotates the shank by the flexion ``q`` about z and
-translates it by two splines of ``q`` (``translation1``, ``translation2``; their knots
-are copied below, in mm, shifted so that the translation is zero at ``q = 0``). The knee
-flexes over 0-90 degrees (``q`` from 0 to -pi/2, OpenSim's sign) and the thigh moves
+Sources: ``polynomial``, the accuracy study's ``coupled`` cell (the centre slides by
+``10 (q^2/2, q/2)`` mm, flexion 0-90 degrees), and ``gait2354``: a thigh (free joint) and
+a shank whose knee is OpenSim's gait2354 ``knee_r``: a ``custom`` joint that rotates the
+shank by the flexion ``q`` about z and translates it by two splines of ``q``
+(``translation1``, ``translation2``; their knots are copied below, in mm, shifted so that
+the translation is zero at ``q = 0``); its knee flexes over 0-90 degrees (``q`` from 0 to
+-pi/2, OpenSim's sign). In both the thigh moves
 freely; six markers, three per segment, white noise of sd ``sigma``. The quantity of
 interest is the knee centre at zero flexion, ``(x, y)`` in the thigh frame, whose truth
 is ``(0, 0)``. Each trial is fitted with
@@ -99,15 +101,15 @@ def knee_model(kind: str, centre: bool = True):
     return model_from_dict(spec)
 
 
-def knee_trial(source, n_frames: int, sigma: float, rng):
-    """Poses (thigh moving freely, knee over ``FLEXION``) and noisy markers of ``source``."""
+def knee_trial(source, n_frames: int, sigma: float, rng, flexion=FLEXION):
+    """Poses (thigh moving freely, knee over ``flexion``) and noisy markers of ``source``."""
     from skelid.model.kinematics import marker_positions
     from skelid.simulate import simulate_motion
 
     pose = simulate_motion(source, n_frames, 100.0, rng)
     k = [i for i, d in enumerate(source.dofs) if d.segment == 1][0]
     u = (pose[:, k] - pose[:, k].min()) / max(float(np.ptp(pose[:, k])), 1e-12)
-    pose[:, k] = FLEXION[0] + (FLEXION[1] - FLEXION[0]) * u
+    pose[:, k] = flexion[0] + (flexion[1] - flexion[0]) * u
     clean = marker_positions(source, np.zeros(source.n_params), pose)
     return pose, clean + rng.normal(0.0, sigma, size=clean.shape)
 
@@ -187,7 +189,7 @@ def one_trial(args):
         source = polynomial_knee()
     else:
         source = knee_model("coupled", centre=False)
-    pose, y = knee_trial(source, n_frames, sigma, rng)
+    pose, y = knee_trial(source, n_frames, sigma, rng, (0.0, np.pi / 2) if source_kind == "polynomial" else FLEXION)
     th, sd, fit = fast_fit(hinge, y, pose)
     if use_estimator:
         from skelid.data import MarkerData
@@ -220,14 +222,14 @@ MOVING_CENTRE = 10.0
 
 
 def polynomial_knee(centre: bool = False):
-    """The coupled knee of the accuracy study's ``coupled`` cell (flexion to negative angles here)."""
+    """The coupled knee of the accuracy study's ``coupled`` cell (flexion 0 to 90 degrees, positive)."""
     from skelid.model.description import model_from_dict
 
     mc = MOVING_CENTRE
     spec = knee_model("coupled", centre=centre).to_dict()
     joint = spec["segments"][1]["joint"]
     joint["motions"][0]["function"] = {"type": "polynomial", "coefficients": [mc / 2, 0.0, 0.0]}
-    joint["motions"][1]["function"] = {"type": "polynomial", "coefficients": [-mc / 2, 0.0]}
+    joint["motions"][1]["function"] = {"type": "polynomial", "coefficients": [mc / 2, 0.0]}
     return model_from_dict(spec)
 
 
@@ -268,7 +270,8 @@ def write(rows, meta):
     from skelid.io.atomic import atomic_write
 
     RESULTS.mkdir(parents=True, exist_ok=True)
-    atomic_write(RESULTS / "model_mismatch.json", json.dumps({"meta": meta, "rows": rows}, indent=1))
+    with atomic_write(RESULTS / "model_mismatch.json") as f:
+        f.write(json.dumps({"meta": meta, "rows": rows}, indent=1))
     fmt = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
     lines = ["# Model mismatch: a knee whose centre slides with flexion, fitted with a hinge", "",
              *([f"**Reduced run: {meta['reps']} trials per cell (the study needs 100).**", ""]
@@ -306,7 +309,8 @@ def write(rows, meta):
                          f"{e['flag_rate']:.2f} |")
     lines += ["", f"CPU {meta['cpu_seconds']:.0f} s (all processes), wall {meta['wall_seconds']:.0f} s, "
               f"load average {meta['load_average']}.", ""]
-    atomic_write(RESULTS / "model_mismatch.md", "\n".join(lines))
+    with atomic_write(RESULTS / "model_mismatch.md") as f:
+        f.write("\n".join(lines))
 
 
 def main():

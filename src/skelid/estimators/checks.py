@@ -220,14 +220,15 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
         z = np.einsum("tj,tma->jma", B, r_par)  # (k, n, D)
         # per-frame covariance of r~ on these rows, in the parent's frame (unit noise)
         Jr = Jq[ok][:, rows]
-        Pt = np.einsum("tkq,tqp,tlp->tkl", Jr, Hinv[ok], Jr)
+        Pt = (Jr @ Hinv[ok]) @ np.swapaxes(Jr, 1, 2)
         Mt = np.eye(len(rows))[None] - Pt
         Rb = np.zeros((T, len(rows), len(rows)))
         for i in range(len(ms)):
             Rb[:, i * D:(i + 1) * D, i * D:(i + 1) * D] = Rp
-        Mt = np.einsum("tka,tkl,tlb->tab", Rb, Mt, Rb)
+        Mt = np.swapaxes(Rb, 1, 2) @ Mt @ Rb
         k, nD = B.shape[1], len(rows)
-        C = np.einsum("tj,tl,tab->jalb", B, B, Mt).reshape(k * nD, k * nD)
+        G = (B[:, :, None] * B[:, None, :]).reshape(T, k * k)
+        C = (G.T @ Mt.reshape(T, nD * nD)).reshape(k, k, nD, nD).transpose(0, 2, 1, 3).reshape(k * nD, k * nD)
         # the contrast: the child's markers' mean pattern less the parent's (a joint that cannot follow
         # the data moves the child against the parent; the fit shares the error between the two)
         wts = np.where(seg_of[ms] == s, 1.0 / len(child), 0.0)

@@ -755,9 +755,12 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
     out = []
     for j in misfit:
         v = f.residuals.misfit[j]
+        p_txt = f"p = {10 ** v['log10_p']:.1g}" if v["log10_p"] > -300 else "p < 1e-300"
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
-                           f"with the joint angle (rms {v['rms']:.3g} {model.units}), which the joint model cannot "
-                           "follow (a joint centre that moves with the angle?); this is not soft-tissue artefact"))
+                           f"with the joint angle (rms {v['rms']:.3g} {model.units}, {p_txt}), which "
+                           "the joint model cannot follow (a joint centre that moves with the angle?); this is not "
+                           "soft-tissue artefact; fit the joint's coupled motion or a moving centre "
+                           "(skelid.model.variants.moving_centre) to remove the bias it leaves"))
     if f.residuals.flagged:
         then = ("so the interval was widened (Newey-West)" if f.cov.widened else
                 "but the interval was not widened (robust='never')")
