@@ -246,11 +246,17 @@ def usable_frames(model: Model, y) -> np.ndarray:
 
 
 def _normal_blocks(r, Jq, Jt):
+    """Blocks of ``J^T J`` and ``J^T r``.
+
+    Returns ``Hqq (T, Q, Q)``, ``Hqt (T, Q, P)``, ``Htt (P, P)``, ``gq (T, Q)``, ``gt (P,)``.
+    """
     Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
-    gq = np.einsum("tki,tk->ti", Jq, r)
-    gt = np.einsum("tkp,tk->p", Jt, r)
+    JqT = np.swapaxes(Jq, -1, -2)
+    Hqt = np.matmul(JqT, Jt)
+    Jt2 = Jt.reshape(-1, Jt.shape[-1])
+    Htt = Jt2.T @ Jt2
+    gq = np.matmul(JqT, r[..., None])[..., 0]
+    gt = r.ravel() @ Jt2
     return Hqq, Hqt, Htt, gq, gt
 
 
