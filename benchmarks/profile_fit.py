@@ -70,7 +70,8 @@ def main(argv=None):
         prof.disable()
     finally:
         marker.joint_fit = original
-    print("joint fits (iterations, converged):", calls, "step tolerance", joint.STEP_TOL)
+    print("joint fits (iterations, converged):", calls, "step tolerance (sd): screening", marker.SCREEN_STEP_TOL,
+          "motion-model fit", marker.FIT_STEP_TOL, "default", joint.STEP_TOL)
     pstats.Stats(prof).sort_stats("cumulative").print_stats(args.top)
 
 

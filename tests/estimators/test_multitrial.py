@@ -81,7 +81,10 @@ def test_one_trial_is_the_single_trial_fit():
     single = MarkerEstimator(model, outlier_threshold=None).fit(t.data)
     multi = MultiTrialEstimator(model, outlier_threshold=None).fit([t.data])
     sd = single.posterior_.sd
-    assert np.all(np.abs(multi.theta_ - single.theta_) < 1e-4 * sd)
+    # both fits stop where the cost can no longer tell two points apart (a relative change of 1e-11):
+    # on this trial a move of about 1e-4 sd changes the cost by less than that, so the two stopping
+    # points agree to a few 1e-4 sd, not better
+    assert np.all(np.abs(multi.theta_ - single.theta_) < 5e-4 * sd)
     np.testing.assert_allclose(multi.cov_, single.cov_, rtol=1e-10)
     assert multi.consistency_["dof"] == 0 and multi.tau2_[0] == 0.0
 

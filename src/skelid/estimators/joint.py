@@ -146,6 +146,8 @@ def band_inverse_blocks(ab, Q: int) -> np.ndarray:
     Ub = np.zeros((n + u, u + 1))  # Ub[i, d] = U[i, i + d]; rows past the end stay zero
     for d in range(u + 1):
         Ub[:n - d, d] = cb[u - d, d:]
+    if u >= Q and n % Q == 0:
+        return _selected_inverse_by_blocks(Ub, Q, T)
     Zb = np.zeros((n, u + 1))  # Zb[i, d] = Z[i, i + d]
     W = np.zeros((u + 1, u + 1))  # Z[i:i+u+1, i:i+u+1] as the sweep moves up
     for i in range(n - 1, -1, -1):
@@ -163,6 +165,39 @@ def band_inverse_blocks(ab, Q: int) -> np.ndarray:
     for a in range(Q):
         for b in range(a, Q):
             out[:, a, b] = out[:, b, a] = Zb[base + a, b - a]
+    return out
+
+
+def _selected_inverse_by_blocks(Ub, Q: int, T: int) -> np.ndarray:
+    """The sweep of :func:`band_inverse_blocks` one frame (``Q`` rows) at a time.
+
+    With frame ``I`` and the ``u`` rows ``F`` after it, ``U Z = U^{-T}`` gives
+    ``Z_IF = -U_II^{-1} U_IF Z_FF`` and ``Z_II = U_II^{-1} (U_II^{-T} - U_IF Z_FI)``;
+    ``Z_FF`` lies inside the band, so a ``(u, u)`` window of ``Z`` moving up ``Q`` rows
+    per step carries everything needed (same operations as the row sweep, grouped).
+    """
+    u = Ub.shape[1] - 1
+    r = np.arange(Q)[:, None]
+    d = np.arange(u + 1)[None, :]
+    rows = np.arange(T)[:, None, None] * Q + r  # (T, Q, 1)
+    Ublk = np.zeros((T, Q, Q + u))  # U[tQ:(t+1)Q, tQ:(t+1)Q + u]
+    Ublk[:, r, r + d] = Ub[rows, d]
+    Uinv = np.linalg.inv(Ublk[:, :, :Q])  # (T, Q, Q) upper triangular inverses, all frames at once
+    U_IF = Ublk[:, :, Q:]
+    out = np.empty((T, Q, Q))
+    W = np.zeros((u, u))  # Z over the u rows after the current frame
+    for t in range(T - 1, -1, -1):
+        Ui = Uinv[t]
+        Z_IF = -Ui @ (U_IF[t] @ W)  # (Q, u)
+        Z_II = Ui @ (Ui.T - U_IF[t] @ Z_IF.T)
+        Z_II = 0.5 * (Z_II + Z_II.T)
+        out[t] = Z_II
+        Wn = np.empty((u, u))
+        Wn[:Q, :Q] = Z_II
+        Wn[:Q, Q:] = Z_IF[:, :u - Q]
+        Wn[Q:, :Q] = Z_IF[:, :u - Q].T
+        Wn[Q:, Q:] = W[:u - Q, :u - Q]
+        W = Wn
     return out
 
 
@@ -211,11 +246,17 @@ def usable_frames(model: Model, y) -> np.ndarray:
 
 
 def _normal_blocks(r, Jq, Jt):
+    """Blocks of ``J^T J`` and ``J^T r``.
+
+    Returns ``Hqq (T, Q, Q)``, ``Hqt (T, Q, P)``, ``Htt (P, P)``, ``gq (T, Q)``, ``gt (P,)``.
+    """
     Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
-    gq = np.einsum("tki,tk->ti", Jq, r)
-    gt = np.einsum("tkp,tk->p", Jt, r)
+    JqT = np.swapaxes(Jq, -1, -2)
+    Hqt = np.matmul(JqT, Jt)
+    Jt2 = Jt.reshape(-1, Jt.shape[-1])
+    Htt = Jt2.T @ Jt2
+    gq = np.matmul(JqT, r[..., None])[..., 0]
+    gt = r.ravel() @ Jt2
     return Hqq, Hqt, Htt, gq, gt
 
 

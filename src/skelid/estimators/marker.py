@@ -101,10 +101,13 @@ STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little function
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
 CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each
-SCREEN_STEP_TOL = 1e-3  # the screening fit (no motion model) stops at steps below this many sd ...
-SCREEN_TOL = 1e-7  # ... that lower its cost by less than this fraction
+SCREEN_STEP_TOL = 1e-2  # the screening fit (no motion model) stops at steps below this many sd ...
+SCREEN_TOL = 1e-5  # ... that lower its cost by less than this fraction
 BOOT_STEP_TOL = 1e-3  # a bootstrap refit stops at steps below this many sd ...
 BOOT_TOL = 1e-7  # ... that lower its cost by less than this fraction
+# the motion-model fit stops at steps below this many sd: its stopping point already moves by about 2e-5 sd
+# when the Jacobians change at the rounding level, so a tighter rule only buys iterations
+FIT_STEP_TOL = 1e-4
 RACE_ITER = 10  # iterations each start of the motion-model fit gets before the better one is continued
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
@@ -406,7 +409,7 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
     best = min(fits, key=_penalised_cost)
     more = s.n_iter - RACE_ITER if not best.converged else 0  # 0: only the information at the estimate
     fit = joint_fit(model, sc.y, best.theta, best.pose, n_iter=max(more, 0), bounds=st.bounds, frames=sc.fixed,
-                    penalty=best.penalty, ws=ws)
+                    penalty=best.penalty, step_tol=FIT_STEP_TOL, ws=ws)
     if not more:
         fit = fit._replace(converged=best.converged, n_iter=best.n_iter)
     return Motion(fit, cutoff)

@@ -370,8 +370,11 @@ def forward_kinematics(model: Model, theta, pose, ws: Workspace | None = None) -
     return _forward_general(plan, g, pose, tilt_tables(model, theta))
 
 
-def _forward_planar(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray) -> Kinematics:
-    """:func:`forward_kinematics` for a planar model: one angle per segment."""
+def _forward_planar(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray, markers_only: bool = False):
+    """:func:`forward_kinematics` for a planar model: one angle per segment.
+
+    ``markers_only``: return only the marker positions ``(..., M, 2)`` (what a residual needs).
+    """
     S, M = plan.n_segments, plan.n_markers
     batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1])
     gb = g.shape[:-1]
@@ -403,6 +406,8 @@ def _forward_planar(plan: KinematicsPlan, g: np.ndarray, pose: np.ndarray) -> Ki
     x = np.empty(batch + (M, 2))
     x[..., 0] = p[..., ms, 0] + (cm * r_marker[..., 0] - sm * r_marker[..., 1])
     x[..., 1] = p[..., ms, 1] + (sm * r_marker[..., 0] + cm * r_marker[..., 1])
+    if markers_only:
+        return x
     Q = plan.n_pose
     axis = np.zeros(batch + (Q, 2))
     pivot = np.zeros(batch + (Q, 2))
@@ -575,7 +580,14 @@ def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
 
 def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
     """Marker positions ``(..., M, D)`` for ``theta (..., P)`` and ``pose (..., Q)``."""
-    return forward_kinematics(model, theta, pose, ws).markers
+    plan = kinematics_plan(model, ws)
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape[-1:] != (plan.n_pose,):
+        raise ValueError(f"pose must end in {plan.n_pose} coordinates, got shape {pose.shape}")
+    g = geometry(model, theta)
+    if plan.planar:  # the markers alone: no joint axes or orientations
+        return _forward_planar(plan, g, pose, markers_only=True)
+    return _forward_general(plan, g, pose, tilt_tables(model, theta), want_omega=False).markers
 
 
 def joint_positions(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
