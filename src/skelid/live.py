@@ -282,19 +282,19 @@ def _theta_information(state: GaussianState, prior, sigma2: float):
     return Rt.T @ Rt / sigma2 + L0, Rt.T @ state.rhs[-P:] / sigma2 + L0 @ mu0
 
 
-def solve_mean(state: GaussianState, prior, sigma2: float) -> GaussianState:
-    """The state with its mean solved: theta (clipped to the prior bounds) and the newest pose."""
+def solve_mean(state: GaussianState, prior, sigma2: float, pose: bool = True) -> GaussianState:
+    """The state with its mean solved: theta (clipped to the prior bounds) and, with ``pose``, the newest pose."""
     lo, hi = prior[2], prior[3]
     Lam, eta = _theta_information(state, prior, sigma2)
     theta = np.clip(np.linalg.solve(Lam, eta), lo, hi)
     q = None
     k, Q = state.poses.shape
-    if k:
+    if k and pose:
         P = theta.size
         a = (k - 1) * Q
-        Rq = state.root[a:a + Q, a:a + Q]
-        ridge = 1e-12 * max(np.abs(np.diag(Rq)).max(), 1e-300)
-        q = np.linalg.solve(Rq + ridge * np.eye(Q), state.rhs[a:a + Q] - state.root[a:a + Q, -P:] @ theta)
+        Rq = state.root[a:a + Q, a:a + Q].copy()
+        Rq.flat[::Q + 1] += 1e-12 * max(np.abs(np.diag(Rq)).max(), 1e-300)
+        q = np.linalg.solve(Rq, state.rhs[a:a + Q] - state.root[a:a + Q, -P:] @ theta)
     return state._replace(mean=theta, pose_mean=q)
 
 
@@ -376,14 +376,17 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
         state = empty_state(model, prior)
         for b in range(B):
             if not used[b]:
-                state = absorb(state, None, None, None, q[b], theta, weight, 0, 0.0)
+                if weight > 0:  # the pose goes on by the motion model alone
+                    state = absorb(state, None, None, None, q[b], theta, weight, 0, 0.0)
                 continue
             m = present[b]
             r = (Y[b, m] - x[b, m]).reshape(-1)
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
                            weight, int(m.sum()) * D, float(r @ r))
         s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback)
-        state = solve_mean(state, prior, s2)
+        state = solve_mean(state, prior, s2, pose=weight > 0)
+        if weight == 0:
+            state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
         theta, Q0 = state.mean, q
     for k, (y, _, u) in enumerate(frames):
         frames[k] = (y, Q0[k], u)
@@ -679,7 +682,7 @@ class Session:
         problems = [] if n_present == self._M else [f"{self._M - n_present} marker(s) missing"]
         if n_present < self._min_present:
             problems.append("too few markers to fix the pose: frame not used")
-            if st.poses.shape[0]:  # the pose goes on by the motion model alone
+            if st.poses.shape[0] and self._weight > 0:  # the pose goes on by the motion model alone
                 q = self._predict(st)
                 self._state = solve_mean(absorb(st, None, None, None, q, st.mean, self._weight, 0, 0.0),
                                          self._prior, self._current_sigma2())
@@ -733,7 +736,11 @@ class Session:
             Jt2 = Jt[present].reshape(r.size, -1)
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback)
-        new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, float(r @ r)), self._prior, s2)
+        motion = self._weight > 0
+        new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, float(r @ r)), self._prior, s2,
+                         pose=motion)
+        if not motion:  # every pose free: the frame's own fit is its pose
+            new = new._replace(pose_mean=q)
         for _ in range(self.n_iter if self._weight > 0 else 0):  # iterated: linearised again at the filtered pose
             ql = new.pose_mean
             x2, Jq, Jt = marker_jacobian(model, theta, ql, ws)
