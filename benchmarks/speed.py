@@ -20,7 +20,8 @@ batch       32 simulated trials through skelid batch (2 workers) against one aft
 scaling     time against frames, hypotheses and markers
 first_fit   the first case-A fit in a fresh process after installation (cold numba cache) against one with a
             warm cache
-live        skelid.live.Session.push latencies: case A (grid and Gaussian forms) and the 3-D arm, >= 10^4 frames
+live        skelid.live.Session.push latencies: case A (grid and Gaussian forms) and the 10-marker 3-D arm
+            (benchmarks/arm10.toml, with and without the motion model), >= 10^4 frames
 advice      simulated live sessions: a user who follows Session.advice() against a fixed calibration motion
 """
 
@@ -446,20 +447,36 @@ def section_first_fit_wait(args) -> dict:
     return {"cached": bool(_lm_kernel.warm(True, wait=True))}
 
 
-def _push_latencies(session, positions) -> np.ndarray:
-    """Wall time (ms) of each push after the first ten."""
-    out = np.empty(len(positions))
+def _push_latencies(session, positions) -> tuple[np.ndarray, np.ndarray]:
+    """Wall and CPU (thread) time (ms) of each push after the first ten."""
+    wall = np.empty(len(positions))
+    cpu = np.empty(len(positions))
     for t, frame in enumerate(positions):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         session.push(frame)
-        out[t] = time.perf_counter() - t0
-    return out[10:] * 1e3
+        cpu[t] = time.thread_time() - c0
+        wall[t] = time.perf_counter() - t0
+    return wall[10:] * 1e3, cpu[10:] * 1e3
 
 
 def _arm3d():
     from skelid.model import load_model
 
     return load_model(ROOT / "examples" / "tennis_arm.toml")
+
+
+def _arm10():
+    """The 3-D arm with 10 markers and 6 parameters of the live-latency target."""
+    from skelid.model import load_model
+
+    return load_model(ROOT / "benchmarks" / "arm10.toml")
+
+
+def _latency_row(session, positions, **extra) -> dict:
+    wall, cpu = _push_latencies(session, positions)
+    return {"p50": float(np.median(wall)), "p99": float(np.percentile(wall, 99)), "max": float(wall.max()),
+            "cpu_p50": float(np.median(cpu)), "cpu_p99": float(np.percentile(cpu, 99)), "cpu_max": float(cpu.max()),
+            "frames": int(wall.size), "loadavg_after": list(os.getloadavg()), **extra}
 
 
 def section_live(args) -> dict:
@@ -476,18 +493,16 @@ def section_live(args) -> dict:
     trial = simulate(model, sigma=15.0, n_frames=F + 10, rng=np.random.default_rng(0))
     for method in ("grid", "gaussian"):
         s = Session(model, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate, method=method)
-        lat = _push_latencies(s, trial.data.positions)
-        out[f"live_case_a_{method}_ms"] = {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
-                                           "max": float(lat.max()), "frames": int(lat.size)}
+        out[f"live_case_a_{method}_ms"] = _latency_row(s, trial.data.positions)
     best = min(out.values(), key=lambda r: r["p50"])
     out["live_p50_ms_case_a"] = best["p50"]
-    arm = _arm3d()
+    arm = _arm10()
     trial = simulate(arm, sigma=0.002, n_frames=F + 10, rng=np.random.default_rng(1))
-    s = Session(arm, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate, method="gaussian")
-    lat = _push_latencies(s, trial.data.positions)
-    out["live_arm3d_ms"] = {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)),
-                            "max": float(lat.max()), "frames": int(lat.size), "model": "examples/tennis_arm.toml",
-                            "parameters": arm.n_params, "markers": len(arm.markers), "pose": arm.n_pose}
+    for key, cutoff in (("live_arm3d_ms", None), ("live_arm3d_motion_ms", 6.0)):
+        s = Session(arm, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate, method="gaussian",
+                    cutoff=cutoff)
+        out[key] = _latency_row(s, trial.data.positions, model="benchmarks/arm10.toml", parameters=arm.n_params,
+                                markers=len(arm.markers), pose=arm.n_pose, cutoff_hz=cutoff)
     out["live_p99_ms_arm3d"] = out["live_arm3d_ms"]["p99"]
     return out
 
@@ -655,10 +670,13 @@ def write_markdown(res: dict, path: Path) -> None:
                      f"{res['first_fit_warm_s']:.2f} s with the cache warm.")
     for key, what in (("live_case_a_grid_ms", "Live push, case A, grid form"),
                       ("live_case_a_gaussian_ms", "Live push, case A, Gaussian form"),
-                      ("live_arm3d_ms", "Live push, 3-D arm (examples/tennis_arm.toml), Gaussian form")):
+                      ("live_arm3d_ms", "Live push, 3-D arm (benchmarks/arm10.toml: 10 markers, 6 parameters), "
+                                        "Gaussian form"),
+                      ("live_arm3d_motion_ms", "Same with the 6 Hz motion model (cutoff=6)")):
         if key in res:
             r = res[key]
-            lines.append(f"{what}: p50 {r['p50']:.3f} ms, p99 {r['p99']:.3f} ms, max {r['max']:.1f} ms over "
+            cpu = (f" (CPU p50 {r['cpu_p50']:.3f}, p99 {r['cpu_p99']:.3f} ms)" if "cpu_p50" in r else "")
+            lines.append(f"{what}: p50 {r['p50']:.3f} ms, p99 {r['p99']:.3f} ms, max {r['max']:.1f} ms{cpu} over "
                          f"{r['frames']} frames.")
     if "advice_study" in res:
         a = res["advice_study"]

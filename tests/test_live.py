@@ -35,6 +35,11 @@ def test_last_live_estimate_agrees_with_the_batch_estimate(name, method, sigma, 
     live = np.array([est.parameters[n].mean for n in model.parameter_names])
     np.testing.assert_array_less(np.abs(live - batch.theta_), sd)
     assert est.healthy and est.health == "ok"
+    if method == "gaussian":  # with the batch method's motion model too
+        smooth = Session(model, labels=trial.data.names, units=trial.data.units, rate=trial.data.rate,
+                         method=method, cutoff=6.0, rng=np.random.default_rng(0))
+        est = _run(smooth, trial.data.positions)
+        np.testing.assert_array_less(np.abs(est.theta - batch.theta_), sd)
 
 
 def test_estimate_is_immutable_and_complete():
