@@ -38,3 +38,26 @@ def test_tennis_arm_model_fits_the_recording(tennis):
     rsho = next(m for m in ov["markers"] if m["name"] == "Derrick:RSHO")
     assert rsho["used_by_model"] and rsho["frames_missing"] == 145
     assert (ov["n_frames"], ov["rate_hz"], ov["units"]) == (1092, 50.0, "m")
+
+
+def test_pig_model_is_built_from_the_static_trial_and_fits_both_recordings(shared_data):
+    """examples/pig_lower_limb.toml is what examples/build_pig.py writes, and its markers are in both trials."""
+    import importlib.util
+
+    from skelid.io import read_c3d
+
+    def read(trial):  # in this process: the files are known to be sound, and the test must stay fast
+        return read_c3d(shared_data / "ktk-gait-pig" / f"{trial}.c3d", isolate=False)
+
+    static = read("static")
+    spec = importlib.util.spec_from_file_location("build_pig", EXAMPLES / "build_pig.py")
+    build_pig = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build_pig)
+    assert build_pig.build(static) == (EXAMPLES / "pig_lower_limb.toml").read_text()
+    model = load_model(EXAMPLES / "pig_lower_limb.toml")
+    for data in (static, read("gait")):
+        assert set(model.marker_names) <= set(data.names)
+    # nominal hip centres (Harrington's regression) are symmetric about the pelvis's mid-plane
+    hips = [s.joint.position for s in model.segments if s.joint.name in ("hip_r", "hip_l")]
+    np.testing.assert_allclose(hips[0][:2], hips[1][:2])
+    assert hips[0][2] == pytest.approx(-hips[1][2])

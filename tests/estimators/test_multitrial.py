@@ -204,3 +204,25 @@ def test_combine_equals_fit():
         b = MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas])
     np.testing.assert_array_equal(a.theta_, b.theta_)
     np.testing.assert_array_equal(a.cov_, b.cov_)
+
+
+def test_a_trial_pinned_on_a_prior_bound_is_set_aside():
+    """A trial whose own fit ended on a prior bound has no Gaussian approximation: the others decide."""
+    model = two_link()
+    datas = [_data(model, 25, 40 + k, sigma=1.0).data for k in range(2)]
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
+        ests[1].fit_ = ests[1].fit_._replace(pinned=np.array([True, False]))
+        m = MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas], ["moving", "still"])
+    assert m.trials_set_aside_ == ["still"]
+    assert "trials-set-aside" in {w.code for w in m.warnings_}
+    np.testing.assert_allclose(m.theta_data_, m.trial_theta_[0])
+    np.testing.assert_allclose(m.cov_unscaled_, m.trial_cov_[0])
+    assert m.trial_theta_.shape[0] == 2 and m.consistency_["dof"] == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests[1].fit_ = ests[1].fit_._replace(pinned=np.array([False, False]))
+        both = MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas])
+    assert both.trials_set_aside_ == [] and both.consistency_["dof"] == model.n_params

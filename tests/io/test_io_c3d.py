@@ -10,7 +10,7 @@ import pytest
 
 import skelid.io.c3d as c3d_module
 from skelid.errors import FormatError, SkelidWarning
-from skelid.io import check_c3d_header, read_c3d
+from skelid.io import bone_points, check_c3d_header, read_c3d
 
 ezc3d = pytest.importorskip("ezc3d")
 
@@ -97,8 +97,19 @@ def test_computed_points_from_groups_and_names(tmp_path):
     np.testing.assert_allclose(d.meta["computed"]["S:LHJC"], pts[:, 2])
 
 
+def test_bone_points_gathers_complete_segments(tmp_path):
+    labels = ["S:LASI", "S:LFEO", "S:LFEA", "S:LFEL", "S:LFEP", "S:RTIO", "S:RTIP", "S:LHipAngles"]
+    pts = np.arange(3 * len(labels) * 3, dtype=float).reshape(3, len(labels), 3) + 1
+    d = read_c3d(write_c3d(tmp_path / "bones.c3d", pts, labels))
+    bones = bone_points(d)
+    assert list(bones) == ["LFE"]  # the right tibia lacks two of its four points
+    for k, part in enumerate(("origin", "anterior", "lateral", "proximal")):
+        np.testing.assert_allclose(bones["LFE"][part], pts[:, 1 + k])
+    assert d.names == ("S:LASI",)
+
+
 @pytest.mark.parametrize("name", ["LHJC", "R_KJC", "LHipJointCentre", "LKneeMoment", "RAnklePower",
-                                  "CentreOfMass", "PELO", "LFEA", "RTIP", "HEDO"])
+                                  "CentreOfMass", "PELO", "LFEA", "RTIP", "HEDO", "LNormalisedGRF"])
 def test_computed_name_pattern(name):
     assert c3d_module.COMPUTED_NAME.search(name)
 

@@ -31,8 +31,8 @@ MARKER_FILES = [
     ("addbio-subject4/MarkerData/STS1.trc", read_trc, 1399, 51, 100, "m", 0.0),
     ("addbio-subject4/MarkerData/DJ1.trc", read_trc, 269, 51, 100, "m", 0.0003),
     # the C3D files also hold the lab software's computed points (bones, angles, moments): not markers
-    ("ktk-gait-pig/static.c3d", read_c3d, 879, 44, 100, "m", 0.0225),
-    ("ktk-gait-pig/gait.c3d", read_c3d, 474, 40, 100, "m", 0.1128),
+    ("ktk-gait-pig/static.c3d", read_c3d, 879, 42, 100, "m", 0.0236),
+    ("ktk-gait-pig/gait.c3d", read_c3d, 474, 38, 100, "m", 0.0730),
 ]
 pytestmark = pytest.mark.filterwarnings("ignore::skelid.errors.SkelidWarning")  # checked where expected
 NOT_MARKER_FILES = ["LICENSE", "LICENSE.txt", "LICENSE.md", "NOTICE", "README.txt", ".xml", ".osim"]
@@ -152,3 +152,40 @@ def test_vicon_csv_keeps_subject_prefixes(read_all):
     d = read_all("pyomeca-upperlimb/markers.csv")
     assert d.names[0] == "boite:gauche_ext" and "Daphnee:ASISr" in d.names
     assert d.select(["ASISr"]).n_markers == 1
+
+
+def test_plug_in_gait_bones_are_the_joint_centres(read_all):
+    """What the Plug-in-Gait comparison relies on, checked on the file itself.
+
+    The femur's origin is the knee centre (a fixed distance from the lateral knee
+    marker), its proximal point the hip centre (the two hips a fixed distance
+    apart, the pelvis origin midway), the tibia's origin the ankle centre (a fixed
+    distance from the lateral malleolus marker), and the knee centre lies on the
+    tibia's proximal axis; the tibia's own proximal point is not the knee centre.
+    """
+    from skelid.io import bone_points
+
+    d = read_all("ktk-gait-pig/gait.c3d")
+    assert "LNormalisedGRF" not in d.names  # a computed point, not a marker
+    bones = bone_points(d)
+    assert {"PEL", "LFE", "RFE", "LTI", "RTI", "LFO", "RFO"} <= set(bones)
+    pos = {n: d.positions[:, i] for i, n in enumerate(d.names)}
+
+    def spread(a, b):
+        r = np.linalg.norm(a - b, axis=1)
+        r = r[np.isfinite(r)]
+        return float(np.ptp(r)), float(np.mean(r))
+
+    for s in "LR":
+        fe, ti = bones[f"{s}FE"], bones[f"{s}TI"]
+        assert spread(pos[f"{s}KNE"], fe["origin"])[0] < 1e-4  # m
+        assert spread(pos[f"{s}ANK"], ti["origin"])[0] < 1e-4
+        axis = ti["proximal"] - ti["origin"]
+        to_knee = fe["origin"] - ti["origin"]
+        cos = np.sum(axis * to_knee, axis=1) / np.linalg.norm(axis, axis=1) / np.linalg.norm(to_knee, axis=1)
+        assert np.all(cos > 1 - 1e-9)
+        assert spread(fe["origin"], ti["proximal"])[1] > 0.01  # 18 mm: the tibia bone stops short of the knee
+    ptp, width = spread(bones["LFE"]["proximal"], bones["RFE"]["proximal"])
+    assert ptp < 1e-4 and 0.1 < width < 0.2
+    mid = 0.5 * (bones["LFE"]["proximal"] + bones["RFE"]["proximal"])
+    assert np.nanmax(np.linalg.norm(mid - bones["PEL"]["origin"], axis=1)) < 1e-4

@@ -341,6 +341,10 @@ class MultiTrialEstimator:
         Each trial's own sd with the between-trial variance and its ``t`` factor.
     tau2_ : (P,) float
         Between-trial variance of each parameter.
+    trials_set_aside_ : list of str
+        Trials left out of the combination because their own fit ended on a
+        prior bound (their own estimates are still reported); empty when none
+        was, or when every trial was.
     consistency_ : dict
         :func:`consistency_test` of the trials against the joint estimate.
     heterogeneity_ : dict
@@ -468,18 +472,25 @@ class MultiTrialEstimator:
         the trials' own estimates. Returns the stacked fit or None.
         """
         fit = None
-        P, K = self.model.n_params, len(self.trials_)
+        P = self.model.n_params
         var = np.einsum("kpp->kp", self.trial_cov_)
+        # a trial whose own fit ended on a prior bound has no Gaussian approximation to combine (e.g. a
+        # standing trial and functional joint centres): it is set aside from the combination of the
+        # trials' own estimates, unless no trial is left
+        pinned = np.array([bool(np.any(getattr(getattr(e, "fit_", None), "pinned", False))) for e in self.trials_])
+        keep = ~pinned if (pinned.any() and not pinned.all()) else np.ones(len(pinned), bool)
+        self.trials_set_aside_ = [lab for lab, k in zip(self.trial_labels_, keep, strict=True) if not k]
+        theta_k, cov_k, K = self.trial_theta_[keep], self.trial_cov_[keep], int(keep.sum())
         method = "dl" if self.between_trial == "none" else self.between_trial
-        tau2, q, df = BETWEEN_TRIAL[method](self.trial_theta_, var)
+        tau2, q, df = BETWEEN_TRIAL[method](theta_k, var[keep])
         if self.between_trial == "none":
             tau2 = np.zeros(P)
         self.tau2_ = tau2
-        if np.any(tau2 > 0):
+        if np.any(tau2 > 0) or not keep.all():
             # trials differ beyond their own noise: each trial's estimate is the geometry plus its own
             # random shift, so they are combined with the weights (C_k + Omega)^{-1} (a trial with a
             # tiny within-trial variance no longer decides alone)
-            theta, cov, dof = random_effects(self.trial_theta_, self.trial_cov_, tau2)
+            theta, cov, dof = random_effects(theta_k, cov_k, tau2)
         else:
             fit = stacked()
             theta, cov, dof = fit.theta - self.bias_, self.cov_within_, np.full(P, np.inf)
@@ -490,7 +501,7 @@ class MultiTrialEstimator:
         trial_var = var + tau2
         self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), max(K - 1, 1))
         self.trial_sd_ = np.sqrt(np.clip(trial_var, 0.0, None)) * t_factor(self.trial_dof_)
-        self.consistency_ = consistency_test(self.trial_theta_, self.trial_cov_, theta)
+        self.consistency_ = consistency_test(theta_k, cov_k, theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             i2 = np.where(q > 0, np.maximum(0.0, (q - df) / q), 0.0)
         self.heterogeneity_ = {n: {"q": float(q[k]), "dof": int(df), "i2": float(i2[k]),
@@ -525,6 +536,10 @@ class MultiTrialEstimator:
         if fit is not None and not fit.converged:
             new.append(Warning("not-converged", "the joint fit of all trials stopped before converging; "
                                "the estimate may be off"))
+        if self.trials_set_aside_:
+            new.append(Warning("trials-set-aside", f"{', '.join(self.trials_set_aside_)}: the fit ended on a "
+                               "bound of the prior (the trial cannot locate these parameters), so the joint "
+                               "estimate combines the other trials only"))
         c = self.consistency_
         if c["p_value"] < 0.01:
             how = ("was added to the interval" if self.between_trial != "none" else "is not in the interval")

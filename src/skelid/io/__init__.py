@@ -25,7 +25,7 @@ import codecs
 from skelid.data import MarkerData
 from skelid.errors import FormatError
 from skelid.io.atomic import atomic_write
-from skelid.io.c3d import check_c3d_header, read_c3d
+from skelid.io.c3d import bone_points, check_c3d_header, read_c3d
 from skelid.io.csvfile import COORD_COLUMN, FRAME_COLUMN, TIME_COLUMN, VICON_SECTIONS, read_csv
 from skelid.io.qualisys import QUALISYS_KEYS, read_tsv
 from skelid.io.trc import read_trc, write_csv, write_trc
@@ -116,5 +116,5 @@ def read_markers(path) -> MarkerData:
 
 __all__ = [
     "read_markers", "read_c3d", "read_trc", "read_csv", "read_tsv", "write_trc", "write_csv",
-    "check_c3d_header", "sniff_format", "atomic_write", "READERS", "FORMAT_READERS",
+    "check_c3d_header", "bone_points", "sniff_format", "atomic_write", "READERS", "FORMAT_READERS",
 ]

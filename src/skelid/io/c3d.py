@@ -13,15 +13,19 @@ guessed from the spread of the markers (see
 :func:`skelid.io._common.guess_units`) and a :class:`~skelid.errors.SkelidWarning`
 says so.
 
-Computed points (Plug-in-Gait angles, forces, moments, powers, scalars, and
-modelled points such as joint centres ``LHJC``/``RKJC`` or the segment axes
-``PELO``/``LFEA``) are not markers: they are listed in
+Computed points (Plug-in-Gait angles, forces, moments, powers, scalars,
+normalised ground reactions ``LNormalisedGRF``, and modelled points such as
+joint centres ``LHJC``/``RKJC`` or the segment axes ``PELO``/``LFEA``) are not
+markers: they are listed in
 ``meta["computed_points"]`` and their ``(F, 3)`` arrays are kept in
 ``meta["computed"]`` (e.g. to compare an estimate with Vicon's joint centres),
 but they are not in ``positions``. A point is computed if its label is in one of
 the groups ``POINT:ANGLES``, ``FORCES``, ``MOMENTS``, ``POWERS``, ``SCALARS``,
 ``REACTIONS`` (or another group named in ``POINT:TYPE_GROUPS``), or if its name
-(without a ``Subject:`` prefix) matches :data:`COMPUTED_NAME`.
+(without a ``Subject:`` prefix) matches :data:`COMPUTED_NAME`: files rewritten
+by other tools often keep the points but drop the groups, so the names decide
+where the groups are absent. :func:`bone_points` gathers the segment "bones"
+(four points each: origin, anterior, lateral, proximal) from the computed points.
 
 Guarding the native code
 ------------------------
@@ -75,11 +79,16 @@ from skelid.io._common import check_magnitude, guess_units, normalise_units, rea
 #: centre of mass, and Plug-in-Gait segment origins and axes (``PELO``, ``LFEA``).
 COMPUTED_NAME = re.compile(
     r"""(JC|Joint_?Cent(re|er))$
-      | (Angles?|Forces?|Moments?|Powers?)$
+      | (Angles?|Forces?|Moments?|Powers?|GRF)$
       | ^Cent(re|er)_?Of_?Mass
       | ^[LR]?(PEL|FE|TI|FO|TO|HED|TRX|CL|HU|RA|HN)[OALP]$""",
     re.X,
 )
+
+#: A Plug-in-Gait "bone" point: the segment (side letter and segment code) and
+#: which of its four points it is (origin, anterior, lateral, proximal).
+BONE_POINT = re.compile(r"^(?P<segment>[LR]?(PEL|FE|TI|FO|TO|HED|TRX|CL|HU|RA|HN))(?P<point>[OALP])$")
+BONE_POINT_NAMES = {"O": "origin", "A": "anterior", "L": "lateral", "P": "proximal"}
 
 _PROCESSORS = {84: "Intel", 85: "DEC", 86: "MIPS"}
 _BLOCK = 512
@@ -320,3 +329,32 @@ def _to_marker_data(path: Path, points, residuals, info: dict, header: dict) -> 
     return MarkerData(positions[:, measured, :], tuple(labels[i] for i in measured), float(rate), units,
                       source=str(path), meta=meta)
 
+
+
+def bone_points(data: MarkerData) -> dict[str, dict[str, np.ndarray]]:
+    """The Plug-in-Gait segment "bones" among a C3D file's computed points.
+
+    Plug-in Gait writes each segment as four points: its origin (``O``) and
+    the tips of its anterior (``A``), lateral (``L``) and proximal (``P``) axes,
+    each one segment length from the origin (e.g. ``LFEO``, ``LFEA``, ``LFEL``,
+    ``LFEP`` for the left femur). Which joint centre each point is depends on the
+    segment; see Vicon's Plug-in Gait output specification.
+
+    Parameters
+    ----------
+    data : MarkerData
+        As returned by :func:`read_c3d` (its ``meta["computed"]``).
+
+    Returns
+    -------
+    dict
+        Segment code without a subject prefix (``"LFE"``, ``"PEL"``) -> ``{"origin",
+        "anterior", "lateral", "proximal"}`` -> ``(F, 3)`` array in the file's
+        units; only segments whose four points are all present.
+    """
+    found: dict[str, dict[str, np.ndarray]] = {}
+    for label, xyz in (data.meta or {}).get("computed", {}).items():
+        m = BONE_POINT.match(_bare(label))
+        if m:
+            found.setdefault(m["segment"], {})[BONE_POINT_NAMES[m["point"]]] = xyz
+    return {seg: pts for seg, pts in found.items() if len(pts) == 4}
