@@ -236,6 +236,7 @@ def test_a_cold_cache_starts_the_compilation_aside_once_and_uses_numpy_meanwhile
     monkeypatch.setattr(_lm_kernel, "_cached", lambda planar: False)
     monkeypatch.setattr(_lm_kernel, "warm", lambda planar, wait=True: started.append((planar, wait)))
     monkeypatch.setattr(_lm_kernel, "_last_check", {})
+    monkeypatch.setattr(_lm_kernel, "_found", {})
     assert not _lm_kernel.ready(True)
     assert not _lm_kernel.ready(True)  # looked at again only after a while
     assert started == [(True, False)]
@@ -246,6 +247,7 @@ def test_a_cold_cache_starts_the_compilation_aside_once_and_uses_numpy_meanwhile
     monkeypatch.setattr(_lm_kernel, "_cached", lambda planar: True)
     monkeypatch.setattr(_lm_kernel, "_last_check", {})
     assert _lm_kernel.ready(True)
+    assert _lm_kernel.ready(True)  # a cached driver stays ready: a second workspace made at once takes it too
 
 
 @needs_numba

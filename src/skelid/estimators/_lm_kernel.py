@@ -667,6 +667,7 @@ def no_tilts(B: int) -> tuple:
 
 # ------------------------------------------------------------------ which path, and warming the cache
 _last_check: dict[bool, float] = {}
+_found: dict[bool, bool] = {}  # drivers found in the cache (they stay there)
 _warming: dict[bool, subprocess.Popen] = {}
 _RECHECK_S = 0.5  # while a driver is not cached, look again at most this often
 
@@ -723,11 +724,14 @@ def ready(planar: bool) -> bool:
         if not _cached(planar):
             warm(planar, wait=True)
         return True
+    if _found.get(planar):
+        return True
     now = time.monotonic()
     if now - _last_check.get(planar, -np.inf) < _RECHECK_S:
         return False
     _last_check[planar] = now
     if _cached(planar):
+        _found[planar] = True  # once cached, always ready: the throttle below is for a cold cache only
         return True
     warm(planar, wait=False)
     return False
