@@ -129,3 +129,23 @@ def test_readme_live_loop_runs_as_written(capsys):
     exec(compile(code, "README.md", "exec"), {})
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 2 and "True" in out[0] and out[1].startswith(("bend the", "turn the"))
+
+
+@pytest.mark.parametrize("name", ["case-a", "arm10"])
+def test_the_sessions_own_pose_fit_is_fit_pose(name):
+    """The session's direct kernel call (or, without the kernel, numpy) gives fit_pose's numbers exactly."""
+    from skelid.estimators.pose import fit_pose
+    from skelid.live import _FramePose
+
+    root = Path(__file__).resolve().parents[1]
+    model = builtin_model(name) if name == "case-a" else load_model(root / "benchmarks" / "arm10.toml")
+    trial = simulate(model, n_frames=6, sigma=0.002 if name == "arm10" else 2.0, rng=np.random.default_rng(5))
+    y = trial.data.positions[..., : model.dim].copy()
+    y[2, 1] = np.nan  # a missing marker
+    session = Session(model, method="gaussian")
+    fit = _FramePose(model, session._ws)
+    theta = model.theta_center
+    for t in range(len(y)):
+        q0 = trial.pose[t] + 0.05
+        expected, _ = fit_pose(model, theta, y[t], q0, n_iter=10, ws=session._ws)
+        np.testing.assert_array_equal(fit(theta, y[t], q0), expected)

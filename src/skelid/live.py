@@ -87,14 +87,17 @@ from scipy.stats import norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
+from skelid.estimators import _lm_kernel
 from skelid.estimators.grid import MarkerGridFilter
 from skelid.estimators.joint import _gain, smoothing_penalty
-from skelid.estimators.pose import _model_size, fit_pose, initial_pose, workspace
+from skelid.estimators.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.model.description import Model
 from skelid.model.kinematics import (
     Workspace,
     forward_kinematics,
+    geometry,
     marker_jacobian,
+    tilt_tables,
 )
 from skelid.result import ParameterEstimate
 
@@ -563,6 +566,7 @@ class Session:
         self._identity = self._order is not None and np.array_equal(self._order, np.arange(len(model.markers)))
         self._prior = prior_moments(model)
         self._ws = workspace(model)  # the session's tables; its pose fits keep one path throughout
+        self._pose_fit = _FramePose(model, self._ws)
         self._frame = 0
         self._early: list = []  # the first frames, (y, pose, used), for re-linearisation
         self.estimate: LiveEstimate | None = None
@@ -693,7 +697,7 @@ class Session:
         if st.poses.shape[0] == 0:
             q, _ = initial_pose(model, theta, y, self.rng, ws=ws)
         else:
-            q, _ = fit_pose(model, theta, y, self._predict(st), n_iter=10, ws=ws)
+            q = self._pose_fit(theta, y, self._predict(st))
         rejected = []
         while True:
             x, Jq, Jt = marker_jacobian(model, theta, q, ws)
@@ -710,7 +714,7 @@ class Session:
                 problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
                                 "few markers remain: frame not used")
                 return self._gaussian_estimate(resid, problems, tuple(rejected))
-            q, _ = fit_pose(model, theta, y, q, n_iter=10, ws=ws)
+            q = self._pose_fit(theta, y, q)
         if rejected:
             # a frame with a marker that does not fit (a swapped label) may have its pose fitted wrongly too, and
             # the motion model would carry that pose into its neighbours: its data are left out, and its pose
@@ -875,6 +879,43 @@ class Session:
                               lo, hi, pname, float(sd[worst]), float(sd_after)))
         out.sort(key=lambda a: a.sd_after)
         return out
+
+
+class _FramePose:
+    """One frame's pose fit at one ``theta``: :func:`~skelid.estimators.pose.fit_pose` with ``n_iter=10``.
+
+    On the compiled path the kernel is called directly with the session's own
+    batch-of-one buffers (the same call and arguments as ``fit_pose`` makes, so
+    the same numbers), without the general wrapper's broadcasting and
+    re-layout of every argument per frame; otherwise ``fit_pose`` itself.
+    """
+
+    def __init__(self, model: Model, ws: Workspace):
+        self.model, self.ws = model, ws
+        self.tables = _kernel_tables(ws)
+        if self.tables is not None:
+            plan = ws.plan
+            self.yT = np.empty((plan.n_markers, plan.dim, 1))
+            self.wT = np.empty((plan.n_markers, 1))
+            self.qT = np.empty((plan.n_pose, 1))
+            self.gT = np.empty((geometry(model, model.theta_center).size, 1))
+            self.no_tilts = _lm_kernel.no_tilts(1)
+
+    def __call__(self, theta, y, q0, n_iter: int = 10) -> np.ndarray:
+        """Pose ``(Q,)`` fitted to ``y (M, D)`` (NaN where missing) from ``q0 (Q,)``."""
+        if self.tables is None:
+            return fit_pose(self.model, theta, y, q0, n_iter=n_iter, ws=self.ws)[0]
+        plan = self.ws.plan
+        mask = np.isfinite(y).all(axis=-1)
+        self.yT[..., 0] = np.where(mask[:, None], y, 0.0)
+        self.wT[:, 0] = mask
+        self.qT[:, 0] = q0
+        self.gT[:, 0] = geometry(self.model, theta)
+        tilt = tilt_tables(self.model, theta)
+        tilts = self.no_tilts if tilt is None else _tilts_batch_last(tilt, ())
+        _lm_kernel.lm_fit(self.gT, self.yT, self.wT, self.qT, int(n_iter), 1e-10, 1e-3, False, plan.dim,
+                          plan.n_segments, plan.n_markers, tilts, *self.tables)
+        return self.qT[:, 0].copy()
 
 
 def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:
