@@ -480,13 +480,14 @@ def _latency_row(session, positions, **extra) -> dict:
 
 
 def section_live(args) -> dict:
-    from skelid.estimators import _lm_kernel
+    from skelid.estimators import _live_kernel, _lm_kernel
     from skelid.live import Session
     from skelid.simulate import builtin_model, simulate
 
     _quiet()
     for planar in (True, False):  # measure the compiled path, not the numpy one used while it compiles
         _lm_kernel.warm(planar, wait=True)
+    _live_kernel.warm(wait=True)  # the live step's compiled linearisation too
     out = {}
     F = args.live_frames
     model = builtin_model("case-a")

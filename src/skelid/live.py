@@ -87,7 +87,7 @@ from scipy.stats import norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
-from skelid.estimators import _lm_kernel
+from skelid.estimators import _live_kernel, _lm_kernel
 from skelid.estimators.grid import MarkerGridFilter
 from skelid.estimators.joint import _gain, smoothing_penalty
 from skelid.estimators.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
@@ -567,6 +567,7 @@ class Session:
         self._prior = prior_moments(model)
         self._ws = workspace(model)  # the session's tables; its pose fits keep one path throughout
         self._pose_fit = _FramePose(model, self._ws)
+        self._linearise = _Linearise(model, self._ws)
         self._frame = 0
         self._early: list = []  # the first frames, (y, pose, used), for re-linearisation
         self.estimate: LiveEstimate | None = None
@@ -700,7 +701,7 @@ class Session:
             q = self._pose_fit(theta, y, self._predict(st))
         rejected = []
         while True:
-            x, Jq, Jt = marker_jacobian(model, theta, q, ws)
+            x, Jq, Jt = self._linearise(theta, q)
             resid = np.sqrt(np.sum((y - x) ** 2, axis=-1))
             bad = self._screen(resid, s2) if len(rejected) < 3 else None  # a swapped pair needs two
             if bad is None:
@@ -747,7 +748,7 @@ class Session:
             new = new._replace(pose_mean=q)
         for _ in range(self.n_iter if self._weight > 0 else 0):  # iterated: linearised again at the filtered pose
             ql = new.pose_mean
-            x2, Jq, Jt = marker_jacobian(model, theta, ql, ws)
+            x2, Jq, Jt = self._linearise(theta, ql)
             r2 = (y[present] - x2[present]).reshape(-1)
             new = solve_mean(absorb(st, r2, Jq[present].reshape(r2.size, -1), Jt[present].reshape(r2.size, -1), ql,
                                     theta, self._weight, r.size, float(r @ r)), self._prior, s2)
@@ -916,6 +917,30 @@ class _FramePose:
         _lm_kernel.lm_fit(self.gT, self.yT, self.wT, self.qT, int(n_iter), 1e-10, 1e-3, False, plan.dim,
                           plan.n_segments, plan.n_markers, tilts, *self.tables)
         return self.qT[:, 0].copy()
+
+
+class _Linearise:
+    """One frame's ``x (M, D)``, ``dx/dq (M, D, Q)`` and ``dx/dtheta (M, D, P)`` at ``(theta, q)``.
+
+    :func:`~skelid.model.kinematics.marker_jacobian`, or its compiled form
+    (:func:`skelid.estimators._live_kernel.linearise`, equal to rounding) where
+    the session's pose fits take the compiled path, the model is one it covers
+    and it is compiled already (decided once, so a session keeps one path).
+    """
+
+    def __init__(self, model: Model, ws: Workspace):
+        self.model, self.ws = model, ws
+        self.tables = _live_kernel.tables(ws) if ws.compiled and _live_kernel.ready() else None
+        if self.tables is not None:
+            self.gT = np.empty((geometry(model, model.theta_center).size, 1))
+            self.qT = np.empty((model.n_pose, 1))
+
+    def __call__(self, theta, q):
+        if self.tables is None:
+            return marker_jacobian(self.model, theta, q, self.ws)
+        self.gT[:, 0] = geometry(self.model, theta)
+        self.qT[:, 0] = q
+        return _live_kernel.linearise(self.gT, self.qT, *self.tables)
 
 
 def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:

@@ -1,0 +1,67 @@
+"""The live step's compiled linearisation equals the numpy one."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from skelid.estimators import _live_kernel
+from skelid.estimators.pose import workspace
+from skelid.model import load_model
+from skelid.model.kinematics import Workspace, geometry, marker_jacobian
+from skelid.simulate import builtin_model, simulate
+
+ROOT = Path(__file__).resolve().parents[2]
+needs_numba = pytest.mark.skipif(not _live_kernel.AVAILABLE, reason="numba not installed or SKELID_NUMBA=0")
+
+
+def _model(name):
+    if name == "case-a":
+        return builtin_model(name)
+    return load_model(ROOT / ("benchmarks" if name == "arm10" else "examples") / f"{name}.toml")
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["case-a", "arm10", "tennis_arm"])
+def test_compiled_linearisation_equals_marker_jacobian(name):
+    model = _model(name)
+    ws = workspace(model)
+    tables = _live_kernel.tables(ws)
+    assert tables is not None
+    trial = simulate(model, n_frames=5, sigma=0.0, rng=np.random.default_rng(2))
+    for t in range(5):
+        theta = model.theta_center * (1.0 + 0.02 * t)
+        x, J, K = marker_jacobian(model, theta, trial.pose[t], ws)
+        x2, J2, K2 = _live_kernel.linearise(geometry(model, theta)[:, None].copy(), trial.pose[t][:, None].copy(),
+                                           *tables)
+        for a, b in ((x, x2), (J, J2), (K, K2)):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * max(np.abs(a).max(), 1.0))
+
+
+def test_models_it_does_not_cover_are_left_to_numpy():
+    model = load_model(ROOT / "examples" / "lower_limb.toml")
+    plan = Workspace(model).plan
+    assert plan.n_tilts or plan.n_coupled or plan.has_custom
+    assert _live_kernel.tables(Workspace(model)) is None
+
+
+@needs_numba
+def test_a_session_gives_the_numpy_linearisations_estimates_to_rounding(monkeypatch):
+    from skelid.live import Session
+
+    model = _model("arm10")
+    trial = simulate(model, n_frames=60, sigma=0.002, rng=np.random.default_rng(1))
+    y = trial.data.positions.copy()
+    y[20, 3] = np.nan
+    y[40, [1, 4]] = y[40, [4, 1]]
+    fast = Session(model, labels=trial.data.names, method="gaussian", cutoff=6.0)
+    assert fast._linearise.tables is not None
+    monkeypatch.setattr(_live_kernel, "ready", lambda: False)
+    slow = Session(model, labels=trial.data.names, method="gaussian", cutoff=6.0)
+    assert slow._linearise.tables is None
+    for frame in y:
+        a, b = fast.push(frame), slow.push(frame)
+        assert (a.healthy, a.rejected) == (b.healthy, b.rejected)
+    sd = np.sqrt(np.diag(b.cov))
+    np.testing.assert_allclose(a.theta, b.theta, rtol=0, atol=1e-6 * sd.min())
+    np.testing.assert_allclose(np.sqrt(np.diag(a.cov)), sd, rtol=1e-6)
