@@ -30,7 +30,11 @@ sd ``(b - a)/\\sqrt{12}`` and bounds the mean; ``\\hat\\sigma^2`` the running
 residual variance ``RSS / (n_{obs} - Q n_{frames} - P)``). With a motion
 model the frame is linearised once more at its filtered pose (``n_iter``).
 The cost per frame is one pose fit, one kinematics call per linearisation
-and one small QR: it does not depend on a grid. Early in a session (after
+and one small QR: it does not depend on a grid. With numba the pose fit calls
+the compiled pose kernel directly (:class:`_FramePose`) and the linearisation
+is one compiled call (:mod:`skelid.estimators._live_kernel`), equal to the
+numpy path to rounding; the numpy path (``SKELID_NUMBA=0``, or while the
+kernels compile in the background) gives the same estimates, slower. Early in a session (after
 10, 25, 50, 100 and 200 frames) all frames so far are linearised again at
 the current mean (:func:`relinearise`). For a linear model the last mean
 equals the batch joint fit with the same motion model.
