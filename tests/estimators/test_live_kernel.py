@@ -65,3 +65,15 @@ def test_a_session_gives_the_numpy_linearisations_estimates_to_rounding(monkeypa
     sd = np.sqrt(np.diag(b.cov))
     np.testing.assert_allclose(a.theta, b.theta, rtol=0, atol=1e-6 * sd.min())
     np.testing.assert_allclose(np.sqrt(np.diag(a.cov)), sd, rtol=1e-6)
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["case-a", "arm10"])
+def test_the_cache_check_uses_the_signature_of_real_calls(name):
+    import numba
+
+    model = _model(name)
+    tables = _live_kernel.tables(workspace(model))
+    _live_kernel.linearise(geometry(model, model.theta_center)[:, None].copy(), np.zeros((model.n_pose, 1)), *tables)
+    sig = tuple(numba.typeof(a) for a in _live_kernel._example_args(True))
+    assert _live_kernel.linearise.signatures == [sig]
