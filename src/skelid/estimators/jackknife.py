@@ -30,7 +30,10 @@ the cost; when deleting the marker leaves a parameter weakly identified the step
 be long and the model wrong over it. Each replicate is therefore checked: along the
 joint step ``s = (dq, dtheta)`` (the replicate and its poses' response) the cost
 with the marker deleted falls by ``C(0) - C(s)`` (one evaluation of the markers'
-positions), against the decrease ``g^T s`` its quadratic model predicts. With the
+positions), against the decrease ``g^T s`` its quadratic model predicts. Only a long
+replicate is checked: one whose length ``dtheta^T S_(-m) dtheta / sigma^2`` exceeds what
+white noise reaches (``chi^2_P`` at ``1 - LONG_STEP_LEVEL``); a shorter one lies where the
+fit's own interval already relies on the linearisation. With the
 ratio outside ``[LINEAR_RATIO, 1/LINEAR_RATIO]`` the replicate is the literal refit
 (warm start from the full fit, at most ``REFIT_ITER`` iterations); a refit that does
 not converge or ends on a prior bound leaves that marker without a replicate (as an
@@ -70,6 +73,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from scipy.stats import chi2
 
 from skelid.estimators.joint import _banded_solver, joint_fit, penalty_band, row_weights
 from skelid.estimators.likelihood import frame_terms, pose_information
@@ -88,6 +92,9 @@ N_NULL = 100
 #: a one-step replicate is kept when the cost, with the marker deleted, falls along the step by this
 #: fraction (or more) of what the quadratic model of the step predicts, and by at most its inverse
 LINEAR_RATIO = 0.8
+#: a one-step replicate is checked only when its length ``d^T S_(-m) d / sigma^2`` exceeds the
+#: ``1 - LONG_STEP_LEVEL`` point of chi-square with P degrees of freedom (white noise's reach)
+LONG_STEP_LEVEL = 0.001
 #: iterations of the literal refit that replaces a one-step replicate whose linearisation fails
 REFIT_ITER = 50
 #: the literal refit stops when a step moves no parameter by more than this fraction of its sd
@@ -253,6 +260,8 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     base = response(A) @ np.linalg.inv(S).T  # (K, P) the full fit's response
     null = np.zeros((N_NULL, M, P))
     shifts = np.full((M, P), np.nan)
+    # a shift whose length in the deleted fit's information is within white noise's 99.9 % reach
+    long_step = sigma**2 * chi2.ppf(1.0 - LONG_STEP_LEVEL, P)
     status = ["missing"] * M
     ratio = np.full(M, np.nan)
     for m in range(M):  # one deletion per marker: each changes every frame's pose projection
@@ -269,9 +278,13 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
             continue
         S_m_inv = np.linalg.inv(S_m)
         d = S_m_inv @ score_m
-        ratio[m] = _cost_ratio(model, y, theta, pose, R, sw, m, d, score_m, step)
         status[m] = "one-step"
-        if not LINEAR_RATIO <= ratio[m] <= 1.0 / LINEAR_RATIO:  # the linearisation fails over the shift
+        # a shift within the noise's reach lies where the fit's own linearisation holds; a longer one
+        # is kept when the cost falls along it as predicted
+        if d @ S_m @ d > long_step:
+            ratio[m] = _cost_ratio(model, y, theta, pose, R, sw, m, d, score_m, step)
+        if np.isfinite(ratio[m]) and not LINEAR_RATIO <= ratio[m] <= 1.0 / LINEAR_RATIO \
+                or d @ S_m @ d > long_step and not np.isfinite(ratio[m]):
             d = _refit(model, y, theta, pose, R, weights, m)
             status[m] = "refit failed" if d is None else "refitted"
             if d is None:
