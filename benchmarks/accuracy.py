@@ -234,8 +234,20 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
 
 
 def write(rows):
+    """Merge ``rows`` into accuracy.json (cells other runs wrote meanwhile are kept) and rewrite accuracy.md.
+
+    Runs of different cells may write at once: the read-merge-write holds an exclusive lock."""
+    import fcntl
+
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    with open(RESULTS / ".accuracy.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        _write(rows)
+
+
+def _write(rows):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
-    tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "deconvolved": 4}
+    tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5}
     rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
                                        order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -258,7 +270,12 @@ def write(rows):
                  "error of the joint least-squares estimate before correction; `removed`: mean correction "
                  "subtracted; `fallback`: trials whose correction came from a check's fallback rather than "
                  "the second-order expansion. Tags: `previous` = results of an earlier version kept for "
-                 "reference, `before` = this version's code before the near-singular fix, `after` = now.\n\n")
+                 "reference, `before` = the code before the graduated-smoothing start, `after` = the code after it, "
+                 "`after100` = the same code at 100 trials on the near-singular cells, `deconvolved` = the check "
+                 "of the local approximation and its bootstrap fallback at the deconvolved poses "
+                 "(:mod:`skelid.estimators.singular`), `main-general` = the code before that check on the cells "
+                 "used to see whether it holds elsewhere (another length, case B). A row with fewer trials than "
+                 "its cell asks for is a reduced run (a busy shared machine): see its `reps`.\n\n")
         pairs = {}
         for r in rows:
             if r.get("tag") in ("before", "after"):
@@ -272,21 +289,22 @@ def write(rows):
         fix = {}
         for r in rows:  # each cell of this version beside the same cell of the version before, at 100 trials
             key = (r["case"], r["sigma"], r["truth"], r["noise"], r["method"])
-            if r.get("tag") in ("after", "after100", "deconvolved"):
+            if r.get("tag") in ("after", "after100", "main-general", "deconvolved"):
                 fix.setdefault(key, {})[r["tag"]] = r
-        fix = {k: v for k, v in fix.items() if "deconvolved" in v and ({"after100", "after"} & set(v))}
+        fix = {k: v for k, v in fix.items() if "deconvolved" in v and ({"after100", "main-general", "after"} & set(v))}
         if fix:
             fh.write("## Before and after the check of the local approximation (pose deconvolution and "
                      "bootstrap fallback)\n\nBefore: tag `after100` (near-singular cells) or `after` (i.i.d. "
                      "cells); after: tag `deconvolved`. `fallback` = trials (of those in the cell) whose check "
-                     "failed, so that the bootstrap at the deconvolved poses stood in; s/fit on a shared machine."
-                     "\n\n" + PAIR_HEAD.split("\n")[0] + " fallback | s/fit |\n|" + "---|" * 12 + "\n")
+                     "failed, so that the bootstrap at the deconvolved poses stood in; CPU s/trial: CPU seconds of the "
+                     "cell's processes per trial (every method the run fitted; threads and load differ between runs)."
+                     "\n\n" + PAIR_HEAD.split("\n")[0] + " fallback | CPU s/trial |\n|" + "---|" * 12 + "\n")
             for k, v in sorted(fix.items(), key=lambda kv: (kv[0][3] == "iid", kv[0])):
-                b = v.get("after100", v.get("after"))
+                b = v.get("after100", v.get("main-general", v.get("after")))
                 a = v["deconvolved"]
                 fb = [sum(n for m, n in r.get("bias_methods", {}).items() if m not in ("box", "none")) for r in (b, a)]
-                fh.write(_pair_row(k, b, a)[:-1] + f" {fb[0]} -> {fb[1]} | {b['seconds_per_fit']:.2f} -> "
-                         f"{a['seconds_per_fit']:.2f} |\n")
+                cpu = [r.get("cpu_seconds", float("nan")) / max(r["reps"] + r.get("failed", 0), 1) for r in (b, a)]
+                fh.write(_pair_row(k, b, a)[:-1] + f" {fb[0]} -> {fb[1]} | {cpu[0]:.2f} -> {cpu[1]:.2f} |\n")
             fh.write("\n")
         for tag in sorted({r.get("tag", "previous") for r in rows}, key=lambda t: tags.get(t, 9)):
             fh.write(f"## {tag}\n\n{head}\n" + "|" + "---|" * 18 + "\n")
