@@ -3,6 +3,7 @@
 import numpy as np
 
 from skelid.data import MarkerData
+from skelid.estimators import jackknife
 from skelid.estimators.jackknife import literal_jackknife, marker_jackknife
 from skelid.estimators.joint import joint_fit
 from skelid.estimators.marker import MarkerEstimator
@@ -73,3 +74,33 @@ def test_stated_artefact_reports_the_jackknife_without_folding():
     est = MarkerEstimator(model, cutoff=6.0, artefact_rms=2.0, rng=np.random.default_rng(0)).fit(
         MarkerData(y, model.marker_names, 100.0, "mm"))
     assert est.jackknife_["available"] and not est.jackknife_["folded"]
+
+
+def test_a_replicate_whose_cost_check_fails_is_the_literal_refit():
+    """Marker H1 slides with the wrist: along its one-step replicate the cost falls by only 0.7 of
+    the quadratic model's prediction, so the replicate is refitted; the others stay one-step."""
+    model, y, q, _ = _wrist_trial(4, slide=5.0)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    refitted = [m for m, s in enumerate(jk.status) if s == "refitted"]
+    assert 0 in refitted and jk.status.count("one-step") >= 3
+    lo = jackknife.LINEAR_RATIO
+    for m in range(6):  # refitted exactly where the check ran and failed
+        assert (m in refitted) == (np.isfinite(jk.ratio[m]) and not lo <= jk.ratio[m] <= 1.0 / lo)
+    for m in refitted:
+        ym = y.copy()
+        ym[:, m] = np.nan
+        ref = joint_fit(model, ym, fit.theta, fit.pose, n_iter=100, penalty=fit.penalty).theta - fit.theta
+        assert np.allclose(jk.shifts[m], ref, atol=1e-3)
+
+
+def test_clean_trial_keeps_every_one_step_replicate(monkeypatch):
+    model, y, q, _ = _wrist_trial(2)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    assert jk.status == ("one-step",) * 6
+    checked = np.isfinite(jk.ratio)
+    assert np.all(np.abs(jk.ratio[checked] - 1.0) < 0.05)
+    monkeypatch.setattr(jackknife, "LINEAR_RATIO", 1e-12)  # every one-step replicate accepted
+    unchecked = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    assert np.array_equal(jk.shifts, unchecked.shifts) and np.array_equal(jk.cov, unchecked.cov)

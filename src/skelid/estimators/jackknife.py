@@ -25,6 +25,21 @@ the motion-model fit (:func:`skelid.estimators.joint.smoothed_frame_scores`,
 rows removed (so its poses' projection is the one of the deleted fit).
 :func:`literal_jackknife` refits instead, as a check.
 
+**Where the one step is not enough.** The step extrapolates the quadratic model of
+the cost; when deleting the marker leaves a parameter weakly identified the step can
+be long and the model wrong over it. Each replicate is therefore checked: along the
+joint step ``s = (dq, dtheta)`` (the replicate and its poses' response) the cost
+with the marker deleted falls by ``C(0) - C(s)`` (one evaluation of the markers'
+positions), against the decrease ``g^T s`` its quadratic model predicts. Only a long
+replicate is checked: one whose length ``dtheta^T S_(-m) dtheta / sigma^2`` exceeds what
+white noise reaches (``chi^2_P`` at ``1 - LONG_STEP_LEVEL``); a shorter one lies where the
+fit's own interval already relies on the linearisation. With the
+ratio outside ``[LINEAR_RATIO, 1/LINEAR_RATIO]`` the replicate is the literal refit
+(warm start from the full fit, at most ``REFIT_ITER`` iterations); a refit that does
+not converge or ends on a prior bound leaves that marker without a replicate (as an
+essential one), and a warning names it. On a well-identified trial the ratios are
+within a few per cent of 1 and nothing is refitted.
+
 **A marker the model cannot do without.** When deleting a marker leaves a
 parameter (nearly) without information (``S_(-m)`` has a direction with less
 than ``ESSENTIAL`` of the full information), that marker has no jackknife
@@ -58,10 +73,12 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from scipy.stats import chi2
 
-from skelid.estimators.joint import influence_rows, joint_fit, penalty_band, row_weights
-from skelid.estimators.likelihood import frame_terms
+from skelid.estimators.joint import _banded_solver, joint_fit, penalty_band, row_weights
+from skelid.estimators.likelihood import frame_terms, pose_information
 from skelid.model.description import Model
+from skelid.model.kinematics import marker_positions
 
 #: deleting a marker that leaves less than this fraction of the information in some direction
 #: makes the fit without it meaningless: that marker has no replicate
@@ -72,6 +89,16 @@ MIN_MARKERS = 3
 FOLD_LEVEL = 0.05
 #: white-noise draws that give the jackknife's null distribution
 N_NULL = 100
+#: a one-step replicate is kept when the cost, with the marker deleted, falls along the step by this
+#: fraction (or more) of what the quadratic model of the step predicts, and by at most its inverse
+LINEAR_RATIO = 0.8
+#: a one-step replicate is checked only when its length ``d^T S_(-m) d / sigma^2`` exceeds the
+#: ``1 - LONG_STEP_LEVEL`` point of chi-square with P degrees of freedom (white noise's reach)
+LONG_STEP_LEVEL = 0.001
+#: iterations of the literal refit that replaces a one-step replicate whose linearisation fails
+REFIT_ITER = 50
+#: the literal refit stops when a step moves no parameter by more than this fraction of its sd
+REFIT_STEP_TOL = 1e-3
 _CHUNK = 25  # white-noise draws made at once
 _DRAWS_KEPT = 4_000_000  # white-noise numbers (32 MB) kept for all deletions; a longer trial draws them again
 
@@ -82,6 +109,8 @@ class Jackknife(NamedTuple):
     cov: np.ndarray | None  # (P, P) V_J, or None when not available
     null_mean: np.ndarray | None = None  # (P, P) E_0: V_J's mean under white noise of the fit's level
     null_max: float = float("nan")  # 95 % point of the largest eigenvalue of E_0^{-1/2} V_J(e) E_0^{-1/2}
+    status: tuple = ()  # (M,) per marker: "one-step", "refitted", "refit failed", "essential" or "missing"
+    ratio: np.ndarray | None = None  # (M,) actual / predicted cost decrease along the one-step replicate
 
     @property
     def available(self) -> bool:
@@ -97,15 +126,81 @@ def _terms(model, y, theta, pose, R, weights):
     return r, Jq, Jt
 
 
-def _influence(r, Jq, Jt, pose, R, R_band=None):
-    """Influence rows ``A``, information ``S`` and reduced score of a fit (see the module notes)."""
-    A, G = influence_rows(Jq, Jt, R, R_band)
-    P = A.shape[-1]
+def _influence(r, Jq, Jt, pose, R, R_band=None, step=False):
+    """Influence rows ``A``, information ``S`` and reduced score of a fit (see the module notes).
+
+    With ``step``, also the pose part of the Gauss-Newton step: ``(dq0 (T, Q), G (T, Q, P))`` with the
+    step's poses ``dq = dq0 - G dtheta``, and the pose gradient ``b (T*Q,)`` (``Jq^T r - R q``).
+    """
+    T, _, Q = Jq.shape
+    P = Jt.shape[-1]
+    Hqq = pose_information(Jq)
+    Hqt = np.matmul(np.swapaxes(Jq, -1, -2), Jt)
+    b = np.einsum("tiq,ti->tq", Jq, r).reshape(T * Q)
+    if R is not None:
+        b = b - R @ pose.ravel()
+    if R is None:
+        X = np.linalg.pinv(Hqq, hermitian=True) @ np.concatenate([Hqt, b.reshape(T, Q, 1)], axis=-1)
+    else:
+        X = _banded_solver(Hqq, R, R_band)(np.column_stack([Hqt.reshape(T * Q, P), b])).reshape(T, Q, P + 1)
+    G, dq0 = X[..., :P], X[..., P]
+    A = Jt - Jq @ G
     A2 = A.reshape(-1, P)
     score = r.ravel() @ A2
     if R is not None:
         score = score + (R @ pose.ravel()) @ G.reshape(-1, P)
+    if step:
+        return A, Jt.reshape(-1, P).T @ A2, score, (dq0, G, b)
     return A, Jt.reshape(-1, P).T @ A2, score
+
+
+def _cost_ratio(model, y, theta, pose, R, sw, m, dtheta, score, pose_step) -> float:
+    """Actual over predicted decrease of the cost (marker ``m`` deleted) along the Gauss-Newton step.
+
+    The step is the joint one, ``(dq, dtheta)``: ``dtheta`` the one-step replicate and
+    ``dq = dq0 - G dtheta`` the poses' response, so the cost at its end is one evaluation of the
+    markers' positions. Its quadratic model predicts the decrease ``g^T s = b^T dq0 + score^T dtheta``
+    (``g`` the gradient, ``s`` the step, ``b`` the poses' gradient); a ratio near 1 shows the
+    linearisation holding over the replicate's shift.
+    """
+    dq0, G, b = pose_step
+    T = dq0.shape[0]
+    pred = float(b @ dq0.ravel() + score @ dtheta)
+    if not np.isfinite(pred) or pred <= 0.0:
+        return float("nan")
+    mask = np.isfinite(y).all(axis=-1)
+    mask[:, m] = False
+    y0 = np.where(mask[..., None], y, 0.0)
+
+    def cost(th, q):
+        r = ((y0 - marker_positions(model, th, q)) * mask[..., None]).reshape(T, -1)
+        if sw is not None:
+            r = r * sw
+        c = float(np.sum(r**2))
+        if R is not None:
+            c += float(q.ravel() @ (R @ q.ravel()))
+        return c
+
+    return (cost(theta, pose) - cost(theta + dtheta, pose + dq0 - G @ dtheta)) / pred
+
+
+def _refit(model, y, theta, pose, R, weights, m):
+    """The literal replicate ``theta_(-m) - theta`` (warm start), or None when it does not hold.
+
+    The refit holds when it converges within ``REFIT_ITER`` iterations and ends off the prior bounds
+    (a refit that wanders to a bound has found no estimate without the marker).
+    """
+    lower = np.array([p.prior.lower for p in model.parameters], float)
+    upper = np.array([p.prior.upper for p in model.parameters], float)
+    ym = np.array(y, float)
+    ym[:, m] = np.nan
+    f = joint_fit(model, ym, theta, pose, n_iter=REFIT_ITER, bounds=(lower, upper), penalty=R,
+                  weights=weights, step_tol=REFIT_STEP_TOL)
+    span = np.where(np.isfinite(upper - lower), upper - lower, 1.0)
+    on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
+    if not f.converged or on_bound or not np.all(np.isfinite(f.theta)):
+        return None
+    return f.theta - theta
 
 
 def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
@@ -139,6 +234,7 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     # the kinematics once: deleting marker m only zeroes its D rows of every frame (as frame_terms
     # does for a missing marker), so each deletion reuses the full fit's residuals and Jacobians
     r, Jq, Jt = _terms(model, y, theta, pose, R, weights)
+    sw = row_weights(weights, y)
     R_band = None if R is None else penalty_band(R, model.n_pose)
     A, S, _ = _influence(r, Jq, Jt, pose, R, R_band)
     S_isqrt = _inv_sqrt(S)
@@ -164,6 +260,10 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     base = response(A) @ np.linalg.inv(S).T  # (K, P) the full fit's response
     null = np.zeros((N_NULL, M, P))
     shifts = np.full((M, P), np.nan)
+    # a shift whose length in the deleted fit's information is within white noise's 99.9 % reach
+    long_step = sigma**2 * chi2.ppf(1.0 - LONG_STEP_LEVEL, P)
+    status = ["missing"] * M
+    ratio = np.full(M, np.nan)
     for m in range(M):  # one deletion per marker: each changes every frame's pose projection
         if not np.isfinite(y[:, m]).any():
             continue
@@ -172,22 +272,36 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
         r_m[:, rows] = 0.0
         Jq_m[:, rows] = 0.0
         Jt_m[:, rows] = 0.0
-        A_m, S_m, score_m = _influence(r_m, Jq_m, Jt_m, pose, R, R_band)
+        A_m, S_m, score_m, step = _influence(r_m, Jq_m, Jt_m, pose, R, R_band, step=True)
         if np.linalg.eigvalsh(S_isqrt @ S_m @ S_isqrt)[0] < ESSENTIAL:
+            status[m] = "essential"
             continue
         S_m_inv = np.linalg.inv(S_m)
-        shifts[m] = S_m_inv @ score_m
+        d = S_m_inv @ score_m
+        status[m] = "one-step"
+        # a shift within the noise's reach lies where the fit's own linearisation holds; a longer one
+        # is kept when the cost falls along it as predicted
+        if d @ S_m @ d > long_step:
+            ratio[m] = _cost_ratio(model, y, theta, pose, R, sw, m, d, score_m, step)
+        if np.isfinite(ratio[m]) and not LINEAR_RATIO <= ratio[m] <= 1.0 / LINEAR_RATIO \
+                or d @ S_m @ d > long_step and not np.isfinite(ratio[m]):
+            d = _refit(model, y, theta, pose, R, weights, m)
+            status[m] = "refit failed" if d is None else "refitted"
+            if d is None:
+                continue
+        shifts[m] = d
+        # the white-noise null stays the linearised one (at the full fit's poses)
         null[:, m] = response(A_m) @ S_m_inv.T - base
     ok = np.isfinite(shifts).all(axis=1)
     n = int(ok.sum())
     if n < MIN_MARKERS:
-        return Jackknife(shifts, ok, None)
+        return Jackknife(shifts, ok, None, status=tuple(status), ratio=ratio)
     V_J = _jack_cov(shifts[ok])
     V_null = np.stack([_jack_cov(d) for d in null[:, ok]])  # (K, P, P)
     E0 = V_null.mean(axis=0)
     Li = np.linalg.inv(np.linalg.cholesky(E0))
     lam_max = np.linalg.eigvalsh(Li @ V_null @ Li.T)[:, -1]
-    return Jackknife(shifts, ok, V_J, E0, float(np.quantile(lam_max, 1.0 - FOLD_LEVEL)))
+    return Jackknife(shifts, ok, V_J, E0, float(np.quantile(lam_max, 1.0 - FOLD_LEVEL)), tuple(status), ratio)
 
 
 def _jack_cov(d) -> np.ndarray:
@@ -271,7 +385,11 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
     names = model.parameter_names
     jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty, sigma=sigma, rng=rng, weights=weights)
     out = {"available": jk.available, "folded": False,
-           "markers_without_replicate": [model.marker_names[m] for m in np.flatnonzero(~jk.replicate)]}
+           "markers_without_replicate": [model.marker_names[m] for m in np.flatnonzero(~jk.replicate)],
+           # one-step replicates whose linearisation failed: refitted, or no replicate when the refit failed
+           "markers_refitted": [n for n, s in zip(model.marker_names, jk.status, strict=True) if s == "refitted"],
+           "markers_refit_failed": [n for n, s in zip(model.marker_names, jk.status, strict=True)
+                                    if s == "refit failed"]}
     if not jk.available:
         return cov, out, None
     new, lam = fold(cov, jk)
@@ -287,8 +405,12 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
                            for k, n in enumerate(names)})
     if not folded:
         return cov, out, None
+    failed = out["markers_refit_failed"]
     k = int(np.argmax(added / np.sqrt(np.diag(cov))))
     msg = (f"the markers disagree beyond their noise (leave-one-marker-out): without marker "
            f"{model.marker_names[worst[k]]} the estimate of {names[k]} moves by {jk.shifts[worst[k], k]:.3g}; "
            "the interval was widened by the marker jackknife")
+    if failed:
+        msg += (f" (without marker(s) {', '.join(failed)} the refit found no estimate: "
+                "they have no replicate)")
     return new, out, msg

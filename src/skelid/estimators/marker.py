@@ -796,13 +796,18 @@ def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warni
 def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
     """Markers that disagree beyond their noise (the interval widened by the marker jackknife)."""
     jk = f.cov.jackknife
+    out = []
+    if jk.get("markers_refit_failed"):
+        out.append(Warning("marker-jackknife", "leave-one-marker-out: without marker(s) "
+                           f"{', '.join(jk['markers_refit_failed'])} the refit found no estimate (it did not "
+                           "converge or ended on a prior bound); they have no replicate"))
     if not jk.get("folded"):
-        return []
+        return out
     k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
     v = jk["parameters"][k]
-    return [Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
-                    f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
-                    f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,))]
+    return out + [Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
+                          f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
+                          f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,))]
 
 
 def _placement_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
