@@ -27,9 +27,7 @@ for the compiler; ``SKELID_NUMBA=0`` disables it.
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -199,19 +197,8 @@ def warm(wait: bool = True, timeout: float = 600.0) -> bool:
     """Compile :func:`linearise` into numba's disk cache in a separate process."""
     if not AVAILABLE:
         return False
-    proc = _warming.get(True)
-    if proc is None and not _cached():
-        env = dict(os.environ, SKELID_NUMBA="compile", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
-        code = "from skelid.estimators._live_kernel import _compile_here; _compile_here()"
-        proc = _warming[True] = subprocess.Popen(
-            [sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL, start_new_session=True)
-    if proc is not None and wait:
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            return False
-    return _cached()
+    code = "from skelid.estimators._live_kernel import _compile_here; _compile_here()"
+    return _lm_kernel.compile_in_background(_warming, True, code, _cached, wait, timeout)
 
 
 def _compile_here() -> None:

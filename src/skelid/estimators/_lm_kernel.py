@@ -754,11 +754,20 @@ def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
     """
     if not AVAILABLE:
         return False
-    proc = _warming.get(planar)
-    if proc is None and not _cached(planar):
+    code = f"from skelid.estimators._lm_kernel import _compile_here; _compile_here({planar!r})"
+    return compile_in_background(_warming, planar, code, lambda: _cached(planar), wait, timeout)
+
+
+def compile_in_background(warming: dict, key, code: str, cached, wait: bool, timeout: float) -> bool:
+    """Run ``code`` (which compiles a kernel into numba's disk cache) in one separate process per ``key``.
+
+    ``warming`` holds the processes already started; ``cached()`` says whether the kernel is in the
+    cache. Returns ``cached()`` after waiting at most ``timeout`` seconds when ``wait``.
+    """
+    proc = warming.get(key)
+    if proc is None and not cached():
         env = dict(os.environ, SKELID_NUMBA="compile", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
-        code = f"from skelid.estimators._lm_kernel import _compile_here; _compile_here({planar!r})"
-        proc = _warming[planar] = subprocess.Popen(
+        proc = warming[key] = subprocess.Popen(
             [sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL, start_new_session=True)
     if proc is not None and wait:
@@ -766,7 +775,7 @@ def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
             proc.wait(timeout)
         except subprocess.TimeoutExpired:
             return False
-    return _cached(planar)
+    return cached()
 
 
 def _compile_here(planar: bool) -> None:
