@@ -60,13 +60,17 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
+from skelid.estimators.artefact import artefact_covariance  # noqa: E402
 from skelid.estimators.marker import MarkerEstimator  # noqa: E402
 from skelid.estimators.multitrial import (  # noqa: E402
     BETWEEN_TRIAL,
+    PRIOR_ARTEFACT_RMS_MM,
     MultiTrialEstimator,
+    mixture_half_width,
     pairwise_z,
     satterthwaite_dof,
     t_factor,
+    tau_posterior,
 )
 from skelid.io import read_markers  # noqa: E402
 from skelid.simulate import resolve_model  # noqa: E402
@@ -125,15 +129,26 @@ def trial_sd(var: np.ndarray, tau2: np.ndarray, n_trials: int, t: bool) -> np.nd
     return sd * t_factor(satterthwaite_dof(total, np.broadcast_to(tau2, var.shape), max(n_trials - 1, 1)))
 
 
-def leave_pair_out_z(est: np.ndarray, var: np.ndarray, method: str = "dl", t: bool = True) -> np.ndarray:
-    """Pairwise z with tau^2 of each pair estimated from the other trials only."""
+def leave_pair_out_z(est: np.ndarray, var: np.ndarray, method: str = "dl", t: bool = True,
+                     unit_artefact: np.ndarray | None = None) -> np.ndarray:
+    """Pairwise z with tau^2 of each pair estimated from the other trials only.
+
+    ``method='prior'``: the half-normal prior on tau (scale from ``unit_artefact``, each trial's
+    variance added by a unit artefact, over the other trials) and the posterior's trial intervals.
+    """
     K = est.shape[0]
     i, j = np.triu_indices(K, 1)
     out = np.empty((len(i), est.shape[1]))
     for r, (a, b) in enumerate(zip(i, j, strict=True)):
         keep = np.setdiff1d(np.arange(K), [a, b])
-        tau2, _, _ = BETWEEN_TRIAL[method](est[keep], var[keep])
-        sd = trial_sd(var[[a, b]], tau2, len(keep), t)
+        if method == "prior":
+            scale = PRIOR_ARTEFACT_RMS_MM * np.sqrt(unit_artefact[keep].mean(axis=0))
+            grid, weight, _, _ = tau_posterior(est[keep], var[keep], scale)
+            sd = mixture_half_width(weight[:, None, :], 0.0, var[[a, b]][None] + grid[:, None, :] ** 2,
+                                    np.zeros((2, est.shape[1]))) / Z
+        else:
+            tau2, _, _ = BETWEEN_TRIAL[method](est[keep], var[keep])
+            sd = trial_sd(var[[a, b]], tau2, len(keep), t)
         out[r] = (est[a] - est[b]) / np.sqrt(sd[0] ** 2 + sd[1] ** 2)
     return out
 
@@ -220,6 +235,11 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
     multi = MultiTrialEstimator(model, noise="per_marker").combine(after, rates, list(TRIALS))
     t_multi, c_multi = time.perf_counter() - t0, time.process_time() - c0
     multi_pm = MultiTrialEstimator(model, noise="per_marker", between_trial="pm").combine(after, rates, list(TRIALS))
+    multi_prior = MultiTrialEstimator(model, noise="per_marker", between_trial="prior").combine(
+        after, rates, list(TRIALS))
+    unit_artefact = np.array([np.diag(artefact_covariance(model, e.y_, e.fit_info_.theta, e.fit_info_.pose,
+                                                          e.fit_info_.penalty, 1.0, e.frames_used_))
+                              for e in after])
     theta_a = multi.trial_theta_
     var_a = np.einsum("kpp->kp", multi.trial_cov_)
     sd_within = np.sqrt(var_a)
@@ -234,6 +254,8 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
         "after_leave_pair_out": leave_pair_out_z(theta_a, var_a, "dl", t=True),
         "after_leave_pair_out_pm_normal": leave_pair_out_z(theta_a, var_a, "pm", t=False),
         "after_leave_pair_out_pm": leave_pair_out_z(theta_a, var_a, "pm", t=True),
+        "after_prior": pairwise_z(theta_a, multi_prior.trial_sd_),
+        "after_leave_pair_out_prior": leave_pair_out_z(theta_a, var_a, "prior", unit_artefact=unit_artefact),
     }
     refs = {k: osim_lengths(DATA / "Models" / f) for k, f in REFERENCES.items()}
 
@@ -284,9 +306,12 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
         "z_by_parameter": {n: {k: z_summary(v[:, p]) for k, v in z.items()} for p, n in enumerate(names)},
         "tau_mm": {n: float(np.sqrt(multi.tau2_[p])) for p, n in enumerate(names)},
         "tau_mm_pm": {n: float(np.sqrt(multi_pm.tau2_[p])) for p, n in enumerate(names)},
+        "tau_mm_prior": {n: float(np.sqrt(multi_prior.tau2_[p])) for p, n in enumerate(names)},
+        "tau_prior_scale_mm": {n: float(multi_prior.tau_prior_scale_[p]) for p, n in enumerate(names)},
         "consistency_test": multi.consistency_,
         "joint": joint_table(multi),
         "joint_pm": joint_table(multi_pm),
+        "joint_prior": joint_table(multi_prior),
         "trials": trials,
         "seconds": {"multi_trial_combination_wall": round(t_multi, 1), "multi_trial_combination_cpu": round(c_multi, 1),
                     "total_wall": round(time.perf_counter() - wall0, 1),
@@ -320,8 +345,12 @@ def markdown(res: dict) -> str:
               "after_leave_pair_out_normal": "DL tau^2 from the other four trials, normal quantile",
               "after_leave_pair_out": "**DL tau^2 from the other four trials, t quantile** (out of sample)",
               "after_leave_pair_out_pm_normal": "PM tau^2 from the other four trials, normal quantile",
-              "after_leave_pair_out_pm": "PM tau^2 from the other four trials, t quantile"}
+              "after_leave_pair_out_pm": "PM tau^2 from the other four trials, t quantile",
+              "after_prior": "half-normal prior on tau (in-sample posterior)",
+              "after_leave_pair_out_prior": "half-normal prior on tau, posterior from the other four trials"}
     for k, lab in labels.items():
+        if k not in res["z"]:
+            continue
         s = res["z"][k]
         L.append(f"| {lab} | {s['fraction_consistent']:.2f} | {s['sd_z']:.2f} | {s['rms_z']:.2f} |")
     L += ["", "Targets: fraction >= 0.90, sd of z 0.8-1.3.", "",
@@ -354,7 +383,10 @@ def markdown(res: dict) -> str:
         cells = [f"{row['before'][n]['mean']:.1f} ± {row['before'][n]['sd']:.2f}; "
                  f"{row['after'][n]['mean']:.1f} ± {row['after'][n]['sd']:.2f}" for n in names]
         L.append(f"| {t} | {row['frames']} ({row['stride']}) | " + " | ".join(cells) + " |")
-    for key, title in (("joint", "DerSimonian-Laird tau^2 (the default)"), ("joint_pm", "Paule-Mandel tau^2")):
+    for key, title in (("joint", "DerSimonian-Laird tau^2"), ("joint_pm", "Paule-Mandel tau^2"),
+                       ("joint_prior", "half-normal prior on tau")):
+        if key not in res:
+            continue
         L += ["", f"## Joint estimate (all six trials, one geometry; {title}) against the OpenSim scalings (mm)", "",
               "| parameter | joint mean [95 % interval] | within / between sd | t dof | AddBiomechanics | expert "
               "| generic |", "|---|---|---|---|---|---|---|"]

@@ -12,11 +12,14 @@ from skelid.estimators.multitrial import (
     MultiTrialEstimator,
     consistency_test,
     dersimonian_laird,
+    mixture_half_width,
     pairwise_z,
     paule_mandel,
     random_effects,
+    random_effects_prior,
     satterthwaite_dof,
     t_factor,
+    tau_posterior,
 )
 from skelid.simulate import simulate
 from tests.estimators.test_noise import two_link
@@ -226,3 +229,94 @@ def test_a_trial_pinned_on_a_prior_bound_is_set_aside():
         ests[1].fit_ = ests[1].fit_._replace(pinned=np.array([False, False]))
         both = MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas])
     assert both.trials_set_aside_ == [] and both.consistency_["dof"] == model.n_params
+
+
+def test_prior_posterior_equals_brute_force_integration():
+    """Half-normal prior on tau: posterior mean of mu, E[tau^2] and the interval's mass on a 2-d grid."""
+    y, v, s = np.array([0.0, 10.0, 3.0]), np.array([1.0, 4.0, 0.5]), 5.0
+    mu = np.linspace(-30.0, 40.0, 1401)[:, None]
+    tau = np.linspace(0.0, 35.0, 701)[None, :]
+    log_dens = -0.5 * (tau / s) ** 2 + sum(-0.5 * np.log(vk + tau**2) - 0.5 * (yk - mu) ** 2 / (vk + tau**2)
+                                           for yk, vk in zip(y, v, strict=True))
+    dens = np.exp(log_dens - log_dens.max())
+    dens /= dens.sum()
+    mean, half, tau2, _ = random_effects_prior(y[:, None], v[:, None], [s])
+    assert mean[0] == pytest.approx((dens * mu).sum(), abs=1e-4)
+    assert tau2[0] == pytest.approx((dens * tau**2).sum(), rel=1e-3)
+    inside = dens[np.abs(mu[:, 0] - mean[0]) <= half[0]].sum()
+    assert inside == pytest.approx(0.95, abs=2e-3)
+
+
+def test_prior_closed_forms():
+    y, v = np.array([[1.0, 0.0], [3.0, 2.0], [8.0, 1.0]]), np.array([[1.0, 2.0], [0.5, 2.0], [2.0, 2.0]])
+    # scale 0: tau = 0, the fixed-effect (inverse-variance) combination
+    mean, half, tau2, trial = random_effects_prior(y, v, [0.0, 0.0])
+    w = 1.0 / v
+    np.testing.assert_allclose(mean, (w * y).sum(0) / w.sum(0), rtol=1e-12)
+    np.testing.assert_allclose(half, 1.959963984540054 / np.sqrt(w.sum(0)), rtol=1e-9)
+    np.testing.assert_array_equal(tau2, 0.0)
+    np.testing.assert_allclose(trial, 1.959963984540054 * np.sqrt(v), rtol=1e-9)
+    # one trial says nothing about tau: its posterior is the half-normal prior (E tau^2 = s^2)
+    _, w1, _, _ = tau_posterior(y[:1], v[:1], [3.0, 0.5])
+    grid, _, _, _ = tau_posterior(y[:1], v[:1], [3.0, 0.5])
+    np.testing.assert_allclose((w1 * grid**2).sum(0), [9.0, 0.25], rtol=1e-4)
+    # equal variances, data symmetric about 2: the posterior mean is 2 whatever the prior
+    mean, _, _, _ = random_effects_prior(np.array([[0.0], [1.0], [3.0], [4.0]]), np.ones((4, 1)), [7.0])
+    assert mean[0] == pytest.approx(2.0, abs=1e-12)
+    # one normal: the 95 % half-width is 1.96 sd
+    assert mixture_half_width(np.ones((1, 1)), [[0.3]], [[4.0]], [0.3])[0] == pytest.approx(2 * 1.959963984540054)
+
+
+def test_prior_between_trial_in_the_estimator():
+    """The estimator's 'prior' intervals are the posterior's; its prior scale is the artefact's effect."""
+    from skelid.estimators.artefact import artefact_covariance
+
+    model = two_link()
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    ests = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for k, dx in enumerate([-4.0, 4.0]):
+            tr = simulate(model, theta=model.theta_center + np.array([dx, 0.0]), sigma=1.0, n_frames=40,
+                          rng=np.random.default_rng(50 + k))
+            ests.append(MarkerEstimator(model, **kw).fit(tr.data))
+        m = MultiTrialEstimator(model, between_trial="prior", prior_artefact_rms=3.0, **kw).combine(ests, [100.0] * 2)
+        dl = MultiTrialEstimator(model, **kw).combine(ests, [100.0] * 2)
+    unit = [np.diag(artefact_covariance(model, e.y_, e.fit_info_.theta, e.fit_info_.pose, e.fit_info_.penalty,
+                                        1.0, e.frames_used_)) for e in ests]
+    np.testing.assert_allclose(m.tau_prior_scale_, 3.0 * np.sqrt(np.mean(unit, axis=0)), rtol=1e-12)
+    var = np.einsum("kpp->kp", m.trial_cov_)
+    _, half, tau2, trial = random_effects_prior(m.trial_theta_, var, m.tau_prior_scale_)
+    np.testing.assert_allclose(m.tau2_, tau2, rtol=1e-12)
+    np.testing.assert_allclose(m.trial_sd_, trial / 1.959963984540054, rtol=1e-9)
+    # the joint interval: the random-effects centre at E[tau^2], the posterior's 95 % about it
+    W = np.linalg.inv(m.trial_cov_ + np.diag(tau2))
+    np.testing.assert_allclose(m.cov_unscaled_, np.linalg.inv(W.sum(0)), rtol=1e-9)
+    grid, weight, mean, cvar = tau_posterior(m.trial_theta_, var, m.tau_prior_scale_)
+    sd = mixture_half_width(weight, mean, cvar, m.theta_data_) / 1.959963984540054
+    np.testing.assert_allclose(np.sqrt(np.diag(m.cov_data_)), sd, rtol=1e-9)
+    # two trials 8 mm apart: t_1 with DerSimonian-Laird says almost nothing; the prior keeps it informative
+    assert m.tau2_[0] > 0 and m.posterior_.sd[0] < 0.5 * dl.posterior_.sd[0]
+
+
+def test_a_single_parameter_trial_on_its_bound_is_set_aside_not_fatal():
+    """Alone, a one-parameter fit on a prior bound refuses; among several trials it is set aside."""
+    from skelid.errors import IdentifiabilityError
+    from skelid.simulate import builtin_model
+
+    model = builtin_model("case-a")  # L2 in [200, 300]
+    datas = [simulate(model, theta=np.array([L]), sigma=2.0, n_frames=30, rng=np.random.default_rng(60 + k)).data
+             for k, L in enumerate([250.0, 252.0, 330.0])]
+    kw = {"outlier_threshold": None, "jackknife": False, "bias_correction": "none", "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(IdentifiabilityError, match="sits on the bound"):
+            MarkerEstimator(model, **kw).fit(datas[2])
+        m = MultiTrialEstimator(model, **kw).fit(datas)
+    assert m.trials_set_aside_ == ["simulated (3)"]
+    assert "on-bound" in {w.code for w in m.trials_[2].warnings_}
+    assert 245.0 < m.theta_[0] < 257.0
+    with warnings.catch_warnings():  # every trial on the bound: refused, as one trial alone is
+        warnings.simplefilter("ignore")
+        with pytest.raises(IdentifiabilityError, match="every trial sits on a bound"):
+            MultiTrialEstimator(model, **kw).fit([datas[2], datas[2]])

@@ -59,6 +59,27 @@ tau^2)``; for one trial's own interval ``V = C_{k,pp} + tau^2`` and ``V_b =
 tau^2``. The reported sd is the interval's half-width over 1.959964, so that
 anything that forms ``mean +- 1.96 sd`` gets the ``t`` interval.
 
+**Few trials: a prior on the between-trial spread** (``between_trial='prior'``).
+With two trials ``tau^2`` rests on one degree of freedom and the ``t_1`` interval
+(97.5 % point 12.7) covers but says nothing. Outside information fixes that: each
+``tau_p`` gets a half-normal prior whose scale is the sd that a documented
+skin-marker artefact would add to one trial's estimate,
+
+.. math:: \\tau_p \\sim \\mathrm{HalfNormal}(s_p), \\qquad
+          s_p = a \\sqrt{\\tfrac1K \\textstyle\\sum_k \\Sigma_{art,k}[p, p]},
+
+with ``Sigma_art,k`` the covariance of unit artefact in trial ``k``
+(:mod:`skelid.estimators.artefact`) and ``a = 10 mm`` (setting
+``prior_artefact_rms``), the lower end of the 10-30 mm reported for thigh skin
+markers. ``tau`` is then integrated out on a grid (:func:`tau_posterior`): the
+joint interval is the symmetric interval about the random-effects centre (at
+the posterior mean of ``tau^2``) holding 95 % of ``mu``'s posterior, a mixture of
+normals over ``tau``; each trial's own interval holds 95 % of
+``theta_k - mu ~ N(0, C_{k,pp} + tau^2)`` mixed the same way. With many trials the
+data outweigh the prior and the intervals approach the estimated-``tau`` ones.
+This is an assumption about artefact sizes, reported as such; it cannot widen
+for an offset that every trial shares.
+
 Example
 -------
 >>> import numpy as np
@@ -76,17 +97,21 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 
 from skelid.data import MarkerData
-from skelid.errors import DataError, SkelidError
+from skelid.errors import DataError, IdentifiabilityError, SkelidError
+from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import (
     Setting,
     check_fitted,
     check_settings,
     emit,
     get_settings,
+    make_rng,
+    marker_array,
+    non_negative_or_none,
     one_of,
 )
 from skelid.estimators.joint import joint_fit
-from skelid.estimators.marker import MarkerEstimator, _combine_normal_priors
+from skelid.estimators.marker import MarkerEstimator, _combine_normal_priors, marker_warnings, run_marker_fit
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances
@@ -220,6 +245,143 @@ def paule_mandel(estimates, variances):
 #: between-trial variance estimators by name
 BETWEEN_TRIAL = {"dl": dersimonian_laird, "pm": paule_mandel}
 
+#: Root-mean-square skin-marker artefact (mm, per marker coordinate) that scales the prior on the
+#: between-trial spread: the lower end of the 10-30 mm reported for thigh skin markers (Leardini et al.
+#: 2005; Peters et al. 2010), so the prior leans wide for a thigh and wider still for a shank or arm.
+PRIOR_ARTEFACT_RMS_MM = 10.0
+_MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+
+def tau_posterior(estimates, variances, scale, n_grid: int = 801):
+    """Posterior of the between-trial sd ``tau`` of each parameter under a half-normal prior, on a grid.
+
+    Model (one parameter): ``theta_k ~ N(mu, v_k + tau^2)``, ``mu`` flat, ``tau ~ HalfNormal(s)``.
+    Integrating ``mu`` out leaves the restricted likelihood
+
+    .. math:: p(\\tau \\mid \\theta) \\propto e^{-\\tau^2 / 2 s^2}
+              \\prod_k (v_k + \\tau^2)^{-1/2} \\Big(\\sum_k w_k\\Big)^{-1/2}
+              \\exp\\Big(-\\tfrac12 \\sum_k w_k (\\theta_k - m)^2\\Big),
+
+    ``w_k = 1 / (v_k + tau^2)``, ``m = sum w_k theta_k / sum w_k``; given ``tau``,
+    ``mu ~ N(m, 1 / sum w_k)``. The grid ``tau = 8 s x^2`` (``x`` uniform on [0, 1]) is dense
+    near 0, where a precise trial's likelihood varies fastest; trapezoid weights.
+
+    Parameters
+    ----------
+    estimates, variances : (K, P) float
+    scale : (P,) float
+        Prior scale ``s`` of each parameter's ``tau`` (0: ``tau = 0``, the fixed-effect combination).
+    n_grid : int
+
+    Returns
+    -------
+    tau : (G, P) float
+        Grid of ``tau`` values.
+    weight : (G, P) float
+        Posterior probability of each grid point (sums to 1 over ``G``).
+    mean, var : (G, P) float
+        ``mu``'s conditional mean and variance given each ``tau``.
+    """
+    y = np.atleast_2d(np.asarray(estimates, float))
+    v = np.atleast_2d(np.asarray(variances, float))
+    s = np.broadcast_to(np.asarray(scale, float), (y.shape[1],))
+    x = np.linspace(0.0, 1.0, n_grid)
+    tau = 8.0 * s[None, :] * x[:, None] ** 2  # (G, P)
+    w = 1.0 / (v[None] + tau[:, None, :] ** 2)  # (G, K, P)
+    sw = w.sum(axis=1)
+    mean = (w * y[None]).sum(axis=1) / sw
+    q = (w * (y[None] - mean[:, None, :]) ** 2).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_prior = np.where(s > 0, -0.5 * (tau / np.where(s > 0, s, 1.0)) ** 2, 0.0)
+    log_post = log_prior + 0.5 * np.log(w).sum(axis=1) - 0.5 * np.log(sw) - 0.5 * q
+    log_post = log_post - log_post.max(axis=0)
+    dt = np.diff(tau, axis=0)
+    trap = np.zeros_like(tau)
+    trap[:-1] += dt / 2
+    trap[1:] += dt / 2
+    weight = np.exp(log_post) * trap
+    tot = weight.sum(axis=0)
+    zero = tot <= 0  # s = 0: all the mass at tau = 0
+    weight[:, zero] = 0.0
+    weight[0, zero] = 1.0
+    weight = weight / weight.sum(axis=0)
+    return tau, weight, mean, 1.0 / sw
+
+
+def mixture_half_width(weight, loc, var, centre, level: float = 0.95, n_iter: int = 60):
+    """Half-width ``h`` with probability ``level`` in ``[centre - h, centre + h]`` under a normal mixture.
+
+    Parameters
+    ----------
+    weight, loc, var : (G, ...) float
+        Mixture weights (summing to 1 over ``G``), means and variances.
+    centre : (...) float
+
+    Returns
+    -------
+    (...) float
+        By bisection (``n_iter`` halvings of the bracket).
+    """
+    from scipy.special import ndtr
+
+    weight, loc, var = np.broadcast_arrays(*(np.asarray(a, float) for a in (weight, loc, var)))
+    sd = np.sqrt(var)
+    c = np.asarray(centre, float)
+
+    def mass(h):
+        return (weight * (ndtr((c + h - loc) / sd) - ndtr((c - h - loc) / sd))).sum(axis=0)
+
+    lo = np.zeros(weight.shape[1:])
+    hi = (np.abs(loc - c) + 8.0 * sd).max(axis=0)
+    for _ in range(n_iter):
+        mid = 0.5 * (lo + hi)
+        below = mass(mid) < level
+        lo = np.where(below, mid, lo)
+        hi = np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def random_effects_prior(estimates, variances, scale, level: float = 0.95):
+    """Random-effects combination with a half-normal prior on the between-trial sd.
+
+    The joint estimate is ``mu``'s posterior mean and its interval the symmetric one about it
+    that holds ``level`` of the posterior (a mixture of normals over ``tau``, see
+    :func:`tau_posterior`). Each trial's own interval is the one that holds ``level`` of
+    ``theta_k - mu ~ N(0, v_k + tau^2)`` mixed over the same posterior: what another trial's
+    estimate is compared with.
+
+    Parameters
+    ----------
+    estimates, variances : (K, P) float
+    scale : (P,) float
+        Half-normal prior scale of each parameter's ``tau``.
+
+    Returns
+    -------
+    mean : (P,) float
+    half_width : (P,) float
+    tau2 : (P,) float
+        Posterior mean of ``tau^2``.
+    trial_half_width : (K, P) float
+
+    Examples
+    --------
+    Two trials 10 apart with unit variances: a ``t_1`` interval (DerSimonian-Laird) would be
+    +-12.7 times the combined sd; a prior of scale 5 keeps it informative:
+
+    >>> m, h, tau2, th = random_effects_prior(np.array([[0.0], [10.0]]), np.ones((2, 1)), [5.0])
+    >>> float(m[0]), round(float(h[0]), 1), round(float(np.sqrt(tau2[0])), 1)
+    (5.0, 9.8, 6.7)
+    """
+    v = np.atleast_2d(np.asarray(variances, float))
+    tau, weight, mean, var = tau_posterior(estimates, v, scale)
+    mu = (weight * mean).sum(axis=0)
+    half = mixture_half_width(weight, mean, var, mu, level)
+    tau2 = (weight * tau**2).sum(axis=0)
+    trial_half = mixture_half_width(weight[:, None, :], 0.0, v[None] + tau[:, None, :] ** 2,
+                                    np.zeros(v.shape), level)
+    return mu, half, tau2, trial_half
+
 
 def t_factor(dof) -> np.ndarray:
     """``t_{dof, 0.975} / z_{0.975}``: how much wider a ``t`` interval is than the normal one (1 at infinity)."""
@@ -305,9 +467,13 @@ class MultiTrialEstimator:
     Parameters
     ----------
     model : Model
-    between_trial : {'dl', 'pm', 'none'}
+    between_trial : {'dl', 'pm', 'prior', 'none'}
         Estimate the between-trial excess variance per parameter (DerSimonian-Laird
-        or Paule-Mandel) and add it to the interval, or not.
+        or Paule-Mandel, with a ``t`` quantile), integrate it out under a half-normal
+        prior ('prior', see the module notes; for two or three trials), or leave it out.
+    prior_artefact_rms : float, optional
+        Root-mean-square skin-marker artefact (model units) that scales the prior on
+        the between-trial sd (``between_trial='prior'``); None: 10 mm.
     **settings
         Every setting of :class:`~skelid.estimators.marker.MarkerEstimator` (``sigma``,
         ``cutoff``, ``noise``, ``marker_groups``, ``artefact_rms``, ``outlier_threshold``,
@@ -340,7 +506,9 @@ class MultiTrialEstimator:
     trial_sd_ : (K, P) float
         Each trial's own sd with the between-trial variance and its ``t`` factor.
     tau2_ : (P,) float
-        Between-trial variance of each parameter.
+        Between-trial variance of each parameter (its posterior mean with ``'prior'``).
+    tau_prior_scale_ : (P,) float
+        Half-normal prior scale of each between-trial sd (0 unless ``'prior'``).
     trials_set_aside_ : list of str
         Trials left out of the combination because their own fit ended on a
         prior bound (their own estimates are still reported); empty when none
@@ -362,12 +530,15 @@ class MultiTrialEstimator:
     """
 
     name = "marker-multi"
-    settings = (Setting("between_trial", one_of("dl", "pm", "none"), "'dl', 'pm' or 'none'"),
+    settings = (Setting("between_trial", one_of("dl", "pm", "prior", "none"), "'dl', 'pm', 'prior' or 'none'"),
+                Setting("prior_artefact_rms", non_negative_or_none, "a distance >= 0 in model units, or None"),
                 *MarkerEstimator.settings)
 
-    def __init__(self, model: Model, between_trial: str = "dl", **settings):
+    def __init__(self, model: Model, between_trial: str = "dl", prior_artefact_rms: float | None = None,
+                 **settings):
         self.model = model
         self.between_trial = between_trial
+        self.prior_artefact_rms = prior_artefact_rms
         # the single-trial estimator's declared settings and defaults, stored here as well
         for k, v in get_settings(MarkerEstimator(model, **settings)).items():
             setattr(self, k, v)
@@ -389,21 +560,41 @@ class MultiTrialEstimator:
         trials = _as_trials(trials)
         if not trials:
             raise DataError("no trials to fit", "give at least one marker file")
-        model = self.model
         ests, labels = [], []
         for k, data in enumerate(trials):
-            est = MarkerEstimator(model, **self._trial_settings())
             label = _trial_label(data, k)
             try:
-                est.fit(data)
+                est = self.fit_trial(data)
             except SkelidError as exc:
                 raise type(exc)(f"{label}: {exc.problem}", exc.fix) from None
             ests.append(est)
             labels.append(label if label not in labels else f"{label} ({k + 1})")
             if progress is not None:
                 progress(len(est.frames_used_))
+        if self.model.n_params == 1 and all(bool(np.any(e.fit_.pinned)) for e in ests):
+            p = self.model.parameters[0]
+            raise IdentifiabilityError(
+                f"no solution inside the interval [{p.prior.lower:g}, {p.prior.upper:g}] of parameter {p.name}: "
+                f"the best fit of every trial sits on a bound", "widen the parameter's prior bounds or check the "
+                "model's marker positions")
         rates = [d.rate if isinstance(d, MarkerData) else float(self.rate) for d in trials]
         return self.combine(ests, rates, labels)
+
+    def fit_trial(self, data) -> MarkerEstimator:
+        """One trial's own fit, as :meth:`fit` makes it.
+
+        As :meth:`MarkerEstimator.fit <skelid.estimators.marker.MarkerEstimator.fit>` with this
+        estimator's settings, except that a fit ending on a bound of the prior warns instead of
+        refusing (a single-parameter model refuses there when fitted alone): :meth:`combine` sets
+        such a trial aside and the other trials decide.
+        """
+        check_settings(self)
+        est = MarkerEstimator(self.model, **self._trial_settings())
+        check_settings(est)
+        y, rate = marker_array(self.model, data, est.rate)
+        f = run_marker_fit(est, y, rate, make_rng(est.rng), on_bound="warn")
+        est._publish(f, emit(marker_warnings(self.model, est, f)))
+        return est
 
     def combine(self, fitted, rates, labels=None) -> MultiTrialEstimator:
         """One geometry from trials already fitted one by one (what :meth:`fit` does after its trial fits).
@@ -481,12 +672,25 @@ class MultiTrialEstimator:
         keep = ~pinned if (pinned.any() and not pinned.all()) else np.ones(len(pinned), bool)
         self.trials_set_aside_ = [lab for lab, k in zip(self.trial_labels_, keep, strict=True) if not k]
         theta_k, cov_k, K = self.trial_theta_[keep], self.trial_cov_[keep], int(keep.sum())
-        method = "dl" if self.between_trial == "none" else self.between_trial
+        method = self.between_trial if self.between_trial in BETWEEN_TRIAL else "dl"
         tau2, q, df = BETWEEN_TRIAL[method](theta_k, var[keep])
         if self.between_trial == "none":
             tau2 = np.zeros(P)
+        prior = self.between_trial == "prior" and K > 1
+        self.tau_prior_scale_ = self._tau_prior_scale([e for e, k in zip(self.trials_, keep, strict=True) if k])
+        if prior:
+            # half-normal prior on each tau: the joint interval and each trial's own hold 95 % of the
+            # posterior (a normal mixture over tau); centre: the random-effects combination at E[tau^2]
+            grid, weight, mean, cvar = tau_posterior(theta_k, var[keep], self.tau_prior_scale_)
+            tau2 = (weight * grid**2).sum(axis=0)
         self.tau2_ = tau2
-        if np.any(tau2 > 0) or not keep.all():
+        if prior:
+            theta, cov, _ = random_effects(theta_k, cov_k, tau2)
+            dof = np.full(P, np.inf)
+            f = mixture_half_width(weight, mean, cvar, theta) / (Z95 * np.sqrt(np.diag(cov)))
+            trial_sd = mixture_half_width(weight[:, None, :], 0.0, var[None] + grid[:, None, :] ** 2,
+                                          np.zeros(var.shape)) / Z95
+        elif np.any(tau2 > 0) or not keep.all():
             # trials differ beyond their own noise: each trial's estimate is the geometry plus its own
             # random shift, so they are combined with the weights (C_k + Omega)^{-1} (a trial with a
             # tiny within-trial variance no longer decides alone)
@@ -494,13 +698,18 @@ class MultiTrialEstimator:
         else:
             fit = stacked()
             theta, cov, dof = fit.theta - self.bias_, self.cov_within_, np.full(P, np.inf)
-        f = t_factor(dof)
+        if not prior:
+            f = t_factor(dof)
         self.dof_ = dof
         self.cov_unscaled_ = cov
         cov = cov * np.outer(f, f)
         trial_var = var + tau2
-        self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), max(K - 1, 1))
-        self.trial_sd_ = np.sqrt(np.clip(trial_var, 0.0, None)) * t_factor(self.trial_dof_)
+        if prior:
+            self.trial_dof_ = np.full(var.shape, np.inf)
+            self.trial_sd_ = trial_sd
+        else:
+            self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), max(K - 1, 1))
+            self.trial_sd_ = np.sqrt(np.clip(trial_var, 0.0, None)) * t_factor(self.trial_dof_)
         self.consistency_ = consistency_test(theta_k, cov_k, theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             i2 = np.where(q > 0, np.maximum(0.0, (q - df) / q), 0.0)
@@ -510,6 +719,22 @@ class MultiTrialEstimator:
                                for k, n in enumerate(self.model.parameter_names)}
         self.theta_data_, self.cov_data_ = theta, cov
         return fit
+
+    def _tau_prior_scale(self, ests) -> np.ndarray:
+        """Half-normal scale of each parameter's between-trial sd: what the prior artefact does to one trial.
+
+        ``s_p = a sqrt(mean_k Sigma_art,k[p, p])`` with ``Sigma_art,k`` the covariance that an artefact
+        of root-mean-square 1 adds to trial ``k``'s estimate (:func:`~skelid.estimators.artefact.artefact_covariance`)
+        and ``a`` the ``prior_artefact_rms`` setting (default :data:`PRIOR_ARTEFACT_RMS_MM` in the model's units).
+        """
+        if self.between_trial != "prior" or len(ests) < 2:
+            return np.zeros(self.model.n_params)
+        a = self.prior_artefact_rms
+        if a is None:
+            a = PRIOR_ARTEFACT_RMS_MM / _MM_PER_UNIT[self.model.units]
+        unit = np.array([np.diag(artefact_covariance(self.model, e.y_, e.fit_info_.theta, e.fit_info_.pose,
+                                                     e.fit_info_.penalty, 1.0, e.frames_used_)) for e in ests])
+        return float(a) * np.sqrt(np.clip(unit, 0.0, None).mean(axis=0))
 
     def _publish(self, fit, ests) -> None:
         model = self.model
