@@ -365,8 +365,16 @@ def markdown(res: dict) -> str:
           f"{min(min(r['after'][n]['sd_within'] for n in names) for r in res['trials'].values()):.1f}-"
           f"{max(max(r['after'][n]['sd_within'] for n in names) for r in res['trials'].values()):.0f} mm, "
           "so the t and normal rows nearly coincide. The in-sample rows reuse the trials that estimated "
-          "tau^2 and are optimistic; the leave-pair-out rows are the out-of-sample check.", "",
-          "## By parameter", "", "| parameter | tau DL / PM (mm) | before: fraction, sd z | after: fraction, sd z | "
+          "tau^2 and are optimistic; the leave-pair-out rows are the out-of-sample check.", ""]
+    if "tau_prior_scale_mm" in res:
+        sc, tp = res["tau_prior_scale_mm"], res["tau_mm_prior"]
+        L += ["Half-normal prior on tau (`between_trial='prior'`, made for two or three trials): its scale is "
+              "the sd that a 10 mm root-mean-square skin-marker artefact would add to one trial's estimate, "
+              f"here {min(sc.values()):.1f}-{max(sc.values()):.1f} mm; the posterior mean of tau is "
+              f"{min(tp.values()):.1f}-{max(tp.values()):.1f} mm (DL: {min(res['tau_mm'].values()):.1f}-"
+              f"{max(res['tau_mm'].values()):.1f} mm). Where DL's tau is 0 the posterior keeps some spread, so "
+              "these intervals are a little wider than DL's.", ""]
+    L += ["## By parameter", "", "| parameter | tau DL / PM (mm) | before: fraction, sd z | after: fraction, sd z | "
           "leave pair out (DL, t): fraction, sd z |", "|---|---|---|---|---|"]
     for n in names:
         b, a, lpo = (res["z_by_parameter"][n][k] for k in ("before", "after", "after_leave_pair_out"))

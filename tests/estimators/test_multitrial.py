@@ -297,6 +297,8 @@ def test_prior_between_trial_in_the_estimator():
     np.testing.assert_allclose(np.sqrt(np.diag(m.cov_data_)), sd, rtol=1e-9)
     # two trials 8 mm apart: t_1 with DerSimonian-Laird says almost nothing; the prior keeps it informative
     assert m.tau2_[0] > 0 and m.posterior_.sd[0] < 0.5 * dl.posterior_.sd[0]
+    d = m.result().diagnostics["between_trial"]
+    assert d["method"] == "prior" and d["prior_scale"]["elbow_x"] == m.tau_prior_scale_[0]
 
 
 def test_a_single_parameter_trial_on_its_bound_is_set_aside_not_fatal():

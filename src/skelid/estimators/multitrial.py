@@ -831,7 +831,11 @@ class MultiTrialEstimator:
             "trials": self.trial_table(), "consistency": dict(self.consistency_),
             "heterogeneity": self.heterogeneity_,
             "between_trial": {"method": self.between_trial, "n_trials": len(self.trials_),
-                              "interval": "t quantile with Satterthwaite degrees of freedom"},
+                              "interval": ("95 % of the posterior with a half-normal prior on each between-trial sd"
+                                           if self.between_trial == "prior" else
+                                           "t quantile with Satterthwaite degrees of freedom"),
+                              "prior_scale": {n: float(v) for n, v in zip(model.parameter_names,
+                                                                          self.tau_prior_scale_, strict=True)}},
             "converged": self.converged_, "stacked_fit_iterations": self.n_iter_}
         return build_result(self, self.posterior_, extra=extra, noise=noise, skipped=skipped,
                             diagnostics=diagnostics, derived=self.lengths_, status={},
