@@ -17,7 +17,7 @@ Cells (from the same four fits per subject):
   (:class:`~skelid.estimators.multitrial.MultiTrialEstimator`: DerSimonian-Laird
   between-trial variance, ``t`` quantile with Satterthwaite's degrees of freedom);
 * ``multi-pm/K``: the same with Paule-Mandel's between-trial variance;
-* ``multi-prior/K``: the between-trial sd integrated out under a half-normal
+* ``multi-prior/K`` (the default): the between-trial sd integrated out under a half-normal
   prior whose scale is what a 10 mm root-mean-square skin-marker artefact would
   add to one trial's estimate (``between_trial='prior'``); ``multi-prior-5mm``
   and ``multi-prior-20mm``: the same prior at 5 and 20 mm, to show how much the
@@ -167,7 +167,7 @@ def markdown(res: dict) -> str:
           "adds nothing (default = white). Within one trial nothing in the data separates the artefact's "
           "slow, angle-following drift from geometry; only other trials (or a stated artefact size) can.",
           f"* Two trials, estimated tau (multi/2): {cov_w('multi/2')}. The between-trial variance rests on one "
-          "degree of freedom, so the interval uses t_1 (97.5 % point 12.7): it covers but says little.",
+          "degree of freedom, so the interval uses t_1 (97.5 % point 12.7) and says little.",
           f"* Two trials, half-normal prior on tau at 10 mm (multi-prior/2): {cov_w('multi-prior/2')}; "
           f"at 5 mm: {cov_w('multi-prior-5mm/2')}; at 20 mm: {cov_w('multi-prior-20mm/2')}. The prior is "
           "outside information (a documented skin-marker artefact level, 1.7 times the simulated artefact's "

@@ -180,7 +180,8 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
                     raise DataError(f"model alternatives need distinct names; {m.name!r} is used twice",
                                     "give each model file its own [model] name")
                 seen.add(m.name)
-                fits[m.name] = quantities(m, fit_trials(m, datas, **settings))
+                # the same random stream as the main fit, so that the spread holds no Monte-Carlo noise
+                fits[m.name] = quantities(m, fit_trials(m, datas, **{**settings, "rng": np.random.default_rng(seed)}))
         sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
         result = result.replace(diagnostics={**result.diagnostics, "model_sensitivity": sens})
     data = str(data_paths[0]) if len(datas) == 1 else [str(p) for p in data_paths]

@@ -123,7 +123,7 @@ def test_between_trial_variance_widens_the_joint_interval():
         tr = simulate(model, theta=model.theta_center + np.array([dx, 0.0]), sigma=1.0, n_frames=150,
                       rng=np.random.default_rng(10 + k))
         datas.append(tr.data)
-    re = MultiTrialEstimator(model, outlier_threshold=None).fit(datas)
+    re = MultiTrialEstimator(model, outlier_threshold=None, between_trial="dl").fit(datas)
     fe = MultiTrialEstimator(model, outlier_threshold=None, between_trial="none").fit(datas)
     assert re.tau2_[0] > 1.0
     assert re.posterior_.sd[0] > 3 * fe.posterior_.sd[0]
@@ -281,7 +281,7 @@ def test_prior_between_trial_in_the_estimator():
                           rng=np.random.default_rng(50 + k))
             ests.append(MarkerEstimator(model, **kw).fit(tr.data))
         m = MultiTrialEstimator(model, between_trial="prior", prior_artefact_rms=3.0, **kw).combine(ests, [100.0] * 2)
-        dl = MultiTrialEstimator(model, **kw).combine(ests, [100.0] * 2)
+        dl = MultiTrialEstimator(model, between_trial="dl", **kw).combine(ests, [100.0] * 2)
     unit = [np.diag(artefact_covariance(model, e.y_, e.fit_info_.theta, e.fit_info_.pose, e.fit_info_.penalty,
                                         1.0, e.frames_used_)) for e in ests]
     np.testing.assert_allclose(m.tau_prior_scale_, 3.0 * np.sqrt(np.mean(unit, axis=0)), rtol=1e-12)

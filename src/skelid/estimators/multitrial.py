@@ -467,10 +467,11 @@ class MultiTrialEstimator:
     Parameters
     ----------
     model : Model
-    between_trial : {'dl', 'pm', 'prior', 'none'}
-        Estimate the between-trial excess variance per parameter (DerSimonian-Laird
-        or Paule-Mandel, with a ``t`` quantile), integrate it out under a half-normal
-        prior ('prior', see the module notes; for two or three trials), or leave it out.
+    between_trial : {'prior', 'dl', 'pm', 'none'}
+        Integrate the between-trial sd of each parameter out under a half-normal prior
+        ('prior', the default, see the module notes: informative from two trials on),
+        estimate it (DerSimonian-Laird or Paule-Mandel, with a ``t`` quantile of
+        ``K - 1`` degrees of freedom), or leave it out.
     prior_artefact_rms : float, optional
         Root-mean-square skin-marker artefact (model units) that scales the prior on
         the between-trial sd (``between_trial='prior'``); None: 10 mm.
@@ -534,7 +535,7 @@ class MultiTrialEstimator:
                 Setting("prior_artefact_rms", non_negative_or_none, "a distance >= 0 in model units, or None"),
                 *MarkerEstimator.settings)
 
-    def __init__(self, model: Model, between_trial: str = "dl", prior_artefact_rms: float | None = None,
+    def __init__(self, model: Model, between_trial: str = "prior", prior_artefact_rms: float | None = None,
                  **settings):
         self.model = model
         self.between_trial = between_trial
