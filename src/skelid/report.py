@@ -507,8 +507,9 @@ def per_trial_html(r, units: str) -> str:
         return ""
     names = list(r.parameters)
     out = ["<h4>Each trial's own estimate</h4>",
-           f"<p>Mean ± sd [{_e(units)}]; the sd includes the between-trial spread (and the t factor "
-           "for a spread estimated from few trials). The joint estimate is the table above.</p>"]
+           f"<p>Mean ± sd [{_e(units)}]; the sd includes the between-trial spread (integrated out under "
+           "the stated prior on it, or estimated with a t factor for few trials). The joint estimate is the "
+           "table above.</p>"]
     body = []
     for t in rows:
         ps = t.get("parameters") if isinstance(t.get("parameters"), Mapping) else {}
