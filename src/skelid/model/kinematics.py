@@ -43,6 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid.model import _fk_kernel
 from skelid.model.description import Model
 
 
@@ -133,6 +134,7 @@ class Workspace:
         self.plan = _build_plan(model)
         self.compiled = bool(compiled)
         self.kernel_tables = None  # set by skelid.estimators.pose on the compiled path
+        self.fk_tables = None  # the compiled kinematics' tables (False: numpy path), decided on first use
 
     @property
     def path(self) -> str:
@@ -587,6 +589,9 @@ def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> 
     g = geometry(model, theta)
     if plan.planar:  # the markers alone: no joint axes or orientations
         return _forward_planar(plan, g, pose, markers_only=True)
+    tables = _fk_tables(model, plan, ws)
+    if tables is not None:
+        return _fk_kernel.kinematics(model, plan, tables, g, pose, theta, want_jac=False)[0]
     return _forward_general(plan, g, pose, tilt_tables(model, theta), want_omega=False).markers
 
 
@@ -722,5 +727,28 @@ def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
     """
     if ws is None:
         ws = Workspace(model)
+    tables = _fk_tables(model, ws.plan, ws)
+    if tables is not None:
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape[-1:] != (ws.plan.n_pose,):
+            raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
+        return _fk_kernel.kinematics(model, ws.plan, tables, geometry(model, theta), pose, theta)
     kin = forward_kinematics(model, theta, pose, ws)
     return kin.markers, pose_jacobian(model, kin, ws), theta_jacobian(model, kin, ws)
+
+
+def _fk_tables(model: Model, plan: KinematicsPlan, ws: Workspace | None):
+    """The compiled kinematics' tables for this call, or None for the numpy path.
+
+    A spatial model without custom joints takes the compiled path when numba can
+    run it now (:func:`skelid.model._fk_kernel.ready`); a workspace decides once,
+    on its first call, so that one fit never switches path halfway.
+    """
+    if not _fk_kernel.AVAILABLE or plan.dim != 3:
+        return None
+    if ws is not None and ws.fk_tables is not None:
+        return ws.fk_tables or None
+    tables = _fk_kernel.plan_tables(plan) if _fk_kernel.ready() else None
+    if ws is not None:
+        ws.fk_tables = tables if tables is not None else False
+    return tables

@@ -1,0 +1,378 @@
+"""Compiled forward kinematics and Jacobians of spatial models (numba).
+
+The same arithmetic as :func:`skelid.model.kinematics._forward_general`,
+:func:`~skelid.model.kinematics.pose_jacobian_from_plan` and
+:func:`~skelid.model.kinematics.theta_jacobian` for a 3-D model without
+custom (coupled) joints, one batch element at a time: the segment frames
+
+.. math:: R_{ws} = R_{wp} \\prod_k (I + \\sin q_k K_k + (1 - \\cos q_k) K_k^2),
+          \\qquad x_m = p_{w s(m)} + R_{w s(m)} r_m ,
+
+the pose columns ``w_k x (x_m - c_k)`` (rotations) or ``w_k`` (translations)
+and the geometry columns ``sum_j R_{w p(j)} A_j`` over the joints above each
+marker plus ``R_{w s(m)} A_m``, plus the tilted hinges' ``omega x (x_m - c_k)``.
+The outputs are written straight into the numpy path's ``(B, M, D, Q)`` and
+``(B, M, D, P)`` layouts, so no array of the size of the Jacobians is
+allocated more than once per call. Results agree with the numpy path to
+rounding (sums are taken in another order).
+
+The driver is compiled on first use and cached on disk by numba
+(``cache=True``); while it is not cached, :func:`ready` starts its compilation
+in a separate process and answers False, and the numpy path is used. The
+environment variable ``SKELID_NUMBA`` selects the path as for the pose kernel
+(:mod:`skelid.estimators._lm_kernel`): ``0`` always numpy, ``wait`` always
+compiled (compiling first if need be).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+MODE = os.environ.get("SKELID_NUMBA", "1").strip().lower()
+if MODE in ("0", "false", "no", "off"):  # pragma: no cover - depends on the environment
+    numba = None
+else:
+    import numba
+
+AVAILABLE = numba is not None
+
+
+def plan_tables(plan) -> tuple | None:
+    """The model tables the driver reads, or None where it cannot represent the model.
+
+    It represents 3-D models without custom joints or scaled coupled translations.
+    """
+    if plan.dim != 3 or plan.has_custom or plan.n_coupled:
+        return None
+    S, Q = plan.n_segments, plan.n_pose
+    seg_dofs = np.full((S, max([len(ks) for ks in plan.segment_dofs] + [1])), -1, dtype=np.int64)
+    n_dofs = np.zeros(S, dtype=np.int64)
+    for i, ks in enumerate(plan.segment_dofs):
+        n_dofs[i] = len(ks)
+        seg_dofs[i, :len(ks)] = ks
+    parent = np.array(plan.parent, dtype=np.int64)
+    return (parent, seg_dofs, n_dofs, plan.dof_is_t.astype(np.bool_), np.ascontiguousarray(plan.dof_axis, float),
+            np.ascontiguousarray(plan.dof_skew), np.ascontiguousarray(plan.dof_skew2),
+            plan.dof_tilt.astype(np.int64), plan.marker_segment.astype(np.int64),
+            np.ascontiguousarray(plan.moves), plan.used_joints.astype(np.int64),
+            np.ascontiguousarray(plan.A_joint, float), np.ascontiguousarray(plan.ancestor_markers),
+            plan.used_markers.astype(np.int64), np.ascontiguousarray(plan.A_marker, float), Q)
+
+
+if AVAILABLE:  # pragma: no branch
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+    @_jit
+    def _kinematics(g, pose, t_axis, t_daxis, tilt_slots, want_jac, parent, seg_dofs, n_dofs, is_t,
+                    dof_axis, skew, skew2, dof_tilt, ms, moves, used_j, A_joint, anc, used_m, A_marker,
+                    x, Jq, Jt):
+        """Markers ``x (B, M, 3)`` and, with ``want_jac``, ``Jq (B, M, 3, Q)`` and ``Jt (B, M, 3, P)``.
+
+        ``g (Bg, G)``, ``t_axis (Bg, T, 3)`` and ``t_daxis (Bg, T, 2, 3)`` have ``Bg`` = 1 or ``B``
+        rows (one shared by every element, or one each); ``pose (B, Q)``; ``tilt_slots (T, 3)``
+        the pose coordinate and the two parameters (-1: none) of each tilted hinge.
+        """
+        B, Q = pose.shape
+        S = parent.shape[0]
+        M = ms.shape[0]
+        nT = t_axis.shape[1]
+        P = Jt.shape[3]
+        R = np.empty((S, 3, 3))
+        p = np.empty((S, 3))
+        Rpar = np.empty((S, 3, 3))
+        w = np.zeros((Q, 3))
+        piv = np.zeros((Q, 3))
+        omega = np.zeros((max(nT, 1), 2, 3))
+        Ri = np.empty((3, 3))
+        E = np.empty((3, 3))
+        tmp = np.empty((3, 3))
+        Kt = np.empty((3, 3))
+        Kt2 = np.empty((3, 3))
+        dw = np.empty((2, 3))
+        RA = np.empty((3, P))
+        shared_g = g.shape[0] == 1
+        shared_t = t_axis.shape[0] == 1
+        for b in range(B):
+            gb = 0 if shared_g else b
+            tb = 0 if shared_t else b
+            for i in range(S):
+                par = parent[i]
+                for a in range(3):
+                    for c in range(3):
+                        v = (1.0 if a == c else 0.0) if par < 0 else R[par, a, c]
+                        Ri[a, c] = v
+                        Rpar[i, a, c] = v
+                for a in range(3):
+                    acc = 0.0
+                    for c in range(3):
+                        acc += Ri[a, c] * g[gb, 3 * i + c]
+                    p[i, a] = (0.0 if par < 0 else p[par, a]) + acc
+                for n in range(n_dofs[i]):
+                    k = seg_dofs[i, n]
+                    qk = pose[b, k]
+                    j = dof_tilt[k]
+                    if is_t[k]:
+                        for a in range(3):
+                            acc = 0.0
+                            for c in range(3):
+                                acc += Ri[a, c] * dof_axis[k, c]
+                            w[k, a] = acc
+                            p[i, a] += acc * qk
+                        continue
+                    sk, ck = np.sin(qk), np.cos(qk)
+                    for a in range(3):
+                        piv[k, a] = p[i, a]
+                    if j >= 0:  # a hinge whose axis depends on theta
+                        for a in range(3):
+                            acc = 0.0
+                            for c in range(3):
+                                acc += Ri[a, c] * t_axis[tb, j, c]
+                            w[k, a] = acc
+                        ax0, ax1, ax2 = t_axis[tb, j, 0], t_axis[tb, j, 1], t_axis[tb, j, 2]
+                        Kt[0, 0], Kt[0, 1], Kt[0, 2] = 0.0, -ax2, ax1
+                        Kt[1, 0], Kt[1, 1], Kt[1, 2] = ax2, 0.0, -ax0
+                        Kt[2, 0], Kt[2, 1], Kt[2, 2] = -ax1, ax0, 0.0
+                        for a in range(3):
+                            for c in range(3):
+                                acc = 0.0
+                                for e in range(3):
+                                    acc += Kt[a, e] * Kt[e, c]
+                                Kt2[a, c] = acc
+                        for u in range(2):
+                            for a in range(3):
+                                acc = 0.0
+                                for c in range(3):
+                                    acc += Ri[a, c] * t_daxis[tb, j, u, c]
+                                dw[u, a] = acc
+                            cr0 = w[k, 1] * dw[u, 2] - w[k, 2] * dw[u, 1]
+                            cr1 = w[k, 2] * dw[u, 0] - w[k, 0] * dw[u, 2]
+                            cr2 = w[k, 0] * dw[u, 1] - w[k, 1] * dw[u, 0]
+                            omega[j, u, 0] = sk * dw[u, 0] + (1.0 - ck) * cr0
+                            omega[j, u, 1] = sk * dw[u, 1] + (1.0 - ck) * cr1
+                            omega[j, u, 2] = sk * dw[u, 2] + (1.0 - ck) * cr2
+                        for a in range(3):
+                            for c in range(3):
+                                E[a, c] = ((1.0 if a == c else 0.0) + sk * Kt[a, c]) + (1.0 - ck) * Kt2[a, c]
+                    else:
+                        for a in range(3):
+                            acc = 0.0
+                            for c in range(3):
+                                acc += Ri[a, c] * dof_axis[k, c]
+                            w[k, a] = acc
+                        for a in range(3):
+                            for c in range(3):
+                                E[a, c] = ((1.0 if a == c else 0.0) + sk * skew[k, a, c]) + (1.0 - ck) * skew2[k, a, c]
+                    for a in range(3):
+                        for c in range(3):
+                            tmp[a, c] = Ri[a, 0] * E[0, c] + Ri[a, 1] * E[1, c] + Ri[a, 2] * E[2, c]
+                    for a in range(3):
+                        for c in range(3):
+                            Ri[a, c] = tmp[a, c]
+                for a in range(3):
+                    for c in range(3):
+                        R[i, a, c] = Ri[a, c]
+            base = 3 * S
+            for m in range(M):
+                s = ms[m]
+                for a in range(3):
+                    x[b, m, a] = p[s, a] + (R[s, a, 0] * g[gb, base + 3 * m] + R[s, a, 1] * g[gb, base + 3 * m + 1]
+                                            + R[s, a, 2] * g[gb, base + 3 * m + 2])
+            if not want_jac:
+                continue
+            for m in range(M):
+                for k in range(Q):
+                    mv = moves[k, m]
+                    if is_t[k]:
+                        for a in range(3):
+                            Jq[b, m, a, k] = w[k, a] * mv
+                    else:
+                        r0 = x[b, m, 0] - piv[k, 0]
+                        r1 = x[b, m, 1] - piv[k, 1]
+                        r2 = x[b, m, 2] - piv[k, 2]
+                        Jq[b, m, 0, k] = (w[k, 1] * r2 - w[k, 2] * r1) * mv
+                        Jq[b, m, 1, k] = (w[k, 2] * r0 - w[k, 0] * r2) * mv
+                        Jq[b, m, 2, k] = (w[k, 0] * r1 - w[k, 1] * r0) * mv
+            for m in range(M):
+                for a in range(3):
+                    for c in range(P):
+                        Jt[b, m, a, c] = 0.0
+            for jj in range(used_j.shape[0]):
+                s = used_j[jj]
+                for a in range(3):
+                    for c in range(P):
+                        RA[a, c] = (Rpar[s, a, 0] * A_joint[jj, 0, c] + Rpar[s, a, 1] * A_joint[jj, 1, c]
+                                    + Rpar[s, a, 2] * A_joint[jj, 2, c])
+                for m in range(M):
+                    f = anc[jj, m]
+                    if f != 0.0:
+                        for a in range(3):
+                            for c in range(P):
+                                Jt[b, m, a, c] += f * RA[a, c]
+            for mm in range(used_m.shape[0]):
+                m = used_m[mm]
+                s = ms[m]
+                for a in range(3):
+                    for c in range(P):
+                        Jt[b, m, a, c] += (R[s, a, 0] * A_marker[mm, 0, c] + R[s, a, 1] * A_marker[mm, 1, c]
+                                           + R[s, a, 2] * A_marker[mm, 2, c])
+            for j in range(nT):
+                k = tilt_slots[j, 0]
+                for u in range(2):
+                    kp = tilt_slots[j, 1 + u]
+                    if kp < 0:
+                        continue
+                    o0, o1, o2 = omega[j, u, 0], omega[j, u, 1], omega[j, u, 2]
+                    for m in range(M):
+                        mv = moves[k, m]
+                        r0 = x[b, m, 0] - piv[k, 0]
+                        r1 = x[b, m, 1] - piv[k, 1]
+                        r2 = x[b, m, 2] - piv[k, 2]
+                        Jt[b, m, 0, kp] += (o1 * r2 - o2 * r1) * mv
+                        Jt[b, m, 1, kp] += (o2 * r0 - o0 * r2) * mv
+                        Jt[b, m, 2, kp] += (o0 * r1 - o1 * r0) * mv
+
+
+def _rows(a: np.ndarray, batch: tuple, tail: tuple) -> np.ndarray:
+    """``a (..., *tail)`` as ``(1, *tail)`` when it has no batch axes, else ``(B, *tail)`` (contiguous)."""
+    if a.ndim == len(tail):
+        out = np.ascontiguousarray(a.reshape((1,) + tail))
+    else:
+        out = np.ascontiguousarray(np.broadcast_to(a, batch + tail).reshape((-1,) + tail))
+    return out if out.flags.writeable else out.copy()  # one compiled signature: writeable arrays
+
+
+def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True):
+    """Markers and, with ``want_jac``, both Jacobians by the compiled driver.
+
+    Parameters
+    ----------
+    plan : KinematicsPlan
+    tables : tuple
+        :func:`plan_tables` of ``plan``.
+    g : (..., G) float
+        Geometry (``g_base + theta A^T``).
+    pose : (..., Q) float
+    theta : (..., P) float
+        For the tilted hinges' axes.
+
+    Returns
+    -------
+    x : (..., M, 3)
+    J_pose : (..., M, 3, Q) or None
+    J_theta : (..., M, 3, P) or None
+    """
+    from skelid.model.kinematics import tilted_axes
+
+    batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1], np.shape(theta)[:-1])
+    B = int(np.prod(batch, dtype=np.int64))
+    M, Q, P = plan.n_markers, plan.n_pose, plan.n_params
+    tilts = model.axis_tilts
+    gg = _rows(g, batch, g.shape[-1:])
+    qq = _rows(pose, batch, (Q,))
+    if qq.shape[0] != B:
+        qq = np.broadcast_to(qq, (B, Q)).copy()
+    if tilts:
+        ax, dax = tilted_axes(model, theta)
+        t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
+        slots = np.array([[t[0], t[1], t[2]] for t in tilts], dtype=np.int64)
+    else:
+        t_axis, t_daxis, slots = np.zeros((1, 0, 3)), np.zeros((1, 0, 2, 3)), np.zeros((0, 3), dtype=np.int64)
+    x = np.empty((B, M, 3))
+    Jq = np.empty((B, M, 3, Q) if want_jac else (1, M, 3, Q))
+    Jt = np.empty((B, M, 3, P) if want_jac else (1, M, 3, P))
+    parent, seg_dofs, n_dofs, is_t, axis, skew, skew2, tilt, ms, moves, uj, Aj, anc, um, Am, _ = tables
+    _kinematics(gg, qq, t_axis, t_daxis, slots, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, skew, skew2,
+                tilt, ms, moves, uj, Aj, anc, um, Am, x, Jq, Jt)
+    x = x.reshape(batch + (M, 3))
+    if not want_jac:
+        return x, None, None
+    return x, Jq.reshape(batch + (M, 3, Q)), Jt.reshape(batch + (M, 3, P))
+
+
+# ------------------------------------------------------------------ which path, and warming the cache
+_state = {"found": False, "last": -np.inf}
+_warming: dict = {}
+_RECHECK_S = 0.5
+
+
+def _example_args() -> tuple:
+    """Arguments with the types of every real call of the driver (their values are never used)."""
+    f, i = np.zeros, np.int64
+    return (f((1, 6)), f((1, 1)), f((1, 0, 3)), f((1, 0, 2, 3)), np.zeros((0, 3), i), True,
+            np.zeros(1, i), np.zeros((1, 1), i), np.zeros(1, i), np.zeros(1, np.bool_), f((1, 3)),
+            f((1, 3, 3)), f((1, 3, 3)), np.zeros(1, i), np.zeros(1, i), f((1, 1)), np.zeros(1, i),
+            f((1, 3, 1)), f((1, 1)), np.zeros(0, i), f((0, 3, 1)), f((1, 1, 3)), f((1, 1, 3, 1)), f((1, 1, 3, 1)))
+
+
+def _cached() -> bool:
+    """Whether numba's disk cache holds the driver (True where its index cannot be read)."""
+    try:
+        sig = tuple(numba.typeof(a) for a in _example_args())
+        cache = _kinematics._cache
+        key = cache._index_key(sig, _kinematics.targetctx.codegen())
+        return cache._cache_file._load_index().get(key) is not None
+    except Exception:  # noqa: BLE001 - numba internals changed: compile here when first called
+        return True
+
+
+def compiled() -> bool:
+    """Whether the driver is already compiled (or loaded) in this process."""
+    return AVAILABLE and bool(_kinematics.signatures)
+
+
+def ready() -> bool:
+    """Whether the compiled driver can run now without compiling in this process.
+
+    False without numba (or with ``SKELID_NUMBA=0``); with ``SKELID_NUMBA=wait``
+    always True (compiling first if the cache is cold). Otherwise True once
+    cached; while it is not, starts its compilation in the background (once) and
+    answers False, looking at the cache again at most every half second.
+    """
+    if not AVAILABLE:
+        return False
+    if compiled() or MODE == "compile" or _state["found"]:
+        return True
+    if MODE == "wait":
+        if not _cached():
+            warm(wait=True)
+        return True
+    now = time.monotonic()
+    if now - _state["last"] < _RECHECK_S:
+        return False
+    _state["last"] = now
+    if _cached():
+        _state["found"] = True
+        return True
+    warm(wait=False)
+    return False
+
+
+def warm(wait: bool = True, timeout: float = 600.0) -> bool:
+    """Compile the driver into numba's disk cache in a separate process; whether it is cached."""
+    if not AVAILABLE:
+        return False
+    from skelid.estimators._lm_kernel import compile_in_background
+
+    code = "from skelid.model._fk_kernel import _compile_here; _compile_here()"
+    return compile_in_background(_warming, "fk", code, _cached, wait, timeout)
+
+
+def _compile_here() -> None:
+    """Compile the driver into the cache in this process (one process at a time)."""
+    import tempfile
+    import zlib
+
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        fcntl = None
+    where = zlib.crc32(os.path.abspath(__file__).encode())
+    name = f"skelid-numba-fk-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
+    with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
+        if fcntl is not None:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        if not _cached():
+            _kinematics(*_example_args())
