@@ -150,16 +150,13 @@ def test_plan_lives_in_the_workspace_never_in_the_model():
         kinematics_plan(builtin_model("case-b"), ws)
 
 
-SPATIAL = {**{p.stem: (lambda p=p: load_model(p)) for p in sorted(EXAMPLES.glob("*.toml"))},
-           "tree3d": tree_3d, "tree3d_functional": tree_3d_functional}
+ALL_MODELS = {**{p.stem: (lambda p=p: load_model(p)) for p in sorted(EXAMPLES.glob("*.toml"))}, **MODELS}
 
 
 @pytest.mark.skipif(not _fk_kernel.AVAILABLE, reason="the compiled kinematics are turned off (SKELID_NUMBA=0)")
-@pytest.mark.parametrize("name", SPATIAL)
+@pytest.mark.parametrize("name", ALL_MODELS)
 def test_compiled_kinematics_equal_the_numpy_path(name):
-    model = SPATIAL[name]()
-    if model.dim != 3:
-        pytest.skip("planar models take the planar numpy path")
+    model = ALL_MODELS[name]()
     compiled, plain = Workspace(model), Workspace(model)
     plain.fk_tables = False  # the numpy path
     theta, pose = _draws(model, seed=5)

@@ -1,4 +1,4 @@
-"""Compiled forward kinematics and Jacobians of spatial models (numba).
+"""Compiled forward kinematics and Jacobians (numba).
 
 The same arithmetic as :func:`skelid.model.kinematics._forward_general`,
 :func:`~skelid.model.kinematics.pose_jacobian_from_plan` and
@@ -16,7 +16,10 @@ The outputs are written straight into the numpy path's ``(B, M, D, Q)`` and
 allocated more than once per call. Results agree with the numpy path to
 rounding (sums are taken in another order).
 
-The driver is compiled on first use and cached on disk by numba
+Planar models (every rotation about ``z``) take a second driver with one angle
+per segment, as :func:`~skelid.model.kinematics._forward_planar` does.
+
+Each driver is compiled on first use and cached on disk by numba
 (``cache=True``); while it is not cached, :func:`ready` starts its compilation
 in a separate process and answers False, and the numpy path is used. The
 environment variable ``SKELID_NUMBA`` selects the path as for the pose kernel
@@ -41,11 +44,12 @@ AVAILABLE = numba is not None
 
 
 def plan_tables(plan) -> tuple | None:
-    """The model tables the driver reads, or None where it cannot represent the model.
+    """The model tables the drivers read, or None where they cannot represent the model.
 
-    It represents 3-D models without custom joints or scaled coupled translations.
+    They represent 3-D models without custom joints or scaled coupled translations,
+    and planar models (:attr:`KinematicsPlan.planar`).
     """
-    if plan.dim != 3 or plan.has_custom or plan.n_coupled:
+    if not plan.planar and (plan.dim != 3 or plan.has_custom or plan.n_coupled):
         return None
     S, Q = plan.n_segments, plan.n_pose
     seg_dofs = np.full((S, max([len(ks) for ks in plan.segment_dofs] + [1])), -1, dtype=np.int64)
@@ -59,7 +63,8 @@ def plan_tables(plan) -> tuple | None:
             plan.dof_tilt.astype(np.int64), plan.marker_segment.astype(np.int64),
             np.ascontiguousarray(plan.moves), plan.used_joints.astype(np.int64),
             np.ascontiguousarray(plan.A_joint, float), np.ascontiguousarray(plan.ancestor_markers),
-            plan.used_markers.astype(np.int64), np.ascontiguousarray(plan.A_marker, float), Q)
+            plan.used_markers.astype(np.int64), np.ascontiguousarray(plan.A_marker, float), Q,
+            plan.dof_segment.astype(np.int64))
 
 
 if AVAILABLE:  # pragma: no branch
@@ -235,6 +240,91 @@ if AVAILABLE:  # pragma: no branch
                         Jt[b, m, 2, kp] += (o0 * r1 - o1 * r0) * mv
 
 
+if AVAILABLE:  # pragma: no branch
+
+    @_jit
+    def _kinematics_planar(g, pose, want_jac, parent, seg_dofs, n_dofs, is_t, dof_axis, dof_seg, ms, moves,
+                           used_j, A_joint, anc, used_m, A_marker, x, Jq, Jt):
+        """The planar form of :func:`_kinematics`: one angle per segment (see ``_forward_planar``)."""
+        B, Q = pose.shape
+        S = parent.shape[0]
+        M = ms.shape[0]
+        P = Jt.shape[3]
+        phi = np.zeros(S)
+        cs = np.empty(S + 1)
+        sn = np.empty(S + 1)
+        p = np.empty((S + 1, 2))
+        RA = np.empty((2, P))
+        shared_g = g.shape[0] == 1
+        for b in range(B):
+            gb = 0 if shared_g else b
+            cs[S], sn[S] = 1.0, 0.0
+            p[S, 0], p[S, 1] = 0.0, 0.0
+            for i in range(S):  # angles along the tree (parents first)
+                par = parent[i]
+                a = 0.0 if par < 0 else phi[par]
+                for n in range(n_dofs[i]):
+                    k = seg_dofs[i, n]
+                    if not is_t[k]:
+                        a = a + pose[b, k]
+                phi[i] = a
+            for i in range(S):
+                cs[i] = np.cos(phi[i])
+                sn[i] = np.sin(phi[i])
+            for i in range(S):
+                par = parent[i] if parent[i] >= 0 else S
+                ux, uy = g[gb, 2 * i], g[gb, 2 * i + 1]
+                for n in range(n_dofs[i]):
+                    k = seg_dofs[i, n]
+                    if is_t[k]:
+                        ux += dof_axis[k, 0] * pose[b, k]
+                        uy += dof_axis[k, 1] * pose[b, k]
+                p[i, 0] = p[par, 0] + (cs[par] * ux - sn[par] * uy)
+                p[i, 1] = p[par, 1] + (sn[par] * ux + cs[par] * uy)
+            base = 2 * S
+            for m in range(M):
+                s = ms[m]
+                rx, ry = g[gb, base + 2 * m], g[gb, base + 2 * m + 1]
+                x[b, m, 0] = p[s, 0] + (cs[s] * rx - sn[s] * ry)
+                x[b, m, 1] = p[s, 1] + (sn[s] * rx + cs[s] * ry)
+            if not want_jac:
+                continue
+            for m in range(M):
+                for k in range(Q):
+                    mv = moves[k, m]
+                    i = dof_seg[k]
+                    if is_t[k]:
+                        par = parent[i] if parent[i] >= 0 else S
+                        a0, a1 = dof_axis[k, 0], dof_axis[k, 1]
+                        Jq[b, m, 0, k] = (cs[par] * a0 - sn[par] * a1) * mv
+                        Jq[b, m, 1, k] = (sn[par] * a0 + cs[par] * a1) * mv
+                    else:
+                        Jq[b, m, 0, k] = -(x[b, m, 1] - p[i, 1]) * mv
+                        Jq[b, m, 1, k] = (x[b, m, 0] - p[i, 0]) * mv
+            for m in range(M):
+                for a in range(2):
+                    for c in range(P):
+                        Jt[b, m, a, c] = 0.0
+            for jj in range(used_j.shape[0]):
+                s = used_j[jj]
+                par = parent[s] if parent[s] >= 0 else S
+                for c in range(P):
+                    RA[0, c] = cs[par] * A_joint[jj, 0, c] + (-sn[par]) * A_joint[jj, 1, c]
+                    RA[1, c] = sn[par] * A_joint[jj, 0, c] + cs[par] * A_joint[jj, 1, c]
+                for m in range(M):
+                    f = anc[jj, m]
+                    if f != 0.0:
+                        for a in range(2):
+                            for c in range(P):
+                                Jt[b, m, a, c] += f * RA[a, c]
+            for mm in range(used_m.shape[0]):
+                m = used_m[mm]
+                s = ms[m]
+                for c in range(P):
+                    Jt[b, m, 0, c] += cs[s] * A_marker[mm, 0, c] + (-sn[s]) * A_marker[mm, 1, c]
+                    Jt[b, m, 1, c] += sn[s] * A_marker[mm, 0, c] + cs[s] * A_marker[mm, 1, c]
+
+
 def _rows(a: np.ndarray, batch: tuple, tail: tuple) -> np.ndarray:
     """``a (..., *tail)`` as ``(1, *tail)`` when it has no batch axes, else ``(B, *tail)`` (contiguous)."""
     if a.ndim == len(tail):
@@ -268,22 +358,29 @@ def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True):
 
     batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1], np.shape(theta)[:-1])
     B = int(np.prod(batch, dtype=np.int64))
-    M, Q, P = plan.n_markers, plan.n_pose, plan.n_params
+    M, Q, P, D = plan.n_markers, plan.n_pose, plan.n_params, plan.dim
     tilts = model.axis_tilts
     gg = _rows(g, batch, g.shape[-1:])
     qq = _rows(pose, batch, (Q,))
     if qq.shape[0] != B:
         qq = np.broadcast_to(qq, (B, Q)).copy()
+    parent, seg_dofs, n_dofs, is_t, axis, skew, skew2, tilt, ms, moves, uj, Aj, anc, um, Am, _, dof_seg = tables
+    x = np.empty((B, M, D))
+    Jq = np.empty((B, M, D, Q) if want_jac else (1, M, D, Q))
+    Jt = np.empty((B, M, D, P) if want_jac else (1, M, D, P))
+    if plan.planar:
+        _kinematics_planar(gg, qq, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, dof_seg, ms, moves, uj,
+                           Aj, anc, um, Am, x, Jq, Jt)
+        x = x.reshape(batch + (M, D))
+        if not want_jac:
+            return x, None, None
+        return x, Jq.reshape(batch + (M, D, Q)), Jt.reshape(batch + (M, D, P))
     if tilts:
         ax, dax = tilted_axes(model, theta)
         t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
         slots = np.array([[t[0], t[1], t[2]] for t in tilts], dtype=np.int64)
     else:
         t_axis, t_daxis, slots = np.zeros((1, 0, 3)), np.zeros((1, 0, 2, 3)), np.zeros((0, 3), dtype=np.int64)
-    x = np.empty((B, M, 3))
-    Jq = np.empty((B, M, 3, Q) if want_jac else (1, M, 3, Q))
-    Jt = np.empty((B, M, 3, P) if want_jac else (1, M, 3, P))
-    parent, seg_dofs, n_dofs, is_t, axis, skew, skew2, tilt, ms, moves, uj, Aj, anc, um, Am, _ = tables
     _kinematics(gg, qq, t_axis, t_daxis, slots, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, skew, skew2,
                 tilt, ms, moves, uj, Aj, anc, um, Am, x, Jq, Jt)
     x = x.reshape(batch + (M, 3))
@@ -293,38 +390,49 @@ def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True):
 
 
 # ------------------------------------------------------------------ which path, and warming the cache
-_state = {"found": False, "last": -np.inf}
+_found: dict[bool, bool] = {}
+_last_check: dict[bool, float] = {}
 _warming: dict = {}
 _RECHECK_S = 0.5
 
 
-def _example_args() -> tuple:
-    """Arguments with the types of every real call of the driver (their values are never used)."""
+def _example_args(planar: bool) -> tuple:
+    """Arguments with the types of every real call of a driver (their values are never used)."""
     f, i = np.zeros, np.int64
+    if planar:
+        return (f((1, 4)), f((1, 1)), True, np.full(1, -1, i), np.zeros((1, 1), i), np.ones(1, i),
+                np.zeros(1, np.bool_), f((1, 2)), np.zeros(1, i), np.zeros(1, i), f((1, 1)), np.zeros(0, i),
+                f((0, 2, 1)), f((0, 1)), np.zeros(0, i), f((0, 2, 1)), f((1, 1, 2)), f((1, 1, 2, 1)),
+                f((1, 1, 2, 1)))
     return (f((1, 6)), f((1, 1)), f((1, 0, 3)), f((1, 0, 2, 3)), np.zeros((0, 3), i), True,
-            np.zeros(1, i), np.zeros((1, 1), i), np.zeros(1, i), np.zeros(1, np.bool_), f((1, 3)),
-            f((1, 3, 3)), f((1, 3, 3)), np.zeros(1, i), np.zeros(1, i), f((1, 1)), np.zeros(1, i),
-            f((1, 3, 1)), f((1, 1)), np.zeros(0, i), f((0, 3, 1)), f((1, 1, 3)), f((1, 1, 3, 1)), f((1, 1, 3, 1)))
+            np.full(1, -1, i), np.zeros((1, 1), i), np.ones(1, i), np.zeros(1, np.bool_), f((1, 3)),
+            f((1, 3, 3)), f((1, 3, 3)), np.full(1, -1, i), np.zeros(1, i), f((1, 1)), np.zeros(0, i),
+            f((0, 3, 1)), f((0, 1)), np.zeros(0, i), f((0, 3, 1)), f((1, 1, 3)), f((1, 1, 3, 1)), f((1, 1, 3, 1)))
 
 
-def _cached() -> bool:
+def _driver(planar: bool):
+    return _kinematics_planar if planar else _kinematics
+
+
+def _cached(planar: bool) -> bool:
     """Whether numba's disk cache holds the driver (True where its index cannot be read)."""
+    disp = _driver(planar)
     try:
-        sig = tuple(numba.typeof(a) for a in _example_args())
-        cache = _kinematics._cache
-        key = cache._index_key(sig, _kinematics.targetctx.codegen())
+        sig = tuple(numba.typeof(a) for a in _example_args(planar))
+        cache = disp._cache
+        key = cache._index_key(sig, disp.targetctx.codegen())
         return cache._cache_file._load_index().get(key) is not None
     except Exception:  # noqa: BLE001 - numba internals changed: compile here when first called
         return True
 
 
-def compiled() -> bool:
+def compiled(planar: bool) -> bool:
     """Whether the driver is already compiled (or loaded) in this process."""
-    return AVAILABLE and bool(_kinematics.signatures)
+    return AVAILABLE and bool(_driver(planar).signatures)
 
 
-def ready() -> bool:
-    """Whether the compiled driver can run now without compiling in this process.
+def ready(planar: bool) -> bool:
+    """Whether the compiled driver (planar or spatial) can run now without compiling in this process.
 
     False without numba (or with ``SKELID_NUMBA=0``); with ``SKELID_NUMBA=wait``
     always True (compiling first if the cache is cold). Otherwise True once
@@ -333,35 +441,35 @@ def ready() -> bool:
     """
     if not AVAILABLE:
         return False
-    if compiled() or MODE == "compile" or _state["found"]:
+    if compiled(planar) or MODE == "compile" or _found.get(planar):
         return True
     if MODE == "wait":
-        if not _cached():
-            warm(wait=True)
+        if not _cached(planar):
+            warm(planar, wait=True)
         return True
     now = time.monotonic()
-    if now - _state["last"] < _RECHECK_S:
+    if now - _last_check.get(planar, -np.inf) < _RECHECK_S:
         return False
-    _state["last"] = now
-    if _cached():
-        _state["found"] = True
+    _last_check[planar] = now
+    if _cached(planar):
+        _found[planar] = True
         return True
-    warm(wait=False)
+    warm(planar, wait=False)
     return False
 
 
-def warm(wait: bool = True, timeout: float = 600.0) -> bool:
-    """Compile the driver into numba's disk cache in a separate process; whether it is cached."""
+def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
+    """Compile a driver into numba's disk cache in a separate process; whether it is cached."""
     if not AVAILABLE:
         return False
     from skelid.estimators._lm_kernel import compile_in_background
 
-    code = "from skelid.model._fk_kernel import _compile_here; _compile_here()"
-    return compile_in_background(_warming, "fk", code, _cached, wait, timeout)
+    code = f"from skelid.model._fk_kernel import _compile_here; _compile_here({planar!r})"
+    return compile_in_background(_warming, planar, code, lambda: _cached(planar), wait, timeout)
 
 
-def _compile_here() -> None:
-    """Compile the driver into the cache in this process (one process at a time)."""
+def _compile_here(planar: bool) -> None:
+    """Compile a driver into the cache in this process (one process at a time)."""
     import tempfile
     import zlib
 
@@ -370,9 +478,10 @@ def _compile_here() -> None:
     except ImportError:  # pragma: no cover - not POSIX: no lock
         fcntl = None
     where = zlib.crc32(os.path.abspath(__file__).encode())
-    name = f"skelid-numba-fk-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
+    kind = "planar" if planar else "spatial"
+    name = f"skelid-numba-fk-{kind}-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
     with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
         if fcntl is not None:
             fcntl.flock(fh, fcntl.LOCK_EX)
-        if not _cached():
-            _kinematics(*_example_args())
+        if not _cached(planar):
+            _driver(planar)(*_example_args(planar))

@@ -587,11 +587,11 @@ def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> 
     if pose.shape[-1:] != (plan.n_pose,):
         raise ValueError(f"pose must end in {plan.n_pose} coordinates, got shape {pose.shape}")
     g = geometry(model, theta)
-    if plan.planar:  # the markers alone: no joint axes or orientations
-        return _forward_planar(plan, g, pose, markers_only=True)
     tables = _fk_tables(model, plan, ws)
     if tables is not None:
         return _fk_kernel.kinematics(model, plan, tables, g, pose, theta, want_jac=False)[0]
+    if plan.planar:  # the markers alone: no joint axes or orientations
+        return _forward_planar(plan, g, pose, markers_only=True)
     return _forward_general(plan, g, pose, tilt_tables(model, theta), want_omega=False).markers
 
 
@@ -740,15 +740,15 @@ def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
 def _fk_tables(model: Model, plan: KinematicsPlan, ws: Workspace | None):
     """The compiled kinematics' tables for this call, or None for the numpy path.
 
-    A spatial model without custom joints takes the compiled path when numba can
-    run it now (:func:`skelid.model._fk_kernel.ready`); a workspace decides once,
-    on its first call, so that one fit never switches path halfway.
+    A planar model, or a spatial one without custom joints, takes the compiled path
+    when numba can run it now (:func:`skelid.model._fk_kernel.ready`); a workspace
+    decides once, on its first call, so that one fit never switches path halfway.
     """
-    if not _fk_kernel.AVAILABLE or plan.dim != 3:
+    if not _fk_kernel.AVAILABLE:
         return None
     if ws is not None and ws.fk_tables is not None:
         return ws.fk_tables or None
-    tables = _fk_kernel.plan_tables(plan) if _fk_kernel.ready() else None
+    tables = _fk_kernel.plan_tables(plan) if _fk_kernel.ready(bool(plan.planar)) else None
     if ws is not None:
         ws.fk_tables = tables if tables is not None else False
     return tables
