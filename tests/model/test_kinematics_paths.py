@@ -16,6 +16,7 @@ from skelid.model.kinematics import (
     kinematics_plan,
     marker_jacobian,
     marker_positions,
+    stacked_jacobian,
     tilt_tables,
 )
 from skelid.simulate import builtin_model
@@ -169,3 +170,7 @@ def test_compiled_kinematics_equal_the_numpy_path(name):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * max(np.abs(b).max(), 1.0))
         np.testing.assert_allclose(marker_positions(model, th, q, compiled), x0, rtol=0,
                                    atol=1e-13 * np.abs(x0).max())
+        both = np.concatenate([Jt0, Jq0], axis=-1)
+        for ws in (compiled, plain):
+            np.testing.assert_allclose(stacked_jacobian(model, th, q, ws), both, rtol=0,
+                                       atol=1e-13 * max(np.abs(both).max(), 1.0))

@@ -42,7 +42,7 @@ import numpy as np
 
 from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from skelid.model.description import Model
-from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions
+from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions, stacked_jacobian
 
 
 def penalty_band(R, Q: int) -> np.ndarray:
@@ -882,8 +882,9 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     """
     P, Q = model.n_params, model.n_pose
     T = len(q)
+    ws = Workspace(model)
     sw = row_weights(weights, np.asarray(y, float))
-    _, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+    _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
     m = Jq.shape[1]
     Hqq = pose_information(Jq)
     Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
@@ -903,8 +904,7 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
         wmask = wmask * sw  # a weighted row's second derivatives scale with it
 
     def jac_full(th, qq):
-        _, a, b = marker_jacobian(model, th, qq)
-        return np.concatenate([b, a], axis=-1).reshape(th.shape[:-1] + (m, P + Q))
+        return stacked_jacobian(model, th, qq, ws).reshape(th.shape[:-1] + (m, P + Q))
 
     # one central difference of the Jacobian along each coordinate of (theta, q_t) gives every
     # second derivative the formula needs: DJ[t, j, i, l] = d^2 f_i / d beta_j d beta_l

@@ -73,8 +73,9 @@ if AVAILABLE:  # pragma: no branch
     @_jit
     def _kinematics(g, pose, t_axis, t_daxis, tilt_slots, want_jac, parent, seg_dofs, n_dofs, is_t,
                     dof_axis, skew, skew2, dof_tilt, ms, moves, used_j, A_joint, anc, used_m, A_marker,
-                    x, Jq, Jt):
-        """Markers ``x (B, M, 3)`` and, with ``want_jac``, ``Jq (B, M, 3, Q)`` and ``Jt (B, M, 3, P)``.
+                    x, Jq, oq, Jt, ot):
+        """Markers ``x (B, M, 3)`` and, with ``want_jac``, ``dx/dq`` in ``Jq[..., oq:oq + Q]`` and ``dx/dtheta``
+        in ``Jt[..., ot:ot + P]`` (``Jq`` and ``Jt`` may be one array).
 
         ``g (Bg, G)``, ``t_axis (Bg, T, 3)`` and ``t_daxis (Bg, T, 2, 3)`` have ``Bg`` = 1 or ``B``
         rows (one shared by every element, or one each); ``pose (B, Q)``; ``tilt_slots (T, 3)``
@@ -84,7 +85,7 @@ if AVAILABLE:  # pragma: no branch
         S = parent.shape[0]
         M = ms.shape[0]
         nT = t_axis.shape[1]
-        P = Jt.shape[3]
+        P = A_joint.shape[2]
         R = np.empty((S, 3, 3))
         p = np.empty((S, 3))
         Rpar = np.empty((S, 3, 3))
@@ -192,18 +193,18 @@ if AVAILABLE:  # pragma: no branch
                     mv = moves[k, m]
                     if is_t[k]:
                         for a in range(3):
-                            Jq[b, m, a, k] = w[k, a] * mv
+                            Jq[b, m, a, oq + k] = w[k, a] * mv
                     else:
                         r0 = x[b, m, 0] - piv[k, 0]
                         r1 = x[b, m, 1] - piv[k, 1]
                         r2 = x[b, m, 2] - piv[k, 2]
-                        Jq[b, m, 0, k] = (w[k, 1] * r2 - w[k, 2] * r1) * mv
-                        Jq[b, m, 1, k] = (w[k, 2] * r0 - w[k, 0] * r2) * mv
-                        Jq[b, m, 2, k] = (w[k, 0] * r1 - w[k, 1] * r0) * mv
+                        Jq[b, m, 0, oq + k] = (w[k, 1] * r2 - w[k, 2] * r1) * mv
+                        Jq[b, m, 1, oq + k] = (w[k, 2] * r0 - w[k, 0] * r2) * mv
+                        Jq[b, m, 2, oq + k] = (w[k, 0] * r1 - w[k, 1] * r0) * mv
             for m in range(M):
                 for a in range(3):
                     for c in range(P):
-                        Jt[b, m, a, c] = 0.0
+                        Jt[b, m, a, ot + c] = 0.0
             for jj in range(used_j.shape[0]):
                 s = used_j[jj]
                 for a in range(3):
@@ -215,13 +216,13 @@ if AVAILABLE:  # pragma: no branch
                     if f != 0.0:
                         for a in range(3):
                             for c in range(P):
-                                Jt[b, m, a, c] += f * RA[a, c]
+                                Jt[b, m, a, ot + c] += f * RA[a, c]
             for mm in range(used_m.shape[0]):
                 m = used_m[mm]
                 s = ms[m]
                 for a in range(3):
                     for c in range(P):
-                        Jt[b, m, a, c] += (R[s, a, 0] * A_marker[mm, 0, c] + R[s, a, 1] * A_marker[mm, 1, c]
+                        Jt[b, m, a, ot + c] += (R[s, a, 0] * A_marker[mm, 0, c] + R[s, a, 1] * A_marker[mm, 1, c]
                                            + R[s, a, 2] * A_marker[mm, 2, c])
             for j in range(nT):
                 k = tilt_slots[j, 0]
@@ -235,21 +236,21 @@ if AVAILABLE:  # pragma: no branch
                         r0 = x[b, m, 0] - piv[k, 0]
                         r1 = x[b, m, 1] - piv[k, 1]
                         r2 = x[b, m, 2] - piv[k, 2]
-                        Jt[b, m, 0, kp] += (o1 * r2 - o2 * r1) * mv
-                        Jt[b, m, 1, kp] += (o2 * r0 - o0 * r2) * mv
-                        Jt[b, m, 2, kp] += (o0 * r1 - o1 * r0) * mv
+                        Jt[b, m, 0, ot + kp] += (o1 * r2 - o2 * r1) * mv
+                        Jt[b, m, 1, ot + kp] += (o2 * r0 - o0 * r2) * mv
+                        Jt[b, m, 2, ot + kp] += (o0 * r1 - o1 * r0) * mv
 
 
 if AVAILABLE:  # pragma: no branch
 
     @_jit
     def _kinematics_planar(g, pose, want_jac, parent, seg_dofs, n_dofs, is_t, dof_axis, dof_seg, ms, moves,
-                           used_j, A_joint, anc, used_m, A_marker, x, Jq, Jt):
+                           used_j, A_joint, anc, used_m, A_marker, x, Jq, oq, Jt, ot):
         """The planar form of :func:`_kinematics`: one angle per segment (see ``_forward_planar``)."""
         B, Q = pose.shape
         S = parent.shape[0]
         M = ms.shape[0]
-        P = Jt.shape[3]
+        P = A_joint.shape[2]
         phi = np.zeros(S)
         cs = np.empty(S + 1)
         sn = np.empty(S + 1)
@@ -296,15 +297,15 @@ if AVAILABLE:  # pragma: no branch
                     if is_t[k]:
                         par = parent[i] if parent[i] >= 0 else S
                         a0, a1 = dof_axis[k, 0], dof_axis[k, 1]
-                        Jq[b, m, 0, k] = (cs[par] * a0 - sn[par] * a1) * mv
-                        Jq[b, m, 1, k] = (sn[par] * a0 + cs[par] * a1) * mv
+                        Jq[b, m, 0, oq + k] = (cs[par] * a0 - sn[par] * a1) * mv
+                        Jq[b, m, 1, oq + k] = (sn[par] * a0 + cs[par] * a1) * mv
                     else:
-                        Jq[b, m, 0, k] = -(x[b, m, 1] - p[i, 1]) * mv
-                        Jq[b, m, 1, k] = (x[b, m, 0] - p[i, 0]) * mv
+                        Jq[b, m, 0, oq + k] = -(x[b, m, 1] - p[i, 1]) * mv
+                        Jq[b, m, 1, oq + k] = (x[b, m, 0] - p[i, 0]) * mv
             for m in range(M):
                 for a in range(2):
                     for c in range(P):
-                        Jt[b, m, a, c] = 0.0
+                        Jt[b, m, a, ot + c] = 0.0
             for jj in range(used_j.shape[0]):
                 s = used_j[jj]
                 par = parent[s] if parent[s] >= 0 else S
@@ -316,25 +317,29 @@ if AVAILABLE:  # pragma: no branch
                     if f != 0.0:
                         for a in range(2):
                             for c in range(P):
-                                Jt[b, m, a, c] += f * RA[a, c]
+                                Jt[b, m, a, ot + c] += f * RA[a, c]
             for mm in range(used_m.shape[0]):
                 m = used_m[mm]
                 s = ms[m]
                 for c in range(P):
-                    Jt[b, m, 0, c] += cs[s] * A_marker[mm, 0, c] + (-sn[s]) * A_marker[mm, 1, c]
-                    Jt[b, m, 1, c] += sn[s] * A_marker[mm, 0, c] + cs[s] * A_marker[mm, 1, c]
+                    Jt[b, m, 0, ot + c] += cs[s] * A_marker[mm, 0, c] + (-sn[s]) * A_marker[mm, 1, c]
+                    Jt[b, m, 1, ot + c] += sn[s] * A_marker[mm, 0, c] + cs[s] * A_marker[mm, 1, c]
 
 
 def _rows(a: np.ndarray, batch: tuple, tail: tuple) -> np.ndarray:
     """``a (..., *tail)`` as ``(1, *tail)`` when it has no batch axes, else ``(B, *tail)`` (contiguous)."""
     if a.ndim == len(tail):
-        out = np.ascontiguousarray(a.reshape((1,) + tail))
+        out = a.reshape((1,) + tail)
+    elif a.shape[:-len(tail)] == batch:
+        out = a.reshape((-1,) + tail)
     else:
-        out = np.ascontiguousarray(np.broadcast_to(a, batch + tail).reshape((-1,) + tail))
+        out = np.broadcast_to(a, batch + tail).reshape((-1,) + tail)
+    if not out.flags.c_contiguous:
+        out = np.ascontiguousarray(out)
     return out if out.flags.writeable else out.copy()  # one compiled signature: writeable arrays
 
 
-def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True):
+def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True, stacked: bool = False):
     """Markers and, with ``want_jac``, both Jacobians by the compiled driver.
 
     Parameters
@@ -347,46 +352,58 @@ def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True):
     pose : (..., Q) float
     theta : (..., P) float
         For the tilted hinges' axes.
+    stacked : bool
+        Return ``[dx/dtheta, dx/dq]`` as one ``(..., M, D, P + Q)`` array instead of the two.
 
     Returns
     -------
-    x : (..., M, 3)
-    J_pose : (..., M, 3, Q) or None
-    J_theta : (..., M, 3, P) or None
+    x : (..., M, D)
+    J_pose : (..., M, D, Q) or None
+    J_theta : (..., M, D, P) or None
+        Or, with ``stacked``, ``x`` and the ``(..., M, D, P + Q)`` array.
     """
-    from skelid.model.kinematics import tilted_axes
-
     batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1], np.shape(theta)[:-1])
     B = int(np.prod(batch, dtype=np.int64))
     M, Q, P, D = plan.n_markers, plan.n_pose, plan.n_params, plan.dim
-    tilts = model.axis_tilts
     gg = _rows(g, batch, g.shape[-1:])
     qq = _rows(pose, batch, (Q,))
     if qq.shape[0] != B:
         qq = np.broadcast_to(qq, (B, Q)).copy()
     parent, seg_dofs, n_dofs, is_t, axis, skew, skew2, tilt, ms, moves, uj, Aj, anc, um, Am, _, dof_seg = tables
     x = np.empty((B, M, D))
-    Jq = np.empty((B, M, D, Q) if want_jac else (1, M, D, Q))
-    Jt = np.empty((B, M, D, P) if want_jac else (1, M, D, P))
+    if not want_jac:
+        Jq = Jt = np.empty((1, M, D, P + Q))
+        oq, ot = P, 0
+    elif stacked:
+        Jq = Jt = np.empty((B, M, D, P + Q))
+        oq, ot = P, 0
+    else:
+        Jq, Jt = np.empty((B, M, D, Q)), np.empty((B, M, D, P))
+        oq = ot = 0
     if plan.planar:
         _kinematics_planar(gg, qq, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, dof_seg, ms, moves, uj,
-                           Aj, anc, um, Am, x, Jq, Jt)
-        x = x.reshape(batch + (M, D))
-        if not want_jac:
-            return x, None, None
-        return x, Jq.reshape(batch + (M, D, Q)), Jt.reshape(batch + (M, D, P))
-    if tilts:
-        ax, dax = tilted_axes(model, theta)
-        t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
-        slots = np.array([[t[0], t[1], t[2]] for t in tilts], dtype=np.int64)
+                           Aj, anc, um, Am, x, Jq, oq, Jt, ot)
     else:
-        t_axis, t_daxis, slots = np.zeros((1, 0, 3)), np.zeros((1, 0, 2, 3)), np.zeros((0, 3), dtype=np.int64)
-    _kinematics(gg, qq, t_axis, t_daxis, slots, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, skew, skew2,
-                tilt, ms, moves, uj, Aj, anc, um, Am, x, Jq, Jt)
-    x = x.reshape(batch + (M, 3))
+        tilts = model.axis_tilts
+        if tilts:
+            from skelid.model.kinematics import tilted_axes
+
+            ax, dax = tilted_axes(model, theta)
+            t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
+            slots = np.array([[t[0], t[1], t[2]] for t in tilts], dtype=np.int64)
+        else:
+            t_axis, t_daxis, slots = _NO_TILT
+        _kinematics(gg, qq, t_axis, t_daxis, slots, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, skew,
+                    skew2, tilt, ms, moves, uj, Aj, anc, um, Am, x, Jq, oq, Jt, ot)
+    x = x.reshape(batch + (M, D))
     if not want_jac:
         return x, None, None
-    return x, Jq.reshape(batch + (M, 3, Q)), Jt.reshape(batch + (M, 3, P))
+    if stacked:
+        return x, Jq.reshape(batch + (M, D, P + Q))
+    return x, Jq.reshape(batch + (M, D, Q)), Jt.reshape(batch + (M, D, P))
+
+
+_NO_TILT = (np.zeros((1, 0, 3)), np.zeros((1, 0, 2, 3)), np.zeros((0, 3), dtype=np.int64))
 
 
 # ------------------------------------------------------------------ which path, and warming the cache
@@ -402,12 +419,13 @@ def _example_args(planar: bool) -> tuple:
     if planar:
         return (f((1, 4)), f((1, 1)), True, np.full(1, -1, i), np.zeros((1, 1), i), np.ones(1, i),
                 np.zeros(1, np.bool_), f((1, 2)), np.zeros(1, i), np.zeros(1, i), f((1, 1)), np.zeros(0, i),
-                f((0, 2, 1)), f((0, 1)), np.zeros(0, i), f((0, 2, 1)), f((1, 1, 2)), f((1, 1, 2, 1)),
-                f((1, 1, 2, 1)))
+                f((0, 2, 1)), f((0, 1)), np.zeros(0, i), f((0, 2, 1)), f((1, 1, 2)), f((1, 1, 2, 1)), 0,
+                f((1, 1, 2, 1)), 0)
     return (f((1, 6)), f((1, 1)), f((1, 0, 3)), f((1, 0, 2, 3)), np.zeros((0, 3), i), True,
             np.full(1, -1, i), np.zeros((1, 1), i), np.ones(1, i), np.zeros(1, np.bool_), f((1, 3)),
             f((1, 3, 3)), f((1, 3, 3)), np.full(1, -1, i), np.zeros(1, i), f((1, 1)), np.zeros(0, i),
-            f((0, 3, 1)), f((0, 1)), np.zeros(0, i), f((0, 3, 1)), f((1, 1, 3)), f((1, 1, 3, 1)), f((1, 1, 3, 1)))
+            f((0, 3, 1)), f((0, 1)), np.zeros(0, i), f((0, 3, 1)), f((1, 1, 3)), f((1, 1, 3, 1)), 0,
+            f((1, 1, 3, 1)), 0)
 
 
 def _driver(planar: bool):

@@ -737,6 +737,24 @@ def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
     return kin.markers, pose_jacobian(model, kin, ws), theta_jacobian(model, kin, ws)
 
 
+def stacked_jacobian(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
+    """Both Jacobians side by side, ``[dx/dtheta, dx/dq]``: ``(..., M, D, P + Q)``.
+
+    What :func:`marker_jacobian` gives, concatenated (the compiled path writes them
+    into one array).
+    """
+    if ws is None:
+        ws = Workspace(model)
+    tables = _fk_tables(model, ws.plan, ws)
+    if tables is not None:
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape[-1:] != (ws.plan.n_pose,):
+            raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
+        return _fk_kernel.kinematics(model, ws.plan, tables, geometry(model, theta), pose, theta, stacked=True)[1]
+    _, Jq, Jt = marker_jacobian(model, theta, pose, ws)
+    return np.concatenate([Jt, Jq], axis=-1)
+
+
 def _fk_tables(model: Model, plan: KinematicsPlan, ws: Workspace | None):
     """The compiled kinematics' tables for this call, or None for the numpy path.
 
