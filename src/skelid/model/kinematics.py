@@ -247,10 +247,11 @@ def geometry(model: Model, theta) -> np.ndarray:
 def _skew(a: np.ndarray) -> np.ndarray:
     """Cross-product matrices ``(..., 3, 3)`` of vectors ``(..., 3)``."""
     a = np.asarray(a, dtype=float)
-    z = np.zeros(a.shape[:-1])
-    return np.stack([np.stack([z, -a[..., 2], a[..., 1]], -1),
-                     np.stack([a[..., 2], z, -a[..., 0]], -1),
-                     np.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+    K = np.zeros(a.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -a[..., 2], a[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = a[..., 2], -a[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -a[..., 1], a[..., 0]
+    return K
 
 
 def _rotation(dim: int, axis, angle: np.ndarray) -> np.ndarray:
