@@ -98,7 +98,10 @@ if AVAILABLE:  # pragma: no branch
         Kt = np.empty((3, 3))
         Kt2 = np.empty((3, 3))
         dw = np.empty((2, 3))
-        RA = np.empty((3, P))
+        Cum = np.empty((S, 3, P))
+        jmap = np.full(S, -1, dtype=np.int64)  # segment -> its row of A_joint, -1 if theta does not move it
+        for jj in range(used_j.shape[0]):
+            jmap[used_j[jj]] = jj
         shared_g = g.shape[0] == 1
         shared_t = t_axis.shape[0] == 1
         for b in range(B):
@@ -201,22 +204,23 @@ if AVAILABLE:  # pragma: no branch
                         Jq[b, m, 0, oq + k] = (w[k, 1] * r2 - w[k, 2] * r1) * mv
                         Jq[b, m, 1, oq + k] = (w[k, 2] * r0 - w[k, 0] * r2) * mv
                         Jq[b, m, 2, oq + k] = (w[k, 0] * r1 - w[k, 1] * r0) * mv
+            # sum of R_wp A_j over the joints at and above each segment (parents come first, so this
+            # adds the joints in the order of the numpy path's sum over the ancestors)
+            for i in range(S):
+                par = parent[i]
+                jj = jmap[i]
+                for a in range(3):
+                    for c in range(P):
+                        v = 0.0 if par < 0 else Cum[par, a, c]
+                        if jj >= 0:
+                            v = v + (Rpar[i, a, 0] * A_joint[jj, 0, c] + Rpar[i, a, 1] * A_joint[jj, 1, c]
+                                     + Rpar[i, a, 2] * A_joint[jj, 2, c])
+                        Cum[i, a, c] = v
             for m in range(M):
+                s = ms[m]
                 for a in range(3):
                     for c in range(P):
-                        Jt[b, m, a, ot + c] = 0.0
-            for jj in range(used_j.shape[0]):
-                s = used_j[jj]
-                for a in range(3):
-                    for c in range(P):
-                        RA[a, c] = (Rpar[s, a, 0] * A_joint[jj, 0, c] + Rpar[s, a, 1] * A_joint[jj, 1, c]
-                                    + Rpar[s, a, 2] * A_joint[jj, 2, c])
-                for m in range(M):
-                    f = anc[jj, m]
-                    if f != 0.0:
-                        for a in range(3):
-                            for c in range(P):
-                                Jt[b, m, a, ot + c] += f * RA[a, c]
+                        Jt[b, m, a, ot + c] = Cum[s, a, c]
             for mm in range(used_m.shape[0]):
                 m = used_m[mm]
                 s = ms[m]
