@@ -64,10 +64,11 @@ def _banded(Hqq, R, R_band=None):
     T, Q = Hqq.shape[:2]
     ab = (penalty_band(R, Q) if R_band is None else R_band).copy()
     u = ab.shape[0] - 1
-    base = np.arange(T)[:, None] * Q
-    for off in range(Q):
-        b = np.arange(off, Q)
-        ab[u - off, (base + b).ravel()] += Hqq[:, b - off, b].ravel()
+    # every entry (a, b), a <= b, of each frame's block lands on its own place of the band: one
+    # scattered addition (each place is hit once, so the sums are those of a loop over the entries)
+    a, b = np.triu_indices(Q)
+    col = (np.arange(T)[:, None] * Q + b).ravel()
+    ab[np.broadcast_to(u - (b - a), (T, a.size)).ravel(), col] += Hqq[:, a, b].ravel()
     return ab
 
 
