@@ -67,6 +67,15 @@ def plan_tables(plan) -> tuple | None:
             plan.dof_segment.astype(np.int64))
 
 
+def tilt_tables(model) -> tuple | None:
+    """The tilted hinges' arrays (:func:`~skelid.model.kinematics.tilt_arrays`) and slots, or None."""
+    from skelid.model.kinematics import tilt_arrays
+
+    if not model.axis_tilts:
+        return None
+    return tilt_arrays(model), np.array([[t[0], t[1], t[2]] for t in model.axis_tilts], dtype=np.int64)
+
+
 if AVAILABLE:  # pragma: no branch
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
@@ -343,7 +352,7 @@ def _rows(a: np.ndarray, batch: tuple, tail: tuple) -> np.ndarray:
     return out if out.flags.writeable else out.copy()  # one compiled signature: writeable arrays
 
 
-def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True, stacked: bool = False):
+def kinematics(model, plan, tables, tilts, g, pose, theta, want_jac: bool = True, stacked: bool = False):
     """Markers and, with ``want_jac``, both Jacobians by the compiled driver.
 
     Parameters
@@ -351,6 +360,8 @@ def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True, stack
     plan : KinematicsPlan
     tables : tuple
         :func:`plan_tables` of ``plan``.
+    tilts : tuple or None
+        :func:`tilt_tables` of the model.
     g : (..., G) float
         Geometry (``g_base + theta A^T``).
     pose : (..., Q) float
@@ -388,13 +399,12 @@ def kinematics(model, plan, tables, g, pose, theta, want_jac: bool = True, stack
         _kinematics_planar(gg, qq, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, dof_seg, ms, moves, uj,
                            Aj, anc, um, Am, x, Jq, oq, Jt, ot)
     else:
-        tilts = model.axis_tilts
-        if tilts:
-            from skelid.model.kinematics import tilted_axes
+        if tilts is not None:
+            from skelid.model.kinematics import tilted_axes_from
 
-            ax, dax = tilted_axes(model, theta)
+            ax, dax = tilted_axes_from(tilts[0], theta)
             t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
-            slots = np.array([[t[0], t[1], t[2]] for t in tilts], dtype=np.int64)
+            slots = tilts[1]
         else:
             t_axis, t_daxis, slots = _NO_TILT
         _kinematics(gg, qq, t_axis, t_daxis, slots, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, skew,

@@ -283,14 +283,22 @@ def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
     """
     theta = np.asarray(theta, dtype=float)
     tilts = model.axis_tilts
-    batch = theta.shape[:-1]
     if not tilts:
+        batch = theta.shape[:-1]
         return np.zeros(batch + (0, 3)), np.zeros(batch + (0, 2, 3))
-    ku = np.array([t[1] for t in tilts])
-    kv = np.array([t[2] for t in tilts])
-    e = np.array([t[3] for t in tilts])
-    u = np.array([t[4] for t in tilts])
-    v = np.array([t[5] for t in tilts])
+    return tilted_axes_from(tilt_arrays(model), theta)
+
+
+def tilt_arrays(model: Model) -> tuple:
+    """``(ku, kv, e, u, v)`` of the model's tilted hinges as arrays (see :attr:`Model.axis_tilts`)."""
+    tilts = model.axis_tilts
+    return tuple(np.array([t[i] for t in tilts]) for i in range(1, 6))
+
+
+def tilted_axes_from(arrays: tuple, theta) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`tilted_axes` from the model's :func:`tilt_arrays` (at least one tilted hinge)."""
+    ku, kv, e, u, v = arrays
+    theta = np.asarray(theta, dtype=float)
     al = np.where(ku >= 0, np.radians(theta[..., np.maximum(ku, 0)]), 0.0)[..., None]
     be = np.where(kv >= 0, np.radians(theta[..., np.maximum(kv, 0)]), 0.0)[..., None]
     ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
@@ -590,7 +598,7 @@ def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> 
     g = geometry(model, theta)
     tables = _fk_tables(model, plan, ws)
     if tables is not None:
-        return _fk_kernel.kinematics(model, plan, tables, g, pose, theta, want_jac=False)[0]
+        return _fk_kernel.kinematics(model, plan, *tables, g, pose, theta, want_jac=False)[0]
     if plan.planar:  # the markers alone: no joint axes or orientations
         return _forward_planar(plan, g, pose, markers_only=True)
     return _forward_general(plan, g, pose, tilt_tables(model, theta), want_omega=False).markers
@@ -733,7 +741,7 @@ def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
         pose = np.asarray(pose, dtype=float)
         if pose.shape[-1:] != (ws.plan.n_pose,):
             raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
-        return _fk_kernel.kinematics(model, ws.plan, tables, geometry(model, theta), pose, theta)
+        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), pose, theta)
     kin = forward_kinematics(model, theta, pose, ws)
     return kin.markers, pose_jacobian(model, kin, ws), theta_jacobian(model, kin, ws)
 
@@ -751,13 +759,14 @@ def stacked_jacobian(model: Model, theta, pose, ws: Workspace | None = None) -> 
         pose = np.asarray(pose, dtype=float)
         if pose.shape[-1:] != (ws.plan.n_pose,):
             raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
-        return _fk_kernel.kinematics(model, ws.plan, tables, geometry(model, theta), pose, theta, stacked=True)[1]
+        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), pose, theta,
+                                     stacked=True)[1]
     _, Jq, Jt = marker_jacobian(model, theta, pose, ws)
     return np.concatenate([Jt, Jq], axis=-1)
 
 
 def _fk_tables(model: Model, plan: KinematicsPlan, ws: Workspace | None):
-    """The compiled kinematics' tables for this call, or None for the numpy path.
+    """The compiled kinematics' tables and tilted-hinge tables for this call, or None for the numpy path.
 
     A planar model, or a spatial one without custom joints, takes the compiled path
     when numba can run it now (:func:`skelid.model._fk_kernel.ready`); a workspace
@@ -768,6 +777,8 @@ def _fk_tables(model: Model, plan: KinematicsPlan, ws: Workspace | None):
     if ws is not None and ws.fk_tables is not None:
         return ws.fk_tables or None
     tables = _fk_kernel.plan_tables(plan) if _fk_kernel.ready(bool(plan.planar)) else None
+    if tables is not None:
+        tables = (tables, _fk_kernel.tilt_tables(model))
     if ws is not None:
         ws.fk_tables = tables if tables is not None else False
     return tables
