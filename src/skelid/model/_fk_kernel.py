@@ -29,6 +29,7 @@ compiled (compiling first if need be).
 
 from __future__ import annotations
 
+import math
 import os
 import time
 
@@ -377,8 +378,9 @@ def kinematics(model, plan, tables, tilts, g, pose, theta, want_jac: bool = True
     J_theta : (..., M, D, P) or None
         Or, with ``stacked``, ``x`` and the ``(..., M, D, P + Q)`` array.
     """
-    batch = np.broadcast_shapes(g.shape[:-1], pose.shape[:-1], np.shape(theta)[:-1])
-    B = int(np.prod(batch, dtype=np.int64))
+    gb, pb = g.shape[:-1], pose.shape[:-1]  # g's batch axes are theta's
+    batch = gb if gb == pb or not pb else pb if not gb else np.broadcast_shapes(gb, pb)
+    B = math.prod(batch)
     M, Q, P, D = plan.n_markers, plan.n_pose, plan.n_params, plan.dim
     gg = _rows(g, batch, g.shape[-1:])
     qq = _rows(pose, batch, (Q,))
