@@ -36,6 +36,7 @@ def pytest_sessionstart(session):
     for planar in (True, False):  # compile both drivers on the side while the first tests run
         _lm_kernel.warm(planar, wait=False)
         _fk_kernel.warm(planar, wait=False)
+    _fk_kernel.warm("band", wait=False)
 
 
 def pytest_terminal_summary(terminalreporter):

@@ -47,3 +47,30 @@ def test_lower_limb_fit_steps_and_bias_agree_on_both_kinematics_paths(shared_dat
     np.testing.assert_allclose(fit.info, fit0.info, rtol=1e-9, atol=1e-9 * np.abs(fit0.info).max())
     # the bias's finite differences of the Jacobians at one point
     assert np.all(np.abs(bias - bias0) <= 1e-7 * sd)
+
+
+@needs_kernel
+@pytest.mark.parametrize("T, Q", [(200, 4), (40, 18), (30, 1)])
+def test_compiled_selected_inversion_equals_the_numpy_sweep(T, Q):
+    import scipy.sparse as sp
+    from scipy.linalg import cholesky_banded
+
+    from skelid.estimators.joint import _banded_system, _dense_from_banded, _selected_inverse_by_blocks
+
+    rng = np.random.default_rng(T + Q)
+    A = rng.normal(size=(T, Q, Q))
+    H = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(Q)
+    D3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(T - 3, T))
+    ab = _banded_system(H, sp.kron(D3.T @ D3, sp.diags(rng.random(Q) + 0.5)).tocsc())
+    u, n = ab.shape[0] - 1, ab.shape[1]
+    cb = cholesky_banded(ab, lower=False)
+    Ub = np.zeros((n + u, u + 1))
+    for d in range(u + 1):
+        Ub[:n - d, d] = cb[u - d, d:]
+    compiled = _fk_kernel.band_inverse_blocks(Ub, Q, T)
+    plain = _selected_inverse_by_blocks(Ub, Q, T)
+    np.testing.assert_allclose(compiled, plain, rtol=0, atol=1e-13 * np.abs(plain).max())
+    dense = np.linalg.inv(_dense_from_banded(ab))  # and both are the diagonal blocks of the inverse
+    idx = np.arange(T)[:, None] * Q + np.arange(Q)
+    np.testing.assert_allclose(compiled, dense[idx[:, :, None], idx[:, None, :]], rtol=1e-9,
+                               atol=1e-9 * np.abs(plain).max())

@@ -41,6 +41,7 @@ from typing import NamedTuple
 import numpy as np
 
 from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
+from skelid.model import _fk_kernel
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions, stacked_jacobian
 
@@ -148,6 +149,10 @@ def band_inverse_blocks(ab, Q: int) -> np.ndarray:
     for d in range(u + 1):
         Ub[:n - d, d] = cb[u - d, d:]
     if u >= Q and n % Q == 0:
+        # the same sweep compiled (same values to rounding): far quicker on narrow bands, where the
+        # numpy loop is Python overhead; on wide ones (u > 32) BLAS products of the blocks win
+        if u <= 32 and _fk_kernel.ready("band"):
+            return _fk_kernel.band_inverse_blocks(Ub, Q, T)
         return _selected_inverse_by_blocks(Ub, Q, T)
     Zb = np.zeros((n, u + 1))  # Zb[i, d] = Z[i, i + d]
     W = np.zeros((u + 1, u + 1))  # Z[i:i+u+1, i:i+u+1] as the sweep moves up

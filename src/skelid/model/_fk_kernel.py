@@ -340,6 +340,97 @@ if AVAILABLE:  # pragma: no branch
                     Jt[b, m, 1, ot + c] += sn[s] * A_marker[mm, 0, c] + cs[s] * A_marker[mm, 1, c]
 
 
+if AVAILABLE:  # pragma: no branch
+
+    @_jit
+    def _band_inverse_blocks(Ub, Q, T):
+        """Diagonal ``(Q, Q)`` blocks of ``A^{-1}`` from ``A``'s banded Cholesky factor, one frame at a time.
+
+        ``Ub[i, d] = U[i, i + d]`` (rows past the end zero). The same sweep as
+        :func:`skelid.estimators.joint._selected_inverse_by_blocks`, compiled: with frame
+        ``I`` and the ``u`` rows ``F`` after it, ``Z_IF = -U_II^{-1} U_IF Z_FF`` and
+        ``Z_II = U_II^{-1} (U_II^{-T} - U_IF Z_FI)``.
+        """
+        u = Ub.shape[1] - 1
+        out = np.empty((T, Q, Q))
+        W = np.zeros((u, u))
+        Wn = np.empty((u, u))
+        Ui = np.empty((Q, Q))
+        UF = np.empty((Q, u))
+        X = np.empty((Q, u))
+        ZF = np.empty((Q, u))
+        Y = np.empty((Q, Q))
+        for t in range(T - 1, -1, -1):
+            base = t * Q
+            # U_IF (Q, u) and the inverse of the upper triangular U_II by back substitution
+            for r in range(Q):
+                for j in range(u):
+                    d = Q + j - r
+                    UF[r, j] = Ub[base + r, d] if d <= u else 0.0
+            for c in range(Q - 1, -1, -1):
+                for r in range(Q):
+                    Ui[r, c] = 0.0
+                Ui[c, c] = 1.0 / Ub[base + c, 0]
+                for r in range(c - 1, -1, -1):
+                    acc = 0.0
+                    for k in range(r + 1, c + 1):
+                        acc += Ub[base + r, k - r] * Ui[k, c]
+                    Ui[r, c] = -acc / Ub[base + r, 0]
+            for r in range(Q):  # X = U_IF W
+                for j in range(u):
+                    acc = 0.0
+                    for k in range(u):
+                        acc += UF[r, k] * W[k, j]
+                    X[r, j] = acc
+            for r in range(Q):  # Z_IF = -U_II^{-1} X
+                for j in range(u):
+                    acc = 0.0
+                    for k in range(r, Q):
+                        acc += Ui[r, k] * X[k, j]
+                    ZF[r, j] = -acc
+            for r in range(Q):  # Y = U_II^{-T} - U_IF Z_IF^T
+                for c in range(Q):
+                    acc = 0.0
+                    for k in range(u):
+                        acc += UF[r, k] * ZF[c, k]
+                    Y[r, c] = Ui[c, r] - acc
+            for r in range(Q):  # Z_II = U_II^{-1} Y, symmetrised
+                for c in range(Q):
+                    acc = 0.0
+                    for k in range(r, Q):
+                        acc += Ui[r, k] * Y[k, c]
+                    out[t, r, c] = acc
+            for r in range(Q):
+                for c in range(r + 1, Q):
+                    v = 0.5 * (out[t, r, c] + out[t, c, r])
+                    out[t, r, c] = v
+                    out[t, c, r] = v
+            for r in range(Q):
+                for c in range(Q):
+                    Wn[r, c] = out[t, r, c]
+                for j in range(u - Q):
+                    Wn[r, Q + j] = ZF[r, j]
+                    Wn[Q + j, r] = ZF[r, j]
+            for i in range(u - Q):
+                for j in range(u - Q):
+                    Wn[Q + i, Q + j] = W[i, j]
+            for i in range(u):
+                for j in range(u):
+                    W[i, j] = Wn[i, j]
+        return out
+
+
+def band_inverse_blocks(Ub: np.ndarray, Q: int, T: int) -> np.ndarray:
+    """Diagonal ``(T, Q, Q)`` blocks of the inverse from the band of its Cholesky factor (compiled).
+
+    Parameters
+    ----------
+    Ub : (T*Q + u, u + 1) float
+        ``Ub[i, d] = U[i, i + d]`` with ``u >= Q`` superdiagonals.
+    """
+    return _band_inverse_blocks(np.ascontiguousarray(Ub, dtype=float), int(Q), int(T))
+
+
 def _rows(a: np.ndarray, batch: tuple, tail: tuple) -> np.ndarray:
     """``a (..., *tail)`` as ``(1, *tail)`` when it has no batch axes, else ``(B, *tail)`` (contiguous)."""
     if a.ndim == len(tail):
@@ -429,9 +520,13 @@ _warming: dict = {}
 _RECHECK_S = 0.5
 
 
-def _example_args(planar: bool) -> tuple:
+def _example_args(planar) -> tuple:
     """Arguments with the types of every real call of a driver (their values are never used)."""
     f, i = np.zeros, np.int64
+    if planar == "band":
+        Ub = f((3, 3))
+        Ub[:, 0] = 1.0
+        return Ub, 1, 1
     if planar:
         return (f((1, 4)), f((1, 1)), True, np.full(1, -1, i), np.zeros((1, 1), i), np.ones(1, i),
                 np.zeros(1, np.bool_), f((1, 2)), np.zeros(1, i), np.zeros(1, i), f((1, 1)), np.zeros(0, i),
@@ -444,11 +539,13 @@ def _example_args(planar: bool) -> tuple:
             f((1, 1, 3, 1)), 0)
 
 
-def _driver(planar: bool):
+def _driver(planar):
+    if planar == "band":
+        return _band_inverse_blocks
     return _kinematics_planar if planar else _kinematics
 
 
-def _cached(planar: bool) -> bool:
+def _cached(planar: bool | str) -> bool:
     """Whether numba's disk cache holds the driver (True where its index cannot be read)."""
     disp = _driver(planar)
     try:
@@ -460,13 +557,16 @@ def _cached(planar: bool) -> bool:
         return True
 
 
-def compiled(planar: bool) -> bool:
+def compiled(planar: bool | str) -> bool:
     """Whether the driver is already compiled (or loaded) in this process."""
     return AVAILABLE and bool(_driver(planar).signatures)
 
 
-def ready(planar: bool) -> bool:
-    """Whether the compiled driver (planar or spatial) can run now without compiling in this process.
+def ready(planar: bool | str) -> bool:
+    """Whether a compiled driver can run now without compiling in this process.
+
+    ``planar``: True for the planar kinematics, False for the spatial ones,
+    ``"band"`` for the selected inversion of :func:`band_inverse_blocks`.
 
     False without numba (or with ``SKELID_NUMBA=0``); with ``SKELID_NUMBA=wait``
     always True (compiling first if the cache is cold). Otherwise True once
@@ -492,7 +592,7 @@ def ready(planar: bool) -> bool:
     return False
 
 
-def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
+def warm(planar: bool | str, wait: bool = True, timeout: float = 600.0) -> bool:
     """Compile a driver into numba's disk cache in a separate process; whether it is cached."""
     if not AVAILABLE:
         return False
@@ -502,7 +602,7 @@ def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
     return compile_in_background(_warming, planar, code, lambda: _cached(planar), wait, timeout)
 
 
-def _compile_here(planar: bool) -> None:
+def _compile_here(planar: bool | str) -> None:
     """Compile a driver into the cache in this process (one process at a time)."""
     import tempfile
     import zlib
@@ -512,7 +612,7 @@ def _compile_here(planar: bool) -> None:
     except ImportError:  # pragma: no cover - not POSIX: no lock
         fcntl = None
     where = zlib.crc32(os.path.abspath(__file__).encode())
-    kind = "planar" if planar else "spatial"
+    kind = planar if planar == "band" else "planar" if planar else "spatial"
     name = f"skelid-numba-fk-{kind}-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
     with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
         if fcntl is not None:
