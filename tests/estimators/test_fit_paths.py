@@ -22,7 +22,7 @@ def test_lower_limb_fit_steps_and_bias_agree_on_both_kinematics_paths(shared_dat
 
     model = load_model(EXAMPLES / "lower_limb.toml")
     y, rate = marker_array(model, read_markers(shared_data / "opensim-subject01" / "subject01_walk1.trc"), None)
-    y = y[:40]
+    y = y[:30]
     q0, _ = track_poses(model, model.theta_center, y, np.random.default_rng(0), stride=4)
 
     def run():
