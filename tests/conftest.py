@@ -31,9 +31,12 @@ def shared_data():
 
 def pytest_sessionstart(session):
     from skelid.estimators import _lm_kernel
+    from skelid.model import _fk_kernel
 
     for planar in (True, False):  # compile both drivers on the side while the first tests run
         _lm_kernel.warm(planar, wait=False)
+        _fk_kernel.warm(planar, wait=False)
+    _fk_kernel.warm("band", wait=False)
 
 
 def pytest_terminal_summary(terminalreporter):

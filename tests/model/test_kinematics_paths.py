@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from skelid.model import load_model
+from skelid.model import _fk_kernel, load_model
 from skelid.model.kinematics import (
     Workspace,
     _forward_general,
@@ -15,6 +15,8 @@ from skelid.model.kinematics import (
     geometry,
     kinematics_plan,
     marker_jacobian,
+    marker_positions,
+    stacked_jacobian,
     tilt_tables,
 )
 from skelid.simulate import builtin_model
@@ -147,3 +149,28 @@ def test_plan_lives_in_the_workspace_never_in_the_model():
     assert model == other and hash(model) == hash(other)
     with pytest.raises(ValueError, match="workspace belongs"):
         kinematics_plan(builtin_model("case-b"), ws)
+
+
+ALL_MODELS = {**{p.stem: (lambda p=p: load_model(p)) for p in sorted(EXAMPLES.glob("*.toml"))}, **MODELS}
+
+
+@pytest.mark.skipif(not _fk_kernel.AVAILABLE, reason="the compiled kinematics are turned off (SKELID_NUMBA=0)")
+@pytest.mark.parametrize("name", ALL_MODELS)
+def test_compiled_kinematics_equal_the_numpy_path(name):
+    model = ALL_MODELS[name]()
+    compiled, plain = Workspace(model), Workspace(model)
+    plain.fk_tables = False  # the numpy path
+    theta, pose = _draws(model, seed=5)
+    for th, q in ((theta, pose), (theta[0, 0], pose[0]), (theta[:, 0], pose[0, 0])):  # broadcast, shared, per element
+        x, Jq, Jt = marker_jacobian(model, th, q, compiled)
+        assert compiled.fk_tables is not False  # the compiled path was taken
+        x0, Jq0, Jt0 = marker_jacobian(model, th, q, plain)
+        assert x.shape == x0.shape and Jq.shape == Jq0.shape and Jt.shape == Jt0.shape
+        for a, b in ((x, x0), (Jq, Jq0), (Jt, Jt0)):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * max(np.abs(b).max(), 1.0))
+        np.testing.assert_allclose(marker_positions(model, th, q, compiled), x0, rtol=0,
+                                   atol=1e-13 * np.abs(x0).max())
+        both = np.concatenate([Jt0, Jq0], axis=-1)
+        for ws in (compiled, plain):
+            np.testing.assert_allclose(stacked_jacobian(model, th, q, ws), both, rtol=0,
+                                       atol=1e-13 * max(np.abs(both).max(), 1.0))

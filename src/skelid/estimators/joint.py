@@ -41,8 +41,9 @@ from typing import NamedTuple
 import numpy as np
 
 from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
+from skelid.model import _fk_kernel
 from skelid.model.description import Model
-from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions
+from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions, stacked_jacobian
 
 
 def penalty_band(R, Q: int) -> np.ndarray:
@@ -64,10 +65,11 @@ def _banded(Hqq, R, R_band=None):
     T, Q = Hqq.shape[:2]
     ab = (penalty_band(R, Q) if R_band is None else R_band).copy()
     u = ab.shape[0] - 1
-    base = np.arange(T)[:, None] * Q
-    for off in range(Q):
-        b = np.arange(off, Q)
-        ab[u - off, (base + b).ravel()] += Hqq[:, b - off, b].ravel()
+    # every entry (a, b), a <= b, of each frame's block lands on its own place of the band: one
+    # scattered addition (each place is hit once, so the sums are those of a loop over the entries)
+    a, b = np.triu_indices(Q)
+    col = (np.arange(T)[:, None] * Q + b).ravel()
+    ab[np.broadcast_to(u - (b - a), (T, a.size)).ravel(), col] += Hqq[:, a, b].ravel()
     return ab
 
 
@@ -147,6 +149,10 @@ def band_inverse_blocks(ab, Q: int) -> np.ndarray:
     for d in range(u + 1):
         Ub[:n - d, d] = cb[u - d, d:]
     if u >= Q and n % Q == 0:
+        # the same sweep compiled (same values to rounding): far quicker on narrow bands, where the
+        # numpy loop is Python overhead; on wide ones (u > 32) BLAS products of the blocks win
+        if u <= 32 and _fk_kernel.ready("band"):
+            return _fk_kernel.band_inverse_blocks(Ub, Q, T)
         return _selected_inverse_by_blocks(Ub, Q, T)
     Zb = np.zeros((n, u + 1))  # Zb[i, d] = Z[i, i + d]
     W = np.zeros((u + 1, u + 1))  # Z[i:i+u+1, i:i+u+1] as the sweep moves up
@@ -882,8 +888,9 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     """
     P, Q = model.n_params, model.n_pose
     T = len(q)
+    ws = Workspace(model)
     sw = row_weights(weights, np.asarray(y, float))
-    _, Jq, Jt = weighted_terms(model, theta, q, y, sw)
+    _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
     m = Jq.shape[1]
     Hqq = pose_information(Jq)
     Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
@@ -903,8 +910,7 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
         wmask = wmask * sw  # a weighted row's second derivatives scale with it
 
     def jac_full(th, qq):
-        _, a, b = marker_jacobian(model, th, qq)
-        return np.concatenate([b, a], axis=-1).reshape(th.shape[:-1] + (m, P + Q))
+        return stacked_jacobian(model, th, qq, ws).reshape(th.shape[:-1] + (m, P + Q))
 
     # one central difference of the Jacobian along each coordinate of (theta, q_t) gives every
     # second derivative the formula needs: DJ[t, j, i, l] = d^2 f_i / d beta_j d beta_l

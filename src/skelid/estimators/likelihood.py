@@ -51,14 +51,20 @@ def frame_terms(model: Model, theta, q, y, ws=None):
     J_theta : (..., M*D, P) float
     """
     mask = np.isfinite(y).all(axis=-1)
-    y0 = np.where(mask[..., None], y, 0.0)
     x, Jq, Jt = marker_jacobian(model, theta, q, ws)
-    w = mask[..., None].astype(float)
     batch = x.shape[:-2]
-    r = ((y0 - x) * w).reshape(batch + (-1,))
-    Jq = (Jq * w[..., None]).reshape(batch + (-1, model.n_pose))
-    Jt = (Jt * w[..., None]).reshape(batch + (-1, model.n_params))
-    return r, Jq, Jt
+    if mask.all() and np.shape(y) == x.shape:  # nothing missing: no rows to zero
+        r = np.subtract(y, x, out=x)
+    else:
+        w = mask[..., None].astype(float)
+        r = (np.where(mask[..., None], y, 0.0) - x) * w
+        if Jq.shape[:-2] == w.shape[:-1] and Jq.flags.writeable and Jt.flags.writeable:
+            Jq *= w[..., None]  # fresh arrays from the kinematics: zeroed in place
+            Jt *= w[..., None]
+        else:
+            Jq, Jt = Jq * w[..., None], Jt * w[..., None]
+    return (r.reshape(batch + (-1,)), Jq.reshape(batch + (-1, model.n_pose)),
+            Jt.reshape(batch + (-1, model.n_params)))
 
 
 def pose_information(J_pose) -> np.ndarray:

@@ -159,6 +159,10 @@ def _kernel_tables(ws: Workspace) -> tuple | None:
 
 def _batch_last(a, batch, tail) -> np.ndarray:
     """``a (..., *tail)`` broadcast to ``batch + tail`` and stored as ``tail + (B,)``, contiguous."""
+    if not batch:  # one element (the frame-by-frame tracking): a plain copy
+        out = np.empty(tail + (1,))
+        out[..., 0] = a
+        return out
     B = int(np.prod(batch))
     out = np.empty(tail + (B,))
     out.reshape(tail + batch)[...] = np.moveaxis(np.broadcast_to(a, batch + tail),

@@ -43,6 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid.model import _fk_kernel
 from skelid.model.description import Model
 
 
@@ -133,6 +134,7 @@ class Workspace:
         self.plan = _build_plan(model)
         self.compiled = bool(compiled)
         self.kernel_tables = None  # set by skelid.estimators.pose on the compiled path
+        self.fk_tables = None  # the compiled kinematics' tables (False: numpy path), decided on first use
 
     @property
     def path(self) -> str:
@@ -245,10 +247,11 @@ def geometry(model: Model, theta) -> np.ndarray:
 def _skew(a: np.ndarray) -> np.ndarray:
     """Cross-product matrices ``(..., 3, 3)`` of vectors ``(..., 3)``."""
     a = np.asarray(a, dtype=float)
-    z = np.zeros(a.shape[:-1])
-    return np.stack([np.stack([z, -a[..., 2], a[..., 1]], -1),
-                     np.stack([a[..., 2], z, -a[..., 0]], -1),
-                     np.stack([-a[..., 1], a[..., 0], z], -1)], -2)
+    K = np.zeros(a.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -a[..., 2], a[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = a[..., 2], -a[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -a[..., 1], a[..., 0]
+    return K
 
 
 def _rotation(dim: int, axis, angle: np.ndarray) -> np.ndarray:
@@ -280,14 +283,22 @@ def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
     """
     theta = np.asarray(theta, dtype=float)
     tilts = model.axis_tilts
-    batch = theta.shape[:-1]
     if not tilts:
+        batch = theta.shape[:-1]
         return np.zeros(batch + (0, 3)), np.zeros(batch + (0, 2, 3))
-    ku = np.array([t[1] for t in tilts])
-    kv = np.array([t[2] for t in tilts])
-    e = np.array([t[3] for t in tilts])
-    u = np.array([t[4] for t in tilts])
-    v = np.array([t[5] for t in tilts])
+    return tilted_axes_from(tilt_arrays(model), theta)
+
+
+def tilt_arrays(model: Model) -> tuple:
+    """``(ku, kv, e, u, v)`` of the model's tilted hinges as arrays (see :attr:`Model.axis_tilts`)."""
+    tilts = model.axis_tilts
+    return tuple(np.array([t[i] for t in tilts]) for i in range(1, 6))
+
+
+def tilted_axes_from(arrays: tuple, theta) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`tilted_axes` from the model's :func:`tilt_arrays` (at least one tilted hinge)."""
+    ku, kv, e, u, v = arrays
+    theta = np.asarray(theta, dtype=float)
     al = np.where(ku >= 0, np.radians(theta[..., np.maximum(ku, 0)]), 0.0)[..., None]
     be = np.where(kv >= 0, np.radians(theta[..., np.maximum(kv, 0)]), 0.0)[..., None]
     ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
@@ -585,6 +596,9 @@ def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> 
     if pose.shape[-1:] != (plan.n_pose,):
         raise ValueError(f"pose must end in {plan.n_pose} coordinates, got shape {pose.shape}")
     g = geometry(model, theta)
+    tables = _fk_tables(model, plan, ws)
+    if tables is not None:
+        return _fk_kernel.kinematics(model, plan, *tables, g, pose, theta, want_jac=False)[0]
     if plan.planar:  # the markers alone: no joint axes or orientations
         return _forward_planar(plan, g, pose, markers_only=True)
     return _forward_general(plan, g, pose, tilt_tables(model, theta), want_omega=False).markers
@@ -722,5 +736,49 @@ def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
     """
     if ws is None:
         ws = Workspace(model)
+    tables = _fk_tables(model, ws.plan, ws)
+    if tables is not None:
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape[-1:] != (ws.plan.n_pose,):
+            raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
+        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), pose, theta)
     kin = forward_kinematics(model, theta, pose, ws)
     return kin.markers, pose_jacobian(model, kin, ws), theta_jacobian(model, kin, ws)
+
+
+def stacked_jacobian(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
+    """Both Jacobians side by side, ``[dx/dtheta, dx/dq]``: ``(..., M, D, P + Q)``.
+
+    What :func:`marker_jacobian` gives, concatenated (the compiled path writes them
+    into one array).
+    """
+    if ws is None:
+        ws = Workspace(model)
+    tables = _fk_tables(model, ws.plan, ws)
+    if tables is not None:
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape[-1:] != (ws.plan.n_pose,):
+            raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
+        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), pose, theta,
+                                     stacked=True)[1]
+    _, Jq, Jt = marker_jacobian(model, theta, pose, ws)
+    return np.concatenate([Jt, Jq], axis=-1)
+
+
+def _fk_tables(model: Model, plan: KinematicsPlan, ws: Workspace | None):
+    """The compiled kinematics' tables and tilted-hinge tables for this call, or None for the numpy path.
+
+    A planar model, or a spatial one without custom joints, takes the compiled path
+    when numba can run it now (:func:`skelid.model._fk_kernel.ready`); a workspace
+    decides once, on its first call, so that one fit never switches path halfway.
+    """
+    if not _fk_kernel.AVAILABLE:
+        return None
+    if ws is not None and ws.fk_tables is not None:
+        return ws.fk_tables or None
+    tables = _fk_kernel.plan_tables(plan) if _fk_kernel.ready(bool(plan.planar)) else None
+    if tables is not None:
+        tables = (tables, _fk_kernel.tilt_tables(model))
+    if ws is not None:
+        ws.fk_tables = tables if tables is not None else False
+    return tables
