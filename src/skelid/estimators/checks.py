@@ -376,6 +376,35 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     return out
 
 
+def relaxed_estimate(variant: Model, fit, n_params: int) -> tuple[np.ndarray, np.ndarray]:
+    """A relaxed model's estimate of the first ``n_params`` parameters and their sd, normal priors combined.
+
+    ``sigma^2 = RSS / (n_obs - pose dof - P_v)``; the data's precision ``A = S / sigma^2``
+    (``S`` the fit's efficient information) is combined with the normal priors' precisions
+    ``Lambda`` (zero for uniform ones): ``cov = (A + Lambda)^{-1}``,
+    ``mean = cov (A theta^ + Lambda mu)``.
+
+    Parameters
+    ----------
+    variant : Model
+    fit : skelid.estimators.joint.JointFit
+        The variant's joint least-squares fit.
+    n_params : int
+
+    Returns
+    -------
+    theta : (n_params,) float
+    sd : (n_params,) float
+    """
+    dof = max(fit.n_obs - fit.pose_dof - variant.n_params, 1.0)
+    A = np.asarray(fit.info, float) * dof / max(fit.rss, 1e-300)
+    prec = np.array([1.0 / p.prior.sd**2 if p.prior.kind == "normal" else 0.0 for p in variant.parameters])
+    mu = np.array([p.prior.mean if p.prior.kind == "normal" else 0.0 for p in variant.parameters])
+    cov = np.linalg.pinv(A + np.diag(prec), hermitian=True)
+    mean = cov @ (A @ fit.theta + prec * mu)
+    return mean[:n_params], np.sqrt(np.clip(np.diag(cov)[:n_params], 0.0, None))
+
+
 def _chi2_test(z, C, sigma: float, noise_dof: int) -> tuple[float, int, float]:
     """``z^T C^+ z / sigma^2`` (``z ~ N(0, sigma^2 C)``), its rank and the log tail probability (F)."""
     from scipy.stats import f as f_dist

@@ -67,6 +67,7 @@ from skelid.estimators.checks import (
     PLACEMENT_SHARE,
     model_misfit,
     placement_information,
+    relaxed_estimate,
 )
 from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
@@ -686,15 +687,16 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
     """Refit each joint flagged as model misfit with a relaxed joint; widen the intervals to cover it.
 
     A flagged hinge of a 3-D model is refitted as its moving-centre variant
-    (:func:`skelid.model.variants.moving_centre`, the centre's path quadratic in the angle),
-    from the fit's own geometry and poses, with the same motion model and weights. Each
-    parameter's 95 % interval becomes the hull of its interval and the refit's
-    (``theta_v +- 1.96 sd_v``, ``sd_v^2`` the refit's ``sigma^2 S^{-1}``); the estimate is the
-    hull's midpoint and the covariance is rescaled to the hull's half-width, keeping the
-    correlations. In the model-mismatch benchmark (a knee centre sliding by 10 (q^2/2, q/2) mm,
-    100 trials per cell) this hull covers the true centre in 95-99 % of trials where the hinge's
-    own interval covers 0-35 %. Other joint types have no built-in relaxation: the warning names
-    the remedy and the interval is left as it is. Nothing is refitted when no joint is flagged.
+    (:func:`skelid.model.variants.moving_centre`: the centre's path quadratic in the angle, each
+    gain with a normal prior of sd 10 mm per radian^k about the hinge), from the fit's own
+    geometry and poses, with the same motion model and weights. The refit's estimate and sd
+    combine its data with those priors (:func:`skelid.estimators.checks.relaxed_estimate`).
+    Each parameter's 95 % interval becomes the hull of its own interval and the refit's
+    (``theta_v +- 1.96 sd_v``); the estimate is the hull's midpoint and the covariance is
+    rescaled to the hull's half-width, keeping the correlations. See
+    ``benchmarks/results/model_mismatch.md`` for the coverage and width of this rule. Other
+    joint types have no built-in relaxation: the warning names the remedy and the interval is
+    left as it is. Nothing is refitted when no joint is flagged.
     """
     from skelid.model.variants import moving_centre
 
@@ -719,9 +721,7 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
                   np.concatenate([st.bounds[1], [p.prior.upper for p in variant.parameters[P:]]]))
         f = joint_fit(variant, sc.y, np.concatenate([fit.theta, np.zeros(extra)]), fit.pose, n_iter=est.n_iter,
                       bounds=bounds, frames=sc.fixed, penalty=fit.penalty, weights=wt.weights)
-        dof = max(f.n_obs - f.pose_dof - variant.n_params, 1.0)
-        sd_v = np.sqrt(np.clip(np.diag(np.linalg.pinv(f.info))[:P], 0.0, None) * f.rss / dof)
-        th_v = f.theta[:P]
+        th_v, sd_v = relaxed_estimate(variant, f, P)
         lo, hi = np.minimum(lo, th_v - Z95 * sd_v), np.maximum(hi, th_v + Z95 * sd_v)
         joints[j] = {"remedy": f"skelid.model.variants.moving_centre(model, {j!r})", "variant": variant.name,
                      "theta": dict(zip(model.parameter_names, th_v.tolist(), strict=True)),
