@@ -14,14 +14,16 @@ is ``(0, 0)``. Each trial is fitted with
 * ``hinge``: a hinge knee with an unknown centre (the mismatched model);
 * ``coupled``: the source model's own knee (translations known) with an unknown centre;
 * ``moving``: the hinge's moving-centre variant (:func:`skelid.model.variants.moving_centre`,
-  the centre's path a quadratic in ``q`` with unknown gains).
+  the centre's path a quadratic in ``q`` with unknown gains), flat priors on the gains;
+* ``relaxed``: the same fit with the gains' normal priors combined
+  (:func:`skelid.estimators.checks.relaxed_estimate`): the refit the ``marker`` estimator makes.
 
 ``before`` is the hinge's interval alone, and the misfit flag of the older test that
 compares the mean of a segment's markers' angle-driven residual against white noise with a
 tail probability of 1e-6 (copied below as :func:`legacy_misfit`). ``after`` is the rule of
 the ``marker`` estimator (:func:`skelid.estimators.marker.misfit_stage`): the hinge's
 interval where the test (:func:`skelid.estimators.checks.model_misfit`) does not flag the
-knee, and where it does, the hull of the hinge's and the moving-centre refit's intervals.
+knee, and where it does, the hull of the hinge's and the relaxed refit's intervals.
 The false-alarm rows simulate from the hinge itself (a correct model) and from built-in case
 A (2-D, one marker per segment, fitted frame by frame: the misfit flag needs two markers on a
 segment, so its row counts the test's significance alone). ``significant before`` is the
@@ -170,7 +172,7 @@ def one_trial(args):
     """One simulated trial of a cell: estimates, intervals and flags of every fit."""
     source_kind, sigma, rep, n_frames, use_estimator = args
     warnings.simplefilter("ignore")
-    from skelid.estimators.checks import model_misfit
+    from skelid.estimators.checks import model_misfit, relaxed_estimate
     from skelid.model.variants import moving_centre
 
     cpu0 = time.process_time()
@@ -217,9 +219,12 @@ def one_trial(args):
         th_c, sd_c, _ = fast_fit(coupled, y, pose)
         out["coupled"] = {"est": th_c.tolist(), "lo": (th_c - Z95 * sd_c).tolist(),
                           "hi": (th_c + Z95 * sd_c).tolist()}
-        th_m, sd_m, _ = fast_fit(moving_centre(hinge, "knee"), y, pose)
+        variant = moving_centre(hinge, "knee")
+        th_m, sd_m, fit_m = fast_fit(variant, y, pose)
         out["moving"] = {"est": th_m[:2].tolist(), "lo": (th_m[:2] - Z95 * sd_m[:2]).tolist(),
                          "hi": (th_m[:2] + Z95 * sd_m[:2]).tolist()}
+        th_r, sd_r = relaxed_estimate(variant, fit_m, 2)  # the gains' priors combined: the estimator's refit
+        out["relaxed"] = {"est": th_r.tolist(), "lo": (th_r - Z95 * sd_r).tolist(), "hi": (th_r + Z95 * sd_r).tolist()}
     out["cpu"] = time.process_time() - cpu0
     return out
 
@@ -261,7 +266,7 @@ def summarise(source, sigma, trials) -> dict:
     if source == "case-a":
         return row
     row["legacy_flag_rate"] = float(np.mean([t["legacy_flagged"] for t in trials]))
-    fits = ["hinge", "coupled", "moving", "estimator"]
+    fits = ["hinge", "coupled", "moving", "relaxed", "estimator"]
     for name in fits:
         ok = [t[name] for t in trials if name in t]
         if not ok:
@@ -275,10 +280,10 @@ def summarise(source, sigma, trials) -> dict:
         if name == "estimator":
             row[name]["flag_rate"] = float(np.mean([o["flagged"] for o in ok]))
             row[name]["misfit_widening"] = True  # the estimator widens a flagged joint's interval itself
-    if "moving" in trials[0]:  # after: the hull of hinge and moving-centre intervals where flagged
-        lo = np.array([np.minimum(t["hinge"]["lo"][:2], t["moving"]["lo"]) if t["flagged"] else t["hinge"]["lo"][:2]
+    if "relaxed" in trials[0]:  # after: the hull of hinge and relaxed refit's intervals where flagged
+        lo = np.array([np.minimum(t["hinge"]["lo"][:2], t["relaxed"]["lo"]) if t["flagged"] else t["hinge"]["lo"][:2]
                        for t in trials])
-        hi = np.array([np.maximum(t["hinge"]["hi"][:2], t["moving"]["hi"]) if t["flagged"] else t["hinge"]["hi"][:2]
+        hi = np.array([np.maximum(t["hinge"]["hi"][:2], t["relaxed"]["hi"]) if t["flagged"] else t["hinge"]["hi"][:2]
                        for t in trials])
         row["after"] = {"coverage": ((lo <= 0) & (0 <= hi)).mean(axis=0).round(3).tolist(),
                         "half_width": ((hi - lo) / 2).mean(axis=0).round(3).tolist()}
@@ -298,19 +303,25 @@ def write(rows, meta):
                if meta["reps"] < 100 else []),
              f"{meta['reps']} trials per cell, {meta['frames']} frames; truth: knee centre at zero flexion (0, 0) mm; "
              "figures are x / y (mm). `before`: the hinge's interval (and the old misfit test's flag rate); `after`: "
-             "the hull of the hinge's and the moving-centre refit's intervals where the new test flags the knee; "
+             "the hull of the hinge's and the relaxed refit's intervals where the test flags the knee (the marker "
+             "estimator's rule); `relaxed`: the moving-centre fit with the gains' priors (sd 10 mm/rad^k); "
              "`coupled`: the source model's own knee with an unknown centre.", "",
-             "| source | sigma | flag before | flag after | hinge bias | hinge sd | cover before | cover after | "
-             "half-width after | coupled bias | coupled cover | moving bias | moving sd | moving cover |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| source | sigma | reps | flag before | flag after | hinge bias | hinge sd | cover before | "
+             "cover after | half-width after | coupled bias | coupled cover | moving bias | moving sd | moving cover | "
+             "relaxed bias | relaxed half-width | relaxed cover |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "hinge" not in r or "coupled" not in r:
             continue
-        lines.append(f"| {r['source']} | {r['sigma']:g} | {r['legacy_flag_rate']:.2f} | {r['flag_rate']:.2f} | "
+        rel = r.get("relaxed")
+        rel_txt = (f"{fmt(rel['bias'])} | {fmt(rel['half_width'])} | {fmt(rel['coverage'])}" if rel
+                   else "- | - | -")
+        lines.append(f"| {r['source']} | {r['sigma']:g} | {r['reps']} | {r['legacy_flag_rate']:.2f} | "
+                     f"{r['flag_rate']:.2f} | "
                      f"{fmt(r['hinge']['bias'])} | {fmt(r['hinge']['sd'])} | {fmt(r['before']['coverage'])} | "
                      f"{fmt(r['after']['coverage'])} | {fmt(r['after']['half_width'])} | {fmt(r['coupled']['bias'])} | "
                      f"{fmt(r['coupled']['coverage'])} | {fmt(r['moving']['bias'])} | {fmt(r['moving']['sd'])} | "
-                     f"{fmt(r['moving']['coverage'])} |")
+                     f"{fmt(r['moving']['coverage'])} | {rel_txt} |")
     lines += ["", "False alarms on correctly specified models, pure Gaussian noise (`significant`: the test alone; "
               "`before`: without its linearisation check; `tested`: share of joints the check lets through; "
               "`flagged`: labelled model misfit; nominal family-wise level 0.01):", "",
@@ -340,18 +351,19 @@ def write(rows, meta):
         f.write("\n".join(lines))
 
 
-def merge(rows, run):
+def merge(rows, run, replace: bool = False):
     """This run's rows merged into the results file's by (source, sigma).
 
     A row replaces the stored one, except that a run with fewer trials than the stored row
-    (a look at the full estimator on a few trials) only replaces its ``estimator`` entry.
+    (a look at the full estimator on a few trials) only replaces its ``estimator`` entry, unless
+    ``replace``.
     """
     path = RESULTS / "model_mismatch.json"
     old = json.loads(path.read_text()) if path.exists() else {"meta": {}, "rows": []}
     stored = {(r["source"], r["sigma"]): r for r in old["rows"]}
     for r in rows:
         key = (r["source"], r["sigma"])
-        if key in stored and stored[key]["reps"] > r["reps"]:
+        if key in stored and stored[key]["reps"] > r["reps"] and not replace:
             if "estimator" in r:
                 stored[key]["estimator"] = r["estimator"]
         else:
@@ -373,6 +385,8 @@ def main():
     ap.add_argument("--estimator", type=int, default=0, metavar="N",
                     help="also fit the hinge with the full MarkerEstimator on the first N trials of each cell")
     ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--replace", action="store_true",
+                    help="replace the stored rows of the cells run even when they had more trials (a reduced run)")
     args = ap.parse_args()
     wall0, cpu0 = time.perf_counter(), time.process_time()
     tasks = [(src, s, rep, args.frames, rep < args.estimator)
@@ -393,7 +407,7 @@ def main():
     run = {"sources": args.sources, "reps": args.reps, "frames": args.frames,
            "cpu_seconds": sum(r["cpu"] for r in results), "cpu_seconds_main": time.process_time() - cpu0,
            "wall_seconds": time.perf_counter() - wall0, "load_average": [round(v, 2) for v in os.getloadavg()]}
-    rows, meta = merge(rows, run)
+    rows, meta = merge(rows, run, args.replace)
     write(rows, meta)
     print((RESULTS / "model_mismatch.md").read_text())
 
