@@ -300,8 +300,9 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     freedom on pure Gaussian data and the successive-difference noise is 0.8 sigma (third and
     higher orders dominate, so subtracting ``b_t`` does not help; ``lambda`` is 13-15 there,
     5-7 at 5 mm, 1-2 at 2-3 mm where the test holds its level). The knee models of the
-    mismatch benchmark have ``lambda`` about 1 at 10 mm. A fit with a motion model smooths
-    the poses, so they barely follow each frame's noise.
+    mismatch benchmark have ``lambda`` about 1 at 10 mm. ``lambda`` is computed for poses fitted
+    frame by frame; the poses of a fit with a motion model follow the noise less, so for it
+    ``lambda`` is an upper bound and the check conservative.
 
     **Misfit or soft tissue.** Soft-tissue artefact also follows the joint angles, but moves
     each marker its own way. The same test on each child marker's pattern about the child's
