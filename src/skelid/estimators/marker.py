@@ -825,7 +825,9 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
         v = f.residuals.misfit[j]
         p_txt = f"p = {10 ** v['log10_p']:.1g}" if v["log10_p"] > -300 else "p < 1e-300"
         relaxed = f.misfit.joints.get(j) if f.misfit is not None else None
-        if relaxed and relaxed["variant"]:
+        if f.misfit is None:  # no refit was asked for
+            then = ""
+        elif relaxed and relaxed["variant"]:
             then = (f"; refitted with a moving centre ({relaxed['remedy']}), the intervals of "
                     f"{', '.join(relaxed['widened'])} were widened to cover both fits"
                     if relaxed["widened"] else
@@ -911,11 +913,14 @@ def _motion_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[War
     return out
 
 
-def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error") -> MarkerFit:
+def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error",
+                   misfit_refit: bool = True) -> MarkerFit:
     """The stages of a marker fit, each returning a small immutable value.
 
     screen -> joint fit -> per-marker weights -> noise -> identifiability -> residuals -> bias -> covariance -> priors
-    -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
+    -> misfit refit -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
+    ``misfit_refit=False`` skips the refit of joints flagged as misfit (a caller that builds its
+    own interval from these stages: the sampler).
     """
     model = est.model
     ws = workspace(model)  # one path (compiled or numpy) for every pose fit of this fit
@@ -932,9 +937,10 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
-    mis = misfit_stage(est, st, sc, wt, res, estimate)
-    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, mis.estimate,
-                     summary_stage(model, ident, mis.estimate), ws.path, mis)
+    mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
+    estimate = mis.estimate if mis is not None else estimate
+    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
+                     summary_stage(model, ident, estimate), ws.path, mis)
 
 
 # ============================================================================== estimator
