@@ -299,9 +299,9 @@ def write(rows, meta):
         f.write(json.dumps({"meta": meta, "rows": rows}, indent=1))
     fmt = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
     lines = ["# Model mismatch: a knee whose centre slides with flexion, fitted with a hinge", "",
-             *([f"**Reduced run: {meta['reps']} trials per cell (the study needs 100).**", ""]
-               if meta["reps"] < 100 else []),
-             f"{meta['reps']} trials per cell, {meta['frames']} frames; truth: knee centre at zero flexion (0, 0) mm; "
+             *([f"**Reduced run: some cells have only {meta['reps']} trials (see the reps columns; the study "
+                "needs 100).**", ""] if meta["reps"] < 100 else []),
+             f"Trials of {meta['frames']} frames; truth: knee centre at zero flexion (0, 0) mm; "
              "figures are x / y (mm). `before`: the hinge's interval (and the old misfit test's flag rate); `after`: "
              "the hull of the hinge's and the relaxed refit's intervals where the test flags the knee (the marker "
              "estimator's rule); `relaxed`: the moving-centre fit with the gains' priors (sd 10 mm/rad^k); "
@@ -367,6 +367,8 @@ def merge(rows, run, replace: bool = False):
             if "estimator" in r:
                 stored[key]["estimator"] = r["estimator"]
         else:
+            if key in stored and "estimator" in stored[key] and "estimator" not in r:
+                r = dict(r, estimator=stored[key]["estimator"])  # the last look at the full estimator stays
             stored[key] = r
     order = ["gait2354", "polynomial", "hinge", "case-a"]
     merged = sorted(stored.values(), key=lambda r: (order.index(r["source"]) if r["source"] in order else 9,
