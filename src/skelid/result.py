@@ -188,6 +188,40 @@ class FrameCounts:
 
 
 @dataclass(frozen=True)
+class JointMisfit:
+    """A joint whose model cannot follow the data, and what was done about it.
+
+    Read from ``diagnostics["model_misfit"]`` by :attr:`FitResult.misfit` (so it round-trips
+    with the result file).
+
+    Parameters
+    ----------
+    joint, segment : str
+        The joint and its child segment.
+    log10_p : float
+        The misfit test's tail probability (:func:`skelid.estimators.checks.model_misfit`).
+    rms : float
+        Root-mean-square size of the angle-driven pattern the child's markers share (model units).
+    remedy : str or None
+        The relaxed joint to fit instead (``skelid.model.variants.moving_centre(model, 'knee')``).
+    widened : tuple of str
+        Parameters whose interval was widened to cover the relaxed model's fit.
+    relaxed_mean, relaxed_sd : mapping of str to float
+        The relaxed model's estimate of the model's parameters and their sd (empty when no
+        relaxed model was fitted).
+    """
+
+    joint: str
+    segment: str
+    log10_p: float
+    rms: float
+    remedy: str | None = None
+    widened: tuple[str, ...] = ()
+    relaxed_mean: Mapping[str, float] = field(default_factory=dict)
+    relaxed_sd: Mapping[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class FitResult:
     """Everything a fit produced, typed.
 
@@ -251,6 +285,19 @@ class FitResult:
         """``(P,)`` array of one field (``map``, ``mean``, ``sd``, ``crlb_sd``) over the parameters."""
         out = [getattr(p, field_name) for p in self.parameters.values()]
         return np.array([math.nan if v is None else v for v in out], float)
+
+    @property
+    def misfit(self) -> dict[str, JointMisfit]:
+        """Joints flagged as model misfit (empty when none was, or the method does not test it)."""
+        out = {}
+        for j, v in (self.diagnostics.get("model_misfit") or {}).items():
+            if not v.get("flagged"):
+                continue
+            rel = v.get("relaxed") or {}
+            out[j] = JointMisfit(j, v["segment"], float(v["log10_p"]), float(v["rms"]), rel.get("remedy"),
+                                 tuple(rel.get("widened", ())), dict(rel.get("theta") or {}),
+                                 dict(rel.get("sd") or {}))
+        return out
 
     def warnings_for(self, name: str) -> tuple[Warning, ...]:
         """The warnings that concern parameter ``name``."""

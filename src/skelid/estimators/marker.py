@@ -67,6 +67,7 @@ from skelid.estimators.checks import (
     PLACEMENT_SHARE,
     model_misfit,
     placement_information,
+    relaxed_estimate,
 )
 from skelid.estimators.jackknife import jackknife_stage
 from skelid.estimators.joint import (
@@ -317,6 +318,13 @@ class Estimate(NamedTuple):
     cov: np.ndarray  # (P, P)
 
 
+class Misfit(NamedTuple):
+    """Joints flagged as model misfit, their refits with a relaxed joint, and the widened estimate."""
+
+    joints: dict  # joint -> remedy, the relaxed model's estimate and interval, parameters widened
+    estimate: Estimate  # the estimate after widening (the input one when nothing is flagged)
+
+
 class Summary(NamedTuple):
     """Diagnostics decided from the values: final identifiability rows, still joints, lengths."""
 
@@ -342,6 +350,7 @@ class MarkerFit(NamedTuple):
     estimate: Estimate
     summary: Summary
     pose_path: str = "numpy"  # "compiled" or "numpy": the path every pose fit took (see pose.workspace)
+    misfit: Misfit | None = None  # model misfit: refits and widening (misfit_stage)
 
 
 # ================================================================================ stages
@@ -673,6 +682,62 @@ def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident:
     return cov + added, out
 
 
+def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: Residuals,
+                 estimate: Estimate) -> Misfit:
+    """Refit each joint flagged as model misfit with a relaxed joint; widen the intervals to cover it.
+
+    A flagged hinge of a 3-D model is refitted as its moving-centre variant
+    (:func:`skelid.model.variants.moving_centre`: the centre's path quadratic in the angle, each
+    gain with a normal prior of sd 10 mm per radian^k about the hinge), from the fit's own
+    geometry and poses, with the same motion model and weights. The refit's estimate and sd
+    combine its data with those priors (:func:`skelid.estimators.checks.relaxed_estimate`).
+    Each parameter's 95 % interval becomes the hull of its own interval and the refit's
+    (``theta_v +- 1.96 sd_v``); the estimate is the hull's midpoint and the covariance is
+    rescaled to the hull's half-width, keeping the correlations. See
+    ``benchmarks/results/model_mismatch.md`` for the coverage and width of this rule. Other
+    joint types have no built-in relaxation: the warning names the remedy and the interval is
+    left as it is. Nothing is refitted when no joint is flagged.
+    """
+    from skelid.model.variants import moving_centre
+
+    model = est.model
+    flagged = [j for j, v in res.misfit.items() if v["flagged"]]
+    if not flagged:
+        return Misfit({}, estimate)
+    theta, cov = estimate
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    lo, hi = theta - Z95 * sd, theta + Z95 * sd
+    fit, P = wt.fit, model.n_params
+    joints = {}
+    for j in flagged:
+        seg = next(s for s in model.segments if s.joint.name == j)
+        if model.dim != 3 or seg.joint.type != "hinge":
+            joints[j] = {"remedy": "a coupled joint (a custom joint whose translations follow its angles)",
+                         "variant": None}
+            continue
+        variant = moving_centre(model, j)
+        extra = variant.n_params - P
+        bounds = (np.concatenate([st.bounds[0], [p.prior.lower for p in variant.parameters[P:]]]),
+                  np.concatenate([st.bounds[1], [p.prior.upper for p in variant.parameters[P:]]]))
+        f = joint_fit(variant, sc.y, np.concatenate([fit.theta, np.zeros(extra)]), fit.pose, n_iter=est.n_iter,
+                      bounds=bounds, frames=sc.fixed, penalty=fit.penalty, weights=wt.weights)
+        th_v, sd_v = relaxed_estimate(variant, f, P)
+        lo, hi = np.minimum(lo, th_v - Z95 * sd_v), np.maximum(hi, th_v + Z95 * sd_v)
+        joints[j] = {"remedy": f"skelid.model.variants.moving_centre(model, {j!r})", "variant": variant.name,
+                     "theta": dict(zip(model.parameter_names, th_v.tolist(), strict=True)),
+                     "sd": dict(zip(model.parameter_names, sd_v.tolist(), strict=True)),
+                     "gains": dict(zip(variant.parameter_names[P:], f.theta[P:].tolist(), strict=True)),
+                     "converged": bool(f.converged)}
+    new_sd = (hi - lo) / (2 * Z95)
+    widened = new_sd > sd * (1 + 1e-6)
+    names = [n for n, w in zip(model.parameter_names, widened, strict=True) if w]
+    for v in joints.values():
+        v["widened"] = names
+        v["sd_before"] = dict(zip(model.parameter_names, sd.tolist(), strict=True))
+    scale = np.where(sd > 0, new_sd / np.maximum(sd, 1e-300), 1.0)
+    return Misfit(joints, Estimate((lo + hi) / 2, cov * np.outer(scale, scale)))
+
+
 def summary_stage(model: Model, ident: dict, est: Estimate) -> Summary:
     """The final identifiability rows (the final interval also decides 'poor'), still joints, lengths."""
     sd = np.sqrt(np.clip(np.diag(est.cov), 0.0, None))
@@ -759,11 +824,22 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
     for j in misfit:
         v = f.residuals.misfit[j]
         p_txt = f"p = {10 ** v['log10_p']:.1g}" if v["log10_p"] > -300 else "p < 1e-300"
+        relaxed = f.misfit.joints.get(j) if f.misfit is not None else None
+        if f.misfit is None:  # no refit was asked for
+            then = ""
+        elif relaxed and relaxed["variant"]:
+            then = (f"; refitted with a moving centre ({relaxed['remedy']}), the intervals of "
+                    f"{', '.join(relaxed['widened'])} were widened to cover both fits"
+                    if relaxed["widened"] else
+                    f"; a refit with a moving centre ({relaxed['remedy']}) lies inside the intervals")
+        else:
+            then = "; no built-in relaxation of this joint type, so the interval was not widened"
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
                            f"with the joint angle (rms {v['rms']:.3g} {model.units}, {p_txt}), which "
                            "the joint model cannot follow (a joint centre that moves with the angle?); this is not "
                            "soft-tissue artefact; fit the joint's coupled motion or a moving centre "
-                           "(skelid.model.variants.moving_centre) to remove the bias it leaves"))
+                           f"(skelid.model.variants.moving_centre) to remove the bias it leaves{then}",
+                           tuple(relaxed["widened"]) if relaxed and relaxed["variant"] else ()))
     if f.residuals.flagged:
         then = ("so the interval was widened (Newey-West)" if f.cov.widened else
                 "but the interval was not widened (robust='never')")
@@ -837,11 +913,14 @@ def _motion_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[War
     return out
 
 
-def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error") -> MarkerFit:
+def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error",
+                   misfit_refit: bool = True) -> MarkerFit:
     """The stages of a marker fit, each returning a small immutable value.
 
     screen -> joint fit -> per-marker weights -> noise -> identifiability -> residuals -> bias -> covariance -> priors
-    -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
+    -> misfit refit -> summary. A new stage is one function here and one field of :class:`MarkerFit`.
+    ``misfit_refit=False`` skips the refit of joints flagged as misfit (a caller that builds its
+    own interval from these stages: the sampler).
     """
     model = est.model
     ws = workspace(model)  # one path (compiled or numpy) for every pose fit of this fit
@@ -858,8 +937,10 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
+    mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
+    estimate = mis.estimate if mis is not None else estimate
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate), ws.path)
+                     summary_stage(model, ident, estimate), ws.path, mis)
 
 
 # ============================================================================== estimator
@@ -1047,7 +1128,8 @@ class MarkerEstimator:
         self.cov_artefact_ = f.cov.artefact
         self.jackknife_ = f.cov.jackknife
         self.placement_ = f.cov.placement
-        self.misfit_ = f.residuals.misfit
+        self.misfit_ = {j: dict(v, relaxed=f.misfit.joints.get(j)) if f.misfit is not None else dict(v)
+                        for j, v in f.residuals.misfit.items()}
         self.bias_fallback_ = f.bias.fallback
         self.cov_data_ = f.cov.data + f.bias.cov  # with the bootstrap's spread when it stood in
         self.theta_, self.cov_ = f.estimate

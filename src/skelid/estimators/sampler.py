@@ -651,7 +651,7 @@ class SamplerEstimator:
         marker = MarkerEstimator(model, **{s.name: getattr(self, s.name) for s in MarkerEstimator.settings
                                            if hasattr(self, s.name)})
         rng = make_rng(self.rng)
-        f = run_marker_fit(marker, y, rate, rng, on_bound="warn")
+        f = run_marker_fit(marker, y, rate, rng, on_bound="warn", misfit_refit=False)
         # the default estimator's bound check is about its normal estimate; the samples stay inside
         found = [w for w in marker_warnings(model, marker, f) if w.code != "outside-prior"]
         marker._publish(f, ())
