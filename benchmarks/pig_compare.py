@@ -58,16 +58,14 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import hashlib  # noqa: E402
-import json  # noqa: E402
 import pickle  # noqa: E402
 import platform  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _common import git_commit, rewrite_markdown, source_key, write_results  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
 from skelid.estimators.marker import MarkerEstimator  # noqa: E402
@@ -87,27 +85,8 @@ JOINTS = {"hip": (("FE", "proximal"), "pelvis", "thigh"), "knee": (("FE", "origi
 LENGTHS = {"thigh": ("hip", "knee"), "shank": ("knee", "ankle")}
 
 
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def source_key() -> str:
-    import skelid
-
-    h = hashlib.sha256()
-    src = Path(skelid.__file__).resolve().parent
-    for f in sorted([*(src / "estimators").rglob("*.py"), *(src / "model").rglob("*.py")]):
-        h.update(f.read_bytes())
-    h.update(MODEL.read_bytes())
-    return h.hexdigest()[:16]
-
-
 def fit_trial(model, data, cache: Path | None, tag: str):
-    path = None if cache is None else cache / f"pig-{tag}-{source_key()}.pkl"
+    path = None if cache is None else cache / f"pig-{tag}-{source_key(MODEL)}.pkl"
     if path is not None and path.exists():
         with path.open("rb") as fh:
             return pickle.load(fh)
@@ -326,13 +305,10 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     out = Path(args.out)
     if args.markdown_only:
-        out.with_suffix(".md").write_text(markdown(json.loads(out.with_suffix(".json").read_text())))
+        rewrite_markdown(out, markdown)
         return
     res = run(Path(args.cache), args.static_stride)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
-    out.with_suffix(".md").write_text(markdown(res))
-    print(markdown(res))
+    write_results(out, res, markdown)
 
 
 if __name__ == "__main__":
