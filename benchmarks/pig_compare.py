@@ -58,16 +58,15 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import hashlib  # noqa: E402
-import json  # noqa: E402
 import pickle  # noqa: E402
 import platform  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
+import tomllib  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _common import git_commit, rewrite_markdown, source_key, write_results  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
 from skelid.estimators.marker import MarkerEstimator  # noqa: E402
@@ -87,27 +86,8 @@ JOINTS = {"hip": (("FE", "proximal"), "pelvis", "thigh"), "knee": (("FE", "origi
 LENGTHS = {"thigh": ("hip", "knee"), "shank": ("knee", "ankle")}
 
 
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def source_key() -> str:
-    import skelid
-
-    h = hashlib.sha256()
-    src = Path(skelid.__file__).resolve().parent
-    for f in sorted([*(src / "estimators").rglob("*.py"), *(src / "model").rglob("*.py")]):
-        h.update(f.read_bytes())
-    h.update(MODEL.read_bytes())
-    return h.hexdigest()[:16]
-
-
 def fit_trial(model, data, cache: Path | None, tag: str):
-    path = None if cache is None else cache / f"pig-{tag}-{source_key()}.pkl"
+    path = None if cache is None else cache / f"pig-{tag}-{source_key(MODEL)}.pkl"
     if path is not None and path.exists():
         with path.open("rb") as fh:
             return pickle.load(fh)
@@ -255,6 +235,35 @@ def run(cache: Path | None, static_stride: int) -> dict:
     }
 
 
+def foot_line(res: dict) -> dict[str, dict[str, float]]:
+    """Where each ankle centre lies against the line through the foot's two markers (HEE, TOE).
+
+    In the model's reference pose: the distance (mm) from the line to the nominal
+    centre and to the fitted one (nominal plus the joint estimate's x, y shift), the
+    angle (degrees) between the line and the ankle's second axis; and the sd over the
+    gait trial's frames of the HEE-TOE distance (mm), which a rigid foot keeps constant.
+    """
+    with MODEL.open("rb") as fh:
+        spec = tomllib.load(fh)
+    marker = {m["name"]: np.asarray(m["position"], float) for m in spec["markers"]}
+    joint = {seg["joint"]["name"]: seg["joint"] for seg in spec["segments"]}
+    gait = read_markers(DATA / "gait.c3d")
+    scale = {"m": 1000.0, "cm": 10.0, "mm": 1.0}[gait.units]
+    out = {}
+    for side, S in (("r", "R"), ("l", "L")):
+        heel, toe = marker[f"{S}HEE"], marker[f"{S}TOE"]
+        u = (toe - heel) / np.linalg.norm(toe - heel)
+        shift = np.array([res["joint_estimate"][f"ankle_{side}_{a}"]["value"] for a in "xy"] + [0.0])
+        second = np.asarray(joint[f"ankle_{side}"]["axes"][1], float)
+        y = gait.select([f"{S}HEE", f"{S}TOE"]).positions * scale
+        out[side] = {"nominal_mm": float(np.linalg.norm(np.cross(-heel, u))),
+                     "fitted_mm": float(np.linalg.norm(np.cross(shift - heel, u))),
+                     "shift_x_mm": float(shift[0]), "shift_y_mm": float(shift[1]),
+                     "axis_angle_deg": float(np.degrees(np.arccos(abs(u @ second) / np.linalg.norm(second)))),
+                     "heel_toe_sd_mm": float(np.nanstd(np.linalg.norm(y[:, 1] - y[:, 0], axis=1)))}
+    return out
+
+
 def markdown(res: dict) -> str:
     L = ["# Functional joint centres against Plug-in Gait (ktk-gait-pig)", "",
          f"Model `{res['model']}`; skelid's centres from motion (joint_centre parameters), Plug-in Gait's "
@@ -285,6 +294,7 @@ def markdown(res: dict) -> str:
             L.append(f"| {n} | {r['pig_mm']:.1f} ({r['pig_sd_over_frames']:.1f}) | {cells[0]} | {cells[1]} |")
         L.append("")
     c = res["consistency_test"]
+    fl = foot_line(res)
     L += ["## Reading", "",
           "* The standing trial holds no motion, so its own fit cannot locate a functional centre: its "
           "estimates sit on the prior bounds (+-80 mm) with sds of 35-470 mm, and its 'trial' rows and "
@@ -305,7 +315,24 @@ def markdown(res: dict) -> str:
           "sds are 14-19 mm.",
           "* The ankle is a universal joint driven by two foot markers (HEE, TOE); the gait fit warns of "
           "model misfit at both ankles (foot markers moving with the joint angle), and its ankle intervals "
-          "do not cover the 20-27 mm vertical difference from Plug-in Gait's malleolar centre.", ""]
+          "do not cover the difference from Plug-in Gait's malleolar centre, which lies mostly along y "
+          "(vertical).",
+          "* Why: the fitted ankle centre moves onto the heel-toe line. From the line, the nominal centre lies "
+          f"{fl['r']['nominal_mm']:.0f} / {fl['l']['nominal_mm']:.0f} mm (right / left) and the fitted one "
+          f"{fl['r']['fitted_mm']:.0f} / {fl['l']['fitted_mm']:.0f} mm, after a shift (x, y) of "
+          f"({fl['r']['shift_x_mm']:+.0f}, {fl['r']['shift_y_mm']:+.0f}) / ({fl['l']['shift_x_mm']:+.0f}, "
+          f"{fl['l']['shift_y_mm']:+.0f}) mm. "
+          "With two foot markers, a centre on their line leaves only the line's direction to be seen: the "
+          "foot's roll about it vanishes, and a universal joint can point the line anywhere. Off the line, "
+          "the foot's rotations that the universal joint cannot make (the real ankle and subtalar axes are "
+          "oblique; the misfit warning) show in the markers, so least squares goes to the line. The foot is "
+          f"not rigid either: the HEE-TOE distance varies by {fl['r']['heel_toe_sd_mm']:.1f} / "
+          f"{fl['l']['heel_toe_sd_mm']:.1f} mm (sd over gait frames). The second ankle axis is "
+          f"{fl['r']['axis_angle_deg']:.0f} / {fl['l']['axis_angle_deg']:.0f} degrees from the heel-toe line, "
+          + ("so it is not nearly along it; " if min(fl[k]['axis_angle_deg'] for k in fl) > 15 else "")
+          + "the centre's place on the line is the degeneracy, and the small sds "
+          "measure that geometry, not the malleolar centre. A third foot marker off the line would remove "
+          "it; Plug-in Gait's lower-body set has none.", ""]
     sec, la = res["seconds"], res["load_average"]
     L += [f"Consistency of the two trials' estimates with the joint one: chi2 {c['statistic']:.1f} on "
           f"{c['dof']} dof, p = {c['p_value']:.2g}.", "",
@@ -326,13 +353,10 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     out = Path(args.out)
     if args.markdown_only:
-        out.with_suffix(".md").write_text(markdown(json.loads(out.with_suffix(".json").read_text())))
+        rewrite_markdown(out, markdown)
         return
     res = run(Path(args.cache), args.static_stride)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
-    out.with_suffix(".md").write_text(markdown(res))
-    print(markdown(res))
+    write_results(out, res, markdown)
 
 
 if __name__ == "__main__":

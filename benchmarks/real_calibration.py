@@ -49,16 +49,14 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # multithreaded BLAS thrashes on a shared small machine
 
 import argparse  # noqa: E402
-import hashlib  # noqa: E402
-import json  # noqa: E402
 import pickle  # noqa: E402
 import platform  # noqa: E402
-import subprocess  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _common import git_commit, rewrite_markdown, source_key, write_results  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
 from skelid.estimators.artefact import artefact_covariance  # noqa: E402
@@ -154,30 +152,11 @@ def leave_pair_out_z(est: np.ndarray, var: np.ndarray, method: str = "dl", t: bo
     return out
 
 
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def source_key() -> str:
-    """Hash of the code a single-trial fit runs (estimators and model, less the multi-trial combination)."""
-    import skelid
-
-    h = hashlib.sha256()
-    src = Path(skelid.__file__).resolve().parent
-    for f in sorted([*(src / "estimators").rglob("*.py"), *(src / "model").rglob("*.py")]):
-        if f.name != "multitrial.py":
-            h.update(f.read_bytes())
-    h.update(MODEL.read_bytes())
-    return h.hexdigest()[:16]
-
-
 def fit_trial(model, data: MarkerData, mode: str, cache: Path | None, tag: str):
     """A fitted MarkerEstimator (cached), its wall and CPU seconds."""
-    path = None if cache is None else cache / f"{tag}-{mode}-{source_key()}.pkl"
+    # the key leaves out the multi-trial combination: a single-trial fit does not run it
+    key = source_key(MODEL, skip=("multitrial.py",))
+    path = None if cache is None else cache / f"{tag}-{mode}-{key}.pkl"
     if path is not None and path.exists():
         with path.open("rb") as fh:
             return pickle.load(fh)
@@ -451,17 +430,14 @@ def main(argv=None) -> None:
             f.unlink()
     if args.markdown_only:
         out = Path(args.out)
-        out.with_suffix(".md").write_text(markdown(json.loads(out.with_suffix(".json").read_text())))
+        rewrite_markdown(out, markdown)
         return
     if args.fits_only:
         fits_only(args.max_frames, cache, args.fits_only)
         return
     res = run(args.max_frames, cache)
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
-    out.with_suffix(".md").write_text(markdown(res))
-    print(markdown(res))
+    write_results(out, res, markdown)
 
 
 if __name__ == "__main__":

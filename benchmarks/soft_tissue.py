@@ -49,13 +49,13 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _common import rewrite_markdown, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 Z = 1.959963984540054
@@ -196,7 +196,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.markdown_only:
         out = Path(args.out)
-        out.with_suffix(".md").write_text(markdown(json.loads(out.with_suffix(".json").read_text())))
+        rewrite_markdown(out, markdown)
         return
     from skelid.simulate import builtin_model
 
@@ -215,10 +215,7 @@ def main(argv=None) -> None:
                       "wall_s": time.perf_counter() - t0, "jobs": args.jobs, "load_start": list(load0),
                       "load_end": list(os.getloadavg()), "cores": os.cpu_count()}}
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
-    out.with_suffix(".md").write_text(markdown(res))
-    print(markdown(res))
+    write_results(out, res, markdown)
 
 
 if __name__ == "__main__":

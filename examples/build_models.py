@@ -20,7 +20,7 @@ ROOT = HERE.parent
 DATA = ROOT.parent / "shared" / "data"
 sys.path[:0] = [str(HERE), str(ROOT)]
 
-from reference_pose import model_toml, unit  # noqa: E402
+from reference_pose import model_toml, uniform_parameter, unit  # noqa: E402
 
 from skelid.io import read_markers as read  # noqa: E402
 
@@ -36,8 +36,7 @@ def _elbow_angle(y, s, e, w):
 
 
 def _joint_centre(name, joint, axes, half_width):
-    return {"name": f'"{name}"', "kind": '"joint_centre"', "joint": f'"{joint}"', "axes": axes,
-            "prior": f'{{ type = "uniform", lower = {-half_width}, upper = {half_width} }}'}
+    return uniform_parameter(name, "joint_centre", joint, -half_width, half_width, axes)
 
 
 def tennis_arm() -> str:

@@ -23,6 +23,51 @@ def unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def uniform_parameter(name: str, kind: str, joint: str, lower: float, upper: float,
+                      axes: str | None = None) -> dict:
+    """One ``[[parameters]]`` entry with a uniform prior, as ``model_toml`` writes it.
+
+    ``axes`` is the TOML text of the axes list (e.g. ``'["x", "y"]'``), or None for none.
+    """
+    entry = {"name": f'"{name}"', "kind": f'"{kind}"', "joint": f'"{joint}"'}
+    if axes is not None:
+        entry["axes"] = axes
+    entry["prior"] = f'{{ type = "uniform", lower = {float(lower)}, upper = {float(upper)} }}'
+    return entry
+
+
+def leg_segments(side: str, hip, knee, ankle, knee_axis, ankle_axes, knee_range: list[float],
+                 ankle_range: list[list[float]], markers: dict[str, list[str]]) -> list[dict]:
+    """Thigh, shank and foot of one leg (``side`` "r" or "l") under the pelvis, as ``model_toml`` takes them.
+
+    A spherical hip, a hinge knee about ``knee_axis`` and a universal ankle about
+    ``ankle_axes``; ``hip``, ``knee``, ``ankle`` are the joint centres (3,) in the
+    reference frame and ``markers`` maps "thigh", "shank", "foot" to marker names.
+    """
+    return [
+        {"name": f"thigh_{side}", "parent": "pelvis", "joint": f"hip_{side}", "type": "spherical",
+         "centre": hip, "markers": markers["thigh"]},
+        {"name": f"shank_{side}", "parent": f"thigh_{side}", "joint": f"knee_{side}", "type": "hinge",
+         "centre": knee, "axis": knee_axis, "range": knee_range, "markers": markers["shank"]},
+        {"name": f"foot_{side}", "parent": f"shank_{side}", "joint": f"ankle_{side}", "type": "universal",
+         "centre": ankle, "axes": ankle_axes, "range": ankle_range, "markers": markers["foot"]},
+    ]
+
+
+def functional_leg_parameters(side: str, half_width: float = 80.0, tilt: float = 30.0) -> list[dict]:
+    """Functional hip (x, y, z), knee (x, y) and ankle (x, y) centres and the knee axis tilt of one leg.
+
+    Uniform priors: centres within ``half_width`` of their nominal place (model units),
+    the knee axis within ``tilt`` degrees of its nominal direction.
+    """
+    return [
+        uniform_parameter(f"hip_{side}", "joint_centre", f"hip_{side}", -half_width, half_width, '["x", "y", "z"]'),
+        uniform_parameter(f"knee_{side}", "joint_centre", f"knee_{side}", -half_width, half_width, '["x", "y"]'),
+        uniform_parameter(f"knee_{side}_axis", "axis_direction", f"knee_{side}", -tilt, tilt, '["u", "v"]'),
+        uniform_parameter(f"ankle_{side}", "joint_centre", f"ankle_{side}", -half_width, half_width, '["x", "y"]'),
+    ]
+
+
 def model_toml(name: str, units: str, description: str, comments: list[str], frame: dict,
                segments: list[dict], parameters: list[dict], labels: dict | None = None,
                digits: int = 1) -> str:
