@@ -101,7 +101,7 @@ from skelid.result import FitResult, NoiseEstimate, Warning
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
-STIFFER = 9.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
+STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is re-evaluated at the corrected geometry
