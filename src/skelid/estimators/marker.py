@@ -540,7 +540,8 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
         sd = noise.sigma * np.sqrt(np.clip(np.diag(np.linalg.inv(fit.info)), 0, None))
         check = pose_check(model, y, fit.theta, fit.pose, pose_var[0], used, row_weights(w, y))
         large = np.abs(b) > BIAS_RELIABLE * sd
-        b_next = second_order(fit.pose, theta=fit.theta - b) if np.any(large) and not check.sensitive else b
+        # evaluated again at the corrected point: geometry less its bias, poses freed of their scatter
+        b_next = second_order(check.q_tilde, theta=fit.theta - b) if np.any(large) and not check.sensitive else b
         unstable = large & ~expansion_consistent(b, b_next, sd, est.n_boot)
         if check.sensitive or np.any(unstable):
             # the local expansion is unreliable here (near a singular pose): the bias of this fit is
