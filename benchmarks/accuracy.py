@@ -246,10 +246,12 @@ def write(rows):
 
 
 #: later versions compared with tag ``deconvolved``, and what changed
-LATER = {"selfconsistent": "a correction above 1.5 sd is re-evaluated at the corrected geometry and sent to the "
-                           "bootstrap only when it moves by more than the bootstrap's Monte Carlo error, sd / sqrt(10)",
-         "stiffer": "the same rule, and the graduated-smoothing start 9 times stiffer than the motion model (was 3; "
-                    "not kept: no gain in coverage on the one cell it was run on)"}
+LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the corrected geometry and the "
+                           "deconvolved poses, and sent to the bootstrap only when it moves there by more than the "
+                           "bootstrap's Monte Carlo error, sd / sqrt(10)",
+         "stiffer": "that rule (evaluated at the corrected geometry only), and the graduated-smoothing start "
+                    "9 times stiffer than the motion model (was 3; not kept: no gain in coverage on the one "
+                    "cell it was run on)"}
 
 
 def _write_later(fh, rows):
@@ -307,9 +309,10 @@ def _write(rows):
                  "of the local approximation and its bootstrap fallback at the deconvolved poses "
                  "(:mod:`skelid.estimators.singular`), `main-general` = the code before that check on the cells "
                  "used to see whether it holds elsewhere (another length, case B), `selfconsistent` = a large "
-                 "second-order correction re-evaluated at the corrected geometry and trusted when it stays put "
-                 "(instead of sent to the bootstrap whenever it exceeds 1.5 sd), `stiffer` = that rule and a "
-                 "graduated-smoothing start 9 times stiffer than the motion model (was 3; tried, not kept). "
+                 "second-order correction evaluated again at the corrected geometry and deconvolved poses and "
+                 "trusted when it stays put (instead of sent to the bootstrap whenever it exceeds 1.5 sd), "
+                 "`stiffer` = that rule and a graduated-smoothing start 9 times stiffer than the motion model "
+                 "(was 3; tried, not kept). "
                  "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}

@@ -9,6 +9,7 @@ from skelid.errors import ConvergenceError
 from skelid.estimators.checks import placement_information
 from skelid.estimators.joint import box_bias
 from skelid.estimators.marker import MarkerEstimator
+from skelid.estimators.singular import deconvolve_poses
 from skelid.model.kinematics import marker_positions
 from skelid.simulate import builtin_model, simulate
 from tests.estimators.test_misfit import _knee_model
@@ -51,10 +52,15 @@ def test_an_unreliable_bias_correction_falls_back_to_the_bootstrap(monkeypatch):
     assert est.bias_fallback_["reason"] == "unstable"
     assert est.bias_[0] == pytest.approx(est.bias_fallback_["bootstrap"][0])
     assert any("parametric bootstrap" in w.message and "corrected geometry" in w.message for w in est.warnings_)
-    # the re-evaluated correction is the second-order bias at theta_hat - b (brute force: the same formula)
+    # the re-evaluated correction is the second-order bias at theta_hat - b and the deconvolved poses
+    # (brute force: the same formula, the poses deconvolved with their own variance)
     fit, used = est.fit_info_, est.frames_used_
+    assert used.all()
     b = est.bias_fallback_["box"]
-    again = box_bias(model, est.y_[used], fit.theta - b, fit.pose[used], est.sigma_**2, weights=est.marker_weights_)
+    var = []
+    box_bias(model, est.y_, fit.theta, fit.pose, est.sigma_**2, weights=est.marker_weights_, pose_var=var)
+    q_tilde = deconvolve_poses(fit.pose, var[0], used)
+    again = box_bias(model, est.y_, fit.theta - b, q_tilde, est.sigma_**2, weights=est.marker_weights_)
     assert est.bias_fallback_["box_corrected"] == pytest.approx(again.tolist(), rel=1e-9, abs=1e-12)
 
 

@@ -142,12 +142,15 @@ def test_a_large_but_self_consistent_correction_is_kept(monkeypatch):
     est = MarkerEstimator(model, jackknife=False, rng=0).fit(trial.data)
     assert est.bias_method_ == "box" and est.bias_fallback_ is None
     # the reference: the second-order bias at the estimate, which moves by less than sd / sqrt(n_boot)
-    # when evaluated at the corrected geometry
+    # when evaluated at the corrected geometry and the deconvolved poses
     fit, used = est.fit_info_, est.frames_used_
     y = np.where(used[:, None, None], est.y_, np.nan)
-    b = smoothed_bias(model, y, fit.theta, fit.pose, est.sigma_**2, fit.penalty, weights=est.marker_weights_)
+    var = []
+    b = smoothed_bias(model, y, fit.theta, fit.pose, est.sigma_**2, fit.penalty, weights=est.marker_weights_,
+                      pose_var=var)
     np.testing.assert_allclose(est.bias_, b, rtol=1e-9)
-    again = smoothed_bias(model, y, fit.theta - est.bias_, fit.pose, est.sigma_**2, fit.penalty,
+    q_tilde = deconvolve_poses(fit.pose, var[0], used)
+    again = smoothed_bias(model, y, fit.theta - est.bias_, q_tilde, est.sigma_**2, fit.penalty,
                           weights=est.marker_weights_)
     sd = est.sigma_ * np.sqrt(np.diag(np.linalg.inv(fit.info)))
     assert np.all(np.abs(again - est.bias_) <= sd / np.sqrt(est.n_boot))

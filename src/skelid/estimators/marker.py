@@ -104,7 +104,7 @@ MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised f
 STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
-BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is re-evaluated at the corrected geometry
+BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is re-evaluated at the corrected point
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
 CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each
 SCREEN_STEP_TOL = 1e-2  # the screening fit (no motion model) stops at steps below this many sd ...
@@ -506,7 +506,8 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     Under ``'auto'`` the second-order correction is checked (:mod:`skelid.estimators.singular`):
     when the information about ``theta`` depends on where the poses lie within their own error
     (near a singular pose), or a correction above ``BIAS_RELIABLE`` sd changes by more than the
-    bootstrap's Monte Carlo error when evaluated at the corrected geometry, a parametric
+    bootstrap's Monte Carlo error when evaluated at the corrected geometry and the deconvolved
+    poses, a parametric
     bootstrap at the deconvolved poses stands in for it, and its spread, Monte Carlo error and
     disagreement with the second-order bias there widen the interval.
     """
@@ -798,7 +799,7 @@ def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warni
                "freed of their estimated scatter), so the local approximation is unreliable")
     else:
         why = (f"the second-order bias correction of {fb['parameter']} ({fb['box'][k]:.3g}, sd {fb['sd']:.3g}) "
-               f"changes to {fb['box_corrected'][k]:.3g} when evaluated at the corrected geometry: the local "
+               f"changes to {fb['box_corrected'][k]:.3g} when evaluated at the corrected geometry and poses: the local "
                "approximation is unreliable here")
     return [Warning("bias-fallback", f"{why}; the bias was measured by parametric bootstrap ({fb['n_boot']} "
                     f"refits at the deconvolved poses: {fb['bootstrap'][k]:.3g} against {fb['box'][k]:.3g} from "
