@@ -248,7 +248,10 @@ def write(rows):
 #: later versions compared with tag ``deconvolved``, and what changed
 LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the corrected geometry and the "
                            "deconvolved poses, and sent to the bootstrap only when it moves there by more than the "
-                           "bootstrap's Monte Carlo error, sd / sqrt(10)",
+                           "bootstrap's Monte Carlo error, sd / sqrt(10). Evaluated at the corrected geometry "
+                           "only (fitted poses), the same rule kept the expansion in 9 near-straight sigma-15 trials "
+                           "(fallback 90 of 100: coverage 0.91, bias 0.68 crlb) and 2 near-folded ones (47: 0.90, "
+                           "-0.05 crlb): the poses' share of the change is what flags them",
          "stiffer": "that rule (evaluated at the corrected geometry only), and the graduated-smoothing start "
                     "9 times stiffer than the motion model (was 3; not kept: no gain in coverage on the one "
                     "cell it was run on)"}
