@@ -9,6 +9,7 @@ from skelid.estimators.singular import (
     _N_CUTOFFS,
     POSE_SENSITIVE,
     deconvolve_poses,
+    expansion_consistent,
     fallback_covariance,
     indirect_bias,
     pose_check,
@@ -110,3 +111,46 @@ def test_away_from_singular_poses_the_check_passes():
     est, check = _check(model, trial)
     assert not check.sensitive and est.bias_method_ == "box"
     assert not any(w.code == "bias-fallback" for w in est.warnings_)
+
+
+def test_the_self_consistency_rule_is_scale_free_where_the_size_rule_is_not():
+    # closed form: a profile bias b(theta) = c / theta that does not shrink with the frames (incidental
+    # poses), an sd that does (sd ~ 1 / sqrt(T)); re-evaluated at theta - b it changes by c b / (theta (theta - b))
+    c, theta, n_boot = 300.0, 250.0, 10
+    b = np.array([c / theta])
+    b_next = c / (theta - b)
+    assert b_next - b == pytest.approx(c * b / (theta * (theta - b)))
+    for frames in (100, 1_000, 10_000, 100_000):
+        sd = np.array([25.0 / np.sqrt(frames)])
+        assert expansion_consistent(b, b_next, sd, n_boot).all()  # trusted at every length ...
+    assert np.abs(b) > 1.5 * 25.0 / np.sqrt(10_000)  # ... where "larger than 1.5 sd" distrusts it
+    # a bias that changes fast with theta (theta near c's scale): the expansion's own error is large
+    theta = 2.0
+    b = np.array([c / theta])
+    assert not expansion_consistent(b, c / (theta - b), np.array([1.0]), n_boot).any()
+    # the boundary is the bootstrap's Monte Carlo error sd / sqrt(n_boot)
+    assert expansion_consistent([0.0], [0.099], [1.0], 100).all()
+    assert not expansion_consistent([0.0], [0.101], [1.0], 100).any()
+
+
+def test_a_large_but_self_consistent_correction_is_kept(monkeypatch):
+    import skelid.estimators.marker as marker_mod
+
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[250.0], n_frames=80, sigma=5.0, rng=np.random.default_rng(7))
+    monkeypatch.setattr(marker_mod, "BIAS_RELIABLE", 0.0)  # every correction is large: re-evaluated
+    est = MarkerEstimator(model, jackknife=False, rng=0).fit(trial.data)
+    assert est.bias_method_ == "box" and est.bias_fallback_ is None
+    # the reference: the second-order bias at the estimate, which moves by less than sd / sqrt(n_boot)
+    # when evaluated at the corrected geometry and the deconvolved poses
+    fit, used = est.fit_info_, est.frames_used_
+    y = np.where(used[:, None, None], est.y_, np.nan)
+    var = []
+    b = smoothed_bias(model, y, fit.theta, fit.pose, est.sigma_**2, fit.penalty, weights=est.marker_weights_,
+                      pose_var=var)
+    np.testing.assert_allclose(est.bias_, b, rtol=1e-9)
+    q_tilde = deconvolve_poses(fit.pose, var[0], used)
+    again = smoothed_bias(model, y, fit.theta - est.bias_, q_tilde, est.sigma_**2, fit.penalty,
+                          weights=est.marker_weights_)
+    sd = est.sigma_ * np.sqrt(np.diag(np.linalg.inv(fit.info)))
+    assert np.all(np.abs(again - est.bias_) <= sd / np.sqrt(est.n_boot))

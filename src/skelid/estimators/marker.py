@@ -88,7 +88,13 @@ from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_t
 from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
-from skelid.estimators.singular import POSE_SENSITIVE, fallback_covariance, indirect_bias, pose_check
+from skelid.estimators.singular import (
+    POSE_SENSITIVE,
+    expansion_consistent,
+    fallback_covariance,
+    indirect_bias,
+    pose_check,
+)
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, joint_distances, marker_positions
 from skelid.result import FitResult, NoiseEstimate, Warning
@@ -99,7 +105,7 @@ MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised f
 STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
-BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
+BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is re-evaluated at the corrected point
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
 CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each
 SCREEN_STEP_TOL = 1e-2  # the screening fit (no motion model) stops at steps below this many sd ...
@@ -508,7 +514,9 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
 
     Under ``'auto'`` the second-order correction is checked (:mod:`skelid.estimators.singular`):
     when the information about ``theta`` depends on where the poses lie within their own error
-    (near a singular pose), or the correction exceeds ``BIAS_RELIABLE`` sd, a parametric
+    (near a singular pose), or a correction above ``BIAS_RELIABLE`` sd changes by more than the
+    bootstrap's Monte Carlo error when evaluated at the corrected geometry and the deconvolved
+    poses, a parametric
     bootstrap at the deconvolved poses stands in for it, and its spread, Monte Carlo error and
     disagreement with the second-order bias there widen the interval.
     """
@@ -520,17 +528,18 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     y = sc.y
     y_used = np.where(used[:, None, None], y, np.nan)
 
-    def second_order(q, pose_var=None):
+    def second_order(q, pose_var=None, theta=None):
+        theta = fit.theta if theta is None else theta
         if fit.penalty is None:
             var = [] if pose_var is not None else None
-            b = box_bias(model, y[used], fit.theta, q[used], sigma2_bias, weights=w, pose_var=var)
+            b = box_bias(model, y[used], theta, q[used], sigma2_bias, weights=w, pose_var=var)
             if var is not None:  # frames not used: no information, the mean variance
                 full = np.empty(q.shape)
                 full[used] = var[0]
                 full[~used] = var[0].mean(axis=0)
                 pose_var.append(full)
             return b
-        return smoothed_bias(model, y_used, fit.theta, q, sigma2_bias, fit.penalty, weights=w, pose_var=pose_var)
+        return smoothed_bias(model, y_used, theta, q, sigma2_bias, fit.penalty, weights=w, pose_var=pose_var)
 
     if method == "box":
         checked = est.bias_correction in ("auto", True)
@@ -541,7 +550,10 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
         sd = noise.sigma * np.sqrt(np.clip(np.diag(np.linalg.inv(fit.info)), 0, None))
         check = pose_check(model, y, fit.theta, fit.pose, pose_var[0], used, row_weights(w, y))
         large = np.abs(b) > BIAS_RELIABLE * sd
-        if check.sensitive or np.any(large):
+        # evaluated again at the corrected point: geometry less its bias, poses freed of their scatter
+        b_next = second_order(check.q_tilde, theta=fit.theta - b) if np.any(large) and not check.sensitive else b
+        unstable = large & ~expansion_consistent(b, b_next, sd, est.n_boot)
+        if check.sensitive or np.any(unstable):
             # the local expansion is unreliable here (near a singular pose): the bias of this fit is
             # measured by simulation at the deconvolved poses instead
             b_tilde = second_order(check.q_tilde)
@@ -554,10 +566,11 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
             boot, shifts = indirect_bias(refit, fit.theta, check.q_tilde)
             extra = fallback_covariance(shifts, sigma2 * np.linalg.inv(fit.info), boot - b_tilde)
             k = int(np.argmax(np.maximum(np.abs(check.info_change) / POSE_SENSITIVE,
-                                         np.abs(b) / np.maximum(BIAS_RELIABLE * sd, 1e-300))))
-            reason = "pose" if check.sensitive else "large"
+                                         np.abs(b_next - b) * np.sqrt(est.n_boot) / np.maximum(sd, 1e-300))))
+            reason = "pose" if check.sensitive else "unstable"
             return Bias(boot, "bootstrap", {
                 "reason": reason, "box": b.tolist(), "box_deconvolved": b_tilde.tolist(),
+                "box_corrected": b_next.tolist(),
                 "bootstrap": boot.tolist(), "n_boot": est.n_boot, "parameter": model.parameter_names[k],
                 "sd": float(sd[k]), "info_change": check.info_change.tolist(),
                 "pose_sd": check.pose_sd.tolist(),
@@ -861,8 +874,9 @@ def _bias_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warni
                f"{fb['parameter']} changes by {100 * abs(fb['info_change'][k]):.0f} % when the fitted poses are "
                "freed of their estimated scatter), so the local approximation is unreliable")
     else:
-        why = (f"the second-order bias correction of {fb['parameter']} ({fb['box'][k]:.3g}) is large against "
-               f"its sd ({fb['sd']:.3g}): the local approximation is unreliable here")
+        why = (f"the second-order bias correction of {fb['parameter']} ({fb['box'][k]:.3g}, sd {fb['sd']:.3g}) "
+               f"changes to {fb['box_corrected'][k]:.3g} when evaluated at the corrected geometry and poses: the local "
+               "approximation is unreliable here")
     return [Warning("bias-fallback", f"{why}; the bias was measured by parametric bootstrap ({fb['n_boot']} "
                     f"refits at the deconvolved poses: {fb['bootstrap'][k]:.3g} against {fb['box'][k]:.3g} from "
                     f"the second-order expansion) instead, and the interval uses the refits' spread and the "
