@@ -589,6 +589,7 @@ class Session:
         else:
             self._state = empty_state(model, self._prior)
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
+        self._step = _Step(self) if self._linearise.tables is not None and self._pose_fit.tables is not None else None
 
     # ------------------------------------------------------------------ names
     def _name_index(self, labels) -> dict[str, int]:
@@ -698,6 +699,10 @@ class Session:
                 self._remember(y, q, False)
             return self._gaussian_estimate(None, problems, ())
         s2 = self._current_sigma2()
+        if self._step is not None and st.poses.shape[0]:
+            est = self._step(y, st, s2, n_present)
+            if est is not None:
+                return est
         theta = st.mean
         if st.poses.shape[0] == 0:
             q, _ = initial_pose(model, theta, y, self.rng, ws=ws)
@@ -945,6 +950,46 @@ class _Linearise:
         self.gT[:, 0] = geometry(self.model, theta)
         self.qT[:, 0] = q
         return _live_kernel.linearise(self.gT, self.qT, *self.tables)
+
+
+class _Step:
+    """The Gaussian form's whole frame in one compiled call (:func:`skelid.estimators._live_kernel.step`).
+
+    The same pose fit, screening, update and mean as the general path of
+    :meth:`Session._push_gaussian` (equal to rounding); a frame with a marker
+    beyond the outlier limit is handed back (None) to the general path, which
+    leaves the marker out.
+    """
+
+    def __init__(self, session: Session):
+        self.session = session
+        model = session.model
+        g_base, A = model.geometry_map
+        mu0, L0, lo, hi = session._prior
+        sigma = -1.0 if session.sigma is None else float(session.sigma)
+        self.settings = (float(session._weight), int(session.n_iter), sigma, float(session._sigma_fallback))
+        self.model_args = (np.ascontiguousarray(session._rot, dtype=np.bool_),
+                           *(np.ascontiguousarray(a, dtype=float) for a in (mu0, L0, lo, hi, g_base, A)),
+                           *session._linearise.tables)
+        self.limit_scale = session.outlier_sd * math.sqrt(model.dim)
+
+    def __call__(self, y, st: GaussianState, s2: float, n_present: int) -> LiveEstimate | None:
+        ses = self.session
+        known = ses.sigma is not None or st.n_used >= 10
+        limit = self.limit_scale * math.sqrt(s2) if known else math.inf
+        weight, n_iter, sigma, fallback = self.settings
+        (status, root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used, q,
+         resid) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs, st.poses,
+                                    st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight, n_iter, sigma,
+                                    fallback, limit, *self.model_args)
+        if status >= 0:
+            return None
+        ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)
+        if ses._remember(y, q, True):
+            ses._state = relinearise(ses.model, ses._early, ses._prior, ses.sigma, weight, mean, fallback,
+                                     ws=ses._ws, smoother=(ses.rate, ses.cutoff) if weight > 0 else None)
+        problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
+        return ses._gaussian_estimate(resid, problems, ())
 
 
 def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:
