@@ -5,7 +5,8 @@ estimate of a live :class:`skelid.live.Session` (Gaussian form) is compared
 with the batch :class:`~skelid.estimators.marker.MarkerEstimator` on the same
 frames, as ``|live - batch| / sd_batch`` per parameter, for the session
 without a motion model (``cutoff=None``) and with the batch method's motion
-model (``cutoff=6``), and with the truth (``|live - true| / sd_live``). The
+model (``cutoff=6``), for the default (``cutoff='auto'``: the cutoff
+chosen from the frames as the batch method chooses it), and with the truth (``|live - true| / sd_live``). The
 last cell plays the simulator's motion five times faster (up to 7.5 Hz).
 Each trial is replayed twice: clean, and with glitches
 (one marker missing for 10 frames, two labels swapped for 4 frames, 3 frames
@@ -35,7 +36,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 CELLS = {"case-a sigma 1 mm": ("case-a", 1.0, 300, 1), "case-a sigma 5 mm": ("case-a", 5.0, 300, 1),
          "tennis arm sigma 1 mm": ("tennis_arm", 0.001, 200, 1), "arm10 sigma 2 mm": ("arm10", 0.002, 200, 1),
          "tennis arm sigma 1 mm, 5x faster": ("tennis_arm", 0.001, 300, 5)}
-CUTOFFS = {"none": None, "6 Hz": 6.0}
+CUTOFFS = {"none": None, "6 Hz": 6.0, "auto": "auto"}
 
 
 def _model(name):

@@ -164,3 +164,16 @@ def test_the_motion_model_does_not_carry_a_prediction_through_a_long_gap():
         ec, eg = clean.push(a), gap.push(b)
         assert eg.healthy == bool(np.isfinite(b).all())
     np.testing.assert_array_less(np.abs(eg.theta - ec.theta), np.sqrt(np.diag(ec.cov)))
+
+
+def test_the_default_motion_model_follows_a_fast_movement():
+    """The simulated arm motion played five times faster (up to 7.5 Hz): a fixed 6 Hz motion model puts this
+    trial's estimate 26 sd from the truth; the default chooses its cutoff from the frames and stays close."""
+    model = load_model(EXAMPLES / "tennis_arm.toml")
+    trial = simulate(model, n_frames=300, sigma=0.001, rate=20.0, rng=np.random.default_rng(0))
+    session = Session(model, labels=trial.data.names, rate=100.0, method="gaussian")
+    est = _run(session, trial.data.positions)
+    assert session._cutoff_now > 6.0
+    np.testing.assert_array_less(np.abs(est.theta - trial.theta), 3.0 * np.sqrt(np.diag(est.cov)))
+    with pytest.raises(ModelError, match="unknown cutoff"):
+        Session(model, cutoff="fast")

@@ -41,28 +41,36 @@ the same estimates, slower. Early in a session (after
 the current mean (:func:`relinearise`). For a linear model the last mean
 equals the batch joint fit with the same motion model.
 
-Without a motion model (the default) this is the joint least-squares fit
+Without a motion model (``cutoff=None``) this is the joint least-squares fit
 with every pose free: it keeps that fit's ``O(sigma^2)`` bias (on case A with
 5 mm noise about 1.5 mm, 3 sd, after 300 frames; negligible at 1 mm). With
-the motion model (``cutoff=6.0``) the early re-linearisations use the frames'
-smoothed poses (:func:`smoothed_poses`), as the batch fit converges to, and
-on case A at 5 mm the last estimate is within 0.2 sd of the batch ``marker``
-estimate (four trials of 300 frames). After the last re-linearisation (200
-frames) each frame is linearised at its filtered pose, which is off by the
-noise; where a pose is poorly fixed (the tennis arm's hand has one marker)
-that leaves an ``O(sigma^2)`` error of its own. A frame with a marker left out
-as an outlier gives no data under the motion model; its pose follows the
-prediction, for at most :data:`_BRIDGE` frames in a row: after a longer gap
-(a dropout of the whole marker set) the held poses are marginalised
-(:func:`drop_poses`) and the next pose is found afresh, since a
-constant-velocity prediction run on through a gap pulls the geometry (13.6 sd
-on a tennis-arm trial with a 0.4 s dropout, 0.5 sd with the chain let go).
-The motion model stays optional because its cutoff is fixed: the batch method
-chooses its cutoffs from the data (6 Hz is its lowest), and when the motion
-is fast for a 6 Hz smoother (the simulated arm motion played five times
-faster, up to 7.5 Hz) the live estimate lands many sd from the truth while
-each frame still looks healthy (``benchmarks/live_agreement.py``). No
-second-order bias correction is applied live.
+the motion model the early re-linearisations use the frames' smoothed poses
+(:func:`smoothed_poses`), as the batch fit converges to, which removes most
+of that bias. After the last re-linearisation (200 frames) each frame is
+linearised at its filtered pose, which is off by the noise; where a pose is
+poorly fixed (the tennis arm's hand has one marker) that leaves an
+``O(sigma^2)`` error of its own.
+
+A fixed cutoff is wrong for fast movements: with ``cutoff=6.0`` and the
+simulated arm motion played five times faster (up to 7.5 Hz) the live
+estimate lands 5-30 sd from the truth while every frame looks healthy. The
+default, ``cutoff='auto'``, chooses the cutoff from the frames as the batch
+``marker`` method does (:func:`live_cutoff`: each pose coordinate's cutoff
+by generalised cross-validation, doubled, at least 6 Hz; the live form has
+one weight for all coordinates, so the highest is taken): no motion model for
+the first 50 frames, the cutoff chosen at each early re-linearisation from 50
+frames on, and again every 200 frames after them, so that it follows the
+movement. A motion too fast for any cutoff below half the frame rate turns the
+motion model off. ``benchmarks/live_agreement.py`` measures all three
+settings against the batch estimate and the truth.
+
+A frame with a marker left out as an outlier gives no data under the motion
+model; its pose follows the prediction, for at most :data:`_BRIDGE` frames
+in a row: after a longer gap (a dropout of the whole marker set) the held
+poses are marginalised (:func:`drop_poses`) and the next pose is found
+afresh, since a constant-velocity prediction run on through a gap pulls the
+geometry (13.6 sd on a tennis-arm trial with a 0.4 s dropout, 0.5 sd with the
+chain let go). No second-order bias correction is applied live.
 
 **Grid form** (1-3 parameters, or a posterior with several modes): the
 online grid filter :class:`~skelid.estimators.grid.MarkerGridFilter`; the pose
@@ -91,6 +99,7 @@ True
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, partial
@@ -369,6 +378,27 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     return q
 
 
+def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None) -> float:
+    """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the early frames as the batch method does.
+
+    Each frame's pose is fitted on its own at ``theta``; each coordinate's cutoff is
+    chosen by generalised cross-validation and doubled
+    (:func:`~skelid.estimators.joint.choose_cutoffs`), at least the batch method's
+    ``MIN_AUTO_CUTOFF``; the live form has one weight for every coordinate, so the
+    highest of them (the least smoothing any coordinate needs) is taken.
+    """
+    from skelid.estimators.joint import choose_cutoffs
+    from skelid.estimators.marker import MIN_AUTO_CUTOFF
+
+    Y = np.stack([f[0] for f in frames])
+    q = np.stack([f[1] for f in frames])
+    used = np.array([f[2] for f in frames])
+    if used.any():
+        q[used], _ = fit_pose(model, theta, Y[used], q[used], n_iter=10, ws=ws)
+    fc = np.maximum(choose_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
+    return float(fc.max())
+
+
 def relinearise(model: Model, frames, prior, sigma: float | None, weight: float, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None) -> GaussianState:
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
@@ -559,14 +589,14 @@ class Session:
         Marker noise (model units); estimated from the residuals if not given.
     outlier_sd : float
         Residual, in noise standard deviations, beyond which a marker is left out of a frame.
-    cutoff : float or None
+    cutoff : float, 'auto' or None
         Cutoff (Hz) of the Gaussian form's motion model, the batch ``marker``
-        method's third-difference smoother (``MIN_AUTO_CUTOFF`` = 6 Hz is its
-        lowest automatic cutoff). None (default): every pose free, as in the
-        plain joint fit, which keeps that fit's ``O(sigma^2)`` bias. The motion
-        model removes most of that bias when the movement is slow for the cutoff,
-        and biases the estimate when it is not (fast movements): see the module
-        notes for what it gains and where it falls short.
+        method's third-difference smoother. ``'auto'`` (default): chosen from
+        the frames as the batch method chooses it and re-chosen as the movement
+        changes (:func:`live_cutoff`). None: every pose free, as in the plain
+        joint fit, which keeps that fit's ``O(sigma^2)`` bias. A fixed cutoff
+        biases the estimate when the movement is fast for it. See the module
+        notes.
     n_iter : int
         Gaussian form: times each frame is linearised again at its filtered pose
         (iterated extended Kalman update; 0 is faster and less accurate).
@@ -583,7 +613,7 @@ class Session:
 
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,
                  method: str = "auto", sigma: float | None = None, outlier_sd: float = 6.0,
-                 cutoff: float | None = None, n_iter: int = 1, rng: np.random.Generator | None = None):
+                 cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None):
         if method not in ("auto", "gaussian", "grid"):
             raise ModelError(f"unknown live method {method!r}", "use 'auto', 'gaussian' or 'grid'")
         if method == "grid" and model.n_params > 3:
@@ -610,8 +640,13 @@ class Session:
         self._gap = 0  # frames in a row whose data were not used
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
+        self._auto = isinstance(cutoff, str)
+        if self._auto and cutoff != "auto":
+            raise ModelError(f"unknown cutoff {cutoff!r}", "give a cutoff in Hz, 'auto' or None")
+        self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
+        self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
         self.n_iter = int(n_iter)
-        self._weight = motion_scale(cutoff, self.rate)
+        self._weight = motion_scale(self._cutoff_now, self.rate)
         self._rot = np.array([d.kind == "R" for d in model.dofs])
         _, L0, lo, hi = self._prior
         self._ranges = (lo, hi, 1.0 / np.sqrt(np.diag(L0)))
@@ -792,10 +827,24 @@ class Session:
         self._state = st = new
         self._gap = 0
         if self._remember(y, q, True):
-            self._state = relinearise(model, self._early, self._prior, self.sigma, self._weight, st.mean,
-                                      self._sigma_fallback, ws=ws,
-                                      smoother=(self.rate, self.cutoff) if self._weight > 0 else None)
+            self._relinearise(st.mean)
         return self._gaussian_estimate(resid, problems, tuple(rejected))
+
+    def _relinearise(self, theta) -> None:
+        """Every early frame linearised again at ``theta`` (:func:`relinearise`); with ``cutoff='auto'`` the
+        motion model's cutoff is chosen first (:func:`live_cutoff`) from 50 frames on."""
+        if self._auto and len(self._early) >= 50:
+            self._set_cutoff(live_cutoff(self.model, self._early, theta, self.rate, self._ws))
+        self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
+                                  self._sigma_fallback, ws=self._ws,
+                                  smoother=(self.rate, self._cutoff_now) if self._weight > 0 else None)
+
+    def _set_cutoff(self, cutoff: float) -> None:
+        """The motion model's cutoff from now on (``cutoff='auto'``)."""
+        self._cutoff_now = cutoff
+        self._weight = motion_scale(cutoff, self.rate)
+        if self._step is not None:
+            self._step = _Step(self)
 
     def _not_used(self, st: GaussianState, y, s2: float) -> None:
         """A frame whose data are not used: under the motion model its pose follows the prediction, for up to
@@ -821,6 +870,11 @@ class Session:
         """Keep an early frame for re-linearisation; True when it is time to re-linearise."""
         n = len(self._early)
         if n >= _RELINEARISE[-1]:
+            if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
+                self._recent.append((y, q, used))
+                if len(self._recent) == _RELINEARISE[-1]:
+                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws))
+                    self._recent.clear()
             return False
         self._early.append((y, q, used))
         return n + 1 in _RELINEARISE
@@ -1031,8 +1085,7 @@ class _Step:
         ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)
         ses._gap = 0
         if ses._remember(y, q, True):
-            ses._state = relinearise(ses.model, ses._early, ses._prior, ses.sigma, weight, mean, fallback,
-                                     ws=ses._ws, smoother=(ses.rate, ses.cutoff) if weight > 0 else None)
+            ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
         return ses._gaussian_estimate(resid, problems, ())
 
