@@ -46,7 +46,7 @@ def test_models_it_does_not_cover_are_left_to_numpy():
 
 
 @needs_numba
-@pytest.mark.parametrize("name,cutoff", [("arm10", 6.0), ("arm10", None), ("case-a", 6.0)])
+@pytest.mark.parametrize("name,cutoff", [("arm10", 6.0), ("arm10", None), ("case-a", 6.0), ("arm10", "auto")])
 def test_a_session_gives_the_numpy_paths_estimates_to_rounding(monkeypatch, name, cutoff):
     """The compiled frame step (and linearisation) against the numpy update, frame by frame, with a missing
     marker, a swapped label and a frame with no markers in the stream."""
