@@ -177,3 +177,23 @@ def test_the_default_motion_model_follows_a_fast_movement():
     np.testing.assert_array_less(np.abs(est.theta - trial.theta), 3.0 * np.sqrt(np.diag(est.cov)))
     with pytest.raises(ModelError, match="unknown cutoff"):
         Session(model, cutoff="fast")
+
+
+def test_a_swapped_label_the_marker_screen_cannot_see_does_not_pass_into_the_motion_model():
+    """Case A's three markers barely fix the pose: with two labels swapped the pose fit finds a pose that fits
+    them, so no marker stands out, but that pose jumps away from the motion model's prediction. Without that
+    check this trial's estimate went 30 sd from the clean one."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=300, sigma=1.0, rng=np.random.default_rng(0))
+    y = trial.data.positions.copy()
+    y[200:204, [0, 2]] = y[200:204, [2, 0]]
+    clean = Session(model, labels=trial.data.names, method="gaussian")
+    glitched = Session(model, labels=trial.data.names, method="gaussian")
+    flagged = []
+    for t, (a, b) in enumerate(zip(trial.data.positions, y, strict=True)):
+        ec, eg = clean.push(a), glitched.push(b)
+        if not eg.healthy:
+            flagged.append(t)
+            assert "jumps beyond the motion model" in eg.health
+    assert flagged == [200, 201, 202, 203]
+    np.testing.assert_array_less(np.abs(eg.theta - ec.theta), 0.5 * np.sqrt(np.diag(ec.cov)))

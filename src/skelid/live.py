@@ -108,7 +108,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dgeqrf as _dgeqrf
-from scipy.stats import norm
+from scipy.stats import chi2, norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
@@ -315,6 +315,37 @@ def drop_poses(state: GaussianState) -> GaussianState:
     """
     kq = state.poses.size
     return state._replace(root=state.root[kq:, kq:].copy(), rhs=state.rhs[kq:].copy(), poses=state.poses[:0])
+
+
+def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> float:
+    """How far a frame's pose lies from the motion model's prediction: ``nu^T V^{-1} nu``.
+
+    ``nu = q - (3 q_t - 3 q_{t-1} + q_{t-2})`` is the innovation of the freely
+    fitted pose against the held poses' third-difference prediction; its
+    covariance is taken generously as ``21 sigma^2 (J^T J)^{-1}`` (the free fit's
+    error, and the three held poses' as if they were no better) plus the motion
+    model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``). Beyond a
+    chi-square quantile with ``Q`` degrees of freedom the pose has jumped (a
+    swapped label the marker screen cannot see, where the markers barely fix the
+    pose, or a wrong start of the pose fit).
+
+    Parameters
+    ----------
+    state : GaussianState
+        Holding three poses.
+    q : (Q,) float
+        The frame's pose fitted on its own (angles continuous with the held poses).
+    J_pose : (N, Q) float
+        ``dx/dq`` of the frame's present coordinates at ``q``.
+    """
+    p = state.poses
+    Q = q.size
+    JtJ = J_pose.T @ J_pose
+    JtJ = JtJ + np.eye(Q) * (1e-9 * max(np.trace(JtJ) / Q, 1e-300))
+    hbar = np.maximum(state.hdiag / max(state.n_used, 1), 1e-300)
+    V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(sigma2 / (weight * hbar))
+    nu = q - (3.0 * p[2] - 3.0 * p[1] + p[0])
+    return float(nu @ np.linalg.solve(V, nu))
 
 
 def _theta_information(state: GaussianState, prior, sigma2: float):
@@ -638,6 +669,7 @@ class Session:
         self._frame = 0
         self._early: list = []  # the first frames, (y, pose, used), for re-linearisation
         self._gap = 0  # frames in a row whose data were not used
+        self._jump_limit = float(chi2.isf(1e-4, model.n_pose))  # a pose's jump beyond the motion model
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
         self._auto = isinstance(cutoff, str)
@@ -811,6 +843,11 @@ class Session:
             r = (y[present] - x[present]).reshape(-1)
             Jq2 = Jq[present].reshape(r.size, -1)
             Jt2 = Jt[present].reshape(r.size, -1)
+        if (self._weight > 0 and st.poses.shape[0] == _HELD
+                and pose_jump(st, q, Jq2, self._weight, s2) > self._jump_limit):
+            problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
+            self._not_used(st, y, s2)
+            return self._gaussian_estimate(resid, problems, tuple(rejected))
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback)
         motion = self._weight > 0
@@ -1055,8 +1092,8 @@ class _Step:
 
     The same pose fit, screening, update and mean as the general path of
     :meth:`Session._push_gaussian` (equal to rounding); a frame with a marker
-    beyond the outlier limit is handed back (None) to the general path, which
-    leaves the marker out.
+    beyond the outlier limit, or whose pose jumps beyond the motion model, is
+    handed back (None) to the general path, which leaves it out.
     """
 
     def __init__(self, session: Session):
@@ -1079,7 +1116,7 @@ class _Step:
         (status, root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used, q,
          resid) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs, st.poses,
                                     st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight, n_iter, sigma,
-                                    fallback, limit, *self.model_args)
+                                    fallback, limit, float(s2), ses._jump_limit, *self.model_args)
         if status >= 0:
             return None
         ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)

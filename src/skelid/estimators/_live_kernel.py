@@ -19,13 +19,14 @@ path's to rounding (the kernel's sine and cosine are within 1 ulp of the C
 library's).
 
 :func:`step` is a whole frame of :class:`skelid.live.Session`'s Gaussian
-form in one call, so that a push spends its time in arithmetic rather than in
-Python glue: the pose fit at the current mean (the pose kernel's
+form in one call, so that a push spends its time in arithmetic rather than
+in Python glue: the pose fit at the current mean (the pose kernel's
 Levenberg-Marquardt driver from the constant-velocity prediction), the
-linearisation, each marker's residual against the outlier limit (a frame with
-a marker beyond it is handed back to the general path, which leaves the
-marker out), the rows of the frame and of the motion model stacked under the
-square-root information and triangularised again by Householder reflections
+linearisation, each marker's residual against the outlier limit (a frame
+with a marker beyond it is handed back to the general path, which leaves the
+marker out), the pose's jump against the motion model (likewise), the rows
+of the frame and of the motion model stacked under the square-root
+information and triangularised again by Householder reflections
 (:func:`skelid.live.absorb`), and the mean of theta and of the newest pose
 (:func:`skelid.live.solve_mean`), linearised again at the filtered pose
 ``n_iter`` times with a motion model. Its numbers equal the numpy path's to
@@ -166,8 +167,8 @@ if AVAILABLE:  # pragma: no branch
 
     @_lm_kernel._jit
     def step(y, q0, theta, root, rhs, poses, hdiag, rss, n_obs, n_used, weight, n_iter, sigma, fallback, limit,
-             rot, mu0, L0, lo, hi, g_base, A_geo, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, moves,
-             nz, tilt, planar, jpar, A_joint, anc, mslot, A_marker):
+             s2_now, gate, rot, mu0, L0, lo, hi, g_base, A_geo, D, S, M, parent, dof_start, is_t, axis, skew, skew2,
+             ms, moves, nz, tilt, planar, jpar, A_joint, anc, mslot, A_marker):
         """One frame of the live Gaussian form (see :mod:`skelid.live`): pose fit, screen, update, mean.
 
         Parameters
@@ -190,6 +191,11 @@ if AVAILABLE:  # pragma: no branch
             Noise variance while the residuals cannot say.
         limit : float
             Marker residual beyond which the frame is handed back (``inf``: no screening).
+        s2_now : float
+            The noise variance before this frame.
+        gate : float
+            With a motion model and three held poses: the bound on the pose innovation
+            (:func:`skelid.live.pose_jump`) beyond which the frame is handed back (status ``M``).
         rot : (Q,) bool
             Rotational pose coordinates (kept continuous with the previous pose).
         mu0, L0, lo, hi
@@ -200,8 +206,9 @@ if AVAILABLE:  # pragma: no branch
         Returns
         -------
         status : int
-            -1 when the frame was folded in; otherwise the index of the marker beyond ``limit`` (nothing
-            folded in: the caller leaves it out and updates by the general path).
+            -1 when the frame was folded in; otherwise the index of the marker beyond ``limit``, or ``M``
+            when the pose jumps beyond the motion model (nothing folded in: the caller updates by the
+            general path).
         root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used
             The new state.
         q : (Q,) float
@@ -268,6 +275,8 @@ if AVAILABLE:  # pragma: no branch
                     q[k] = last + (q[k] - last + np.pi) % (2.0 * np.pi) - np.pi
         N = n_present * D
         r, Jq, Jt = _rows(y, x, J, K, mask, N)
+        if weight > 0.0 and k_held == 3 and _jump(q, poses, Jq, hdiag, n_used, weight, s2_now) > gate:
+            return (M, root, rhs, theta, q, poses, hdiag, rss, n_obs, n_used, q, resid)
         rr = 0.0
         for i in range(N):
             rr += r[i] * r[i]
@@ -312,6 +321,28 @@ if AVAILABLE:  # pragma: no branch
                     Jt[i, c] = K[m, a, c]
                 i += 1
         return r, Jq, Jt
+
+    @_lm_kernel._inline
+    def _jump(q, poses, Jq, hdiag, n_used, weight, s2):
+        """As :func:`skelid.live.pose_jump`."""
+        Q = q.size
+        JtJ = Jq.T @ Jq
+        tr = 0.0
+        for k in range(Q):
+            tr += JtJ[k, k]
+        ridge = 1e-9 * max(tr / Q, 1e-300)
+        for k in range(Q):
+            JtJ[k, k] += ridge
+        V = 21.0 * s2 * np.linalg.inv(JtJ)
+        nu = np.empty(Q)
+        for k in range(Q):
+            V[k, k] += s2 / (weight * max(hdiag[k] / max(n_used, 1), 1e-300))
+            nu[k] = q[k] - (3.0 * poses[2, k] - 3.0 * poses[1, k] + poses[0, k])
+        z = np.linalg.solve(V, nu)
+        out = 0.0
+        for k in range(Q):
+            out += nu[k] * z[k]
+        return out
 
     @_lm_kernel._inline
     def _sigma2(rss, n_obs, n_used, Q, P, sigma, fallback):
@@ -479,7 +510,8 @@ def _step_example_args() -> tuple:
     """Arguments of :func:`step` with the types of every real call (values never used)."""
     f = np.zeros
     state = (f((2, 2)), f(2), f((1, 1)), f(1), 0.0, 0, 0)  # root, rhs, poses, hdiag, rss, n_obs, n_used
-    settings = (0.0, 1, -1.0, 1.0, np.inf, np.zeros(1, np.bool_))  # weight, n_iter, sigma, fallback, limit, rot
+    # weight, n_iter, sigma, fallback, limit, s2_now, gate, rot
+    settings = (0.0, 1, -1.0, 1.0, np.inf, 1.0, 1.0, np.zeros(1, np.bool_))
     prior = (f(1), f((1, 1)), f(1), f(1))
     return (f((1, 2)), f(1), f(1), *state, *settings, *prior, f(4), f((4, 1)), *_example_args(True)[2:])
 
