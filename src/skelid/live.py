@@ -79,8 +79,11 @@ is that of the most probable grid point.
 **Health.** After the pose fit, a marker more than ``outlier_sd`` noise
 standard deviations from the model (a swapped label, a ghost marker) is left
 out and the frame refitted without it; a frame with too few markers to fix
-the pose leaves the estimate as it was. Either way ``healthy`` turns False
-and ``health`` says why.
+the pose leaves the estimate as it was. Under the motion model a frame whose
+freely fitted pose jumps away from the prediction (:func:`pose_jump`; a
+swapped label where the markers barely fix the pose, so that the pose fit
+absorbs it and no marker stands out) is not used either. Either way
+``healthy`` turns False and ``health`` says why.
 
 Examples
 --------
