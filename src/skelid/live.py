@@ -330,7 +330,12 @@ def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> 
     model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``). Beyond a
     chi-square quantile with ``Q`` degrees of freedom the pose has jumped (a
     swapped label the marker screen cannot see, where the markers barely fix the
-    pose, or a wrong start of the pose fit).
+    pose, or a wrong start of the pose fit). When the three held poses come from
+    data, or the frames before were left out for such a jump (a swap lasts
+    several frames), the session leaves the frame out; when some held poses were
+    predicted through frames without usable data (less certain than this
+    covariance says) it lets the prediction go instead and starts a new chain at
+    this frame.
 
     Parameters
     ----------
@@ -672,6 +677,8 @@ class Session:
         self._frame = 0
         self._early: list = []  # the first frames, (y, pose, used), for re-linearisation
         self._gap = 0  # frames in a row whose data were not used
+        self._run = 0  # frames in a row whose data were used (see pose_jump)
+        self._jumped = False  # the last frame not used was left out for its pose's jump
         self._jump_limit = float(chi2.isf(1e-4, model.n_pose))  # a pose's jump beyond the motion model
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
@@ -848,9 +855,11 @@ class Session:
             Jt2 = Jt[present].reshape(r.size, -1)
         if (self._weight > 0 and st.poses.shape[0] == _HELD
                 and pose_jump(st, q, Jq2, self._weight, s2) > self._jump_limit):
-            problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
-            self._not_used(st, y, s2)
-            return self._gaussian_estimate(resid, problems, tuple(rejected))
+            if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
+                problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
+                self._not_used(st, y, s2, jumped=True)
+                return self._gaussian_estimate(resid, problems, tuple(rejected))
+            st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback)
         motion = self._weight > 0
@@ -866,6 +875,7 @@ class Session:
                                     theta, self._weight, r.size, float(r @ r)), self._prior, s2)
         self._state = st = new
         self._gap = 0
+        self._run += 1
         if self._remember(y, q, True):
             self._relinearise(st.mean)
         return self._gaussian_estimate(resid, problems, tuple(rejected))
@@ -886,12 +896,14 @@ class Session:
         if self._step is not None:
             self._step = _Step(self)
 
-    def _not_used(self, st: GaussianState, y, s2: float) -> None:
+    def _not_used(self, st: GaussianState, y, s2: float, jumped: bool = False) -> None:
         """A frame whose data are not used: under the motion model its pose follows the prediction, for up to
         :data:`_BRIDGE` frames in a row; after a longer gap the held poses are marginalised
         (:func:`drop_poses`), and the next frame's pose is found afresh rather than trusted to a prediction
         that has run on without data."""
         self._gap += 1
+        self._run = 0
+        self._jumped = jumped
         if not (st.poses.shape[0] and self._weight > 0):
             return
         q = self._predict(st)
@@ -1124,6 +1136,7 @@ class _Step:
             return None
         ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)
         ses._gap = 0
+        ses._run += 1
         if ses._remember(y, q, True):
             ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
