@@ -30,13 +30,14 @@ def shared_data():
 
 
 def pytest_sessionstart(session):
-    from skelid.estimators import _lm_kernel
+    from skelid.estimators import _live_kernel, _lm_kernel
     from skelid.model import _fk_kernel
 
     for planar in (True, False):  # compile both drivers on the side while the first tests run
         _lm_kernel.warm(planar, wait=False)
         _fk_kernel.warm(planar, wait=False)
     _fk_kernel.warm("band", wait=False)
+    _live_kernel.warm(wait=False)  # and the live session's frame step
 
 
 def pytest_terminal_summary(terminalreporter):

@@ -30,27 +30,47 @@ sd ``(b - a)/\\sqrt{12}`` and bounds the mean; ``\\hat\\sigma^2`` the running
 residual variance ``RSS / (n_{obs} - Q n_{frames} - P)``). With a motion
 model the frame is linearised once more at its filtered pose (``n_iter``).
 The cost per frame is one pose fit, one kinematics call per linearisation
-and one small QR: it does not depend on a grid. With numba the pose fit calls
-the compiled pose kernel directly (:class:`_FramePose`) and the linearisation
-is one compiled call (:mod:`skelid.estimators._live_kernel`), equal to the
-numpy path to rounding; the numpy path (``SKELID_NUMBA=0``, or while the
-kernels compile in the background) gives the same estimates, slower. Early in a session (after
+and one small QR: it does not depend on a grid. With numba a frame is one
+compiled call (:func:`skelid.estimators._live_kernel.step`: pose fit,
+screen, update and mean), equal to the numpy path to rounding; a frame with a
+marker to leave out, the first frame and the early re-linearisations take the
+general path (its pose fit and linearisation compiled too). The numpy path
+(``SKELID_NUMBA=0``, or while the kernels compile in the background) gives
+the same estimates, slower. Early in a session (after
 10, 25, 50, 100 and 200 frames) all frames so far are linearised again at
 the current mean (:func:`relinearise`). For a linear model the last mean
 equals the batch joint fit with the same motion model.
 
-Without a motion model (the default) this is the joint least-squares fit
+Without a motion model (``cutoff=None``) this is the joint least-squares fit
 with every pose free: it keeps that fit's ``O(sigma^2)`` bias (on case A with
 5 mm noise about 1.5 mm, 3 sd, after 300 frames; negligible at 1 mm). With
-the motion model (``cutoff=6.0``) the early re-linearisations use the frames'
-smoothed poses (:func:`smoothed_poses`), as the batch fit converges to, and
-on case A at 5 mm the last estimate is within 0.2 sd of the batch ``marker``
-estimate (four trials of 300 frames). After the last re-linearisation (200
-frames) each frame is linearised at its filtered pose, which is off by the
-noise; where a pose is poorly fixed (the tennis arm's hand has one marker)
-that leaves an ``O(sigma^2)`` error of its own. A frame with a marker left out
-as an outlier gives no data under the motion model. No second-order bias
-correction is applied live.
+the motion model the early re-linearisations use the frames' smoothed poses
+(:func:`smoothed_poses`), as the batch fit converges to, which removes most
+of that bias. After the last re-linearisation (200 frames) each frame is
+linearised at its filtered pose, which is off by the noise; where a pose is
+poorly fixed (the tennis arm's hand has one marker) that leaves an
+``O(sigma^2)`` error of its own.
+
+A fixed cutoff is wrong for fast movements: with ``cutoff=6.0`` and the
+simulated arm motion played five times faster (up to 7.5 Hz) the live
+estimate lands 5-30 sd from the truth while every frame looks healthy. The
+default, ``cutoff='auto'``, chooses the cutoff from the frames as the batch
+``marker`` method does (:func:`live_cutoff`: each pose coordinate's cutoff
+by generalised cross-validation, doubled, at least 6 Hz; the live form has
+one weight for all coordinates, so the highest is taken): no motion model for
+the first 50 frames, the cutoff chosen at each early re-linearisation from 50
+frames on, and again every 200 frames after them, so that it follows the
+movement. A motion too fast for any cutoff below half the frame rate turns the
+motion model off. ``benchmarks/live_agreement.py`` measures all three
+settings against the batch estimate and the truth.
+
+A frame with a marker left out as an outlier gives no data under the motion
+model; its pose follows the prediction, for at most :data:`_BRIDGE` frames
+in a row: after a longer gap (a dropout of the whole marker set) the held
+poses are marginalised (:func:`drop_poses`) and the next pose is found
+afresh, since a constant-velocity prediction run on through a gap pulls the
+geometry (13.6 sd on a tennis-arm trial with a 0.4 s dropout, 0.5 sd with the
+chain let go). No second-order bias correction is applied live.
 
 **Grid form** (1-3 parameters, or a posterior with several modes): the
 online grid filter :class:`~skelid.estimators.grid.MarkerGridFilter`; the pose
@@ -59,8 +79,11 @@ is that of the most probable grid point.
 **Health.** After the pose fit, a marker more than ``outlier_sd`` noise
 standard deviations from the model (a swapped label, a ghost marker) is left
 out and the frame refitted without it; a frame with too few markers to fix
-the pose leaves the estimate as it was. Either way ``healthy`` turns False
-and ``health`` says why.
+the pose leaves the estimate as it was. Under the motion model a frame whose
+freely fitted pose jumps away from the prediction (:func:`pose_jump`; a
+swapped label where the markers barely fix the pose, so that the pose fit
+absorbs it and no marker stands out) is not used either. Either way
+``healthy`` turns False and ``health`` says why.
 
 Examples
 --------
@@ -79,6 +102,7 @@ True
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, partial
@@ -87,7 +111,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dgeqrf as _dgeqrf
-from scipy.stats import norm
+from scipy.stats import chi2, norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
@@ -108,8 +132,12 @@ from skelid.result import ParameterEstimate
 _Z95 = float(norm.ppf(0.975))
 #: after this many frames, every frame so far is linearised again at the current mean
 _RELINEARISE = (10, 25, 50, 100, 200)
+#: the motion model carries the pose through at most this many frames without data in a row; after a longer
+#: gap the held poses are marginalised and the next frame's pose is found afresh
+_BRIDGE = 5
 
-__all__ = ["LiveEstimate", "Session", "GaussianState", "absorb", "solve_mean", "theta_cov", "prior_moments", "Advice"]
+__all__ = ["LiveEstimate", "Session", "GaussianState", "absorb", "drop_poses", "solve_mean", "theta_cov",
+           "prior_moments", "Advice"]
 
 
 # --------------------------------------------------------------------------- the recursive Gaussian
@@ -281,6 +309,53 @@ def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float
                          state.n_obs + n_coord, n_used)
 
 
+def drop_poses(state: GaussianState) -> GaussianState:
+    """``state`` with every held pose marginalised (the motion model's chain broken; theta's information kept).
+
+    The square root is ordered poses first, so the trailing ``(P, P)`` block of
+    ``root`` and of ``rhs`` is the information of theta with the poses
+    marginalised.
+    """
+    kq = state.poses.size
+    return state._replace(root=state.root[kq:, kq:].copy(), rhs=state.rhs[kq:].copy(), poses=state.poses[:0])
+
+
+def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> float:
+    """How far a frame's pose lies from the motion model's prediction: ``nu^T V^{-1} nu``.
+
+    ``nu = q - (3 q_t - 3 q_{t-1} + q_{t-2})`` is the innovation of the freely
+    fitted pose against the held poses' third-difference prediction; its
+    covariance is taken generously as ``21 sigma^2 (J^T J)^{-1}`` (the free fit's
+    error, and the three held poses' as if they were no better) plus the motion
+    model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``). Beyond a
+    chi-square quantile with ``Q`` degrees of freedom the pose has jumped (a
+    swapped label the marker screen cannot see, where the markers barely fix the
+    pose, or a wrong start of the pose fit). When the three held poses come from
+    data, or the frames before were left out for such a jump (a swap lasts
+    several frames), the session leaves the frame out; when some held poses were
+    predicted through frames without usable data (less certain than this
+    covariance says) it lets the prediction go instead and starts a new chain at
+    this frame.
+
+    Parameters
+    ----------
+    state : GaussianState
+        Holding three poses.
+    q : (Q,) float
+        The frame's pose fitted on its own (angles continuous with the held poses).
+    J_pose : (N, Q) float
+        ``dx/dq`` of the frame's present coordinates at ``q``.
+    """
+    p = state.poses
+    Q = q.size
+    JtJ = J_pose.T @ J_pose
+    JtJ = JtJ + np.eye(Q) * (1e-9 * max(np.trace(JtJ) / Q, 1e-300))
+    hbar = np.maximum(state.hdiag / max(state.n_used, 1), 1e-300)
+    V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(sigma2 / (weight * hbar))
+    nu = q - (3.0 * p[2] - 3.0 * p[1] + p[0])
+    return float(nu @ np.linalg.solve(V, nu))
+
+
 def _theta_information(state: GaussianState, prior, sigma2: float):
     """Precision ``(P, P)`` and information vector ``(P,)`` of theta, poses marginalised, prior included."""
     mu0, L0 = prior[0], prior[1]
@@ -342,6 +417,27 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     return q
 
 
+def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None) -> float:
+    """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the early frames as the batch method does.
+
+    Each frame's pose is fitted on its own at ``theta``; each coordinate's cutoff is
+    chosen by generalised cross-validation and doubled
+    (:func:`~skelid.estimators.joint.choose_cutoffs`), at least the batch method's
+    ``MIN_AUTO_CUTOFF``; the live form has one weight for every coordinate, so the
+    highest of them (the least smoothing any coordinate needs) is taken.
+    """
+    from skelid.estimators.joint import choose_cutoffs
+    from skelid.estimators.marker import MIN_AUTO_CUTOFF
+
+    Y = np.stack([f[0] for f in frames])
+    q = np.stack([f[1] for f in frames])
+    used = np.array([f[2] for f in frames])
+    if used.any():
+        q[used], _ = fit_pose(model, theta, Y[used], q[used], n_iter=10, ws=ws)
+    fc = np.maximum(choose_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
+    return float(fc.max())
+
+
 def relinearise(model: Model, frames, prior, sigma: float | None, weight: float, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None) -> GaussianState:
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
@@ -381,11 +477,15 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
             q = smoothed_poses(model, theta, Y, q, used, smoother[0], smoother[1], ws)
         x, Jq, Jt = marker_jacobian(model, theta, q, ws)
         state = empty_state(model, prior)
+        gap = 0
         for b in range(B):
             if not used[b]:
-                if weight > 0:  # the pose goes on by the motion model alone
-                    state = absorb(state, None, None, None, q[b], theta, weight, 0, 0.0)
+                gap += 1
+                if weight > 0 and state.poses.shape[0]:  # the pose goes on by the motion model alone
+                    state = (drop_poses(state) if gap > _BRIDGE else
+                             absorb(state, None, None, None, q[b], theta, weight, 0, 0.0))
                 continue
+            gap = 0
             m = present[b]
             r = (Y[b, m] - x[b, m]).reshape(-1)
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
@@ -528,12 +628,14 @@ class Session:
         Marker noise (model units); estimated from the residuals if not given.
     outlier_sd : float
         Residual, in noise standard deviations, beyond which a marker is left out of a frame.
-    cutoff : float or None
+    cutoff : float, 'auto' or None
         Cutoff (Hz) of the Gaussian form's motion model, the batch ``marker``
-        method's third-difference smoother (``MIN_AUTO_CUTOFF`` = 6 Hz is its
-        lowest automatic cutoff). None (default): every pose free, as in the
-        plain joint fit, which keeps that fit's ``O(sigma^2)`` bias. See the
-        module notes for what the motion model gains and where it falls short.
+        method's third-difference smoother. ``'auto'`` (default): chosen from
+        the frames as the batch method chooses it and re-chosen as the movement
+        changes (:func:`live_cutoff`). None: every pose free, as in the plain
+        joint fit, which keeps that fit's ``O(sigma^2)`` bias. A fixed cutoff
+        biases the estimate when the movement is fast for it. See the module
+        notes.
     n_iter : int
         Gaussian form: times each frame is linearised again at its filtered pose
         (iterated extended Kalman update; 0 is faster and less accurate).
@@ -550,7 +652,7 @@ class Session:
 
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,
                  method: str = "auto", sigma: float | None = None, outlier_sd: float = 6.0,
-                 cutoff: float | None = None, n_iter: int = 1, rng: np.random.Generator | None = None):
+                 cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None):
         if method not in ("auto", "gaussian", "grid"):
             raise ModelError(f"unknown live method {method!r}", "use 'auto', 'gaussian' or 'grid'")
         if method == "grid" and model.n_params > 3:
@@ -574,10 +676,19 @@ class Session:
         self._linearise = _Linearise(model, self._ws)
         self._frame = 0
         self._early: list = []  # the first frames, (y, pose, used), for re-linearisation
+        self._gap = 0  # frames in a row whose data were not used
+        self._run = 0  # frames in a row whose data were used (see pose_jump)
+        self._jumped = False  # the last frame not used was left out for its pose's jump
+        self._jump_limit = float(chi2.isf(1e-4, model.n_pose))  # a pose's jump beyond the motion model
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
+        self._auto = isinstance(cutoff, str)
+        if self._auto and cutoff != "auto":
+            raise ModelError(f"unknown cutoff {cutoff!r}", "give a cutoff in Hz, 'auto' or None")
+        self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
+        self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
         self.n_iter = int(n_iter)
-        self._weight = motion_scale(cutoff, self.rate)
+        self._weight = motion_scale(self._cutoff_now, self.rate)
         self._rot = np.array([d.kind == "R" for d in model.dofs])
         _, L0, lo, hi = self._prior
         self._ranges = (lo, hi, 1.0 / np.sqrt(np.diag(L0)))
@@ -589,6 +700,7 @@ class Session:
         else:
             self._state = empty_state(model, self._prior)
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
+        self._step = _Step(self) if self._linearise.tables is not None and self._pose_fit.tables is not None else None
 
     # ------------------------------------------------------------------ names
     def _name_index(self, labels) -> dict[str, int]:
@@ -691,13 +803,13 @@ class Session:
         problems = [] if n_present == self._M else [f"{self._M - n_present} marker(s) missing"]
         if n_present < self._min_present:
             problems.append("too few markers to fix the pose: frame not used")
-            if st.poses.shape[0] and self._weight > 0:  # the pose goes on by the motion model alone
-                q = self._predict(st)
-                self._state = solve_mean(absorb(st, None, None, None, q, st.mean, self._weight, 0, 0.0),
-                                         self._prior, self._current_sigma2())
-                self._remember(y, q, False)
+            self._not_used(st, y, self._current_sigma2())
             return self._gaussian_estimate(None, problems, ())
         s2 = self._current_sigma2()
+        if self._step is not None and st.poses.shape[0]:
+            est = self._step(y, st, s2, n_present)
+            if est is not None:
+                return est
         theta = st.mean
         if st.poses.shape[0] == 0:
             q, _ = initial_pose(model, theta, y, self.rng, ws=ws)
@@ -718,6 +830,7 @@ class Session:
             if n_present < self._min_present:
                 problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
                                 "few markers remain: frame not used")
+                self._not_used(st, y, s2)
                 return self._gaussian_estimate(resid, problems, tuple(rejected))
             q = self._pose_fit(theta, y, q)
         if rejected:
@@ -727,10 +840,7 @@ class Session:
             problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
                             "(swapped or wrong label?); frame not used")
             if self._weight > 0:
-                q = self._predict(st)
-                self._state = solve_mean(absorb(st, None, None, None, q, theta, self._weight, 0, 0.0), self._prior,
-                                         s2)
-                self._remember(y, q, False)
+                self._not_used(st, y, s2)
                 return self._gaussian_estimate(resid, problems, tuple(rejected))
         if st.poses.shape[0]:  # angles continuous with the previous pose, for the motion model
             last = st.poses[-1]
@@ -743,6 +853,13 @@ class Session:
             r = (y[present] - x[present]).reshape(-1)
             Jq2 = Jq[present].reshape(r.size, -1)
             Jt2 = Jt[present].reshape(r.size, -1)
+        if (self._weight > 0 and st.poses.shape[0] == _HELD
+                and pose_jump(st, q, Jq2, self._weight, s2) > self._jump_limit):
+            if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
+                problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
+                self._not_used(st, y, s2, jumped=True)
+                return self._gaussian_estimate(resid, problems, tuple(rejected))
+            st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback)
         motion = self._weight > 0
@@ -757,11 +874,44 @@ class Session:
             new = solve_mean(absorb(st, r2, Jq[present].reshape(r2.size, -1), Jt[present].reshape(r2.size, -1), ql,
                                     theta, self._weight, r.size, float(r @ r)), self._prior, s2)
         self._state = st = new
+        self._gap = 0
+        self._run += 1
         if self._remember(y, q, True):
-            self._state = relinearise(model, self._early, self._prior, self.sigma, self._weight, st.mean,
-                                      self._sigma_fallback, ws=ws,
-                                      smoother=(self.rate, self.cutoff) if self._weight > 0 else None)
+            self._relinearise(st.mean)
         return self._gaussian_estimate(resid, problems, tuple(rejected))
+
+    def _relinearise(self, theta) -> None:
+        """Every early frame linearised again at ``theta`` (:func:`relinearise`); with ``cutoff='auto'`` the
+        motion model's cutoff is chosen first (:func:`live_cutoff`) from 50 frames on."""
+        if self._auto and len(self._early) >= 50:
+            self._set_cutoff(live_cutoff(self.model, self._early, theta, self.rate, self._ws))
+        self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
+                                  self._sigma_fallback, ws=self._ws,
+                                  smoother=(self.rate, self._cutoff_now) if self._weight > 0 else None)
+
+    def _set_cutoff(self, cutoff: float) -> None:
+        """The motion model's cutoff from now on (``cutoff='auto'``)."""
+        self._cutoff_now = cutoff
+        self._weight = motion_scale(cutoff, self.rate)
+        if self._step is not None:
+            self._step = _Step(self)
+
+    def _not_used(self, st: GaussianState, y, s2: float, jumped: bool = False) -> None:
+        """A frame whose data are not used: under the motion model its pose follows the prediction, for up to
+        :data:`_BRIDGE` frames in a row; after a longer gap the held poses are marginalised
+        (:func:`drop_poses`), and the next frame's pose is found afresh rather than trusted to a prediction
+        that has run on without data."""
+        self._gap += 1
+        self._run = 0
+        self._jumped = jumped
+        if not (st.poses.shape[0] and self._weight > 0):
+            return
+        q = self._predict(st)
+        if self._gap > _BRIDGE:
+            self._state = drop_poses(st)
+        else:
+            self._state = solve_mean(absorb(st, None, None, None, q, st.mean, self._weight, 0, 0.0), self._prior, s2)
+        self._remember(y, q, False)
 
     def _predict(self, st: GaussianState) -> np.ndarray:
         """The next pose by constant velocity from the last two (where the pose fit starts)."""
@@ -772,6 +922,11 @@ class Session:
         """Keep an early frame for re-linearisation; True when it is time to re-linearise."""
         n = len(self._early)
         if n >= _RELINEARISE[-1]:
+            if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
+                self._recent.append((y, q, used))
+                if len(self._recent) == _RELINEARISE[-1]:
+                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws))
+                    self._recent.clear()
             return False
         self._early.append((y, q, used))
         return n + 1 in _RELINEARISE
@@ -945,6 +1100,47 @@ class _Linearise:
         self.gT[:, 0] = geometry(self.model, theta)
         self.qT[:, 0] = q
         return _live_kernel.linearise(self.gT, self.qT, *self.tables)
+
+
+class _Step:
+    """The Gaussian form's whole frame in one compiled call (:func:`skelid.estimators._live_kernel.step`).
+
+    The same pose fit, screening, update and mean as the general path of
+    :meth:`Session._push_gaussian` (equal to rounding); a frame with a marker
+    beyond the outlier limit, or whose pose jumps beyond the motion model, is
+    handed back (None) to the general path, which leaves it out.
+    """
+
+    def __init__(self, session: Session):
+        self.session = session
+        model = session.model
+        g_base, A = model.geometry_map
+        mu0, L0, lo, hi = session._prior
+        sigma = -1.0 if session.sigma is None else float(session.sigma)
+        self.settings = (float(session._weight), int(session.n_iter), sigma, float(session._sigma_fallback))
+        self.model_args = (np.ascontiguousarray(session._rot, dtype=np.bool_),
+                           *(np.ascontiguousarray(a, dtype=float) for a in (mu0, L0, lo, hi, g_base, A)),
+                           *session._linearise.tables)
+        self.limit_scale = session.outlier_sd * math.sqrt(model.dim)
+
+    def __call__(self, y, st: GaussianState, s2: float, n_present: int) -> LiveEstimate | None:
+        ses = self.session
+        known = ses.sigma is not None or st.n_used >= 10
+        limit = self.limit_scale * math.sqrt(s2) if known else math.inf
+        weight, n_iter, sigma, fallback = self.settings
+        (status, root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used, q,
+         resid) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs, st.poses,
+                                    st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight, n_iter, sigma,
+                                    fallback, limit, float(s2), ses._jump_limit, *self.model_args)
+        if status >= 0:
+            return None
+        ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)
+        ses._gap = 0
+        ses._run += 1
+        if ses._remember(y, q, True):
+            ses._relinearise(mean)
+        problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
+        return ses._gaussian_estimate(resid, problems, ())
 
 
 def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:
