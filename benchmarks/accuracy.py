@@ -466,6 +466,7 @@ def main():
     for r in rows:
         r.setdefault("tag", "previous")
     done = {(r["tag"], r["case"], r["sigma"], r["truth"], r["noise"], r["method"]) for r in rows}
+    produced = []  # the cells this run finished: only these are written over what the file holds then
     for case in a.cases:
         for sigma in a.sigmas:
             for noise in a.noises:
@@ -475,15 +476,15 @@ def main():
                         continue
                     t0 = time.time()
                     tasks = [(case, sigma, truth, noise, r, a.frames, todo) for r in range(a.reps)]
-                    trials, base = [], list(rows)
+                    trials = []
                     for start in range(0, len(tasks), CHUNK):  # a cell's rows are rewritten as trials come in
                         trials += run_tasks(tasks[start:start + CHUNK], a.jobs)
                         cost = {"cpu_seconds": float(sum(t["cpu"] for t in trials)),
                                 "wall_seconds": time.time() - t0, "jobs": a.jobs, "tag": a.tag,
                                 "load_average": [round(v, 2) for v in os.getloadavg()]}
                         cell = [dict(r, **cost) for r in summarise(case, sigma, truth, noise, trials, todo)]
-                        rows = base + cell
-                        write(rows)
+                        write(produced + cell)
+                    produced += cell
                     for r in cell:
                         print(f"{case} s={sigma:g} L2={truth:g} {noise:<3} {r['method']:<8} "
                               f"bias {r['bias']:7.2f}±{r['bias_se']:.2f} sd {r['sd']:6.2f} "
