@@ -762,15 +762,17 @@ def compile_in_background(warming: dict, key, code: str, cached, wait: bool, tim
     """Run ``code`` (which compiles a kernel into numba's disk cache) in one separate process per ``key``.
 
     ``warming`` holds the processes already started; ``cached()`` says whether the kernel is in the
-    cache. The processes of all kernels compile one at a time (:func:`_one_at_a_time`). Returns
-    ``cached()`` after waiting at most ``timeout`` seconds when ``wait``.
+    cache. The processes of all kernels compile one at a time (:func:`_one_at_a_time`), leaving the
+    other cores to the fit that goes on meanwhile, except with ``SKELID_NUMBA=wait``, where the caller
+    waits for them and they run side by side. Returns ``cached()`` after waiting at most ``timeout``
+    seconds when ``wait``.
     """
     proc = warming.get(key)
     if proc is None and not cached():
         env = dict(os.environ, SKELID_NUMBA="compile", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
         proc = warming[key] = subprocess.Popen(
-            [sys.executable, "-c", _one_at_a_time() + code], env=env, stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+            [sys.executable, "-c", ("" if MODE == "wait" else _one_at_a_time()) + code], env=env,
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     if proc is not None and wait:
         try:
             proc.wait(timeout)
