@@ -1,5 +1,8 @@
 """The pose fit's numpy and compiled paths against a plain reference, and the grid filter that uses them."""
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -248,6 +251,19 @@ def test_a_cold_cache_starts_the_compilation_aside_once_and_uses_numpy_meanwhile
     monkeypatch.setattr(_lm_kernel, "_last_check", {})
     assert _lm_kernel.ready(True)
     assert _lm_kernel.ready(True)  # a cached driver stays ready: a second workspace made at once takes it too
+
+
+@pytest.mark.skipif(os.name != "posix", reason="the compiling processes take turns through fcntl locks")
+def test_compiling_processes_take_turns(tmp_path):
+    """Kernels missing from the cache compile one process at a time, leaving a core to the fit."""
+    code = ("import time, sys\nt0 = time.monotonic()\ntime.sleep(0.3)\n"
+            "print(t0, time.monotonic())\n")
+    prefix = _lm_kernel._one_at_a_time(str(tmp_path / "lock"))
+    procs = [subprocess.Popen([sys.executable, "-c", prefix + code], stdout=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    (a0, a1), (b0, b1) = sorted(tuple(map(float, p.communicate(timeout=60)[0].split())) for p in procs)
+    assert all(p.returncode == 0 for p in procs)
+    assert b0 >= a1  # the second started its work after the first had finished
 
 
 @needs_numba

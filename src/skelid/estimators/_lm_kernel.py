@@ -762,20 +762,43 @@ def compile_in_background(warming: dict, key, code: str, cached, wait: bool, tim
     """Run ``code`` (which compiles a kernel into numba's disk cache) in one separate process per ``key``.
 
     ``warming`` holds the processes already started; ``cached()`` says whether the kernel is in the
-    cache. Returns ``cached()`` after waiting at most ``timeout`` seconds when ``wait``.
+    cache. The processes of all kernels compile one at a time (:func:`_one_at_a_time`), leaving the
+    other cores to the fit that goes on meanwhile, except with ``SKELID_NUMBA=wait``, where the caller
+    waits for them and they run side by side. Returns ``cached()`` after waiting at most ``timeout``
+    seconds when ``wait``.
     """
     proc = warming.get(key)
     if proc is None and not cached():
         env = dict(os.environ, SKELID_NUMBA="compile", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
         proc = warming[key] = subprocess.Popen(
-            [sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL, start_new_session=True)
+            [sys.executable, "-c", ("" if MODE == "wait" else _one_at_a_time()) + code], env=env,
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     if proc is not None and wait:
         try:
             proc.wait(timeout)
         except subprocess.TimeoutExpired:
             return False
     return cached()
+
+
+def _one_at_a_time(lock: str | None = None) -> str:
+    """Code that waits for every other compiling process of this installed copy before going on.
+
+    A fit that finds several kernels missing starts one process per kernel; run together, they
+    would take every core from the fit that runs meanwhile on the numpy path (on two cores, three
+    compilations left it about half of one). Taken in turn, they leave the fit a core. The lock is
+    taken before numba is imported, so a waiting process costs nothing; it is released when the
+    process ends. ``lock``: the lock file (default: one per user and installed copy).
+    """
+    import tempfile
+    import zlib
+
+    where = zlib.crc32(os.path.abspath(__file__).encode())
+    path = lock or os.path.join(tempfile.gettempdir(),
+                                f"skelid-numba-compile-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock")
+    return ("try:\n    import fcntl\nexcept ImportError:\n    fcntl = None\n"
+            f"_lock = open({path!r}, 'a')\n"
+            "if fcntl is not None:\n    fcntl.flock(_lock, fcntl.LOCK_EX)\n")
 
 
 def _compile_here(planar: bool) -> None:

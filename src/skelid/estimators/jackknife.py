@@ -78,7 +78,7 @@ from scipy.stats import chi2
 from skelid.estimators.joint import _banded_solver, joint_fit, penalty_band, row_weights
 from skelid.estimators.likelihood import frame_terms, pose_information
 from skelid.model.description import Model
-from skelid.model.kinematics import marker_positions
+from skelid.model.kinematics import Workspace, marker_positions
 
 #: deleting a marker that leaves less than this fraction of the information in some direction
 #: makes the fit without it meaningless: that marker has no replicate
@@ -97,8 +97,12 @@ LINEAR_RATIO = 0.8
 LONG_STEP_LEVEL = 0.001
 #: iterations of the literal refit that replaces a one-step replicate whose linearisation fails
 REFIT_ITER = 50
-#: the literal refit stops when a step moves no parameter by more than this fraction of its sd
+#: the literal refit stops when a step moves no parameter by more than this fraction of its sd ...
 REFIT_STEP_TOL = 1e-3
+#: ... and lowers the cost by less than this fraction (as the bootstrap's refits do; the joint fit's
+#: default, 1e-10, kept the walk's refits going two to four iterations past the step rule, moving
+#: the replicates by less than 1e-4 sd)
+REFIT_TOL = 1e-7
 _CHUNK = 25  # white-noise draws made at once
 _DRAWS_KEPT = 4_000_000  # white-noise numbers (32 MB) kept for all deletions; a longer trial draws them again
 
@@ -184,18 +188,19 @@ def _cost_ratio(model, y, theta, pose, R, sw, m, dtheta, score, pose_step) -> fl
     return (cost(theta, pose) - cost(theta + dtheta, pose + dq0 - G @ dtheta)) / pred
 
 
-def _refit(model, y, theta, pose, R, weights, m):
+def _refit(model, y, theta, pose, R, weights, m, ws=None):
     """The literal replicate ``theta_(-m) - theta`` (warm start), or None when it does not hold.
 
-    The refit holds when it converges within ``REFIT_ITER`` iterations and ends off the prior bounds
-    (a refit that wanders to a bound has found no estimate without the marker).
+    The refit starts from the full fit's estimate and poses, keeps its motion-model penalty, and
+    holds when it converges within ``REFIT_ITER`` iterations and ends off the prior bounds (a refit
+    that wanders to a bound has found no estimate without the marker). ``ws``: the model's workspace.
     """
     lower = np.array([p.prior.lower for p in model.parameters], float)
     upper = np.array([p.prior.upper for p in model.parameters], float)
     ym = np.array(y, float)
     ym[:, m] = np.nan
     f = joint_fit(model, ym, theta, pose, n_iter=REFIT_ITER, bounds=(lower, upper), penalty=R,
-                  weights=weights, step_tol=REFIT_STEP_TOL)
+                  weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
     span = np.where(np.isfinite(upper - lower), upper - lower, 1.0)
     on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
     if not f.converged or on_bound or not np.all(np.isfinite(f.theta)):
@@ -264,6 +269,7 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     long_step = sigma**2 * chi2.ppf(1.0 - LONG_STEP_LEVEL, P)
     status = ["missing"] * M
     ratio = np.full(M, np.nan)
+    ws = None  # the refits' workspace, made at the first refit
     for m in range(M):  # one deletion per marker: each changes every frame's pose projection
         if not np.isfinite(y[:, m]).any():
             continue
@@ -285,7 +291,9 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
             ratio[m] = _cost_ratio(model, y, theta, pose, R, sw, m, d, score_m, step)
         if np.isfinite(ratio[m]) and not LINEAR_RATIO <= ratio[m] <= 1.0 / LINEAR_RATIO \
                 or d @ S_m @ d > long_step and not np.isfinite(ratio[m]):
-            d = _refit(model, y, theta, pose, R, weights, m)
+            if ws is None:
+                ws = Workspace(model)
+            d = _refit(model, y, theta, pose, R, weights, m, ws)
             status[m] = "refit failed" if d is None else "refitted"
             if d is None:
                 continue
