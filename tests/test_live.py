@@ -197,3 +197,38 @@ def test_a_swapped_label_the_marker_screen_cannot_see_does_not_pass_into_the_mot
             assert "jumps beyond the motion model" in eg.health
     assert flagged == [200, 201, 202, 203]
     np.testing.assert_array_less(np.abs(eg.theta - ec.theta), 0.5 * np.sqrt(np.diag(ec.cov)))
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("name,cutoff", [("tennis_arm", "auto"), ("tennis_arm", None), ("case-a", None)])
+def test_a_noise_free_stream_is_fitted_at_the_noise_floor(monkeypatch, compiled, name, cutoff):
+    """Markers without noise leave rounding-level residuals; the noise level is held at the documented floor,
+    so theta's precision keeps the prior and stays regular, on the compiled and the numpy path alike."""
+    from skelid.estimators import _live_kernel
+    from skelid.live import noise_floor
+
+    if compiled and not _live_kernel.AVAILABLE:
+        pytest.skip("numba not installed or SKELID_NUMBA=0")
+    if not compiled:
+        monkeypatch.setattr(_live_kernel, "ready", lambda: False)
+    model = builtin_model(name) if name.startswith("case") else load_model(EXAMPLES / f"{name}.toml")
+    trial = simulate(model, n_frames=60, sigma=0.0, rng=np.random.default_rng(3))
+    session = Session(model, labels=trial.data.names, method="gaussian", cutoff=cutoff)
+    assert (session._step is not None) == compiled
+    for frame in trial.data.positions:
+        est = session.push(frame)
+        assert est.healthy, est.health
+    floor = np.sqrt(noise_floor(model))
+    assert est.sigma == pytest.approx(floor)  # the residuals are rounding; the floor holds
+    sd = np.sqrt(np.diag(est.cov))
+    assert np.all(np.isfinite(sd)) and np.all(sd > 0)
+    np.testing.assert_array_less(np.abs(est.theta - trial.theta), 3.0 * sd)
+    given = Session(model, labels=trial.data.names, method="gaussian", cutoff=cutoff, sigma=0.0)
+    assert _run(given, trial.data.positions[:10]).sigma == pytest.approx(floor)
+
+
+def test_a_negative_noise_level_is_a_one_line_error():
+    model = builtin_model("case-a")
+    for sigma in (-1.0, float("nan")):
+        with pytest.raises(DataError, match="sigma must be"):
+            Session(model, labels=model.marker_names, sigma=sigma)

@@ -27,7 +27,9 @@ pose are dropped, which marginalises it. The posterior of ``theta`` is
 Gaussian with precision ``R_{\\theta\\theta}^\\top R_{\\theta\\theta} / \\hat\\sigma^2 + \\Lambda_0``
 (``\\Lambda_0`` the prior's precision: a uniform prior on ``[a, b]`` counts as
 sd ``(b - a)/\\sqrt{12}`` and bounds the mean; ``\\hat\\sigma^2`` the running
-residual variance ``RSS / (n_{obs} - Q n_{frames} - P)``). With a motion
+residual variance ``RSS / (n_{obs} - Q n_{frames} - P)``, held at least at
+:func:`noise_floor`, ``1e-5`` of the model's size, so that a noise-free
+stream keeps the prior in the precision). With a motion
 model the frame is linearised once more at its filtered pose (``n_iter``).
 The cost per frame is one pose fit, one kinematics call per linearisation
 and one small QR: it does not depend on a grid. With numba a frame is one
@@ -218,12 +220,31 @@ def marginal_theta_jacobian(J_pose, J_theta, ridge: float = 1e-10) -> np.ndarray
     return J_theta - J_pose @ coef
 
 
-def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | None, fallback: float) -> float:
+#: The noise floor as a fraction of the model's size (:func:`noise_floor`).
+NOISE_FLOOR = 1e-5
+
+
+def noise_floor(model: Model) -> float:
+    """The least marker noise variance the Gaussian form uses: ``(NOISE_FLOOR * size)^2``.
+
+    ``size`` is the model's extent (its units). A noise-free stream (simulated
+    markers, ``sigma=0``) leaves residuals at rounding level, ``sigma^2 ~ 1e-32``
+    in metres: the data's precision ``R^T R / sigma^2`` then swamps the prior's,
+    and ``theta``'s precision is singular wherever a few frames do not fix it
+    yet. Below a hundred-thousandth of the body (18 um on a 1.8 m body, far under
+    any motion-capture system's noise) the noise level is held at that floor.
+    """
+    return (NOISE_FLOOR * _model_size(model)) ** 2
+
+
+def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | None, fallback: float,
+            floor: float = 0.0) -> float:
+    """Noise variance: ``sigma^2`` if given, else ``RSS / dof`` (``fallback`` while ``dof < 3``), at least ``floor``."""
     if sigma is not None:
-        return float(sigma) ** 2
+        return max(float(sigma) ** 2, floor)
     dof = n_obs - model.n_pose * n_used - model.n_params
-    if dof >= 3 and rss > 0:
-        return rss / dof
+    if dof >= 3:
+        return max(rss / dof, floor)
     return fallback
 
 
@@ -439,7 +460,8 @@ def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None =
 
 
 def relinearise(model: Model, frames, prior, sigma: float | None, weight: float, theta, fallback: float,
-                n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None) -> GaussianState:
+                n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None,
+                floor: float = 0.0) -> GaussianState:
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
 
     The recursive update linearises each frame at the mean of its time; the
@@ -459,6 +481,8 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
     smoother : (rate, cutoff), optional
         The motion model: the frames are then linearised at their smoothed poses
         (:func:`smoothed_poses`).
+    floor : float
+        The least noise variance (:func:`noise_floor`).
     """
     Y = np.stack([f[0] for f in frames])
     Q0 = np.stack([f[1] for f in frames])
@@ -490,7 +514,7 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
             r = (Y[b, m] - x[b, m]).reshape(-1)
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
                            weight, int(m.sum()) * D, float(r @ r))
-        s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback)
+        s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
         state = solve_mean(state, prior, s2, pose=weight > 0)
         if weight == 0:
             state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
@@ -626,6 +650,8 @@ class Session:
         ``auto``: the grid filter for 1-3 parameters, the recursive Gaussian for more.
     sigma : float, optional
         Marker noise (model units); estimated from the residuals if not given.
+        Either way the Gaussian form holds it at least at :func:`noise_floor`
+        (``1e-5`` of the model's size), so a noise-free stream works.
     outlier_sd : float
         Residual, in noise standard deviations, beyond which a marker is left out of a frame.
     cutoff : float, 'auto' or None
@@ -645,7 +671,8 @@ class Session:
     Raises
     ------
     DataError
-        Labels that match none of the model's markers, or an unknown unit.
+        Labels that match none of the model's markers, an unknown unit, or a
+        negative or non-finite ``sigma``.
     ModelError
         ``method='grid'`` for more than 3 parameters.
     """
@@ -660,6 +687,9 @@ class Session:
                              "use method='gaussian'")
         if not rate > 0:
             raise DataError(f"rate must be positive, got {rate!r}", "pass the stream's frames per second")
+        if sigma is not None and not (np.isfinite(sigma) and sigma >= 0):
+            raise DataError(f"sigma must be a finite noise level >= 0, got {sigma!r}",
+                            "pass the marker noise in model units, or leave it out to estimate it")
         self.model = model
         self.rate = float(rate)
         self.method = ("grid" if model.n_params <= 3 else "gaussian") if method == "auto" else method
@@ -700,6 +730,7 @@ class Session:
         else:
             self._state = empty_state(model, self._prior)
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
+        self._sigma_floor = noise_floor(model)
         self._step = _Step(self) if self._linearise.tables is not None and self._pose_fit.tables is not None else None
 
     # ------------------------------------------------------------------ names
@@ -782,7 +813,8 @@ class Session:
 
     def _current_sigma2(self) -> float:
         st = self._state
-        return _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback)
+        return _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
+                       self._sigma_floor)
 
     def _screen(self, resid, sigma2) -> np.ndarray | None:
         """Index of the marker to leave out: the worst one beyond ``outlier_sd`` noise sds (once the noise is
@@ -861,7 +893,7 @@ class Session:
                 return self._gaussian_estimate(resid, problems, tuple(rejected))
             st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
-                     self._sigma_fallback)
+                     self._sigma_fallback, self._sigma_floor)
         motion = self._weight > 0
         new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, float(r @ r)), self._prior, s2,
                          pose=motion)
@@ -887,7 +919,8 @@ class Session:
             self._set_cutoff(live_cutoff(self.model, self._early, theta, self.rate, self._ws))
         self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
                                   self._sigma_fallback, ws=self._ws,
-                                  smoother=(self.rate, self._cutoff_now) if self._weight > 0 else None)
+                                  smoother=(self.rate, self._cutoff_now) if self._weight > 0 else None,
+                                  floor=self._sigma_floor)
 
     def _set_cutoff(self, cutoff: float) -> None:
         """The motion model's cutoff from now on (``cutoff='auto'``)."""
@@ -933,7 +966,8 @@ class Session:
 
     def _gaussian_estimate(self, resid, problems, rejected) -> LiveEstimate:
         st = self._state
-        s2 = _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback)
+        s2 = _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
+                       self._sigma_floor)
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
@@ -1117,7 +1151,8 @@ class _Step:
         g_base, A = model.geometry_map
         mu0, L0, lo, hi = session._prior
         sigma = -1.0 if session.sigma is None else float(session.sigma)
-        self.settings = (float(session._weight), int(session.n_iter), sigma, float(session._sigma_fallback))
+        self.settings = (float(session._weight), int(session.n_iter), sigma, float(session._sigma_fallback),
+                         float(session._sigma_floor))
         self.model_args = (np.ascontiguousarray(session._rot, dtype=np.bool_),
                            *(np.ascontiguousarray(a, dtype=float) for a in (mu0, L0, lo, hi, g_base, A)),
                            *session._linearise.tables)
@@ -1127,11 +1162,11 @@ class _Step:
         ses = self.session
         known = ses.sigma is not None or st.n_used >= 10
         limit = self.limit_scale * math.sqrt(s2) if known else math.inf
-        weight, n_iter, sigma, fallback = self.settings
+        weight, n_iter, sigma, fallback, floor = self.settings
         (status, root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used, q,
          resid) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs, st.poses,
                                     st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight, n_iter, sigma,
-                                    fallback, limit, float(s2), ses._jump_limit, *self.model_args)
+                                    fallback, floor, limit, float(s2), ses._jump_limit, *self.model_args)
         if status >= 0:
             return None
         ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)

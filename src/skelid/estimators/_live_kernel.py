@@ -166,7 +166,7 @@ if AVAILABLE:  # pragma: no branch
 
 
     @_lm_kernel._jit
-    def step(y, q0, theta, root, rhs, poses, hdiag, rss, n_obs, n_used, weight, n_iter, sigma, fallback, limit,
+    def step(y, q0, theta, root, rhs, poses, hdiag, rss, n_obs, n_used, weight, n_iter, sigma, fallback, floor, limit,
              s2_now, gate, rot, mu0, L0, lo, hi, g_base, A_geo, D, S, M, parent, dof_start, is_t, axis, skew, skew2,
              ms, moves, nz, tilt, planar, jpar, A_joint, anc, mslot, A_marker):
         """One frame of the live Gaussian form (see :mod:`skelid.live`): pose fit, screen, update, mean.
@@ -189,6 +189,8 @@ if AVAILABLE:  # pragma: no branch
             Marker noise, or negative to estimate it from the residuals.
         fallback : float
             Noise variance while the residuals cannot say.
+        floor : float
+            The least noise variance (:func:`skelid.live.noise_floor`).
         limit : float
             Marker residual beyond which the frame is handed back (``inf``: no screening).
         s2_now : float
@@ -281,7 +283,7 @@ if AVAILABLE:  # pragma: no branch
         for i in range(N):
             rr += r[i] * r[i]
         rss1, n_obs1, n_used1 = rss + rr, n_obs + N, n_used + 1
-        s2 = _sigma2(rss1, n_obs1, n_used1, Q, P, sigma, fallback)
+        s2 = _sigma2(rss1, n_obs1, n_used1, Q, P, sigma, fallback, floor)
         motion = weight > 0.0
         root1, rhs1, poses1, hdiag1 = _absorb(root, rhs, poses, hdiag, n_used, r, Jq, Jt, q, theta, weight)
         mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, motion)
@@ -345,13 +347,13 @@ if AVAILABLE:  # pragma: no branch
         return out
 
     @_lm_kernel._inline
-    def _sigma2(rss, n_obs, n_used, Q, P, sigma, fallback):
+    def _sigma2(rss, n_obs, n_used, Q, P, sigma, fallback, floor):
         """As :func:`skelid.live._sigma2` (``sigma < 0``: estimated)."""
         if sigma >= 0.0:
-            return sigma * sigma
+            return max(sigma * sigma, floor)
         dof = n_obs - Q * n_used - P
-        if dof >= 3 and rss > 0:
-            return rss / dof
+        if dof >= 3:
+            return max(rss / dof, floor)
         return fallback
 
     @_lm_kernel._inline
@@ -510,8 +512,8 @@ def _step_example_args() -> tuple:
     """Arguments of :func:`step` with the types of every real call (values never used)."""
     f = np.zeros
     state = (f((2, 2)), f(2), f((1, 1)), f(1), 0.0, 0, 0)  # root, rhs, poses, hdiag, rss, n_obs, n_used
-    # weight, n_iter, sigma, fallback, limit, s2_now, gate, rot
-    settings = (0.0, 1, -1.0, 1.0, np.inf, 1.0, 1.0, np.zeros(1, np.bool_))
+    # weight, n_iter, sigma, fallback, floor, limit, s2_now, gate, rot
+    settings = (0.0, 1, -1.0, 1.0, 0.0, np.inf, 1.0, 1.0, np.zeros(1, np.bool_))
     prior = (f(1), f((1, 1)), f(1), f(1))
     return (f((1, 2)), f(1), f(1), *state, *settings, *prior, f(4), f((4, 1)), *_example_args(True)[2:])
 
