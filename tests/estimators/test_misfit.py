@@ -324,3 +324,29 @@ def test_the_result_carries_the_flagged_joint_typed_and_round_trips():
     m = r.misfit["knee"]
     assert isinstance(m, JointMisfit) and m.widened == ("knee_x",) and m.relaxed_mean == {"knee_x": 0.5}
     assert FitResult.from_dict(r.to_dict()).misfit == r.misfit
+
+
+def test_a_flagged_hinge_whose_axis_is_fitted_is_reported_and_left_unwidened():
+    import pytest
+
+    from skelid.errors import ModelError
+    from skelid.estimators.marker import Estimate, MarkerEstimator, misfit_stage
+    from skelid.model.variants import moving_centre
+
+    d = _knee_model().to_dict()
+    d["parameters"].append({"name": "knee_axis", "kind": "axis_direction", "joint": "knee", "axes": ["u", "v"],
+                            "prior": {"type": "uniform", "lower": -30.0, "upper": 30.0}})
+    model = model_from_dict(d)
+    with pytest.raises(ModelError, match="axis of hinge 'knee' is fitted"):
+        moving_centre(model, "knee")
+    y, q = _coupled_trial(8, 1.0, n=60)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=30)
+    _, _, st, sc, wt, res = _stages(y, q, {})
+    est_in = Estimate(fit.theta, np.eye(model.n_params))
+    flagged = {"knee": {"flagged": True, "segment": "shank"}}
+    out = misfit_stage(MarkerEstimator(model), st, sc, wt._replace(fit=fit), res._replace(misfit=flagged), est_in)
+    # nothing refitted, nothing widened
+    assert out.estimate is est_in
+    joint = out.joints["knee"]
+    assert joint["variant"] is None and "axis of hinge 'knee' is fitted" in joint["why"]
+    assert joint["widened"] == [] and "drop 'knee_axis_u'" in joint["remedy"]

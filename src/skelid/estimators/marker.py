@@ -44,7 +44,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import ConvergenceError, DataError, IdentifiabilityError
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError
 from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import (
     RATE,
@@ -728,7 +728,12 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
             joints[j] = {"remedy": "a coupled joint (a custom joint whose translations follow its angles)",
                          "variant": None}
             continue
-        variant = moving_centre(model, j)
+        try:
+            variant = moving_centre(model, j)
+        except ModelError as e:  # e.g. a hinge whose axis is fitted: no variant to refit with
+            joints[j] = {"remedy": f"{e.fix}, then skelid.model.variants.moving_centre(model, {j!r})",
+                         "variant": None, "why": e.problem}
+            continue
         extra = variant.n_params - P
         bounds = (np.concatenate([st.bounds[0], [p.prior.lower for p in variant.parameters[P:]]]),
                   np.concatenate([st.bounds[1], [p.prior.upper for p in variant.parameters[P:]]]))
@@ -747,6 +752,8 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
     for v in joints.values():
         v["widened"] = names
         v["sd_before"] = dict(zip(model.parameter_names, sd.tolist(), strict=True))
+    if not names:  # no refit, or each refit inside the intervals: the estimate stands as it is
+        return Misfit(joints, estimate)
     scale = np.where(sd > 0, new_sd / np.maximum(sd, 1e-300), 1.0)
     return Misfit(joints, Estimate((lo + hi) / 2, cov * np.outer(scale, scale)))
 
@@ -845,6 +852,8 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
                     f"{', '.join(relaxed['widened'])} were widened to cover both fits"
                     if relaxed["widened"] else
                     f"; a refit with a moving centre ({relaxed['remedy']}) lies inside the intervals")
+        elif relaxed and relaxed.get("why"):
+            then = f"; not refitted ({relaxed['why']}), so the interval was not widened: {relaxed['remedy']}"
         else:
             then = "; no built-in relaxation of this joint type, so the interval was not widened"
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "

@@ -71,7 +71,7 @@ def moving_centre(model: Model, joint: str, degree: int = 2, gain_sd: float | No
     Raises
     ------
     ModelError
-        If ``joint`` is not a hinge of a 3-D model, or ``degree < 1``.
+        If ``joint`` is not a hinge of a 3-D model, its axis is a fitted parameter, or ``degree < 1``.
     """
     seg = next((s for s in model.segments if s.joint.name == joint), None)
     if seg is None or model.dim != 3 or seg.joint.type != "hinge":
@@ -79,6 +79,10 @@ def moving_centre(model: Model, joint: str, degree: int = 2, gain_sd: float | No
                          "name a hinge joint")
     if degree < 1:
         raise ModelError(f"a moving centre needs degree >= 1, got {degree}")
+    axis = [p.name for p in model.parameters if p.kind == "axis_direction" and p.target == joint]
+    if axis:
+        raise ModelError(f"the axis of hinge {joint!r} is fitted ({', '.join(axis)}), and a moving centre is "
+                         "defined about a fixed axis", f"fix the axis at its estimate (drop {axis[0]!r}) first")
     e, u, v = tilt_basis(seg.joint.axes[0])
     d = model.to_dict()
     spec = next(s for s in d["segments"] if s["name"] == seg.name)["joint"]
