@@ -738,12 +738,17 @@ def marker_jacobian(model: Model, theta, pose, ws: Workspace | None = None):
         ws = Workspace(model)
     tables = _fk_tables(model, ws.plan, ws)
     if tables is not None:
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape[-1:] != (ws.plan.n_pose,):
-            raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
-        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), pose, theta)
+        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), _kernel_pose(ws, pose), theta)
     kin = forward_kinematics(model, theta, pose, ws)
     return kin.markers, pose_jacobian(model, kin, ws), theta_jacobian(model, kin, ws)
+
+
+def _kernel_pose(ws: Workspace, pose) -> np.ndarray:
+    """``pose`` as a float array, checked against the plan's pose coordinates (the compiled path's input)."""
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape[-1:] != (ws.plan.n_pose,):
+        raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
+    return pose
 
 
 def stacked_jacobian(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
@@ -756,10 +761,7 @@ def stacked_jacobian(model: Model, theta, pose, ws: Workspace | None = None) -> 
         ws = Workspace(model)
     tables = _fk_tables(model, ws.plan, ws)
     if tables is not None:
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape[-1:] != (ws.plan.n_pose,):
-            raise ValueError(f"pose must end in {ws.plan.n_pose} coordinates, got shape {pose.shape}")
-        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), pose, theta,
+        return _fk_kernel.kinematics(model, ws.plan, *tables, geometry(model, theta), _kernel_pose(ws, pose), theta,
                                      stacked=True)[1]
     _, Jq, Jt = marker_jacobian(model, theta, pose, ws)
     return np.concatenate([Jt, Jq], axis=-1)
