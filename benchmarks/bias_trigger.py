@@ -7,11 +7,11 @@ per trial: the second-order correction ``b`` in sd units, its change when evalua
 the corrected point (geometry ``theta - b``, poses deconvolved), which bias method the estimator used, the
 error and the 95 % interval. The profile bias of a fit with incidental poses does not shrink
 with the number of frames while the sd does, so ``|b| / sd`` grows like ``sqrt(frames)``
-(about 1 sd at 10^3 frames, 4 sd at 10^4): the rule "a correction above 1.5 sd is not trusted"
-sends every long trial to the parametric bootstrap whatever the expansion's accuracy. The rule
-of :func:`skelid.estimators.singular.expansion_consistent` asks instead whether the
-re-evaluated correction moves by more than the bootstrap's Monte Carlo error. The study says
-whether the expansion it then trusts is accurate: mean error (bias) against the sd, coverage.
+(about 1 sd at 10^3 frames, 4 sd at 10^4), so the rule "a correction above 1.5 sd goes to the
+parametric bootstrap" sends every long trial there. The study says whether the expansion would
+have been accurate where it stays put when re-evaluated
+(:func:`skelid.estimators.singular.expansion_consistent`): mean error (bias) against the sd,
+coverage, for the estimator as it is run.
 
 Results go to ``benchmarks/results/bias_trigger.json`` and ``.md`` (keyed by frames; a re-run
 replaces the lengths it ran). ``--reps`` below 100 is a reduced run and is marked so.

@@ -28,21 +28,20 @@ study); near one it changes by 20-90 %: the fit's precision and its bias depend 
 poses are within their own error, and no expansion at ``q_hat`` holds. A change beyond
 ``POSE_SENSITIVE`` (for any parameter) fails the check.
 
-**Self-consistency.** A correction ``b = b(theta_hat, q_hat)`` larger than ``BIAS_RELIABLE`` sd
-(:mod:`skelid.estimators.marker`) is evaluated once more, at the corrected point: the geometry
-less its bias and the poses freed of their scatter,
+**Self-consistency, recorded but not trusted.** A correction ``b = b(theta_hat, q_hat)`` larger
+than ``BIAS_RELIABLE`` sd (:mod:`skelid.estimators.marker`) goes to the bootstrap. It is also
+evaluated once more, at the corrected point (the geometry less its bias, the poses freed of
+their scatter),
 
-.. math:: \\Delta = b(\\hat\\theta - b, \\tilde q) - b(\\hat\\theta, \\hat q),
+.. math:: \Delta = b(\hat\theta - b, \tilde q) - b(\hat\theta, \hat q),
 
-the leading part of what the expansion misses by being evaluated at the estimate rather than at
-the truth (``-b'(theta) b`` and the poses' share). It fails the check only where ``|Delta|``
-exceeds ``sd / sqrt(B)``, the Monte Carlo error of the ``B``-refit bootstrap that would replace
-it: the bootstrap runs only where it would be the more accurate of the two. The size of ``b``
-against the sd is not the test: the profile bias of a fit with incidental poses does not shrink
-with the number of frames while its sd does, so ``|b| / sd`` grows like ``sqrt(T)`` on any long
-trial (case A, sigma 15 mm: about 1 sd at 10^3 frames, 4 sd at 10^4), whereas ``Delta`` is an
-error of the expansion (0.07 sd there at 10^4 frames; 1-3 mm, 1.5-3.5 sd, on the near-straight
-trials whose information check passes).
+and :func:`expansion_consistent` (``|Delta| <= sd / sqrt(B)``) is recorded with the fallback.
+It does not keep the expansion: the profile bias of a fit with incidental poses does not
+shrink with the number of frames while its sd does, so ``|b| / sd`` grows like ``sqrt(T)``
+(case A, sigma 15 mm: about 1 sd at 10^3 frames, 4 sd at 10^4), and what the expansion leaves
+grows with it. At 10^4 frames ``Delta`` is 0.07 sd, yet the expansion leaves 0.19 mm (0.7 sd) of
+bias and its interval covers 0.90 (100 trials); the bootstrap leaves 0.02 mm and covers every
+trial, at twice the CPU (``benchmarks/results/bias_trigger.md``).
 
 **Fallback.** A parametric bootstrap at the deconvolved poses: ``B`` data sets simulated at
 ``(theta_tilde, q_tilde)`` and refitted. With common random numbers, ``theta_tilde`` is moved
