@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from skelid import _numba
 from skelid.estimators import _lm_kernel
 from skelid.estimators.grid import MarkerGridFilter
 from skelid.estimators.likelihood import frame_terms, log_det_pose_information
@@ -238,8 +239,8 @@ def test_a_cold_cache_starts_the_compilation_aside_once_and_uses_numpy_meanwhile
     monkeypatch.setattr(_lm_kernel, "compiled", lambda planar: False)
     monkeypatch.setattr(_lm_kernel, "_cached", lambda planar: False)
     monkeypatch.setattr(_lm_kernel, "warm", lambda planar, wait=True: started.append((planar, wait)))
-    monkeypatch.setattr(_lm_kernel, "_last_check", {})
-    monkeypatch.setattr(_lm_kernel, "_found", {})
+    monkeypatch.setattr(_lm_kernel._gate, "last_check", {})
+    monkeypatch.setattr(_lm_kernel._gate, "found", {})
     assert not _lm_kernel.ready(True)
     assert not _lm_kernel.ready(True)  # looked at again only after a while
     assert started == [(True, False)]
@@ -248,7 +249,7 @@ def test_a_cold_cache_starts_the_compilation_aside_once_and_uses_numpy_meanwhile
     q, _ = fit_pose(model, model.theta_center, trial.data.positions[..., :2], trial.pose)
     assert np.all(np.isfinite(q))
     monkeypatch.setattr(_lm_kernel, "_cached", lambda planar: True)
-    monkeypatch.setattr(_lm_kernel, "_last_check", {})
+    monkeypatch.setattr(_lm_kernel._gate, "last_check", {})
     assert _lm_kernel.ready(True)
     assert _lm_kernel.ready(True)  # a cached driver stays ready: a second workspace made at once takes it too
 
@@ -258,7 +259,7 @@ def test_compiling_processes_take_turns(tmp_path):
     """Kernels missing from the cache compile one process at a time, leaving a core to the fit."""
     code = ("import time, sys\nt0 = time.monotonic()\ntime.sleep(0.3)\n"
             "print(t0, time.monotonic())\n")
-    prefix = _lm_kernel._one_at_a_time(str(tmp_path / "lock"))
+    prefix = _numba.one_at_a_time(str(tmp_path / "lock"))
     procs = [subprocess.Popen([sys.executable, "-c", prefix + code], stdout=subprocess.PIPE, text=True)
              for _ in range(2)]
     (a0, a1), (b0, b1) = sorted(tuple(map(float, p.communicate(timeout=60)[0].split())) for p in procs)

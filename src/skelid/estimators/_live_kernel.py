@@ -47,9 +47,8 @@ import time
 
 import numpy as np
 
+from skelid._numba import AVAILABLE  # the path switch shared by every compiled kernel
 from skelid.estimators import _lm_kernel
-
-AVAILABLE = _lm_kernel.AVAILABLE
 
 
 def tables(ws) -> tuple | None:

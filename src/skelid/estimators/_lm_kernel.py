@@ -37,20 +37,10 @@ anything else (the default) as described above.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import time
-
 import numpy as np
 
-MODE = os.environ.get("SKELID_NUMBA", "1").strip().lower()
-if MODE in ("0", "false", "no", "off"):  # pragma: no cover - depends on the environment
-    numba = None
-else:
-    import numba
-
-AVAILABLE = numba is not None
+# the path switch shared by every compiled kernel (MODE, AVAILABLE and compile_in_background are read from here too)
+from skelid._numba import AVAILABLE, MODE, Gate, compile_in_background, compile_lock, in_disk_cache, numba  # noqa: F401
 
 
 def plan_arrays(plan) -> tuple | None:
@@ -666,12 +656,6 @@ def no_tilts(B: int) -> tuple:
 
 
 # ------------------------------------------------------------------ which path, and warming the cache
-_last_check: dict[bool, float] = {}
-_found: dict[bool, bool] = {}  # drivers found in the cache (they stay there)
-_warming: dict[bool, subprocess.Popen] = {}
-_RECHECK_S = 0.5  # while a driver is not cached, look again at most this often
-
-
 def _example_args(planar: bool) -> tuple:
     """Arguments with the types of every real call of a driver (their values are never used)."""
     f, i, b = np.zeros, np.int64, np.bool_
@@ -688,17 +672,10 @@ def _driver(planar: bool):
 def _cached(planar: bool) -> bool:
     """Whether numba's disk cache holds the driver for this machine and this source.
 
-    Reads numba's cache index; if that cannot be read in this numba version,
-    answers True (the driver is then compiled in this process when first called).
+    True where that cache's index cannot be read in this numba version (the driver is then
+    compiled in this process when first called).
     """
-    disp = _driver(planar)
-    try:
-        sig = tuple(numba.typeof(a) for a in _example_args(planar))
-        cache = disp._cache
-        key = cache._index_key(sig, disp.targetctx.codegen())
-        return cache._cache_file._load_index().get(key) is not None
-    except Exception:  # noqa: BLE001 - numba internals changed: fall back to compiling here
-        return True
+    return in_disk_cache(_driver(planar), tuple(numba.typeof(a) for a in _example_args(planar)))
 
 
 def compiled(planar: bool) -> bool:
@@ -714,27 +691,9 @@ def ready(planar: bool) -> bool:
     True, after waiting for :func:`warm` if the cache is cold.
     Otherwise starts :func:`warm` in the background (once) and answers False;
     while the driver is not cached the cache is looked at again at most every
-    half second, so calling this per frame costs nothing.
+    half second, so calling this per frame costs nothing (:class:`skelid._numba.Gate`).
     """
-    if not AVAILABLE:
-        return False
-    if compiled(planar) or MODE == "compile":  # "compile": the warm-up process itself
-        return True
-    if MODE == "wait":
-        if not _cached(planar):
-            warm(planar, wait=True)
-        return True
-    if _found.get(planar):
-        return True
-    now = time.monotonic()
-    if now - _last_check.get(planar, -np.inf) < _RECHECK_S:
-        return False
-    _last_check[planar] = now
-    if _cached(planar):
-        _found[planar] = True  # once cached, always ready: the throttle below is for a cold cache only
-        return True
-    warm(planar, wait=False)
-    return False
+    return AVAILABLE and _gate.ready(bool(planar))
 
 
 def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
@@ -755,67 +714,16 @@ def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
     if not AVAILABLE:
         return False
     code = f"from skelid.estimators._lm_kernel import _compile_here; _compile_here({planar!r})"
-    return compile_in_background(_warming, planar, code, lambda: _cached(planar), wait, timeout)
+    return compile_in_background(_gate.warming, planar, code, lambda: _cached(planar), wait, timeout)
 
 
-def compile_in_background(warming: dict, key, code: str, cached, wait: bool, timeout: float) -> bool:
-    """Run ``code`` (which compiles a kernel into numba's disk cache) in one separate process per ``key``.
-
-    ``warming`` holds the processes already started; ``cached()`` says whether the kernel is in the
-    cache. The processes of all kernels compile one at a time (:func:`_one_at_a_time`), leaving the
-    other cores to the fit that goes on meanwhile, except with ``SKELID_NUMBA=wait``, where the caller
-    waits for them and they run side by side. Returns ``cached()`` after waiting at most ``timeout``
-    seconds when ``wait``.
-    """
-    proc = warming.get(key)
-    if proc is None and not cached():
-        env = dict(os.environ, SKELID_NUMBA="compile", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
-        proc = warming[key] = subprocess.Popen(
-            [sys.executable, "-c", ("" if MODE == "wait" else _one_at_a_time()) + code], env=env,
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    if proc is not None and wait:
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            return False
-    return cached()
-
-
-def _one_at_a_time(lock: str | None = None) -> str:
-    """Code that waits for every other compiling process of this installed copy before going on.
-
-    A fit that finds several kernels missing starts one process per kernel; run together, they
-    would take every core from the fit that runs meanwhile on the numpy path (on two cores, three
-    compilations left it about half of one). Taken in turn, they leave the fit a core. The lock is
-    taken before numba is imported, so a waiting process costs nothing; it is released when the
-    process ends. ``lock``: the lock file (default: one per user and installed copy).
-    """
-    import tempfile
-    import zlib
-
-    where = zlib.crc32(os.path.abspath(__file__).encode())
-    path = lock or os.path.join(tempfile.gettempdir(),
-                                f"skelid-numba-compile-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock")
-    return ("try:\n    import fcntl\nexcept ImportError:\n    fcntl = None\n"
-            f"_lock = open({path!r}, 'a')\n"
-            "if fcntl is not None:\n    fcntl.flock(_lock, fcntl.LOCK_EX)\n")
+# the module's names are looked up at each call (a test may replace them)
+_gate = Gate(lambda k: compiled(k), lambda k: _cached(k), lambda k, wait: warm(k, wait=wait), lambda: MODE)
 
 
 def _compile_here(planar: bool) -> None:
     """Compile the driver into the cache in this process, unless another process has (one at a time)."""
-    import tempfile
-
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX: no lock
-        fcntl = None
-    import zlib
-
-    where = zlib.crc32(os.path.abspath(__file__).encode())  # one lock per installed copy
-    name = f"skelid-numba-{'planar' if planar else 'spatial'}-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
-    with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
-        if fcntl is not None:
-            fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+    with compile_lock("planar" if planar else "spatial"):
         if not _cached(planar):
             _fit_tiny_model(planar)
 

@@ -30,18 +30,10 @@ compiled (compiling first if need be).
 from __future__ import annotations
 
 import math
-import os
-import time
 
 import numpy as np
 
-MODE = os.environ.get("SKELID_NUMBA", "1").strip().lower()
-if MODE in ("0", "false", "no", "off"):  # pragma: no cover - depends on the environment
-    numba = None
-else:
-    import numba
-
-AVAILABLE = numba is not None
+from skelid._numba import AVAILABLE, MODE, Gate, compile_in_background, compile_lock, in_disk_cache, numba  # noqa: F401
 
 
 def plan_tables(plan) -> tuple | None:
@@ -514,12 +506,6 @@ _NO_TILT = (np.zeros((1, 0, 3)), np.zeros((1, 0, 2, 3)), np.zeros((0, 3), dtype=
 
 
 # ------------------------------------------------------------------ which path, and warming the cache
-_found: dict[bool, bool] = {}
-_last_check: dict[bool, float] = {}
-_warming: dict = {}
-_RECHECK_S = 0.5
-
-
 def _example_args(planar) -> tuple:
     """Arguments with the types of every real call of a driver (their values are never used)."""
     f, i = np.zeros, np.int64
@@ -547,14 +533,7 @@ def _driver(planar):
 
 def _cached(planar: bool | str) -> bool:
     """Whether numba's disk cache holds the driver (True where its index cannot be read)."""
-    disp = _driver(planar)
-    try:
-        sig = tuple(numba.typeof(a) for a in _example_args(planar))
-        cache = disp._cache
-        key = cache._index_key(sig, disp.targetctx.codegen())
-        return cache._cache_file._load_index().get(key) is not None
-    except Exception:  # noqa: BLE001 - numba internals changed: compile here when first called
-        return True
+    return in_disk_cache(_driver(planar), tuple(numba.typeof(a) for a in _example_args(planar)))
 
 
 def compiled(planar: bool | str) -> bool:
@@ -573,49 +552,23 @@ def ready(planar: bool | str) -> bool:
     cached; while it is not, starts its compilation in the background (once) and
     answers False, looking at the cache again at most every half second.
     """
-    if not AVAILABLE:
-        return False
-    if compiled(planar) or MODE == "compile" or _found.get(planar):
-        return True
-    if MODE == "wait":
-        if not _cached(planar):
-            warm(planar, wait=True)
-        return True
-    now = time.monotonic()
-    if now - _last_check.get(planar, -np.inf) < _RECHECK_S:
-        return False
-    _last_check[planar] = now
-    if _cached(planar):
-        _found[planar] = True
-        return True
-    warm(planar, wait=False)
-    return False
+    return AVAILABLE and _gate.ready(planar)
 
 
 def warm(planar: bool | str, wait: bool = True, timeout: float = 600.0) -> bool:
     """Compile a driver into numba's disk cache in a separate process; whether it is cached."""
     if not AVAILABLE:
         return False
-    from skelid.estimators._lm_kernel import compile_in_background
-
     code = f"from skelid.model._fk_kernel import _compile_here; _compile_here({planar!r})"
-    return compile_in_background(_warming, planar, code, lambda: _cached(planar), wait, timeout)
+    return compile_in_background(_gate.warming, planar, code, lambda: _cached(planar), wait, timeout)
+
+
+# the module's names are looked up at each call (a test may replace them)
+_gate = Gate(lambda k: compiled(k), lambda k: _cached(k), lambda k, wait: warm(k, wait=wait), lambda: MODE)
 
 
 def _compile_here(planar: bool | str) -> None:
     """Compile a driver into the cache in this process (one process at a time)."""
-    import tempfile
-    import zlib
-
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX: no lock
-        fcntl = None
-    where = zlib.crc32(os.path.abspath(__file__).encode())
-    kind = planar if planar == "band" else "planar" if planar else "spatial"
-    name = f"skelid-numba-fk-{kind}-{getattr(os, 'getuid', lambda: 0)()}-{where:x}.lock"
-    with open(os.path.join(tempfile.gettempdir(), name), "a") as fh:
-        if fcntl is not None:
-            fcntl.flock(fh, fcntl.LOCK_EX)
+    with compile_lock("fk-" + (planar if planar == "band" else "planar" if planar else "spatial")):
         if not _cached(planar):
             _driver(planar)(*_example_args(planar))
