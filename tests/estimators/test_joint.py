@@ -5,6 +5,9 @@ import pytest
 
 from skelid.estimators.joint import (
     _arrow_inverse_blocks,
+    _banded,
+    _dense_from_banded,
+    _inverse_diagonal,
     _smoothed_bias_dense,
     joint_fit,
     smoothing_penalty,
@@ -39,6 +42,25 @@ def _dense_normal_matrix(model, y, theta, q, R):
 
 def _frame_index(P, Q, T):
     return np.concatenate([np.broadcast_to(np.arange(P), (T, P)), P + np.arange(T)[:, None] * Q + np.arange(Q)], 1)
+
+
+def test_banded_form_is_the_block_diagonal_plus_the_penalty():
+    model, y, theta, q, R = _small_fit(n_frames=12)
+    _, Jq, _ = weighted_terms(model, theta, q, y)
+    Hqq = pose_information(Jq)
+    T, Q = q.shape
+    dense = R.toarray()
+    for t in range(T):
+        dense[t * Q:(t + 1) * Q, t * Q:(t + 1) * Q] += Hqq[t]
+    for _ in range(2):  # the second call takes the places cached by the first
+        np.testing.assert_array_equal(_dense_from_banded(_banded(Hqq, R)), dense)
+
+
+def test_inverse_diagonal_falls_back_to_the_pseudo_inverse():
+    S = np.array([[4.0, 1.0], [1.0, 3.0]])
+    np.testing.assert_allclose(_inverse_diagonal(S), np.diag(np.linalg.inv(S)), rtol=1e-15)
+    singular = np.array([[1.0, 1.0], [1.0, 1.0]])
+    np.testing.assert_allclose(_inverse_diagonal(singular), np.diag(np.linalg.pinv(singular)), rtol=1e-12)
 
 
 def test_arrow_inverse_blocks_equal_the_dense_inverse():

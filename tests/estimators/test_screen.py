@@ -1,6 +1,7 @@
 """Outlier screen: residuals standardised by each frame's own residual degrees of freedom."""
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 from skelid.estimators.joint import joint_fit
@@ -60,3 +61,22 @@ def test_glitches_in_case_a_are_found():
     out = outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, 8.0)
     assert out.sum() >= 5
     assert all(out[t].any() for t, _ in bad)
+
+
+def test_robust_variance_solves_the_same_equation_as_the_bisection():
+    """Brent's root equals the 60-step bisection on the fraction below the chi-square medians."""
+    from scipy.special import chdtr
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(3)
+    dof = rng.integers(1, 7, size=400).astype(float)
+    z = 4.0 * rng.chisquare(dof)
+    z[:7] = np.nan
+    ok = np.isfinite(z)
+    zz, dd = z[ok], dof[ok]
+    ratio = zz / chi2.median(dd)
+    lo, hi = np.log(ratio.min()), np.log(ratio.max())
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.mean(chdtr(dd, zz / np.exp(mid))) > 0.5 else (lo, mid)
+    assert robust_variance(z, dof) == pytest.approx(np.exp(0.5 * (lo + hi)), rel=1e-12)

@@ -41,6 +41,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.optimize import brentq
 from scipy.special import chdtr
 from scipy.stats import chi2, norm
 
@@ -115,6 +116,12 @@ def robust_variance(z, dof) -> float:
     med = chi2.median(dd)
     ratio = zz / med  # each entry's own scale estimate; the target splits them in half
     lo, hi = np.log(max(np.min(ratio[ratio > 0], initial=1e-300), 1e-300)), np.log(max(ratio.max(), 1e-300))
+
+    def excess(m):  # fraction below the medians at sigma^2 = exp(m), less one half: falls with m
+        return float(np.mean(chdtr(dd, zz / np.exp(m)))) - 0.5  # chi2.cdf without its per-call checks
+
+    if lo < hi and excess(lo) > 0.0 and excess(hi) <= 0.0:  # a root inside: Brent's method, a dozen evaluations
+        return float(np.exp(brentq(excess, lo, hi, xtol=1e-14, rtol=4.0 * np.finfo(float).eps)))
     for _ in range(60):  # bisection in log sigma^2 on the fraction below the median
         mid = 0.5 * (lo + hi)
         frac = np.mean(chdtr(dd, zz / np.exp(mid)))  # chi2.cdf without its per-call argument checks
