@@ -287,10 +287,10 @@ def _reduce_to_theta(Hqt, Htt, gt, G, u, lam):
     """Schur complement in theta given ``G = A^{-1} H_{q theta}`` and ``u = A^{-1} g_q``."""
     P = Htt.shape[0]
     dt_ = np.diag(Htt)
-    S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) \
-        - np.einsum("tip,tiq->pq", Hqt, G)
-    dtheta = np.linalg.solve(S, gt - np.einsum("tip,ti->p", Hqt, u))
-    return dtheta, u - np.einsum("tip,p->ti", G, dtheta), S
+    Hqt2 = Hqt.reshape(-1, P).T  # (P, T*Q): the frame sums as matrix products (BLAS)
+    S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) - Hqt2 @ G.reshape(-1, P)
+    dtheta = np.linalg.solve(S, gt - Hqt2 @ u.ravel())
+    return dtheta, u - G @ dtheta, S
 
 
 def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
