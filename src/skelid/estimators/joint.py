@@ -498,23 +498,23 @@ def _anderson_step(theta, q, dtheta, dq, prev, Htt, Hqq):
 def _anderson_mixed(theta, q, dtheta, dq, hist, Htt, Hqq):
     """:func:`_anderson_step` over the last ``len(hist)`` steps (Anderson of that depth), or None.
 
-    ``hist``: ``(theta, q, dtheta, dq)`` of the earlier accepted iterations, oldest first. With
+    ``hist``: ``(theta, q, dtheta, dq, x, f)`` of the earlier accepted iterations, oldest first (``x``
+    and ``f``: the iterate and its step as flat vectors, theta first). With
     ``f_k`` the Gauss-Newton steps and ``x_k`` the iterates, ``gamma`` minimises
     ``|f - sum_j gamma_j (f_j - f_{j-1})|`` (inner products scaled as in :func:`_anderson_step`) and the
     step is ``f - sum_j gamma_j (x_j - x_{j-1} + f_j - f_{j-1})``: a secant method on the directions
     the last steps span.
     """
     if len(hist) == 1:
-        return _anderson_step(theta, q, dtheta, dq, hist[0], Htt, Hqq)
+        return _anderson_step(theta, q, dtheta, dq, hist[0][:4], Htt, Hqq)
     w = np.sqrt(np.concatenate([np.diag(Htt), np.einsum("tii->ti", Hqq).ravel()]))
-    xs = [np.concatenate([h[0], h[1].ravel()]) for h in hist] + [np.concatenate([theta, q.ravel()])]
-    fs = [np.concatenate([h[2], h[3].ravel()]) for h in hist] + [np.concatenate([dtheta, dq.ravel()])]
-    dX = np.stack([b - a for a, b in zip(xs[:-1], xs[1:], strict=True)], axis=1)
-    dF = np.stack([b - a for a, b in zip(fs[:-1], fs[1:], strict=True)], axis=1)
+    xs = np.stack([h[4] for h in hist] + [np.concatenate([theta, q.ravel()])], axis=1)
+    fs = np.stack([h[5] for h in hist] + [np.concatenate([dtheta, dq.ravel()])], axis=1)
+    dX, dF = np.diff(xs, axis=1), np.diff(fs, axis=1)
     if not np.all(np.isfinite(dF)):
         return None
-    gamma = np.linalg.lstsq(dF * w[:, None], fs[-1] * w, rcond=None)[0]
-    step = fs[-1] - (dX + dF) @ gamma
+    gamma = np.linalg.lstsq(dF * w[:, None], fs[:, -1] * w, rcond=None)[0]
+    step = fs[:, -1] - (dX + dF) @ gamma
     P = len(theta)
     return step[:P], step[P:].reshape(q.shape)
 
@@ -640,7 +640,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
     lam = 1e-3
     converged = stalled = False
     depth = ANDERSON_DEPTH if anderson_depth is None else int(anderson_depth)
-    hist = []  # (theta, q, dtheta, dq) of the last accepted iterations, for the Anderson step
+    hist = []  # (theta, q, dtheta, dq[, x, f]) of the last accepted iterations, for the Anderson step
     it = 0
     for it in range(1, n_iter + 1):  # noqa: B007 - the count is reported
         if cost <= floor:  # the residuals are rounding: nothing left to fit
@@ -670,7 +670,8 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
                 if np.isfinite(other[3]) and not other[3] >= best[3]:
                     best = other
         if np.isfinite(best[3]) and best[3] <= cost:
-            hist = [*hist, (theta, q, dtheta, dq)][-depth:]
+            flat = (np.concatenate([theta, q.ravel()]), np.concatenate([dtheta, dq.ravel()])) if depth > 1 else ()
+            hist = [*hist, (theta, q, dtheta, dq, *flat)][-depth:]
             theta_new, q_new, r_new, cost_new = best
             small = (cost - cost_new) <= tol * cost + floor
             # the step in theta against theta's standard error (noise from the residuals)
