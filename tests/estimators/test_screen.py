@@ -80,3 +80,28 @@ def test_robust_variance_solves_the_same_equation_as_the_bisection():
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if np.mean(chdtr(dd, zz / np.exp(mid))) > 0.5 else (lo, mid)
     assert robust_variance(z, dof) == pytest.approx(np.exp(0.5 * (lo + hi)), rel=1e-12)
+
+
+def test_standardised_residuals_equal_the_dense_hat_matrix_formula():
+    """Each marker's block of I - H from its own rows equals the block of the full (M D, M D) matrix."""
+    from skelid.estimators.likelihood import frame_terms
+    from skelid.estimators.screen import V_MIN
+
+    model = builtin_model("case-b")
+    trial = simulate(model, sigma=5.0, n_frames=30, rng=np.random.default_rng(2))
+    y = trial.data.positions.copy()
+    y[3, 1] = np.nan
+    z, dof = standardised_residuals(model, trial.theta, trial.pose, y)
+    r, Jq, _ = frame_terms(model, trial.theta, trial.pose, y)
+    T, M, D = y.shape
+    H = Jq @ np.linalg.pinv(np.swapaxes(Jq, 1, 2) @ Jq, hermitian=True) @ np.swapaxes(Jq, 1, 2)
+    for t in range(T):
+        for m in range(M):
+            if not np.isfinite(y[t, m]).all():
+                assert np.isnan(z[t, m]) and dof[t, m] == 0
+                continue
+            sl = slice(m * D, (m + 1) * D)
+            w, U = np.linalg.eigh(np.eye(D) - H[t, sl, sl])
+            keep = w > V_MIN
+            assert dof[t, m] == keep.sum()
+            assert z[t, m] == pytest.approx(np.sum((U.T @ r[t, sl])[keep] ** 2 / w[keep]), rel=1e-9, abs=1e-12)

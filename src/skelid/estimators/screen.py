@@ -80,10 +80,10 @@ def standardised_residuals(model: Model, theta, pose, y, detrend: bool = False) 
     """
     T, M, D = y.shape
     r, Jq, _ = frame_terms(model, theta, pose, y)
-    H = Jq @ np.linalg.pinv(np.swapaxes(Jq, 1, 2) @ Jq, hermitian=True) @ np.swapaxes(Jq, 1, 2)
-    I_H = np.eye(M * D) - H  # (T, m, m)
-    idx = np.arange(M)[:, None] * D + np.arange(D)  # (M, D) coordinates of each marker
-    V = I_H[:, idx[:, :, None], idx[:, None, :]]  # (T, M, D, D)
+    C = np.linalg.pinv(np.swapaxes(Jq, 1, 2) @ Jq, hermitian=True)  # (T, Q, Q)
+    # only each marker's (D, D) diagonal block of I - H is needed, H = Jq C Jq^T: V = I - J_m C J_m^T
+    Jm = Jq.reshape(T, M, D, -1)
+    V = np.eye(D) - Jm @ C[:, None] @ np.swapaxes(Jm, -1, -2)  # (T, M, D, D)
     w, U = np.linalg.eigh(V)
     rm = r.reshape(T, M, D)
     if detrend:
