@@ -90,9 +90,11 @@ from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.estimators.singular import (
     POSE_SENSITIVE,
+    branch_joints,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
+    mirrored_start,
     pose_check,
 )
 from skelid.model.description import Model
@@ -669,6 +671,30 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
         "can be given", "raise n_iter, or check the model's starting geometry and the data")
 
 
+def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEstimator,
+                 ws: Workspace | None = None) -> Weights:
+    """Frames on a joint's mirrored branch (:func:`skelid.estimators.singular.branch_joints`) refitted.
+
+    For each joint whose centre two marker distances fix, the frames on the side of its singular
+    pose that fewer frames take are mirrored and the motion-model fit is repeated from there
+    (:func:`skelid.estimators.singular.mirrored_start`); the refit is kept when it converged to a
+    lower penalised cost (the first fit sat in a local minimum). A model without such joints
+    costs nothing.
+    """
+    fit = wt.fit
+    if fit.penalty is None:
+        return wt
+    for joint in branch_joints(model):
+        start = mirrored_start(model, fit.theta, fit.pose, sc.y, joint, fit.frames_used, ws)
+        if start is None:
+            continue
+        new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                        penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
+        if new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9):
+            fit = new
+    return wt._replace(fit=fit)
+
+
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
     """Flag parameters informed by the nominal marker placement; add its uncertainty to ``cov``.
 
@@ -953,6 +979,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     mo = motion_stage(model, st, sc, est, ws)
     wt = weights_stage(model, st, sc, mo, est, ws)
     wt = converge_stage(model, st, sc, mo, wt, est, ws)
+    wt = branch_stage(model, st, sc, wt, est, ws)
     fit = wt.fit
     fr = frames_stage(model, sc, fit)
     noise = noise_stage(model, fit, est.sigma)
