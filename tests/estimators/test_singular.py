@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.joint import box_bias, smoothed_bias
+from skelid.estimators.joint import box_bias, joint_fit, smoothed_bias
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.singular import (
     _N_CUTOFFS,
@@ -18,7 +18,6 @@ from skelid.estimators.singular import (
     pose_check,
     quadratic_term_draws,
 )
-from skelid.estimators.joint import joint_fit
 from skelid.model.kinematics import joint_positions, marker_positions
 from skelid.simulate import builtin_model, simulate, simulate_posture
 from tests.estimators.test_joint import _dense_normal_matrix, _small_fit
@@ -229,3 +228,19 @@ def test_a_stretch_of_frames_on_the_mirrored_branch_is_found_and_refitted():
     # and that fit's poses are on one branch: nothing left to mirror
     for joint in branch_joints(model):
         assert mirrored_start(model, fit.theta, fit.pose, est.y_, joint, fit.frames_used) is None
+
+
+def test_a_second_order_correction_above_half_an_sd_widens_the_interval_by_its_spread(monkeypatch):
+    import skelid.estimators.marker as marker
+
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[250.0], n_frames=60, sigma=5.0, rng=np.random.default_rng(4))
+    fits = {}
+    for threshold in (0.0, np.inf):
+        monkeypatch.setattr(marker, "SECOND_ORDER_SPREAD", threshold)
+        fits[threshold] = MarkerEstimator(model, jackknife=False, rng=0).fit(trial.data)
+    wide, plain = fits[0.0], fits[np.inf]
+    assert wide.bias_method_ == plain.bias_method_ == "box"
+    np.testing.assert_allclose(wide.theta_, plain.theta_)
+    np.testing.assert_allclose(plain.cov_, plain.cov_data_)
+    assert wide.cov_[0, 0] > plain.cov_[0, 0]

@@ -89,13 +89,17 @@ from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.estimators.singular import (
+    N_DRAWS,
     POSE_SENSITIVE,
+    SECOND_ORDER_SPREAD,
     branch_joints,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
     mirrored_start,
     pose_check,
+    quadratic_term_draws,
+    second_order_covariance,
 )
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, joint_distances, marker_positions
@@ -519,7 +523,9 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     (near a singular pose), or a correction exceeds ``BIAS_RELIABLE`` sd (what the expansion
     leaves, a fixed share of the correction, is then no longer small against the sd), a parametric
     bootstrap at the deconvolved poses stands in for it, and its spread, Monte Carlo error and
-    disagreement with the second-order bias there widen the interval.
+    disagreement with the second-order bias there widen the interval. A kept correction above
+    ``SECOND_ORDER_SPREAD`` sd brings the covariance of the second-order term into the interval
+    (:func:`skelid.estimators.singular.quadratic_term_draws`).
     """
     model, fit, w = est.model, wt.fit, wt.weights
     sigma2 = noise.sigma**2
@@ -578,6 +584,15 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
                 "sd": float(sd[k]), "info_change": check.info_change.tolist(),
                 "pose_sd": check.pose_sd.tolist(),
                 "sd_bootstrap": np.sqrt(np.diag(extra + sigma2 * np.linalg.inv(fit.info))).tolist()}, extra)
+        if np.any(np.abs(b) > SECOND_ORDER_SPREAD * sd):
+            # the second-order term's spread (zero mean beside the first-order one): not small here
+            if fit.penalty is None:
+                draws = quadratic_term_draws(model, y[used], fit.theta, fit.pose[used], sigma2_bias, None, w,
+                                             N_DRAWS, rng.spawn(1)[0])
+            else:
+                draws = quadratic_term_draws(model, y_used, fit.theta, fit.pose, sigma2_bias, fit.penalty, w,
+                                             N_DRAWS, rng.spawn(1)[0])
+            return Bias(b, method, None, second_order_covariance(draws))
         return Bias(b, method)
     if method == "bootstrap":
         boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)

@@ -52,6 +52,26 @@ their Monte Carlo error ``C*/B``, and the square of half the disagreement betwee
 bias estimates (bootstrap and second order at ``q_tilde``): the bias estimate's own
 uncertainty.
 
+**Spread of the second-order term.** To second order the estimate's error is
+``delta_1 + delta_2``, ``delta_1 = C J^T epsilon`` (what ``sigma^2 S^{-1}`` describes) and
+``delta_2`` quadratic in the noise (:func:`quadratic_term_draws`); its mean is the bias above.
+Near a singular pose its spread is not small: with a correction of ``b`` its sd was 0.3-0.45
+``|b|`` on the case-A cells of the accuracy study (sigma 15 mm near the folded pose: 18 % of the
+variance). Where the expansion's correction exceeds ``SECOND_ORDER_SPREAD`` sd, ``cov(delta_2)``
+from ``N_DRAWS`` Gaussian draws (no refit) joins the interval; ``delta_1`` and ``delta_2`` are
+uncorrelated. The third-order cross term ``cov(delta_1, delta_3)``, of the same order, is not included.
+
+**Mirrored branches.** A one-axis joint whose centre ``J`` two marker distances fix (one marker
+on the parent segment, ``a``, one on the child, ``b``: :func:`branch_joints`) has two solutions
+per frame, mirror images across the line ``ab``. Near a straight or folded pose both fit the
+markers almost equally; only the motion model tells them apart, and a stretch of frames can sit
+on the mirrored branch in a local minimum of the joint fit (case A, sigma 5 mm, near-folded: 27
+frames of one trial, an error of 3 sd; a fit from the true poses reaches a penalised cost lower by
+about 140 sigma^2). The signed angle ``psi`` of :func:`branch_side` tells each frame's branch; the
+frames on the side fewer frames take are mirrored (``q_k - 2 psi``, then a per-frame pose fit)
+and the joint fit repeated from there (:func:`mirrored_start`); the refit is kept when its
+penalised cost is lower.
+
 Example
 -------
 >>> import numpy as np
@@ -79,6 +99,13 @@ POSE_SENSITIVE = 0.1
 #: study, sigma 15 mm, one more step moved it by about 0.1 sd, at the cost of as many refits again)
 FIXED_POINT_STEPS = 0
 _N_CUTOFFS = 96  # log-spaced cutoffs tried between 1e-3 and 0.95 of the Nyquist frequency
+#: a second-order bias correction above this many sd brings the spread of the second-order term into the
+#: interval (its sd was 0.3-0.45 of the bias on the accuracy study's case-A cells, so below 0.5 sd it adds
+#: under 5 % of the variance)
+SECOND_ORDER_SPREAD = 0.5
+#: draws of the second-order term (the relative Monte Carlo error of its variance is sqrt(2 / N_DRAWS))
+N_DRAWS = 64
+_DRAW_BLOCK = 4e6  # floats in one piece of the draws' products
 
 
 class PoseCheck(NamedTuple):
@@ -327,25 +354,35 @@ def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weigh
 
     eps = rng.standard_normal((n_draws, T, m)) * mask * np.sqrt(sigma2)  # (K, T, m) weighted rows
     d_t, d_q = solve_normal(np.einsum("tip,kti->kp", Jt, eps), np.einsum("tiq,kti->ktq", Jq, eps))
-    delta = np.concatenate([np.broadcast_to(d_t[:, None, :], (n_draws, T, P)), d_q], axis=-1)  # (K, T, P+Q)
-    Jfull = np.concatenate([Jt, Jq], axis=-1)  # (T, m, P+Q)
-    r1 = eps - np.einsum("tij,ktj->kti", Jfull, delta)
-    # second derivatives of every row in each frame's (theta, q_t) block, by central differences
-    # of the Jacobian: DJ[t, j, i, l] = d^2 f_i / d beta_j d beta_l
-    step = 1e-4
     eye = np.eye(P + Q)
-    shape = (T, P + Q, P)
-
-    def jac_full(th, qq):
-        return stacked_jacobian(model, th, qq, ws).reshape(th.shape[:-1] + (m, P + Q))
-
-    Jp = jac_full(np.broadcast_to(theta + step * eye[:, :P], shape), q[:, None, :] + step * eye[None, :, P:])
-    Jm = jac_full(np.broadcast_to(theta - step * eye[:, :P], shape), q[:, None, :] - step * eye[None, :, P:])
-    DJ = (Jp - Jm) / (2.0 * step) * wmask[:, None, :, None]  # (T, P+Q, m, P+Q), weighted rows
-    Hd = np.einsum("tjil,ktl->ktij", DJ, delta)  # (K, T, m, P+Q): nabla^2 f_i delta
-    h = np.einsum("ktij,ktj->kti", Hd, delta)  # (K, T, m)
-    w = -0.5 * np.einsum("tij,kti->ktj", Jfull, h) + np.einsum("ktij,kti->ktj", Hd, r1)  # (K, T, P+Q)
+    step = 1e-4
+    w = np.empty((n_draws, T, P + Q))
+    # frames in pieces, so that the second derivatives and the draws' products stay small in memory
+    size = max(1, int(_DRAW_BLOCK // max(n_draws * m * (P + Q), 1)))
+    for a in range(0, T, size):
+        sl = slice(a, min(a + size, T))
+        n = sl.stop - sl.start
+        delta = np.concatenate([np.broadcast_to(d_t[:, None, :], (n_draws, n, P)), d_q[:, sl]], axis=-1)
+        Jfull = np.concatenate([Jt[sl], Jq[sl]], axis=-1)  # (n, m, P+Q)
+        r1 = eps[:, sl] - np.einsum("tij,ktj->kti", Jfull, delta)
+        # DJ[t, j, i, l] = d^2 f_i / d beta_j d beta_l in each frame's (theta, q_t) block, by central
+        # differences of the Jacobian
+        shape = (n, P + Q, P)
+        Jp = stacked_jacobian(model, np.broadcast_to(theta + step * eye[:, :P], shape),
+                              q[sl, None, :] + step * eye[None, :, P:], ws).reshape(n, P + Q, m, P + Q)
+        Jm = stacked_jacobian(model, np.broadcast_to(theta - step * eye[:, :P], shape),
+                              q[sl, None, :] - step * eye[None, :, P:], ws).reshape(n, P + Q, m, P + Q)
+        DJ = (Jp - Jm) / (2.0 * step) * wmask[sl, None, :, None]  # weighted rows
+        Hd = np.einsum("tjil,ktl->ktij", DJ, delta)  # (K, n, m, P+Q): nabla^2 f_i delta
+        h = np.einsum("ktij,ktj->kti", Hd, delta)  # (K, n, m)
+        w[:, sl] = -0.5 * np.einsum("tij,kti->ktj", Jfull, h) + np.einsum("ktij,kti->ktj", Hd, r1)
     return solve_normal(w[..., :P].sum(axis=1), w[..., P:])[0]
+
+
+def second_order_covariance(draws) -> np.ndarray:
+    """Covariance ``(P, P)`` of the second-order term from :func:`quadratic_term_draws`' draws."""
+    d = np.atleast_2d(draws)
+    return np.atleast_2d(np.cov(d, rowvar=False)) if len(d) > 1 else np.zeros((d.shape[1],) * 2)
 
 
 class BranchJoint(NamedTuple):
