@@ -254,7 +254,14 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                            "-0.05 crlb): the poses' share of the change is what flags them",
          "stiffer": "that rule (evaluated at the corrected geometry only), and the graduated-smoothing start "
                     "9 times stiffer than the motion model (was 3; not kept: no gain in coverage on the one "
-                    "cell it was run on)"}
+                    "cell it was run on)",
+         "branch": "the branch check (frames on the mirrored branch of a joint that two marker distances fix "
+                   "are mirrored and the motion-model fit repeated, kept at a lower penalised cost; "
+                   ":func:`skelid.estimators.singular.mirrored_start`); the near-straight sigma-5 row of this tag "
+                   "is an interrupted run (20 trials)",
+         "spread": "the branch check and, where the second-order correction exceeds 0.5 sd on the expansion's "
+                   "path, the covariance of the second-order term (64 Gaussian draws, "
+                   ":func:`skelid.estimators.singular.quadratic_term_draws`) added to the interval"}
 
 
 def _write_later(fh, rows):
@@ -284,7 +291,7 @@ def _write_later(fh, rows):
 def _write(rows):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
     tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5,
-            "selfconsistent": 6, "stiffer": 7}
+            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9}
     rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
                                        order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -315,7 +322,8 @@ def _write(rows):
                  "second-order correction evaluated again at the corrected geometry and deconvolved poses and "
                  "trusted when it stays put (instead of sent to the bootstrap whenever it exceeds 1.5 sd), "
                  "`stiffer` = that rule and a graduated-smoothing start 9 times stiffer than the motion model "
-                 "(was 3; tried, not kept). "
+                 "(was 3; tried, not kept), `branch` = the check of a joint's mirrored pose branch, `spread` = "
+                 "that check and the second-order term's spread in the interval. "
                  "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}

@@ -3,17 +3,22 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.joint import box_bias, smoothed_bias
+from skelid.estimators.joint import box_bias, joint_fit, smoothed_bias
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.singular import (
     _N_CUTOFFS,
     POSE_SENSITIVE,
+    branch_joints,
+    branch_side,
     deconvolve_poses,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
+    mirrored_start,
     pose_check,
+    quadratic_term_draws,
 )
+from skelid.model.kinematics import joint_positions, marker_positions
 from skelid.simulate import builtin_model, simulate, simulate_posture
 from tests.estimators.test_joint import _dense_normal_matrix, _small_fit
 
@@ -158,3 +163,84 @@ def test_a_large_correction_goes_to_the_bootstrap_even_where_it_stays_put(monkey
     np.testing.assert_allclose(est.bias_fallback_["box_corrected"], again, rtol=1e-9)
     sd = est.sigma_ * np.sqrt(np.diag(np.linalg.inv(fit.info)))
     assert np.all(np.abs(again - b) <= sd / np.sqrt(est.n_boot))
+
+
+def test_the_second_order_draws_average_to_the_smoothed_bias():
+    # the mean of delta_2 over Gaussian draws is the closed-form second-order bias (with the penalty's term)
+    model, y, theta, q, R = _small_fit()
+    b = smoothed_bias(model, y, theta, q, 25.0, R, max_frames=10**6)
+    d = quadratic_term_draws(model, y, theta, q, 25.0, R, n_draws=4000, rng=np.random.default_rng(0))
+    se = d.std(axis=0) / np.sqrt(len(d))
+    assert np.all(np.abs(d.mean(axis=0) - b) < 4 * se)
+    assert np.all(d.std(axis=0) > 0)
+
+
+def test_without_a_penalty_the_second_order_draws_average_to_box_bias():
+    model, y, theta, q, _ = _small_fit(n_frames=30)
+    b = box_bias(model, y, theta, q, 25.0)
+    d = quadratic_term_draws(model, y, theta, q, 25.0, None, n_draws=4000, rng=np.random.default_rng(1))
+    assert np.all(np.abs(d.mean(axis=0) - b) < 4 * d.std(axis=0) / np.sqrt(len(d)))
+
+
+def test_branch_joints_are_those_fixed_by_two_distances():
+    assert [j.dof for j in branch_joints(builtin_model("case-a"))] == [3, 4]  # one marker per element
+    assert branch_joints(builtin_model("case-b")) == ()  # the forearm's two markers fix its pose
+
+
+def test_the_mirrored_angle_reflects_the_child_marker_across_the_line_through_the_joint():
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 20, 0.0, (150.0, 172.0), np.random.default_rng(2))
+    theta, q = trial.theta, trial.pose
+    for joint in branch_joints(model):
+        psi = branch_side(model, theta, q, joint)
+        assert np.all(np.abs(psi) <= np.pi / 2)
+        mirrored = q.copy()
+        mirrored[:, joint.dof] -= 2 * psi
+        np.testing.assert_allclose(branch_side(model, theta, mirrored, joint), -psi, atol=1e-9)
+        # reference: reflect the child's marker across the line from the joint centre to the parent's marker
+        centre = joint_positions(model, theta, q)[:, joint.segment]
+        u = marker_positions(model, theta, q)[:, joint.parent_marker] - centre
+        v = marker_positions(model, theta, q)[:, joint.child_marker] - centre
+        e = u / np.linalg.norm(u, axis=-1, keepdims=True)
+        reflected = centre + 2 * np.sum(v * e, axis=-1, keepdims=True) * e - v
+        np.testing.assert_allclose(marker_positions(model, theta, mirrored)[:, joint.child_marker], reflected,
+                                   atol=1e-9)
+        # at the singular pose itself the angle is zero
+        on_line = q.copy()
+        on_line[:, joint.dof] -= psi
+        np.testing.assert_allclose(branch_side(model, theta, on_line, joint), 0.0, atol=1e-9)
+
+
+def test_a_stretch_of_frames_on_the_mirrored_branch_is_found_and_refitted():
+    # near the folded elbow, 27 frames of this trial settle on the mirrored branch of the wrist (a local
+    # minimum of the motion-model fit); the fit must reach the minimum a fit from the true poses reaches
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 500, 5.0, (150.0, 172.0), np.random.default_rng([0, 5, 250, 3, 20]))
+    est = MarkerEstimator(model).fit(trial.data)
+    fit = est.fit_info_
+    ref = joint_fit(model, est.y_, fit.theta, trial.pose, rate=trial.data.rate, penalty=fit.penalty)
+
+    def cost(f):
+        return f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel()))
+
+    assert cost(fit) == pytest.approx(cost(ref), rel=1e-7)
+    assert fit.theta[0] == pytest.approx(ref.theta[0], abs=1e-3)
+    # and that fit's poses are on one branch: nothing left to mirror
+    for joint in branch_joints(model):
+        assert mirrored_start(model, fit.theta, fit.pose, est.y_, joint, fit.frames_used) is None
+
+
+def test_a_second_order_correction_above_half_an_sd_widens_the_interval_by_its_spread(monkeypatch):
+    import skelid.estimators.marker as marker
+
+    model = builtin_model("case-a")
+    trial = simulate(model, theta=[250.0], n_frames=60, sigma=5.0, rng=np.random.default_rng(4))
+    fits = {}
+    for threshold in (0.0, np.inf):
+        monkeypatch.setattr(marker, "SECOND_ORDER_SPREAD", threshold)
+        fits[threshold] = MarkerEstimator(model, jackknife=False, rng=0).fit(trial.data)
+    wide, plain = fits[0.0], fits[np.inf]
+    assert wide.bias_method_ == plain.bias_method_ == "box"
+    np.testing.assert_allclose(wide.theta_, plain.theta_)
+    np.testing.assert_allclose(plain.cov_, plain.cov_data_)
+    assert wide.cov_[0, 0] > plain.cov_[0, 0]

@@ -89,11 +89,17 @@ from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.estimators.singular import (
+    N_DRAWS,
     POSE_SENSITIVE,
+    SECOND_ORDER_SPREAD,
+    branch_joints,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
+    mirrored_start,
     pose_check,
+    quadratic_term_draws,
+    second_order_covariance,
 )
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, joint_distances, marker_positions
@@ -517,7 +523,9 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     (near a singular pose), or a correction exceeds ``BIAS_RELIABLE`` sd (what the expansion
     leaves, a fixed share of the correction, is then no longer small against the sd), a parametric
     bootstrap at the deconvolved poses stands in for it, and its spread, Monte Carlo error and
-    disagreement with the second-order bias there widen the interval.
+    disagreement with the second-order bias there widen the interval. A kept correction above
+    ``SECOND_ORDER_SPREAD`` sd brings the covariance of the second-order term into the interval
+    (:func:`skelid.estimators.singular.quadratic_term_draws`).
     """
     model, fit, w = est.model, wt.fit, wt.weights
     sigma2 = noise.sigma**2
@@ -576,6 +584,15 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
                 "sd": float(sd[k]), "info_change": check.info_change.tolist(),
                 "pose_sd": check.pose_sd.tolist(),
                 "sd_bootstrap": np.sqrt(np.diag(extra + sigma2 * np.linalg.inv(fit.info))).tolist()}, extra)
+        if np.any(np.abs(b) > SECOND_ORDER_SPREAD * sd):
+            # the second-order term's spread (zero mean beside the first-order one): not small here
+            if fit.penalty is None:
+                draws = quadratic_term_draws(model, y[used], fit.theta, fit.pose[used], sigma2_bias, None, w,
+                                             N_DRAWS, rng.spawn(1)[0])
+            else:
+                draws = quadratic_term_draws(model, y_used, fit.theta, fit.pose, sigma2_bias, fit.penalty, w,
+                                             N_DRAWS, rng.spawn(1)[0])
+            return Bias(b, method, None, second_order_covariance(draws))
         return Bias(b, method)
     if method == "bootstrap":
         boot, extra = bootstrap_bias(est, y, fit, noise, st, mo, rng)
@@ -667,6 +684,30 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
         f"the joint fit did not converge: {model.parameter_names[k]} still moved by {step[k]:.3g} "
         f"({step[k] / max(sd[k], 1e-300):.1f} sd) in {s.n_iter} further iterations, so no interval "
         "can be given", "raise n_iter, or check the model's starting geometry and the data")
+
+
+def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEstimator,
+                 ws: Workspace | None = None) -> Weights:
+    """Frames on a joint's mirrored branch (:func:`skelid.estimators.singular.branch_joints`) refitted.
+
+    For each joint whose centre two marker distances fix, the frames on the side of its singular
+    pose that fewer frames take are mirrored and the motion-model fit is repeated from there
+    (:func:`skelid.estimators.singular.mirrored_start`); the refit is kept when it converged to a
+    lower penalised cost (the first fit sat in a local minimum). A model without such joints
+    costs nothing.
+    """
+    fit = wt.fit
+    if fit.penalty is None:
+        return wt
+    for joint in branch_joints(model):
+        start = mirrored_start(model, fit.theta, fit.pose, sc.y, joint, fit.frames_used, ws)
+        if start is None:
+            continue
+        new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                        penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
+        if new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9):
+            fit = new
+    return wt._replace(fit=fit)
 
 
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
@@ -953,6 +994,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     mo = motion_stage(model, st, sc, est, ws)
     wt = weights_stage(model, st, sc, mo, est, ws)
     wt = converge_stage(model, st, sc, mo, wt, est, ws)
+    wt = branch_stage(model, st, sc, wt, est, ws)
     fit = wt.fit
     fr = frames_stage(model, sc, fit)
     noise = noise_stage(model, fit, est.sigma)

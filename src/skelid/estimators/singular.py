@@ -33,7 +33,7 @@ than ``BIAS_RELIABLE`` sd (:mod:`skelid.estimators.marker`) goes to the bootstra
 evaluated once more, at the corrected point (the geometry less its bias, the poses freed of
 their scatter),
 
-.. math:: \Delta = b(\hat\theta - b, \tilde q) - b(\hat\theta, \hat q),
+.. math:: \\Delta = b(\\hat\\theta - b, \\tilde q) - b(\\hat\\theta, \\hat q),
 
 and :func:`expansion_consistent` (``|Delta| <= sd / sqrt(B)``) is recorded with the fallback.
 It does not keep the expansion: the profile bias of a fit with incidental poses does not
@@ -51,6 +51,26 @@ biased estimate). The covariance added to ``sigma^2 S^{-1}`` is the refits' exce
 their Monte Carlo error ``C*/B``, and the square of half the disagreement between the two
 bias estimates (bootstrap and second order at ``q_tilde``): the bias estimate's own
 uncertainty.
+
+**Spread of the second-order term.** To second order the estimate's error is
+``delta_1 + delta_2``, ``delta_1 = C J^T epsilon`` (what ``sigma^2 S^{-1}`` describes) and
+``delta_2`` quadratic in the noise (:func:`quadratic_term_draws`); its mean is the bias above.
+Near a singular pose its spread is not small: with a correction of ``b`` its sd was 0.3-0.45
+``|b|`` on the case-A cells of the accuracy study (sigma 15 mm near the folded pose: 18 % of the
+variance). Where the expansion's correction exceeds ``SECOND_ORDER_SPREAD`` sd, ``cov(delta_2)``
+from ``N_DRAWS`` Gaussian draws (no refit) joins the interval; ``delta_1`` and ``delta_2`` are
+uncorrelated. The third-order cross term ``cov(delta_1, delta_3)``, of the same order, is not included.
+
+**Mirrored branches.** A one-axis joint whose centre ``J`` two marker distances fix (one marker
+on the parent segment, ``a``, one on the child, ``b``: :func:`branch_joints`) has two solutions
+per frame, mirror images across the line ``ab``. Near a straight or folded pose both fit the
+markers almost equally; only the motion model tells them apart, and a stretch of frames can sit
+on the mirrored branch in a local minimum of the joint fit (case A, sigma 5 mm, near-folded: 27
+frames of one trial, an error of 3 sd; a fit from the true poses reaches a penalised cost lower by
+about 140 sigma^2). The signed angle ``psi`` of :func:`branch_side` tells each frame's branch; the
+frames on the side fewer frames take are mirrored (``q_k - 2 psi``, then a per-frame pose fit)
+and the joint fit repeated from there (:func:`mirrored_start`); the refit is kept when its
+penalised cost is lower.
 
 Example
 -------
@@ -79,6 +99,13 @@ POSE_SENSITIVE = 0.1
 #: study, sigma 15 mm, one more step moved it by about 0.1 sd, at the cost of as many refits again)
 FIXED_POINT_STEPS = 0
 _N_CUTOFFS = 96  # log-spaced cutoffs tried between 1e-3 and 0.95 of the Nyquist frequency
+#: a second-order bias correction above this many sd brings the spread of the second-order term into the
+#: interval (its sd was 0.3-0.45 of the bias on the accuracy study's case-A cells, so below 0.5 sd it adds
+#: under 5 % of the variance)
+SECOND_ORDER_SPREAD = 0.5
+#: draws of the second-order term (the relative Monte Carlo error of its variance is sqrt(2 / N_DRAWS))
+N_DRAWS = 64
+_DRAW_BLOCK = 4e6  # floats in one piece of the draws' products
 
 
 class PoseCheck(NamedTuple):
@@ -251,3 +278,208 @@ def fallback_covariance(shifts, plain, disagreement) -> np.ndarray:
     w, V = np.linalg.eigh(c_boot - plain)
     d = np.asarray(disagreement, float)
     return (V * np.clip(w, 0.0, None)) @ V.T + c_boot / B + 0.25 * np.outer(d, d)
+
+
+def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weights=None, n_draws: int = 64,
+                         rng=None) -> np.ndarray:
+    """Draws of the second-order term of the joint fit's expansion in the noise: ``(n_draws, P)``.
+
+    For ``min ||y - f(beta)||^2 + beta^T R beta`` with ``beta = (theta, q_1..q_T)`` and
+    ``y = f(beta) + epsilon``, the estimate's error is, to second order,
+
+    .. math:: \\delta_1 = C J^\\top \\varepsilon, \\qquad
+              \\delta_2 = C\\big(-\\tfrac12 J^\\top h(\\delta_1) + \\textstyle\\sum_i \\nabla^2 f_i\\,
+              \\delta_1\\, r_i\\big), \\qquad C = (J^\\top J + R)^{-1},
+
+    with ``h_i(delta) = delta^T nabla^2 f_i delta`` and ``r = epsilon - J delta_1``. Its mean is the
+    second-order bias (:func:`skelid.estimators.joint.smoothed_bias`); its spread is what the
+    delta-method covariance ``sigma^2 S^{-1}`` leaves out. Near a singular pose the pose errors are
+    large and ``h`` is far from its mean, so the spread of ``delta_2`` is no longer small. The draws
+    are exact Gaussian simulations of ``delta_2``'s ``theta`` part (``epsilon`` drawn, ``delta_1``
+    solved through the arrow structure, ``h`` and the second sum from each frame's second
+    derivatives): no refit. ``delta_1`` and ``delta_2`` are uncorrelated (odd moments of a Gaussian
+    vanish), so ``cov(delta_2)`` adds to ``sigma^2 S^{-1}``.
+
+    Parameters
+    ----------
+    y : (T, M, D) float
+        Markers (only the missing-marker pattern is used), NaN where missing.
+    theta : (P,) float
+    q : (T, Q) float
+    sigma2 : float
+        Noise variance (of a weighted residual with ``weights``).
+    R : sparse (T*Q, T*Q), optional
+        Motion-model penalty on the poses (None: none, every pose on its own).
+    weights : (M,) or (T, M) float, optional
+        Marker weights of a weighted fit (rows scaled by their square roots).
+    n_draws : int
+    rng : numpy.random.Generator, optional
+
+    Returns
+    -------
+    (n_draws, P) float
+        ``theta`` part of ``delta_2`` for each draw.
+    """
+    from scipy import sparse
+
+    from skelid.estimators.joint import _banded_solver, row_weights, weighted_terms
+    from skelid.estimators.likelihood import pose_information
+    from skelid.model.kinematics import Workspace, stacked_jacobian
+
+    rng = np.random.default_rng() if rng is None else rng
+    y = np.asarray(y, float)
+    theta = np.asarray(theta, float)
+    q = np.asarray(q, float)
+    P, Q, T = model.n_params, model.n_pose, len(q)
+    ws = Workspace(model)
+    sw = row_weights(weights, y)
+    _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+    m = Jq.shape[1]
+    mask = np.repeat(np.isfinite(y).all(axis=-1), model.dim, axis=1).astype(float)  # (T, m)
+    wmask = mask if sw is None else mask * sw
+    Hqq = pose_information(Jq)
+    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
+    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
+    R = sparse.csr_matrix((T * Q, T * Q)) if R is None else R
+    solve = _banded_solver(Hqq, R)
+    G = solve(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
+    S = Htt - np.einsum("tip,tiq->pq", Hqt, G)
+    S_inv = np.linalg.inv(0.5 * (S + S.T))
+
+    def solve_normal(g_t, g_q):  # (K, P), (K, T, Q) -> C g: (K, P), (K, T, Q)
+        K = len(g_t)
+        u = solve(g_q.reshape(K, T * Q).T).T.reshape(K, T, Q)
+        d_t = (g_t - np.einsum("tqp,ktq->kp", G, g_q)) @ S_inv  # S_inv symmetric
+        return d_t, u - np.einsum("tqp,kp->ktq", G, d_t)
+
+    eps = rng.standard_normal((n_draws, T, m)) * mask * np.sqrt(sigma2)  # (K, T, m) weighted rows
+    d_t, d_q = solve_normal(np.einsum("tip,kti->kp", Jt, eps), np.einsum("tiq,kti->ktq", Jq, eps))
+    eye = np.eye(P + Q)
+    step = 1e-4
+    w = np.empty((n_draws, T, P + Q))
+    # frames in pieces, so that the second derivatives and the draws' products stay small in memory
+    size = max(1, int(_DRAW_BLOCK // max(n_draws * m * (P + Q), 1)))
+    for a in range(0, T, size):
+        sl = slice(a, min(a + size, T))
+        n = sl.stop - sl.start
+        delta = np.concatenate([np.broadcast_to(d_t[:, None, :], (n_draws, n, P)), d_q[:, sl]], axis=-1)
+        Jfull = np.concatenate([Jt[sl], Jq[sl]], axis=-1)  # (n, m, P+Q)
+        r1 = eps[:, sl] - np.einsum("tij,ktj->kti", Jfull, delta)
+        # DJ[t, j, i, l] = d^2 f_i / d beta_j d beta_l in each frame's (theta, q_t) block, by central
+        # differences of the Jacobian
+        shape = (n, P + Q, P)
+        Jp = stacked_jacobian(model, np.broadcast_to(theta + step * eye[:, :P], shape),
+                              q[sl, None, :] + step * eye[None, :, P:], ws).reshape(n, P + Q, m, P + Q)
+        Jm = stacked_jacobian(model, np.broadcast_to(theta - step * eye[:, :P], shape),
+                              q[sl, None, :] - step * eye[None, :, P:], ws).reshape(n, P + Q, m, P + Q)
+        DJ = (Jp - Jm) / (2.0 * step) * wmask[sl, None, :, None]  # weighted rows
+        Hd = np.einsum("tjil,ktl->ktij", DJ, delta)  # (K, n, m, P+Q): nabla^2 f_i delta
+        h = np.einsum("ktij,ktj->kti", Hd, delta)  # (K, n, m)
+        w[:, sl] = -0.5 * np.einsum("tij,kti->ktj", Jfull, h) + np.einsum("ktij,kti->ktj", Hd, r1)
+    return solve_normal(w[..., :P].sum(axis=1), w[..., P:])[0]
+
+
+def second_order_covariance(draws) -> np.ndarray:
+    """Covariance ``(P, P)`` of the second-order term from :func:`quadratic_term_draws`' draws."""
+    d = np.atleast_2d(draws)
+    return np.atleast_2d(np.cov(d, rowvar=False)) if len(d) > 1 else np.zeros((d.shape[1],) * 2)
+
+
+class BranchJoint(NamedTuple):
+    """A one-axis joint whose centre two distance equations fix (see :func:`branch_joints`)."""
+
+    dof: int  # pose coordinate of the joint's angle
+    segment: int  # the joint's (child) segment
+    parent_marker: int  # the one marker of the parent segment
+    child_marker: int  # the one marker of the child segment
+
+
+def branch_joints(model: Model) -> tuple[BranchJoint, ...]:
+    """One-axis (revolute, hinge) joints whose parent and child segment carry one marker each.
+
+    The joint centre ``J`` is then fixed by two distances, ``|J - a|`` to the parent's marker
+    and ``|J - b|`` to the child's: two circles (spheres about an axis) that meet in two points,
+    mirror images across the line ``ab``. Where ``a``, ``J`` and ``b`` nearly line up (a straight
+    or folded joint) both solutions fit the markers almost equally and only the motion model
+    tells them apart, so a stretch of frames can settle on the mirrored branch: a local minimum
+    of the joint fit (see :func:`branch_side`). A segment with more markers fixes its own pose,
+    and the joint has one solution.
+    """
+    ms = np.asarray(model.marker_segment)
+    parent = model.parent_index
+    out = []
+    for k, d in enumerate(model.dofs):
+        c = d.segment
+        p = int(parent[c])
+        if d.kind != "R" or d.coupled or p < 0 or model.segments[c].joint.type not in ("revolute", "hinge"):
+            continue
+        a, b = np.flatnonzero(ms == p), np.flatnonzero(ms == c)
+        if len(a) == 1 and len(b) == 1:
+            out.append(BranchJoint(k, c, int(a[0]), int(b[0])))
+    return tuple(out)
+
+
+def branch_side(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarray:
+    """Signed angle ``psi`` (T,) of the joint from its nearest singular pose (radians, in (-pi/2, pi/2]).
+
+    With ``u = a - J`` (parent's marker) and ``v = b - J`` (child's marker), projected on the
+    plane normal to the joint's axis, ``psi`` is the angle from ``u`` to ``v`` less the nearest
+    multiple of ``pi`` (0: folded, the markers on one side; ``pi``: straight), oriented so that
+    it grows with the joint's coordinate. Its sign tells the branch; ``q_k - 2 psi`` is the
+    joint's mirrored angle (the child's marker reflected across the line ``J a``).
+    """
+    from skelid.model.kinematics import joint_positions, marker_jacobian
+
+    q = np.asarray(q, float)
+    X, Jq, _ = marker_jacobian(model, theta, q, ws)  # (T, M, D), (T, M, D, Q)
+    centre = joint_positions(model, theta, q, ws)[:, joint.segment]
+    u = X[:, joint.parent_marker] - centre
+    v = X[:, joint.child_marker] - centre
+    dv = Jq[:, joint.child_marker, :, joint.dof]  # (T, D): the child's marker moves about the axis
+    if model.dim == 2:
+        sense = np.sign(v[:, 0] * dv[:, 1] - v[:, 1] * dv[:, 0])
+        ang = sense * np.arctan2(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0], np.sum(u * v, axis=-1))
+    else:
+        n = np.cross(v, dv)
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+        u = u - n * np.sum(n * u, axis=-1, keepdims=True)
+        v = v - n * np.sum(n * v, axis=-1, keepdims=True)
+        ang = np.arctan2(np.sum(n * np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
+    return ang - np.pi * np.round(ang / np.pi)
+
+
+def mirrored_start(model: Model, theta, q, y, joint: BranchJoint, used, ws=None):
+    """Poses with the joint's minority branch mirrored, or None when every used frame is on one side.
+
+    The frames (of those ``used``) on the side of the joint's singular pose that fewer frames
+    take get the mirrored angle ``q_k - 2 psi`` (:func:`branch_side`) and a per-frame pose fit at
+    ``theta`` from there; the other frames keep ``q``. A joint fit from these poses under the
+    same motion model tells whether that stretch sat on the wrong branch: its penalised cost is
+    then lower.
+
+    Parameters
+    ----------
+    theta : (P,) float
+    q : (T, Q) float
+    y : (T, M, D) float
+    used : (T,) bool
+
+    Returns
+    -------
+    (T, Q) float or None
+    """
+    from skelid.estimators.pose import fit_pose
+
+    psi = branch_side(model, theta, q, joint, ws)
+    side = np.sign(psi)
+    used = np.asarray(used, bool) & (side != 0)
+    if not used.any():
+        return None
+    major = 1.0 if np.sum(side[used] > 0) >= np.sum(side[used] < 0) else -1.0
+    flip = used & (side != major)
+    if not flip.any():
+        return None
+    start = np.array(q, float)
+    start[flip, joint.dof] -= 2.0 * psi[flip]
+    start[flip] = fit_pose(model, theta, y[flip], start[flip], ws=ws)[0]
+    return start
