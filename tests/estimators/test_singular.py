@@ -72,10 +72,10 @@ def test_indirect_bias_solves_the_fixed_point_of_a_linear_bias():
         return a * theta + c + noise
 
     theta_hat = np.array([100.0])
-    b, shifts = indirect_bias(refit, theta_hat, None, n_steps=200)
+    b, draws = indirect_bias(refit, theta_hat, None, n_steps=200)
     theta_true = (theta_hat - c - noise.mean()) / a  # E[theta* | theta] = theta_hat
     np.testing.assert_allclose(theta_hat - b, theta_true, rtol=1e-10)
-    np.testing.assert_allclose(shifts, refit(theta_true, None) - theta_true, rtol=1e-8)
+    np.testing.assert_allclose(draws.shifts, refit(theta_true, None) - theta_true, rtol=1e-8)
     b0, _ = indirect_bias(refit, theta_hat, None, n_steps=0)  # no step: the bias at theta_hat
     np.testing.assert_allclose(b0, (a - 1) * theta_hat + c + noise.mean())
 

@@ -133,7 +133,7 @@ from skelid.estimators.base import (
 )
 from skelid.estimators.joint import _banded, _banded_solver
 from skelid.estimators.likelihood import frame_terms, pose_information
-from skelid.estimators.marker import POOR_FRACTION, MarkerEstimator, _unit, marker_warnings, run_marker_fit
+from skelid.estimators.marker import N_BOOT, POOR_FRACTION, MarkerEstimator, _unit, marker_warnings, run_marker_fit
 from skelid.estimators.posterior import SamplePosterior, weighted_quantiles
 from skelid.estimators.smc import kish_ess, tempered_smc
 from skelid.model.description import Model
@@ -615,7 +615,7 @@ class SamplerEstimator:
     )
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
-                 bias_correction: str = "auto", n_boot: int = 10, robust: str = "auto",
+                 bias_correction: str = "auto", n_boot: int = N_BOOT, robust: str = "auto",
                  rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, theta0=None, pose0=None, n_particles: int = 200,
                  n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8,

@@ -47,8 +47,10 @@ trial, at twice the CPU (``benchmarks/results/bias_trigger.md``).
 ``(theta_tilde, q_tilde)`` and refitted. With common random numbers, ``theta_tilde`` is moved
 by fixed-point steps of the indirect-inference equation ``E[theta* | theta_tilde] - theta_tilde
 = theta_hat - theta_tilde`` (a bias estimated where the truth probably is, not at the
-biased estimate). The covariance added to ``sigma^2 S^{-1}`` is the refits' excess spread,
-their Monte Carlo error ``C*/B``, and the square of half the disagreement between the two
+biased estimate). Each refit's shift has its first Gauss-Newton step as a control variate
+(exactly mean zero, known covariance: :mod:`skelid.estimators.bootstrap`), so a few refits
+suffice. The covariance added to ``sigma^2 S^{-1}`` is the refits' excess spread, their Monte
+Carlo error ``Cov(s - l)/B``, and the square of half the disagreement between the two
 bias estimates (bootstrap and second order at ``q_tilde``): the bias estimate's own
 uncertainty.
 
@@ -88,6 +90,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid.estimators.bootstrap import Draws, as_draws, draws_bias, draws_covariance, draws_mc_covariance
 from skelid.estimators.likelihood import efficient_information, frame_terms
 from skelid.model.description import Model
 
@@ -233,8 +236,10 @@ def indirect_bias(refit, theta_hat, q_tilde, n_steps: int = FIXED_POINT_STEPS):
     Parameters
     ----------
     refit : callable
-        ``refit(theta, q) -> (B, P)`` estimates from ``B`` data sets simulated at ``(theta, q)``,
-        always with the same noise draws (common random numbers).
+        ``refit(theta, q)``: from ``B`` data sets simulated at ``(theta, q)``, always with the same
+        noise draws (common random numbers), either the ``(B, P)`` estimates or a
+        :class:`~skelid.estimators.bootstrap.Draws` (shifts from ``theta`` with their linear
+        control variates).
     theta_hat : (P,) float
         The fit's estimate.
     q_tilde : (T, Q) float
@@ -245,39 +250,42 @@ def indirect_bias(refit, theta_hat, q_tilde, n_steps: int = FIXED_POINT_STEPS):
     Returns
     -------
     bias : (P,) float
-        The mean shift of the last step's refits from the geometry they were simulated at.
-    shifts : (B, P) float
-        Those shifts.
+        The last step's bias: the mean shift of its refits from the geometry they were simulated at,
+        less the mean of the control variates where there are some
+        (:func:`~skelid.estimators.bootstrap.draws_bias`).
+    draws : Draws
+        That step's shifts (and control variates).
     """
     theta_hat = np.asarray(theta_hat, float)
     theta = theta_hat
     for step in range(n_steps + 1):
-        shifts = np.atleast_2d(refit(theta, q_tilde)) - theta
-        b = shifts.mean(axis=0)
+        out = refit(theta, q_tilde)
+        draws = out if isinstance(out, Draws) else as_draws(np.atleast_2d(out) - theta)
+        b = draws_bias(draws)
         if step < n_steps:
             theta = theta_hat - b
-    return b, shifts
+    return b, draws
 
 
 def fallback_covariance(shifts, plain, disagreement) -> np.ndarray:
     """Covariance the fallback adds to ``sigma^2 S^{-1}``: ``(P, P)``.
 
     The refits' excess spread over ``plain`` (eigenvalues clipped at zero), their Monte Carlo
-    error ``C*/B`` (the bias is a mean of ``B`` shifts), and ``d d^T / 4`` for the disagreement
-    ``d`` between two estimates of the bias (the bias estimate's own uncertainty).
+    error (the bias is a mean of ``B`` shifts: ``C*/B``, or ``Cov(s - l)/B`` with control
+    variates ``l``), and ``d d^T / 4`` for the disagreement ``d`` between two estimates of the
+    bias (the bias estimate's own uncertainty). With control variates the refits' covariance is
+    ``C* = Var(l) + Cov(s) - Cov(l)`` (:func:`~skelid.estimators.bootstrap.draws_covariance`).
 
     Parameters
     ----------
-    shifts : (B, P) float
+    shifts : (B, P) float, or Draws
     plain : (P, P) float
     disagreement : (P,) float
     """
-    shifts = np.atleast_2d(shifts)
-    B, P = shifts.shape
-    c_boot = np.atleast_2d(np.cov(shifts, rowvar=False)) if B > 1 else np.zeros((P, P))
-    w, V = np.linalg.eigh(c_boot - plain)
+    draws = as_draws(shifts)
+    w, V = np.linalg.eigh(draws_covariance(draws) - plain)
     d = np.asarray(disagreement, float)
-    return (V * np.clip(w, 0.0, None)) @ V.T + c_boot / B + 0.25 * np.outer(d, d)
+    return (V * np.clip(w, 0.0, None)) @ V.T + draws_mc_covariance(draws) + 0.25 * np.outer(d, d)
 
 
 def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weights=None, n_draws: int = 64,
