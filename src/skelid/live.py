@@ -107,18 +107,19 @@ import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property, partial
+from functools import cached_property, lru_cache, partial
 from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dgeqrf as _dgeqrf
+from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
 from skelid.estimators import _live_kernel, _lm_kernel
-from skelid.estimators.grid import MarkerGridFilter
+from skelid.estimators.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
 from skelid.estimators.joint import _gain, smoothing_penalty
 from skelid.estimators.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.model.description import Model
@@ -137,8 +138,16 @@ _RELINEARISE = (10, 25, 50, 100, 200)
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
+#: residual degrees of freedom after which the running noise estimate is trusted for the marker screen and the
+#: pose-jump check (before that a chi-square estimate on a few degrees of freedom can be several times too small)
+_KNOWN_DOF = 30
+#: the pose-jump check's allowance for real movement follows this many recent frames (see Session._allowance)
+_JUMP_WINDOW = 25
+#: median of chi-square with one degree of freedom: a robust variance is median(nu^2) / this
+_CHI2_1_MEDIAN = 0.454936423119572
 
-__all__ = ["LiveEstimate", "Session", "GaussianState", "absorb", "drop_poses", "solve_mean", "theta_cov",
+__all__ = ["LiveEstimate", "Session", "NOISE_FLOOR", "noise_floor", "GaussianState",
+           "absorb", "drop_poses", "solve_mean", "theta_cov",
            "prior_moments", "Advice"]
 
 
@@ -218,23 +227,6 @@ def marginal_theta_jacobian(J_pose, J_theta, ridge: float = 1e-10) -> np.ndarray
     JtJ = JtJ + (ridge * scale)[..., None, None] * np.eye(JtJ.shape[-1])
     coef = np.linalg.solve(JtJ, np.swapaxes(J_pose, -1, -2) @ J_theta)
     return J_theta - J_pose @ coef
-
-
-#: The noise floor as a fraction of the model's size (:func:`noise_floor`).
-NOISE_FLOOR = 1e-5
-
-
-def noise_floor(model: Model) -> float:
-    """The least marker noise variance the Gaussian form uses: ``(NOISE_FLOOR * size)^2``.
-
-    ``size`` is the model's extent (its units). A noise-free stream (simulated
-    markers, ``sigma=0``) leaves residuals at rounding level, ``sigma^2 ~ 1e-32``
-    in metres: the data's precision ``R^T R / sigma^2`` then swamps the prior's,
-    and ``theta``'s precision is singular wherever a few frames do not fix it
-    yet. Below a hundred-thousandth of the body (18 um on a 1.8 m body, far under
-    any motion-capture system's noise) the noise level is held at that floor.
-    """
-    return (NOISE_FLOOR * _model_size(model)) ** 2
 
 
 def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | None, fallback: float,
@@ -341,14 +333,18 @@ def drop_poses(state: GaussianState) -> GaussianState:
     return state._replace(root=state.root[kq:, kq:].copy(), rhs=state.rhs[kq:].copy(), poses=state.poses[:0])
 
 
-def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> float:
+def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float, allow=None) -> float:
     """How far a frame's pose lies from the motion model's prediction: ``nu^T V^{-1} nu``.
 
     ``nu = q - (3 q_t - 3 q_{t-1} + q_{t-2})`` is the innovation of the freely
     fitted pose against the held poses' third-difference prediction; its
     covariance is taken generously as ``21 sigma^2 (J^T J)^{-1}`` (the free fit's
     error, and the three held poses' as if they were no better) plus the motion
-    model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``). Beyond a
+    model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``), or the
+    allowance ``allow_k`` for the movement actually seen where that is larger
+    (the motion model's term shrinks with the noise: on near-noise-free data a
+    movement faster than the cutoff expects would look like a jump on every
+    frame). Beyond a
     chi-square quantile with ``Q`` degrees of freedom the pose has jumped (a
     swapped label the marker screen cannot see, where the markers barely fix the
     pose, or a wrong start of the pose fit). When the three held poses come from
@@ -366,13 +362,17 @@ def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> 
         The frame's pose fitted on its own (angles continuous with the held poses).
     J_pose : (N, Q) float
         ``dx/dq`` of the frame's present coordinates at ``q``.
+    allow : (Q,) float, optional
+        Variance of the third difference of each pose coordinate that the recent movement shows
+        (:meth:`Session._allowance`; none by default).
     """
     p = state.poses
     Q = q.size
     JtJ = J_pose.T @ J_pose
     JtJ = JtJ + np.eye(Q) * (1e-9 * max(np.trace(JtJ) / Q, 1e-300))
     hbar = np.maximum(state.hdiag / max(state.n_used, 1), 1e-300)
-    V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(sigma2 / (weight * hbar))
+    model_var = sigma2 / (weight * hbar)
+    V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(model_var if allow is None else np.maximum(model_var, allow))
     nu = q - (3.0 * p[2] - 3.0 * p[1] + p[0])
     return float(nu @ np.linalg.solve(V, nu))
 
@@ -438,24 +438,72 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     return q
 
 
-def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None) -> float:
-    """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the early frames as the batch method does.
+def gcv_cutoffs(model: Model, q, used, rate: float) -> np.ndarray:
+    """Each pose coordinate's cutoff (Hz) by generalised cross-validation, doubled: ``(Q,)`` float.
 
-    Each frame's pose is fitted on its own at ``theta``; each coordinate's cutoff is
+    The batch method's choice (:func:`~skelid.estimators.joint.choose_cutoffs`, equal to rounding), with
+    the Whittaker smoother ``(I + lambda D_3^T D_3) z_hat = z`` solved as the banded symmetric system it is
+    (LAPACK's ``dpbsv``) instead of a general sparse factorisation: on 200 frames the
+    twelve candidates cost well under a millisecond, so a live session can choose again without a pause.
+    """
+    from skelid.estimators.joint import CUTOFF_CANDIDATES, UNDERSMOOTH, _continuous_poses
+
+    z = _continuous_poses(model, q, used)
+    T, Q = z.shape
+    if T < 8:
+        return np.full(Q, rate / 2.0)
+    band = _d3_band(T)
+    resp = (2.0 - 2.0 * np.cos(2.0 * np.pi * np.arange(T) / T)) ** 3
+    best = np.full(Q, np.nan)
+    score = np.full(Q, np.inf)
+    for fc in CUTOFF_CANDIDATES:
+        if fc >= rate / 2.0:
+            break
+        lam = 1.0 / _gain(fc, rate)
+        ab = lam * band
+        ab[-1] += 1.0
+        zh, info = _dpbsv(ab, z, lower=0, overwrite_ab=1)[1:]
+        if info:
+            continue  # not positive definite: cannot happen for lam >= 0, but never trust a failed solve
+        trace = float(np.sum(1.0 / (1.0 + lam * resp)))
+        g = T * np.sum((z - zh) ** 2, axis=0) / max(T - trace, 1.0) ** 2
+        better = g < score
+        score[better], best[better] = g[better], fc
+    return np.where(np.isfinite(best), np.minimum(UNDERSMOOTH * best, rate / 2.0), rate / 2.0)
+
+
+@lru_cache(maxsize=8)
+def _d3_band(T: int) -> np.ndarray:
+    """``D_3^T D_3`` (``T x T``, third differences) in upper banded storage ``(4, T)`` (read-only)."""
+    D3 = np.zeros((T - 3, T))
+    for j, c in enumerate(_D3):
+        D3[np.arange(T - 3), np.arange(T - 3) + j] = c
+    full = D3.T @ D3
+    ab = np.zeros((4, T))
+    for k in range(4):
+        ab[3 - k, k:] = np.diagonal(full, k)
+    ab.flags.writeable = False
+    return ab
+
+
+def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None, refit: bool = True) -> float:
+    """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the frames as the batch method does.
+
+    Each frame's pose is fitted on its own at ``theta`` (``refit``; otherwise the frames'
+    poses as fitted when they came are used); each coordinate's cutoff is
     chosen by generalised cross-validation and doubled
-    (:func:`~skelid.estimators.joint.choose_cutoffs`), at least the batch method's
+    (:func:`gcv_cutoffs`), at least the batch method's
     ``MIN_AUTO_CUTOFF``; the live form has one weight for every coordinate, so the
     highest of them (the least smoothing any coordinate needs) is taken.
     """
-    from skelid.estimators.joint import choose_cutoffs
     from skelid.estimators.marker import MIN_AUTO_CUTOFF
 
-    Y = np.stack([f[0] for f in frames])
     q = np.stack([f[1] for f in frames])
     used = np.array([f[2] for f in frames])
-    if used.any():
+    if refit and used.any():
+        Y = np.stack([f[0] for f in frames])
         q[used], _ = fit_pose(model, theta, Y[used], q[used], n_iter=10, ws=ws)
-    fc = np.maximum(choose_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
+    fc = np.maximum(gcv_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
     return float(fc.max())
 
 
@@ -493,8 +541,9 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
     state = None
     for _ in range(n_iter):
         q = Q0.copy()
+        rss_free = np.zeros(B)  # each frame's residual at its freely fitted pose: the noise estimate's RSS
         if used.any():
-            q[used], _ = fit_pose(model, theta, Y[used], Q0[used], n_iter=10, ws=ws)
+            q[used], rss_free[used] = fit_pose(model, theta, Y[used], Q0[used], n_iter=10, ws=ws)
         if smoother is not None and used.sum() >= 8:
             # linearise at the smoothed poses, as the batch fit with this motion model converges to: the
             # per-frame or filtered poses are off by the noise, which biases theta where a pose is poorly fixed
@@ -513,7 +562,7 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
             m = present[b]
             r = (Y[b, m] - x[b, m]).reshape(-1)
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
-                           weight, int(m.sum()) * D, float(r @ r))
+                           weight, int(m.sum()) * D, float(rss_free[b]))
         s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
         state = solve_mean(state, prior, s2, pose=weight > 0)
         if weight == 0:
@@ -710,6 +759,10 @@ class Session:
         self._run = 0  # frames in a row whose data were used (see pose_jump)
         self._jumped = False  # the last frame not used was left out for its pose's jump
         self._jump_limit = float(chi2.isf(1e-4, model.n_pose))  # a pose's jump beyond the motion model
+        self._nu2 = np.zeros((_JUMP_WINDOW, model.n_pose))  # recent squared pose innovations (see _allowance)
+        self._n_nu = 0
+        self._no_allow = np.zeros(model.n_pose)
+        self._good: np.ndarray | None = None  # pose of the last frame whose markers all fitted
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
         self._auto = isinstance(cutoff, str)
@@ -816,11 +869,37 @@ class Session:
         return _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
                        self._sigma_floor)
 
+    def _noise_known(self, st: GaussianState) -> bool:
+        """Whether the noise level is given, or estimated on at least :data:`_KNOWN_DOF` degrees of freedom."""
+        return (self.sigma is not None
+                or st.n_obs - self.model.n_pose * st.n_used - self.model.n_params >= _KNOWN_DOF)
+
+    def _gate(self, st: GaussianState) -> float:
+        """The bound on :func:`pose_jump` beyond which a frame's pose has jumped (``inf``: no check yet)."""
+        return self._jump_limit if self._noise_known(st) else math.inf
+
+    def _allowance(self) -> np.ndarray:
+        """Variance ``(Q,)`` of each pose coordinate's third difference in the recent movement.
+
+        A robust estimate, ``median(nu_k^2) / median(chi^2_1)`` over the innovations ``nu`` of the last
+        :data:`_JUMP_WINDOW` frames checked (used or not): a real movement persists and raises it, a
+        swapped label lasts a few frames and does not.
+        """
+        n = min(self._n_nu, _JUMP_WINDOW)
+        if n == 0:
+            return self._no_allow
+        return np.median(self._nu2[:n], axis=0) / _CHI2_1_MEDIAN
+
+    def _note_jump(self, st: GaussianState, q) -> None:
+        """Record the frame's innovation against the held poses (for :meth:`_allowance`)."""
+        p = st.poses
+        self._nu2[self._n_nu % _JUMP_WINDOW] = np.square(q - (3.0 * p[2] - 3.0 * p[1] + p[0]))
+        self._n_nu += 1
+
     def _screen(self, resid, sigma2) -> np.ndarray | None:
         """Index of the marker to leave out: the worst one beyond ``outlier_sd`` noise sds (once the noise is
         known), or None."""
-        known = self.sigma is not None or self._state.n_used >= 10
-        if not known:
+        if not self._noise_known(self._state):
             return None
         # a marker residual distance has D coordinates of noise: compare with sqrt(D) sigma
         limit = self.outlier_sd * math.sqrt(sigma2 * self._D)
@@ -848,12 +927,22 @@ class Session:
         else:
             q = self._pose_fit(theta, y, self._predict(st))
         rejected = []
+        retried = False
         while True:
             x, Jq, Jt = self._linearise(theta, q)
             resid = np.sqrt(np.sum((y - x) ** 2, axis=-1))
             bad = self._screen(resid, s2) if len(rejected) < 3 else None  # a swapped pair needs two
             if bad is None:
                 break
+            if not (rejected or retried) and self._good is not None:
+                # the pose fit may have started in the wrong basin (a prediction carried through a glitch): fitted
+                # again from the last pose whose markers all fitted, the frame may be whole after all
+                retried = True
+                q_alt = self._pose_fit(theta, y, self._good)
+                x_alt = self._linearise(theta, q_alt)[0]
+                if self._screen(np.sqrt(np.sum((y - x_alt) ** 2, axis=-1)), s2) is None:
+                    q = q_alt
+                    continue
             y = y.copy()
             y[bad] = np.nan
             present[bad] = False
@@ -885,8 +974,12 @@ class Session:
             r = (y[present] - x[present]).reshape(-1)
             Jq2 = Jq[present].reshape(r.size, -1)
             Jt2 = Jt[present].reshape(r.size, -1)
-        if (self._weight > 0 and st.poses.shape[0] == _HELD
-                and pose_jump(st, q, Jq2, self._weight, s2) > self._jump_limit):
+        jump, gate = -math.inf, math.inf
+        if self._weight > 0 and st.poses.shape[0] == _HELD:
+            gate = self._gate(st)
+            jump = pose_jump(st, q, Jq2, self._weight, s2, self._allowance())
+            self._note_jump(st, q)
+        if jump > gate:
             if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
                 problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
                 self._not_used(st, y, s2, jumped=True)
@@ -908,6 +1001,8 @@ class Session:
         self._state = st = new
         self._gap = 0
         self._run += 1
+        if not rejected:
+            self._good = q
         if self._remember(y, q, True):
             self._relinearise(st.mean)
         return self._gaussian_estimate(resid, problems, tuple(rejected))
@@ -958,7 +1053,9 @@ class Session:
             if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
                 self._recent.append((y, q, used))
                 if len(self._recent) == _RELINEARISE[-1]:
-                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws))
+                    # the frames' poses as fitted on arrival (the mean has settled by now): no pose fits here
+                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws,
+                                                 refit=False))
                     self._recent.clear()
             return False
         self._early.append((y, q, used))
@@ -1160,15 +1257,19 @@ class _Step:
 
     def __call__(self, y, st: GaussianState, s2: float, n_present: int) -> LiveEstimate | None:
         ses = self.session
-        known = ses.sigma is not None or st.n_used >= 10
+        known = ses._noise_known(st)
         limit = self.limit_scale * math.sqrt(s2) if known else math.inf
         weight, n_iter, sigma, fallback, floor = self.settings
         (status, root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used, q,
-         resid) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs, st.poses,
-                                    st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight, n_iter, sigma,
-                                    fallback, floor, limit, float(s2), ses._jump_limit, *self.model_args)
+         resid, jump) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs,
+                                          st.poses, st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight,
+                                          n_iter, sigma, fallback, floor, limit, float(s2), ses._gate(st),
+                                          ses._allowance(), *self.model_args)
         if status >= 0:
-            return None
+            return None  # the general path leaves out what does not fit (and records the jump itself)
+        if jump >= 0.0:
+            ses._note_jump(st, q)
+        ses._good = q
         ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)
         ses._gap = 0
         ses._run += 1

@@ -33,7 +33,7 @@ than ``BIAS_RELIABLE`` sd (:mod:`skelid.estimators.marker`) goes to the bootstra
 evaluated once more, at the corrected point (the geometry less its bias, the poses freed of
 their scatter),
 
-.. math:: \Delta = b(\hat\theta - b, \tilde q) - b(\hat\theta, \hat q),
+.. math:: \\Delta = b(\\hat\theta - b, \tilde q) - b(\\hat\theta, \\hat q),
 
 and :func:`expansion_consistent` (``|Delta| <= sd / sqrt(B)``) is recorded with the fallback.
 It does not keep the expansion: the profile bias of a fit with incidental poses does not
