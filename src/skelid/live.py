@@ -145,6 +145,8 @@ _KNOWN_DOF = 30
 _JUMP_WINDOW = 25
 #: median of chi-square with one degree of freedom: a robust variance is median(nu^2) / this
 _CHI2_1_MEDIAN = 0.454936423119572
+#: the allowance is recomputed every this many frames checked (every frame for the first ones)
+_ALLOW_EVERY = 5
 
 __all__ = ["LiveEstimate", "Session", "NOISE_FLOOR", "noise_floor", "GaussianState",
            "absorb", "drop_poses", "solve_mean", "theta_cov",
@@ -761,7 +763,7 @@ class Session:
         self._jump_limit = float(chi2.isf(1e-4, model.n_pose))  # a pose's jump beyond the motion model
         self._nu2 = np.zeros((_JUMP_WINDOW, model.n_pose))  # recent squared pose innovations (see _allowance)
         self._n_nu = 0
-        self._no_allow = np.zeros(model.n_pose)
+        self._allow, self._allow_at = np.zeros(model.n_pose), 0  # the allowance and self._n_nu when computed
         self._good: np.ndarray | None = None  # pose of the last frame whose markers all fitted
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
@@ -883,12 +885,14 @@ class Session:
 
         A robust estimate, ``median(nu_k^2) / median(chi^2_1)`` over the innovations ``nu`` of the last
         :data:`_JUMP_WINDOW` frames checked (used or not): a real movement persists and raises it, a
-        swapped label lasts a few frames and does not.
+        swapped label lasts a few frames and does not. Recomputed every :data:`_ALLOW_EVERY` frames checked
+        (a median per frame would cost a quarter of a push).
         """
-        n = min(self._n_nu, _JUMP_WINDOW)
-        if n == 0:
-            return self._no_allow
-        return np.median(self._nu2[:n], axis=0) / _CHI2_1_MEDIAN
+        n = self._n_nu
+        if n != self._allow_at and (n < _ALLOW_EVERY or n % _ALLOW_EVERY == 0):
+            self._allow = np.median(self._nu2[:min(n, _JUMP_WINDOW)], axis=0) / _CHI2_1_MEDIAN
+            self._allow_at = n
+        return self._allow
 
     def _note_jump(self, st: GaussianState, q) -> None:
         """Record the frame's innovation against the held poses (for :meth:`_allowance`)."""
