@@ -21,7 +21,7 @@ is fitted at ``theta = m_t`` (the current mean) for its pose ``\\hat q``
     \\sqrt{w_k}\\,(q_{t+1} - 3 q_t + 3 q_{t-1} - q_{t-2})_k = 0
 
 are appended (the second only with a motion model, ``cutoff``: the batch
-``marker`` method's third-difference penalty, ``w_k = \\overline{(J^\\top J)_{kk}} / \\mathrm{gain}(f_c)``),
+``marker`` method's third-difference penalty, ``w_k = \\overline{(J^\\top J)_{kk}} / \\mathrm{gain}(f_k)``),
 one QR factorisation makes ``R`` triangular again, and the rows of the oldest
 pose are dropped, which marginalises it. The posterior of ``theta`` is
 Gaussian with precision ``R_{\\theta\\theta}^\\top R_{\\theta\\theta} / \\hat\\sigma^2 + \\Lambda_0``
@@ -58,12 +58,15 @@ simulated arm motion played five times faster (up to 7.5 Hz) the live
 estimate lands 5-30 sd from the truth while every frame looks healthy. The
 default, ``cutoff='auto'``, chooses the cutoff from the frames as the batch
 ``marker`` method does (:func:`live_cutoff`: each pose coordinate's cutoff
-by generalised cross-validation, doubled, at least 6 Hz; the live form has
-one weight for all coordinates, so the highest is taken): no motion model for
-the first 50 frames, the cutoff chosen at each early re-linearisation from 50
-frames on, and again every 200 frames after them, so that it follows the
-movement. A motion too fast for any cutoff below half the frame rate turns the
-motion model off. ``benchmarks/live_agreement.py`` measures all three
+by generalised cross-validation, doubled, at least 6 Hz, so that the motion
+model's weight ``w_k`` differs by coordinate as the batch method's does; one
+cutoff for all, the highest, left the live estimate up to 2.5 batch sd from
+the batch one on the 10-marker arm): no motion model for
+the first 50 frames, the cutoffs chosen at each early re-linearisation from 50
+frames on, and again every 200 frames after them (from the poses as fitted on
+arrival, by a banded solve: about a millisecond), so that they follow the
+movement. A coordinate moving too fast for any cutoff below half the frame
+rate is left free. ``benchmarks/live_agreement.py`` measures all three
 settings against the batch estimate and the truth.
 
 A frame with a marker left out as an outlier gives no data under the motion
@@ -242,15 +245,18 @@ def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | No
     return fallback
 
 
-def motion_scale(cutoff: float | None, rate: float) -> float:
+def motion_scale(cutoff, rate: float):
     """``1 / gain``: the motion model's weight per unit of pose information (0: no motion model).
 
     The batch ``marker`` method's third-difference penalty
-    (:func:`~skelid.estimators.joint.smoothing_penalty`) with one cutoff (Hz).
+    (:func:`~skelid.estimators.joint.smoothing_penalty`) with one cutoff (Hz), or one per pose
+    coordinate (an array in, an array out; a coordinate at or above half the rate gets 0).
     """
-    if cutoff is None or cutoff <= 0 or cutoff >= rate / 2.0:
+    if cutoff is None:
         return 0.0
-    return float(1.0 / _gain(cutoff, rate))
+    c = np.asarray(cutoff, dtype=float)
+    w = np.where((c > 0) & (c < rate / 2.0), 1.0 / _gain(np.clip(c, 1e-12, None), rate), 0.0)
+    return float(w) if w.ndim == 0 else w
 
 
 def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float, n_coord: int,
@@ -268,9 +274,9 @@ def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float
         Pose where the frame is linearised.
     theta_lin : (P,) float
         Geometry where the frame is linearised.
-    weight : float
-        :func:`motion_scale`: the penalty on the third difference of each pose
-        coordinate is ``weight * mean_t (J_q^T J_q)_kk``.
+    weight : float or (Q,) float
+        :func:`motion_scale`: the penalty on the third difference of pose
+        coordinate ``k`` is ``weight_k * mean_t (J_q^T J_q)_kk``.
 
     Returns
     -------
@@ -309,7 +315,7 @@ def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float
         hdiag = hdiag + np.einsum("ij,ij->j", J_pose, J_pose)
         n_used += 1
     if k == _HELD:
-        if weight > 0.0 and n_used > 0:
+        if np.any(np.asarray(weight) > 0.0) and n_used > 0:
             sw = np.sqrt(weight * hdiag / n_used)
             for j in range(_HELD + 1):
                 A[row:row + Q, j * Q:(j + 1) * Q] = np.diag(_D3[j] * sw)
@@ -373,7 +379,7 @@ def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float, all
     JtJ = J_pose.T @ J_pose
     JtJ = JtJ + np.eye(Q) * (1e-9 * max(np.trace(JtJ) / Q, 1e-300))
     hbar = np.maximum(state.hdiag / max(state.n_used, 1), 1e-300)
-    model_var = sigma2 / (weight * hbar)
+    model_var = sigma2 / np.maximum(weight * hbar, 1e-300)
     V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(model_var if allow is None else np.maximum(model_var, allow))
     nu = q - (3.0 * p[2] - 3.0 * p[1] + p[0])
     return float(nu @ np.linalg.solve(V, nu))
@@ -488,15 +494,15 @@ def _d3_band(T: int) -> np.ndarray:
     return ab
 
 
-def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None, refit: bool = True) -> float:
+def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None,
+                refit: bool = True) -> np.ndarray:
     """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the frames as the batch method does.
 
     Each frame's pose is fitted on its own at ``theta`` (``refit``; otherwise the frames'
     poses as fitted when they came are used); each coordinate's cutoff is
     chosen by generalised cross-validation and doubled
     (:func:`gcv_cutoffs`), at least the batch method's
-    ``MIN_AUTO_CUTOFF``; the live form has one weight for every coordinate, so the
-    highest of them (the least smoothing any coordinate needs) is taken.
+    ``MIN_AUTO_CUTOFF``: ``(Q,)`` float, one cutoff per pose coordinate as the batch method has.
     """
     from skelid.estimators.marker import MIN_AUTO_CUTOFF
 
@@ -505,11 +511,10 @@ def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None =
     if refit and used.any():
         Y = np.stack([f[0] for f in frames])
         q[used], _ = fit_pose(model, theta, Y[used], q[used], n_iter=10, ws=ws)
-    fc = np.maximum(gcv_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
-    return float(fc.max())
+    return np.maximum(gcv_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
 
 
-def relinearise(model: Model, frames, prior, sigma: float | None, weight: float, theta, fallback: float,
+def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None,
                 floor: float = 0.0) -> GaussianState:
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
@@ -541,6 +546,7 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
     B = len(frames)
     P, D = model.n_params, model.dim
     state = None
+    motion = bool(np.any(np.asarray(weight) > 0))
     for _ in range(n_iter):
         q = Q0.copy()
         rss_free = np.zeros(B)  # each frame's residual at its freely fitted pose: the noise estimate's RSS
@@ -556,7 +562,7 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
         for b in range(B):
             if not used[b]:
                 gap += 1
-                if weight > 0 and state.poses.shape[0]:  # the pose goes on by the motion model alone
+                if motion and state.poses.shape[0]:  # the pose goes on by the motion model alone
                     state = (drop_poses(state) if gap > _BRIDGE else
                              absorb(state, None, None, None, q[b], theta, weight, 0, 0.0))
                 continue
@@ -566,8 +572,8 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
                            weight, int(m.sum()) * D, float(rss_free[b]))
         s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
-        state = solve_mean(state, prior, s2, pose=weight > 0)
-        if weight == 0:
+        state = solve_mean(state, prior, s2, pose=motion)
+        if not motion:
             state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
         theta, Q0 = state.mean, q
     for k, (y, _, u) in enumerate(frames):
@@ -773,7 +779,7 @@ class Session:
         self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
         self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
         self.n_iter = int(n_iter)
-        self._weight = motion_scale(self._cutoff_now, self.rate)
+        self._set_weight(self._cutoff_now)
         self._rot = np.array([d.kind == "R" for d in model.dofs])
         _, L0, lo, hi = self._prior
         self._ranges = (lo, hi, 1.0 / np.sqrt(np.diag(L0)))
@@ -964,7 +970,7 @@ class Session:
             # follows the motion model alone
             problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
                             "(swapped or wrong label?); frame not used")
-            if self._weight > 0:
+            if self._motion:
                 self._not_used(st, y, s2)
                 return self._gaussian_estimate(resid, problems, tuple(rejected))
         if st.poses.shape[0]:  # angles continuous with the previous pose, for the motion model
@@ -979,7 +985,7 @@ class Session:
             Jq2 = Jq[present].reshape(r.size, -1)
             Jt2 = Jt[present].reshape(r.size, -1)
         jump, gate = -math.inf, math.inf
-        if self._weight > 0 and st.poses.shape[0] == _HELD:
+        if self._motion and st.poses.shape[0] == _HELD:
             gate = self._gate(st)
             jump = pose_jump(st, q, Jq2, self._weight, s2, self._allowance())
             self._note_jump(st, q)
@@ -991,12 +997,12 @@ class Session:
             st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback, self._sigma_floor)
-        motion = self._weight > 0
+        motion = self._motion
         new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, float(r @ r)), self._prior, s2,
                          pose=motion)
         if not motion:  # every pose free: the frame's own fit is its pose
             new = new._replace(pose_mean=q)
-        for _ in range(self.n_iter if self._weight > 0 else 0):  # iterated: linearised again at the filtered pose
+        for _ in range(self.n_iter if motion else 0):  # iterated: linearised again at the filtered pose
             ql = new.pose_mean
             x2, Jq, Jt = self._linearise(theta, ql)
             r2 = (y[present] - x2[present]).reshape(-1)
@@ -1018,13 +1024,20 @@ class Session:
             self._set_cutoff(live_cutoff(self.model, self._early, theta, self.rate, self._ws))
         self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
                                   self._sigma_fallback, ws=self._ws,
-                                  smoother=(self.rate, self._cutoff_now) if self._weight > 0 else None,
+                                  smoother=(self.rate, self._cutoff_now) if self._motion else None,
                                   floor=self._sigma_floor)
 
-    def _set_cutoff(self, cutoff: float) -> None:
+    def _set_weight(self, cutoff) -> None:
+        """The motion model's weight of each pose coordinate ``(Q,)`` for ``cutoff`` (Hz: one, one per
+        coordinate, or None)."""
+        self._weight = np.broadcast_to(np.asarray(motion_scale(cutoff, self.rate), float),
+                                       (self.model.n_pose,)).copy()
+        self._motion = bool(self._weight.max() > 0)
+
+    def _set_cutoff(self, cutoff) -> None:
         """The motion model's cutoff from now on (``cutoff='auto'``)."""
         self._cutoff_now = cutoff
-        self._weight = motion_scale(cutoff, self.rate)
+        self._set_weight(cutoff)
         if self._step is not None:
             self._step = _Step(self)
 
@@ -1036,7 +1049,7 @@ class Session:
         self._gap += 1
         self._run = 0
         self._jumped = jumped
-        if not (st.poses.shape[0] and self._weight > 0):
+        if not (st.poses.shape[0] and self._motion):
             return
         q = self._predict(st)
         if self._gap > _BRIDGE:
@@ -1252,7 +1265,8 @@ class _Step:
         g_base, A = model.geometry_map
         mu0, L0, lo, hi = session._prior
         sigma = -1.0 if session.sigma is None else float(session.sigma)
-        self.settings = (float(session._weight), int(session.n_iter), sigma, float(session._sigma_fallback),
+        self.settings = (np.ascontiguousarray(session._weight, dtype=float), int(session.n_iter), sigma,
+                         float(session._sigma_fallback),
                          float(session._sigma_floor))
         self.model_args = (np.ascontiguousarray(session._rot, dtype=np.bool_),
                            *(np.ascontiguousarray(a, dtype=float) for a in (mu0, L0, lo, hi, g_base, A)),

@@ -181,8 +181,8 @@ if AVAILABLE:  # pragma: no branch
             The current mean, where the frame is linearised.
         root, rhs, poses, hdiag, rss, n_obs, n_used
             The state (:class:`skelid.live.GaussianState`; ``poses`` holds at least one pose).
-        weight : float
-            The motion model's weight (0: none).
+        weight : (Q,) float
+            The motion model's weight of each pose coordinate (all 0: none).
         n_iter : int
             Re-linearisations at the filtered pose (with a motion model).
         sigma : float
@@ -283,7 +283,11 @@ if AVAILABLE:  # pragma: no branch
         N = n_present * D
         r, Jq, Jt = _rows(y, x, J, K, mask, N)
         jump = -1.0
-        if weight > 0.0 and k_held == 3:
+        motion = False
+        for k in range(Q):
+            if weight[k] > 0.0:
+                motion = True
+        if motion and k_held == 3:
             jump = _jump(q, poses, Jq, hdiag, n_used, weight, s2_now, allow)
             if jump > gate:
                 return (M, root, rhs, theta, q, poses, hdiag, rss, n_obs, n_used, q, resid, jump)
@@ -292,7 +296,6 @@ if AVAILABLE:  # pragma: no branch
             rr += r[i] * r[i]
         rss1, n_obs1, n_used1 = rss + rr, n_obs + N, n_used + 1
         s2 = _sigma2(rss1, n_obs1, n_used1, Q, P, sigma, fallback, floor)
-        motion = weight > 0.0
         root1, rhs1, poses1, hdiag1 = _absorb(root, rhs, poses, hdiag, n_used, r, Jq, Jt, q, theta, weight)
         mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, motion)
         if not motion:
@@ -346,7 +349,7 @@ if AVAILABLE:  # pragma: no branch
         V = 21.0 * s2 * np.linalg.inv(JtJ)
         nu = np.empty(Q)
         for k in range(Q):
-            V[k, k] += max(s2 / (weight * max(hdiag[k] / max(n_used, 1), 1e-300)), allow[k])
+            V[k, k] += max(s2 / max(weight[k] * hdiag[k] / max(n_used, 1), 1e-300), allow[k])
             nu[k] = q[k] - (3.0 * poses[2, k] - 3.0 * poses[1, k] + poses[0, k])
         z = np.linalg.solve(V, nu)
         out = 0.0
@@ -403,10 +406,14 @@ if AVAILABLE:  # pragma: no branch
             A[row + i, n] = b
         row += N
         used = n_used + 1
-        if k == held and weight > 0.0:
+        motion = False
+        for i in range(Q):
+            if weight[i] > 0.0:
+                motion = True
+        if k == held and motion:
             d3 = (-1.0, 3.0, -3.0, 1.0)
             for i in range(Q):
-                sw = np.sqrt(weight * hd[i] / used)
+                sw = np.sqrt(weight[i] * hd[i] / used)
                 for j in range(held + 1):
                     A[row + i, j * Q + i] = d3[j] * sw
         _householder(A, n)
@@ -521,7 +528,7 @@ def _step_example_args() -> tuple:
     f = np.zeros
     state = (f((2, 2)), f(2), f((1, 1)), f(1), 0.0, 0, 0)  # root, rhs, poses, hdiag, rss, n_obs, n_used
     # weight, n_iter, sigma, fallback, floor, limit, s2_now, gate, allow, rot
-    settings = (0.0, 1, -1.0, 1.0, 0.0, np.inf, 1.0, 1.0, f(1), np.zeros(1, np.bool_))
+    settings = (f(1), 1, -1.0, 1.0, 0.0, np.inf, 1.0, 1.0, f(1), np.zeros(1, np.bool_))
     prior = (f(1), f((1, 1)), f(1), f(1))
     return (f((1, 2)), f(1), f(1), *state, *settings, *prior, f(4), f((4, 1)), *_example_args(True)[2:])
 
