@@ -48,7 +48,9 @@ with every pose free: it keeps that fit's ``O(sigma^2)`` bias (on case A with
 5 mm noise about 1.5 mm, 3 sd, after 300 frames; negligible at 1 mm). With
 the motion model the early re-linearisations use the frames' smoothed poses
 (:func:`smoothed_poses`), as the batch fit converges to, which removes most
-of that bias. After the last re-linearisation (200 frames) each frame is
+of that bias; the noise level still comes from each frame's freely fitted pose
+(the residual degrees of freedom count a free pose per frame: the smoothed
+poses' misfit doubled sigma, and so the sd, on case A). After the last re-linearisation (200 frames) each frame is
 linearised at its filtered pose, which is off by the noise; where a pose is
 poorly fixed (the tennis arm's hand has one marker) that leaves an
 ``O(sigma^2)`` error of its own.
@@ -87,7 +89,14 @@ out and the frame refitted without it; a frame with too few markers to fix
 the pose leaves the estimate as it was. Under the motion model a frame whose
 freely fitted pose jumps away from the prediction (:func:`pose_jump`; a
 swapped label where the markers barely fix the pose, so that the pose fit
-absorbs it and no marker stands out) is not used either. Either way
+absorbs it and no marker stands out) is not used either; the check allows
+for the movement actually seen (a robust variance of each coordinate's recent
+third differences, :func:`pose_jump`), since the motion model's own allowance
+shrinks with the noise, and it waits, as the marker screen does, until the
+noise level rests on :data:`_KNOWN_DOF` degrees of freedom. Before a marker is
+blamed, the frame's pose is fitted again from the last whole frame's pose: a
+fit started from a prediction carried through a glitch can land in a wrong
+basin, where a good marker looks like the outlier. Either way
 ``healthy`` turns False and ``health`` says why.
 
 Examples
