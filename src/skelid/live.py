@@ -21,7 +21,7 @@ is fitted at ``theta = m_t`` (the current mean) for its pose ``\\hat q``
     \\sqrt{w_k}\\,(q_{t+1} - 3 q_t + 3 q_{t-1} - q_{t-2})_k = 0
 
 are appended (the second only with a motion model, ``cutoff``: the batch
-``marker`` method's third-difference penalty, ``w_k = \\overline{(J^\\top J)_{kk}} / \\mathrm{gain}(f_c)``),
+``marker`` method's third-difference penalty, ``w_k = \\overline{(J^\\top J)_{kk}} / \\mathrm{gain}(f_k)``),
 one QR factorisation makes ``R`` triangular again, and the rows of the oldest
 pose are dropped, which marginalises it. The posterior of ``theta`` is
 Gaussian with precision ``R_{\\theta\\theta}^\\top R_{\\theta\\theta} / \\hat\\sigma^2 + \\Lambda_0``
@@ -48,7 +48,9 @@ with every pose free: it keeps that fit's ``O(sigma^2)`` bias (on case A with
 5 mm noise about 1.5 mm, 3 sd, after 300 frames; negligible at 1 mm). With
 the motion model the early re-linearisations use the frames' smoothed poses
 (:func:`smoothed_poses`), as the batch fit converges to, which removes most
-of that bias. After the last re-linearisation (200 frames) each frame is
+of that bias; the noise level still comes from each frame's freely fitted pose
+(the residual degrees of freedom count a free pose per frame: the smoothed
+poses' misfit doubled sigma, and so the sd, on case A). After the last re-linearisation (200 frames) each frame is
 linearised at its filtered pose, which is off by the noise; where a pose is
 poorly fixed (the tennis arm's hand has one marker) that leaves an
 ``O(sigma^2)`` error of its own.
@@ -58,12 +60,15 @@ simulated arm motion played five times faster (up to 7.5 Hz) the live
 estimate lands 5-30 sd from the truth while every frame looks healthy. The
 default, ``cutoff='auto'``, chooses the cutoff from the frames as the batch
 ``marker`` method does (:func:`live_cutoff`: each pose coordinate's cutoff
-by generalised cross-validation, doubled, at least 6 Hz; the live form has
-one weight for all coordinates, so the highest is taken): no motion model for
-the first 50 frames, the cutoff chosen at each early re-linearisation from 50
-frames on, and again every 200 frames after them, so that it follows the
-movement. A motion too fast for any cutoff below half the frame rate turns the
-motion model off. ``benchmarks/live_agreement.py`` measures all three
+by generalised cross-validation, doubled, at least 6 Hz, so that the motion
+model's weight ``w_k`` differs by coordinate as the batch method's does; one
+cutoff for all, the highest, left the live estimate up to 2.5 batch sd from
+the batch one on the 10-marker arm): no motion model for
+the first 50 frames, the cutoffs chosen at each early re-linearisation from 50
+frames on, and again every 200 frames after them (from the poses as fitted on
+arrival, by a banded solve: about a millisecond), so that they follow the
+movement. A coordinate moving too fast for any cutoff below half the frame
+rate is left free. ``benchmarks/live_agreement.py`` measures all three
 settings against the batch estimate and the truth.
 
 A frame with a marker left out as an outlier gives no data under the motion
@@ -84,7 +89,14 @@ out and the frame refitted without it; a frame with too few markers to fix
 the pose leaves the estimate as it was. Under the motion model a frame whose
 freely fitted pose jumps away from the prediction (:func:`pose_jump`; a
 swapped label where the markers barely fix the pose, so that the pose fit
-absorbs it and no marker stands out) is not used either. Either way
+absorbs it and no marker stands out) is not used either; the check allows
+for the movement actually seen (a robust variance of each coordinate's recent
+third differences, :func:`pose_jump`), since the motion model's own allowance
+shrinks with the noise, and it waits, as the marker screen does, until the
+noise level rests on :data:`_KNOWN_DOF` degrees of freedom. Before a marker is
+blamed, the frame's pose is fitted again from the last whole frame's pose: a
+fit started from a prediction carried through a glitch can land in a wrong
+basin, where a good marker looks like the outlier. Either way
 ``healthy`` turns False and ``health`` says why.
 
 Examples
@@ -107,18 +119,19 @@ import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property, partial
+from functools import cached_property, lru_cache, partial
 from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dgeqrf as _dgeqrf
+from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
 from skelid.estimators import _live_kernel, _lm_kernel
-from skelid.estimators.grid import MarkerGridFilter
+from skelid.estimators.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
 from skelid.estimators.joint import _gain, smoothing_penalty
 from skelid.estimators.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.model.description import Model
@@ -137,8 +150,18 @@ _RELINEARISE = (10, 25, 50, 100, 200)
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
+#: residual degrees of freedom after which the running noise estimate is trusted for the marker screen and the
+#: pose-jump check (before that a chi-square estimate on a few degrees of freedom can be several times too small)
+_KNOWN_DOF = 30
+#: the pose-jump check's allowance for real movement follows this many recent frames (see Session._allowance)
+_JUMP_WINDOW = 25
+#: median of chi-square with one degree of freedom: a robust variance is median(nu^2) / this
+_CHI2_1_MEDIAN = 0.454936423119572
+#: the allowance is recomputed every this many frames checked (every frame for the first ones)
+_ALLOW_EVERY = 5
 
-__all__ = ["LiveEstimate", "Session", "GaussianState", "absorb", "drop_poses", "solve_mean", "theta_cov",
+__all__ = ["LiveEstimate", "Session", "NOISE_FLOOR", "noise_floor", "GaussianState",
+           "absorb", "drop_poses", "solve_mean", "theta_cov",
            "prior_moments", "Advice"]
 
 
@@ -220,23 +243,6 @@ def marginal_theta_jacobian(J_pose, J_theta, ridge: float = 1e-10) -> np.ndarray
     return J_theta - J_pose @ coef
 
 
-#: The noise floor as a fraction of the model's size (:func:`noise_floor`).
-NOISE_FLOOR = 1e-5
-
-
-def noise_floor(model: Model) -> float:
-    """The least marker noise variance the Gaussian form uses: ``(NOISE_FLOOR * size)^2``.
-
-    ``size`` is the model's extent (its units). A noise-free stream (simulated
-    markers, ``sigma=0``) leaves residuals at rounding level, ``sigma^2 ~ 1e-32``
-    in metres: the data's precision ``R^T R / sigma^2`` then swamps the prior's,
-    and ``theta``'s precision is singular wherever a few frames do not fix it
-    yet. Below a hundred-thousandth of the body (18 um on a 1.8 m body, far under
-    any motion-capture system's noise) the noise level is held at that floor.
-    """
-    return (NOISE_FLOOR * _model_size(model)) ** 2
-
-
 def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | None, fallback: float,
             floor: float = 0.0) -> float:
     """Noise variance: ``sigma^2`` if given, else ``RSS / dof`` (``fallback`` while ``dof < 3``), at least ``floor``."""
@@ -248,15 +254,18 @@ def _sigma2(rss: float, n_obs: int, n_used: int, model: Model, sigma: float | No
     return fallback
 
 
-def motion_scale(cutoff: float | None, rate: float) -> float:
+def motion_scale(cutoff, rate: float):
     """``1 / gain``: the motion model's weight per unit of pose information (0: no motion model).
 
     The batch ``marker`` method's third-difference penalty
-    (:func:`~skelid.estimators.joint.smoothing_penalty`) with one cutoff (Hz).
+    (:func:`~skelid.estimators.joint.smoothing_penalty`) with one cutoff (Hz), or one per pose
+    coordinate (an array in, an array out; a coordinate at or above half the rate gets 0).
     """
-    if cutoff is None or cutoff <= 0 or cutoff >= rate / 2.0:
+    if cutoff is None:
         return 0.0
-    return float(1.0 / _gain(cutoff, rate))
+    c = np.asarray(cutoff, dtype=float)
+    w = np.where((c > 0) & (c < rate / 2.0), 1.0 / _gain(np.clip(c, 1e-12, None), rate), 0.0)
+    return float(w) if w.ndim == 0 else w
 
 
 def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float, n_coord: int,
@@ -274,9 +283,9 @@ def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float
         Pose where the frame is linearised.
     theta_lin : (P,) float
         Geometry where the frame is linearised.
-    weight : float
-        :func:`motion_scale`: the penalty on the third difference of each pose
-        coordinate is ``weight * mean_t (J_q^T J_q)_kk``.
+    weight : float or (Q,) float
+        :func:`motion_scale`: the penalty on the third difference of pose
+        coordinate ``k`` is ``weight_k * mean_t (J_q^T J_q)_kk``.
 
     Returns
     -------
@@ -315,7 +324,7 @@ def absorb(state: GaussianState, r, J_pose, J_theta, q, theta_lin, weight: float
         hdiag = hdiag + np.einsum("ij,ij->j", J_pose, J_pose)
         n_used += 1
     if k == _HELD:
-        if weight > 0.0 and n_used > 0:
+        if np.any(np.asarray(weight) > 0.0) and n_used > 0:
             sw = np.sqrt(weight * hdiag / n_used)
             for j in range(_HELD + 1):
                 A[row:row + Q, j * Q:(j + 1) * Q] = np.diag(_D3[j] * sw)
@@ -341,14 +350,18 @@ def drop_poses(state: GaussianState) -> GaussianState:
     return state._replace(root=state.root[kq:, kq:].copy(), rhs=state.rhs[kq:].copy(), poses=state.poses[:0])
 
 
-def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> float:
+def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float, allow=None) -> float:
     """How far a frame's pose lies from the motion model's prediction: ``nu^T V^{-1} nu``.
 
     ``nu = q - (3 q_t - 3 q_{t-1} + q_{t-2})`` is the innovation of the freely
     fitted pose against the held poses' third-difference prediction; its
     covariance is taken generously as ``21 sigma^2 (J^T J)^{-1}`` (the free fit's
     error, and the three held poses' as if they were no better) plus the motion
-    model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``). Beyond a
+    model's own ``sigma^2 / w_k`` (``w_k = weight * mean (J^T J)_kk``), or the
+    allowance ``allow_k`` for the movement actually seen where that is larger
+    (the motion model's term shrinks with the noise: on near-noise-free data a
+    movement faster than the cutoff expects would look like a jump on every
+    frame). Beyond a
     chi-square quantile with ``Q`` degrees of freedom the pose has jumped (a
     swapped label the marker screen cannot see, where the markers barely fix the
     pose, or a wrong start of the pose fit). When the three held poses come from
@@ -366,13 +379,17 @@ def pose_jump(state: GaussianState, q, J_pose, weight: float, sigma2: float) -> 
         The frame's pose fitted on its own (angles continuous with the held poses).
     J_pose : (N, Q) float
         ``dx/dq`` of the frame's present coordinates at ``q``.
+    allow : (Q,) float, optional
+        Variance of the third difference of each pose coordinate that the recent movement shows
+        (:meth:`Session._allowance`; none by default).
     """
     p = state.poses
     Q = q.size
     JtJ = J_pose.T @ J_pose
     JtJ = JtJ + np.eye(Q) * (1e-9 * max(np.trace(JtJ) / Q, 1e-300))
     hbar = np.maximum(state.hdiag / max(state.n_used, 1), 1e-300)
-    V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(sigma2 / (weight * hbar))
+    model_var = sigma2 / np.maximum(weight * hbar, 1e-300)
+    V = 21.0 * sigma2 * np.linalg.inv(JtJ) + np.diag(model_var if allow is None else np.maximum(model_var, allow))
     nu = q - (3.0 * p[2] - 3.0 * p[1] + p[0])
     return float(nu @ np.linalg.solve(V, nu))
 
@@ -438,28 +455,75 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     return q
 
 
-def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None) -> float:
-    """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the early frames as the batch method does.
+def gcv_cutoffs(model: Model, q, used, rate: float) -> np.ndarray:
+    """Each pose coordinate's cutoff (Hz) by generalised cross-validation, doubled: ``(Q,)`` float.
 
-    Each frame's pose is fitted on its own at ``theta``; each coordinate's cutoff is
-    chosen by generalised cross-validation and doubled
-    (:func:`~skelid.estimators.joint.choose_cutoffs`), at least the batch method's
-    ``MIN_AUTO_CUTOFF``; the live form has one weight for every coordinate, so the
-    highest of them (the least smoothing any coordinate needs) is taken.
+    The batch method's choice (:func:`~skelid.estimators.joint.choose_cutoffs`, equal to rounding), with
+    the Whittaker smoother ``(I + lambda D_3^T D_3) z_hat = z`` solved as the banded symmetric system it is
+    (LAPACK's ``dpbsv``) instead of a general sparse factorisation: on 200 frames the
+    twelve candidates cost well under a millisecond, so a live session can choose again without a pause.
     """
-    from skelid.estimators.joint import choose_cutoffs
+    from skelid.estimators.joint import CUTOFF_CANDIDATES, UNDERSMOOTH, _continuous_poses
+
+    z = _continuous_poses(model, q, used)
+    T, Q = z.shape
+    if T < 8:
+        return np.full(Q, rate / 2.0)
+    band = _d3_band(T)
+    resp = (2.0 - 2.0 * np.cos(2.0 * np.pi * np.arange(T) / T)) ** 3
+    best = np.full(Q, np.nan)
+    score = np.full(Q, np.inf)
+    for fc in CUTOFF_CANDIDATES:
+        if fc >= rate / 2.0:
+            break
+        lam = 1.0 / _gain(fc, rate)
+        ab = lam * band
+        ab[-1] += 1.0
+        zh, info = _dpbsv(ab, z, lower=0, overwrite_ab=1)[1:]
+        if info:
+            continue  # not positive definite: cannot happen for lam >= 0, but never trust a failed solve
+        trace = float(np.sum(1.0 / (1.0 + lam * resp)))
+        g = T * np.sum((z - zh) ** 2, axis=0) / max(T - trace, 1.0) ** 2
+        better = g < score
+        score[better], best[better] = g[better], fc
+    return np.where(np.isfinite(best), np.minimum(UNDERSMOOTH * best, rate / 2.0), rate / 2.0)
+
+
+@lru_cache(maxsize=8)
+def _d3_band(T: int) -> np.ndarray:
+    """``D_3^T D_3`` (``T x T``, third differences) in upper banded storage ``(4, T)`` (read-only)."""
+    D3 = np.zeros((T - 3, T))
+    for j, c in enumerate(_D3):
+        D3[np.arange(T - 3), np.arange(T - 3) + j] = c
+    full = D3.T @ D3
+    ab = np.zeros((4, T))
+    for k in range(4):
+        ab[3 - k, k:] = np.diagonal(full, k)
+    ab.flags.writeable = False
+    return ab
+
+
+def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None = None,
+                refit: bool = True) -> np.ndarray:
+    """The motion model's cutoff (Hz) for ``cutoff='auto'``, chosen from the frames as the batch method does.
+
+    Each frame's pose is fitted on its own at ``theta`` (``refit``; otherwise the frames'
+    poses as fitted when they came are used); each coordinate's cutoff is
+    chosen by generalised cross-validation and doubled
+    (:func:`gcv_cutoffs`), at least the batch method's
+    ``MIN_AUTO_CUTOFF``: ``(Q,)`` float, one cutoff per pose coordinate as the batch method has.
+    """
     from skelid.estimators.marker import MIN_AUTO_CUTOFF
 
-    Y = np.stack([f[0] for f in frames])
     q = np.stack([f[1] for f in frames])
     used = np.array([f[2] for f in frames])
-    if used.any():
+    if refit and used.any():
+        Y = np.stack([f[0] for f in frames])
         q[used], _ = fit_pose(model, theta, Y[used], q[used], n_iter=10, ws=ws)
-    fc = np.maximum(choose_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
-    return float(fc.max())
+    return np.maximum(gcv_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
 
 
-def relinearise(model: Model, frames, prior, sigma: float | None, weight: float, theta, fallback: float,
+def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None,
                 floor: float = 0.0) -> GaussianState:
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
@@ -491,10 +555,12 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
     B = len(frames)
     P, D = model.n_params, model.dim
     state = None
+    motion = bool(np.any(np.asarray(weight) > 0))
     for _ in range(n_iter):
         q = Q0.copy()
+        rss_free = np.zeros(B)  # each frame's residual at its freely fitted pose: the noise estimate's RSS
         if used.any():
-            q[used], _ = fit_pose(model, theta, Y[used], Q0[used], n_iter=10, ws=ws)
+            q[used], rss_free[used] = fit_pose(model, theta, Y[used], Q0[used], n_iter=10, ws=ws)
         if smoother is not None and used.sum() >= 8:
             # linearise at the smoothed poses, as the batch fit with this motion model converges to: the
             # per-frame or filtered poses are off by the noise, which biases theta where a pose is poorly fixed
@@ -505,7 +571,7 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
         for b in range(B):
             if not used[b]:
                 gap += 1
-                if weight > 0 and state.poses.shape[0]:  # the pose goes on by the motion model alone
+                if motion and state.poses.shape[0]:  # the pose goes on by the motion model alone
                     state = (drop_poses(state) if gap > _BRIDGE else
                              absorb(state, None, None, None, q[b], theta, weight, 0, 0.0))
                 continue
@@ -513,10 +579,10 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight: float,
             m = present[b]
             r = (Y[b, m] - x[b, m]).reshape(-1)
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
-                           weight, int(m.sum()) * D, float(r @ r))
+                           weight, int(m.sum()) * D, float(rss_free[b]))
         s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
-        state = solve_mean(state, prior, s2, pose=weight > 0)
-        if weight == 0:
+        state = solve_mean(state, prior, s2, pose=motion)
+        if not motion:
             state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
         theta, Q0 = state.mean, q
     for k, (y, _, u) in enumerate(frames):
@@ -710,6 +776,10 @@ class Session:
         self._run = 0  # frames in a row whose data were used (see pose_jump)
         self._jumped = False  # the last frame not used was left out for its pose's jump
         self._jump_limit = float(chi2.isf(1e-4, model.n_pose))  # a pose's jump beyond the motion model
+        self._nu2 = np.zeros((_JUMP_WINDOW, model.n_pose))  # recent squared pose innovations (see _allowance)
+        self._n_nu = 0
+        self._allow, self._allow_at = np.zeros(model.n_pose), 0  # the allowance and self._n_nu when computed
+        self._good: np.ndarray | None = None  # pose of the last frame whose markers all fitted
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
         self._auto = isinstance(cutoff, str)
@@ -718,7 +788,7 @@ class Session:
         self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
         self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
         self.n_iter = int(n_iter)
-        self._weight = motion_scale(self._cutoff_now, self.rate)
+        self._set_weight(self._cutoff_now)
         self._rot = np.array([d.kind == "R" for d in model.dofs])
         _, L0, lo, hi = self._prior
         self._ranges = (lo, hi, 1.0 / np.sqrt(np.diag(L0)))
@@ -816,11 +886,39 @@ class Session:
         return _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
                        self._sigma_floor)
 
+    def _noise_known(self, st: GaussianState) -> bool:
+        """Whether the noise level is given, or estimated on at least :data:`_KNOWN_DOF` degrees of freedom."""
+        return (self.sigma is not None
+                or st.n_obs - self.model.n_pose * st.n_used - self.model.n_params >= _KNOWN_DOF)
+
+    def _gate(self, st: GaussianState) -> float:
+        """The bound on :func:`pose_jump` beyond which a frame's pose has jumped (``inf``: no check yet)."""
+        return self._jump_limit if self._noise_known(st) else math.inf
+
+    def _allowance(self) -> np.ndarray:
+        """Variance ``(Q,)`` of each pose coordinate's third difference in the recent movement.
+
+        A robust estimate, ``median(nu_k^2) / median(chi^2_1)`` over the innovations ``nu`` of the last
+        :data:`_JUMP_WINDOW` frames checked (used or not): a real movement persists and raises it, a
+        swapped label lasts a few frames and does not. Recomputed every :data:`_ALLOW_EVERY` frames checked
+        (a median per frame would cost a quarter of a push).
+        """
+        n = self._n_nu
+        if n != self._allow_at and (n < _ALLOW_EVERY or n % _ALLOW_EVERY == 0):
+            self._allow = np.median(self._nu2[:min(n, _JUMP_WINDOW)], axis=0) / _CHI2_1_MEDIAN
+            self._allow_at = n
+        return self._allow
+
+    def _note_jump(self, st: GaussianState, q) -> None:
+        """Record the frame's innovation against the held poses (for :meth:`_allowance`)."""
+        p = st.poses
+        self._nu2[self._n_nu % _JUMP_WINDOW] = np.square(q - (3.0 * p[2] - 3.0 * p[1] + p[0]))
+        self._n_nu += 1
+
     def _screen(self, resid, sigma2) -> np.ndarray | None:
         """Index of the marker to leave out: the worst one beyond ``outlier_sd`` noise sds (once the noise is
         known), or None."""
-        known = self.sigma is not None or self._state.n_used >= 10
-        if not known:
+        if not self._noise_known(self._state):
             return None
         # a marker residual distance has D coordinates of noise: compare with sqrt(D) sigma
         limit = self.outlier_sd * math.sqrt(sigma2 * self._D)
@@ -848,12 +946,22 @@ class Session:
         else:
             q = self._pose_fit(theta, y, self._predict(st))
         rejected = []
+        retried = False
         while True:
             x, Jq, Jt = self._linearise(theta, q)
             resid = np.sqrt(np.sum((y - x) ** 2, axis=-1))
             bad = self._screen(resid, s2) if len(rejected) < 3 else None  # a swapped pair needs two
             if bad is None:
                 break
+            if not (rejected or retried) and self._good is not None:
+                # the pose fit may have started in the wrong basin (a prediction carried through a glitch): fitted
+                # again from the last pose whose markers all fitted, the frame may be whole after all
+                retried = True
+                q_alt = self._pose_fit(theta, y, self._good)
+                x_alt = self._linearise(theta, q_alt)[0]
+                if self._screen(np.sqrt(np.sum((y - x_alt) ** 2, axis=-1)), s2) is None:
+                    q = q_alt
+                    continue
             y = y.copy()
             y[bad] = np.nan
             present[bad] = False
@@ -871,7 +979,7 @@ class Session:
             # follows the motion model alone
             problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
                             "(swapped or wrong label?); frame not used")
-            if self._weight > 0:
+            if self._motion:
                 self._not_used(st, y, s2)
                 return self._gaussian_estimate(resid, problems, tuple(rejected))
         if st.poses.shape[0]:  # angles continuous with the previous pose, for the motion model
@@ -885,8 +993,12 @@ class Session:
             r = (y[present] - x[present]).reshape(-1)
             Jq2 = Jq[present].reshape(r.size, -1)
             Jt2 = Jt[present].reshape(r.size, -1)
-        if (self._weight > 0 and st.poses.shape[0] == _HELD
-                and pose_jump(st, q, Jq2, self._weight, s2) > self._jump_limit):
+        jump, gate = -math.inf, math.inf
+        if self._motion and st.poses.shape[0] == _HELD:
+            gate = self._gate(st)
+            jump = pose_jump(st, q, Jq2, self._weight, s2, self._allowance())
+            self._note_jump(st, q)
+        if jump > gate:
             if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
                 problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
                 self._not_used(st, y, s2, jumped=True)
@@ -894,12 +1006,12 @@ class Session:
             st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
         s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback, self._sigma_floor)
-        motion = self._weight > 0
+        motion = self._motion
         new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, float(r @ r)), self._prior, s2,
                          pose=motion)
         if not motion:  # every pose free: the frame's own fit is its pose
             new = new._replace(pose_mean=q)
-        for _ in range(self.n_iter if self._weight > 0 else 0):  # iterated: linearised again at the filtered pose
+        for _ in range(self.n_iter if motion else 0):  # iterated: linearised again at the filtered pose
             ql = new.pose_mean
             x2, Jq, Jt = self._linearise(theta, ql)
             r2 = (y[present] - x2[present]).reshape(-1)
@@ -908,6 +1020,8 @@ class Session:
         self._state = st = new
         self._gap = 0
         self._run += 1
+        if not rejected:
+            self._good = q
         if self._remember(y, q, True):
             self._relinearise(st.mean)
         return self._gaussian_estimate(resid, problems, tuple(rejected))
@@ -919,13 +1033,20 @@ class Session:
             self._set_cutoff(live_cutoff(self.model, self._early, theta, self.rate, self._ws))
         self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
                                   self._sigma_fallback, ws=self._ws,
-                                  smoother=(self.rate, self._cutoff_now) if self._weight > 0 else None,
+                                  smoother=(self.rate, self._cutoff_now) if self._motion else None,
                                   floor=self._sigma_floor)
 
-    def _set_cutoff(self, cutoff: float) -> None:
+    def _set_weight(self, cutoff) -> None:
+        """The motion model's weight of each pose coordinate ``(Q,)`` for ``cutoff`` (Hz: one, one per
+        coordinate, or None)."""
+        self._weight = np.broadcast_to(np.asarray(motion_scale(cutoff, self.rate), float),
+                                       (self.model.n_pose,)).copy()
+        self._motion = bool(self._weight.max() > 0)
+
+    def _set_cutoff(self, cutoff) -> None:
         """The motion model's cutoff from now on (``cutoff='auto'``)."""
         self._cutoff_now = cutoff
-        self._weight = motion_scale(cutoff, self.rate)
+        self._set_weight(cutoff)
         if self._step is not None:
             self._step = _Step(self)
 
@@ -937,7 +1058,7 @@ class Session:
         self._gap += 1
         self._run = 0
         self._jumped = jumped
-        if not (st.poses.shape[0] and self._weight > 0):
+        if not (st.poses.shape[0] and self._motion):
             return
         q = self._predict(st)
         if self._gap > _BRIDGE:
@@ -958,7 +1079,9 @@ class Session:
             if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
                 self._recent.append((y, q, used))
                 if len(self._recent) == _RELINEARISE[-1]:
-                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws))
+                    # the frames' poses as fitted on arrival (the mean has settled by now): no pose fits here
+                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws,
+                                                 refit=False))
                     self._recent.clear()
             return False
         self._early.append((y, q, used))
@@ -1151,7 +1274,8 @@ class _Step:
         g_base, A = model.geometry_map
         mu0, L0, lo, hi = session._prior
         sigma = -1.0 if session.sigma is None else float(session.sigma)
-        self.settings = (float(session._weight), int(session.n_iter), sigma, float(session._sigma_fallback),
+        self.settings = (np.ascontiguousarray(session._weight, dtype=float), int(session.n_iter), sigma,
+                         float(session._sigma_fallback),
                          float(session._sigma_floor))
         self.model_args = (np.ascontiguousarray(session._rot, dtype=np.bool_),
                            *(np.ascontiguousarray(a, dtype=float) for a in (mu0, L0, lo, hi, g_base, A)),
@@ -1160,15 +1284,19 @@ class _Step:
 
     def __call__(self, y, st: GaussianState, s2: float, n_present: int) -> LiveEstimate | None:
         ses = self.session
-        known = ses.sigma is not None or st.n_used >= 10
+        known = ses._noise_known(st)
         limit = self.limit_scale * math.sqrt(s2) if known else math.inf
         weight, n_iter, sigma, fallback, floor = self.settings
         (status, root, rhs, mean, pose_mean, poses, hdiag, rss, n_obs, n_used, q,
-         resid) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs, st.poses,
-                                    st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight, n_iter, sigma,
-                                    fallback, floor, limit, float(s2), ses._jump_limit, *self.model_args)
+         resid, jump) = _live_kernel.step(y, ses._predict(st), st.mean, np.ascontiguousarray(st.root), st.rhs,
+                                          st.poses, st.hdiag, float(st.rss), int(st.n_obs), int(st.n_used), weight,
+                                          n_iter, sigma, fallback, floor, limit, float(s2), ses._gate(st),
+                                          ses._allowance(), *self.model_args)
         if status >= 0:
-            return None
+            return None  # the general path leaves out what does not fit (and records the jump itself)
+        if jump >= 0.0:
+            ses._note_jump(st, q)
+        ses._good = q
         ses._state = GaussianState(root, rhs, mean, poses, pose_mean, hdiag, rss, n_obs, n_used)
         ses._gap = 0
         ses._run += 1

@@ -166,8 +166,8 @@ if AVAILABLE:  # pragma: no branch
 
     @_lm_kernel._jit
     def step(y, q0, theta, root, rhs, poses, hdiag, rss, n_obs, n_used, weight, n_iter, sigma, fallback, floor, limit,
-             s2_now, gate, rot, mu0, L0, lo, hi, g_base, A_geo, D, S, M, parent, dof_start, is_t, axis, skew, skew2,
-             ms, moves, nz, tilt, planar, jpar, A_joint, anc, mslot, A_marker):
+             s2_now, gate, allow, rot, mu0, L0, lo, hi, g_base, A_geo, D, S, M, parent, dof_start, is_t, axis,
+             skew, skew2, ms, moves, nz, tilt, planar, jpar, A_joint, anc, mslot, A_marker):
         """One frame of the live Gaussian form (see :mod:`skelid.live`): pose fit, screen, update, mean.
 
         Parameters
@@ -180,8 +180,8 @@ if AVAILABLE:  # pragma: no branch
             The current mean, where the frame is linearised.
         root, rhs, poses, hdiag, rss, n_obs, n_used
             The state (:class:`skelid.live.GaussianState`; ``poses`` holds at least one pose).
-        weight : float
-            The motion model's weight (0: none).
+        weight : (Q,) float
+            The motion model's weight of each pose coordinate (all 0: none).
         n_iter : int
             Re-linearisations at the filtered pose (with a motion model).
         sigma : float
@@ -196,7 +196,10 @@ if AVAILABLE:  # pragma: no branch
             The noise variance before this frame.
         gate : float
             With a motion model and three held poses: the bound on the pose innovation
-            (:func:`skelid.live.pose_jump`) beyond which the frame is handed back (status ``M``).
+            (:func:`skelid.live.pose_jump`) beyond which the frame is handed back (status ``M``;
+            ``inf``: no check).
+        allow : (Q,) float
+            The allowance for real movement in the pose-jump check (:func:`skelid.live.pose_jump`).
         rot : (Q,) bool
             Rotational pose coordinates (kept continuous with the previous pose).
         mu0, L0, lo, hi
@@ -216,6 +219,8 @@ if AVAILABLE:  # pragma: no branch
             The frame's fitted pose.
         resid : (M,) float
             Distance of each marker from the model at ``(theta, q)`` (NaN where missing).
+        jump : float
+            The pose's jump statistic (:func:`skelid.live.pose_jump`), or -1 where it was not computed.
         """
         Q = q0.size
         P = theta.size
@@ -267,7 +272,7 @@ if AVAILABLE:  # pragma: no branch
         for k in range(Q):
             q[k] = qq[k, 0]
         if worst >= 0 and big > limit:
-            return (worst, root, rhs, theta, q, poses, hdiag, rss, n_obs, n_used, q, resid)
+            return (worst, root, rhs, theta, q, poses, hdiag, rss, n_obs, n_used, q, resid, -1.0)
         k_held = poses.shape[0]
         if k_held:  # angles continuous with the previous pose, for the motion model
             for k in range(Q):
@@ -276,14 +281,20 @@ if AVAILABLE:  # pragma: no branch
                     q[k] = last + (q[k] - last + np.pi) % (2.0 * np.pi) - np.pi
         N = n_present * D
         r, Jq, Jt = _rows(y, x, J, K, mask, N)
-        if weight > 0.0 and k_held == 3 and _jump(q, poses, Jq, hdiag, n_used, weight, s2_now) > gate:
-            return (M, root, rhs, theta, q, poses, hdiag, rss, n_obs, n_used, q, resid)
+        jump = -1.0
+        motion = False
+        for k in range(Q):
+            if weight[k] > 0.0:
+                motion = True
+        if motion and k_held == 3:
+            jump = _jump(q, poses, Jq, hdiag, n_used, weight, s2_now, allow)
+            if jump > gate:
+                return (M, root, rhs, theta, q, poses, hdiag, rss, n_obs, n_used, q, resid, jump)
         rr = 0.0
         for i in range(N):
             rr += r[i] * r[i]
         rss1, n_obs1, n_used1 = rss + rr, n_obs + N, n_used + 1
         s2 = _sigma2(rss1, n_obs1, n_used1, Q, P, sigma, fallback, floor)
-        motion = weight > 0.0
         root1, rhs1, poses1, hdiag1 = _absorb(root, rhs, poses, hdiag, n_used, r, Jq, Jt, q, theta, weight)
         mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, motion)
         if not motion:
@@ -300,7 +311,7 @@ if AVAILABLE:  # pragma: no branch
             root1, rhs1, poses1, hdiag1 = _absorb(root, rhs, poses, hdiag, n_used, r2, Jq2, Jt2, ql, theta,
                                                   weight)
             mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, True)
-        return (-1, root1, rhs1, mean, pose_mean, poses1, hdiag1, rss1, n_obs1, n_used1, q, resid)
+        return (-1, root1, rhs1, mean, pose_mean, poses1, hdiag1, rss1, n_obs1, n_used1, q, resid, jump)
 
     @_lm_kernel._inline
     def _rows(y, x, J, K, mask, N):
@@ -324,7 +335,7 @@ if AVAILABLE:  # pragma: no branch
         return r, Jq, Jt
 
     @_lm_kernel._inline
-    def _jump(q, poses, Jq, hdiag, n_used, weight, s2):
+    def _jump(q, poses, Jq, hdiag, n_used, weight, s2, allow):
         """As :func:`skelid.live.pose_jump`."""
         Q = q.size
         JtJ = Jq.T @ Jq
@@ -337,7 +348,7 @@ if AVAILABLE:  # pragma: no branch
         V = 21.0 * s2 * np.linalg.inv(JtJ)
         nu = np.empty(Q)
         for k in range(Q):
-            V[k, k] += s2 / (weight * max(hdiag[k] / max(n_used, 1), 1e-300))
+            V[k, k] += max(s2 / max(weight[k] * hdiag[k] / max(n_used, 1), 1e-300), allow[k])
             nu[k] = q[k] - (3.0 * poses[2, k] - 3.0 * poses[1, k] + poses[0, k])
         z = np.linalg.solve(V, nu)
         out = 0.0
@@ -394,10 +405,14 @@ if AVAILABLE:  # pragma: no branch
             A[row + i, n] = b
         row += N
         used = n_used + 1
-        if k == held and weight > 0.0:
+        motion = False
+        for i in range(Q):
+            if weight[i] > 0.0:
+                motion = True
+        if k == held and motion:
             d3 = (-1.0, 3.0, -3.0, 1.0)
             for i in range(Q):
-                sw = np.sqrt(weight * hd[i] / used)
+                sw = np.sqrt(weight[i] * hd[i] / used)
                 for j in range(held + 1):
                     A[row + i, j * Q + i] = d3[j] * sw
         _householder(A, n)
@@ -511,8 +526,8 @@ def _step_example_args() -> tuple:
     """Arguments of :func:`step` with the types of every real call (values never used)."""
     f = np.zeros
     state = (f((2, 2)), f(2), f((1, 1)), f(1), 0.0, 0, 0)  # root, rhs, poses, hdiag, rss, n_obs, n_used
-    # weight, n_iter, sigma, fallback, floor, limit, s2_now, gate, rot
-    settings = (0.0, 1, -1.0, 1.0, 0.0, np.inf, 1.0, 1.0, np.zeros(1, np.bool_))
+    # weight, n_iter, sigma, fallback, floor, limit, s2_now, gate, allow, rot
+    settings = (f(1), 1, -1.0, 1.0, 0.0, np.inf, 1.0, 1.0, f(1), np.zeros(1, np.bool_))
     prior = (f(1), f((1, 1)), f(1), f(1))
     return (f((1, 2)), f(1), f(1), *state, *settings, *prior, f(4), f((4, 1)), *_example_args(True)[2:])
 

@@ -17,7 +17,9 @@ is ``O(K)`` whatever the trial length. The posterior at any step is
 .. math:: \\log p_t(\\theta_k) = \\log p_0(\\theta_k) + \\sum_{s \\le t} \\ell_s(\\theta_k) - \\log Z_t ,
 
 with ``sigma`` fixed by the user or estimated from the running residual at
-the most likely hypothesis, ``sigma^2 = RSS / (n_obs - Q n_frames - P)``.
+the most likely hypothesis, ``sigma^2 = RSS / (n_obs - Q n_frames - P)``,
+either way at least :func:`noise_floor` (a noise-free stream would otherwise
+give ``sigma^2 = 0`` and no likelihood at all).
 Unlike the seed filter this needs no per-frame solve of a noisy length and
 drops no frame that has enough markers to fix its pose. It carries the
 O(sigma^2) bias of the profile and Laplace likelihoods (no motion model, no
@@ -60,10 +62,28 @@ from skelid.estimators.base import (
     steps,
 )
 from skelid.estimators.joint import usable_frames
-from skelid.estimators.pose import FramePoseFitter, initial_pose
+from skelid.estimators.pose import FramePoseFitter, _model_size, initial_pose
 from skelid.estimators.posterior import GridPosterior
 from skelid.model.description import Model
 from skelid.result import FitResult, NoiseEstimate, Warning
+
+#: The noise floor as a fraction of the model's size (:func:`noise_floor`).
+NOISE_FLOOR = 1e-5
+
+
+def noise_floor(model: Model) -> float:
+    """The least marker noise variance the online filters use: ``(NOISE_FLOOR * size)^2``.
+
+    ``size`` is the model's extent (its units). A noise-free stream (simulated
+    markers, ``sigma=0``) leaves residuals at rounding level, ``sigma^2 ~ 1e-32``
+    in metres, or exactly zero where a grid point is the truth: the data's
+    precision then swamps the prior's (the Gaussian form's precision of theta is
+    singular wherever a few frames do not fix it yet), or the likelihood is
+    undefined (the grid form). Below a hundred-thousandth of the body (18 um on
+    a 1.8 m body, far under any motion-capture system's noise) the noise level
+    is held at that floor.
+    """
+    return (NOISE_FLOOR * _model_size(model)) ** 2
 
 
 class GridState(NamedTuple):
@@ -161,11 +181,21 @@ class MarkerGridFilter:
     def _points(self):
         return self._grid()[:2]
 
+    def _floor(self) -> float:
+        """:func:`noise_floor` of the model (computed once per model)."""
+        cached = self.__dict__.get("_floor_cache")
+        if cached is None or cached[0] is not self.model:
+            cached = (self.model, noise_floor(self.model))
+            self._floor_cache = cached
+        return cached[1]
+
     def _dof_sigma2(self, rss_min, n_obs, n_used):
+        """Noise variance: ``sigma^2`` if given, else ``RSS_min / dof`` (NaN before any degree of freedom),
+        at least :func:`noise_floor`."""
         if self.sigma is not None:
-            return float(self.sigma) ** 2
+            return max(float(self.sigma) ** 2, self._floor())
         dof = n_obs - self.model.n_pose * n_used - self.model.n_params
-        return float(rss_min / dof) if dof > 0 and rss_min > 0 else np.nan
+        return max(float(rss_min / dof), self._floor()) if dof > 0 else np.nan
 
     def _log_weights(self, rss, logdet, n_obs, n_used):
         axes, _, lw = self._grid()
