@@ -264,7 +264,8 @@ def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, 
     for j in range(pose.shape[-1]):
         e = np.zeros(pose.shape[-1])
         e[j] = step
-        dJ = (frame_terms(model, theta, pose + e, y, ws)[1] - frame_terms(model, theta, pose - e, y, ws)[1]) / (2 * step)
+        dJ = (frame_terms(model, theta, pose + e, y, ws)[1]
+              - frame_terms(model, theta, pose - e, y, ws)[1]) / (2 * step)
         acc += np.einsum("tki,ti->tk", dJ, V[:, :, j])
     return -0.5 * (acc - np.einsum("tkq,tqp,tp->tk", Jq, Hinv, np.einsum("tkq,tk->tq", Jq, acc)))
 
