@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from skelid.model.description import Model
-from skelid.model.kinematics import forward_kinematics
+from skelid.model.kinematics import Workspace, forward_kinematics
 
 #: the range of a multi-axis joint is twice this quantile of its rotation angle from the mean
 RANGE_QUANTILE = 0.95
@@ -227,7 +227,8 @@ def _coefficients(d: _Design, r) -> np.ndarray:
     return np.einsum("tj,...tma->...jma", d.basis, r_par)
 
 
-def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, step: float = 1e-4) -> np.ndarray:
+def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, step: float = 1e-4,
+                          ws: Workspace | None = None) -> np.ndarray:
     """Mean of the re-projected residual at second order in the noise.
 
     With the fitted pose ``q^_t = q_t + delta_t``, ``delta_t ~ N(0, V_t)``,
@@ -246,6 +247,9 @@ def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, 
     y : (T, M, D) float
     Jq : (T, K, Q) float
     Hinv : (T, Q, Q) float
+    ws : skelid.model.kinematics.Workspace, optional
+        The model's workspace; one is made here, once for all ``2 Q`` perturbed Jacobians,
+        without it.
 
     Returns
     -------
@@ -253,12 +257,15 @@ def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, 
     """
     from skelid.estimators.likelihood import frame_terms
 
+    if ws is None:
+        ws = Workspace(model)
     V = sigma**2 * Hinv
     acc = np.zeros(Jq.shape[:2])
     for j in range(pose.shape[-1]):
         e = np.zeros(pose.shape[-1])
         e[j] = step
-        dJ = (frame_terms(model, theta, pose + e, y)[1] - frame_terms(model, theta, pose - e, y)[1]) / (2 * step)
+        dJ = (frame_terms(model, theta, pose + e, y, ws)[1]
+              - frame_terms(model, theta, pose - e, y, ws)[1]) / (2 * step)
         acc += np.einsum("tki,ti->tk", dJ, V[:, :, j])
     return -0.5 * (acc - np.einsum("tkq,tqp,tp->tk", Jq, Hinv, np.einsum("tkq,tk->tq", Jq, acc)))
 

@@ -56,13 +56,19 @@ def frame_terms(model: Model, theta, q, y, ws=None):
     if mask.all() and np.shape(y) == x.shape:  # nothing missing: no rows to zero
         r = np.subtract(y, x, out=x)
     else:
-        w = mask[..., None].astype(float)
-        r = (np.where(mask[..., None], y, 0.0) - x) * w
-        if Jq.shape[:-2] == w.shape[:-1] and Jq.flags.writeable and Jt.flags.writeable:
-            Jq *= w[..., None]  # fresh arrays from the kinematics: zeroed in place
-            Jt *= w[..., None]
+        missing = ~mask
+        if np.shape(y) == x.shape:
+            r = np.subtract(y, x, out=x)
+            r[missing] = 0.0  # only the missing rows are written (a few, usually)
         else:
-            Jq, Jt = Jq * w[..., None], Jt * w[..., None]
+            w = mask[..., None].astype(float)
+            r = (np.where(mask[..., None], y, 0.0) - x) * w
+        if Jq.shape[:-2] == missing.shape and Jq.flags.writeable and Jt.flags.writeable:
+            Jq[missing] = 0.0  # fresh arrays from the kinematics: zeroed in place
+            Jt[missing] = 0.0
+        else:
+            w = mask[..., None, None].astype(float)
+            Jq, Jt = Jq * w, Jt * w
     return (r.reshape(batch + (-1,)), Jq.reshape(batch + (-1, model.n_pose)),
             Jt.reshape(batch + (-1, model.n_params)))
 
