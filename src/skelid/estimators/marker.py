@@ -746,7 +746,7 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
     """Refit each joint flagged as model misfit with a relaxed joint; widen the intervals to cover it.
 
     A flagged hinge of a 3-D model is refitted as its moving-centre variant
-    (:func:`skelid.model.variants.moving_centre`: the centre's path quadratic in the angle, each
+    (:func:`skelid.model.variants.moving_centre`: the centre's path cubic in the angle, each
     gain with a normal prior of sd 10 mm per radian^k about the hinge), from the fit's own
     geometry and poses, with the same motion model and weights. The refit's estimate and sd
     combine its data with those priors (:func:`skelid.estimators.checks.relaxed_estimate`).
