@@ -244,3 +244,19 @@ def test_a_second_order_correction_above_half_an_sd_widens_the_interval_by_its_s
     np.testing.assert_allclose(wide.theta_, plain.theta_)
     np.testing.assert_allclose(plain.cov_, plain.cov_data_)
     assert wide.cov_[0, 0] > plain.cov_[0, 0]
+
+
+def test_only_a_stretch_on_the_minority_branch_is_mirrored_back():
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
+    theta, q, y = trial.theta, trial.pose, trial.clean
+    joint = branch_joints(model)[1]
+    used = np.ones(len(q), dtype=bool)
+    for n, back in ((5, True), (30, False)):  # 5 % of the frames: a stretch; 30 %: not one
+        wrong = q.copy()
+        wrong[40:40 + n, joint.dof] -= 2 * branch_side(model, theta, q, joint)[40:40 + n]
+        start = mirrored_start(model, theta, wrong, y, joint, used)
+        if back:  # noise-free markers: the mirrored stretch returns to the true poses exactly
+            np.testing.assert_allclose(start, q, atol=1e-6)
+        else:
+            assert start is None
