@@ -33,7 +33,7 @@ than ``BIAS_RELIABLE`` sd (:mod:`skelid.estimators.marker`) goes to the bootstra
 evaluated once more, at the corrected point (the geometry less its bias, the poses freed of
 their scatter),
 
-.. math:: \\Delta = b(\\hat\theta - b, \tilde q) - b(\\hat\theta, \\hat q),
+.. math:: \\Delta = b(\\hat\\theta - b, \\tilde q) - b(\\hat\\theta, \\hat q),
 
 and :func:`expansion_consistent` (``|Delta| <= sd / sqrt(B)``) is recorded with the fallback.
 It does not keep the expansion: the profile bias of a fit with incidental poses does not
@@ -256,6 +256,8 @@ def fallback_covariance(shifts, plain, disagreement) -> np.ndarray:
     disagreement : (P,) float
     """
     draws = as_draws(shifts)
+    B = len(draws.shifts)
+    c_boot = B * draws_mc_covariance(draws)  # Cov(s - l): the bias's Monte Carlo covariance is c_boot / B
     w, V = np.linalg.eigh(draws_covariance(draws) - plain)
     d = np.asarray(disagreement, float)
-    return (V * np.clip(w, 0.0, None)) @ V.T + draws_mc_covariance(draws) + 0.25 * np.outer(d, d)
+    return (V * np.clip(w, 0.0, None)) @ V.T + c_boot / B + 0.25 * np.outer(d, d)
