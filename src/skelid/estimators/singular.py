@@ -290,9 +290,11 @@ def fallback_covariance(shifts, plain, disagreement) -> np.ndarray:
     disagreement : (P,) float
     """
     draws = as_draws(shifts)
+    B = len(draws.shifts)
+    c_boot = B * draws_mc_covariance(draws)  # Cov(s - l): the bias's Monte Carlo covariance is c_boot / B
     w, V = np.linalg.eigh(draws_covariance(draws) - plain)
     d = np.asarray(disagreement, float)
-    return (V * np.clip(w, 0.0, None)) @ V.T + draws_mc_covariance(draws) + 0.25 * np.outer(d, d)
+    return (V * np.clip(w, 0.0, None)) @ V.T + c_boot / B + 0.25 * np.outer(d, d)
 
 
 def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weights=None, n_draws: int = 64,
