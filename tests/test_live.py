@@ -330,15 +330,19 @@ def test_the_grid_form_has_a_noise_floor():
 
 
 def test_the_live_estimate_is_the_batch_one_before_its_bias_correction():
-    """The 10-marker arm, 200 frames: with a cutoff per pose coordinate (as the batch method has; one cutoff for
-    all left 0.09 sd between them here) the live estimate after the last frame equals the batch estimate before
-    its bias correction, to 0.02 of the batch sd, wherever the two choose the same cutoffs."""
+    """The 10-marker arm, 200 frames: with the batch method's cutoff per pose coordinate the live estimate after
+    the last frame equals the batch estimate before its bias correction, to 0.02 of the batch sd. The default
+    (the highest cutoff for every coordinate) differs by more here."""
     model = load_model(Path(__file__).resolve().parents[1] / "benchmarks" / "arm10.toml")
     trial = simulate(model, n_frames=200, sigma=0.002, rng=np.random.default_rng([11, 4]))
     batch = MarkerEstimator(model, rng=np.random.default_rng(0)).fit(trial.data)
-    session = Session(model, labels=trial.data.names, method="gaussian")
-    est = _run(session, trial.data.positions)
-    np.testing.assert_array_equal(session._cutoff_now, batch.cutoff_)
-    assert np.unique(session._weight).size > 1
     sd = np.sqrt(np.diag(batch.cov_))
-    np.testing.assert_array_less(np.abs(est.theta - (batch.theta_ + batch.bias_)) / sd, 0.02)  # theta_ = raw - bias_
+    raw = batch.theta_ + batch.bias_  # theta_ = raw - bias_
+    session = Session(model, labels=trial.data.names, method="gaussian", cutoff=batch.cutoff_)
+    est = _run(session, trial.data.positions)
+    assert np.unique(session._weight).size > 1
+    np.testing.assert_array_less(np.abs(est.theta - raw) / sd, 0.02)
+    default = _run(Session(model, labels=trial.data.names, method="gaussian"), trial.data.positions)
+    assert np.max(np.abs(default.theta - raw) / sd) > 0.05
+    with pytest.raises(ModelError, match="pose coordinates"):
+        Session(model, cutoff=[6.0, 8.0])

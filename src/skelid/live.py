@@ -60,10 +60,12 @@ simulated arm motion played five times faster (up to 7.5 Hz) the live
 estimate lands 5-30 sd from the truth while every frame looks healthy. The
 default, ``cutoff='auto'``, chooses the cutoff from the frames as the batch
 ``marker`` method does (:func:`live_cutoff`: each pose coordinate's cutoff
-by generalised cross-validation, doubled, at least 6 Hz, so that the motion
-model's weight ``w_k`` differs by coordinate as the batch method's does; one
-cutoff for all, the highest, left the live estimate up to 2.5 batch sd from
-the batch one on the 10-marker arm): no motion model for
+by generalised cross-validation, doubled, at least 6 Hz; the highest of them
+is used for every coordinate, since the movement to come may be another
+joint's (:func:`_for_all`; where the batch method's per-coordinate cutoffs
+differ from it the two estimates differ by up to about 2.5 batch sd on the
+10-marker arm; a cutoff per coordinate can be given explicitly, and the live
+estimate then equals the batch one before its bias correction): no motion model for
 the first 50 frames, the cutoffs chosen at each early re-linearisation from 50
 frames on, and again every 200 frames after them (from the poses as fitted on
 arrival, by a banded solve: about a millisecond), so that they follow the
@@ -720,9 +722,10 @@ class Session:
         (``1e-5`` of the model's size), so a noise-free stream works.
     outlier_sd : float
         Residual, in noise standard deviations, beyond which a marker is left out of a frame.
-    cutoff : float, 'auto' or None
+    cutoff : float, (Q,) float, 'auto' or None
         Cutoff (Hz) of the Gaussian form's motion model, the batch ``marker``
-        method's third-difference smoother. ``'auto'`` (default): chosen from
+        method's third-difference smoother (one for every pose coordinate, or
+        one per coordinate). ``'auto'`` (default): chosen from
         the frames as the batch method chooses it and re-chosen as the movement
         changes (:func:`live_cutoff`). None: every pose free, as in the plain
         joint fit, which keeps that fit's ``O(sigma^2)`` bias. A fixed cutoff
@@ -785,6 +788,9 @@ class Session:
         self._auto = isinstance(cutoff, str)
         if self._auto and cutoff != "auto":
             raise ModelError(f"unknown cutoff {cutoff!r}", "give a cutoff in Hz, 'auto' or None")
+        if not self._auto and cutoff is not None and np.ndim(cutoff) and np.shape(cutoff) != (model.n_pose,):
+            raise ModelError(f"cutoff has {np.size(cutoff)} values; the model has {model.n_pose} pose coordinates",
+                             "give one cutoff in Hz, one per pose coordinate, 'auto' or None")
         self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
         self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
         self.n_iter = int(n_iter)
@@ -1030,7 +1036,7 @@ class Session:
         """Every early frame linearised again at ``theta`` (:func:`relinearise`); with ``cutoff='auto'`` the
         motion model's cutoff is chosen first (:func:`live_cutoff`) from 50 frames on."""
         if self._auto and len(self._early) >= 50:
-            self._set_cutoff(live_cutoff(self.model, self._early, theta, self.rate, self._ws))
+            self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
         self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
                                   self._sigma_fallback, ws=self._ws,
                                   smoother=(self.rate, self._cutoff_now) if self._motion else None,
@@ -1080,8 +1086,8 @@ class Session:
                 self._recent.append((y, q, used))
                 if len(self._recent) == _RELINEARISE[-1]:
                     # the frames' poses as fitted on arrival (the mean has settled by now): no pose fits here
-                    self._set_cutoff(live_cutoff(self.model, self._recent, self._state.mean, self.rate, self._ws,
-                                                 refit=False))
+                    self._set_cutoff(_for_all(live_cutoff(self.model, self._recent, self._state.mean, self.rate,
+                                                          self._ws, refit=False)))
                     self._recent.clear()
             return False
         self._early.append((y, q, used))
@@ -1304,6 +1310,22 @@ class _Step:
             ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
         return ses._gaussian_estimate(resid, problems, ())
+
+
+def _for_all(cutoffs) -> np.ndarray:
+    """The live choice from per-coordinate cutoffs: the highest, for every coordinate.
+
+    The batch method keeps one cutoff per coordinate: it has seen the whole
+    movement. A live session chooses from the frames so far, and the movement to
+    come may be another joint's: a coordinate still in the last window gets the
+    least cutoff, and its next sweep would be smoothed away. On the simulated
+    calibration sessions of ``benchmarks/speed.py --only advice`` per-coordinate
+    cutoffs took 434 frames on average against 230 with the highest for all (8
+    sessions); on trials whose movement does not change they agree better with
+    the batch estimate (see ``benchmarks/live_agreement.py``).
+    """
+    c = np.asarray(cutoffs, dtype=float)
+    return np.full_like(c, c.max())
 
 
 def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:
