@@ -70,7 +70,13 @@ the first 50 frames, the cutoffs chosen at each early re-linearisation from 50
 frames on, and again every 200 frames after them (from the poses as fitted on
 arrival, by a banded solve: about a millisecond), so that they follow the
 movement. A coordinate moving too fast for any cutoff below half the frame
-rate is left free. ``benchmarks/live_agreement.py`` measures all three
+rate is left free. Where the smoothed poses of the early frames fit the markers
+worse than poses at the truth would (a ball joint passing through gimbal lock:
+the free fits' outer Euler angles wander by tens of radians, and no smoother
+started there finds the smooth path), those frames are linearised at their
+free poses without the motion model, which starts afresh at the next frame
+(:func:`relinearise`): linearised at the misfitting poses, theta landed 30-86
+sd from the truth in 4-6 % of the simulated arm trials. ``benchmarks/live_agreement.py`` measures all three
 settings against the batch estimate and the truth.
 
 A frame with a marker left out as an outlier gives no data under the motion
@@ -142,6 +148,7 @@ from skelid.model.kinematics import (
     forward_kinematics,
     geometry,
     marker_jacobian,
+    marker_positions,
     tilt_tables,
 )
 from skelid.result import ParameterEstimate
@@ -426,34 +433,61 @@ def theta_cov(state: GaussianState, prior, sigma2: float) -> np.ndarray:
 
 
 def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, ws: Workspace | None = None,
-                   n_iter: int = 2) -> np.ndarray:
+                   n_iter: int = 10, tol: float = 1e-6) -> np.ndarray:
     """Poses ``(T, Q)`` of frames ``y (T, M, D)`` smoothed by the batch method's motion model at fixed ``theta``.
 
-    Gauss-Newton on ``sum_t ||y_t - x(theta, q_t)||^2 + q^T R q`` over the poses
+    Minimises ``S(q) = sum_t ||y_t - x(theta, q_t)||^2 + q^T R q`` over the poses
     only, ``R`` the third-difference penalty of
-    :func:`~skelid.estimators.joint.smoothing_penalty` (one sparse solve per
-    iteration), from the per-frame fits ``q``; frames not ``used`` follow the
-    motion model alone.
+    :func:`~skelid.estimators.joint.smoothing_penalty`, from the per-frame fits
+    ``q`` (angles unwrapped, as the batch method starts); frames not ``used`` follow the motion model
+    alone. Each Gauss-Newton
+    step (one sparse solve) is halved until ``S`` decreases, and the iteration
+    stops when ``S`` changes by less than ``tol`` of itself (at most ``n_iter``
+    steps). The per-frame fits can wander far along a direction the markers
+    barely fix (a ball joint near gimbal lock: two Euler angles moving in
+    opposite directions by tens of radians while the segment hardly moves); a
+    full step from there overshoots on the curved Euler-angle surface and lands
+    on poses that fit neither the markers nor the motion model.
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
+    from skelid.estimators.joint import _continuous_poses
+
     T, Q = q.shape
     m = np.isfinite(y).all(axis=-1) & np.asarray(used, bool)[:, None]
     y0 = np.where(m[..., None], y, 0.0)
-    q = np.array(q, dtype=float)
-    R = None
+    q = _continuous_poses(model, q, used)
+
+    def objective(x, qv):
+        return float(np.sum(((y0 - x) * m[..., None]) ** 2) + qv.ravel() @ (R @ qv.ravel()))
+
+    x, Jq, _ = marker_jacobian(model, theta, q, ws)
+    J = (Jq * m[..., None, None]).reshape(T, -1, Q)
+    Hqq = np.einsum("tni,tnj->tij", J, J)
+    R = smoothing_penalty(model, Hqq, rate, cutoff)
+    S = objective(x, q)
     for _ in range(n_iter):
-        x, Jq, _ = marker_jacobian(model, theta, q, ws)
         r = ((y0 - x) * m[..., None]).reshape(T, -1)
-        J = (Jq * m[..., None, None]).reshape(T, -1, Q)
-        Hqq = np.einsum("tni,tnj->tij", J, J)
-        if R is None:
-            R = smoothing_penalty(model, Hqq, rate, cutoff)
         scale = max(float(np.einsum("tii->", Hqq)) / (T * Q), 1e-300)
         A = (sp.block_diag(list(Hqq), format="csc") + R + sp.identity(T * Q, format="csc") * (1e-10 * scale))
-        dq = spsolve(A.tocsc(), np.einsum("tni,tn->ti", J, r).ravel() - R @ q.ravel())
-        q = q + dq.reshape(T, Q)
+        dq = spsolve(A.tocsc(), np.einsum("tni,tn->ti", J, r).ravel() - R @ q.ravel()).reshape(T, Q)
+        for _ in range(30):  # step halving: S must not increase
+            q_new = q + dq
+            x_new = marker_positions(model, theta, q_new, ws)
+            S_new = objective(x_new, q_new)
+            if S_new <= S:
+                break
+            dq = 0.5 * dq
+        else:
+            break
+        done = S - S_new <= tol * S
+        q, S = q_new, S_new
+        if done:
+            break
+        x, Jq, _ = marker_jacobian(model, theta, q, ws)
+        J = (Jq * m[..., None, None]).reshape(T, -1, Q)
+        Hqq = np.einsum("tni,tnj->tij", J, J)
     return q
 
 
@@ -525,9 +559,26 @@ def live_cutoff(model: Model, frames, theta, rate: float, ws: Workspace | None =
     return np.maximum(gcv_cutoffs(model, q, used, rate), min(MIN_AUTO_CUTOFF, rate / 2.0))
 
 
+def _smooth_fits(model: Model, theta, y, q, rss_free: float, sigma2: float, ws: Workspace | None = None,
+                 p_value: float = 1e-4) -> bool:
+    """Whether smoothed poses ``q (T, Q)`` fit the markers ``y (T, M, D)`` as poses near the truth would.
+
+    At the true poses the residual sum of squares exceeds the free fits'
+    ``rss_free`` by about ``sigma^2 chi^2_{TQ}`` (the free fits absorb ``Q``
+    noise dimensions per frame); smoothing can only cost less. Beyond the
+    ``p_value`` quantile of that the smoother has not converged to a
+    smooth path through the data (per-frame fits that wander along a
+    direction the markers barely fix, a ball joint near gimbal lock) and
+    linearising there would pull theta far off.
+    """
+    T, Q = q.shape
+    rss = float(np.nansum((y - marker_positions(model, theta, q, ws)) ** 2))
+    return rss - rss_free <= sigma2 * float(chi2.isf(p_value, T * Q))
+
+
 def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None,
-                floor: float = 0.0) -> GaussianState:
+                floor: float = 0.0, check: bool = False) -> GaussianState:
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
 
     The recursive update linearises each frame at the mean of its time; the
@@ -549,6 +600,13 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
         (:func:`smoothed_poses`).
     floor : float
         The least noise variance (:func:`noise_floor`).
+    check : bool
+        Whether the smoothed poses must fit the markers (:func:`_smooth_fits`): for a cutoff chosen from
+        the movement, which fits it to the noise level, a misfit means the smoother started from per-frame
+        poses it could not follow (a ball joint near gimbal lock, its two outer Euler angles wandering by
+        tens of radians in opposite directions); the frames are then linearised at their free poses
+        without the motion model, and its chain starts afresh at the next frame. A fixed cutoff may be
+        slower than the movement, and its smoothed poses misfit as the batch fit's do: not checked.
     """
     Y = np.stack([f[0] for f in frames])
     Q0 = np.stack([f[1] for f in frames])
@@ -563,28 +621,38 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
         rss_free = np.zeros(B)  # each frame's residual at its freely fitted pose: the noise estimate's RSS
         if used.any():
             q[used], rss_free[used] = fit_pose(model, theta, Y[used], Q0[used], n_iter=10, ws=ws)
+        chain = motion  # the early frames linked by the motion model
         if smoother is not None and used.sum() >= 8:
             # linearise at the smoothed poses, as the batch fit with this motion model converges to: the
             # per-frame or filtered poses are off by the noise, which biases theta where a pose is poorly fixed
-            q = smoothed_poses(model, theta, Y, q, used, smoother[0], smoother[1], ws)
+            qs = smoothed_poses(model, theta, Y, q, used, smoother[0], smoother[1], ws)
+            n_obs = int(present[used].sum()) * D
+            s2 = _sigma2(float(rss_free.sum()), n_obs, int(used.sum()), model, sigma, fallback, floor)
+            if not check or _smooth_fits(model, theta, Y[used], qs[used], float(rss_free.sum()), s2, ws):
+                q = qs
+            else:
+                chain = False
+        w = weight if chain else np.zeros_like(np.asarray(weight, float))
         x, Jq, Jt = marker_jacobian(model, theta, q, ws)
         state = empty_state(model, prior)
         gap = 0
         for b in range(B):
             if not used[b]:
                 gap += 1
-                if motion and state.poses.shape[0]:  # the pose goes on by the motion model alone
+                if chain and state.poses.shape[0]:  # the pose goes on by the motion model alone
                     state = (drop_poses(state) if gap > _BRIDGE else
-                             absorb(state, None, None, None, q[b], theta, weight, 0, 0.0))
+                             absorb(state, None, None, None, q[b], theta, w, 0, 0.0))
                 continue
             gap = 0
             m = present[b]
             r = (Y[b, m] - x[b, m]).reshape(-1)
             state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
-                           weight, int(m.sum()) * D, float(rss_free[b]))
+                           w, int(m.sum()) * D, float(rss_free[b]))
         s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
-        state = solve_mean(state, prior, s2, pose=motion)
-        if not motion:
+        state = solve_mean(state, prior, s2, pose=chain)
+        if not chain:
+            if motion:  # the motion model starts afresh at the next frame
+                state = drop_poses(state)
             state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
         theta, Q0 = state.mean, q
     for k, (y, _, u) in enumerate(frames):
@@ -1040,7 +1108,7 @@ class Session:
         self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
                                   self._sigma_fallback, ws=self._ws,
                                   smoother=(self.rate, self._cutoff_now) if self._motion else None,
-                                  floor=self._sigma_floor)
+                                  floor=self._sigma_floor, check=self._auto)
 
     def _set_weight(self, cutoff) -> None:
         """The motion model's weight of each pose coordinate ``(Q,)`` for ``cutoff`` (Hz: one, one per
