@@ -89,6 +89,9 @@ def one_trial(args):
     bounds = crlb_sd(efficient_information(Jq, Jt, sigma))
     bound = float(bounds[0])
     out = {"crlb": bound, "crlb_all": bounds.tolist()}
+    if noise == "iid" or noise in POSTURES:  # Gaussian noise: the exact linear term is a control variate
+        out["linear_all"] = linear_term(model, trial).tolist()
+        out["linear"] = out["linear_all"][0]
     centre = float(model.theta_center[0])
     for name in methods:
         t0 = time.perf_counter()
@@ -125,6 +128,23 @@ def one_trial(args):
             out[name] = {"error": exc.one_line(), "dropped": n_frames}
     out["cpu"] = time.process_time() - cpu0
     return out
+
+
+def linear_term(model, trial) -> np.ndarray:
+    """The estimate's error to first order in this trial's noise, at the truth: ``(P,)``.
+
+    ``l = S^{-1} sum_t K_t^T e_t`` (every pose free; :func:`skelid.estimators.bootstrap.linear_response`
+    without a motion model) for the noise ``e = y - f(theta, q)`` the simulator drew. It is linear in
+    Gaussian noise, so its mean is exactly zero and its variance exactly the bound, ``crlb^2``: a
+    control variate for the Monte Carlo means. The estimator's error ``err`` is ``l`` plus a rest
+    (bias, higher-order terms) that varies far less, so ``mean(err - l)`` estimates the bias with a
+    Monte Carlo error several times below ``sd(err) / sqrt(n)``, and the mean squared error likewise
+    (:func:`controlled`; ``summarise``: ``bias_cv``, ``rmse_cv``).
+    """
+    from skelid.estimators.bootstrap import linear_response
+
+    noise = trial.data.positions - trial.clean
+    return linear_response(model, trial.clean, trial.theta, trial.pose, noise[None]).theta[0]
 
 
 #: how far the coupled knee's centre slides: (x, y) = MOVING_CENTRE * (q^2 / 2, q / 2), q the flexion (rad)
@@ -189,6 +209,33 @@ def singular_trial(model, truth, n_frames, sigma, degrees, rng):
     return simulate_posture(model, [truth], n_frames, sigma, degrees, rng)
 
 
+def controlled(err, lin, var_lin: float):
+    """Bias and RMSE of errors ``err (n,)`` with the control variate ``lin (n,)`` of known variance.
+
+    ``lin`` has mean zero and variance ``var_lin`` exactly (:func:`linear_term`); with ``d = err - lin``,
+    bias ``= mean(d)`` and ``mse = var_lin + var(d) + 2 cov(lin, d) + mean(d)^2`` (sample moments): where
+    ``err`` is ``lin`` plus a constant, both are exact whatever the draws. The RMSE's standard error is the
+    jackknife's over the trials.
+
+    Returns
+    -------
+    bias, bias_se, rmse, rmse_se : float
+    """
+    err, lin = np.asarray(err, float), np.asarray(lin, float)
+    n = len(err)
+
+    def rmse(e, x):
+        d = e - x
+        c = np.cov(x, d)
+        return float(np.sqrt(max(var_lin + c[1, 1] + 2.0 * c[0, 1] + d.mean() ** 2, 0.0)))
+
+    d = err - lin
+    keep = ~np.eye(n, dtype=bool)
+    jack = np.array([rmse(err[k], lin[k]) for k in keep])
+    return (float(d.mean()), float(d.std(ddof=1) / np.sqrt(n)), rmse(err, lin),
+            float(np.sqrt((n - 1) / n * np.sum((jack - jack.mean()) ** 2))))
+
+
 def summarise(case, sigma, truth, noise, trials, methods, split=True):
     """One row per method (the first parameter); for a model with several, also ``method:k`` rows."""
     rows = []
@@ -199,7 +246,9 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
                                              est=t[m]["est_all"][k], lo=t[m]["lo_all"][k], hi=t[m]["hi_all"][k])
                             if "est" in t[m] else t[m] for m in methods})
                  for t in trials]
-        rows += summarise(case, sigma, truth, noise, [dict(a, crlb=a.get("crlb_all", [a["crlb"]] * n_par)[k])
+        rows += summarise(case, sigma, truth, noise, [dict(a, crlb=a.get("crlb_all", [a["crlb"]] * n_par)[k],
+                                                          **({"linear": a["linear_all"][k]} if "linear_all" in a
+                                                             else {}))
                                                      for a in alias], [f"{m}:{k}" for m in methods], False)
     bound = float(np.sqrt(np.mean([t["crlb"] ** 2 for t in trials])))
     for name in methods:
@@ -221,6 +270,12 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
             "frames_dropped": float(np.mean([t[name]["dropped"] for t in trials])),
             "seconds_per_fit": float(np.mean([o["seconds"] for o in ok])) if n else float("nan"),
         }
+        lin = [t["linear"] for t in trials if "est" in t[name] and "linear" in t]
+        if n > 2 and len(lin) == n:  # control variate (see linear_term): the same means, less Monte Carlo error
+            c2 = np.mean([t["crlb"] ** 2 for t in trials if "est" in t[name]])
+            b, b_se, rmse_cv, rmse_se = controlled(err, np.array(lin), c2)
+            row.update(bias_cv=b, bias_cv_se=b_se, rmse_cv=rmse_cv, rmse_cv_over_crlb=rmse_cv / bound,
+                       rmse_cv_se=rmse_se, linear_mean=float(np.mean(lin)))
         if n and "bias_method" in ok[0]:
             if "profile" in ok[0]:  # first parameter only
                 row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
@@ -266,6 +321,30 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                    "tens of mm from the truth, rmse 6.4 crlb)",
          "stretch": "as `spread`, the branch check limited to a joint whose minority side holds at most 10 % of "
                     "the frames (a stretch on the wrong branch, not a motion that straddles the singular pose)"}
+
+
+def _write_cv(fh, rows):
+    """The cells whose trials carry the linear control variate: raw and controlled bias and RMSE."""
+    cv = [r for r in rows if "bias_cv" in r and ":" not in r["method"]]
+    if not cv:
+        return
+    fh.write("## Bias and RMSE with the linear control variate\n\n"
+             "Each trial's error less its exact first-order term in the simulated noise, ``l`` (mean exactly "
+             "zero, variance exactly crlb^2; `benchmarks/accuracy.py::linear_term`): `bias cv` = mean(err - l), "
+             "`rmse cv` = sqrt(crlb^2 + var(err - l) + 2 cov(l, err - l) + bias cv^2), "
+             "the same quantities as `bias` and `rmse` with a smaller Monte Carlo error (`se`, in crlb). "
+             "`mean l`: the trials' own mean of ``l`` (crlb), the share "
+             "of the raw bias that is luck of the draw. Targets: |bias| <= 0.2 crlb, rmse <= 1.1 crlb, coverage "
+             "0.93-0.97.\n\n| tag | case | sigma | truth | noise | method | reps | bias (se) | mean l | bias cv (se) | "
+             "rmse | rmse cv (se) | coverage95 (se) |\n|" + "---|" * 13 + "\n")
+    for r in cv:
+        c, n, p = r["crlb"], max(r["reps"], 1), r["coverage95"]
+        fh.write(f"| {r.get('tag')} | {r['case']} | {r['sigma']:g} | {r['truth']:g} | {r['noise']} | {r['method']} | "
+                 f"{r['reps']} | {r['bias'] / c:.2f} ({r['bias_se'] / c:.2f}) | {r['linear_mean'] / c:.2f} | "
+                 f"{r['bias_cv'] / c:.2f} ({r['bias_cv_se'] / c:.2f}) | {r['rmse_over_crlb']:.2f} | "
+                 f"{r['rmse_cv_over_crlb']:.2f} ({r['rmse_cv_se'] / c:.2f}) | "
+                 f"{p:.2f} ({np.sqrt(p * (1 - p) / n):.2f}) |\n")
+    fh.write("\n")
 
 
 def _write_later(fh, rows):
@@ -362,6 +441,7 @@ def _write(rows):
                 fh.write(_pair_row(k, b, a)[:-1] + f" {fb[0]} -> {fb[1]} | {cpu[0]:.2f} -> {cpu[1]:.2f} |\n")
             fh.write("\n")
         _write_later(fh, rows)
+        _write_cv(fh, rows)
         for tag in sorted({r.get("tag", "previous") for r in rows}, key=lambda t: tags.get(t, 9)):
             fh.write(f"## {tag}\n\n{head}\n" + "|" + "---|" * 18 + "\n")
             for r in rows:

@@ -115,3 +115,17 @@ def test_fallback_covariance_with_control_variates_closed_form():
     expected = max(c - 1.5, 0.0) + np.var(s - lin, ddof=1) / 3 + 0.25 * 0.4**2
     np.testing.assert_allclose(fallback_covariance(d, np.array([[1.5]]), np.array([0.4])), [[expected]])
     assert draws_bias(d)[0] == pytest.approx(np.mean(s - lin))
+
+
+def test_the_linear_response_without_a_motion_model_has_the_bound_as_its_covariance():
+    # every pose free: the first Gauss-Newton step is the efficient score over the efficient
+    # information, so its covariance is exactly the Cramer-Rao bound (the accuracy study's control variate)
+    from skelid.estimators.likelihood import efficient_information, frame_terms
+
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=40, sigma=3.0, rng=np.random.default_rng(2))
+    lin = linear_response(model, trial.clean, trial.theta, trial.pose, np.zeros((1,) + trial.clean.shape))
+    _, Jq, Jt = frame_terms(model, trial.theta, trial.pose, trial.clean)
+    bound = np.linalg.inv(efficient_information(Jq, Jt, 3.0))
+    np.testing.assert_allclose(9.0 * lin.cov_unit, bound, rtol=1e-6)  # the solver's 1e-12 ridge
+    np.testing.assert_allclose(lin.theta, 0.0, atol=1e-12)  # no noise, no step
