@@ -19,7 +19,10 @@ frames. Methods:
   coordinate; the rows count how often the model-misfit warning fired;
 * ``final-artefact`` the same with the soft-tissue artefact's size stated
   (``artefact_rms``: the simulator's expected rms displacement of a marker
-  coordinate, :func:`skelid.simulate.sta_rms`); soft-tissue cells only.
+  coordinate, :func:`skelid.simulate.sta_rms`); soft-tissue cells only;
+* ``final-4hz`` the default estimator with its motion model's cutoff fixed at 4 Hz (``auto`` chooses
+  at least 6 Hz): how much of the error beyond the bound the pose noise that the motion model lets
+  through causes (the simulated motion has no content above 1.5 Hz).
 
 ``crlb`` is the Cramér-Rao bound with every pose unknown, at the true poses and
 the true sigma. Results are written cell by cell to
@@ -58,7 +61,7 @@ POSTURES = {"straight": (0.0, 25.0), "folded": (150.0, 172.0)}  # degrees
 METHODS = ("paper", "profile", "laplace", "final")
 Z95 = 1.959964
 CHUNK = 20  # trials between two writes of a cell's rows
-EXTRA_METHODS = ("final-artefact",)
+EXTRA_METHODS = ("final-artefact", "final-4hz")
 
 
 def one_trial(args):
@@ -109,6 +112,9 @@ def one_trial(args):
                 axes = (np.linspace(centre - half, centre + half, 41),) if "profile" in out \
                     and "est" in out["profile"] else None  # no profile estimate: the whole prior grid
                 est = MarkerGridFilter(model, axes=axes, likelihood="laplace").fit(trial.data)
+                post, dropped = est.posterior_, int((~est.frames_used_).sum())
+            elif name == "final-4hz":
+                est = MarkerEstimator(model, cutoff=4.0).fit(trial.data)
                 post, dropped = est.posterior_, int((~est.frames_used_).sum())
             elif name == "final-artefact":
                 rms = sta_rms(model, 10.0) if noise == "sta" else 0.0
@@ -374,7 +380,7 @@ def _write_later(fh, rows):
 def _write(rows):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
     tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5,
-            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10}
+            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "control": 11}
     rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
                                        order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -407,7 +413,8 @@ def _write(rows):
                  "`stiffer` = that rule and a graduated-smoothing start 9 times stiffer than the motion model "
                  "(was 3; tried, not kept), `branch` = the check of a joint's mirrored pose branch, `spread` = "
                  "that check and the second-order term's spread in the interval, `stretch` = both, the check "
-                 "limited to short stretches. "
+                 "limited to short stretches, `control` = the code as of `stretch` and later merges, each "
+                 "Gaussian-noise trial with its linear control variate (see the section on it). "
                  "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}
