@@ -22,7 +22,9 @@ frames. Methods:
   coordinate, :func:`skelid.simulate.sta_rms`); soft-tissue cells only;
 * ``final-4hz`` the default estimator with its motion model's cutoff fixed at 4 Hz (``auto`` chooses
   at least 6 Hz): how much of the error beyond the bound the pose noise that the motion model lets
-  through causes (the simulated motion has no content above 1.5 Hz).
+  through causes (the simulated motion has no content above 1.5 Hz);
+* ``final-nofloor`` the default estimator with ``auto``'s per-coordinate cutoffs (twice the
+  cross-validated one) not raised to its 6 Hz floor (``MIN_AUTO_CUTOFF``; 2-4 Hz on these cells).
 
 ``crlb`` is the Cramér-Rao bound with every pose unknown, at the true poses and
 the true sigma. Results are written cell by cell to
@@ -61,7 +63,7 @@ POSTURES = {"straight": (0.0, 25.0), "folded": (150.0, 172.0)}  # degrees
 METHODS = ("paper", "profile", "laplace", "final")
 Z95 = 1.959964
 CHUNK = 20  # trials between two writes of a cell's rows
-EXTRA_METHODS = ("final-artefact", "final-4hz")
+EXTRA_METHODS = ("final-artefact", "final-4hz", "final-nofloor")
 
 
 def one_trial(args):
@@ -115,6 +117,15 @@ def one_trial(args):
                 post, dropped = est.posterior_, int((~est.frames_used_).sum())
             elif name == "final-4hz":
                 est = MarkerEstimator(model, cutoff=4.0).fit(trial.data)
+                post, dropped = est.posterior_, int((~est.frames_used_).sum())
+            elif name == "final-nofloor":
+                import skelid.estimators.marker as marker_module
+
+                floor, marker_module.MIN_AUTO_CUTOFF = marker_module.MIN_AUTO_CUTOFF, 0.0
+                try:
+                    est = MarkerEstimator(model).fit(trial.data)
+                finally:
+                    marker_module.MIN_AUTO_CUTOFF = floor
                 post, dropped = est.posterior_, int((~est.frames_used_).sum())
             elif name == "final-artefact":
                 rms = sta_rms(model, 10.0) if noise == "sta" else 0.0
