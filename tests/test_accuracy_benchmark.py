@@ -40,3 +40,14 @@ def test_the_controlled_mean_square_is_the_sample_one_with_the_variates_variance
     np.testing.assert_allclose(bias, err.mean() - lin.mean())
     np.testing.assert_allclose(rmse**2, err.var(ddof=1) + bias**2 + 1.0 - lin.var(ddof=1), rtol=1e-12)
     assert 0 < se < 1
+
+
+def test_intervals_that_cover_exactly_when_the_linear_term_is_inside_the_bound_cover_095():
+    # covered == (|l| <= 1.96 crlb): the controlled coverage is the variate's known mean, 0.95, with no error
+    acc = _accuracy()
+    lin = np.random.default_rng(3).normal(0.0, 1.5, size=60)
+    covered = np.abs(lin) <= acc.Z95 * 1.5
+    cov, se = acc.controlled_coverage(covered, lin, np.full(60, 1.5))
+    assert abs(covered.mean() - 0.95) > 0.01  # the plain share carries the draws' luck
+    np.testing.assert_allclose(cov, 0.95, atol=1e-12)
+    assert se < 1e-12
