@@ -200,8 +200,8 @@ def markdown(res: dict) -> str:
 
     L += ["", "Target: coverage >= 0.90 in the multi cells without stating the artefact.", "",
           "Reading:", "",
-          f"* 'refused' (single cells): subjects whose first trial's fit ended on the prior bound; fitted alone, "
-          "a one-parameter model then refuses with one line (no interval). In the multi cells such a trial is "
+          f"* 'refused' (single cells): subjects whose first trial's fit gave no interval (it refused with one "
+          "line; with a one-parameter model, a fit that ended on the prior bound). In the multi cells such a trial is "
           f"set aside and the others decide (subjects with a trial set aside: up to {set_aside} per cell). The "
           "first coverage figure counts the fits that gave an interval, the one in brackets every refusal as "
           "a miss. The cause is the artefact itself: the truth lies at least 25 mm inside the bounds, so a "
