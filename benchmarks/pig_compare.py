@@ -295,9 +295,16 @@ def markdown(res: dict) -> str:
         L.append("")
     c = res["consistency_test"]
     fl = foot_line(res)
+
+    def sd_range(trial, fit, axes=("x", "y", "z"), joints=None):
+        v = [c[fit]["sd_mm"][a] for j, c in res["trials"][trial]["centres"].items()
+             if joints is None or j in joints for a in axes if a in c[fit]["sd_mm"]]
+        return f"{min(v):.0f}-{max(v):.0f}" if v else "n/a"
+
     L += ["## Reading", "",
           "* The standing trial holds no motion, so its own fit cannot locate a functional centre: its "
-          "estimates sit on the prior bounds (+-80 mm) with sds of 35-470 mm, and its 'trial' rows and "
+          f"estimates sit on the prior bounds (+-80 mm) with sds of {sd_range('static', 'trial')} mm, and its "
+          "'trial' rows and "
           "3-D distances say nothing about either method. Its 'joint' rows use the joint estimate.",
           "* The static fit's estimates are pinned on the prior bounds, where its Gaussian approximation (a "
           "few tight linear combinations) means nothing; the multi-trial estimator sets such a trial aside "
@@ -312,7 +319,7 @@ def markdown(res: dict) -> str:
           "by 13.4 mm against 21.6 mm for the predictive one in nine subjects with an ultrasound reference "
           "(summary at paperexplained.cn, 'accuracy of the functional method of hip joint center "
           "location'). Gait alone moves the hip little in abduction, so skelid's medio-lateral hip "
-          "sds are 14-19 mm.",
+          f"sds are {sd_range('gait', 'joint', ('z',), ('hip_r', 'hip_l'))} mm.",
           "* The ankle is a universal joint driven by two foot markers (HEE, TOE); the gait fit warns of "
           "model misfit at both ankles (foot markers moving with the joint angle), and its ankle intervals "
           "do not cover the difference from Plug-in Gait's malleolar centre, which lies mostly along y "
