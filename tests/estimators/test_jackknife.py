@@ -154,3 +154,16 @@ def test_clean_trial_keeps_every_one_step_replicate(monkeypatch):
     monkeypatch.setattr(jackknife, "LINEAR_RATIO", 1e-12)  # every one-step replicate accepted
     unchecked = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
     assert np.array_equal(jk.shifts, unchecked.shifts) and np.array_equal(jk.cov, unchecked.cov)
+
+
+def test_a_refit_cut_short_by_the_iteration_cap_has_no_replicate(monkeypatch):
+    """A refit that stops at the cap counts as having found no estimate, so the cap must leave
+    converging refits room: on the Plug-in-Gait trial a cap of 50 dropped the four most
+    influential markers (their refits converged, off the bounds, within 600)."""
+    model, y, q, _ = _wrist_trial(4, slide=5.0)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    full = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    assert full.status[0] == "refitted" and full.replicate[0]
+    monkeypatch.setattr(jackknife, "REFIT_ITER", 1)
+    cut = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    assert cut.status[0] == "refit failed" and not cut.replicate[0]

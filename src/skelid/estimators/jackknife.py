@@ -120,8 +120,10 @@ LINEAR_RATIO = 0.8
 #: a one-step replicate is checked only when its length ``d^T S_(-m) d / sigma^2`` exceeds the
 #: ``1 - LONG_STEP_LEVEL`` point of chi-square with P degrees of freedom (white noise's reach)
 LONG_STEP_LEVEL = 0.001
-#: iterations of the literal refit that replaces a one-step replicate whose linearisation fails
-REFIT_ITER = 50
+#: iterations of the literal refit that replaces a one-step replicate whose linearisation fails (the
+#: lower-limb fits take 50-65 from the nominal start; refits that start 10-30 mm from their estimate
+#: took up to 50 and more, and a cap of 50 dropped converging refits as if they had no estimate)
+REFIT_ITER = 600
 #: the literal refit stops when a step moves no parameter by more than this fraction of its sd ...
 REFIT_STEP_TOL = 1e-3
 #: ... and lowers the cost by less than this fraction (as the bootstrap's refits do; the joint fit's
