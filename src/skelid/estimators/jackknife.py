@@ -124,6 +124,8 @@ LONG_STEP_LEVEL = 0.001
 #: lower-limb fits take 50-65 from the nominal start; refits that start 10-30 mm from their estimate
 #: took up to 50 and more, and a cap of 50 dropped converging refits as if they had no estimate)
 REFIT_ITER = 600
+#: ... run in stretches of this many, each a warm start from the last (a refit on a bound stops there)
+REFIT_CHUNK = 50
 #: the literal refit stops when a step moves no parameter by more than this fraction of its sd ...
 REFIT_STEP_TOL = 1e-3
 #: ... and lowers the cost by less than this fraction (as the bootstrap's refits do; the joint fit's
@@ -228,13 +230,21 @@ def _refit(model, y, theta, pose, R, weights, m, ws=None):
     upper = np.array([p.prior.upper for p in model.parameters], float)
     ym = np.array(y, float)
     ym[:, m] = np.nan
-    f = joint_fit(model, ym, theta, pose, n_iter=REFIT_ITER, bounds=(lower, upper), penalty=R,
-                  weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
     span = np.where(np.isfinite(upper - lower), upper - lower, 1.0)
-    on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
-    if not f.converged or on_bound or not np.all(np.isfinite(f.theta)):
-        return None
-    return f.theta - theta
+    th, q = theta, pose
+    # in stretches of REFIT_CHUNK iterations, so that a refit that has reached a bound stops there
+    for k in range(0, REFIT_ITER, REFIT_CHUNK):
+        f = joint_fit(model, ym, th, q, n_iter=min(REFIT_CHUNK, REFIT_ITER - k), bounds=(lower, upper), penalty=R,
+                      weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
+        if not np.all(np.isfinite(f.theta)):
+            return None
+        on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
+        if on_bound:
+            return None
+        if f.converged:
+            return f.theta - theta
+        th, q = f.theta, f.pose
+    return None
 
 
 def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
