@@ -295,9 +295,22 @@ def markdown(res: dict) -> str:
         L.append("")
     c = res["consistency_test"]
     fl = foot_line(res)
+
+    def sd_range(trial, fit, axes=("x", "y", "z"), joints=None):
+        v = [c[fit]["sd_mm"][a] for j, c in res["trials"][trial]["centres"].items()
+             if joints is None or j in joints for a in axes if a in c[fit]["sd_mm"]]
+        return f"{min(v):.0f}-{max(v):.0f}" if v else "n/a"
+
+    misfit = [a for a in ("ankle_r", "ankle_l")
+              if any(f"model misfit at joint {a}:" in w for w in res["trials"]["gait"]["warnings"])]
+    misfit = " and ".join(misfit) or "neither ankle"
+    ankle_cov = [v for a in ("ankle_r", "ankle_l")
+                 for v in res["trials"]["gait"]["centres"][a]["joint"]["covered"].values()]
+    cover = sum(ankle_cov)
     L += ["## Reading", "",
           "* The standing trial holds no motion, so its own fit cannot locate a functional centre: its "
-          "estimates sit on the prior bounds (+-80 mm) with sds of 35-470 mm, and its 'trial' rows and "
+          f"estimates sit on the prior bounds (+-80 mm) with sds of {sd_range('static', 'trial')} mm, and its "
+          "'trial' rows and "
           "3-D distances say nothing about either method. Its 'joint' rows use the joint estimate.",
           "* The static fit's estimates are pinned on the prior bounds, where its Gaussian approximation (a "
           "few tight linear combinations) means nothing; the multi-trial estimator sets such a trial aside "
@@ -312,11 +325,11 @@ def markdown(res: dict) -> str:
           "by 13.4 mm against 21.6 mm for the predictive one in nine subjects with an ultrasound reference "
           "(summary at paperexplained.cn, 'accuracy of the functional method of hip joint center "
           "location'). Gait alone moves the hip little in abduction, so skelid's medio-lateral hip "
-          "sds are 14-19 mm.",
+          f"sds are {sd_range('gait', 'joint', ('z',), ('hip_r', 'hip_l'))} mm.",
           "* The ankle is a universal joint driven by two foot markers (HEE, TOE); the gait fit warns of "
-          "model misfit at both ankles (foot markers moving with the joint angle), and its ankle intervals "
-          "do not cover the difference from Plug-in Gait's malleolar centre, which lies mostly along y "
-          "(vertical).",
+          f"model misfit at {misfit} (foot markers moving with the joint angle), and its ankle intervals "
+          f"cover {cover} of the {len(ankle_cov)} components of the difference from Plug-in Gait's malleolar "
+          "centre, which lies mostly along y (vertical).",
           "* Why: the fitted ankle centre moves onto the heel-toe line. From the line, the nominal centre lies "
           f"{fl['r']['nominal_mm']:.0f} / {fl['l']['nominal_mm']:.0f} mm (right / left) and the fitted one "
           f"{fl['r']['fitted_mm']:.0f} / {fl['l']['fitted_mm']:.0f} mm, after a shift (x, y) of "
@@ -330,8 +343,9 @@ def markdown(res: dict) -> str:
           f"{fl['l']['heel_toe_sd_mm']:.1f} mm (sd over gait frames). The second ankle axis is "
           f"{fl['r']['axis_angle_deg']:.0f} / {fl['l']['axis_angle_deg']:.0f} degrees from the heel-toe line, "
           + ("so it is not nearly along it; " if min(fl[k]['axis_angle_deg'] for k in fl) > 15 else "")
-          + "the centre's place on the line is the degeneracy, and the small sds "
-          "measure that geometry, not the malleolar centre. A third foot marker off the line would remove "
+          + "the centre's place on the line is the degeneracy, and the ankle's "
+          f"sds ({sd_range('gait', 'joint', joints=('ankle_r', 'ankle_l'))} mm) measure that geometry, not the "
+          "malleolar centre. A third foot marker off the line would remove "
           "it; Plug-in Gait's lower-body set has none.", ""]
     sec, la = res["seconds"], res["load_average"]
     L += [f"Consistency of the two trials' estimates with the joint one: chi2 {c['statistic']:.1f} on "

@@ -39,10 +39,60 @@ def test_one_step_replicates_match_literal_refits():
     scale = np.abs(lit).max()
     # one Gauss-Newton step from the full fit: first-order accurate in the marker's pull
     assert np.abs(jk.shifts - lit).max() < 0.2 * scale
-    # the jackknife covariance from the refits and from the one-step replicates agree
-    c = lit - lit.mean(axis=0)
-    V_lit = 5 / 6 * c.T @ c
-    assert np.allclose(np.sqrt(np.diag(jk.cov)), np.sqrt(np.diag(V_lit)), rtol=0.25)
+    # the (leverage-corrected) jackknife covariance from the refits and from the one-step replicates agree
+    c = np.einsum("mpq,mq->mp", jk.transform, lit)
+    assert np.allclose(np.sqrt(np.diag(jk.cov)), np.sqrt(np.diag(c.T @ c)), rtol=0.25)
+    assert np.allclose(jk.corrected, np.einsum("mpq,mq->mp", jk.transform, jk.shifts))
+
+
+def _clustered_regression(seed, n_clusters=6, rows=8, P=3):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n_clusters, rows, P)) * rng.uniform(0.2, 3.0, size=(n_clusters, 1, 1))
+    X[0] *= 6.0  # one cluster with high leverage
+    return X
+
+
+def test_cr2_transform_equals_bell_mccaffrey_on_a_linear_regression():
+    """Delete-cluster OLS shifts mapped by cr2_transform equal -S^{-1} X_m^T (I - H_mm)^{-1/2} e_m."""
+    X = _clustered_regression(1)
+    G, n, P = X.shape
+    rng = np.random.default_rng(2)
+    y = X @ np.array([1.0, -2.0, 0.5]) + rng.normal(size=(G, n)) + rng.normal(size=(G, 1)) * 3.0
+    Xs, ys = X.reshape(-1, P), y.ravel()
+    S = Xs.T @ Xs
+    beta = np.linalg.solve(S, Xs.T @ ys)
+    e = (ys - Xs @ beta).reshape(G, n)
+    S_isqrt, S_sqrt = jackknife._inv_sqrt(S), jackknife._sqrt(S)
+    for m in range(G):
+        keep = np.arange(G) != m
+        Xk, yk = X[keep].reshape(-1, P), y[keep].ravel()
+        d = np.linalg.solve(Xk.T @ Xk, Xk.T @ yk) - beta  # the literal delete-cluster shift
+        T = jackknife.cr2_transform(S_isqrt @ (Xk.T @ Xk) @ S_isqrt, S_isqrt, S_sqrt)
+        H = X[m] @ np.linalg.solve(S, X[m].T)
+        w, V = np.linalg.eigh(np.eye(n) - H)
+        ref = -np.linalg.solve(S, X[m].T @ (V / np.sqrt(w)) @ V.T @ e[m])
+        assert np.allclose(T @ d, ref, atol=1e-10)
+
+
+def test_cr2_is_unbiased_under_white_noise_and_the_plain_jackknife_is_not():
+    """Exact expectations under white noise: sum_m E[c_m c_m^T] = S^{-1}; the uncorrected
+    replicates' sum exceeds it, most where one cluster carries most of the information."""
+    X = _clustered_regression(3)
+    G, n, P = X.shape
+    Xs = X.reshape(-1, P)
+    S = Xs.T @ Xs
+    M_res = np.eye(G * n) - Xs @ np.linalg.solve(S, Xs.T)  # residual maker: e = M_res u
+    S_isqrt, S_sqrt = jackknife._inv_sqrt(S), jackknife._sqrt(S)
+    E_cr2, E_cr3 = np.zeros((P, P)), np.zeros((P, P))
+    for m in range(G):
+        rows = slice(m * n, (m + 1) * n)
+        S_m = S - X[m].T @ X[m]
+        D = -np.linalg.solve(S_m, X[m].T @ M_res[rows])  # d_m = D u: the delete-cluster shift
+        C = jackknife.cr2_transform(S_isqrt @ S_m @ S_isqrt, S_isqrt, S_sqrt) @ D
+        E_cr2 += C @ C.T
+        E_cr3 += D @ D.T
+    assert np.allclose(E_cr2, np.linalg.inv(S), rtol=1e-9, atol=1e-12)
+    assert np.all(np.diag(E_cr3) > 1.2 * np.diag(np.linalg.inv(S)))
 
 
 def test_a_sliding_marker_widens_the_interval_and_white_noise_does_not():
@@ -104,3 +154,16 @@ def test_clean_trial_keeps_every_one_step_replicate(monkeypatch):
     monkeypatch.setattr(jackknife, "LINEAR_RATIO", 1e-12)  # every one-step replicate accepted
     unchecked = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
     assert np.array_equal(jk.shifts, unchecked.shifts) and np.array_equal(jk.cov, unchecked.cov)
+
+
+def test_a_refit_cut_short_by_the_iteration_cap_has_no_replicate(monkeypatch):
+    """A refit that stops at the cap counts as having found no estimate, so the cap must leave
+    converging refits room: on the Plug-in-Gait trial a cap of 50 dropped the four most
+    influential markers (their refits converged, off the bounds, within 600)."""
+    model, y, q, _ = _wrist_trial(4, slide=5.0)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    full = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    assert full.status[0] == "refitted" and full.replicate[0]
+    monkeypatch.setattr(jackknife, "REFIT_ITER", 1)
+    cut = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    assert cut.status[0] == "refit failed" and not cut.replicate[0]

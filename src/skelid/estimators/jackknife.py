@@ -2,15 +2,39 @@
 
 A skin marker's artefact is shared by all its frames, so the frames of one
 marker are not independent pieces of evidence: the marker is the unit (the
-cluster). Deleting marker ``m`` and refitting gives ``theta_(-m)``; the
-jackknife with markers as clusters estimates the covariance of the estimate as
+cluster). Deleting marker ``m`` and refitting gives ``theta_(-m)``, and
+``d_m = theta_(-m) - theta_hat`` is the replicate's shift.
 
-.. math:: V_J = \\frac{M-1}{M} \\sum_m (\\theta_{(-m)} - \\bar\\theta)(\\theta_{(-m)} - \\bar\\theta)^\\top ,
+**Leverage-corrected replicates (CR2).** The plain jackknife
+``sum_m d_m d_m^T`` is the cluster-robust covariance of type CR3: in the linear
+model ``d_m = -(S - S_m^{own})^{-1} X_m^T e_m``, the marker's residuals inflated
+by ``(I - H_mm)^{-1}``. When deleting a marker removes most of the information
+about some direction (a high-leverage marker: the heel marker that alone fixes
+the ankle in a squat), that factor is large and the shift mostly measures the
+replicate's own loss of information: the fit without the marker is poorly
+determined and every other marker's error moves it far, which is not evidence
+that the full fit is off by as much. Bell and McCaffrey's bias-reduced form
+(CR2) inflates the residuals by ``(I - H_mm)^{-1/2}`` instead, which is
+unbiased under white noise whatever the leverage. In parameter space it is a
+shrinkage of each replicate:
 
-which is the cluster-robust (sandwich) covariance with markers as clusters to
-first order. It does not assume that the markers' errors are white or equal:
-when one marker's artefact pulls the estimate, deleting it moves the estimate
-back, and ``V_J`` grows.
+.. math:: c_m = S^{-1/2} \\big(S^{-1/2} S_{(-m)} S^{-1/2}\\big)^{1/2} S^{1/2} \\, d_m ,
+          \\qquad V_J = \\textstyle\\sum_m c_m c_m^\\top ,
+
+with ``S`` the information of the fit and ``S_(-m)`` that without marker ``m``
+(``X_m^T f(H_mm) = f(S_m^{own} S^{-1}) X_m^T`` turns the observation-space
+factor into this ``P x P`` one). A marker that keeps the fraction ``r`` of the
+information in a direction has its shift scaled by ``sqrt(r)`` there; a marker
+the estimate hardly depends on (``r`` near 1) keeps its shift. ``V_J`` is the
+cluster-robust covariance with markers as clusters: it does not assume that the
+markers' errors are white or equal, and when one marker's artefact pulls the
+estimate, deleting it moves the estimate back, and ``V_J`` grows.
+
+References: R. M. Bell and D. F. McCaffrey (2002), Bias reduction in standard
+errors for linear regression with multi-stage samples, Survey Methodology 28;
+J. E. Pustejovsky and E. Tipton (2018), Small-sample methods for cluster-robust
+variance estimation and hypothesis testing in fixed effects models, J. Business &
+Economic Statistics 36.
 
 **One-step form.** Refitting ``M`` times is expensive; one Gauss-Newton step
 from the full fit with marker ``m`` deleted is accurate to first order in the
@@ -47,15 +71,16 @@ replicate: with fewer than ``MIN_MARKERS`` replicates the jackknife is not
 available and nothing is folded.
 
 **What white noise alone would give.** With few markers of unequal
-information the jackknife is itself noisy and, under white noise, biased upward
-(deleting an informative marker changes the information a lot). Its
+information the jackknife is itself noisy, and with the poses profiled out and
+a motion-model penalty CR2's exact unbiasedness holds only approximately. Its
 distribution under white noise of the fit's level is therefore simulated
 through the linearised fit: for draws ``e`` of white noise,
 
 .. math:: \\delta_m(e) = S_{(-m)}^{-1} \\textstyle\\sum_t A_{t,(-m)}^\\top e_t - S^{-1} \\sum_t A_t^\\top e_t
 
-are the replicates' shifts to first order, and ``V_J(e)`` their jackknife
-covariance (``N_NULL`` draws; no refit, only the influence rows already at hand).
+are the replicates' shifts to first order, and ``V_J(e)`` the covariance of
+their leverage-corrected forms (``N_NULL`` draws; no refit, only the influence
+rows already at hand).
 
 **Folding into the interval** (:func:`fold`). ``E_0``, the mean of ``V_J(e)``, is
 what the markers' spread would be under white noise. In the eigen-directions of
@@ -95,8 +120,12 @@ LINEAR_RATIO = 0.8
 #: a one-step replicate is checked only when its length ``d^T S_(-m) d / sigma^2`` exceeds the
 #: ``1 - LONG_STEP_LEVEL`` point of chi-square with P degrees of freedom (white noise's reach)
 LONG_STEP_LEVEL = 0.001
-#: iterations of the literal refit that replaces a one-step replicate whose linearisation fails
-REFIT_ITER = 50
+#: iterations of the literal refit that replaces a one-step replicate whose linearisation fails (the
+#: lower-limb fits take 50-65 from the nominal start; refits that start 10-30 mm from their estimate
+#: took up to 50 and more, and a cap of 50 dropped converging refits as if they had no estimate)
+REFIT_ITER = 600
+#: ... run in stretches of this many, each a warm start from the last (a refit on a bound stops there)
+REFIT_CHUNK = 50
 #: the literal refit stops when a step moves no parameter by more than this fraction of its sd ...
 REFIT_STEP_TOL = 1e-3
 #: ... and lowers the cost by less than this fraction (as the bootstrap's refits do; the joint fit's
@@ -104,17 +133,19 @@ REFIT_STEP_TOL = 1e-3
 #: the replicates by less than 1e-4 sd)
 REFIT_TOL = 1e-7
 _CHUNK = 25  # white-noise draws made at once
-_DRAWS_KEPT = 4_000_000  # white-noise numbers (32 MB) kept for all deletions; a longer trial draws them again
+_DRAWS_KEPT = 16_000_000  # white-noise numbers (128 MB) kept for all deletions; a longer trial draws them again
 
 
 class Jackknife(NamedTuple):
     shifts: np.ndarray  # (M, P) theta_(-m) - theta_hat; NaN for markers without a replicate
     replicate: np.ndarray  # (M,) bool: markers with a replicate
-    cov: np.ndarray | None  # (P, P) V_J, or None when not available
+    cov: np.ndarray | None  # (P, P) V_J = sum_m c_m c_m^T, or None when not available
     null_mean: np.ndarray | None = None  # (P, P) E_0: V_J's mean under white noise of the fit's level
     null_max: float = float("nan")  # 95 % point of the largest eigenvalue of E_0^{-1/2} V_J(e) E_0^{-1/2}
     status: tuple = ()  # (M,) per marker: "one-step", "refitted", "refit failed", "essential" or "missing"
     ratio: np.ndarray | None = None  # (M,) actual / predicted cost decrease along the one-step replicate
+    corrected: np.ndarray | None = None  # (M, P) leverage-corrected replicates c_m (CR2); NaN without one
+    transform: np.ndarray | None = None  # (M, P, P) c_m = transform[m] @ shifts[m]; NaN without a replicate
 
     @property
     def available(self) -> bool:
@@ -199,13 +230,21 @@ def _refit(model, y, theta, pose, R, weights, m, ws=None):
     upper = np.array([p.prior.upper for p in model.parameters], float)
     ym = np.array(y, float)
     ym[:, m] = np.nan
-    f = joint_fit(model, ym, theta, pose, n_iter=REFIT_ITER, bounds=(lower, upper), penalty=R,
-                  weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
     span = np.where(np.isfinite(upper - lower), upper - lower, 1.0)
-    on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
-    if not f.converged or on_bound or not np.all(np.isfinite(f.theta)):
-        return None
-    return f.theta - theta
+    th, q = theta, pose
+    # in stretches of REFIT_CHUNK iterations, so that a refit that has reached a bound stops there
+    for k in range(0, REFIT_ITER, REFIT_CHUNK):
+        f = joint_fit(model, ym, th, q, n_iter=min(REFIT_CHUNK, REFIT_ITER - k), bounds=(lower, upper), penalty=R,
+                      weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
+        if not np.all(np.isfinite(f.theta)):
+            return None
+        on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
+        if on_bound:
+            return None
+        if f.converged:
+            return f.theta - theta
+        th, q = f.theta, f.pose
+    return None
 
 
 def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
@@ -243,6 +282,7 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     R_band = None if R is None else penalty_band(R, model.n_pose)
     A, S, _ = _influence(r, Jq, Jt, pose, R, R_band)
     S_isqrt = _inv_sqrt(S)
+    S_sqrt = _sqrt(S)
     rng = np.random.default_rng(0) if rng is None else rng
     seed = int(rng.integers(2**32))
     chunks = [(c, min(_CHUNK, N_NULL - c)) for c in range(0, N_NULL, _CHUNK)]
@@ -265,6 +305,8 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     base = response(A) @ np.linalg.inv(S).T  # (K, P) the full fit's response
     null = np.zeros((N_NULL, M, P))
     shifts = np.full((M, P), np.nan)
+    corrected = np.full((M, P), np.nan)
+    transform = np.full((M, P, P), np.nan)
     # a shift whose length in the deleted fit's information is within white noise's 99.9 % reach
     long_step = sigma**2 * chi2.ppf(1.0 - LONG_STEP_LEVEL, P)
     status = ["missing"] * M
@@ -279,7 +321,8 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
         Jq_m[:, rows] = 0.0
         Jt_m[:, rows] = 0.0
         A_m, S_m, score_m, step = _influence(r_m, Jq_m, Jt_m, pose, R, R_band, step=True)
-        if np.linalg.eigvalsh(S_isqrt @ S_m @ S_isqrt)[0] < ESSENTIAL:
+        kept_info = S_isqrt @ S_m @ S_isqrt  # the information the deletion keeps, whitened
+        if np.linalg.eigvalsh(0.5 * (kept_info + kept_info.T))[0] < ESSENTIAL:
             status[m] = "essential"
             continue
         S_m_inv = np.linalg.inv(S_m)
@@ -298,25 +341,48 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
             if d is None:
                 continue
         shifts[m] = d
+        # CR2: the shift scaled down where the deletion loses information (see the module notes)
+        T_m = transform[m] = cr2_transform(kept_info, S_isqrt, S_sqrt)
+        corrected[m] = T_m @ d
         # the white-noise null stays the linearised one (at the full fit's poses)
-        null[:, m] = response(A_m) @ S_m_inv.T - base
+        null[:, m] = (response(A_m) @ S_m_inv.T - base) @ T_m.T
     ok = np.isfinite(shifts).all(axis=1)
     n = int(ok.sum())
     if n < MIN_MARKERS:
-        return Jackknife(shifts, ok, None, status=tuple(status), ratio=ratio)
-    V_J = _jack_cov(shifts[ok])
-    V_null = np.stack([_jack_cov(d) for d in null[:, ok]])  # (K, P, P)
+        return Jackknife(shifts, ok, None, status=tuple(status), ratio=ratio, corrected=corrected,
+                         transform=transform)
+    V_J = _cr2_cov(corrected[ok])
+    V_null = np.einsum("kmp,kmq->kpq", null[:, ok], null[:, ok])  # (K, P, P)
     E0 = V_null.mean(axis=0)
     Li = np.linalg.inv(np.linalg.cholesky(E0))
     lam_max = np.linalg.eigvalsh(Li @ V_null @ Li.T)[:, -1]
-    return Jackknife(shifts, ok, V_J, E0, float(np.quantile(lam_max, 1.0 - FOLD_LEVEL)), tuple(status), ratio)
+    return Jackknife(shifts, ok, V_J, E0, float(np.quantile(lam_max, 1.0 - FOLD_LEVEL)), tuple(status), ratio,
+                     corrected, transform)
 
 
-def _jack_cov(d) -> np.ndarray:
-    """Jackknife covariance ``(n-1)/n sum (d - mean)(d - mean)^T`` of replicates ``d (n, P)``."""
-    n = len(d)
-    c = d - d.mean(axis=0)
-    return (n - 1) / n * c.T @ c
+def cr2_transform(kept_info, S_isqrt, S_sqrt) -> np.ndarray:
+    """``(P, P)`` map from a replicate's shift ``d_m`` to its leverage-corrected form ``c_m`` (CR2).
+
+    Parameters
+    ----------
+    kept_info : (P, P) float
+        ``S^{-1/2} S_(-m) S^{-1/2}``: the information kept without the cluster, whitened.
+    S_isqrt, S_sqrt : (P, P) float
+        ``S^{-1/2}`` and ``S^{1/2}`` of the full information.
+
+    Returns
+    -------
+    (P, P) float
+        ``S^{-1/2} kept_info^{1/2} S^{1/2}``. In a linear regression with the cluster's rows
+        ``X_m`` and residuals ``e_m``, the delete-cluster shift is ``-(S - X_m^T X_m)^{-1} X_m^T e_m``
+        and this map turns it into ``-S^{-1} X_m^T (I - H_mm)^{-1/2} e_m`` (Bell and McCaffrey).
+    """
+    return S_isqrt @ _sqrt(kept_info) @ S_sqrt
+
+
+def _cr2_cov(c) -> np.ndarray:
+    """Cluster-robust covariance ``sum_m c_m c_m^T`` of leverage-corrected replicates ``c (n, P)``."""
+    return c.T @ c
 
 
 def literal_jackknife(model: Model, y, theta, pose, rate=None, cutoff=None, n_iter: int = 50) -> np.ndarray:
@@ -363,6 +429,12 @@ def _inv_sqrt(S):
     return (V / np.sqrt(np.maximum(w, 1e-300 * max(w.max(), 1e-300)))) @ V.T
 
 
+def _sqrt(S):
+    """Symmetric square root of a (nearly) symmetric positive semi-definite matrix."""
+    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    return (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
+
+
 def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=None, weights=None):
     """The marker jackknife of a fit, folded into its covariance.
 
@@ -407,6 +479,8 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
     worst = ok[np.argmax(np.abs(jk.shifts[ok]), axis=0)]
     out.update(folded=folded, largest_eigenvalue=float(lam.max()), null_95=jk.null_max,
                parameters={n: {"sd": float(np.sqrt(jk.cov[k, k])), "sd_white_noise": float(np.sqrt(jk.null_mean[k, k])),
+                               # the uncorrected jackknife (CR3), for comparison
+                               "sd_uncorrected": float(np.sqrt(np.sum(jk.shifts[ok, k] ** 2))),
                                "sd_added": float(added[k]) if folded else 0.0,
                                "most_influential_marker": model.marker_names[worst[k]],
                                "shift": float(jk.shifts[worst[k], k])}
