@@ -180,8 +180,18 @@ def one_trial(args):
     from skelid.model.variants import moving_centre
 
     cpu0 = time.process_time()
-    rng = np.random.default_rng([("gait2354", "polynomial", "hinge", "case-a").index(source_kind), int(sigma), rep])
+    rng = np.random.default_rng([("gait2354", "polynomial", "hinge", "case-a", "null").index(source_kind), int(sigma),
+                                 rep])
     out = {}
+    if source_kind == "null":  # the hinge's own markers: the misfit test's null distribution, test only
+        hinge = knee_model("hinge")
+        pose, y = knee_trial(knee_model("hinge", centre=False), n_frames, sigma, rng, FLEXION)
+        _, _, fit = fast_fit(hinge, y, pose)
+        mm = model_misfit(hinge, y, fit.theta, fit.pose, fit.frames_used)["knee"]
+        out.update({k: mm[k] for k in ("statistic_rolling", "log10_p_rolling", "nonlinearity_rolling", "statistic",
+                                       "log10_p_broad", "log10_p", "significant", "flagged")})
+        out["cpu"] = time.process_time() - cpu0
+        return out
     if source_kind == "case-a":
         from skelid.simulate import builtin_model, simulate
 
@@ -297,8 +307,25 @@ def flag_bound(source_kind: str, sigma: float, n_frames: int, alpha: float = 0.0
     return float(fit.rss), float(norm.cdf(np.sqrt(fit.rss) / sigma - norm.isf(alpha)))
 
 
+def summarise_null(sigma, trials) -> dict:
+    """The rolling statistic's mean against its degrees of freedom (2), and each test's rejection rates."""
+    stat = np.array([t["statistic_rolling"] for t in trials])
+    row = {"source": "null", "sigma": sigma, "reps": len(trials),
+           "rolling_mean": float(stat.mean()), "rolling_mean_se": float(stat.std(ddof=1) / np.sqrt(len(stat))),
+           "broad_mean": float(np.mean([t["statistic"] for t in trials])),
+           "nonlinearity_rolling_max": float(max(t["nonlinearity_rolling"] for t in trials)),
+           "cpu_seconds": float(sum(t["cpu"] for t in trials))}
+    for level in (0.1, 0.05, 0.01):
+        for key in ("log10_p_rolling", "log10_p_broad", "log10_p"):
+            row[f"{key}<{level:g}"] = float(np.mean([t[key] < np.log10(level) for t in trials]))
+    row["flag_rate"] = float(np.mean([t["flagged"] for t in trials]))
+    return row
+
+
 def summarise(source, sigma, trials, n_frames: int = N_FRAMES) -> dict:
     """Bias, sd, coverage of x and y; flag rates."""
+    if source == "null":
+        return summarise_null(sigma, trials)
     row = {"source": source, "sigma": sigma, "reps": len(trials),
            "flag_rate": float(np.mean([t["flagged"] for t in trials])),
            "significant_rate": float(np.mean([t["significant"] for t in trials])),
@@ -410,6 +437,19 @@ def write(rows, meta):
             lines.append(f"| {r['source']} | {r['sigma']:g} | {r['reps']} | {before:.3f} | "
                          f"{r['significant_rate']:.3f} | {tested:.2f} | {roll:.3f} | {broad:.3f} | "
                          f"{r['flag_rate']:.3f} | {cover} |")
+    null_rows = [r for r in rows if r["source"] == "null"]
+    if null_rows:
+        lines += ["", "Null distribution of the misfit tests on the hinge's own markers (more trials, test only; "
+                  "`rolling mean`: the rolling-path statistic's mean, chi^2 on 2 degrees of freedom: 2; rates: share "
+                  "of trials with p below the level, for the rolling test, the broad test and the joint's Bonferroni "
+                  "p-value that the flag uses):", "",
+                  "| sigma | reps | rolling mean | broad mean (9) | rolling 0.1 / 0.05 / 0.01 | "
+                  "broad 0.1 / 0.05 / 0.01 | joint 0.1 / 0.05 / 0.01 | flagged |", "|---|---|---|---|---|---|---|---|"]
+        for r in null_rows:
+            rates = [" / ".join(f"{r[f'{k}<{lv:g}']:.3f}" for lv in (0.1, 0.05, 0.01))
+                     for k in ("log10_p_rolling", "log10_p_broad", "log10_p")]
+            lines.append(f"| {r['sigma']:g} | {r['reps']} | {r['rolling_mean']:.2f} +- {r['rolling_mean_se']:.2f} | "
+                         f"{r['broad_mean']:.2f} | {rates[0]} | {rates[1]} | {rates[2]} | {r['flag_rate']:.3f} |")
     est_rows = [r for r in rows if "estimator" in r]
     if est_rows:
         lines += ["", "Full `MarkerEstimator` on the hinge (the default path; `widening`: whether the estimator "
@@ -447,7 +487,7 @@ def merge(rows, run, replace: bool = False):
             if key in stored and "estimator" in stored[key] and "estimator" not in r:
                 r = dict(r, estimator=stored[key]["estimator"])  # the last look at the full estimator stays
             stored[key] = r
-    order = ["gait2354", "polynomial", "hinge", "case-a"]
+    order = ["gait2354", "polynomial", "hinge", "case-a", "null"]
     merged = sorted(stored.values(), key=lambda r: (order.index(r["source"]) if r["source"] in order else 9,
                                                      r["sigma"]))
     runs = old["meta"].get("runs") or ([old["meta"]] if old["meta"] else [])
@@ -463,6 +503,8 @@ def main():
     ap.add_argument("--sources", nargs="+", default=["gait2354", "polynomial", "hinge", "case-a"])
     ap.add_argument("--estimator", type=int, default=0, metavar="N",
                     help="also fit the hinge with the full MarkerEstimator on the first N trials of each cell")
+    ap.add_argument("--null-reps", type=int, default=400,
+                    help="trials per noise level of the source 'null' (the misfit tests' null distribution)")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--replace", action="store_true",
                     help="replace the stored rows of the cells run even when they had more trials (a reduced run)")
@@ -470,7 +512,7 @@ def main():
     wall0, cpu0 = time.perf_counter(), time.process_time()
     tasks = [(src, s, rep, args.frames, rep < args.estimator)
              for src in args.sources for s in (args.sigmas if src != "case-a" else CASE_A_SIGMAS)
-             for rep in range(args.reps)]
+             for rep in range(args.reps if src != "null" else args.null_reps)]
     if args.jobs > 1:
         from concurrent.futures import ProcessPoolExecutor
 
@@ -484,6 +526,7 @@ def main():
             rows.append(summarise(src, s, [r for t, r in zip(tasks, results, strict=True)
                                            if t[0] == src and t[1] == s], args.frames))
     run = {"sources": args.sources, "reps": args.reps, "frames": args.frames,
+           **({"null_reps": args.null_reps} if "null" in args.sources else {}),
            "cpu_seconds": sum(r["cpu"] for r in results), "cpu_seconds_main": time.process_time() - cpu0,
            "wall_seconds": time.perf_counter() - wall0, "load_average": [round(v, 2) for v in os.getloadavg()]}
     rows, meta = merge(rows, run, args.replace)
