@@ -246,11 +246,9 @@ def _coefficient_cov(B, Jr, Hinv, Rp, n: int) -> np.ndarray:
     """
     T, k = B.shape
     D, nD = Rp.shape[-1], Jr.shape[1]
-    Mt = np.eye(nD)[None] - (Jr @ Hinv) @ np.swapaxes(Jr, 1, 2)
-    Rb = np.zeros((T, nD, nD))
-    for i in range(n):
-        Rb[:, i * D:(i + 1) * D, i * D:(i + 1) * D] = Rp
-    Mt = np.swapaxes(Rb, 1, 2) @ Mt @ Rb
+    # R^T (I - J H^-1 J^T) R = I - (R^T J) H^-1 (R^T J)^T, R block-diagonal with n blocks R_t
+    JR = np.einsum("tji,tnjq->tniq", Rp, Jr.reshape(T, n, D, -1)).reshape(T, nD, -1)
+    Mt = np.eye(nD)[None] - (JR @ Hinv) @ np.swapaxes(JR, 1, 2)
     G = (B[:, :, None] * B[:, None, :]).reshape(T, k * k)
     return (G.T @ Mt.reshape(T, nD * nD)).reshape(k, k, nD, nD).transpose(0, 2, 1, 3).reshape(k * nD, k * nD)
 
