@@ -180,8 +180,18 @@ def one_trial(args):
     from skelid.model.variants import moving_centre
 
     cpu0 = time.process_time()
-    rng = np.random.default_rng([("gait2354", "polynomial", "hinge", "case-a").index(source_kind), int(sigma), rep])
+    rng = np.random.default_rng([("gait2354", "polynomial", "hinge", "case-a", "null").index(source_kind), int(sigma),
+                                 rep])
     out = {}
+    if source_kind == "null":  # the hinge's own markers: the misfit test's null distribution, test only
+        hinge = knee_model("hinge")
+        pose, y = knee_trial(knee_model("hinge", centre=False), n_frames, sigma, rng, FLEXION)
+        _, _, fit = fast_fit(hinge, y, pose)
+        mm = model_misfit(hinge, y, fit.theta, fit.pose, fit.frames_used)["knee"]
+        out.update({k: mm[k] for k in ("statistic_rolling", "log10_p_rolling", "nonlinearity_rolling", "statistic",
+                                       "log10_p_broad", "log10_p", "significant", "flagged")})
+        out["cpu"] = time.process_time() - cpu0
+        return out
     if source_kind == "case-a":
         from skelid.simulate import builtin_model, simulate
 
@@ -191,6 +201,8 @@ def one_trial(args):
         mm = model_misfit(model, trial.data.positions, fit.theta, fit.pose, fit.frames_used)
         out["significant"] = any(v["significant"] for v in mm.values())
         out["flagged"] = any(v["flagged"] for v in mm.values())
+        out["broad_flagged"] = False  # one marker per segment: never labelled misfit
+        out["rolling_significant"] = any(_rolling_significant(v, len(mm)) for v in mm.values())
         out.update(_before_and_tested(mm))
         out["cpu"] = time.process_time() - cpu0
         return out
@@ -203,6 +215,14 @@ def one_trial(args):
         source = knee_model("coupled", centre=False)
     pose, y = knee_trial(source, n_frames, sigma, rng, (0.0, np.pi / 2) if source_kind == "polynomial" else FLEXION)
     th, sd, fit = fast_fit(hinge, y, pose)
+    if source_kind != "hinge":  # the trial's own bound: the hinge's misfit on its noise-free markers
+        from scipy.stats import norm
+
+        from skelid.model.kinematics import marker_positions
+
+        clean = marker_positions(source, np.zeros(source.n_params), pose)
+        out["rss0"] = float(fast_fit(hinge, clean, pose)[2].rss)
+        out["np_power"] = float(norm.cdf(np.sqrt(out["rss0"]) / sigma - norm.isf(0.01)))
     if use_estimator:
         from skelid.data import MarkerData
         from skelid.estimators.marker import MarkerEstimator
@@ -217,6 +237,8 @@ def one_trial(args):
     out["legacy_flagged"] = legacy_misfit(hinge, y, fit.theta, fit.pose, fit.frames_used, white_sd(hinge, y, fit))
     out["flagged"], out["significant"] = mm["flagged"], mm["significant"]
     out["log10_p"] = mm["log10_p"]
+    out["broad_flagged"] = _broad_flag(mm)
+    out["rolling_significant"] = _rolling_significant(mm)
     out.update(_before_and_tested({"knee": mm}))
     if source_kind != "hinge":
         coupled = knee_model("coupled") if source_kind == "gait2354" else polynomial_knee(centre=True)
@@ -231,6 +253,21 @@ def one_trial(args):
         out["relaxed"] = {"est": th_r.tolist(), "lo": (th_r - Z95 * sd_r).tolist(), "hi": (th_r + Z95 * sd_r).tolist()}
     out["cpu"] = time.process_time() - cpu0
     return out
+
+
+def _broad_flag(v: dict) -> bool:
+    """The knee's flag by the broad test alone at the full level (the test before the rolling-path test)."""
+    from skelid.estimators.checks import MISFIT_ALPHA
+
+    return bool(v["reliable"] and v["log10_p_broad"] < np.log10(MISFIT_ALPHA) and not v["soft_tissue"])
+
+
+def _rolling_significant(v: dict, n_joints: int = 1) -> bool:
+    """The rolling-path test alone at its share of a joint's level."""
+    from skelid.estimators.checks import MISFIT_ALPHA, MISFIT_PATH_SHARE
+
+    return bool(v["rolling_tested"] and v["reliable"]
+                and v["log10_p_rolling"] < np.log10(MISFIT_ALPHA * MISFIT_PATH_SHARE / n_joints))
 
 
 def _before_and_tested(mm: dict) -> dict:
@@ -270,18 +307,39 @@ def flag_bound(source_kind: str, sigma: float, n_frames: int, alpha: float = 0.0
     return float(fit.rss), float(norm.cdf(np.sqrt(fit.rss) / sigma - norm.isf(alpha)))
 
 
+def summarise_null(sigma, trials) -> dict:
+    """The rolling statistic's mean against its degrees of freedom (2), and each test's rejection rates."""
+    stat = np.array([t["statistic_rolling"] for t in trials])
+    row = {"source": "null", "sigma": sigma, "reps": len(trials),
+           "rolling_mean": float(stat.mean()), "rolling_mean_se": float(stat.std(ddof=1) / np.sqrt(len(stat))),
+           "broad_mean": float(np.mean([t["statistic"] for t in trials])),
+           "nonlinearity_rolling_max": float(max(t["nonlinearity_rolling"] for t in trials)),
+           "cpu_seconds": float(sum(t["cpu"] for t in trials))}
+    for level in (0.1, 0.05, 0.01):
+        for key in ("log10_p_rolling", "log10_p_broad", "log10_p"):
+            row[f"{key}<{level:g}"] = float(np.mean([t[key] < np.log10(level) for t in trials]))
+    row["flag_rate"] = float(np.mean([t["flagged"] for t in trials]))
+    return row
+
+
 def summarise(source, sigma, trials, n_frames: int = N_FRAMES) -> dict:
     """Bias, sd, coverage of x and y; flag rates."""
+    if source == "null":
+        return summarise_null(sigma, trials)
     row = {"source": source, "sigma": sigma, "reps": len(trials),
            "flag_rate": float(np.mean([t["flagged"] for t in trials])),
            "significant_rate": float(np.mean([t["significant"] for t in trials])),
            "significant_before_rate": float(np.mean([t["significant_before"] for t in trials])),
            "tested_rate": float(np.mean([t["tested"] for t in trials])),
            "cpu_seconds": float(sum(t["cpu"] for t in trials))}
+    row["broad_flag_rate"] = float(np.mean([t["broad_flagged"] for t in trials]))
+    row["rolling_significant_rate"] = float(np.mean([t["rolling_significant"] for t in trials]))
     if source == "case-a":
         return row
     if source in ("gait2354", "polynomial"):
-        row["misfit_rss0"], row["flag_bound"] = flag_bound(source, sigma, n_frames)
+        row["misfit_rss0_one_motion"], row["flag_bound_one_motion"] = flag_bound(source, sigma, n_frames)
+        row["misfit_rss0"] = float(np.mean([t["rss0"] for t in trials]))
+        row["flag_bound"] = float(np.mean([t["np_power"] for t in trials]))
     row["legacy_flag_rate"] = float(np.mean([t["legacy_flagged"] for t in trials]))
     fits = ["hinge", "coupled", "moving", "relaxed", "estimator"]
     for name in fits:
@@ -298,11 +356,12 @@ def summarise(source, sigma, trials, n_frames: int = N_FRAMES) -> dict:
             row[name]["flag_rate"] = float(np.mean([o["flagged"] for o in ok]))
             row[name]["misfit_widening"] = True  # the estimator widens a flagged joint's interval itself
     if "relaxed" in trials[0]:  # after: the hull of hinge and relaxed refit's intervals where flagged
-        lo = np.array([np.minimum(t["hinge"]["lo"][:2], t["relaxed"]["lo"]) if t["flagged"] else t["hinge"]["lo"][:2]
-                       for t in trials])
-        hi = np.array([np.maximum(t["hinge"]["hi"][:2], t["relaxed"]["hi"]) if t["flagged"] else t["hinge"]["hi"][:2]
-                       for t in trials])
-        row["after"] = {"coverage": ((lo <= 0) & (0 <= hi)).mean(axis=0).round(3).tolist(),
+        for key, flag in (("after", "flagged"), ("after_broad", "broad_flagged")):
+            lo = np.array([np.minimum(t["hinge"]["lo"][:2], t["relaxed"]["lo"]) if t[flag] else t["hinge"]["lo"][:2]
+                           for t in trials])
+            hi = np.array([np.maximum(t["hinge"]["hi"][:2], t["relaxed"]["hi"]) if t[flag] else t["hinge"]["hi"][:2]
+                           for t in trials])
+            row[key] = {"coverage": ((lo <= 0) & (0 <= hi)).mean(axis=0).round(3).tolist(),
                         "half_width": ((hi - lo) / 2).mean(axis=0).round(3).tolist()}
         row["before"] = {"coverage": row["hinge"]["coverage"], "half_width": row["hinge"]["half_width"]}
     return row
@@ -319,16 +378,21 @@ def write(rows, meta):
              *([f"**Reduced run: some cells have only {meta['reps']} trials (see the reps columns; the study "
                 "needs 100).**", ""] if meta["reps"] < 100 else []),
              f"Trials of {meta['frames']} frames; truth: knee centre at zero flexion (0, 0) mm; "
-             "figures are x / y (mm). `before`: the hinge's interval (and the old misfit test's flag rate); `after`: "
-             "the hull of the hinge's and the relaxed refit's intervals where the test flags the knee (the marker "
-             "estimator's rule); `moving`: the moving-centre variant (cubic path) with flat priors; `relaxed`: "
+             "figures are x / y (mm). `before`: the hinge's interval (and the first misfit test's flag rate); "
+             "`broad`: the broad misfit test alone (9 degrees of freedom at level 0.01, the test before the "
+             "rolling-path test) and the estimator's rule with its flag; `after`: "
+             "the hull of the hinge's and the relaxed refit's intervals where the test (broad and rolling-path tests, "
+             "level split 0.2 / 0.8) flags the knee (the marker estimator's rule); `rolling`: the rolling-path "
+             "test alone at level 0.008 (significance); `moving`: the moving-centre variant (cubic path) with flat "
+             "priors; `relaxed`: "
              "the same with the gains' priors (sd 10 mm/rad^k); `coupled`: the source model's own knee with an "
              "unknown centre; `flag bound`: the most any test at level 0.01 can flag (Neyman-Pearson against the "
-             "nearest hinge, noise known; see the script).", "",
-             "| source | sigma | reps | flag bound | flag before | flag after | hinge bias | hinge sd | cover before | "
-             "cover after | half-width after | coupled bias | coupled cover | moving bias | moving sd | moving cover | "
+             "nearest hinge, noise known, averaged over the trials' own motions; see the script).", "",
+             "| source | sigma | reps | flag bound | flag before | flag broad | rolling | flag after | hinge bias | "
+             "hinge sd | cover before | cover broad | cover after | half-width after | coupled bias | coupled cover | "
+             "moving bias | moving sd | moving cover | "
              "relaxed bias | relaxed half-width | relaxed cover |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "hinge" not in r or "coupled" not in r:
             continue
@@ -336,10 +400,14 @@ def write(rows, meta):
         rel_txt = (f"{fmt(rel['bias'])} | {fmt(rel['half_width'])} | {fmt(rel['coverage'])}" if rel
                    else "- | - | -")
         bound = f"{r['flag_bound']:.2f}" if "flag_bound" in r else "-"
+        broad = (f"{r['broad_flag_rate']:.2f} | {r['rolling_significant_rate']:.2f}" if "broad_flag_rate" in r
+                 else "- | -")
+        cover_broad = fmt(r["after_broad"]["coverage"]) if "after_broad" in r else "-"
         lines.append(f"| {r['source']} | {r['sigma']:g} | {r['reps']} | {bound} | {r['legacy_flag_rate']:.2f} | "
-                     f"{r['flag_rate']:.2f} | "
+                     f"{broad} | {r['flag_rate']:.2f} | "
                      f"{fmt(r['hinge']['bias'])} | {fmt(r['hinge']['sd'])} | {fmt(r['before']['coverage'])} | "
-                     f"{fmt(r['after']['coverage'])} | {fmt(r['after']['half_width'])} | {fmt(r['coupled']['bias'])} | "
+                     f"{cover_broad} | {fmt(r['after']['coverage'])} | {fmt(r['after']['half_width'])} | "
+                     f"{fmt(r['coupled']['bias'])} | "
                      f"{fmt(r['coupled']['coverage'])} | {fmt(r['moving']['bias'])} | {fmt(r['moving']['sd'])} | "
                      f"{fmt(r['moving']['coverage'])} | {rel_txt} |")
     lines += ["", "Notes. The centre at zero flexion of a knee whose centre follows a free path is not identified "
@@ -355,15 +423,33 @@ def write(rows, meta):
               "labelled 0.62 of the gait2354 sigma-1 trials soft tissue although every one was significant.",
               "", "False alarms on correctly specified models, pure Gaussian noise (`significant`: the test alone; "
               "`before`: without its linearisation check; `tested`: share of joints the check lets through; "
-              "`flagged`: labelled model misfit; nominal family-wise level 0.01):", "",
-              "| model | sigma | reps | significant before | significant | tested | flagged | hinge cover |",
-              "|---|---|---|---|---|---|---|---|"]
+              "`rolling`: the rolling-path test alone, level 0.008 per joint; `flagged broad`: the broad test alone at "
+              "0.01, as before the rolling-path test; `flagged`: labelled model misfit; nominal family-wise level "
+              "0.01):", "",
+              "| model | sigma | reps | significant before | significant | tested | rolling | flagged broad | "
+              "flagged | hinge cover |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r["source"] in ("hinge", "case-a"):
             cover = fmt(r["hinge"]["coverage"]) if "hinge" in r else "-"
             before, tested = r.get("significant_before_rate", np.nan), r.get("tested_rate", np.nan)
+            roll, broad = r.get("rolling_significant_rate", np.nan), r.get("broad_flag_rate", np.nan)
             lines.append(f"| {r['source']} | {r['sigma']:g} | {r['reps']} | {before:.3f} | "
-                         f"{r['significant_rate']:.3f} | {tested:.2f} | {r['flag_rate']:.3f} | {cover} |")
+                         f"{r['significant_rate']:.3f} | {tested:.2f} | {roll:.3f} | {broad:.3f} | "
+                         f"{r['flag_rate']:.3f} | {cover} |")
+    null_rows = [r for r in rows if r["source"] == "null"]
+    if null_rows:
+        lines += ["", "Null distribution of the misfit tests on the hinge's own markers (more trials, test only; "
+                  "`rolling mean`: the rolling-path statistic's mean, chi^2 on 2 degrees of freedom: 2; rates: share "
+                  "of trials with p below the level, for the rolling test, the broad test and the joint's Bonferroni "
+                  "p-value that the flag uses):", "",
+                  "| sigma | reps | rolling mean | broad mean (9) | rolling 0.1 / 0.05 / 0.01 | "
+                  "broad 0.1 / 0.05 / 0.01 | joint 0.1 / 0.05 / 0.01 | flagged |", "|---|---|---|---|---|---|---|---|"]
+        for r in null_rows:
+            rates = [" / ".join(f"{r[f'{k}<{lv:g}']:.3f}" for lv in (0.1, 0.05, 0.01))
+                     for k in ("log10_p_rolling", "log10_p_broad", "log10_p")]
+            lines.append(f"| {r['sigma']:g} | {r['reps']} | {r['rolling_mean']:.2f} +- {r['rolling_mean_se']:.2f} | "
+                         f"{r['broad_mean']:.2f} | {rates[0]} | {rates[1]} | {rates[2]} | {r['flag_rate']:.3f} |")
     est_rows = [r for r in rows if "estimator" in r]
     if est_rows:
         lines += ["", "Full `MarkerEstimator` on the hinge (the default path; `widening`: whether the estimator "
@@ -401,7 +487,7 @@ def merge(rows, run, replace: bool = False):
             if key in stored and "estimator" in stored[key] and "estimator" not in r:
                 r = dict(r, estimator=stored[key]["estimator"])  # the last look at the full estimator stays
             stored[key] = r
-    order = ["gait2354", "polynomial", "hinge", "case-a"]
+    order = ["gait2354", "polynomial", "hinge", "case-a", "null"]
     merged = sorted(stored.values(), key=lambda r: (order.index(r["source"]) if r["source"] in order else 9,
                                                      r["sigma"]))
     runs = old["meta"].get("runs") or ([old["meta"]] if old["meta"] else [])
@@ -417,6 +503,8 @@ def main():
     ap.add_argument("--sources", nargs="+", default=["gait2354", "polynomial", "hinge", "case-a"])
     ap.add_argument("--estimator", type=int, default=0, metavar="N",
                     help="also fit the hinge with the full MarkerEstimator on the first N trials of each cell")
+    ap.add_argument("--null-reps", type=int, default=400,
+                    help="trials per noise level of the source 'null' (the misfit tests' null distribution)")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--replace", action="store_true",
                     help="replace the stored rows of the cells run even when they had more trials (a reduced run)")
@@ -424,7 +512,7 @@ def main():
     wall0, cpu0 = time.perf_counter(), time.process_time()
     tasks = [(src, s, rep, args.frames, rep < args.estimator)
              for src in args.sources for s in (args.sigmas if src != "case-a" else CASE_A_SIGMAS)
-             for rep in range(args.reps)]
+             for rep in range(args.reps if src != "null" else args.null_reps)]
     if args.jobs > 1:
         from concurrent.futures import ProcessPoolExecutor
 
@@ -438,6 +526,7 @@ def main():
             rows.append(summarise(src, s, [r for t, r in zip(tasks, results, strict=True)
                                            if t[0] == src and t[1] == s], args.frames))
     run = {"sources": args.sources, "reps": args.reps, "frames": args.frames,
+           **({"null_reps": args.null_reps} if "null" in args.sources else {}),
            "cpu_seconds": sum(r["cpu"] for r in results), "cpu_seconds_main": time.process_time() - cpu0,
            "wall_seconds": time.perf_counter() - wall0, "load_average": [round(v, 2) for v in os.getloadavg()]}
     rows, meta = merge(rows, run, args.replace)

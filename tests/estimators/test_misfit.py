@@ -459,3 +459,42 @@ def test_an_osim_knee_keeps_its_coupled_translations(shared_data):
     x0, y0 = (float(m.function.value(0.0)) for m in shifts)
     x90, y90 = (float(m.function.value(-np.pi / 2)) for m in shifts)
     assert 5.0 < x90 - x0 < 15.0 and -20.0 < y90 - y0 < -10.0  # mm: the centre slides by about 13 mm
+
+
+def test_rolling_test_equals_the_drop_in_residual_sum_of_squares_of_the_linearised_fit():
+    """Reference: the score statistic is the drop in RSS when the path's columns join the per-frame pose and
+    parameter columns in one least-squares regression of the residuals (sigma = 1; Frisch-Waugh)."""
+    from scipy.linalg import block_diag
+
+    from skelid.estimators.checks import _projection_terms, _rolling_designs, rolling_test
+    from skelid.estimators.likelihood import frame_terms
+    from skelid.model.kinematics import forward_kinematics
+
+    model = _knee_model()
+    y, q = _coupled_trial(9, 2.0, n=30)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50)
+    rt, Jq, Hinv, Jt = _projection_terms(model, fit.theta, fit.pose, y)
+    At = Jt - np.einsum("tkq,tqp,tpa->tka", Jq, Hinv, np.einsum("tkq,tka->tqa", Jq, Jt))
+    S_pinv = np.linalg.pinv(np.einsum("tka,tkc->ac", At, At))
+    G = _rolling_designs(model, forward_kinematics(model, fit.theta, fit.pose), fit.theta, fit.pose,
+                         np.ones(y.shape[:2], bool))[1]
+    stat, dof, _, _ = rolling_test(G, rt, Jq, Hinv, At, S_pinv, 1.0, 1000)
+    r = frame_terms(model, fit.theta, fit.pose, y)[0].reshape(-1)
+    X0 = np.hstack([block_diag(*Jq), Jt.reshape(-1, model.n_params)])
+    X1 = np.hstack([X0, G.reshape(-1, G.shape[-1])])
+    rss = [np.sum((r - X @ np.linalg.lstsq(X, r, rcond=None)[0]) ** 2) for X in (X0, X1)]
+    assert dof == 2  # the path's component along the hinge axis is zero
+    assert np.isclose(stat, rss[0] - rss[1], rtol=1e-6)
+
+
+def test_rolling_test_carries_the_whole_misfit_of_a_quadratic_centre_path():
+    """Noise-free data from a centre sliding by 10 (q^2/2, q/2) mm, sigma stated as 1: the rolling test's
+    statistic (2 degrees of freedom) is the hinge's whole residual sum of squares, the most any test can see;
+    the broad test sees no more of it on 9 degrees of freedom."""
+    model = _knee_model()
+    y, q = _coupled_trial(5, 0.0, n=200)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=100)
+    res = model_misfit(model, y, fit.theta, fit.pose, fit.frames_used, 1.0)["knee"]
+    assert res["dof_rolling"] == 2 and res["rolling_tested"] and res["flagged"]
+    assert 0.98 * fit.rss < res["statistic_rolling"] <= 1.0001 * fit.rss, (res, fit.rss)
+    assert res["dof"] == 9 and res["statistic"] <= 1.0001 * fit.rss, res
