@@ -9,6 +9,7 @@ from skelid.estimators.singular import (
     _N_CUTOFFS,
     POSE_SENSITIVE,
     branch_joints,
+    branch_settled,
     branch_side,
     deconvolve_poses,
     expansion_consistent,
@@ -211,11 +212,14 @@ def test_the_mirrored_angle_reflects_the_child_marker_across_the_line_through_th
         np.testing.assert_allclose(branch_side(model, theta, on_line, joint), 0.0, atol=1e-9)
 
 
-def test_a_stretch_of_frames_on_the_mirrored_branch_is_found_and_refitted():
-    # near the folded elbow, 27 frames of this trial settle on the mirrored branch of the wrist (a local
-    # minimum of the motion-model fit); the fit must reach the minimum a fit from the true poses reaches
+@pytest.mark.parametrize("seed", [20, 22])
+def test_a_stretch_of_frames_on_the_mirrored_branch_is_found_and_refitted(seed):
+    # near the folded elbow, 27 frames of trial 20 settle on the mirrored branch of the wrist, and in trial
+    # 22 16 frames of the elbow's and 20 of the wrist's together (a local minimum of the motion-model fit
+    # that mirroring either joint alone does not leave); the fit must reach the minimum a fit from the
+    # true poses reaches
     model = builtin_model("case-a")
-    trial = simulate_posture(model, [250.0], 500, 5.0, (150.0, 172.0), np.random.default_rng([0, 5, 250, 3, 20]))
+    trial = simulate_posture(model, [250.0], 500, 5.0, (150.0, 172.0), np.random.default_rng([0, 5, 250, 3, seed]))
     est = MarkerEstimator(model).fit(trial.data)
     fit = est.fit_info_
     ref = joint_fit(model, est.y_, fit.theta, trial.pose, rate=trial.data.rate, penalty=fit.penalty)
@@ -246,17 +250,22 @@ def test_a_second_order_correction_above_half_an_sd_widens_the_interval_by_its_s
     assert wide.cov_[0, 0] > plain.cov_[0, 0]
 
 
-def test_only_a_stretch_on_the_minority_branch_is_mirrored_back():
+def test_the_minority_branch_of_every_joint_is_mirrored_back_at_once():
     model = builtin_model("case-a")
     trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
     theta, q, y = trial.theta, trial.pose, trial.clean
-    joint = branch_joints(model)[1]
+    joints = branch_joints(model)
     used = np.ones(len(q), dtype=bool)
-    for n, back in ((5, True), (30, False)):  # 5 % of the frames: a stretch; 30 %: not one
-        wrong = q.copy()
-        wrong[40:40 + n, joint.dof] -= 2 * branch_side(model, theta, q, joint)[40:40 + n]
-        start = mirrored_start(model, theta, wrong, y, joint, used)
-        if back:  # noise-free markers: the mirrored stretch returns to the true poses exactly
-            np.testing.assert_allclose(start, q, atol=1e-6)
-        else:
-            assert start is None
+    assert branch_settled(model, theta, q, joints, used)
+    assert mirrored_start(model, theta, q, y, joints, used) is None
+    wrong = q.copy()
+    for joint, frames in zip(joints, (slice(60, 90), slice(40, 45)), strict=True):  # 30 % and 5 % of the frames
+        wrong[frames, joint.dof] -= 2 * branch_side(model, theta, q, joint)[frames]
+    assert not branch_settled(model, theta, wrong, joints, used)
+    assert branch_settled(model, theta, wrong, joints, used & (np.arange(len(q)) < 40))  # unused frames do not count
+    start = mirrored_start(model, theta, wrong, y, joints, used)
+    np.testing.assert_allclose(start, q, atol=1e-6)  # noise-free markers: back to the true poses exactly
+    # one joint alone: only its frames change
+    start = mirrored_start(model, theta, wrong, y, joints[1], used)
+    np.testing.assert_allclose(start[:, joints[1].dof], np.where(np.arange(len(q)) < 60, q[:, joints[1].dof],
+                                                                  wrong[:, joints[1].dof]), atol=1e-6)

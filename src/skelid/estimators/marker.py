@@ -94,6 +94,7 @@ from skelid.estimators.singular import (
     POSE_SENSITIVE,
     SECOND_ORDER_SPREAD,
     branch_joints,
+    branch_settled,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
@@ -694,24 +695,26 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
                  ws: Workspace | None = None) -> Weights:
     """Frames on a joint's mirrored branch (:func:`skelid.estimators.singular.branch_joints`) refitted.
 
-    For each joint whose centre two marker distances fix, the frames on the side of its singular
-    pose that fewer frames take are mirrored and the motion-model fit is repeated from there
-    (:func:`skelid.estimators.singular.mirrored_start`); the refit is kept when it converged to a
-    lower penalised cost (the first fit sat in a local minimum). A model without such joints
-    costs nothing.
+    For the joints whose centre two marker distances fix, the frames on the side of each one's
+    singular pose that fewer frames take are mirrored, every joint at once, and the motion-model
+    fit is repeated from there (:func:`skelid.estimators.singular.mirrored_start`); the refit is
+    kept when it converged to a lower penalised cost (the first fit sat in a local minimum) and
+    keeps to one branch at every such joint (:func:`skelid.estimators.singular.branch_settled`).
+    A model without such joints, or a fit with every frame on one branch, costs nothing.
     """
     fit = wt.fit
-    if fit.penalty is None:
+    joints = branch_joints(model)
+    if fit.penalty is None or not joints:
         return wt
-    for joint in branch_joints(model):
-        start = mirrored_start(model, fit.theta, fit.pose, sc.y, joint, fit.frames_used, ws)
-        if start is None:
-            continue
-        new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                        penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
-        if new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9):
-            fit = new
-    return wt._replace(fit=fit)
+    start = mirrored_start(model, fit.theta, fit.pose, sc.y, joints, fit.frames_used, ws)
+    if start is None:
+        return wt
+    new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                    penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
+    if (new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9)
+            and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws)):
+        return wt._replace(fit=new)
+    return wt
 
 
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):

@@ -70,11 +70,16 @@ markers almost equally; only the motion model tells them apart, and a stretch of
 on the mirrored branch in a local minimum of the joint fit (case A, sigma 5 mm, near-folded: 27
 frames of one trial, an error of 3 sd; a fit from the true poses reaches a penalised cost lower by
 about 140 sigma^2). The signed angle ``psi`` of :func:`branch_side` tells each frame's branch; the
-frames on the side fewer frames take are mirrored (``q_k - 2 psi``, then a per-frame pose fit)
-and the joint fit repeated from there (:func:`mirrored_start`); the refit is kept when its
-penalised cost is lower. Only a stretch is mirrored (at most ``BRANCH_STRETCH`` of the frames):
-where the fit straddles the singular pose (near-straight, sigma 15 mm) the lower minima that
-mirroring finds lie tens of mm from the truth.
+frames on the side fewer frames take are mirrored (``q_k - 2 psi``, then a per-frame pose fit), at
+every such joint at once (two neighbouring joints' stretches sit on their wrong branches together,
+and mirroring one alone climbs back to the old minimum), and the joint fit repeated from there
+(:func:`mirrored_start`); the refit is kept when its penalised cost is lower and every frame
+of it keeps to one branch at every such joint (:func:`branch_settled`). Where the fit straddles
+the singular pose as far as the data tell (near-straight, sigma 15 mm: 12-48 % of the frames on
+the minority side before mirroring, 2-48 % after) the lower minima that mirroring finds lie tens
+of mm from the truth, and the refit is not kept. Near the folded pose (sigma 5 mm) such stretches
+held 3-20 % of a trial's frames, with errors up to 4 sd, and their refits settled on one branch at
+the minimum a fit from the true poses reaches, 13-240 sigma^2 lower.
 
 Example
 -------
@@ -111,11 +116,6 @@ SECOND_ORDER_SPREAD = 0.5
 #: draws of the second-order term (the relative Monte Carlo error of its variance is sqrt(2 / N_DRAWS))
 N_DRAWS = 64
 _DRAW_BLOCK = 4e6  # floats in one piece of the draws' products
-#: the most frames (share of those used) on a joint's minority branch that the branch check mirrors: a
-#: stretch on the wrong branch, not a motion that straddles the singular pose (near-straight, sigma 15 mm,
-#: case A: the fit's minority side held 12-46 % of the frames, and mirroring it found lower penalised
-#: costs tens of mm away from the truth; the stretches on the wrong branch near the folded pose held 2-5 %)
-BRANCH_STRETCH = 0.1
 
 
 class PoseCheck(NamedTuple):
@@ -465,21 +465,42 @@ def branch_side(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarr
     return ang - np.pi * np.round(ang / np.pi)
 
 
-def mirrored_start(model: Model, theta, q, y, joint: BranchJoint, used, ws=None):
-    """Poses with the joint's minority branch mirrored, or None when every used frame is on one side
-    or more than ``BRANCH_STRETCH`` of them are on the minority side.
+def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None):
+    """Frames (of those ``used``) on the side of the joint's singular pose that fewer frames take.
 
-    The frames (of those ``used``) on the side of the joint's singular pose that fewer frames
-    take get the mirrored angle ``q_k - 2 psi`` (:func:`branch_side`) and a per-frame pose fit at
-    ``theta`` from there; the other frames keep ``q``. A joint fit from these poses under the
-    same motion model tells whether that stretch sat on the wrong branch: its penalised cost is
-    then lower.
+    Returns
+    -------
+    flip : (T,) bool
+        Those frames (none when every used frame is on one side).
+    psi : (T,) float
+        :func:`branch_side`.
+    """
+    psi = branch_side(model, theta, q, joint, ws)
+    side = np.sign(psi)
+    used = np.asarray(used, bool) & (side != 0)
+    major = 1.0 if np.sum(side[used] > 0) >= np.sum(side[used] < 0) else -1.0
+    return used & (side != major), psi
+
+
+def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
+    """Poses with every joint's minority branch mirrored, or None when each joint's used frames are on one side.
+
+    For each of ``joints``, the frames (of those ``used``) on the side of its singular pose that
+    fewer frames take (:func:`minority_branch`) get the mirrored angle ``q_k - 2 psi``
+    (:func:`branch_side`); every frame so changed then gets a per-frame pose fit at ``theta``
+    from there; the other frames keep ``q``. All joints are mirrored at once: near a folded
+    chain the stretches of two neighbouring joints sit on their wrong branches together (the
+    marker between them pulls both), and a refit with one of them mirrored climbs back to the
+    old minimum (case A, sigma 5 mm, near-folded). A joint fit from these poses under the same
+    motion model tells whether the stretches sat on the wrong branch: its penalised cost is then
+    lower, and its poses keep to one branch (:func:`branch_settled`).
 
     Parameters
     ----------
     theta : (P,) float
     q : (T, Q) float
     y : (T, M, D) float
+    joints : BranchJoint or sequence of BranchJoint
     used : (T,) bool
 
     Returns
@@ -488,16 +509,29 @@ def mirrored_start(model: Model, theta, q, y, joint: BranchJoint, used, ws=None)
     """
     from skelid.estimators.pose import fit_pose
 
-    psi = branch_side(model, theta, q, joint, ws)
-    side = np.sign(psi)
-    used = np.asarray(used, bool) & (side != 0)
-    if not used.any():
-        return None
-    major = 1.0 if np.sum(side[used] > 0) >= np.sum(side[used] < 0) else -1.0
-    flip = used & (side != major)
-    if not flip.any() or flip.sum() > BRANCH_STRETCH * used.sum():
-        return None
+    joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
     start = np.array(q, float)
-    start[flip, joint.dof] -= 2.0 * psi[flip]
-    start[flip] = fit_pose(model, theta, y[flip], start[flip], ws=ws)[0]
+    changed = np.zeros(len(start), dtype=bool)
+    for joint in joints:
+        flip, psi = minority_branch(model, theta, q, joint, used, ws)
+        start[flip, joint.dof] -= 2.0 * psi[flip]
+        changed |= flip
+    if not changed.any():
+        return None
+    start[changed] = fit_pose(model, theta, y[changed], start[changed], ws=ws)[0]
     return start
+
+
+def branch_settled(model: Model, theta, q, joints, used, ws=None) -> bool:
+    """Whether every used frame is on one side of each joint's singular pose.
+
+    A refit from :func:`mirrored_start` that lowers the penalised cost and settles so is kept: the
+    mirrored frames were a stretch on the wrong branch (near the folded pose, case A, sigma 5 mm:
+    every refit that reached the minimum a fit from the true poses reaches left no frame on the
+    minority side). One that still leaves frames on both sides is a motion that straddles the
+    singular pose as far as the data tell, and a lower cost found by mirroring is no evidence of a
+    wrong branch (near-straight, sigma 15 mm: 12-48 % of the frames on the minority side before
+    mirroring, 2-48 % after, and lower costs found tens of mm from the truth); it is not kept.
+    """
+    joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
+    return not any(minority_branch(model, theta, q, j, used, ws)[0].any() for j in joints)
