@@ -269,3 +269,41 @@ def test_the_minority_branch_of_every_joint_is_mirrored_back_at_once():
     start = mirrored_start(model, theta, wrong, y, joints[1], used)
     np.testing.assert_allclose(start[:, joints[1].dof], np.where(np.arange(len(q)) < 60, q[:, joints[1].dof],
                                                                   wrong[:, joints[1].dof]), atol=1e-6)
+
+
+def test_the_sd_along_the_profile_matches_refitted_poses_at_the_interval_ends():
+    # without a motion model the profile poses at a fixed geometry are per-frame fits: the sd at the
+    # interval's ends from those must match the one from the poses' linear response
+    from skelid.estimators.pose import fit_pose
+    from skelid.estimators.singular import _schur, profile_sd_ratio
+
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 60, 5.0, (150.0, 172.0), np.random.default_rng(3))
+    y = trial.data.positions
+    fit = joint_fit(model, y, trial.theta, trial.pose)
+    sigma = 5.0
+    ratio = profile_sd_ratio(model, y, fit.theta, fit.pose, sigma)
+    from scipy import sparse
+
+    R = sparse.csr_matrix((fit.pose.size,) * 2)
+    S, _ = _schur(model, fit.theta, fit.pose, y, None, R)
+    sd = sigma / np.sqrt(S[0, 0])
+    ends = []
+    for sign in (-1.0, 1.0):
+        th = fit.theta + sign * 1.959964 * sd
+        q = fit_pose(model, th, y, fit.pose)[0]
+        S_end, _ = _schur(model, th, q, y, None, R)
+        ends.append(sigma / np.sqrt(S_end[0, 0]))
+    brute = max(1.0, max(ends) / sd)
+    assert ratio.shape == (1,) and ratio[0] >= 1.0
+    assert brute > 1.01  # near the folded pose the sd changes over the interval
+    assert ratio[0] - 1.0 == pytest.approx(brute - 1.0, rel=0.2)
+
+
+def test_the_profile_term_raises_each_variance_to_the_larger_end():
+    from skelid.estimators.singular import profile_covariance
+
+    plain = np.array([[4.0, 1.0], [1.0, 9.0]])
+    extra = profile_covariance([1.1, 0.9], plain)
+    np.testing.assert_allclose(np.diag(plain + extra), [4.0 * 1.21, 9.0])
+    assert np.all(np.linalg.eigvalsh(extra) >= 0.0)

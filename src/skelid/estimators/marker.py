@@ -92,6 +92,7 @@ from skelid.estimators.posterior import GaussianPosterior
 from skelid.estimators.singular import (
     N_DRAWS,
     POSE_SENSITIVE,
+    PROFILE_CHECK,
     SECOND_ORDER_SPREAD,
     branch_joints,
     branch_settled,
@@ -100,6 +101,8 @@ from skelid.estimators.singular import (
     indirect_bias,
     mirrored_start,
     pose_check,
+    profile_covariance,
+    profile_sd_ratio,
     quadratic_term_draws,
     second_order_covariance,
 )
@@ -608,6 +611,29 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     return Bias(np.zeros(model.n_params), method)
 
 
+def profile_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise, bias: Bias) -> Bias:
+    """The sd at the ends of the interval where it is larger than at the estimate (near a singular pose).
+
+    Where a bias correction above ``PROFILE_CHECK`` sd was found (the log-likelihood's third
+    derivatives are not small), the information is evaluated along each parameter's profile at
+    the interval's ends (:func:`skelid.estimators.singular.profile_sd_ratio`) and the variance
+    raised to the larger end's; elsewhere nothing is computed.
+    """
+    model, fit, w = est.model, wt.fit, wt.weights
+    if fit.info is None or not np.any(bias.bias):
+        return bias
+    plain = noise.sigma**2 * np.linalg.inv(fit.info)
+    if not np.any(np.abs(bias.bias) > PROFILE_CHECK * np.sqrt(np.clip(np.diag(plain), 0, None))):
+        return bias
+    y = sc.y
+    if fit.penalty is None:
+        ratio = profile_sd_ratio(model, y[used], fit.theta, fit.pose[used], noise.sigma, None, w)
+    else:
+        ratio = profile_sd_ratio(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
+                                 noise.sigma, fit.penalty, w)
+    return bias._replace(cov=bias.cov + profile_covariance(ratio, plain))
+
+
 def bootstrap_bias(est: MarkerEstimator, y, fit: JointFit, noise: Noise, st: Start, mo: Motion, rng):
     """Parametric bootstrap of the bias, and the covariance it adds to ``sigma^2 S^{-1}``.
 
@@ -1008,6 +1034,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound)
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
+    bias = profile_stage(est, sc, wt, fr.used, noise, bias)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
