@@ -307,3 +307,17 @@ def test_the_profile_term_raises_each_variance_to_the_larger_end():
     extra = profile_covariance([1.1, 0.9], plain)
     np.testing.assert_allclose(np.diag(plain + extra), [4.0 * 1.21, 9.0])
     assert np.all(np.linalg.eigvalsh(extra) >= 0.0)
+
+
+def test_a_motion_from_near_straight_to_near_folded_is_on_no_wrong_branch():
+    # psi changes sign where the joint passes 90 degrees from both singular poses: not a mirrored branch
+    from skelid.estimators.singular import minority_branch
+
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 100, 0.0, (20.0, 170.0), np.random.default_rng(6))
+    used = np.ones(100, dtype=bool)
+    elbow = branch_joints(model)[0]
+    psi = branch_side(model, trial.theta, trial.pose, elbow)
+    assert np.any(psi > 0) and np.any(psi < 0)
+    assert not minority_branch(model, trial.theta, trial.pose, elbow, used)[0].any()
+    assert branch_settled(model, trial.theta, trial.pose, branch_joints(model), used)

@@ -445,6 +445,12 @@ def branch_side(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarr
     it grows with the joint's coordinate. Its sign tells the branch; ``q_k - 2 psi`` is the
     joint's mirrored angle (the child's marker reflected across the line ``J a``).
     """
+    ang = _branch_angle(model, theta, q, joint, ws)
+    return ang - np.pi * np.round(ang / np.pi)
+
+
+def _branch_angle(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarray:
+    """Signed angle (T,) from the parent's to the child's marker about the joint, in (-pi, pi] (:func:`branch_side`)."""
     from skelid.model.kinematics import joint_positions, marker_jacobian
 
     q = np.asarray(q, float)
@@ -462,24 +468,34 @@ def branch_side(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarr
         u = u - n * np.sum(n * u, axis=-1, keepdims=True)
         v = v - n * np.sum(n * v, axis=-1, keepdims=True)
         ang = np.arctan2(np.sum(n * np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
-    return ang - np.pi * np.round(ang / np.pi)
+    return ang
 
 
 def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None):
-    """Frames (of those ``used``) on the side of the joint's singular pose that fewer frames take.
+    """Frames (of those ``used``) on the side of their nearest singular pose that fewer of its frames take.
+
+    The frames nearer the folded pose (the markers on one side of the joint) and those nearer the
+    straight pose are taken apart: a motion that swings from one to the other changes the sign of
+    ``psi`` where it passes 90 degrees from both, on no wrong branch.
 
     Returns
     -------
     flip : (T,) bool
-        Those frames (none when every used frame is on one side).
+        Those frames (none when the used frames near each singular pose are all on one side).
     psi : (T,) float
         :func:`branch_side`.
     """
-    psi = branch_side(model, theta, q, joint, ws)
+    ang = _branch_angle(model, theta, q, joint, ws)
+    psi = ang - np.pi * np.round(ang / np.pi)  # branch_side
     side = np.sign(psi)
     used = np.asarray(used, bool) & (side != 0)
-    major = 1.0 if np.sum(side[used] > 0) >= np.sum(side[used] < 0) else -1.0
-    return used & (side != major), psi
+    straight = np.abs(ang - psi) > np.pi / 2  # the nearest singular pose is the straight one
+    flip = np.zeros(len(psi), dtype=bool)
+    for near in (straight, ~straight):
+        u = used & near
+        major = 1.0 if np.sum(side[u] > 0) >= np.sum(side[u] < 0) else -1.0
+        flip |= u & (side != major)
+    return flip, psi
 
 
 def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
