@@ -321,3 +321,9 @@ def test_a_motion_from_near_straight_to_near_folded_is_on_no_wrong_branch():
     assert np.any(psi > 0) and np.any(psi < 0)
     assert not minority_branch(model, trial.theta, trial.pose, elbow, used)[0].any()
     assert branch_settled(model, trial.theta, trial.pose, branch_joints(model), used)
+    # a refit that swings frames across to the other singular pose is not the mirror of a stretch
+    before = trial.pose.copy()
+    near_straight = np.flatnonzero(psi > 0)[:5]
+    before[near_straight, elbow.dof] = np.radians(165.0)
+    assert branch_settled(model, trial.theta, trial.pose, branch_joints(model), used, before=(trial.theta, trial.pose))
+    assert not branch_settled(model, trial.theta, trial.pose, branch_joints(model), used, before=(trial.theta, before))

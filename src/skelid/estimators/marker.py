@@ -738,7 +738,7 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
     new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
                     penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
     if (new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9)
-            and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws)):
+            and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws, (fit.theta, fit.pose))):
         return wt._replace(fit=new)
     return wt
 

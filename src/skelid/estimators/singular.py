@@ -549,8 +549,8 @@ def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
     return start
 
 
-def branch_settled(model: Model, theta, q, joints, used, ws=None) -> bool:
-    """Whether every used frame is on one side of each joint's singular pose.
+def branch_settled(model: Model, theta, q, joints, used, ws=None, before=None) -> bool:
+    """Whether every used frame is on one side of its nearest singular pose, at each joint.
 
     A refit from :func:`mirrored_start` that lowers the penalised cost and settles so is kept: the
     mirrored frames were a stretch on the wrong branch (near the folded pose, case A, sigma 5 mm:
@@ -559,9 +559,31 @@ def branch_settled(model: Model, theta, q, joints, used, ws=None) -> bool:
     singular pose as far as the data tell, and a lower cost found by mirroring is no evidence of a
     wrong branch (near-straight, sigma 15 mm: 12-48 % of the frames on the minority side before
     mirroring, 2-48 % after, and lower costs found tens of mm from the truth); it is not kept.
+
+    Parameters
+    ----------
+    before : (theta (P,), q (T, Q)), optional
+        The fit before mirroring: then every used frame must also stay nearest the same singular
+        pose as there (a mirrored stretch does not swing frames across to the other singular pose;
+        near-straight, sigma 15 mm, a refit that swung 11 frames of the wrist 90 degrees, to the
+        folded side, settled 47 mm from the truth).
     """
     joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
-    return not any(minority_branch(model, theta, q, j, used, ws)[0].any() for j in joints)
+    used = np.asarray(used, bool)
+    for j in joints:
+        if minority_branch(model, theta, q, j, used, ws)[0].any():
+            return False
+        if before is not None:
+            now, was = (_nearest_straight(model, th, qq, j, ws) for th, qq in ((theta, q), before))
+            if np.any((now != was) & used):
+                return False
+    return True
+
+
+def _nearest_straight(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarray:
+    """(T,) bool: the joint's nearest singular pose is the straight one (else the folded one)."""
+    ang = _branch_angle(model, theta, q, joint, ws)
+    return np.abs(ang - np.pi * np.round(ang / np.pi)) < np.abs(ang) - 1e-12
 
 
 #: a kept second-order correction above this many sd has the sd evaluated along the profile as well
