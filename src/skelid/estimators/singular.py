@@ -110,6 +110,7 @@ import numpy as np
 
 from skelid.estimators.bootstrap import Draws, as_draws, draws_bias, draws_covariance, draws_mc_covariance
 from skelid.estimators.likelihood import efficient_information, frame_terms
+from skelid.estimators.normal import eliminate_poses, solve_normal
 from skelid.model.description import Model
 
 #: relative change of the information about a parameter, between the fitted and the deconvolved
@@ -348,10 +349,7 @@ def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weigh
     (n_draws, P) float
         ``theta`` part of ``delta_2`` for each draw.
     """
-    from scipy import sparse
-
-    from skelid.estimators.joint import _banded_solver, row_weights, weighted_terms
-    from skelid.estimators.likelihood import pose_information
+    from skelid.estimators.joint import row_weights, weighted_terms
     from skelid.model.kinematics import Workspace, stacked_jacobian
 
     rng = np.random.default_rng() if rng is None else rng
@@ -365,23 +363,10 @@ def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weigh
     m = Jq.shape[1]
     mask = np.repeat(np.isfinite(y).all(axis=-1), model.dim, axis=1).astype(float)  # (T, m)
     wmask = mask if sw is None else mask * sw
-    Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
-    R = sparse.csr_matrix((T * Q, T * Q)) if R is None else R
-    solve = _banded_solver(Hqq, R)
-    G = solve(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
-    S = Htt - np.einsum("tip,tiq->pq", Hqt, G)
-    S_inv = np.linalg.inv(0.5 * (S + S.T))
-
-    def solve_normal(g_t, g_q):  # (K, P), (K, T, Q) -> C g: (K, P), (K, T, Q)
-        K = len(g_t)
-        u = solve(g_q.reshape(K, T * Q).T).T.reshape(K, T, Q)
-        d_t = (g_t - np.einsum("tqp,ktq->kp", G, g_q)) @ S_inv  # S_inv symmetric
-        return d_t, u - np.einsum("tqp,kp->ktq", G, d_t)
+    el = eliminate_poses(Jq, Jt, R)
 
     eps = rng.standard_normal((n_draws, T, m)) * mask * np.sqrt(sigma2)  # (K, T, m) weighted rows
-    d_t, d_q = solve_normal(np.einsum("tip,kti->kp", Jt, eps), np.einsum("tiq,kti->ktq", Jq, eps))
+    d_t, d_q = solve_normal(el, np.einsum("tip,kti->kp", Jt, eps), np.einsum("tiq,kti->ktq", Jq, eps))
     eye = np.eye(P + Q)
     step = 1e-4
     w = np.empty((n_draws, T, P + Q))
@@ -404,7 +389,7 @@ def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weigh
         Hd = np.einsum("tjil,ktl->ktij", DJ, delta)  # (K, n, m, P+Q): nabla^2 f_i delta
         h = np.einsum("ktij,ktj->kti", Hd, delta)  # (K, n, m)
         w[:, sl] = -0.5 * np.einsum("tij,kti->ktj", Jfull, h) + np.einsum("ktij,kti->ktj", Hd, r1)
-    return solve_normal(w[..., :P].sum(axis=1), w[..., P:])[0]
+    return solve_normal(el, w[..., :P].sum(axis=1), w[..., P:])[0]
 
 
 def second_order_covariance(draws) -> np.ndarray:
@@ -597,16 +582,11 @@ PROFILE_Z = 1.959964
 
 def _schur(model: Model, theta, q, y, sw, R, ws=None):
     """``S`` (P, P), the information about ``theta`` with the poses eliminated, and ``G`` (T, Q, P)."""
-    from skelid.estimators.joint import _banded_solver, weighted_terms
-    from skelid.estimators.likelihood import pose_information
+    from skelid.estimators.joint import weighted_terms
 
     _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
-    T, Q = q.shape
-    P = len(theta)
-    Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    G = _banded_solver(Hqq, R)(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
-    return np.einsum("tkp,tkq->pq", Jt, Jt) - np.einsum("tip,tiq->pq", Hqt, G), G
+    el = eliminate_poses(Jq, Jt, R)
+    return el.S, el.G
 
 
 def profile_sd_ratio(model: Model, y, theta, q, sigma: float, R=None, weights=None, z: float = PROFILE_Z,
@@ -644,16 +624,12 @@ def profile_sd_ratio(model: Model, y, theta, q, sigma: float, R=None, weights=No
     -------
     (P,) float
     """
-    from scipy import sparse
-
     from skelid.estimators.joint import row_weights
 
     y = np.asarray(y, float)
     theta = np.asarray(theta, float)
     q = np.asarray(q, float)
-    T, Q = q.shape
     sw = row_weights(weights, y)
-    R = sparse.csr_matrix((T * Q, T * Q)) if R is None else R
     S, G = _schur(model, theta, q, y, sw, R, ws)
     C = np.linalg.inv(0.5 * (S + S.T))
     sd = sigma * np.sqrt(np.diag(C))
