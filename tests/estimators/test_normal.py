@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 from scipy import sparse
+
 from skelid.estimators.normal import eliminate_poses, solve_normal
 
 
