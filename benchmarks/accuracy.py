@@ -271,9 +271,12 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                     "settles every frame on one branch (was: one joint at a time, at most 10 % of the frames); "
                     "where a kept bias correction exceeds 0.25 sd, the sd is evaluated at the interval's ends along "
                     "the parameter's profile and the variance raised to the larger end's "
-                    "(:func:`skelid.estimators.singular.profile_sd_ratio`)"}
+                    "(:func:`skelid.estimators.singular.profile_sd_ratio`)",
+         "folded6b": "as `folded6`, and when the refit of every joint at once is not kept, the earlier rule is "
+                     "tried (one joint at a time whose minority side holds at most 10 % of the frames, kept at a "
+                     "lower penalised cost)"}
 #: the tag each later tag is compared with (default ``deconvolved``)
-BEFORE = {"folded6": "stretch"}
+BEFORE = {"folded6": "stretch", "folded6b": "stretch"}
 
 
 def _write_later(fh, rows):
@@ -306,7 +309,7 @@ def _write_later(fh, rows):
 def _write(rows):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
     tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5,
-            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "folded6": 11}
+            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "folded6": 11, "folded6b": 12}
     rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
                                        order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -341,7 +344,7 @@ def _write(rows):
                  "that check and the second-order term's spread in the interval, `stretch` = both, the check "
                  "limited to short stretches, `folded6` = every joint's stretches mirrored at once and kept when the "
                  "refit settles on one branch, and the sd taken at the interval's ends along the profile where "
-                 "that is larger. "
+                 "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule. "
                  "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}
