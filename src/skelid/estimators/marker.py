@@ -729,7 +729,7 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
     keeps to one branch at every such joint (:func:`skelid.estimators.singular.branch_settled`).
     When it is not kept, the earlier rule is tried: one joint at a time whose minority side holds at
     most ``BRANCH_STRETCH`` of the frames, each refit kept at a lower penalised cost (near-straight,
-    sigma 15 mm, no refit of every joint at once settles, and these keep the rmse at its earlier level).
+    sigma 15 mm, no refit of every joint at once settles; this keeps a refit in 1 trial of 100).
     A model without such joints, or a fit with every frame on one branch, costs nothing.
     """
     fit = wt.fit
