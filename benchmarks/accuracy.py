@@ -358,7 +358,18 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                    "straight pose at sigma 15 mm the check mirrored 12-46 % of a trial's frames and kept minima "
                    "tens of mm from the truth, rmse 6.4 crlb)",
          "stretch": "as `spread`, the branch check limited to a joint whose minority side holds at most 10 % of "
-                    "the frames (a stretch on the wrong branch, not a motion that straddles the singular pose)"}
+                    "the frames (a stretch on the wrong branch, not a motion that straddles the singular pose)",
+         "folded6": "the branch check mirrors every joint's minority side at once (frames compared with those "
+                    "near the same singular pose) and keeps the refit at a lower penalised cost only when it "
+                    "settles every frame on one branch (was: one joint at a time, at most 10 % of the frames); "
+                    "where a kept bias correction exceeds 0.25 sd, the sd is evaluated at the interval's ends along "
+                    "the parameter's profile and the variance raised to the larger end's "
+                    "(:func:`skelid.estimators.singular.profile_sd_ratio`)",
+         "folded6b": "as `folded6`, and when the refit of every joint at once is not kept, the earlier rule is "
+                     "tried (one joint at a time whose minority side holds at most 10 % of the frames, kept at a "
+                     "lower penalised cost)"}
+#: the tag each later tag is compared with (default ``deconvolved``)
+BEFORE = {"folded6": "stretch", "folded6b": "stretch"}
 
 
 def _write_cv(fh, rows):
@@ -392,19 +403,22 @@ def _write_cv(fh, rows):
 def _write_later(fh, rows):
     """Each cell of the tags in ``LATER`` beside the same cell of tag ``deconvolved``."""
     for tag, what in LATER.items():
+        before = BEFORE.get(tag, "deconvolved")
         cells = {}
         for r in rows:
-            if r.get("tag") in ("deconvolved", tag) and r["method"] == "final":
+            if r.get("tag") in (before, tag) and r["method"] == "final":
                 cells.setdefault((r["case"], r["sigma"], r["truth"], r["noise"], r["method"]), {})[r["tag"]] = r
         cells = {k: v for k, v in cells.items() if len(v) == 2}
         if not cells:
             continue
-        fh.write(f"## Before and after: tag `{tag}`\n\nBefore: tag `deconvolved` (a correction above 1.5 sd is "
-                 f"sent to the bootstrap); after: {what}. `cov se`: Monte Carlo standard error of the coverage "
-                 "after, sqrt(p (1 - p) / n). Targets: coverage 0.93-0.97, |bias| <= 0.2 crlb, rmse <= 1.1 crlb."
+        was = ("tag `deconvolved` (a correction above 1.5 sd is sent to the bootstrap)" if before == "deconvolved"
+               else f"tag `{before}`")
+        fh.write(f"## Before and after: tag `{tag}`\n\nBefore: {was}; after: {what}. `cov se`: Monte Carlo "
+                 "standard error of the coverage after, sqrt(p (1 - p) / n). Targets: coverage 0.93-0.97, "
+                 "|bias| <= 0.2 crlb, rmse <= 1.1 crlb."
                  "\n\n" + PAIR_HEAD.split("\n")[0] + " cov se | fallback | CPU s/trial |\n|" + "---|" * 13 + "\n")
         for k, v in sorted(cells.items(), key=lambda kv: (kv[0][3] == "iid", kv[0])):
-            b, a = v["deconvolved"], v[tag]
+            b, a = v[before], v[tag]
             fb = [sum(n for m, n in r.get("bias_methods", {}).items() if m not in ("box", "none")) for r in (b, a)]
             cpu = [r.get("cpu_seconds", float("nan")) / max(r["reps"] + r.get("failed", 0), 1) for r in (b, a)]
             p, n = a["coverage95"], max(a["reps"], 1)
@@ -416,7 +430,8 @@ def _write_later(fh, rows):
 def _write(rows):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
     tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5,
-            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "control": 11}
+            "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "control": 11,
+            "folded6": 12, "folded6b": 13}
     rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
                                        order.get(r["method"], 99)))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -450,7 +465,10 @@ def _write(rows):
                  "(was 3; tried, not kept), `branch` = the check of a joint's mirrored pose branch, `spread` = "
                  "that check and the second-order term's spread in the interval, `stretch` = both, the check "
                  "limited to short stretches, `control` = the code as of `stretch` and later merges, each "
-                 "Gaussian-noise trial with its linear control variate (see the section on it). "
+                 "Gaussian-noise trial with its linear control variate (see the section on it), "
+                 "`folded6` = every joint's stretches mirrored at once and kept when the "
+                 "refit settles on one branch, and the sd taken at the interval's ends along the profile where "
+                 "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule. "
                  "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}

@@ -114,6 +114,7 @@ def test_the_bootstrap_that_stands_in_for_the_correction_also_widens_the_interva
     model = builtin_model("case-b")
     trial = simulate(model, n_frames=120, sigma=5.0, rng=np.random.default_rng(1))
     monkeypatch.setattr(marker_mod, "BIAS_RELIABLE", 0.0)  # every correction counts as large
+    monkeypatch.setattr(marker_mod, "PROFILE_CHECK", np.inf)  # the bootstrap's own terms, no sd along the profile
     shifts = np.array([[1.0], [3.0], [5.0], [7.0]])  # refits' shifts: mean 4, variance 20/3
     monkeypatch.setattr(MarkerEstimator, "_bootstrap_bias", lambda self, *a: shifts)
     est = MarkerEstimator(model, cutoff=None, jackknife=False, rng=0).fit(trial.data)

@@ -44,14 +44,14 @@ from typing import NamedTuple
 import numpy as np
 
 from skelid.estimators.joint import (
-    _banded_solver,
     _continuous_poses,
-    _normal_blocks,
     penalty_band,
     smoothing_penalty,
     usable_frames,
     weighted_terms,
 )
+from skelid.estimators.likelihood import pose_information
+from skelid.estimators.normal import eliminate_poses, solve_normal
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace
 
@@ -138,29 +138,16 @@ def linear_response(model: Model, y, theta, q, noise, rate: float | None = None,
     q = _continuous_poses(model, q, use) if smooth else np.array(q, float)
     _, Jq, Jt = weighted_terms(model, theta, q, y, None, ws)  # rows of missing coordinates are zero
     T, Q = q.shape
-    P = theta.size
     noise = np.asarray(noise, float)
     B = noise.shape[0]
     E = np.where(np.isfinite(y)[None], noise, 0.0).reshape(B, T, -1)
-    Hqq, Hqt, Htt, _, _ = _normal_blocks(np.zeros(Jq.shape[:2]), Jq, Jt)
-    gq = np.einsum("tkq,btk->tqb", Jq, E)  # (T, Q, B)
+    gq = np.einsum("tkq,btk->btq", Jq, E)  # (B, T, Q)
     gt = np.einsum("tkp,btk->bp", Jt, E)  # (B, P)
-    rhs = np.concatenate([Hqt, gq], axis=-1)  # (T, Q, P + B)
-    R = None
-    if smooth:
-        R = smoothing_penalty(model, Hqq, rate, cutoff)
-        solve = _banded_solver(Hqq, R, penalty_band(R, Q))
-        sol = solve(rhs.reshape(T * Q, P + B)).reshape(T, Q, P + B)
-    else:
-        d = np.einsum("tii->ti", Hqq)
-        scale = np.maximum(d.mean(axis=1), max(d.mean(), 1e-300))  # frames without rows keep a ridge
-        sol = np.linalg.solve(Hqq + 1e-12 * scale[:, None, None] * np.eye(Q), rhs)
-    G, U = sol[..., :P], sol[..., P:]
-    X = np.einsum("tip,tiq->pq", Hqt, G)
-    S = Htt - X
-    dtheta = np.linalg.solve(S, (gt - np.einsum("tip,tib->bp", Hqt, U)).T).T  # (B, P)
-    dq = np.moveaxis(U, -1, 0) - np.einsum("tqp,bp->btq", G, dtheta)
-    KK = Htt - X - X.T + np.einsum("tip,tij,tjq->pq", G, Hqq, G)
-    S_inv = np.linalg.inv(S)
+    R = smoothing_penalty(model, pose_information(Jq), rate, cutoff) if smooth else None
+    el = eliminate_poses(Jq, Jt, R, penalty_band(R, Q) if smooth else None)
+    dtheta, dq = solve_normal(el, gt, gq)  # (B, P), (B, T, Q)
+    X = np.einsum("tip,tiq->pq", el.Hqt, el.G)
+    KK = el.S - X.T + np.einsum("tip,tij,tjq->pq", el.G, el.Hqq, el.G)  # sum_t K_t^T K_t
+    S_inv = np.linalg.inv(el.S)
     cov = S_inv @ KK @ S_inv
     return LinearResponse(dtheta, dq, 0.5 * (cov + cov.T), q, R)

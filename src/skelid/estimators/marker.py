@@ -90,15 +90,20 @@ from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.estimators.singular import (
+    BRANCH_STRETCH,
     N_DRAWS,
     POSE_SENSITIVE,
+    PROFILE_CHECK,
     SECOND_ORDER_SPREAD,
     branch_joints,
+    branch_settled,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
     mirrored_start,
     pose_check,
+    profile_covariance,
+    profile_sd_ratio,
     quadratic_term_draws,
     second_order_covariance,
 )
@@ -607,6 +612,29 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
     return Bias(np.zeros(model.n_params), method)
 
 
+def profile_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: Noise, bias: Bias) -> Bias:
+    """The sd at the ends of the interval where it is larger than at the estimate (near a singular pose).
+
+    Where a bias correction above ``PROFILE_CHECK`` sd was found (the log-likelihood's third
+    derivatives are not small), the information is evaluated along each parameter's profile at
+    the interval's ends (:func:`skelid.estimators.singular.profile_sd_ratio`) and the variance
+    raised to the larger end's; elsewhere nothing is computed.
+    """
+    model, fit, w = est.model, wt.fit, wt.weights
+    if fit.info is None or not np.any(bias.bias):
+        return bias
+    plain = noise.sigma**2 * np.linalg.inv(fit.info)
+    if not np.any(np.abs(bias.bias) > PROFILE_CHECK * np.sqrt(np.clip(np.diag(plain), 0, None))):
+        return bias
+    y = sc.y
+    if fit.penalty is None:
+        ratio = profile_sd_ratio(model, y[used], fit.theta, fit.pose[used], noise.sigma, None, w)
+    else:
+        ratio = profile_sd_ratio(model, np.where(used[:, None, None], y, np.nan), fit.theta, fit.pose,
+                                 noise.sigma, fit.penalty, w)
+    return bias._replace(cov=bias.cov + profile_covariance(ratio, plain))
+
+
 def bootstrap_bias(est: MarkerEstimator, y, fit: JointFit, noise: Noise, st: Start, mo: Motion, rng):
     """Parametric bootstrap of the bias, and the covariance it adds to ``sigma^2 S^{-1}``.
 
@@ -694,24 +722,41 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
                  ws: Workspace | None = None) -> Weights:
     """Frames on a joint's mirrored branch (:func:`skelid.estimators.singular.branch_joints`) refitted.
 
-    For each joint whose centre two marker distances fix, the frames on the side of its singular
-    pose that fewer frames take are mirrored and the motion-model fit is repeated from there
-    (:func:`skelid.estimators.singular.mirrored_start`); the refit is kept when it converged to a
-    lower penalised cost (the first fit sat in a local minimum). A model without such joints
-    costs nothing.
+    For the joints whose centre two marker distances fix, the frames on the side of each one's
+    singular pose that fewer frames take are mirrored, every joint at once, and the motion-model
+    fit is repeated from there (:func:`skelid.estimators.singular.mirrored_start`); the refit is
+    kept when it converged to a lower penalised cost (the first fit sat in a local minimum) and
+    keeps to one branch at every such joint (:func:`skelid.estimators.singular.branch_settled`).
+    When it is not kept, the earlier rule is tried: one joint at a time whose minority side holds at
+    most ``BRANCH_STRETCH`` of the frames, each refit kept at a lower penalised cost (near-straight,
+    sigma 15 mm, no refit of every joint at once settles; this keeps a refit in 1 trial of 100).
+    A model without such joints, or a fit with every frame on one branch, costs nothing.
     """
     fit = wt.fit
-    if fit.penalty is None:
+    joints = branch_joints(model)
+    if fit.penalty is None or not joints:
         return wt
-    for joint in branch_joints(model):
-        start = mirrored_start(model, fit.theta, fit.pose, sc.y, joint, fit.frames_used, ws)
-        if start is None:
-            continue
-        new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                        penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
-        if new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9):
-            fit = new
-    return wt._replace(fit=fit)
+    start = mirrored_start(model, fit.theta, fit.pose, sc.y, joints, fit.frames_used, ws)
+    if start is None:
+        return wt
+
+    def refit(theta, q0):
+        return joint_fit(model, sc.y, theta, q0, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                         penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
+
+    def lower(a, b):
+        return a.converged and _penalised_cost(a) < _penalised_cost(b) * (1.0 - 1e-9)
+
+    best = fit
+    new = refit(fit.theta, start)
+    if lower(new, fit) and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws,
+                                          (fit.theta, fit.pose)):
+        return wt._replace(fit=new)
+    for joint in joints:  # the earlier rule: one joint's short stretch at a time
+        q0 = mirrored_start(model, best.theta, best.pose, sc.y, joint, best.frames_used, ws, BRANCH_STRETCH)
+        if q0 is not None and lower(new := refit(best.theta, q0), best):
+            best = new
+    return wt if best is fit else wt._replace(fit=best)
 
 
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
@@ -1005,6 +1050,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound)
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
+    bias = profile_stage(est, sc, wt, fr.used, noise, bias)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
