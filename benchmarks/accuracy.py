@@ -367,7 +367,7 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                     "(:func:`skelid.estimators.singular.profile_sd_ratio`)",
          "folded6b": "as `folded6`, and when the refit of every joint at once is not kept, the earlier rule is "
                      "tried (one joint at a time whose minority side holds at most 10 % of the frames, kept at a "
-                     "lower penalised cost)"}
+                     "lower penalised cost; tried, not kept)"}
 #: the tag each later tag is compared with (default ``deconvolved``)
 BEFORE = {"folded6": "stretch", "folded6b": "stretch"}
 
@@ -468,7 +468,9 @@ def _write(rows):
                  "Gaussian-noise trial with its linear control variate (see the section on it), "
                  "`folded6` = every joint's stretches mirrored at once and kept when the "
                  "refit settles on one branch, and the sd taken at the interval's ends along the profile where "
-                 "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule. "
+                 "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule "
+                 "(tried, not kept: one refit kept in 100 trials, no figure moved beyond noise, one more refit "
+                 "on the speed trial). "
                  "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}

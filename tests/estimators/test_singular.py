@@ -327,37 +327,3 @@ def test_a_motion_from_near_straight_to_near_folded_is_on_no_wrong_branch():
     before[near_straight, elbow.dof] = np.radians(165.0)
     assert branch_settled(model, trial.theta, trial.pose, branch_joints(model), used, before=(trial.theta, trial.pose))
     assert not branch_settled(model, trial.theta, trial.pose, branch_joints(model), used, before=(trial.theta, before))
-
-
-def test_a_short_stretch_is_refitted_one_joint_at_a_time_when_mirroring_every_joint_is_not_kept(monkeypatch):
-    # near-straight, sigma 15 mm (accuracy study, trial 55): mirroring every joint's minority side at once
-    # leaves frames on both sides, so that refit is not kept; the wrist's minority side alone holds under
-    # 10 % of the frames, and its refit reaches a lower penalised cost
-    import skelid.estimators.marker as marker
-
-    seen = {}
-
-    class Stop(Exception):
-        pass
-
-    def capture(*args, **kw):
-        seen["args"] = args
-        raise Stop
-
-    model = builtin_model("case-a")
-    trial = simulate_posture(model, [250.0], 500, 15.0, (0.0, 25.0), np.random.default_rng([0, 15, 250, 2, 55]))
-    monkeypatch.setattr(marker, "branch_stage", capture)
-    with pytest.raises(Stop):
-        MarkerEstimator(model).fit(trial.data)
-    monkeypatch.undo()
-    sc, wt = seen["args"][2:4]
-    fit = wt.fit
-    joints = branch_joints(model)
-    start = mirrored_start(model, fit.theta, fit.pose, sc.y, joints, fit.frames_used)
-    assert start is not None  # the refit of every joint at once is tried
-    wrist = mirrored_start(model, fit.theta, fit.pose, sc.y, joints[1], fit.frames_used, max_share=0.1)
-    assert wrist is not None
-    assert mirrored_start(model, fit.theta, fit.pose, sc.y, joints[0], fit.frames_used, max_share=0.1) is None
-    new = marker.branch_stage(*seen["args"]).fit
-    assert new is not fit
-    assert marker._penalised_cost(new) < marker._penalised_cost(fit)

@@ -90,7 +90,6 @@ from skelid.estimators.noise import marker_groups, per_marker_fit
 from skelid.estimators.pose import track_poses, workspace
 from skelid.estimators.posterior import GaussianPosterior
 from skelid.estimators.singular import (
-    BRANCH_STRETCH,
     N_DRAWS,
     POSE_SENSITIVE,
     PROFILE_CHECK,
@@ -727,9 +726,6 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
     fit is repeated from there (:func:`skelid.estimators.singular.mirrored_start`); the refit is
     kept when it converged to a lower penalised cost (the first fit sat in a local minimum) and
     keeps to one branch at every such joint (:func:`skelid.estimators.singular.branch_settled`).
-    When it is not kept, the earlier rule is tried: one joint at a time whose minority side holds at
-    most ``BRANCH_STRETCH`` of the frames, each refit kept at a lower penalised cost (near-straight,
-    sigma 15 mm, no refit of every joint at once settles; this keeps a refit in 1 trial of 100).
     A model without such joints, or a fit with every frame on one branch, costs nothing.
     """
     fit = wt.fit
@@ -739,24 +735,12 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
     start = mirrored_start(model, fit.theta, fit.pose, sc.y, joints, fit.frames_used, ws)
     if start is None:
         return wt
-
-    def refit(theta, q0):
-        return joint_fit(model, sc.y, theta, q0, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                         penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
-
-    def lower(a, b):
-        return a.converged and _penalised_cost(a) < _penalised_cost(b) * (1.0 - 1e-9)
-
-    best = fit
-    new = refit(fit.theta, start)
-    if lower(new, fit) and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws,
-                                          (fit.theta, fit.pose)):
+    new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                    penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
+    if (new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9)
+            and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws, (fit.theta, fit.pose))):
         return wt._replace(fit=new)
-    for joint in joints:  # the earlier rule: one joint's short stretch at a time
-        q0 = mirrored_start(model, best.theta, best.pose, sc.y, joint, best.frames_used, ws, BRANCH_STRETCH)
-        if q0 is not None and lower(new := refit(best.theta, q0), best):
-            best = new
-    return wt if best is fit else wt._replace(fit=best)
+    return wt
 
 
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):

@@ -128,11 +128,6 @@ SECOND_ORDER_SPREAD = 0.5
 #: draws of the second-order term (the relative Monte Carlo error of its variance is sqrt(2 / N_DRAWS))
 N_DRAWS = 64
 _DRAW_BLOCK = 4e6  # floats in one piece of the draws' products
-#: the earlier rule of the branch check, tried when a refit of every joint at once is not kept: one joint
-#: at a time whose minority side holds at most this share of the used frames, kept at a lower penalised
-#: cost (near-straight, case A, sigma 15 mm: no refit of every joint at once settles on one branch; this rule
-#: keeps the wrist's refit in 1 of 100 trials, and leaves the accuracy study's rmse as it was, 1.99 -> 1.97 crlb)
-BRANCH_STRETCH = 0.1
 
 
 class PoseCheck(NamedTuple):
@@ -499,7 +494,7 @@ def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None):
     return flip, psi
 
 
-def mirrored_start(model: Model, theta, q, y, joints, used, ws=None, max_share: float | None = None):
+def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
     """Poses with every joint's minority branch mirrored, or None when each joint's used frames are on one side.
 
     For each of ``joints``, the frames (of those ``used``) on the side of its singular pose that
@@ -519,10 +514,6 @@ def mirrored_start(model: Model, theta, q, y, joints, used, ws=None, max_share: 
     y : (T, M, D) float
     joints : BranchJoint or sequence of BranchJoint
     used : (T,) bool
-    max_share : float, optional
-        A joint whose minority side holds more than this share of the used frames is left as it
-        is (the earlier rule, :data:`BRANCH_STRETCH`: a stretch on the wrong branch, not a motion
-        that straddles the singular pose).
 
     Returns
     -------
@@ -533,11 +524,8 @@ def mirrored_start(model: Model, theta, q, y, joints, used, ws=None, max_share: 
     joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
     start = np.array(q, float)
     changed = np.zeros(len(start), dtype=bool)
-    n_used = np.count_nonzero(used)
     for joint in joints:
         flip, psi = minority_branch(model, theta, q, joint, used, ws)
-        if max_share is not None and flip.sum() > max_share * n_used:
-            continue
         start[flip, joint.dof] -= 2.0 * psi[flip]
         changed |= flip
     if not changed.any():
