@@ -122,8 +122,13 @@ def _projection_terms(model: Model, theta, pose, y):
     r, Jq, Jt = frame_terms(model, theta, pose, y)
     H = np.einsum("...kq,...kp->...qp", Jq, Jq)
     Hinv = np.linalg.pinv(H, hermitian=True)
-    r = r - (Jq @ (Hinv @ (np.swapaxes(Jq, -1, -2) @ r[..., None])))[..., 0]
+    r = _project_out(Jq, Hinv, r[..., None])[..., 0]
     return r, Jq, Hinv, Jt
+
+
+def _project_out(Jq, Hinv, X):
+    """``(I - P_t) X`` for ``X (..., T, K, n)``: each frame's pose directions out (``P_t = J_q H^-1 J_q^T``)."""
+    return X - Jq @ (Hinv @ (np.swapaxes(Jq, -1, -2) @ X))
 
 
 def misfit_noise(r, Jq, Hinv, present) -> tuple[float, int]:
@@ -312,7 +317,7 @@ def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, 
         dJ = (frame_terms(model, theta, pose + e, y, ws)[1]
               - frame_terms(model, theta, pose - e, y, ws)[1]) / (2 * step)
         acc += (dJ @ V[:, :, j, None])[..., 0]
-    return -0.5 * (acc - (Jq @ (Hinv @ (np.swapaxes(Jq, -1, -2) @ acc[..., None])))[..., 0])
+    return -0.5 * _project_out(Jq, Hinv, acc[..., None])[..., 0]
 
 
 def _rolling_designs(model: Model, kin, theta, pose_u, present) -> dict[int, np.ndarray]:
@@ -357,7 +362,7 @@ def rolling_test(G, r, Jq, Hinv, At, S_pinv, sigma: float, noise_dof: int, b=Non
     mean (:func:`second_order_residual`), whose share of the statistic is the nonlinearity.
     See :func:`model_misfit` for the model.
     """
-    Z = (G - Jq @ (Hinv @ (np.swapaxes(Jq, 1, 2) @ G))).reshape(-1, G.shape[-1])
+    Z = _project_out(Jq, Hinv, G).reshape(-1, G.shape[-1])
     At = At.reshape(len(Z), -1)
     ZA = Z.T @ At
     info = Z.T @ Z - ZA @ S_pinv @ ZA.T
@@ -515,7 +520,7 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     level = np.log(alpha / len(designs))
     paths = _rolling_designs(model, kin, theta, pose_u, present)
     if paths:
-        At = Jt - Jq @ (Hinv @ (np.swapaxes(Jq, 1, 2) @ Jt))
+        At = _project_out(Jq, Hinv, Jt)
         S_pinv = np.linalg.pinv(np.einsum("tka,tkc->ac", At, At), hermitian=True)
     for d in designs:
         z = _coefficients(d, r)  # (k, n, D)

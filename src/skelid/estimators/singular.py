@@ -441,8 +441,13 @@ def branch_side(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarr
     it grows with the joint's coordinate. Its sign tells the branch; ``q_k - 2 psi`` is the
     joint's mirrored angle (the child's marker reflected across the line ``J a``).
     """
-    ang = _branch_angle(model, theta, q, joint, ws)
-    return ang - np.pi * np.round(ang / np.pi)
+    return _fold(_branch_angle(model, theta, q, joint, ws))[0]
+
+
+def _fold(ang):
+    """``psi`` of :func:`branch_side` from the signed angle, and whether the straight pose is the nearer one."""
+    turns = np.round(ang / np.pi)
+    return ang - np.pi * turns, turns != 0
 
 
 def _branch_angle(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarray:
@@ -481,11 +486,9 @@ def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None):
     psi : (T,) float
         :func:`branch_side`.
     """
-    ang = _branch_angle(model, theta, q, joint, ws)
-    psi = ang - np.pi * np.round(ang / np.pi)  # branch_side
+    psi, straight = _fold(_branch_angle(model, theta, q, joint, ws))
     side = np.sign(psi)
     used = np.asarray(used, bool) & (side != 0)
-    straight = np.abs(ang - psi) > np.pi / 2  # the nearest singular pose is the straight one
     flip = np.zeros(len(psi), dtype=bool)
     for near in (straight, ~straight):
         u = used & near
@@ -567,8 +570,7 @@ def branch_settled(model: Model, theta, q, joints, used, ws=None, before=None) -
 
 def _nearest_straight(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.ndarray:
     """(T,) bool: the joint's nearest singular pose is the straight one (else the folded one)."""
-    ang = _branch_angle(model, theta, q, joint, ws)
-    return np.abs(ang - np.pi * np.round(ang / np.pi)) < np.abs(ang) - 1e-12
+    return _fold(_branch_angle(model, theta, q, joint, ws))[1]
 
 
 #: a kept second-order correction above this many sd has the sd evaluated along the profile as well
