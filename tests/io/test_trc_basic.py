@@ -45,3 +45,40 @@ def test_not_a_trc(tmp_path):
     p.write_text("hello\nworld\n")
     with pytest.raises(FormatError, match="PathFileType"):
         read_trc(p)
+
+
+def _trc_with_times(path, times, sep="\t"):
+    head = [f"PathFileType{sep}4{sep}(X/Y/Z){sep}x.trc",
+            sep.join(["DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units"]),
+            sep.join(["100", "100", str(len(times)), "1", "mm"]),
+            sep.join(["Frame#", "Time", "A", "", ""]), sep.join(["", "", "X1", "Y1", "Z1"])]
+    rows = [sep.join([str(k + 1), t, f"{k}.0", "1.0", "2.0"]) for k, t in enumerate(times)]
+    path.write_text("\n".join(head + rows) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("times, line, what", [
+    (["0.00", "0.01", "0.01", "0.03"], 8, "does not increase"),      # a repeated row
+    (["0.03", "0.02", "0.01", "0.00"], 7, "does not increase"),      # reversed
+    (["0.00", "0.01", "0.02", "0.00", "0.01"], 9, "does not increase"),  # two takes pasted together
+    (["0.00", "0.01", "x", "0.03"], 8, "is not a number"),
+    (["0.00", "0.01", "nan", "0.03"], 8, "not a finite number"),
+    (["0.00", "", "0.02", "0.03"], 7, "Time field is empty"),
+])
+def test_trc_time_column_is_checked(tmp_path, times, line, what):
+    path = _trc_with_times(tmp_path / "t.trc", times)
+    with pytest.raises(FormatError, match=f"line {line}: .*{what}"):
+        read_trc(path)
+
+
+def test_trc_without_times_or_with_increasing_times_reads(tmp_path):
+    assert read_trc(_trc_with_times(tmp_path / "a.trc", ["", "", ""])).meta["time_step"] is None
+    d = read_trc(_trc_with_times(tmp_path / "b.trc", ["0.00", "0.01", "0.02"]))
+    assert d.n_frames == 3 and d.meta["time_step"] == pytest.approx(0.01)
+
+
+def test_nul_character_in_utf16_text_is_refused(tmp_path):
+    text = _trc_with_times(tmp_path / "a.trc", ["0.00", "0.01"]).read_text().replace("1.0", "1\x00.0", 1)
+    (tmp_path / "u.trc").write_bytes(text.encode("utf-16"))
+    with pytest.raises(FormatError, match="NUL character"):
+        read_trc(tmp_path / "u.trc")

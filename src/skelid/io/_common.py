@@ -45,10 +45,14 @@ def read_text(path: Path, what: str) -> str:
     raw = read_bytes(path, what)
     if raw[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
         try:
-            return raw.decode("utf-16")
+            text = raw.decode("utf-16")
         except UnicodeDecodeError:
             raise FormatError(f"{path}: not valid UTF-16 text although it starts like it",
                               "save the file again as UTF-8 text") from None
+        if "\x00" in text:
+            raise FormatError(f"{path}: a NUL character in the text; not a {what} text file",
+                              "check the file format or export the file again")
+        return text
     if b"\x00" in raw:
         raise FormatError(f"{path}: binary content, not a {what} text file",
                           "check the file format or the file extension")

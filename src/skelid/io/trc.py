@@ -93,12 +93,12 @@ def read_trc(path) -> MarkerData:
             raise FormatError(f"{path}: line {i} has {len(f) - 2} coordinates for {M} markers",
                               "check that the marker-name line lists every marker")
         rows.append((i, f[2:2 + 3 * M]))
-        times.append(f[1] if len(f) > 1 else "")
+        times.append((i, f[1] if len(f) > 1 else ""))
     if not rows:
         raise FormatError(f"{path}: no data rows after the header", "check that the file is complete")
     pos = parse_table(rows, 3 * M, path).reshape(len(rows), M, 3)
     check_magnitude(pos, path, units)
-    step = _time_step(times)
+    step = _time_step(times, path)
     if step is not None and abs(step * rate - 1.0) > 0.05:
         warnings.warn(f"{path}: the Time column advances {step:.6g} s per row but DataRate says {rate:g} Hz "
                       f"({1 / rate:.6g} s); using DataRate (the rows may be decimated)", SkelidWarning, stacklevel=2)
@@ -106,16 +106,43 @@ def read_trc(path) -> MarkerData:
                       meta={"header": header, "format": "trc", "time_step": step})
 
 
-def _time_step(times: list[str]) -> float | None:
-    """Mean step of the Time column, or None if it is not a full increasing column of numbers."""
-    if len(times) < 2:
+def _time_step(times: list[tuple[int, str]], path: Path) -> float | None:
+    """Mean step of the Time column; None where the column is blank (DataRate alone gives the rate).
+
+    A Time column that is written must be numbers that increase row by row: a
+    row out of order, a repeated row or a jump back (two takes pasted together)
+    is refused with its line, since the rows' order is the trial's time.
+    """
+    given = [(i, v.strip()) for i, v in times if v.strip()]
+    if not given:
         return None
+    if len(given) < len(times):
+        i = next(i for i, v in times if not v.strip())
+        raise FormatError(f"{path}: line {i}: the Time field is empty while other rows have one",
+                          "fill in the Time column of every row, or leave it empty in all of them")
+    t = np.array([_time_value(v, i, path) for i, v in given])
+    if t.size < 2:
+        return None
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        k = int(np.argmax(dt <= 0))
+        raise FormatError(f"{path}: line {given[k + 1][0]}: time {t[k + 1]:g} does not increase "
+                          f"(line {given[k][0]} has {t[k]:g})",
+                          "sort the rows by time and remove repeated rows (or split pasted takes into files)")
+    step = (t[-1] - t[0]) / (t.size - 1)
+    return float(step) if math.isfinite(step) and step > 0 else None
+
+
+def _time_value(v: str, line: int, path: Path) -> float:
     try:
-        first, last = float(times[0]), float(times[-1])
+        x = float(v)
     except ValueError:
-        return None
-    step = (last - first) / (len(times) - 1)
-    return step if math.isfinite(step) and step > 0 else None
+        raise FormatError(f"{path}: line {line}: time {v[:20]!r} is not a number",
+                          "check the Time column (the second field of each row)") from None
+    if not math.isfinite(x):
+        raise FormatError(f"{path}: line {line}: time {v[:20]!r} is not a finite number",
+                          "check the Time column (the second field of each row)")
+    return x
 
 
 def _number(x: float) -> str:
