@@ -473,7 +473,8 @@ def _write(rows, folder: Path):
                  "`crlb`: Cramér-Rao bound with every pose unknown, at the true poses. `profile bias`: mean "
                  "error of the joint least-squares estimate before correction; `removed`: mean correction "
                  "subtracted; `fallback`: trials whose correction came from a check's fallback rather than "
-                 "the second-order expansion. Tags: `previous` = results of an earlier version kept for "
+                 "the second-order expansion. "
+                 + ("" if folder != experiments_dir() else "Tags: `previous` = results of an earlier version kept for "
                  "reference, `before` = the code before the graduated-smoothing start, `after` = the code after it, "
                  "`after100` = the same code at 100 trials on the near-singular cells, `deconvolved` = the check "
                  "of the local approximation and its bootstrap fallback at the deconvolved poses "
@@ -491,8 +492,8 @@ def _write(rows, folder: Path):
                  "refit settles on one branch, and the sd taken at the interval's ends along the profile where "
                  "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule "
                  "(tried, not kept: one refit kept in 100 trials, no figure moved beyond noise, one more refit "
-                 "on the speed trial). "
-                 "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
+                 "on the speed trial). ")
+                 + "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}
         for r in rows:
