@@ -91,8 +91,8 @@ def opensim_scales() -> str:
     lines += ["", f"OpenSim's inverse kinematics on the walk: marker RMSE {ik['skelid']['rmse_mm']:.1f} mm with "
               f"skelid's scaled model, {ik['opensim_scaletool']['rmse_mm']:.1f} mm with the ScaleTool's; skelid's "
               f"fit {sec['skelid_fit']['cpu_s']:.1f} s of CPU, the ScaleTool {sec['opensim_scaletool']['cpu_s']:.1f} s"
-              + (" (a reduced run)" if doc.get("reduced") else "") + ".", ""]
-    return "\n".join(lines) + source(path, doc)
+              + (" (a reduced run)" if doc.get("reduced") else "") + "."]
+    return "\n".join(lines) + "\n\n" + source(path, doc)
 
 
 def opensim_subject4() -> str:
@@ -113,8 +113,8 @@ def opensim_subject4() -> str:
         lines.append(f"| {w} | " + " | ".join(f"{ik[w][t]['rmse_mm']:.1f}" if t in ik[w] else "—" for t in trials)
                      + " |")
     lines += ["", f"skelid's fit of the {len(s['fit_trials'])} trials: {s['seconds']['skelid_fit']['cpu_s']:.0f} s "
-              "of CPU.", ""]
-    return "\n".join(lines) + source(path, doc)
+              "of CPU."]
+    return "\n".join(lines) + "\n\n" + source(path, doc)
 
 
 def opensim_truth() -> str:
