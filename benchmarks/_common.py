@@ -54,12 +54,14 @@ def cpu_model() -> str:
 def provenance(argv: list[str] | None = None) -> dict:
     """What made a results file: commit, date (UTC), CPU model, core count, load average, command line.
 
-    ``dirty`` is true when the checkout had uncommitted changes to tracked files. ``argv``
-    defaults to this process's command line.
+    ``dirty`` is true when the checkout had uncommitted changes to tracked files other than the
+    results and experiments themselves (which a run rewrites). ``argv`` defaults to this process's
+    command line.
     """
     argv = sys.argv if argv is None else argv
     try:
-        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                     ":!benchmarks/results", ":!benchmarks/experiments"], cwd=ROOT,
                                     capture_output=True, text=True, check=True).stdout.strip())
     except (OSError, subprocess.CalledProcessError):
         dirty = None
