@@ -46,9 +46,11 @@ def source(path: Path, doc=None, what: str = "") -> str:
     """The line that closes a block: the results file and its provenance."""
     doc = load(path) if doc is None else doc
     p = doc.get("provenance") if isinstance(doc, dict) else None
+    legacy = (doc.get("date") or doc.get("meta", {}).get("date")) if isinstance(doc, dict) else None
     made = (f"commit {p['commit'][:10]}{' (uncommitted changes)' if p.get('dirty') else ''}, {p['date']}, "
             f"{p['cpu']} ({p['cores']} cores, load {p['load_average'][0]:.1f}), `{p['command']}`"
-            if p and "command" in p else "written before results files recorded their provenance"
+            if p and "command" in p else (f"written {legacy}, " if isinstance(legacy, str) else "written ")
+            + "before results files recorded their provenance"
             + ("; `python benchmarks/run_all.py --full` remakes it" if path.parent == RESULTS else ""))
     return f"<sub>From [`{rel(path)}`](/{rel(path)}){what}: {made}.</sub>\n"
 
