@@ -27,13 +27,15 @@ frames. Methods:
   cross-validated one) not raised to its 6 Hz floor (``MIN_AUTO_CUTOFF``; 2-4 Hz on these cells).
 
 ``crlb`` is the Cramér-Rao bound with every pose unknown, at the true poses and
-the true sigma. Results are written cell by cell to
-``benchmarks/results/accuracy.json`` and ``accuracy.md``; a re-run skips the
-cells already there (``--fresh`` starts over).
-
-Each run's rows carry a ``tag`` (``--tag before`` for a run of the code before a change,
-``after`` by default) and each cell the CPU seconds of all its processes, its wall time
-and the load average when it ended. ``--jobs 2`` fits in this process and one worker.
+the true sigma. Each run's rows carry a ``tag``: the default, ``current``, is the
+current code's table and is written cell by cell to ``benchmarks/results/accuracy.json``
+and ``accuracy.md``; any other tag (``--tag before`` for a run of the code before a
+change, a variant of a method) is an experiment and goes to
+``benchmarks/experiments/accuracy.json`` and ``.md``, where the earlier tags are kept. A
+re-run skips the cells of its tag already there (``--fresh`` starts over). Each cell
+records the commit, the CPU seconds of all its processes, its wall time and the load
+average when it ended; the file its provenance (:func:`_common.provenance`). ``--jobs 2``
+fits in this process and one worker.
 
     python benchmarks/accuracy.py --reps 100 --jobs 2
     python benchmarks/accuracy.py --noises folded straight --truths 250 --methods final --reps 20
@@ -46,6 +48,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -53,7 +56,12 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import experiments_dir, git_commit, results_dir, rows_of, with_provenance, write_json  # noqa: E402
+
+#: the tag of the default run: the current code's table, written to ``benchmarks/results``; any other tag is an
+#: experiment or ablation and goes to ``benchmarks/experiments`` (the record of every earlier tag is kept there)
+DEFAULT_TAG = "current"
 CASES = ("case-a", "case-b")
 SIGMAS = (5.0, 15.0)
 TRUTHS = (210.0, 250.0, 290.0)
@@ -326,16 +334,22 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
     return rows
 
 
-def write(rows):
-    """Merge ``rows`` into accuracy.json (cells other runs wrote meanwhile are kept) and rewrite accuracy.md.
+def folder_for(tag: str) -> Path:
+    """``benchmarks/results`` for the default tag, ``benchmarks/experiments`` for any other."""
+    return results_dir() if tag == DEFAULT_TAG else experiments_dir()
+
+
+def write(rows, folder: Path):
+    """Merge ``rows`` into ``folder``/accuracy.json (cells other runs wrote meanwhile are kept) and rewrite
+    accuracy.md there.
 
     Runs of different cells may write at once: the read-merge-write holds an exclusive lock."""
     import fcntl
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS / ".accuracy.lock", "w") as lock:
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ".accuracy.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        _write(rows)
+        _write(rows, folder)
 
 
 #: later versions compared with tag ``deconvolved``, and what changed
@@ -429,33 +443,38 @@ def _write_later(fh, rows):
         fh.write("\n")
 
 
-def _write(rows):
+def _write(rows, folder: Path):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
     tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5,
             "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "control": 11,
             "folded6": 12, "folded6b": 13}
     rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"], r["truth"],
                                        order.get(r["method"], 99)))
-    RESULTS.mkdir(parents=True, exist_ok=True)
     from skelid.io.atomic import atomic_write
 
-    path = RESULTS / "accuracy.json"
+    path = folder / "accuracy.json"
     if path.exists():  # another run may have written cells meanwhile: keep them
         key = lambda r: (r.get("tag", "previous"), r["case"], r["sigma"], r["truth"], r["noise"], r["method"])  # noqa: E731
         mine = {key(r) for r in rows}
-        rows = rows + [r for r in json.loads(path.read_text()) if key(r) not in mine]
+        rows = rows + [r for r in rows_of(json.loads(path.read_text())) if key(r) not in mine]
         rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"],
                                            r["truth"], order.get(r["method"], 99)))
     with atomic_write(path) as fh:
-        json.dump(rows, fh, indent=1)
+        json.dump(with_provenance(rows), fh, indent=1)
     head = ("| case | sigma | truth | noise | method | reps | bias | bias_se | sd | rmse | crlb | "
             "rmse/crlb | coverage95 | abs(z)>3 | profile bias | removed | fallback | s/fit |")
-    with atomic_write(RESULTS / "accuracy.md") as fh:
+    with atomic_write(folder / "accuracy.md") as fh:
         fh.write("# Accuracy study\n\nGenerated by `python benchmarks/accuracy.py`; lengths in mm. "
+                 + ("This file holds the current code's table (tag `current`); experiments and ablations are in "
+                    "`benchmarks/experiments/accuracy.md`. " if folder != experiments_dir() else
+                    "Experiments and ablations: each tag is a version of the code or a variant of a method; "
+                    "the current code's table is `benchmarks/results/accuracy.md`. ")
+                 + "Each row's `commit` in the JSON says which code ran it. "
                  "`crlb`: Cramér-Rao bound with every pose unknown, at the true poses. `profile bias`: mean "
                  "error of the joint least-squares estimate before correction; `removed`: mean correction "
                  "subtracted; `fallback`: trials whose correction came from a check's fallback rather than "
-                 "the second-order expansion. Tags: `previous` = results of an earlier version kept for "
+                 "the second-order expansion. "
+                 + ("" if folder != experiments_dir() else "Tags: `previous` = results of an earlier version kept for "
                  "reference, `before` = the code before the graduated-smoothing start, `after` = the code after it, "
                  "`after100` = the same code at 100 trials on the near-singular cells, `deconvolved` = the check "
                  "of the local approximation and its bootstrap fallback at the deconvolved poses "
@@ -473,8 +492,8 @@ def _write(rows):
                  "refit settles on one branch, and the sd taken at the interval's ends along the profile where "
                  "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule "
                  "(tried, not kept: one refit kept in 100 trials, no figure moved beyond noise, one more refit "
-                 "on the speed trial). "
-                 "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
+                 "on the speed trial). ")
+                 + "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}
         for r in rows:
@@ -591,9 +610,9 @@ def frames_study(reps, jobs, frames=(100, 300, 1000, 3000, 5000)):
     ax.set_ylabel("RMSE of L2 [mm]")
     ax.set_title(f"case A, sigma 15 mm, {reps} trials per point: a plateau is bias")
     ax.legend()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    fig.savefig(RESULTS / "rmse_vs_frames.png", dpi=120, bbox_inches="tight")
-    (RESULTS / "rmse_vs_frames.json").write_text(json.dumps({"frames": list(frames), **out}, indent=1))
+    results_dir().mkdir(parents=True, exist_ok=True)
+    fig.savefig(results_dir() / "rmse_vs_frames.png", dpi=120, bbox_inches="tight")
+    write_json(results_dir() / "rmse_vs_frames.json", {"frames": list(frames), "reps": reps, **out})
     print(json.dumps({"frames": list(frames), **out}, indent=1))
 
 
@@ -610,21 +629,27 @@ def main():
     ap.add_argument("--truths", nargs="*", type=float, default=list(TRUTHS))
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS + EXTRA_METHODS)
     ap.add_argument("--fresh", action="store_true", help="ignore results already written")
-    ap.add_argument("--tag", default="after", help="label of this run's rows (e.g. 'before' a change)")
+    ap.add_argument("--tag", default=DEFAULT_TAG,
+                    help=f"label of this run's rows: '{DEFAULT_TAG}' (the default) writes benchmarks/results, any "
+                    "other (an experiment, e.g. 'before' a change) benchmarks/experiments")
     ap.add_argument("--frames-study", action="store_true")
     ap.add_argument("--report", action="store_true", help="rewrite accuracy.md from accuracy.json and stop")
     a = ap.parse_args()
     if a.report:
-        write(json.loads((RESULTS / "accuracy.json").read_text()))
+        for folder in (results_dir(), experiments_dir()):
+            if (folder / "accuracy.json").exists():
+                write(rows_of(json.loads((folder / "accuracy.json").read_text())), folder)
         return
     if a.frames_study:
         frames_study(a.reps, a.jobs)
         return
-    path = RESULTS / "accuracy.json"
-    rows = [] if a.fresh or not path.exists() else json.loads(path.read_text())
+    folder = folder_for(a.tag)
+    path = folder / "accuracy.json"
+    rows = [] if a.fresh or not path.exists() else rows_of(json.loads(path.read_text()))
     for r in rows:
         r.setdefault("tag", "previous")
     done = {(r["tag"], r["case"], r["sigma"], r["truth"], r["noise"], r["method"]) for r in rows}
+    commit = git_commit()
     produced = []  # the cells this run finished: only these are written over what the file holds then
     for case in a.cases:
         for sigma in a.sigmas:
@@ -639,10 +664,10 @@ def main():
                     for start in range(0, len(tasks), CHUNK):  # a cell's rows are rewritten as trials come in
                         trials += run_tasks(tasks[start:start + CHUNK], a.jobs)
                         cost = {"cpu_seconds": float(sum(t["cpu"] for t in trials)),
-                                "wall_seconds": time.time() - t0, "jobs": a.jobs, "tag": a.tag,
+                                "wall_seconds": time.time() - t0, "jobs": a.jobs, "tag": a.tag, "commit": commit,
                                 "load_average": [round(v, 2) for v in os.getloadavg()]}
                         cell = [dict(r, **cost) for r in summarise(case, sigma, truth, noise, trials, todo)]
-                        write(produced + cell)
+                        write(produced + cell, folder)
                     produced += cell
                     for r in cell:
                         print(f"{case} s={sigma:g} L2={truth:g} {noise:<3} {r['method']:<8} "

@@ -10,14 +10,18 @@ line) ``--repeat`` times each way and writes the median times to
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
 from skelid.io import read_c3d
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import provenance, results_dir  # noqa: E402
 
 
 def main() -> None:
@@ -26,7 +30,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
     files = args.files or sorted((ROOT.parent / "shared" / "data").rglob("*.c3d"))
-    lines = [f"# {platform.platform()}, {platform.python_version()}, median of {args.repeat} reads",
+    lines = [f"# provenance: {json.dumps(provenance())}",
+             f"# {platform.platform()}, {platform.python_version()}, median of {args.repeat} reads",
              f"{'file':45s} {'MB':>6s} {'in-process s':>13s} {'child s':>9s} {'overhead s':>11s}"]
     for path in files:
         times = {}
@@ -40,7 +45,7 @@ def main() -> None:
             times[isolate] = statistics.median(runs)
         lines.append(f"{path.name:45s} {path.stat().st_size / 1e6:6.2f} {times[False]:13.3f} {times[True]:9.3f} "
                      f"{times[True] - times[False]:11.3f}")
-    out = ROOT / "benchmarks" / "results" / "c3d_isolation_overhead.txt"
+    out = results_dir() / "c3d_isolation_overhead.txt"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

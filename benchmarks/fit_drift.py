@@ -55,8 +55,9 @@ def main(argv=None):
     out = {c: run_case(c) for c in args.cases}
     out["loadavg"] = list(os.getloadavg())
     if args.save:
-        with open(args.save, "w") as fh:
-            json.dump(out, fh, indent=1)
+        from _common import write_json
+
+        write_json(args.save, out)
     if args.compare:
         with open(args.compare) as fh:
             ref = json.load(fh)

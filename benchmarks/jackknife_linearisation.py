@@ -27,6 +27,7 @@ import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _common import results_dir, write_json  # noqa: E402
 
 from skelid.estimators.uncertainty.jackknife import fold, marker_jackknife  # noqa: E402
 
@@ -66,7 +67,7 @@ def main():
     ap.add_argument("--cache", default="/tmp/skelid-real-calibration")
     ap.add_argument("--trials", nargs="+", default=["squats1", "STS1"])
     ap.add_argument("--mode", default="pooled", choices=["pooled", "per_marker"])
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "jackknife_linearisation.json"))
+    ap.add_argument("--out", default=str(results_dir() / "jackknife_linearisation.json"))
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     res = {}
@@ -77,7 +78,7 @@ def main():
             continue
         res[t] = one_trial(paths[-1])
         print(t, json.dumps(res[t]["parameters"]), flush=True)
-        Path(args.out).write_text(json.dumps(res, indent=1))
+        write_json(Path(args.out), res)
 
 
 if __name__ == "__main__":

@@ -43,7 +43,10 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402  (after the thread settings, which BLAS reads when it loads)
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import results_dir, write_json  # noqa: E402
+
+RESULTS = results_dir()
 #: (model, noise sd in model units, frames, speed): ``speed`` times the simulator's motion (0.15-1.5 Hz), at 100 Hz
 CELLS = {"case-a sigma 1 mm": ("case-a", 1.0, 300, 1), "case-a sigma 5 mm": ("case-a", 5.0, 300, 1),
          "tennis arm sigma 1 mm": ("tennis_arm", 0.001, 200, 1), "arm10 sigma 2 mm": ("arm10", 0.002, 200, 1),
@@ -158,7 +161,7 @@ def write(res, reps, cpu_s, wall_s, load, command, tag: str = "") -> None:
     meta = {"reps": reps, "reduced": reduced, "cpu_s": cpu_s, "wall_s": wall_s, "loadavg_after": load,
             "date": time.strftime("%Y-%m-%d %H:%M"), "command": command}
     name = "live_agreement" + (f"_{tag}" if tag else "")
-    (RESULTS / f"{name}.json").write_text(json.dumps({"meta": meta, "cells": res}, indent=2) + "\n")
+    write_json(RESULTS / f"{name}.json", {"meta": meta, "cells": res}, indent=2)
     lines = ["# Live session against the batch estimate", "",
              f"Written by `benchmarks/live_agreement.py` on {meta['date']}: {reps} simulated trials per cell"
              + (" (**reduced**: fewer than 100)" if reduced else "")

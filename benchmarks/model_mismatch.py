@@ -53,13 +53,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import results_dir, with_provenance  # noqa: E402
+
+RESULTS = results_dir()
 Z95 = 1.959964
 SIGMAS = (1.0, 5.0, 10.0)
 CASE_A_SIGMAS = (1.0, 5.0, 15.0)
@@ -372,7 +376,7 @@ def write(rows, meta):
 
     RESULTS.mkdir(parents=True, exist_ok=True)
     with atomic_write(RESULTS / "model_mismatch.json") as f:
-        f.write(json.dumps({"meta": meta, "rows": rows}, indent=1))
+        f.write(json.dumps(with_provenance({"meta": meta, "rows": rows}), indent=1))
     fmt = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
     lines = ["# Model mismatch: a knee whose centre slides with flexion, fitted with a hinge", "",
              *([f"**Reduced run: some cells have only {meta['reps']} trials (see the reps columns; the study "

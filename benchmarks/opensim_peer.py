@@ -54,7 +54,10 @@ from skelid.scaling import fit_osim, opensim_ik, scaling_table, write_outputs  #
 DATA = ROOT.parent / "shared" / "data"
 S01 = DATA / "opensim-subject01"
 S04 = DATA / "addbio-subject4"
-OUT = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import results_dir, write_json  # noqa: E402
+
+OUT = results_dir()
 JOINED = False  # --joined: trials as one recording with gaps, one marker fit
 
 
@@ -368,7 +371,7 @@ def main(argv=None):
     for log in DATA.rglob("opensim.log"):  # OpenSim's log must not stay beside the shared data
         log.unlink()
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "opensim_peer.json").write_text(json.dumps(res, indent=1) + "\n")
+    write_json(OUT / "opensim_peer.json", res)
     (OUT / "opensim_peer.md").write_text(markdown(res))
     print(markdown(res))
 

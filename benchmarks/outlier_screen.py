@@ -12,13 +12,16 @@ scale over the trial). Target: no drop in at least 95 of 100 trials.
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import results_dir, write_json  # noqa: E402
+
+RESULTS = results_dir()
 
 
 def plain_screen(model, y, fit, threshold):
@@ -68,7 +71,7 @@ def main():
                "target": ">= 95 % of trials without drop",
                "trials": rows}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "outlier_screen.json").write_text(json.dumps(summary, indent=1))
+    write_json(RESULTS / "outlier_screen.json", summary)
     md = (f"# Outlier screen on clean case-A trials\n\n`python benchmarks/outlier_screen.py --reps {a.reps}`"
           f" ({a.frames} frames, sigma 15 mm, i.i.d. Gaussian)\n\n"
           "| screen | trials without a drop | positions dropped |\n|---|---|---|\n"

@@ -59,14 +59,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import pickle  # noqa: E402
-import platform  # noqa: E402
 import time  # noqa: E402
 import tomllib  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import git_commit, rewrite_markdown, source_key, write_results  # noqa: E402
+from _common import provenance, results_dir, rewrite_markdown, source_key, write_results  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
 from skelid.estimators.marker import MarkerEstimator  # noqa: E402
@@ -230,8 +229,7 @@ def run(cache: Path | None, static_stride: int) -> dict:
         "seconds": {"fit_cpu": cpu, "this_run_cpu": round(time.process_time() - cpu0, 1),
                     "this_run_wall": round(time.perf_counter() - wall0, 1)},
         "load_average": {"start": list(load0), "end": list(os.getloadavg()), "cores": os.cpu_count()},
-        "provenance": {"commit": git_commit(), "python": platform.python_version(),
-                       "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())},
+        "provenance": provenance(),
     }
 
 
@@ -359,7 +357,7 @@ def markdown(res: dict) -> str:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "pig_compare"))
+    ap.add_argument("--out", default=str(results_dir() / "pig_compare"))
     ap.add_argument("--cache", default="/tmp/skelid-pig-compare", help="folder for the per-trial fits")
     ap.add_argument("--static-stride", type=int, default=10,
                     help="use every k-th frame of the standing trial (default 10: it holds no motion to lose)")

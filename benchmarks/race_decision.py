@@ -25,14 +25,17 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 os.environ.setdefault("SKELID_NUMBA", "wait")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import results_dir, write_json  # noqa: E402
+
+RESULTS = results_dir()
 KS = (1, 2, 3, 4, 5, 6, 8, 10)
 MARGINS = (1.0, 10.0, 100.0, 1000.0)
 CELLS = (("case-a", 5, "folded"), ("case-a", 15, "folded"), ("case-a", 5, "straight"), ("case-a", 15, "straight"),
@@ -108,8 +111,7 @@ def main(argv=None):
                    "(> 0: the stiff start is ahead)",
            "reps_per_cell": args.reps, "cpu_s": time.process_time() - c0, "loadavg": list(os.getloadavg()),
            "date": time.strftime("%Y-%m-%d %H:%M")}
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "race_decision.json").write_text(json.dumps(out, indent=1))
+    write_json(RESULTS / "race_decision.json", out)
 
 
 if __name__ == "__main__":

@@ -50,13 +50,12 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # multithreaded BLAS thrashe
 
 import argparse  # noqa: E402
 import pickle  # noqa: E402
-import platform  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import git_commit, rewrite_markdown, source_key, write_results  # noqa: E402
+from _common import provenance, results_dir, rewrite_markdown, source_key, write_results  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
 from skelid.estimators.checks.artefact import artefact_covariance  # noqa: E402
@@ -332,8 +331,7 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
                     "total_cpu_this_run": round(time.process_time() - cpu0, 1),
                     "trial_fits_cpu": round(sum(v["before_cpu_s"] + v["after_cpu_s"] for v in timing.values()), 1)},
         "load_average": {"start": list(load_start), "end": list(os.getloadavg()), "cores": os.cpu_count()},
-        "provenance": {"commit": git_commit(), "python": platform.python_version(),
-                       "machine": platform.machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())},
+        "provenance": provenance(),
     }
 
 
@@ -473,7 +471,7 @@ def markdown(res: dict) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-frames", type=int, default=None, help="decimate longer trials (default: all frames)")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "real_calibration"))
+    ap.add_argument("--out", default=str(results_dir() / "real_calibration"))
     ap.add_argument("--cache", default="/tmp/skelid-real-calibration", help="folder for the per-trial fits")
     ap.add_argument("--refit", action="store_true", help="ignore cached per-trial fits")
     ap.add_argument("--markdown-only", action="store_true", help="rewrite the .md from the .json and stop")

@@ -33,8 +33,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / ".." / "shared" / "data"
-RESULTS = ROOT / "benchmarks" / "results"
-sys.path[:0] = [str(ROOT), str(ROOT / "examples")]
+sys.path[:0] = [str(ROOT), str(ROOT / "examples"), str(ROOT / "benchmarks")]
+from _common import results_dir, write_json  # noqa: E402
+
+RESULTS = results_dir()
 
 from osim_reference import OsimModel  # noqa: E402
 
@@ -303,7 +305,7 @@ def main():
     print(text)
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "real_data.md").write_text(text)
-    (RESULTS / "real_data.json").write_text(json.dumps(res, indent=2, default=float) + "\n")
+    write_json(RESULTS / "real_data.json", res, indent=2, default=float)
     return 0
 
 

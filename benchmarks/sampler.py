@@ -40,7 +40,10 @@ from skelid.estimators.sampler import ProfileLikelihood, SamplerEstimator  # noq
 from skelid.model import load_model  # noqa: E402
 from skelid.simulate import builtin_model, simulate  # noqa: E402
 
-OUT = ROOT / "benchmarks" / "results" / "sampler.md"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import provenance, results_dir  # noqa: E402
+
+OUT = results_dir() / "sampler.md"
 
 
 def run(model, data, seed=0):
@@ -107,6 +110,10 @@ def main():
               f"| quadrature of the sampled likelihood | {q_mean:.2f} | {q_sd:.2f} | [{q_ci[0]:.2f}, {q_ci[1]:.2f}] |",
               f"| marker-smc | {s.mean[0]:.2f} | {s.sd[0]:.2f} | [{ci[0]:.2f}, {ci[1]:.2f}] |",
               f"| marker (normal) | {g.mean[0]:.2f} | {g.sd[0]:.2f} | [{gci[0]:.2f}, {gci[1]:.2f}] |", ""]
+    p = provenance()
+    lines.insert(1, f"\nProvenance: commit {p['commit']}, {p['date']}, {p['cpu']} ({p['cores']} cores), "
+                    f"load {p['load_average']}, `{p['command']}`.")
+    OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

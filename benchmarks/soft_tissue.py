@@ -62,9 +62,9 @@ from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import rewrite_markdown, write_results  # noqa: E402
+from _common import results_dir, rewrite_markdown, write_results  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = results_dir()
 Z = 1.959963984540054
 N_TRIALS = 4
 #: multi-trial cells: (between-trial method, cell name, settings)

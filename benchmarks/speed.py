@@ -49,7 +49,10 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import results_dir, write_json  # noqa: E402
+
+RESULTS = results_dir()
 SHARED = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(ROOT))  # tests.helpers
 
@@ -832,13 +835,13 @@ def main(argv=None):
                       "loadavg_after": list(os.getloadavg()), "date": time.strftime("%Y-%m-%d %H:%M"),
                       "command": res["command"]}
         print(f"[speed] {name} done in {time.perf_counter() - t0:.0f} s", flush=True)
-        json_path.write_text(json.dumps(res, indent=2) + "\n")
+        write_json(json_path, res, indent=2)
     res["load_after"] = round(os.getloadavg()[0], 2)
     res["loadavg_after"] = list(os.getloadavg())
     res["date"] = time.strftime("%Y-%m-%d %H:%M")
     res["environment"] = environment()
     res["targets"] = verdicts(res)
-    json_path.write_text(json.dumps(res, indent=2) + "\n")
+    write_json(json_path, res, indent=2)
     write_markdown(res, RESULTS / "speed.md")
     for k, t in res["targets"].items():
         print(f"{k:28s} {t['value']:10.4g}  target {t['target']:8s} {'met' if t['met'] else 'MISSED'}")

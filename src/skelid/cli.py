@@ -70,7 +70,7 @@ def _finite(name: str, value):
 def _limit_options(f):
     """``--max-memory`` and ``--max-time``: the limits a job's estimated cost must stay under."""
     f = click.option("--max-time", default=None, metavar="DURATION",
-                     help="Refuse a job estimated to take longer (e.g. 2h, 90m; default 1h or "
+                     help="Refuse a job estimated to take longer (e.g. 2h, 90m; default 30m or "
                           "$SKELID_MAX_TIME).")(f)
     return click.option("--max-memory", default=None, metavar="SIZE",
                         help="Refuse a job estimated to need more memory (e.g. 8G, 512M; default 4G or "

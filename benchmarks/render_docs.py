@@ -1,0 +1,392 @@
+"""Write the figures the README and docs quote from the results files.
+
+    python benchmarks/render_docs.py           # rewrite every generated block in README.md and docs/*.md
+    python benchmarks/render_docs.py --check   # exit 1 (and show the difference) where a block is not what
+                                               # the results give
+
+A generated block is the text between ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->``;
+``RENDERERS`` maps each NAME to the function that makes it from the JSON in ``benchmarks/results``
+(``benchmarks/experiments`` where a table has not been measured on the current code yet: the block
+then says which tag of which file it shows). Each block ends with the file it came from and that
+file's provenance. A figure the docs quote outside such a block is a figure nobody regenerates:
+put it in a block. ``tests/test_docs_figures.py`` runs ``--check``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import math
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+EXPERIMENTS = ROOT / "benchmarks" / "experiments"
+BLOCK = re.compile(r"(<!-- results:([\w-]+) -->\n)(.*?)(<!-- /results:\2 -->)", re.S)
+
+
+def documents(root: Path = ROOT) -> list[Path]:
+    """The files whose blocks are generated: README.md and docs/*.md."""
+    return [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+
+
+def load(path: Path):
+    return json.loads(path.read_text())
+
+
+def rel(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def source(path: Path, doc=None, what: str = "") -> str:
+    """The line that closes a block: the results file and its provenance."""
+    doc = load(path) if doc is None else doc
+    p = doc.get("provenance") if isinstance(doc, dict) else None
+    legacy = (doc.get("date") or doc.get("meta", {}).get("date")) if isinstance(doc, dict) else None
+    made = (f"commit {p['commit'][:10]}{' (uncommitted changes)' if p.get('dirty') else ''}, {p['date']}, "
+            f"{p['cpu']} ({p['cores']} cores, load {p['load_average'][0]:.1f}), `{p['command']}`"
+            if p and "command" in p else (f"written {legacy}, " if isinstance(legacy, str) else "written ")
+            + "before results files recorded their provenance"
+            + ("; `python benchmarks/run_all.py --full` remakes it" if path.parent == RESULTS else ""))
+    return f"<sub>From [`{rel(path)}`](/{rel(path)}){what}: {made}.</sub>\n"
+
+
+# ---------------------------------------------------------------- the demo
+
+
+def demo() -> str:
+    """The table ``skelid demo`` prints (seed 0), from benchmarks/results/demo.json."""
+    path = RESULTS / "demo.json"
+    doc = load(path)
+    head = (f"{'case':<8} {'method':<8} {'param':<14} {'mean':>9} {'sd':>8} {'95% interval':^22} "
+            f"{'truth':>8} {'frames':>6}")
+    rows = [head, "-" * len(head)]
+    for case in ("case_a", "case_b"):
+        run = doc[case]
+        for mname, r in run["results"].items():
+            for pname, p in r["parameters"].items():
+                t = run.get("truth", {}).get(pname)
+                rows.append(f"{case:<8} {mname:<8} {pname:<14} {p['mean']:>9.5g} {p['sd']:>8.3g} "
+                            f"[{p['interval'][0]:8.5g}, {p['interval'][1]:8.5g}] "
+                            f"{'' if t is None else f'{t:8.5g}':>8} {r['frames']['used']:>6}")
+    return "```text\n" + "\n".join(rows) + "\n```\n\n" + source(path, doc)
+
+
+# ---------------------------------------------------------------- OpenSim
+
+
+def opensim_scales() -> str:
+    """subject01: skelid's scale factors with their intervals beside the ScaleTool's; IK RMSE; CPU time."""
+    path = RESULTS / "opensim_peer.json"
+    doc = load(path)
+    s = doc["subject01"]
+    lines = ["| body | skelid factor [95 % interval] | OpenSim ScaleTool |", "|---|---|---|"]
+    for row in s["scales"]:
+        tool = sorted(set(row["opensim"]))
+        lines.append(f"| {row['body']} | {row['skelid']:.3f} [{row['skelid_ci95'][0]:.3f}, "
+                     f"{row['skelid_ci95'][1]:.3f}] | {', '.join(f'{v:.3f}' for v in tool)} |")
+    ik, sec = s["ik_walk"], s["seconds"]
+    lines += ["", f"OpenSim's inverse kinematics on the walk: marker RMSE {ik['skelid']['rmse_mm']:.1f} mm with "
+              f"skelid's scaled model, {ik['opensim_scaletool']['rmse_mm']:.1f} mm with the ScaleTool's; skelid's "
+              f"fit {sec['skelid_fit']['cpu_s']:.1f} s of CPU, the ScaleTool {sec['opensim_scaletool']['cpu_s']:.1f} s"
+              + (" (a reduced run)" if doc.get("reduced") else "") + "."]
+    return "\n".join(lines) + "\n\n" + source(path, doc)
+
+
+def opensim_subject4() -> str:
+    """subject4: key lengths (mm) of skelid's, AddBiomechanics' and the expert's models; IK RMSE per trial."""
+    path = RESULTS / "opensim_peer.json"
+    doc = load(path)
+    s = doc["subject4"]
+    kl = s["key_lengths_mm"]
+    peers = [k for k in ("skelid", "addbiomechanics", "expert") if k in kl]
+    lines = ["| length (mm) | " + " | ".join(peers) + " |", "|---" * (len(peers) + 1) + "|"]
+    for name in kl["skelid"]:
+        lines.append(f"| {name} | " + " | ".join(f"{kl[p][name]:.1f}" for p in peers) + " |")
+    ik = s["ik"]
+    trials = list(ik["skelid"])
+    who = [k for k in ik]
+    lines += ["", "| IK marker RMSE (mm) | " + " | ".join(trials) + " |", "|---" * (len(trials) + 1) + "|"]
+    for w in who:
+        lines.append(f"| {w} | " + " | ".join(f"{ik[w][t]['rmse_mm']:.1f}" if t in ik[w] else "—" for t in trials)
+                     + " |")
+    lines += ["", f"skelid's fit of the {len(s['fit_trials'])} trials: {s['seconds']['skelid_fit']['cpu_s']:.0f} s "
+              "of CPU."]
+    return "\n".join(lines) + "\n\n" + source(path, doc)
+
+
+def opensim_truth() -> str:
+    """Coverage on models whose true scales are known (benchmarks/opensim_truth.py), once it has run."""
+    path = RESULTS / "opensim_truth.json"
+    if not path.exists():
+        return ("*Not measured yet.* `benchmarks/opensim_truth.py` (markers simulated on OpenSim models of known "
+                "scale) writes `benchmarks/results/opensim_truth.json`; `python benchmarks/run_all.py --full` then "
+                "`python benchmarks/render_docs.py` put its coverage here.\n")
+    return ("See [`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md) for the coverage "
+            "of each body's interval.\n\n" + source(path))
+
+
+# ---------------------------------------------------------------- accuracy
+
+
+def accuracy_rows(keep: Callable[[dict], bool], fallback: str) -> tuple[list[dict], Path, dict, str]:
+    """Rows ``keep`` selects from the current table; if it has none, those of tag ``fallback`` from the
+    experiments, with a note saying so."""
+    path = RESULTS / "accuracy.json"
+    if path.exists():
+        doc = load(path)
+        rows = [r for r in (doc["rows"] if isinstance(doc, dict) else doc) if keep(r)]
+        if rows:
+            return rows, path, doc, ""
+    path = EXPERIMENTS / "accuracy.json"
+    doc = load(path)
+    rows = [r for r in (doc["rows"] if isinstance(doc, dict) else doc) if r.get("tag") == fallback and keep(r)]
+    return rows, path, doc, f", tag `{fallback}` (an earlier version of the code: not yet measured on this commit)"
+
+
+def _fmt_entry(r: dict | None) -> str:
+    if r is None:
+        return "—"
+    if not r["reps"] or not math.isfinite(r["bias"]):
+        return "— (every fit on the bound)" if r.get("failed") else "—"
+    refused = f" ({r['failed']} refused)" if r.get("failed") else ""
+    return f"{r['bias']:+.2f} ± {r['bias_se']:.2f} / {r['rmse_over_crlb']:.2f} / {r['coverage95']:.2f}{refused}"
+
+
+CELL_ORDER = [(n, c, s, t) for n in ("iid", "sta") for c in ("case-a", "case-b") for s in (5.0, 15.0)
+              for t in (210.0, 250.0, 290.0)]
+NOISE_NAME = {"iid": "i.i.d.", "sta": "soft tissue"}
+
+
+def _cells(rows):
+    by = {}
+    for r in rows:
+        by.setdefault((r["noise"], r["case"], r["sigma"], r["truth"]), {})[r["method"]] = r
+    return by
+
+
+def accuracy_main() -> str:
+    """Bias ± se / RMSE ÷ CRLB / coverage of every method on every i.i.d. and soft-tissue cell."""
+    rows, path, doc, note = accuracy_rows(lambda r: r["noise"] in ("iid", "sta") and r["method"] in
+                                          ("final", "paper", "laplace", "profile"), "previous")
+    by = _cells(rows)
+    lines = ["| case | σ | L2 | noise | CRLB | marker (default) | paper (seed) | Laplace grid | "
+             "joint fit, free poses |", "|---|---|---|---|---|---|---|---|---|"]
+    for key in CELL_ORDER:
+        if key not in by:
+            continue
+        m = by[key]
+        crlb = next(iter(m.values()))["crlb"]
+        lines.append(f"| {key[1][-1].upper()} | {key[2]:g} | {key[3]:g} | {NOISE_NAME[key[0]]} | {crlb:.2f} | "
+                     + " | ".join(_fmt_entry(m.get(k)) for k in ("final", "paper", "laplace", "profile")) + " |")
+    return "\n".join(lines) + "\n\n" + source(path, doc, note)
+
+
+def accuracy_artefact() -> str:
+    """Soft-tissue cells: coverage of the default interval and with the artefact's size stated."""
+    rows, path, doc, note = accuracy_rows(lambda r: r["noise"] == "sta" and r["method"] in
+                                          ("final", "final-artefact"), "previous")
+    by = _cells(rows)
+    lines = ["| case | σ | L2 | coverage, default | coverage, artefact stated | RMSE ÷ CRLB |",
+             "|---|---|---|---|---|---|"]
+    for key in CELL_ORDER:
+        m = by.get(key)
+        if not m or "final" not in m:
+            continue
+        art = m.get("final-artefact")
+        lines.append(f"| {key[1][-1].upper()} | {key[2]:g} | {key[3]:g} | {m['final']['coverage95']:.2f} | "
+                     f"{'—' if art is None else format(art['coverage95'], '.2f')} | "
+                     f"{m['final']['rmse_over_crlb']:.1f} |")
+    return "\n".join(lines) + "\n\n" + source(path, doc, note)
+
+
+def accuracy_control() -> str:
+    """The i.i.d. cells with the linear control variate: bias and RMSE in units of the bound, coverage."""
+    rows, path, doc, note = accuracy_rows(lambda r: r["method"] == "final" and "bias_cv" in r and r["noise"] == "iid",
+                                          "control")
+    lines = ["| case | σ | L2 | trials | bias ÷ CRLB (se) | RMSE ÷ CRLB (se) | coverage |",
+             "|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["case"], r["sigma"], r["truth"])):
+        c = r["crlb"]
+        lines.append(f"| {r['case'][-1].upper()} | {r['sigma']:g} | {r['truth']:g} | {r['reps']} | "
+                     f"{r['bias_cv'] / c:.2f} ({r['bias_cv_se'] / c:.2f}) | {r['rmse_cv_over_crlb']:.2f} "
+                     f"({r['rmse_cv_se'] / c:.2f}) | {r['coverage95']:.2f} |")
+    return "\n".join(lines) + "\n\n" + source(path, doc, note)
+
+
+def accuracy_singular() -> str:
+    """Case A near the straight and folded poses: coverage, bias and RMSE of the default estimator."""
+    rows, path, doc, note = accuracy_rows(lambda r: r["noise"] in ("straight", "folded") and r["method"] == "final",
+                                          "folded6")
+    lines = ["| pose | σ | L2 | trials | coverage | bias ÷ CRLB | RMSE ÷ CRLB |", "|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["noise"], r["case"], r["sigma"], r["truth"])):
+        lines.append(f"| {r['noise']} | {r['sigma']:g} | {r['truth']:g} | {r['reps']} | {r['coverage95']:.2f} | "
+                     f"{r['bias'] / r['crlb']:.2f} | {r['rmse_over_crlb']:.2f} |")
+    return "\n".join(lines) + "\n\n" + source(path, doc, note)
+
+
+def accuracy_frames() -> str:
+    """RMSE against the number of frames (case A, σ 15): each method beside the bound."""
+    path = RESULTS / "rmse_vs_frames.json"
+    doc = load(path)
+    names = {"final": "marker", "paper": "paper (seed)", "profile": "joint fit, free poses", "crlb": "CRLB"}
+    lines = ["| frames | " + " | ".join(str(f) for f in doc["frames"]) + " |", "|---" * (len(doc["frames"]) + 1) + "|"]
+    for k, label in names.items():
+        lines.append(f"| {label} (mm) | " + " | ".join(f"{v:.2f}" for v in doc[k]) + " |")
+    return "\n".join(lines) + "\n\n" + source(path, doc)
+
+
+# ---------------------------------------------------------------- honest intervals on real recordings
+
+
+def real_calibration() -> str:
+    """Six trials of one body: the share of trial pairs whose estimates agree within 1.96 combined sd."""
+    path = RESULTS / "real_calibration.json"
+    d = load(path)
+    lines = ["| intervals | pairs within 1.96 combined sd | sd of z (about 1 when honest) |", "|---|---|---|",
+             f"| each trial alone, today's defaults | {d['fraction_consistent_before']:.2f} | {d['sd_z_before']:.2f} |",
+             f"| multi-trial fit, between-trial prior (the default) | {d['fraction_consistent']:.2f} | "
+             f"{d['sd_z']:.2f} |",
+             f"| the same, prior from the other trials (leave the pair out) | "
+             f"{d['fraction_consistent_leave_pair_out']:.2f} | {d['sd_z_leave_pair_out']:.2f} |",
+             f"| between-trial variance estimated (DerSimonian-Laird) | {d['fraction_consistent_dl']:.2f} | "
+             f"{d['sd_z_dl']:.2f} |"]
+    return "\n".join(lines) + "\n\n" + source(path, d)
+
+
+def soft_tissue() -> str:
+    """Simulated soft-tissue artefact, size not stated: coverage and median width from 1 to 4 trials."""
+    path = RESULTS / "soft_tissue.json"
+    d = load(path)
+    cells = d["cells"]
+    rows = [("one trial", "single/default")] + [(f"{k} trials, between-trial prior", f"multi-prior/{k}")
+                                                 for k in (2, 3, 4)]
+    rows += [(f"{k} trials, between-trial variance estimated", f"multi/{k}") for k in (2, 3, 4)]
+    lines = ["| fit | coverage 95 % | median width | refused |", "|---|---|---|---|"]
+    for label, key in rows:
+        if key in cells:
+            c = next(iter(cells[key].values()))
+            lines.append(f"| {label} | {c['coverage95']:.2f} | {c['median_width']:.1f} | {c['refused']} |")
+    head = (f"{d['case']}, σ {d['sigma']:g}, artefact amplitude {d['amplitude']:g}, {d['frames']} frames per "
+            f"trial, {d['reps']} subjects" + (" (a reduced run)" if d.get("reduced") else "") + ":\n\n")
+    return head + "\n".join(lines) + "\n\n" + source(path, d)
+
+
+def model_mismatch() -> str:
+    """A coupled knee fitted with a hinge: how often the misfit check flags it, and coverage before and after."""
+    path = RESULTS / "model_mismatch.json"
+    d = load(path)
+    lines = ["| source | σ | trials | flagged | hinge's own coverage | coverage after (x, y) |",
+             "|---|---|---|---|---|---|"]
+    def cov(r, key):
+        return " / ".join(f"{v:.2f}" for v in r[key]["coverage"]) if key in r else "—"
+
+    for r in d["rows"]:
+        if r["source"] != "null":  # the test's null distribution, not a model
+            lines.append(f"| {r['source']} | {r['sigma']:g} | {r['reps']} | {r['flag_rate']:.2f} | {cov(r, 'hinge')} | "
+                         f"{cov(r, 'after')} |")
+    return "\n".join(lines) + "\n\n" + source(path, d)
+
+
+def screens() -> str:
+    """The outlier screen's false alarms and the second-order correction on long trials."""
+    o_path, b_path = RESULTS / "outlier_screen.json", RESULTS / "bias_trigger.json"
+    o, b = load(o_path), load(b_path)
+    rows = b["rows"] if isinstance(b, dict) else b
+    lines = [f"- Outlier screen on Gaussian data ({o['case']}, σ {o['sigma']:g}, {o['frames']} frames): "
+             f"{o['trials_without_drop']} of {o['reps']} trials without a drop (the plain rule it replaced: "
+             f"{o['trials_without_drop_plain_rule']}).",
+             *(f"- Second-order correction on {r['frames']} frames ({r['reps']} trials"
+               f"{', reduced' if r.get('reduced') else ''}): coverage {r['coverage95']:.2f}, bias "
+               f"{r['bias_over_sd']:.2f} sd, {r['bootstrap_fallbacks']} sent to the bootstrap." for r in rows)]
+    return "\n".join(lines) + "\n\n" + source(o_path, o) + "\n" + source(b_path, b)
+
+
+# ---------------------------------------------------------------- speed and live
+
+
+def speed() -> str:
+    """Batch fit times and the online update, from benchmarks/results/speed.json."""
+    path = RESULTS / "speed.json"
+    d = load(path)
+    lines = ["| measurement (one core) | time |", "|---|---|",
+             f"| case A, 500 frames, `marker` fit with its posterior | {d['fit_case_a_cpu_s']:.2f} s CPU |",
+             f"| scipy `least_squares` on the same joint problem | {d['least_squares_cpu_s']:.2f} s CPU "
+             f"(RMSE {d['least_squares_rmse']:.1f} mm against skelid's {d['skelid_rmse']:.1f} mm) |",
+             f"| 3-D lower limb on the OpenSim walk | {d['lower_limb_fit_cpu_s']:.2f} s CPU |",
+             f"| 10⁴ frames against 10³ (`marker`) | {d['marker_scaling_ratio_1e4_over_1e3']:.1f} × |",
+             f"| online grid filter, one frame (case A, 256 hypotheses) | {d['online_update_ms_median']:.2f} ms "
+             f"median, {d['online_update_ms_p99']:.2f} ms 99th percentile (numpy path: "
+             f"{d['online_numpy_update_ms_median']:.1f} ms) |"]
+    return "\n".join(lines) + "\n\n" + source(path, d)
+
+
+def live_speed() -> str:
+    """``Session.push`` latencies from benchmarks/results/speed.json."""
+    path = RESULTS / "speed.json"
+    d = load(path)
+    rows = [("case A, Gaussian form", "live_case_a_gaussian_ms"), ("case A, grid form", "live_case_a_grid_ms"),
+            ("3-D arm, 10 markers, 6 parameters, motion model", "live_arm3d_motion_ms"),
+            ("3-D arm, no motion model", "live_arm3d_free_ms")]
+    lines = ["| session | median | 99th percentile |", "|---|---|---|"]
+    lines += [f"| {label} | {d[k]['p50']:.2f} ms | {d[k]['p99']:.2f} ms |" for label, k in rows if k in d]
+    return "\n".join(lines) + "\n\n" + source(path, d)
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "demo": demo,
+    "opensim-scales": opensim_scales,
+    "opensim-subject4": opensim_subject4,
+    "opensim-truth": opensim_truth,
+    "accuracy-main": accuracy_main,
+    "accuracy-artefact": accuracy_artefact,
+    "accuracy-control": accuracy_control,
+    "accuracy-singular": accuracy_singular,
+    "accuracy-frames": accuracy_frames,
+    "real-calibration": real_calibration,
+    "soft-tissue": soft_tissue,
+    "model-mismatch": model_mismatch,
+    "screens": screens,
+    "speed": speed,
+    "live-speed": live_speed,
+}
+
+
+def render(text: str, renderers: dict[str, Callable[[], str]] = RENDERERS) -> str:
+    """``text`` with every block replaced by what its renderer gives; an unknown block name raises KeyError."""
+    def one(m):
+        return m.group(1) + renderers[m.group(2)]() + m.group(4)
+
+    return BLOCK.sub(one, text)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="change nothing; exit 1 where a block differs")
+    a = ap.parse_args(argv)
+    stale = []
+    for path in documents():
+        old = path.read_text()
+        new = render(old)
+        if new == old:
+            continue
+        stale.append(path)
+        if a.check:
+            sys.stdout.writelines(difflib.unified_diff(old.splitlines(True), new.splitlines(True),
+                                                       f"{rel(path)} (as committed)", f"{rel(path)} (from results)"))
+        else:
+            path.write_text(new)
+            print(f"rewrote {rel(path)}")
+    if a.check and stale:
+        print(f"\n{len(stale)} file(s) quote figures that differ from benchmarks/results: "
+              "run python benchmarks/render_docs.py", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
