@@ -47,7 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-from skelid.errors import FormatError, ModelError
+from skelid.errors import FormatError, ModelError, SkelidError
+from skelid.io._xml import first_tag, read_xml
 from skelid.model.description import (
     Joint,
     Marker,
@@ -63,10 +64,23 @@ M_TO_MM = 1000.0
 UNIT_WORDS = {"meters": 1.0, "meter": 1.0, "m": 1.0}
 JOINT_TAGS = ("CustomJoint", "PinJoint", "SliderJoint", "UniversalJoint", "BallJoint", "GimbalJoint",
               "FreeJoint", "PlanarJoint", "WeldJoint")
+#: joints OpenSim has that skelid refuses, and why
+REFUSED_JOINTS = {
+    "EllipsoidJoint": "its child slides over an ellipsoid with a translation that depends on all three "
+                      "rotations at once, which skelid's joints (translations each a function of one "
+                      "coordinate) cannot express",
+    "ScapulothoracicJoint": "the scapula slides over a thoracic ellipsoid (a translation that depends on three "
+                            "rotations at once) and wings about an axis set by the ellipsoid's rotation, which "
+                            "skelid's joints cannot express",
+    "ConstantCurvatureJoint": "its translation depends on all three rotations at once (a bending beam), which "
+                              "skelid's joints cannot express",
+}
 FUNCTION_TAGS = ("LinearFunction", "Constant", "PolynomialFunction", "SimmSpline", "NaturalCubicSpline",
                  "MultiplierFunction")
 # OpenSim 4 evaluates a NaturalCubicSpline with the end conditions of its SimmSpline (checked against the
 # opensim package to 1e-12 mm on gait2354), so both read as "fmm" splines.
+#: the first OpenSim document version whose joints hold their frames as offset frames
+OFFSET_FRAME_VERSION = 30505
 EX, EY, EZ = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
@@ -225,7 +239,7 @@ def _spatial_transform(el, coords, jname):
                              "use one coordinate per transform axis")
         if cnames and cnames[0] not in names:
             raise ModelError(f"{where}: unknown coordinate {cnames[0]!r}", f"use one of {names}")
-        ci = names.index(cnames[0]) if cnames else -1
+        ci = names.index(cnames[0]) if cnames and not f.is_constant else -1  # a constant follows no coordinate
         if ci < 0 and not f.is_constant:
             f = CoordinateFunction("constant", (float(f.value(np.zeros(1))[0]),))
         if f.is_constant and f.coefficients[0] * f.scale == 0.0:
@@ -238,6 +252,11 @@ def _spatial_transform(el, coords, jname):
 class _Reader:
     def __init__(self, root, source: str):
         self.source = source
+        try:
+            self.version = int(root.get("Version", "0")) if root.tag == "OpenSimDocument" else 0
+        except ValueError:
+            raise FormatError(f"{source}: OpenSimDocument Version {root.get('Version')!r} is not a number",
+                              "fix the Version attribute") from None
         self.model_el = root.find("Model") if root.tag != "Model" else root
         if self.model_el is None:
             raise FormatError(f"{source}: no <Model> element", "is this an OpenSim .osim file?")
@@ -329,8 +348,10 @@ class _Reader:
     def _joint(self, el, jname, parent=None, child=None):
         tag = el.tag
         if tag not in JOINT_TAGS:
-            raise ModelError(f"{self.source}: joint {jname!r} is a {tag}, which skelid does not read",
-                             f"use one of {', '.join(JOINT_TAGS)}")
+            why = REFUSED_JOINTS.get(tag, "skelid does not know this joint type")
+            raise ModelError(f"{self.source}: joint {jname!r} ({tag}): {why}",
+                             f"replace it with one of {', '.join(JOINT_TAGS)} (a CustomJoint can approximate it), "
+                             "or remove the markers of the bodies it moves")
         coords = _coordinates(el, jname)
         if parent is None:
             own = self.offset_frames(el, f"joint {jname!r}")
@@ -356,13 +377,26 @@ class _Reader:
             el = jwrap[0]
             jname = el.get("name")
             pname = _text(el, "parent_body", "")
-            R_pf = _rot_xyz(_floats(_text(el, "orientation_in_parent", "0 0 0"), 3, f"joint {jname!r}"))
-            p_pf = np.asarray(_floats(_text(el, "location_in_parent", "0 0 0"), 3, f"joint {jname!r}"))
-            R_bm = _rot_xyz(_floats(_text(el, "orientation", "0 0 0"), 3, f"joint {jname!r}"))
-            p_bm = np.asarray(_floats(_text(el, "location", "0 0 0"), 3, f"joint {jname!r}"))
+            vec = self._old_vector
+            R_pf = _rot_xyz(vec(el, "orientation_in_parent", jname))
+            p_pf = np.asarray(vec(el, "location_in_parent", jname))
+            R_bm = _rot_xyz(vec(el, "orientation", jname))
+            p_bm = np.asarray(vec(el, "location", jname))
             parent = _Frame(pname, R_pf, p_pf)
             child = _Frame(b.get("name"), R_bm, p_bm)
             self._joint(el, jname, parent, child)
+
+    def _old_vector(self, el, tag: str, jname: str) -> tuple[float, ...]:
+        """A joint frame's numbers in a 3.x / 2.x file, as OpenSim reads them.
+
+        OpenSim upgrades a file older than version 30505 by writing these four
+        vectors into offset frames with six significant digits (C++'s default
+        stream precision), and computes with the rounded values; so does skelid.
+        """
+        v = _floats(_text(el, tag, "0 0 0"), 3, f"joint {jname!r} {tag}")
+        if self.version < OFFSET_FRAME_VERSION:
+            v = tuple(float(f"{x:.6g}") for x in v)
+        return v
 
     # markers ---------------------------------------------------------------
     def _read_markers(self, ms):
@@ -384,16 +418,7 @@ class _Reader:
 
 
 def _parse(path) -> ET.ElementTree:
-    path = Path(path)
-    try:
-        return ET.parse(path)
-    except FileNotFoundError:
-        raise ModelError(f"model file {path} does not exist", "check the path") from None
-    except ET.ParseError as exc:
-        raise FormatError(f"{path}: malformed XML ({exc})", "repair the file or export it again from OpenSim") \
-            from None
-    except OSError as exc:
-        raise ModelError(f"cannot read {path}: {exc.strerror or exc}", "check the path and permissions") from None
+    return read_xml(path, "model file")
 
 
 # ----------------------------------------------------------------------------- to a skelid model
@@ -458,13 +483,7 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
 
 def _document_kind(path: Path) -> str | None:
     """The tag of an OpenSim XML document's top object (``ScaleTool``, ``MarkerSet``, ``Model`` ...), cheaply."""
-    try:
-        for depth, (_, el) in enumerate(ET.iterparse(path, events=("start",))):
-            if el.tag != "OpenSimDocument" or depth > 0:
-                return el.tag
-    except (ET.ParseError, OSError, UnicodeDecodeError):
-        return None
-    return None
+    return first_tag(path)
 
 
 def find_marker_set(path) -> tuple[Path | None, str | None]:
@@ -502,8 +521,8 @@ def find_marker_set(path) -> tuple[Path | None, str | None]:
             setups.append(f)
     for f in setups:
         try:
-            gm = ET.parse(f).getroot().find(".//GenericModelMaker")
-        except (ET.ParseError, OSError):
+            gm = read_xml(f).getroot().find(".//GenericModelMaker")
+        except SkelidError:
             continue
         model_file = (_text(gm, "model_file", "") or "").strip() if gm is not None else ""
         ms_file = (_text(gm, "marker_set_file", "") or "").strip() if gm is not None else ""

@@ -742,9 +742,7 @@ class Model:
 
 # ----------------------------------------------------------------------------- custom joints
 def _check_custom(j: Joint) -> None:
-    if not j.motions:
-        raise ModelError(f"joint {j.name!r}: a custom joint needs at least one motion",
-                         "use a fixed joint for a weld")
+    """A custom joint's motions and coordinates agree; no motion at all is a rigid attachment (a weld)."""
     for m in j.motions:
         if m.kind not in ("R", "T") or len(m.axis) != 3:
             raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation and a 3-D axis")
