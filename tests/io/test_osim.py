@@ -178,7 +178,7 @@ def test_a_small_model_reads(tmp_path):
 
 @pytest.mark.parametrize("kw,err,words", [
     ({"text": "<OpenSimDocument><Model"}, FormatError, "malformed XML"),
-    ({"joint": "EllipsoidJoint"}, ModelError, "EllipsoidJoint"),
+    ({"joint": "ConstantCurvatureJoint"}, ModelError, "ConstantCurvatureJoint"),
     ({"body": "nowhere"}, ModelError, "nowhere"),
     ({"units": "millimeters"}, ModelError, "length_units"),
 ])

@@ -80,6 +80,8 @@ PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre"
 LINEAR_SETTING_KINDS = ("length", "joint_position", "marker_position")  # replace a coordinate
 PRIOR_KINDS = ("uniform", "normal", "lognormal")
 AXES = {"x": 0, "y": 1, "z": 2}
+MOTION_KINDS = {"R": "rotation", "T": "translation", "C": "carried"}  # a custom joint's motions, in files
+MOTION_KIND_OF = {v: k for k, v in MOTION_KINDS.items()}
 TILT_AXES = {"u": 0, "v": 1}
 UNITS = ("mm", "cm", "m")
 
@@ -198,13 +200,22 @@ class Motion:
     ``axis`` is a unit vector in the parent segment's frame (translations) or in
     the frame left by the joint's earlier rotations (rotations);
     ``coordinate`` indexes the joint's ``coordinates`` (-1: a constant function).
+
+    A *carried* translation (kind ``"C"``) moves the child along ``axis`` (parent
+    frame) by ``f * (axis . W v)``: the component along ``axis`` of the vector
+    ``vector`` (parent frame) turned by ``W``, the product of the joint's rotations
+    listed before it. Three of them along orthogonal axes with ``f`` the semi-axes
+    and ``v`` the normal put the joint centre at ``diag(r) W v``, a point that
+    slides over an ellipsoid as the joint turns (OpenSim's ``EllipsoidJoint``).
+    Its function is a constant (the coordinates act through ``W``).
     """
 
-    kind: str  # "R" or "T"
+    kind: str  # "R", "T" or "C"
     axis: tuple[float, ...]
     coordinate: int
     function: CoordinateFunction
-    scale_weights: tuple[float, ...] = ()  # translation scales by w . s (default: the axis squared)
+    scale_weights: tuple[float, ...] = ()  # translation scales by w . s (default: the axis squared; 0: never)
+    vector: tuple[float, ...] = ()  # carried translations: the vector v (parent frame)
 
 
 @dataclass(frozen=True)
@@ -476,7 +487,9 @@ class Model:
         factors (``s`` for one factor) and weights ``w`` the motion's
         ``scale_weights`` (an imported OpenSim joint: its axis in the joint's
         parent frame, as OpenSim scales a ``CustomJoint``) or ``a_i^2``.
-        Translations that are a coordinate itself are not scaled. A
+        Translations that are a coordinate itself are not scaled, nor those
+        whose weights are all zero. Carried translations are scaled like the
+        others (an ellipsoid's semi-axes grow with its parent). A
         ``translation_gain`` parameter replaces that factor by its own value.
         """
         out = []
@@ -484,7 +497,8 @@ class Model:
             if s.joint.type != "custom" or s.parent is None:
                 continue
             for j, m in enumerate(s.joint.motions):
-                if m.kind != "T" or m.function.is_identity or m.function.is_constant:
+                if m.kind == "R" or (m.kind == "T" and (m.function.is_identity or m.function.is_constant)) \
+                        or (m.scale_weights and not any(m.scale_weights)):
                     continue
                 b = np.zeros(self.n_params)
                 gain = [k for k, p in enumerate(self.parameters)
@@ -706,10 +720,11 @@ class Model:
                 j["axes"] = [list(a) for a in s.joint.axes]
             elif s.joint.type == "custom":
                 j["coordinates"] = list(s.joint.coordinates)
-                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis)}
+                j["motions"] = [{"kind": MOTION_KINDS[m.kind], "axis": list(m.axis)}
                                 | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
                                 | {"function": m.function.to_dict()}
                                 | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
+                                | ({"vector": list(m.vector)} if m.vector else {})
                                 for m in s.joint.motions]
                 if s.joint.orientation:
                     j["orientation"] = [list(s.joint.orientation[r * 3:r * 3 + 3]) for r in range(3)]
@@ -744,8 +759,13 @@ class Model:
 def _check_custom(j: Joint) -> None:
     """A custom joint's motions and coordinates agree; no motion at all is a rigid attachment (a weld)."""
     for m in j.motions:
-        if m.kind not in ("R", "T") or len(m.axis) != 3:
-            raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation and a 3-D axis")
+        if m.kind not in ("R", "T", "C") or len(m.axis) != 3:
+            raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation/carried and a 3-D axis")
+        if (m.kind == "C") != (len(m.vector) == 3):
+            raise ModelError(f"joint {j.name!r}: a carried translation, and only one, needs a 3-D vector")
+        if m.kind == "C" and (m.coordinate >= 0 or not m.function.is_constant):
+            raise ModelError(f"joint {j.name!r}: a carried translation follows the joint's rotations, not a "
+                             "coordinate", "give it no coordinate and a constant function")
         if not -1 <= m.coordinate < len(j.coordinates):
             raise ModelError(f"joint {j.name!r}: a motion refers to coordinate {m.coordinate}, "
                              f"the joint has {len(j.coordinates)}")
@@ -763,9 +783,10 @@ def _check_custom(j: Joint) -> None:
 def _custom_dofs(i: int, j: Joint) -> list[Dof]:
     """One pose coordinate per coordinate of a custom joint, in the joint's order."""
     out = []
+    carried = any(m.kind == "C" for m in j.motions)  # the rotations also move the joint centre
     for c in range(len(j.coordinates)):
         ms = [m for m in j.motions if m.coordinate == c]
-        plain = len(ms) == 1 and ms[0].function.is_identity
+        plain = len(ms) == 1 and ms[0].function.is_identity and not (carried and ms[0].kind == "R")
         rot = [m for m in ms if m.kind == "R"]
         if plain:
             out.append(Dof(i, ms[0].kind, ms[0].axis))
@@ -781,16 +802,17 @@ def _custom_from_dict(j: dict, where: str):
     motions = []
     for n, m in enumerate(j.get("motions", [])):
         mw = f"{where} motion {n + 1}"
-        if not isinstance(m, dict) or m.get("kind") not in ("rotation", "translation"):
-            raise ModelError(f"{mw}: needs kind = 'rotation' or 'translation'")
+        if not isinstance(m, dict) or m.get("kind") not in MOTION_KIND_OF:
+            raise ModelError(f"{mw}: needs kind = 'rotation', 'translation' or 'carried'")
         c = m.get("coordinate", "")
         if c and c not in coords:
             raise ModelError(f"{mw}: coordinate {c!r} is not one of the joint's coordinates {coords}")
-        sw = m.get("scale_weights", ())
-        motions.append(Motion("R" if m["kind"] == "rotation" else "T", _unit(m.get("axis"), f"{mw} axis"),
+        sw, vec = m.get("scale_weights", ()), m.get("vector", ())
+        motions.append(Motion(MOTION_KIND_OF[m["kind"]], _unit(m.get("axis"), f"{mw} axis"),
                               coords.index(c) if c else -1,
                               CoordinateFunction.from_dict(m.get("function"), f"{mw} function"),
-                              _num_list(sw, 3, f"{mw} scale_weights") if sw else ()))
+                              _num_list(sw, 3, f"{mw} scale_weights") if sw else (),
+                              _num_list(vec, 3, f"{mw} vector") if vec else ()))
     orient = ()
     if "orientation" in j:
         R = np.asarray(j["orientation"], dtype=float)

@@ -203,7 +203,9 @@ def _build_plan(model: Model) -> KinematicsPlan:
 
 def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
     """Per segment: its custom joint's motions ``(is_translation, axis (3,), pose index or -1,
-    function, slot in g's coupled factors or -1)``, translations first; and its constant rotation."""
+    function, slot in g's coupled factors or -1, K, K^2, carried)``, translations first; and its
+    constant rotation. ``carried`` is None, or for a carried translation ``(v (3,), number of
+    rotations before it)``."""
     slot = {(c[0], c[1]): n for n, c in enumerate(model.coupled_translations)}
     custom, orient = [], []
     for i, s in enumerate(model.segments):
@@ -217,7 +219,10 @@ def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
             k = seg_dofs[i][m.coordinate] if m.coordinate >= 0 else -1
             a = np.asarray(m.axis, float)
             K = _skew(a)
-            rows.append((m.kind == "T", a, k, m.function, slot.get((i, n), -1), K, K @ K))
+            carried = None
+            if m.kind == "C":
+                carried = (np.asarray(m.vector, float), sum(1 for x in j.motions[:n] if x.kind == "R"))
+            rows.append((m.kind != "R", a, k, m.function, slot.get((i, n), -1), K, K @ K, carried))
         rows.sort(key=lambda r: not r[0])  # translations first (stable: rotations keep their order)
         custom.append(tuple(rows))
         R = np.asarray(j.orientation, float).reshape(3, 3) if j.orientation else None
@@ -524,12 +529,19 @@ def _custom_joint(rows, Rp, p0, pose, factors, axis, pivot, velocity, shift):
     coordinate is ``omega x (x - pivot) + v`` with ``omega = sum f'(q) w`` over
     its rotations (world axes ``w``), ``v = sum c f'(q) Rp a`` over its
     translations and the pivot at the joint centre after the translations.
+    A carried translation by ``c f (w . u)``, ``u = R_n v`` the vector turned by
+    the first ``n`` rotations (world frame ``R_n``), adds
+    ``c f w (w . (f'_j(q) w_j x u))`` to the column of each of those rotations ``j``.
     """
+    Ri, frames, spins = _custom_rotations(rows, Rp, pose, axis)
     pi = p0
-    for is_t, a, k, fun, slot, _K, _K2 in rows:
+    for is_t, a, k, fun, slot, _K, _K2, carried in rows:
         if not is_t:
             continue
         w = Rp @ a
+        if carried is not None:
+            pi = pi + _carried_translation(w, fun, slot, carried, frames, spins, factors, velocity, shift)
+            continue
         if fun.is_identity:  # a translational coordinate
             axis[..., k, :] = w
             pi = pi + w * pose[..., k, None]
@@ -541,22 +553,52 @@ def _custom_joint(rows, Rp, p0, pose, factors, axis, pivot, velocity, shift):
         pi = pi + w * (c * val)[..., None]
         if k >= 0:
             velocity[..., k, :] += w * (c * der)[..., None]
-    Ri = Rp
-    for is_t, a, k, fun, _slot, K, K2 in rows:
-        if is_t:
-            continue
-        if fun.is_identity:
-            val = pose[..., k]
-            axis[..., k, :] = Ri @ a
-        else:
-            val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
-            if k >= 0:
-                axis[..., k, :] += (Ri @ a) * der[..., None]
-        Ri = Ri @ (np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * K2 + _EYE3)
-    for is_t, _a, k, fun, _slot, _K, _K2 in rows:
+    for is_t, _a, k, fun, _slot, _K, _K2, _c in rows:
         if k >= 0 and not (is_t and fun.is_identity):
             pivot[..., k, :] = pi
     return Ri, pi
+
+
+def _custom_rotations(rows, Rp, pose, axis):
+    """The rotations of a custom joint: the child's frame, the frame after each rotation, and
+    ``(pose index, world axis, derivative of the angle)`` of each (axes written into ``axis``)."""
+    Ri = Rp
+    frames, spins = [Rp], []
+    for is_t, a, k, fun, _slot, K, K2, _c in rows:
+        if is_t:
+            continue
+        w = Ri @ a
+        if fun.is_identity:
+            val, der = pose[..., k], None
+            axis[..., k, :] = w
+        else:
+            val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
+            if k >= 0:
+                axis[..., k, :] += w * der[..., None]
+        spins.append((k, w, der))
+        Ri = Ri @ (np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * K2 + _EYE3)
+        frames.append(Ri)
+    return Ri, frames, spins
+
+
+def _carried_translation(w, fun, slot, carried, frames, spins, factors, velocity, shift):
+    """World shift ``c f (w . u) w`` of a carried translation (see :func:`_custom_joint`); its
+    columns are added to ``velocity`` and its factor's derivative written into ``shift``."""
+    v, n = carried
+    u = frames[n] @ v
+    f = float(fun.value(np.zeros(1))[0])
+    c = factors[..., slot, None] if slot >= 0 else 1.0
+    along = np.sum(w * u, axis=-1)[..., None]
+    if slot >= 0:
+        shift[..., slot, :] = w * (f * along)
+    for k, wj, der in spins[:n]:
+        if k < 0:
+            continue
+        d = np.sum(w * np.cross(wj, u), axis=-1)[..., None]
+        if der is not None:
+            d = d * der[..., None]
+        velocity[..., k, :] += w * (c * f * d)
+    return w * (c * f * along)
 
 
 _EYE3 = np.eye(3)

@@ -340,13 +340,16 @@ FUNCTION = Table({"type": Key(Str(lambda ctx: tuple(FUNCTION_KEYS)), "function t
                  example="{type = 'linear', coefficients = [1.0, 0.0]}")
 
 MOTION = Table({
-    "kind": Key(Str(("rotation", "translation")), "rotation or translation", required=True),
+    "kind": Key(Str(("rotation", "translation", "carried")), "rotation, translation, or a translation carried "
+                "by the earlier rotations (along axis by f * (axis . W vector))", required=True),
     "axis": Key(Vec(3, Num(length=False), nonzero=True), "axis (parent frame for translations, the frame "
                 "left by earlier rotations for rotations)", required=True),
     "coordinate": Key(Str(), "the joint coordinate it follows", default="none: a constant function"),
     "function": Key(FUNCTION, "the amount as a function of the coordinate", required=True),
-    "scale_weights": Key(Vec(3, Num(length=False)), "a translation scales by w . (parent's scale factors)",
-                         default="the axis squared"),
+    "scale_weights": Key(Vec(3, Num(length=False)), "a translation scales by w . (parent's scale factors); "
+                         "all zero: never", default="the axis squared"),
+    "vector": Key(Vec(3, Num(length=False)), "the vector a carried translation turns with the joint "
+                  "(parent frame)", default="none (required with kind = carried)"),
 }, example="{kind = 'rotation', axis = [0, 0, 1], coordinate = 'knee', function = {...}}")
 
 JOINT_KEYS["custom"] = {
