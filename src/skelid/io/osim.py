@@ -225,41 +225,54 @@ def _standard_motions(tag: str, n_coords: int, jname: str):
     return [_MotionSpec(k, a, c, ident) for k, a, c in motions]
 
 
-def _spatial_transform(el, coords, jname):
+def _spatial_transform(el, coords, jname) -> list[_MotionSpec]:
+    """The motions of a ``CustomJoint``: one per ``TransformAxis`` that moves."""
     st = el.find("SpatialTransform")
     if st is None:
         raise ModelError(f"CustomJoint {jname!r} has no SpatialTransform", "add one or use another joint type")
     names = [c[0] for c in coords]
-    out = []
-    for ta in st.iter("TransformAxis"):
-        axname = ta.get("name", "")
-        where = f"joint {jname!r} {axname}"
-        kind = "R" if axname.startswith("rotation") else "T"
-        axis = np.asarray(_floats(_text(ta, "axis"), 3, f"{where} axis"))
-        n = float(np.linalg.norm(axis))
-        if n == 0:
-            raise FormatError(f"{where}: zero axis", "give the transform axis a direction")
-        cnames = (_text(ta, "coordinates", "") or "").split()
-        f = _function_in(ta, "function", where)
-        if f is None:
-            f = next((_function(c, where) for c in ta if c.tag in FUNCTION_TAGS or c.tag.endswith("Function")
-                      or c.tag.endswith("Spline")), None)
-        if f is None:
-            if cnames:
-                raise ModelError(f"{where}: coordinate without a function", "give the transform axis a function")
-            continue
-        if len(cnames) > 1:
-            raise ModelError(f"{where}: a function of {len(cnames)} coordinates is not supported",
-                             "use one coordinate per transform axis")
-        if cnames and cnames[0] not in names:
-            raise ModelError(f"{where}: unknown coordinate {cnames[0]!r}", f"use one of {names}")
-        ci = names.index(cnames[0]) if cnames and not f.is_constant else -1  # a constant follows no coordinate
-        if ci < 0 and not f.is_constant:
-            f = CoordinateFunction("constant", (float(f.value(np.zeros(1))[0]),))
-        if f.is_constant and f.coefficients[0] * f.scale == 0.0:
-            continue  # does not move
-        out.append(_MotionSpec(kind, tuple(axis / n), ci, f))
-    return out
+    motions = (_transform_axis(ta, names, f"joint {jname!r} {ta.get('name', '')}") for ta in st.iter("TransformAxis"))
+    return [m for m in motions if m is not None]
+
+
+def _transform_axis(ta, names: list, where: str) -> _MotionSpec | None:
+    """One ``TransformAxis``: its motion, or None when it does not move (no function, or a zero constant)."""
+    axis = _axis_of(ta, where)
+    cnames = (_text(ta, "coordinates", "") or "").split()
+    f = _axis_function(ta, where)
+    if f is None:
+        if cnames:
+            raise ModelError(f"{where}: coordinate without a function", "give the transform axis a function")
+        return None
+    if len(cnames) > 1:
+        raise ModelError(f"{where}: a function of {len(cnames)} coordinates is not supported",
+                         "use one coordinate per transform axis")
+    if cnames and cnames[0] not in names:
+        raise ModelError(f"{where}: unknown coordinate {cnames[0]!r}", f"use one of {names}")
+    ci = names.index(cnames[0]) if cnames and not f.is_constant else -1  # a constant follows no coordinate
+    if ci < 0 and not f.is_constant:
+        f = CoordinateFunction("constant", (float(f.value(np.zeros(1))[0]),))
+    if f.is_constant and f.coefficients[0] * f.scale == 0.0:
+        return None  # does not move
+    kind = "R" if ta.get("name", "").startswith("rotation") else "T"
+    return _MotionSpec(kind, axis, ci, f)
+
+
+def _axis_of(ta, where: str) -> tuple[float, ...]:
+    axis = np.asarray(_floats(_text(ta, "axis"), 3, f"{where} axis"))
+    n = float(np.linalg.norm(axis))
+    if n == 0:
+        raise FormatError(f"{where}: zero axis", "give the transform axis a direction")
+    return tuple(axis / n)
+
+
+def _axis_function(ta, where: str) -> CoordinateFunction | None:
+    """The function of a ``TransformAxis``: under ``<function>``, or (older files) a function element in it."""
+    f = _function_in(ta, "function", where)
+    if f is None:
+        f = next((_function(c, where) for c in ta if c.tag in FUNCTION_TAGS or c.tag.endswith("Function")
+                  or c.tag.endswith("Spline")), None)
+    return f
 
 
 def _ellipsoid(el, spec: _JointSpec) -> None:
@@ -771,21 +784,9 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
     if markers not in ("offsets", "none"):
         raise ModelError(f"unknown marker setting {markers!r}", "use offsets or none")
     present = set(model.marker_names if marker_names is None else marker_names)
-    params = []
-    lo, hi = math.exp(-5 * scale_sd_log), math.exp(5 * scale_sd_log)
-    sprior = Prior("lognormal", lo, hi, 1.0, scale_sd_log)
     seg_with = [s.name for s in model.segments
                 if sum(1 for m in model.markers if m.segment == s.name and m.name in present) >= 1]
-    for s in seg_with:
-        if scale != "none" and s in info.unscalable:
-            raise ModelError(f"body {s!r} cannot get a scale factor: {info.unscalable[s]}",
-                             "fit without scale factors (--scale none) or put the winging axis through the "
-                             "joint centre (scapula_winging_axis_origin 0 0)")
-        if scale == "bodies":
-            params.append(Parameter(f"scale_{s}", "scale", s, None, sprior, (hi - lo) / 200))
-        elif scale == "axes":
-            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, sprior, (hi - lo) / 200)
-                       for i, a in enumerate("xyz")]
+    params = _scale_parameters(seg_with, scale, info, scale_sd_log)
     if markers == "offsets":
         oprior = Prior("normal", -5 * offset_sd, 5 * offset_sd, 0.0, offset_sd)
         for m in model.markers:
@@ -794,6 +795,25 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
                            for i, a in enumerate("xyz")]
     return Model(model.name, model.dim, model.units, model.segments, model.markers, tuple(params),
                  model.description)
+
+
+def _scale_parameters(bodies, scale: str, info: OsimInfo, sd_log: float) -> list[Parameter]:
+    """One log-normal factor per body (``scale='bodies'``), three (``'axes'``) or none."""
+    if scale == "none":
+        return []
+    lo, hi = math.exp(-5 * sd_log), math.exp(5 * sd_log)
+    prior = Prior("lognormal", lo, hi, 1.0, sd_log)
+    params = []
+    for s in bodies:
+        if s in info.unscalable:
+            raise ModelError(f"body {s!r} cannot get a scale factor: {info.unscalable[s]}",
+                             "fit without scale factors (--scale none) or put the winging axis through the "
+                             "joint centre (scapula_winging_axis_origin 0 0)")
+        if scale == "bodies":
+            params.append(Parameter(f"scale_{s}", "scale", s, None, prior, (hi - lo) / 200))
+        else:
+            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, prior, (hi - lo) / 200) for i, a in enumerate("xyz")]
+    return params
 
 
 def keep_markers(model: Model, names) -> Model:
