@@ -285,139 +285,13 @@ class Model:
     description: str = field(default="", compare=False)
 
     def __post_init__(self):
-        if self.dim not in (2, 3):
-            raise ModelError(f"model {self.name!r}: dim must be 2 or 3, got {self.dim}")
-        if self.units not in UNITS:
-            raise ModelError(
-                f"model {self.name!r}: unknown units {self.units!r}", f"use one of {UNITS}"
-            )
-        seg_names = [s.name for s in self.segments]
-        if not seg_names:
-            raise ModelError(f"model {self.name!r} has no segments", "add a [[segments]] table")
-        for n in seg_names:
-            if seg_names.count(n) > 1:
-                raise ModelError(f"segment name {n!r} is used twice", "give each segment a unique name")
-        joint_names = [s.joint.name for s in self.segments]
-        for n in joint_names:
-            if joint_names.count(n) > 1:
-                raise ModelError(f"joint name {n!r} is used twice", "give each joint a unique name")
-        roots = [s for s in self.segments if s.parent is None]
-        if len(roots) != 1:
-            raise ModelError(
-                f"model {self.name!r} has {len(roots)} root segments (parent = 'ground')",
-                "exactly one segment must hang from the ground",
-            )
-        for s in self.segments:
-            if s.parent is not None and s.parent not in seg_names:
-                raise ModelError(
-                    f"segment {s.name!r} has parent {s.parent!r}, which is not a segment",
-                    f"use one of: ground, {', '.join(seg_names)}",
-                )
-            if s.joint.type not in JOINT_TYPES[self.dim]:
-                raise ModelError(
-                    f"joint {s.joint.name!r} has unknown type {s.joint.type!r} for a {self.dim}-D model",
-                    f"use one of: {', '.join(JOINT_TYPES[self.dim])}",
-                )
-            if s.joint.type == "free" and s.parent is not None:
-                raise ModelError(
-                    f"joint {s.joint.name!r}: only the root segment may have a free joint",
-                    "use revolute (2-D) or hinge/universal/spherical (3-D)",
-                )
-            if s.joint.type == "custom":
-                _check_custom(s.joint)
-            if len(s.joint.position) != self.dim:
-                raise ModelError(
-                    f"joint {s.joint.name!r}: position needs {self.dim} coordinates, "
-                    f"got {len(s.joint.position)}"
-                )
-        # order parents first (and detect cycles)
-        ordered, placed = [], set()
-        pending = list(self.segments)
-        while pending:
-            ready = [s for s in pending if s.parent is None or s.parent in placed]
-            if not ready:
-                raise ModelError(
-                    f"segments {', '.join(s.name for s in pending)} form a cycle",
-                    "the segments must form a tree",
-                )
-            for s in ready:
-                ordered.append(s)
-                placed.add(s.name)
-                pending.remove(s)
-        object.__setattr__(self, "segments", tuple(ordered))
-        mnames = [m.name for m in self.markers]
-        for m in self.markers:
-            if mnames.count(m.name) > 1:
-                raise ModelError(f"marker name {m.name!r} is used twice")
-            if m.segment not in seg_names:
-                raise ModelError(
-                    f"marker {m.name!r} is on segment {m.segment!r}, which is not in the model",
-                    f"use one of: {', '.join(seg_names)}",
-                )
-            if len(m.position) != self.dim:
-                raise ModelError(
-                    f"marker {m.name!r}: position needs {self.dim} coordinates, got {len(m.position)}"
-                )
-        if not self.markers:
-            raise ModelError(f"model {self.name!r} has no markers", "add [[markers]] tables")
-        pnames = [p.name for p in self.parameters]
-        for p in self.parameters:
-            if pnames.count(p.name) > 1:
-                raise ModelError(f"parameter name {p.name!r} is used twice")
-            on_marker = p.kind in ("marker_position", "marker_offset")
-            targets = mnames if on_marker else seg_names if p.kind == "scale" else joint_names
-            if p.target not in targets:
-                what = "marker" if on_marker else "segment" if p.kind == "scale" else "joint"
-                raise ModelError(
-                    f"parameter {p.name!r} refers to {what} {p.target!r}, which is not in the model",
-                    f"use one of: {', '.join(targets)}",
-                )
-            if p.kind == "length":
-                j = next(s.joint for s in self.segments if s.joint.name == p.target)
-                if np.linalg.norm(j.position) == 0:
-                    raise ModelError(
-                        f"parameter {p.name!r}: joint {p.target!r} sits at its parent's origin, "
-                        "so its length has no direction",
-                        "give the joint a nominal position along the segment",
-                    )
-            if p.kind in ("joint_position", "marker_position", "joint_centre", "scale", "marker_offset") \
-                    and p.axis is not None \
-                    and p.axis >= self.dim:
-                raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
-            if p.kind == "joint_centre":
-                seg = next(s for s in self.segments if s.joint.name == p.target)
-                if seg.parent is None:
-                    raise ModelError(
-                        f"parameter {p.name!r}: joint {p.target!r} attaches the root to the ground, "
-                        "so no relative motion defines its centre",
-                        "put joint_centre parameters on joints between two segments")
-                children = {c.joint.name for c in self.segments if c.parent == seg.name}
-                clash = [q.name for q in self.parameters
-                         if q.kind == "length" and (q.target == p.target or q.target in children)]
-                if clash:
-                    raise ModelError(
-                        f"parameter {p.name!r}: the joint centre {p.target!r} is an end of length "
-                        f"parameter {clash[0]!r}, whose meaning would then be unclear",
-                        "drop the length parameter: the distance between joint centres is "
-                        "reported as a derived length")
-            if p.kind == "axis_direction":
-                j = next(s.joint for s in self.segments if s.joint.name == p.target)
-                if j.type != "hinge":
-                    raise ModelError(
-                        f"parameter {p.name!r}: axis_direction needs a hinge joint, "
-                        f"{p.target!r} is {j.type}", "point it at a hinge joint")
-            if p.kind == "translation_gain":
-                _check_gain(p, next(s.joint for s in self.segments if s.joint.name == p.target))
-        gains = [(p.target, p.axis) for p in self.parameters if p.kind == "translation_gain"]
-        for g in gains:
-            if gains.count(g) > 1:
-                raise ModelError(f"joint {g[0]!r} has two translation_gain parameters for motion {g[1]}",
-                                 "give each translation at most one gain")
-        tilts = [(p.target, p.axis) for p in self.parameters if p.kind == "axis_direction"]
-        for t in tilts:
-            if tilts.count(t) > 1:
-                raise ModelError(f"joint {t[0]!r} has two axis_direction parameters for tilt "
-                                 f"{'uv'[t[1]]!r}", "give each tilt at most one parameter")
+        """Check the model with small named checkers (:data:`TREE_CHECKS`, then :data:`CONTENT_CHECKS`),
+        ordering the segments parents first in between."""
+        for check in TREE_CHECKS:
+            check(self)
+        object.__setattr__(self, "segments", _parents_first(self.segments))
+        for check in CONTENT_CHECKS:
+            check(self)
 
     # ------------------------------------------------------------ names & sizes
     @property
@@ -753,6 +627,170 @@ class Model:
         keep = tuple(self.parameter(n) for n in names)
         return Model(self.name, self.dim, self.units, self.segments, self.markers, keep,
                      self.description)
+
+
+# ----------------------------------------------------------------------------- model checks
+# Each checker takes the model and raises ModelError naming what is wrong and the fix (the manner of
+# pinocchio's check-model: one small named check per rule, run in order by Model.__post_init__).
+def _check_header(model: Model) -> None:
+    """dim is 2 or 3, units known, at least one segment."""
+    if model.dim not in (2, 3):
+        raise ModelError(f"model {model.name!r}: dim must be 2 or 3, got {model.dim}")
+    if model.units not in UNITS:
+        raise ModelError(f"model {model.name!r}: unknown units {model.units!r}", f"use one of {UNITS}")
+    if not model.segments:
+        raise ModelError(f"model {model.name!r} has no segments", "add a [[segments]] table")
+
+
+def _check_unique_names(model: Model) -> None:
+    """No segment name and no joint name is used twice."""
+    for what, names in (("segment", [s.name for s in model.segments]),
+                        ("joint", [s.joint.name for s in model.segments])):
+        for n in names:
+            if names.count(n) > 1:
+                raise ModelError(f"{what} name {n!r} is used twice", f"give each {what} a unique name")
+
+
+def _check_one_root(model: Model) -> None:
+    roots = [s for s in model.segments if s.parent is None]
+    if len(roots) != 1:
+        raise ModelError(f"model {model.name!r} has {len(roots)} root segments (parent = 'ground')",
+                         "exactly one segment must hang from the ground")
+
+
+def _check_segments(model: Model) -> None:
+    """Every segment's parent exists and its joint fits the model (type, position)."""
+    seg_names = [s.name for s in model.segments]
+    for s in model.segments:
+        if s.parent is not None and s.parent not in seg_names:
+            raise ModelError(f"segment {s.name!r} has parent {s.parent!r}, which is not a segment",
+                             f"use one of: ground, {', '.join(seg_names)}")
+        _check_joint(model, s)
+
+
+def _check_joint(model: Model, s: Segment) -> None:
+    j = s.joint
+    if j.type not in JOINT_TYPES[model.dim]:
+        raise ModelError(f"joint {j.name!r} has unknown type {j.type!r} for a {model.dim}-D model",
+                         f"use one of: {', '.join(JOINT_TYPES[model.dim])}")
+    if j.type == "free" and s.parent is not None:
+        raise ModelError(f"joint {j.name!r}: only the root segment may have a free joint",
+                         "use revolute (2-D) or hinge/universal/spherical (3-D)")
+    if j.type == "custom":
+        _check_custom(j)
+    if len(j.position) != model.dim:
+        raise ModelError(f"joint {j.name!r}: position needs {model.dim} coordinates, got {len(j.position)}")
+
+
+def _parents_first(segments: tuple[Segment, ...]) -> tuple[Segment, ...]:
+    """The segments ordered parents first (a cycle is refused)."""
+    ordered, placed = [], set()
+    pending = list(segments)
+    while pending:
+        ready = [s for s in pending if s.parent is None or s.parent in placed]
+        if not ready:
+            raise ModelError(f"segments {', '.join(s.name for s in pending)} form a cycle",
+                             "the segments must form a tree")
+        for s in ready:
+            ordered.append(s)
+            placed.add(s.name)
+            pending.remove(s)
+    return tuple(ordered)
+
+
+def _check_markers(model: Model) -> None:
+    """Marker names unique, each on a segment of the model with a position of the model's dim; at least one."""
+    seg_names = [s.name for s in model.segments]
+    mnames = [m.name for m in model.markers]
+    for m in model.markers:
+        if mnames.count(m.name) > 1:
+            raise ModelError(f"marker name {m.name!r} is used twice")
+        if m.segment not in seg_names:
+            raise ModelError(f"marker {m.name!r} is on segment {m.segment!r}, which is not in the model",
+                             f"use one of: {', '.join(seg_names)}")
+        if len(m.position) != model.dim:
+            raise ModelError(f"marker {m.name!r}: position needs {model.dim} coordinates, got {len(m.position)}")
+    if not model.markers:
+        raise ModelError(f"model {model.name!r} has no markers", "add [[markers]] tables")
+
+
+def _check_parameters(model: Model) -> None:
+    """Each parameter: a unique name, an existing target, and the rules of its kind."""
+    pnames = [p.name for p in model.parameters]
+    for p in model.parameters:
+        if pnames.count(p.name) > 1:
+            raise ModelError(f"parameter name {p.name!r} is used twice")
+        _check_target(model, p)
+        if p.kind in ("joint_position", "marker_position", "joint_centre", "scale", "marker_offset") \
+                and p.axis is not None and p.axis >= model.dim:
+            raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
+        kind_check = PARAMETER_CHECKS.get(p.kind)
+        if kind_check is not None:
+            kind_check(model, p, next((s for s in model.segments if s.joint.name == p.target), None))
+
+
+def _check_target(model: Model, p: Parameter) -> None:
+    on_marker = p.kind in ("marker_position", "marker_offset")
+    targets = [m.name for m in model.markers] if on_marker else [s.name for s in model.segments] \
+        if p.kind == "scale" else [s.joint.name for s in model.segments]
+    if p.target not in targets:
+        what = "marker" if on_marker else "segment" if p.kind == "scale" else "joint"
+        raise ModelError(f"parameter {p.name!r} refers to {what} {p.target!r}, which is not in the model",
+                         f"use one of: {', '.join(targets)}")
+
+
+def _check_length(model: Model, p: Parameter, seg: Segment) -> None:
+    if np.linalg.norm(seg.joint.position) == 0:
+        raise ModelError(f"parameter {p.name!r}: joint {p.target!r} sits at its parent's origin, "
+                         "so its length has no direction", "give the joint a nominal position along the segment")
+
+
+def _check_joint_centre(model: Model, p: Parameter, seg: Segment) -> None:
+    if seg.parent is None:
+        raise ModelError(f"parameter {p.name!r}: joint {p.target!r} attaches the root to the ground, "
+                         "so no relative motion defines its centre",
+                         "put joint_centre parameters on joints between two segments")
+    children = {c.joint.name for c in model.segments if c.parent == seg.name}
+    clash = [q.name for q in model.parameters
+             if q.kind == "length" and (q.target == p.target or q.target in children)]
+    if clash:
+        raise ModelError(f"parameter {p.name!r}: the joint centre {p.target!r} is an end of length "
+                         f"parameter {clash[0]!r}, whose meaning would then be unclear",
+                         "drop the length parameter: the distance between joint centres is "
+                         "reported as a derived length")
+
+
+def _check_axis_direction(model: Model, p: Parameter, seg: Segment) -> None:
+    if seg.joint.type != "hinge":
+        raise ModelError(f"parameter {p.name!r}: axis_direction needs a hinge joint, "
+                         f"{p.target!r} is {seg.joint.type}", "point it at a hinge joint")
+
+
+def _check_one_per_slot(model: Model) -> None:
+    """At most one translation_gain per translation and one axis_direction per tilt of a joint."""
+    gains = [(p.target, p.axis) for p in model.parameters if p.kind == "translation_gain"]
+    for g in gains:
+        if gains.count(g) > 1:
+            raise ModelError(f"joint {g[0]!r} has two translation_gain parameters for motion {g[1]}",
+                             "give each translation at most one gain")
+    tilts = [(p.target, p.axis) for p in model.parameters if p.kind == "axis_direction"]
+    for t in tilts:
+        if tilts.count(t) > 1:
+            raise ModelError(f"joint {t[0]!r} has two axis_direction parameters for tilt "
+                             f"{'uv'[t[1]]!r}", "give each tilt at most one parameter")
+
+
+#: checks of the tree, before the segments are ordered parents first
+TREE_CHECKS = (_check_header, _check_unique_names, _check_one_root, _check_segments)
+#: checks of what hangs on the tree
+CONTENT_CHECKS = (_check_markers, _check_parameters, _check_one_per_slot)
+#: the rules of one parameter kind: (model, parameter, the segment of its target joint or None)
+PARAMETER_CHECKS = {
+    "length": _check_length,
+    "joint_centre": _check_joint_centre,
+    "axis_direction": _check_axis_direction,
+    "translation_gain": lambda model, p, seg: _check_gain(p, seg.joint),
+}
 
 
 # ----------------------------------------------------------------------------- custom joints
