@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from skelid._numba import AVAILABLE, MODE, Gate, compile_in_background, compile_lock, in_disk_cache, numba  # noqa: F401
+from skelid.model.tilts import tilt_arrays, tilted_axes_from
 
 
 def plan_tables(plan) -> tuple | None:
@@ -61,9 +62,7 @@ def plan_tables(plan) -> tuple | None:
 
 
 def tilt_tables(model) -> tuple | None:
-    """The tilted hinges' arrays (:func:`~skelid.model.kinematics.tilt_arrays`) and slots, or None."""
-    from skelid.model.kinematics import tilt_arrays
-
+    """The tilted hinges' arrays (:func:`~skelid.model.tilts.tilt_arrays`) and slots, or None."""
     if not model.axis_tilts:
         return None
     return tilt_arrays(model), np.array([[t[0], t[1], t[2]] for t in model.axis_tilts], dtype=np.int64)
@@ -485,8 +484,6 @@ def kinematics(model, plan, tables, tilts, g, pose, theta, want_jac: bool = True
                            Aj, anc, um, Am, x, Jq, oq, Jt, ot)
     else:
         if tilts is not None:
-            from skelid.model.kinematics import tilted_axes_from
-
             ax, dax = tilted_axes_from(tilts[0], theta)
             t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
             slots = tilts[1]

@@ -70,17 +70,12 @@ import numpy as np
 
 from skelid.errors import ModelError
 from skelid.model.functions import CoordinateFunction
+from skelid.model.kinds import JOINT_TYPES, MOTION_KINDS, PARAMETER_KINDS, PARAMETER_TARGET
+from skelid.model.schema import check_built, validate
 
-JOINT_TYPES = {
-    2: ("free", "revolute", "fixed"),
-    3: ("free", "hinge", "universal", "spherical", "fixed", "custom"),
-}
-PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre", "axis_direction",
-                   "scale", "marker_offset", "translation_gain")
 LINEAR_SETTING_KINDS = ("length", "joint_position", "marker_position")  # replace a coordinate
 PRIOR_KINDS = ("uniform", "normal", "lognormal")
 AXES = {"x": 0, "y": 1, "z": 2}
-MOTION_KINDS = {"R": "rotation", "T": "translation", "C": "carried"}  # a custom joint's motions, in files
 MOTION_KIND_OF = {v: k for k, v in MOTION_KINDS.items()}
 TILT_AXES = {"u": 0, "v": 1}
 UNITS = ("mm", "cm", "m")
@@ -370,29 +365,26 @@ class Model:
         for i, s in enumerate(self.segments):
             if s.joint.type != "custom" or s.parent is None:
                 continue
-            for j, m in enumerate(s.joint.motions):
-                if m.kind == "R" or (m.kind == "T" and (m.function.is_identity or m.function.is_constant)) \
-                        or (m.scale_weights and not any(m.scale_weights)):
-                    continue
-                b = np.zeros(self.n_params)
-                gain = [k for k, p in enumerate(self.parameters)
-                        if p.kind == "translation_gain" and p.target == s.joint.name and p.axis == j]
-                if gain:
-                    b[gain[0]] = 1.0
-                    out.append((i, j, b, 0.0))
-                    continue
-                a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
-                covered = np.zeros(3)
-                for k, p in enumerate(self.parameters):
-                    if p.kind == "scale" and p.target == s.parent:
-                        if p.axis is None:
-                            b[k] += a2.sum()
-                            covered[:] = 1.0
-                        else:
-                            b[k] += a2[p.axis]
-                            covered[p.axis] = 1.0
-                out.append((i, j, b, float(a2 @ (1.0 - covered))))
+            out += [(i, j, *self._translation_factor(s, j, m)) for j, m in enumerate(s.joint.motions)
+                    if _scales_with_parent(m)]
         return tuple(out)
+
+    def _translation_factor(self, s: Segment, j: int, m: Motion) -> tuple[np.ndarray, float]:
+        """``(b (P,), base)`` of motion ``j`` of ``s``'s joint (see :attr:`coupled_translations`)."""
+        b = np.zeros(self.n_params)
+        gain = [k for k, p in enumerate(self.parameters)
+                if p.kind == "translation_gain" and p.target == s.joint.name and p.axis == j]
+        if gain:
+            b[gain[0]] = 1.0
+            return b, 0.0
+        a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
+        covered = np.zeros(3)
+        for k, p in enumerate(self.parameters):
+            if p.kind == "scale" and p.target == s.parent:
+                axes = slice(None) if p.axis is None else p.axis
+                b[k] += a2[axes].sum()
+                covered[axes] = 1.0
+        return b, float(a2 @ (1.0 - covered))
 
     @property
     def n_pose(self) -> int:
@@ -575,8 +567,6 @@ class Model:
     # ---------------------------------------------------------------- export
     def to_dict(self) -> dict:
         """A dict that :func:`model_from_dict` turns back into an equal model."""
-        from skelid.model.schema import PARAMETER_TARGET
-
         axis_name = "xyz"
         d = {
             "model": {"name": self.name, "dim": self.dim, "units": self.units},
@@ -794,6 +784,13 @@ PARAMETER_CHECKS = {
 
 
 # ----------------------------------------------------------------------------- custom joints
+def _scales_with_parent(m: Motion) -> bool:
+    """A translation by a function of a coordinate, or a carried one, unless its scale weights are all zero."""
+    if m.kind == "R" or (m.kind == "T" and (m.function.is_identity or m.function.is_constant)):
+        return False
+    return not (m.scale_weights and not any(m.scale_weights))
+
+
 def _check_custom(j: Joint) -> None:
     """A custom joint's motions and coordinates agree; no motion at all is a rigid attachment (a weld)."""
     for m in j.motions:
@@ -947,8 +944,6 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
     kind = p.get("kind")
     if kind not in PARAMETER_KINDS:
         raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
-    from skelid.model.schema import PARAMETER_TARGET
-
     target_key = PARAMETER_TARGET.get(kind, "joint")
     target = p.get(target_key)
     if target is None:
@@ -1003,8 +998,6 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
     """Build a :class:`Model` from the parsed TOML structure (see docs/model-format.md)."""
-    from skelid.model.schema import check_built, validate
-
     validate(d, source)  # keys, types and ranges, with key paths; what follows builds the model
     head = d.get("model", {})
     try:

@@ -45,6 +45,7 @@ import numpy as np
 
 from skelid.model import _fk_kernel
 from skelid.model.description import Model
+from skelid.model.tilts import tilt_arrays, tilted_axes_from  # noqa: F401  (re-exported)
 
 
 class Kinematics(NamedTuple):
@@ -292,27 +293,6 @@ def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
         batch = theta.shape[:-1]
         return np.zeros(batch + (0, 3)), np.zeros(batch + (0, 2, 3))
     return tilted_axes_from(tilt_arrays(model), theta)
-
-
-def tilt_arrays(model: Model) -> tuple:
-    """``(ku, kv, e, u, v)`` of the model's tilted hinges as arrays (see :attr:`Model.axis_tilts`)."""
-    tilts = model.axis_tilts
-    return tuple(np.array([t[i] for t in tilts]) for i in range(1, 6))
-
-
-def tilted_axes_from(arrays: tuple, theta) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`tilted_axes` from the model's :func:`tilt_arrays` (at least one tilted hinge)."""
-    ku, kv, e, u, v = arrays
-    theta = np.asarray(theta, dtype=float)
-    al = np.where(ku >= 0, np.radians(theta[..., np.maximum(ku, 0)]), 0.0)[..., None]
-    be = np.where(kv >= 0, np.radians(theta[..., np.maximum(kv, 0)]), 0.0)[..., None]
-    ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
-    axis = ca * cb * e + sa * cb * u + sb * v
-    d_al = cb * (-sa * e + ca * u)
-    d_be = -sb * (ca * e + sa * u) + cb * v
-    deg = np.pi / 180.0
-    d_axis = np.stack([d_al * (ku >= 0)[:, None], d_be * (kv >= 0)[:, None]], -2) * deg
-    return axis, d_axis
 
 
 def _axis_cross(w: np.ndarray, v: np.ndarray) -> np.ndarray:
