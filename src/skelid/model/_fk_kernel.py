@@ -81,6 +81,9 @@ if AVAILABLE:  # pragma: no branch
         ``g (Bg, G)``, ``t_axis (Bg, T, 3)`` and ``t_daxis (Bg, T, 2, 3)`` have ``Bg`` = 1 or ``B``
         rows (one shared by every element, or one each); ``pose (B, Q)``; ``tilt_slots (T, 3)``
         the pose coordinate and the two parameters (-1: none) of each tilted hinge.
+
+        Kept as one flat loop nest on purpose: numba compiles it to tight loops over small fixed-size arrays,
+        and splitting it into functions would cost calls and temporaries per segment and frame.
         """
         B, Q = pose.shape
         S = parent.shape[0]
@@ -251,7 +254,10 @@ if AVAILABLE:  # pragma: no branch
     @_jit
     def _kinematics_planar(g, pose, want_jac, parent, seg_dofs, n_dofs, is_t, dof_axis, dof_seg, ms, moves,
                            used_j, A_joint, anc, used_m, A_marker, x, Jq, oq, Jt, ot):
-        """The planar form of :func:`_kinematics`: one angle per segment (see ``_forward_planar``)."""
+        """The planar form of :func:`_kinematics`: one angle per segment (see ``_forward_planar``).
+
+        Kept as one flat loop nest on purpose, for the compiled speed (as :func:`_kinematics`).
+        """
         B, Q = pose.shape
         S = parent.shape[0]
         M = ms.shape[0]
@@ -341,6 +347,8 @@ if AVAILABLE:  # pragma: no branch
         :func:`skelid.estimators.joint._selected_inverse_by_blocks`, compiled: with frame
         ``I`` and the ``u`` rows ``F`` after it, ``Z_IF = -U_II^{-1} U_IF Z_FF`` and
         ``Z_II = U_II^{-1} (U_II^{-T} - U_IF Z_FI)``.
+
+        Kept as one flat loop nest on purpose, for the compiled speed (as :func:`_kinematics`).
         """
         u = Ub.shape[1] - 1
         out = np.empty((T, Q, Q))

@@ -567,56 +567,59 @@ class Model:
     # ---------------------------------------------------------------- export
     def to_dict(self) -> dict:
         """A dict that :func:`model_from_dict` turns back into an equal model."""
-        axis_name = "xyz"
-        d = {
-            "model": {"name": self.name, "dim": self.dim, "units": self.units},
-            "segments": [],
-            "markers": [],
-            "parameters": [],
-        }
+        head = {"name": self.name, "dim": self.dim, "units": self.units}
         if self.description:
-            d["model"]["description"] = self.description
-        for s in self.segments:
-            j = {"name": s.joint.name, "type": s.joint.type, "position": list(s.joint.position)}
-            if s.joint.type == "hinge":
-                j["axis"] = list(s.joint.axes[0])
-            elif s.joint.type == "universal":
-                j["axes"] = [list(a) for a in s.joint.axes]
-            elif s.joint.type == "custom":
-                j["coordinates"] = list(s.joint.coordinates)
-                j["motions"] = [{"kind": MOTION_KINDS[m.kind], "axis": list(m.axis)}
-                                | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
-                                | {"function": m.function.to_dict()}
-                                | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
-                                | ({"vector": list(m.vector)} if m.vector else {})
-                                for m in s.joint.motions]
-                if s.joint.orientation:
-                    j["orientation"] = [list(s.joint.orientation[r * 3:r * 3 + 3]) for r in range(3)]
-            if s.joint.range:
-                j["range"] = [list(r) for r in s.joint.range]
-            d["segments"].append({"name": s.name, "parent": s.parent or "ground", "joint": j})
-        for m in self.markers:
-            e = {"name": m.name, "segment": m.segment, "position": list(m.position)}
-            if m.label:
-                e["label"] = m.label
-            d["markers"].append(e)
-        for p in self.parameters:
-            e = {"name": p.name, "kind": p.kind}
-            e[PARAMETER_TARGET.get(p.kind, "joint")] = p.target
-            if p.kind == "translation_gain":
-                e["motion"] = p.axis
-            elif p.axis is not None:
-                e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
-            e["prior"] = p.prior.to_dict()
-            e["grid_step"] = p.grid_step
-            d["parameters"].append(e)
-        return d
+            head["description"] = self.description
+        return {"model": head,
+                "segments": [{"name": s.name, "parent": s.parent or "ground", "joint": _joint_dict(s.joint)}
+                             for s in self.segments],
+                "markers": [{"name": m.name, "segment": m.segment, "position": list(m.position)}
+                            | ({"label": m.label} if m.label else {}) for m in self.markers],
+                "parameters": [_parameter_dict(p) for p in self.parameters]}
 
     def with_parameters(self, names) -> Model:
         """A copy of the model that keeps only the parameters ``names`` unknown."""
         keep = tuple(self.parameter(n) for n in names)
         return Model(self.name, self.dim, self.units, self.segments, self.markers, keep,
                      self.description)
+
+
+# ----------------------------------------------------------------------------- export
+def _joint_dict(j: Joint) -> dict:
+    """A joint as its model-file table."""
+    out = {"name": j.name, "type": j.type, "position": list(j.position)}
+    if j.type == "hinge":
+        out["axis"] = list(j.axes[0])
+    elif j.type == "universal":
+        out["axes"] = [list(a) for a in j.axes]
+    elif j.type == "custom":
+        out["coordinates"] = list(j.coordinates)
+        out["motions"] = [_motion_dict(m, j.coordinates) for m in j.motions]
+        if j.orientation:
+            out["orientation"] = [list(j.orientation[r * 3:r * 3 + 3]) for r in range(3)]
+    if j.range:
+        out["range"] = [list(r) for r in j.range]
+    return out
+
+
+def _motion_dict(m: Motion, coordinates: tuple[str, ...]) -> dict:
+    return ({"kind": MOTION_KINDS[m.kind], "axis": list(m.axis)}
+            | ({"coordinate": coordinates[m.coordinate]} if m.coordinate >= 0 else {})
+            | {"function": m.function.to_dict()}
+            | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
+            | ({"vector": list(m.vector)} if m.vector else {}))
+
+
+def _parameter_dict(p: Parameter) -> dict:
+    """A scalar parameter as its model-file table."""
+    e = {"name": p.name, "kind": p.kind, PARAMETER_TARGET.get(p.kind, "joint"): p.target}
+    if p.kind == "translation_gain":
+        e["motion"] = p.axis
+    elif p.axis is not None:
+        e["axis"] = ("uv" if p.kind == "axis_direction" else "xyz")[p.axis]
+    e["prior"] = p.prior.to_dict()
+    e["grid_step"] = p.grid_step
+    return e
 
 
 # ----------------------------------------------------------------------------- model checks
@@ -948,52 +951,68 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
     target = p.get(target_key)
     if target is None:
         raise ModelError(f"{where}: needs {target_key} = '...'")
-    names = AXES if kind != "axis_direction" else TILT_AXES
-    hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
+    comps = _parameter_components(p, kind, name, where)
+    priors = _parameter_priors(p, len(comps), where)
+    return [_scalar_parameter(f"{source}: parameter {pname!r}", pname, kind, str(target), axis, prior_d,
+                              p.get("grid_step"), segments, markers)
+            for (pname, axis), prior_d in zip(comps, priors, strict=True)]
+
+
+def _parameter_components(p: dict, kind: str, name: str, where: str) -> list[tuple[str, int | None]]:
+    """``(name, axis)`` of each scalar a parameter table declares."""
     if kind == "translation_gain":
         motion = p.get("motion")
         if isinstance(motion, bool) or not isinstance(motion, int) or motion < 0:
             raise ModelError(f"{where}: needs motion = N, the index (from 0) of a translation in the joint's "
                              f"motions, got {motion!r}")
-        comps = [(name, motion)]
-    elif kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
+        return [(name, motion)]
+    if kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
         if "axis" in p or "axes" in p:
             raise ModelError(f"{where}: a length has no axis", "remove axis/axes")
-        comps = [(name, None)]
-    elif "axes" in p:
+        return [(name, None)]
+    return _axis_components(p, kind, name, where)
+
+
+def _axis_components(p: dict, kind: str, name: str, where: str) -> list[tuple[str, int]]:
+    """The scalars of ``axis = ...`` (one) or ``axes = [...]`` (one per axis, named ``<name>_<axis>``)."""
+    names = AXES if kind != "axis_direction" else TILT_AXES
+    hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
+    if "axes" in p:
         if "axis" in p:
             raise ModelError(f"{where}: give either axis or axes, not both")
         axes = p["axes"]
         if not isinstance(axes, list) or not axes or any(a not in names for a in axes) \
                 or len(set(axes)) != len(axes):
             raise ModelError(f"{where}: axes must be a list of distinct {hint}, got {axes!r}")
-        comps = [(f"{name}_{a}", names[a]) for a in axes]
-    else:
-        ax = p.get("axis")
-        if ax not in names:
-            raise ModelError(f"{where}: needs axis = {hint} (or axes = [...] for several)")
-        comps = [(name, names[ax])]
+        return [(f"{name}_{a}", names[a]) for a in axes]
+    ax = p.get("axis")
+    if ax not in names:
+        raise ModelError(f"{where}: needs axis = {hint} (or axes = [...] for several)")
+    return [(name, names[ax])]
+
+
+def _parameter_priors(p: dict, n: int, where: str) -> list:
+    """One prior table per scalar: the table's list of them, or its one table repeated."""
     priors = p.get("prior", {})
-    if isinstance(priors, list):
-        if len(priors) != len(comps):
-            raise ModelError(f"{where}: {len(priors)} priors for {len(comps)} axes",
-                             "give one prior table, or one per axis")
-    else:
-        priors = [priors] * len(comps)
-    steps = p.get("grid_step")
-    out = []
-    for (pname, axis), prior_d in zip(comps, priors, strict=True):
-        pwhere = f"{source}: parameter {pname!r}"
-        prior = _prior(prior_d, pwhere, _nominal(kind, str(target), axis, segments, markers))
-        step = steps if steps is not None else (prior.upper - prior.lower) / 200
-        try:
-            step = float(step)
-        except (TypeError, ValueError):
-            raise ModelError(f"{pwhere}: grid_step must be a number") from None
-        if not step > 0:
-            raise ModelError(f"{pwhere}: grid_step must be positive, got {step}")
-        out.append(Parameter(pname, kind, str(target), axis, prior, step))
-    return out
+    if not isinstance(priors, list):
+        return [priors] * n
+    if len(priors) != n:
+        raise ModelError(f"{where}: {len(priors)} priors for {n} axes", "give one prior table, or one per axis")
+    return priors
+
+
+def _scalar_parameter(where: str, name: str, kind: str, target: str, axis, prior_d, step, segments,
+                      markers) -> Parameter:
+    """One scalar parameter: its prior (centred on the nominal value where implicit) and grid step."""
+    prior = _prior(prior_d, where, _nominal(kind, target, axis, segments, markers))
+    step = step if step is not None else (prior.upper - prior.lower) / 200
+    try:
+        step = float(step)
+    except (TypeError, ValueError):
+        raise ModelError(f"{where}: grid_step must be a number") from None
+    if not step > 0:
+        raise ModelError(f"{where}: grid_step must be positive, got {step}")
+    return Parameter(name, kind, target, axis, prior, step)
 
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
@@ -1004,57 +1023,58 @@ def model_from_dict(d: dict, source: str = "model") -> Model:
         dim = int(head.get("dim", 3))
     except (TypeError, ValueError):
         raise ModelError(f"{source}: [model] dim must be 2 or 3") from None
-    name = str(head.get("name", Path(source).stem))
-    units = str(head.get("units", "mm"))
-    segments = []
-    for i, s in enumerate(d.get("segments", [])):
-        where = f"{source}: segment {s.get('name', i + 1)!r}"
-        if "name" not in s:
-            raise ModelError(f"{source}: segment number {i + 1} has no name")
-        j = s.get("joint", {})
-        if not isinstance(j, dict) or "type" not in j:
-            raise ModelError(f"{where}: needs a joint table with a type",
-                             "write joint = {type = 'revolute', position = [...]}")
-        jtype = str(j["type"])
-        if jtype not in JOINT_TYPES.get(dim, ()):
-            raise ModelError(
-                f"{where}: unknown joint type {jtype!r} for a {dim}-D model",
-                f"use one of: {', '.join(JOINT_TYPES.get(dim, ()))}",
-            )
-        pos = _num_list(j.get("position", [0.0] * dim), dim, f"{where} joint position")
-        axes: tuple = ()
-        if jtype == "hinge":
-            axes = (_unit(j.get("axis", (0, 0, 1)), f"{where} joint axis"),)
-        elif jtype == "universal":
-            ax = j.get("axes")
-            if not isinstance(ax, list) or len(ax) != 2:
-                raise ModelError(f"{where}: a universal joint needs axes = [[..], [..]]")
-            axes = tuple(_unit(a, f"{where} joint axes") for a in ax)
-        parent = s.get("parent", "ground")
-        rng = j.get("range", ())
-        if rng and not isinstance(rng[0], list):
-            rng = [rng]
-        rng = tuple(_num_list(r, 2, f"{where} joint range") for r in rng)
-        motions, coords, orient = _custom_from_dict(j, where) if jtype == "custom" else ((), (), ())
-        segments.append(Segment(
-            str(s["name"]), None if parent in (None, "ground") else str(parent),
-            Joint(str(j.get("name", s["name"])), jtype, pos, axes, rng, motions, coords, orient),
-        ))
+    segments = [_segment_from_dict(s, i, dim, source) for i, s in enumerate(d.get("segments", []))]
     aliases = d.get("aliases", {}) or {}
-    markers = []
-    for i, m in enumerate(d.get("markers", [])):
-        if "name" not in m or "segment" not in m:
-            raise ModelError(f"{source}: marker number {i + 1} needs a name and a segment")
-        pos = _num_list(m.get("position", [0.0] * dim), dim, f"{source}: marker {m['name']!r} position")
-        label = m.get("label", aliases.get(m["name"]))
-        markers.append(Marker(str(m["name"]), str(m["segment"]), pos, label))
-    params = []
-    for i, p in enumerate(d.get("parameters", [])):
-        params += _parameters(p, i, source, segments, markers)
-    model = Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
-                  str(head.get("description", "")))
+    markers = [_marker_from_dict(m, i, dim, source, aliases) for i, m in enumerate(d.get("markers", []))]
+    params = [q for i, p in enumerate(d.get("parameters", [])) for q in _parameters(p, i, source, segments, markers)]
+    model = Model(str(head.get("name", Path(source).stem)), dim, str(head.get("units", "mm")), tuple(segments),
+                  tuple(markers), tuple(params), str(head.get("description", "")))
     check_built(model, d, source)
     return model
+
+
+def _segment_from_dict(s: dict, i: int, dim: int, source: str) -> Segment:
+    """One ``[[segments]]`` table -> its segment and joint."""
+    where = f"{source}: segment {s.get('name', i + 1)!r}"
+    if "name" not in s:
+        raise ModelError(f"{source}: segment number {i + 1} has no name")
+    j = s.get("joint", {})
+    if not isinstance(j, dict) or "type" not in j:
+        raise ModelError(f"{where}: needs a joint table with a type",
+                         "write joint = {type = 'revolute', position = [...]}")
+    jtype = str(j["type"])
+    if jtype not in JOINT_TYPES.get(dim, ()):
+        raise ModelError(f"{where}: unknown joint type {jtype!r} for a {dim}-D model",
+                         f"use one of: {', '.join(JOINT_TYPES.get(dim, ()))}")
+    pos = _num_list(j.get("position", [0.0] * dim), dim, f"{where} joint position")
+    rng = j.get("range", ())
+    if rng and not isinstance(rng[0], list):
+        rng = [rng]
+    rng = tuple(_num_list(r, 2, f"{where} joint range") for r in rng)
+    motions, coords, orient = _custom_from_dict(j, where) if jtype == "custom" else ((), (), ())
+    parent = s.get("parent", "ground")
+    return Segment(str(s["name"]), None if parent in (None, "ground") else str(parent),
+                   Joint(str(j.get("name", s["name"])), jtype, pos, _joint_axes(j, jtype, where), rng, motions,
+                         coords, orient))
+
+
+def _joint_axes(j: dict, jtype: str, where: str) -> tuple:
+    """A hinge's axis or a universal joint's two axes (unit vectors); none for the other types."""
+    if jtype == "hinge":
+        return (_unit(j.get("axis", (0, 0, 1)), f"{where} joint axis"),)
+    if jtype == "universal":
+        ax = j.get("axes")
+        if not isinstance(ax, list) or len(ax) != 2:
+            raise ModelError(f"{where}: a universal joint needs axes = [[..], [..]]")
+        return tuple(_unit(a, f"{where} joint axes") for a in ax)
+    return ()
+
+
+def _marker_from_dict(m: dict, i: int, dim: int, source: str, aliases: dict) -> Marker:
+    if "name" not in m or "segment" not in m:
+        raise ModelError(f"{source}: marker number {i + 1} needs a name and a segment")
+    pos = _num_list(m.get("position", [0.0] * dim), dim, f"{source}: marker {m['name']!r} position")
+    return Marker(str(m["name"]), str(m["segment"]), pos, m.get("label", aliases.get(m["name"])))
 
 
 def load_model(path) -> Model:

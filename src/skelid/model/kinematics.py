@@ -162,44 +162,63 @@ def kinematics_plan(model: Model, ws: Workspace | None = None) -> KinematicsPlan
 
 
 def _build_plan(model: Model) -> KinematicsPlan:
+    """The :class:`KinematicsPlan` of ``model``: index tables, then the geometry map's parts, then custom joints."""
     D, S, M = model.dim, len(model.segments), len(model.markers)
-    dofs = model.dofs
-    Q = len(dofs)
     g_base, A = model.geometry_map
     P = A.shape[1]
-    dof_segment = np.array([d.segment for d in dofs], dtype=int)
-    is_t = np.array([d.kind == "T" for d in dofs], dtype=bool)
-    axis = np.zeros((Q, D))
-    skew = np.zeros((Q, 3, 3))
-    for k, d in enumerate(dofs):
-        if d.kind == "T" or D == 3:
-            axis[k] = d.axis
-        if d.kind == "R" and D == 3:
-            skew[k] = _skew(np.asarray(d.axis, float))
-    dof_tilt = np.full(Q, -1, dtype=int)
-    for j, t in enumerate(model.axis_tilts):
-        dof_tilt[t[0]] = j
-    seg_dofs = tuple(tuple(int(k) for k in np.flatnonzero(dof_segment == i)) for i in range(S))
-    seg_rot = tuple(tuple(k for k in ks if not is_t[k]) for ks in seg_dofs)
-    seg_trans = tuple(tuple(k for k in ks if is_t[k]) for ks in seg_dofs)
-    planar = D == 2 and not model.axis_tilts and all(
-        max(t, default=-1) < min(r, default=Q) for t, r in zip(seg_trans, seg_rot, strict=True))
+    dof_segment, is_t, axis, skew = _dof_tables(model)
+    seg_dofs, seg_rot, seg_trans = _segment_dofs(dof_segment, is_t, S)
     ms = np.asarray(model.marker_segment, dtype=int)
     A_joint = A[: S * D].reshape(S, D, P)
     A_mark = A[S * D:(S + M) * D].reshape(M, D, P)
     used_j = np.flatnonzero(np.abs(A_joint).sum(axis=(1, 2)))
     used_m = np.flatnonzero(np.abs(A_mark).sum(axis=(1, 2)))
     custom, orient = _custom_tables(model, seg_dofs)
-    ct = model.coupled_translations
-    ct_seg = np.array([c[0] for c in ct], dtype=int)
+    ct_seg = np.array([c[0] for c in model.coupled_translations], dtype=int)
     return KinematicsPlan(
-        D, S, M, Q, P, tuple(int(i) for i in model.parent_index), g_base, A, dof_segment, is_t, axis,
-        skew, skew @ skew, seg_dofs, seg_rot, seg_trans, ms,
+        D, S, M, len(dof_segment), P, tuple(int(i) for i in model.parent_index), g_base, A, dof_segment, is_t,
+        axis, skew, skew @ skew, seg_dofs, seg_rot, seg_trans, ms,
         np.asarray(model.dof_moves_marker, dtype=float), np.flatnonzero(~is_t), np.flatnonzero(is_t),
         used_j, A_joint[used_j], model.ancestor[used_j][:, ms].astype(float), used_m, A_mark[used_m],
-        dof_tilt, len(model.axis_tilts), planar, custom, orient,
-        any(c is not None for c in custom) or any(o is not None for o in orient), len(ct), ct_seg,
-        model.ancestor[ct_seg][:, ms].astype(float) if len(ct) else np.zeros((0, M)))
+        _dof_tilts(model), len(model.axis_tilts), _is_planar(model, seg_trans, seg_rot, len(dof_segment)), custom,
+        orient, any(c is not None for c in custom) or any(o is not None for o in orient), ct_seg.size, ct_seg,
+        model.ancestor[ct_seg][:, ms].astype(float) if ct_seg.size else np.zeros((0, M)))
+
+
+def _dof_tables(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose coordinate: its segment ``(Q,)``, whether it translates ``(Q,)``, its nominal axis ``(Q, D)``
+    (zero for a planar rotation) and the cross-product matrix of a 3-D rotation's axis ``(Q, 3, 3)``."""
+    dofs, D = model.dofs, model.dim
+    axis = np.zeros((len(dofs), D))
+    skew = np.zeros((len(dofs), 3, 3))
+    for k, d in enumerate(dofs):
+        if d.kind == "T" or D == 3:
+            axis[k] = d.axis
+        if d.kind == "R" and D == 3:
+            skew[k] = _skew(np.asarray(d.axis, float))
+    return (np.array([d.segment for d in dofs], dtype=int), np.array([d.kind == "T" for d in dofs], dtype=bool),
+            axis, skew)
+
+
+def _segment_dofs(dof_segment: np.ndarray, is_t: np.ndarray, S: int) -> tuple[tuple, tuple, tuple]:
+    """Per segment, the indices of its pose coordinates, of its rotations and of its translations."""
+    seg_dofs = tuple(tuple(int(k) for k in np.flatnonzero(dof_segment == i)) for i in range(S))
+    return (seg_dofs, tuple(tuple(k for k in ks if not is_t[k]) for ks in seg_dofs),
+            tuple(tuple(k for k in ks if is_t[k]) for ks in seg_dofs))
+
+
+def _dof_tilts(model: Model) -> np.ndarray:
+    """``(Q,)`` int: each pose coordinate's slot in :attr:`Model.axis_tilts`, -1 if its axis is fixed."""
+    dof_tilt = np.full(model.n_pose, -1, dtype=int)
+    for j, t in enumerate(model.axis_tilts):
+        dof_tilt[t[0]] = j
+    return dof_tilt
+
+
+def _is_planar(model: Model, seg_trans: tuple, seg_rot: tuple, Q: int) -> bool:
+    """2-D, no tilted axis, and every joint's translations before its rotation (the planar path's model)."""
+    return model.dim == 2 and not model.axis_tilts and all(
+        max(t, default=-1) < min(r, default=Q) for t, r in zip(seg_trans, seg_rot, strict=True))
 
 
 def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
