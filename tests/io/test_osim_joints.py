@@ -237,3 +237,29 @@ def test_scaling_a_scapula_with_an_offset_winging_axis_is_refused(tmp_path):
         osim_parameters(base, info, scale="bodies")
     line = exc.value.one_line()
     assert "link" in line and "winging" in line and "fix:" in line
+
+
+COUPLER = """<ConstraintSet><objects><CoordinateCouplerConstraint name="follow">
+<isEnforced>true</isEnforced>
+<coupled_coordinates_function><LinearFunction><coefficients>0.5 0</coefficients></LinearFunction>
+</coupled_coordinates_function>
+<independent_coordinate_names>r1</independent_coordinate_names>
+<dependent_coordinate_name>flex</dependent_coordinate_name>
+</CoordinateCouplerConstraint></objects></ConstraintSet>"""
+
+
+@pytest.mark.parametrize("enforced", [True, False])
+def test_a_coordinate_coupled_across_joints_is_refused_in_one_line(tmp_path, enforced):
+    path = _custom(tmp_path, '<Coordinate name="flex"><range>-2 2</range></Coordinate>',
+                   [_axis("rotation1", "0 0 1", "flex", "<LinearFunction><coefficients>1 0</coefficients>"
+                          "</LinearFunction>"), _axis("rotation2", "1 0 0"), _axis("rotation3", "0 1 0"),
+                    _axis("translation1", "1 0 0"), _axis("translation2", "0 1 0"), _axis("translation3", "0 0 1")])
+    coupler = COUPLER if enforced else COUPLER.replace("<isEnforced>true", "<isEnforced>false")
+    path.write_text(path.read_text().replace("</JointSet>", "</JointSet>" + coupler))
+    if not enforced:  # a constraint switched off couples nothing
+        assert read_osim(path)[0].n_pose == 7
+        return
+    with pytest.raises(ModelError) as exc:
+        read_osim(path)
+    line = exc.value.one_line()
+    assert "'follow'" in line and "joint 'joint' (CustomJoint)" in line and "'r1'" in line and "fix:" in line

@@ -693,9 +693,11 @@ def _check_couplers(rd: _Reader, kept: set) -> None:
     for cname, dep, indep in rd.couplers:
         j = owner.get(dep)
         if j is not None and j.child.body in kept:
-            raise ModelError(f"CoordinateCouplerConstraint {cname!r} couples {dep!r} to {indep}",
-                             "skelid cannot yet follow a coordinate coupled across joints; "
-                             "remove the markers of the bodies it moves")
+            raise ModelError(f"CoordinateCouplerConstraint {cname!r} makes coordinate {dep!r} of joint {j.name!r} "
+                             f"({j.tag}) a function of {', '.join(map(repr, indep)) or 'nothing'}, and skelid's "
+                             "joints follow only their own coordinates",
+                             f"remove the markers of body {j.child.body!r} and of the bodies below it, or write the "
+                             "coupling into the joint (a CustomJoint whose axes are functions of its own coordinate)")
 
 
 def _segment(body: str, j: _JointSpec, child_offset: dict) -> Segment:
