@@ -218,9 +218,11 @@ class Joint:
     """The joint that attaches a segment to its parent.
 
     A ``custom`` joint moves its child by ``motions``: every translation first
-    (along axes of the parent's frame), then the rotations in order, then the
-    constant rotation ``orientation``; the coordinates it has are named by
-    ``coordinates`` (see :mod:`skelid.model.functions`).
+    (along axes of the parent's frame; a carried one by the component of a
+    vector turned by the rotations listed before it), then the rotations in
+    order, then the constant rotation ``orientation``; the coordinates it has
+    are named by ``coordinates`` (see :mod:`skelid.model.functions`). With no
+    motion at all it attaches its child rigidly (a weld).
     """
 
     name: str
@@ -800,7 +802,8 @@ def _check_custom(j: Joint) -> None:
         if m.kind not in ("R", "T", "C") or len(m.axis) != 3:
             raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation/carried and a 3-D axis")
         if (m.kind == "C") != (len(m.vector) == 3):
-            raise ModelError(f"joint {j.name!r}: a carried translation, and only one, needs a 3-D vector")
+            raise ModelError(f"joint {j.name!r}: a carried translation, and only one, needs a 3-D vector",
+                             "give a carried motion vector = [x, y, z] and no other motion a vector")
         if m.kind == "C" and (m.coordinate >= 0 or not m.function.is_constant):
             raise ModelError(f"joint {j.name!r}: a carried translation follows the joint's rotations, not a "
                              "coordinate", "give it no coordinate and a constant function")
