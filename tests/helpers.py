@@ -82,3 +82,40 @@ def run_cli(args, cwd=None, memory_mb: int | None = 3000, timeout: float = 120, 
                 **(env or {})}
     return subprocess.run([sys.executable, "-c", code, *map(str, args)], cwd=cwd, capture_output=True,
                           text=True, timeout=timeout, preexec_fn=limit, env=full_env, stdin=subprocess.DEVNULL)
+
+
+def opensim_marker_gap(model, osim_model, rng, n_poses: int = 100, limit: float = 3.141592653589793) -> float:
+    """Largest distance (mm) between skelid's and OpenSim's markers over random poses.
+
+    ``model`` is the skelid import of ``osim_model`` (an ``opensim.Model`` whose
+    system is not yet built). Each pose draws every coordinate of ``model``
+    uniformly in its OpenSim range (clipped to +-``limit`` rad, +-0.1 m for a
+    translation), sets it in the state without enforcing constraints, assembles
+    the model when it has constraints and reads the coordinates back, so both
+    sides use the values OpenSim's markers are computed at.
+    """
+    import numpy as np
+
+    from skelid.model.kinematics import marker_positions
+
+    state = osim_model.initSystem()
+    coords = osim_model.getCoordinateSet()
+    names = [c for s in model.segments for c in s.joint.coordinates]
+    translational = [coords.get(n).getMotionType() == 2 for n in names]
+    markers = osim_model.getMarkerSet()
+    worst = 0.0
+    for _ in range(n_poses):
+        for n, is_t in zip(names, translational, strict=True):
+            c = coords.get(n)
+            lim = 0.1 if is_t else limit
+            c.setValue(state, rng.uniform(max(c.getRangeMin(), -lim), min(c.getRangeMax(), lim)), False)
+        if osim_model.getConstraintSet().getSize():
+            osim_model.assemble(state)
+        osim_model.realizePosition(state)
+        q = np.array([coords.get(n).getValue(state) * (1000.0 if is_t else 1.0)
+                      for n, is_t in zip(names, translational, strict=True)])
+        x = marker_positions(model, np.zeros(0), q)
+        ref = np.array([[markers.get(m.name).getLocationInGround(state).get(i) for i in range(3)]
+                        for m in model.markers]) * 1000.0
+        worst = max(worst, float(np.abs(x - ref).max()))
+    return worst

@@ -170,7 +170,7 @@ def test_cli_fit_osim_writes_the_scaled_model(leg, tmp_path, capsys):
 
 @pytest.mark.parametrize("text,words", [
     ("<OpenSimDocument><Model", "malformed XML"),
-    (MODEL.replace("BallJoint", "EllipsoidJoint").format(markers=""), "EllipsoidJoint"),
+    (MODEL.replace("BallJoint", "ConstantCurvatureJoint").format(markers=""), "ConstantCurvatureJoint"),
     (MODEL.format(markers='<Marker name="x"><socket_parent_frame>/bodyset/arm</socket_parent_frame>'
                           '<location>0 0 0</location></Marker>'), "arm"),
 ])

@@ -72,3 +72,35 @@ def test_bad_toml_file(tmp_path):
         load_model(p)
     with pytest.raises(ModelError, match="does not exist"):
         load_model(tmp_path / "nope.toml")
+
+
+def test_a_custom_joint_without_motions_is_a_weld_and_a_carried_motion_needs_its_vector():
+    from skelid.model.kinematics import marker_positions
+
+    d = {"model": {"name": "w", "dim": 3},
+         "segments": [{"name": "a", "joint": {"type": "free"}},
+                      {"name": "b", "parent": "a",
+                       "joint": {"type": "custom", "position": [0, 10, 0], "coordinates": [], "motions": []}}],
+         "markers": [{"name": "m", "segment": "b", "position": [1, 2, 3]}]}
+    model = model_from_dict(d)
+    assert model.n_pose == 6
+    q = np.array([5.0, 6.0, 7.0, 0.3, -0.2, 0.1])
+    R = marker_positions(model, np.zeros(0), q) - q[:3]
+    np.testing.assert_allclose(np.linalg.norm(R), np.linalg.norm([1, 12, 3]))  # rigid: distance kept
+    carried = {"kind": "carried", "axis": [1, 0, 0], "function": {"type": "constant", "coefficients": [20.0]}}
+    d["segments"][1]["joint"]["motions"] = [carried]
+    with pytest.raises(ModelError, match="vector"):
+        model_from_dict(d)
+    carried["vector"] = [0.0, 0.0, 1.0]
+    d["segments"][1]["joint"]["motions"] = [{"kind": "rotation", "axis": [0, 1, 0], "coordinate": "c",
+                                             "function": {"type": "linear", "coefficients": [1.0, 0.0]}}, carried]
+    d["segments"][1]["joint"]["coordinates"] = ["c"]
+    model = model_from_dict(d)
+    q = np.zeros(7)
+    q[6] = 0.5  # the z axis turned by 0.5 rad about y has x component sin(0.5): the centre moves 20 sin(0.5)
+    x0 = marker_positions(model, np.zeros(0), np.zeros(7))
+    x1 = marker_positions(model, np.zeros(0), q)
+    centre_shift = 20 * np.sin(0.5)
+    Ry = np.array([[np.cos(0.5), 0, np.sin(0.5)], [0, 1, 0], [-np.sin(0.5), 0, np.cos(0.5)]])
+    np.testing.assert_allclose(x1[0], np.array([0, 10, 0]) + [centre_shift, 0, 0] + Ry @ [1, 2, 3], atol=1e-12)
+    np.testing.assert_allclose(x0[0], [1, 12, 3], atol=1e-12)

@@ -18,16 +18,21 @@ joint centre in the parent body), a marker's position is ``r_B - p_BM``, the
 joint's axes are ``R_PF a`` and a constant rotation ``R_PF R_BM^T`` follows the
 motions. ``PinJoint`` (rotation about z of F), ``SliderJoint``,
 ``UniversalJoint``, ``BallJoint``, ``GimbalJoint``, ``FreeJoint``,
-``PlanarJoint``, ``WeldJoint`` and ``CustomJoint`` become ``custom`` joints
-whose motions are functions of the coordinates (``LinearFunction``,
-``Constant``, ``PolynomialFunction``, ``SimmSpline``, ``NaturalCubicSpline``,
-``MultiplierFunction``; see :mod:`skelid.model.functions`). A locked
+``PlanarJoint``, ``WeldJoint`` (no motion: a rigid attachment) and
+``CustomJoint`` become ``custom`` joints whose motions are functions of the
+coordinates (``LinearFunction``, ``Constant``, ``PolynomialFunction``,
+``SimmSpline``, ``NaturalCubicSpline``, ``MultiplierFunction``; see
+:mod:`skelid.model.functions`). ``EllipsoidJoint`` and
+``ScapulothoracicJoint`` add *carried* translations, whose amount follows the
+joint's rotations (:func:`_ellipsoid`, :func:`_scapulothoracic`). A locked
 coordinate becomes a constant at its default value. Bodies that carry no marker
-and have no descendant that does are left out (``keep='markers'``).
+and have no descendant that does are left out (``keep='markers'``). Files are
+decoded in any encoding OpenSim reads (:mod:`skelid.io._xml`); the joint frames
+of a file older than version 30505 are rounded as OpenSim rounds them.
 
 Anything else that changes where a marker is (a coordinate coupled to another
 joint's coordinate by a ``CoordinateCouplerConstraint``, an unknown joint or
-function) is refused in one line naming the element.
+function) is refused in one line naming the element, its type and why.
 
 Parameters for identification come from :func:`osim_parameters`: a ``scale``
 factor per body (or three per axis) that scales the body's joint frames,
@@ -42,12 +47,14 @@ from __future__ import annotations
 import copy
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from skelid.errors import FormatError, ModelError
+from skelid.errors import FormatError, ModelError, SkelidError
+from skelid.io._xml import first_tag, read_xml
 from skelid.model.description import (
     Joint,
     Marker,
@@ -62,11 +69,20 @@ from skelid.model.functions import CoordinateFunction
 M_TO_MM = 1000.0
 UNIT_WORDS = {"meters": 1.0, "meter": 1.0, "m": 1.0}
 JOINT_TAGS = ("CustomJoint", "PinJoint", "SliderJoint", "UniversalJoint", "BallJoint", "GimbalJoint",
-              "FreeJoint", "PlanarJoint", "WeldJoint")
+              "FreeJoint", "PlanarJoint", "WeldJoint", "EllipsoidJoint", "ScapulothoracicJoint")
+#: joints OpenSim has that skelid refuses, and why
+REFUSED_JOINTS = {
+    "ConstantCurvatureJoint": "its offset is a nonlinear function of its three Euler angles and a fixed length "
+                              "(a segment bent along a circular arc), which skelid's joints (translations each a "
+                              "function of one coordinate, or a fixed vector turned by the rotations) cannot "
+                              "express",
+}
 FUNCTION_TAGS = ("LinearFunction", "Constant", "PolynomialFunction", "SimmSpline", "NaturalCubicSpline",
                  "MultiplierFunction")
 # OpenSim 4 evaluates a NaturalCubicSpline with the end conditions of its SimmSpline (checked against the
 # opensim package to 1e-12 mm on gait2354), so both read as "fmm" splines.
+#: the first OpenSim document version whose joints hold their frames as offset frames
+OFFSET_FRAME_VERSION = 30505
 EX, EY, EZ = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 
@@ -111,6 +127,17 @@ class _Frame:
     p: np.ndarray  # metres
 
 
+class _MotionSpec(NamedTuple):
+    """One motion of an OpenSim joint, in the joint's parent frame F (metres, radians)."""
+
+    kind: str  # "R", "T" or "C" (a translation carried by the joint's earlier rotations)
+    axis: tuple
+    coordinate: int  # index in the joint's coordinates, -1: none
+    function: CoordinateFunction
+    vector: tuple | None = None  # "C": the vector the rotations turn (F frame)
+    weights: tuple | None = None  # "C": the parent's scale factors it grows with (w . s)
+
+
 @dataclass
 class _JointSpec:
     name: str
@@ -118,7 +145,8 @@ class _JointSpec:
     parent: _Frame
     child: _Frame
     coordinates: list  # (name, range (lo, hi), locked, default, motion_type)
-    motions: list  # (kind, axis (F frame), coordinate index or -1, CoordinateFunction in metres/radians)
+    motions: list  # of _MotionSpec
+    unscalable: str | None = None  # why OpenSim's scaling of the child cannot be followed, if it cannot
 
 
 # ----------------------------------------------------------------------------- functions
@@ -194,50 +222,134 @@ def _standard_motions(tag: str, n_coords: int, jname: str):
         raise ModelError(f"joint {jname!r} ({tag}) has {n_coords} coordinates, expected {need}",
                          "fix the joint's coordinate list")
     ident = CoordinateFunction("linear", (1.0, 0.0))
-    return [(k, a, c, ident) for k, a, c in motions]
+    return [_MotionSpec(k, a, c, ident) for k, a, c in motions]
 
 
-def _spatial_transform(el, coords, jname):
+def _spatial_transform(el, coords, jname) -> list[_MotionSpec]:
+    """The motions of a ``CustomJoint``: one per ``TransformAxis`` that moves."""
     st = el.find("SpatialTransform")
     if st is None:
         raise ModelError(f"CustomJoint {jname!r} has no SpatialTransform", "add one or use another joint type")
     names = [c[0] for c in coords]
-    out = []
-    for ta in st.iter("TransformAxis"):
-        axname = ta.get("name", "")
-        where = f"joint {jname!r} {axname}"
-        kind = "R" if axname.startswith("rotation") else "T"
-        axis = np.asarray(_floats(_text(ta, "axis"), 3, f"{where} axis"))
-        n = float(np.linalg.norm(axis))
-        if n == 0:
-            raise FormatError(f"{where}: zero axis", "give the transform axis a direction")
-        cnames = (_text(ta, "coordinates", "") or "").split()
-        f = _function_in(ta, "function", where)
-        if f is None:
-            f = next((_function(c, where) for c in ta if c.tag in FUNCTION_TAGS or c.tag.endswith("Function")
-                      or c.tag.endswith("Spline")), None)
-        if f is None:
-            if cnames:
-                raise ModelError(f"{where}: coordinate without a function", "give the transform axis a function")
-            continue
-        if len(cnames) > 1:
-            raise ModelError(f"{where}: a function of {len(cnames)} coordinates is not supported",
-                             "use one coordinate per transform axis")
-        if cnames and cnames[0] not in names:
-            raise ModelError(f"{where}: unknown coordinate {cnames[0]!r}", f"use one of {names}")
-        ci = names.index(cnames[0]) if cnames else -1
-        if ci < 0 and not f.is_constant:
-            f = CoordinateFunction("constant", (float(f.value(np.zeros(1))[0]),))
-        if f.is_constant and f.coefficients[0] * f.scale == 0.0:
-            continue  # does not move
-        out.append((kind, tuple(axis / n), ci, f))
-    return out
+    motions = (_transform_axis(ta, names, f"joint {jname!r} {ta.get('name', '')}") for ta in st.iter("TransformAxis"))
+    return [m for m in motions if m is not None]
+
+
+def _transform_axis(ta, names: list, where: str) -> _MotionSpec | None:
+    """One ``TransformAxis``: its motion, or None when it does not move (no function, or a zero constant)."""
+    axis = _axis_of(ta, where)
+    cnames = (_text(ta, "coordinates", "") or "").split()
+    f = _axis_function(ta, where)
+    if f is None:
+        if cnames:
+            raise ModelError(f"{where}: coordinate without a function", "give the transform axis a function")
+        return None
+    if len(cnames) > 1:
+        raise ModelError(f"{where}: a function of {len(cnames)} coordinates is not supported",
+                         "use one coordinate per transform axis")
+    if cnames and cnames[0] not in names:
+        raise ModelError(f"{where}: unknown coordinate {cnames[0]!r}", f"use one of {names}")
+    ci = names.index(cnames[0]) if cnames and not f.is_constant else -1  # a constant follows no coordinate
+    if ci < 0 and not f.is_constant:
+        f = CoordinateFunction("constant", (float(f.value(np.zeros(1))[0]),))
+    if f.is_constant and f.coefficients[0] * f.scale == 0.0:
+        return None  # does not move
+    kind = "R" if ta.get("name", "").startswith("rotation") else "T"
+    return _MotionSpec(kind, axis, ci, f)
+
+
+def _axis_of(ta, where: str) -> tuple[float, ...]:
+    axis = np.asarray(_floats(_text(ta, "axis"), 3, f"{where} axis"))
+    n = float(np.linalg.norm(axis))
+    if n == 0:
+        raise FormatError(f"{where}: zero axis", "give the transform axis a direction")
+    return tuple(axis / n)
+
+
+def _axis_function(ta, where: str) -> CoordinateFunction | None:
+    """The function of a ``TransformAxis``: under ``<function>``, or (older files) a function element in it."""
+    f = _function_in(ta, "function", where)
+    if f is None:
+        f = next((_function(c, where) for c in ta if c.tag in FUNCTION_TAGS or c.tag.endswith("Function")
+                  or c.tag.endswith("Spline")), None)
+    return f
+
+
+def _ellipsoid(el, spec: _JointSpec) -> None:
+    """OpenSim's ``EllipsoidJoint`` (Simbody's ``MobilizedBody::Ellipsoid``).
+
+    ``X_FM = (R, diag(r) R e_z)`` with ``R = Rx(q0) Ry(q1) Rz(q2)`` (body-fixed)
+    and ``r`` the semi-axes: the three rotations, then three carried
+    translations along F's axes by ``r_i (e_i . R e_z)``, each growing with the
+    parent's scale factor along its axis (OpenSim's ``EllipsoidJoint::extendScale``).
+    """
+    radii = _floats(_text(el, "radii_x_y_z"), 3, f"joint {spec.name!r} (EllipsoidJoint) radii_x_y_z")
+    _need_coordinates(spec, 3)
+    spec.motions = [_MotionSpec("R", e, i, _IDENTITY) for i, e in enumerate((EX, EY, EZ))]
+    spec.motions += [_MotionSpec("C", e, -1, CoordinateFunction("constant", (r,)), EZ, e)
+                     for e, r in zip((EX, EY, EZ), radii, strict=True)]
+
+
+def _scapulothoracic(el, spec: _JointSpec) -> None:
+    """OpenSim's ``ScapulothoracicJoint``: an ellipsoid joint, then a pin (winging), then a weld.
+
+    OpenSim builds it (``ScapulothoracicJoint::extendAddToSystem``) from the
+    parent frame turned by ``Z = Rz(pi/2)``, an ellipsoid mobilizer with the
+    thoracic radii ``(r_y, r_x, r_z)`` whose child frame is ``Z`` in an
+    intermediate body, and a pin about the unit vector
+    ``d = (-sin w, cos w, 0)`` through ``o = (o_x, o_y, 0)`` of that body
+    (``w`` the winging direction, ``o`` the winging axis origin), the
+    joint's child frame fixed to the pin's body. With ``R`` the ellipsoid's
+    body-fixed x-y-z rotation, the point ``o`` (fixed in the child frame) is at
+    ``diag(r_y, r_x, r_z) R e_z + R Z^T o`` in the turned parent frame and the
+    child turns by ``R Rot(Z^T d, q3) Z^T``. skelid's segment origin is that
+    point: rotations about x, y, z, carried translations for both terms (the
+    radii grow with the parent's scale factors, ``o`` does not), then the
+    winging about ``Z^T d = (cos w, sin w, 0)``.
+    """
+    where = f"joint {spec.name!r} (ScapulothoracicJoint)"
+    rx, ry, rz = _floats(_text(el, "thoracic_ellipsoid_radii_x_y_z"), 3, f"{where} thoracic_ellipsoid_radii_x_y_z")
+    ox, oy = _floats(_text(el, "scapula_winging_axis_origin", "0 0"), 2, f"{where} scapula_winging_axis_origin")
+    w = _floats(_text(el, "scapula_winging_axis_direction", "0"), 1, f"{where} scapula_winging_axis_direction")[0]
+    _need_coordinates(spec, 4)
+    spec.parent = _Frame(spec.parent.body, spec.parent.R @ _RZ90, spec.parent.p)
+    o_child = np.array([ox, oy, 0.0])
+    spec.child = _Frame(spec.child.body, spec.child.R @ _RZ90, spec.child.p + spec.child.R @ o_child)
+    motions = [_MotionSpec("R", e, i, _IDENTITY) for i, e in enumerate((EX, EY, EZ))]
+    motions += [_MotionSpec("C", e, -1, CoordinateFunction("constant", (r,)), EZ, weights)
+                for e, r, weights in ((EX, ry, EY), (EY, rx, EX), (EZ, rz, EZ))]
+    offset = _RZ90.T @ o_child
+    size = float(np.linalg.norm(offset))
+    if size > 0:
+        motions += [_MotionSpec("C", e, -1, CoordinateFunction("constant", (size,)), tuple(offset / size),
+                                (0.0, 0.0, 0.0)) for e in (EX, EY, EZ)]
+        spec.unscalable = ("OpenSim scales its ScapulothoracicJoint's winging axis origin with this body's "
+                           "factors in the joint's frame, which skelid does not follow")
+    motions.append(_MotionSpec("R", (math.cos(w), math.sin(w), 0.0), 3, _IDENTITY))
+    spec.motions = motions
+
+
+def _need_coordinates(spec: _JointSpec, n: int) -> None:
+    if len(spec.coordinates) != n:
+        raise ModelError(f"joint {spec.name!r} ({spec.tag}) has {len(spec.coordinates)} coordinates, expected {n}",
+                         "fix the joint's coordinate list")
+
+
+_IDENTITY = CoordinateFunction("linear", (1.0, 0.0))
+_RZ90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # Rz(pi/2)
+#: joints whose child slides over an ellipsoid: tag -> the reader of their motions
+SURFACE_JOINTS = {"EllipsoidJoint": _ellipsoid, "ScapulothoracicJoint": _scapulothoracic}
 
 
 # ----------------------------------------------------------------------------- the XML walk
 class _Reader:
     def __init__(self, root, source: str):
         self.source = source
+        try:
+            self.version = int(root.get("Version", "0")) if root.tag == "OpenSimDocument" else 0
+        except ValueError:
+            raise FormatError(f"{source}: OpenSimDocument Version {root.get('Version')!r} is not a number",
+                              "fix the Version attribute") from None
         self.model_el = root.find("Model") if root.tag != "Model" else root
         if self.model_el is None:
             raise FormatError(f"{source}: no <Model> element", "is this an OpenSim .osim file?")
@@ -329,8 +441,10 @@ class _Reader:
     def _joint(self, el, jname, parent=None, child=None):
         tag = el.tag
         if tag not in JOINT_TAGS:
-            raise ModelError(f"{self.source}: joint {jname!r} is a {tag}, which skelid does not read",
-                             f"use one of {', '.join(JOINT_TAGS)}")
+            why = REFUSED_JOINTS.get(tag, "skelid does not know this joint type")
+            raise ModelError(f"{self.source}: joint {jname!r} ({tag}): {why}",
+                             f"replace it with one of {', '.join(JOINT_TAGS)} (a CustomJoint can approximate it), "
+                             "or remove the markers of the bodies it moves")
         coords = _coordinates(el, jname)
         if parent is None:
             own = self.offset_frames(el, f"joint {jname!r}")
@@ -341,11 +455,14 @@ class _Reader:
                              "reverse the joint so that the ground is its parent")
         if (_text(el, "reverse", "false") or "false").lower() == "true":
             raise ModelError(f"joint {jname!r} is reversed", "write it with the parent body as its parent")
+        spec = _JointSpec(jname, tag, parent, child, coords, [])
         if tag == "CustomJoint":
-            motions = _spatial_transform(el, coords, jname)
+            spec.motions = _spatial_transform(el, coords, jname)
+        elif tag in SURFACE_JOINTS:
+            SURFACE_JOINTS[tag](el, spec)
         else:
-            motions = _standard_motions(tag, len(coords), jname)
-        self.joints.append(_JointSpec(jname, tag, parent, child, coords, motions))
+            spec.motions = _standard_motions(tag, len(coords), jname)
+        self.joints.append(spec)
 
     # 3.x / 2.x -------------------------------------------------------------
     def _read_old(self, body_els):
@@ -356,13 +473,26 @@ class _Reader:
             el = jwrap[0]
             jname = el.get("name")
             pname = _text(el, "parent_body", "")
-            R_pf = _rot_xyz(_floats(_text(el, "orientation_in_parent", "0 0 0"), 3, f"joint {jname!r}"))
-            p_pf = np.asarray(_floats(_text(el, "location_in_parent", "0 0 0"), 3, f"joint {jname!r}"))
-            R_bm = _rot_xyz(_floats(_text(el, "orientation", "0 0 0"), 3, f"joint {jname!r}"))
-            p_bm = np.asarray(_floats(_text(el, "location", "0 0 0"), 3, f"joint {jname!r}"))
+            vec = self._old_vector
+            R_pf = _rot_xyz(vec(el, "orientation_in_parent", jname))
+            p_pf = np.asarray(vec(el, "location_in_parent", jname))
+            R_bm = _rot_xyz(vec(el, "orientation", jname))
+            p_bm = np.asarray(vec(el, "location", jname))
             parent = _Frame(pname, R_pf, p_pf)
             child = _Frame(b.get("name"), R_bm, p_bm)
             self._joint(el, jname, parent, child)
+
+    def _old_vector(self, el, tag: str, jname: str) -> tuple[float, ...]:
+        """A joint frame's numbers in a 3.x / 2.x file, as OpenSim reads them.
+
+        OpenSim upgrades a file older than version 30505 by writing these four
+        vectors into offset frames with six significant digits (C++'s default
+        stream precision), and computes with the rounded values; so does skelid.
+        """
+        v = _floats(_text(el, tag, "0 0 0"), 3, f"joint {jname!r} {tag}")
+        if self.version < OFFSET_FRAME_VERSION:
+            v = tuple(float(f"{x:.6g}") for x in v)
+        return v
 
     # markers ---------------------------------------------------------------
     def _read_markers(self, ms):
@@ -384,16 +514,7 @@ class _Reader:
 
 
 def _parse(path) -> ET.ElementTree:
-    path = Path(path)
-    try:
-        return ET.parse(path)
-    except FileNotFoundError:
-        raise ModelError(f"model file {path} does not exist", "check the path") from None
-    except ET.ParseError as exc:
-        raise FormatError(f"{path}: malformed XML ({exc})", "repair the file or export it again from OpenSim") \
-            from None
-    except OSError as exc:
-        raise ModelError(f"cannot read {path}: {exc.strerror or exc}", "check the path and permissions") from None
+    return read_xml(path, "model file")
 
 
 # ----------------------------------------------------------------------------- to a skelid model
@@ -407,6 +528,7 @@ class OsimInfo:
     fixed_markers: frozenset
     marker_set: str | None = None  # the MarkerSet file read (given, or found next to the model)
     marker_set_found_by: str | None = None  # how it was found when not given
+    unscalable: dict = field(default_factory=dict)  # body -> why skelid cannot scale it as OpenSim does
 
 
 def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = None) -> tuple[Model, OsimInfo]:
@@ -458,13 +580,7 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
 
 def _document_kind(path: Path) -> str | None:
     """The tag of an OpenSim XML document's top object (``ScaleTool``, ``MarkerSet``, ``Model`` ...), cheaply."""
-    try:
-        for depth, (_, el) in enumerate(ET.iterparse(path, events=("start",))):
-            if el.tag != "OpenSimDocument" or depth > 0:
-                return el.tag
-    except (ET.ParseError, OSError, UnicodeDecodeError):
-        return None
-    return None
+    return first_tag(path)
 
 
 def find_marker_set(path) -> tuple[Path | None, str | None]:
@@ -502,8 +618,8 @@ def find_marker_set(path) -> tuple[Path | None, str | None]:
             setups.append(f)
     for f in setups:
         try:
-            gm = ET.parse(f).getroot().find(".//GenericModelMaker")
-        except (ET.ParseError, OSError):
+            gm = read_xml(f).getroot().find(".//GenericModelMaker")
+        except SkelidError:
             continue
         model_file = (_text(gm, "model_file", "") or "").strip() if gm is not None else ""
         ms_file = (_text(gm, "marker_set_file", "") or "").strip() if gm is not None else ""
@@ -520,6 +636,24 @@ def find_marker_set(path) -> tuple[Path | None, str | None]:
 
 
 def _to_model(rd: _Reader, keep: str, name: str) -> tuple[Model, OsimInfo]:
+    """The skelid model of what ``rd`` read: the tree, the bodies kept, their joints and markers."""
+    by_child = _joints_by_child(rd)
+    _check_marker_bodies(rd, by_child)
+    kept = _kept_bodies(rd, by_child, keep)
+    _check_couplers(rd, kept)
+    order = [b for b in rd.bodies if b in kept]
+    child_offset = {b: (by_child[b].child.R, by_child[b].child.p) for b in order}
+    segments = [_segment(b, by_child[b], child_offset) for b in order]
+    markers = [Marker(mname, body, tuple(float(v) for v in (loc - child_offset[body][1]) * M_TO_MM))
+               for mname, body, loc, _fixed in rd.markers if body in kept]
+    info = OsimInfo(rd.source, child_offset, {b: by_child[b].name for b in order},
+                    frozenset(m[0] for m in rd.markers if m[3]),
+                    unscalable={b: by_child[b].unscalable for b in order if by_child[b].unscalable})
+    return Model(name, 3, "mm", tuple(segments), tuple(markers)), info
+
+
+def _joints_by_child(rd: _Reader) -> dict:
+    """Body -> the joint that attaches it (a body attached twice closes a loop: refused)."""
     by_child = {}
     for j in rd.joints:
         if j.child.body in by_child:
@@ -527,81 +661,103 @@ def _to_model(rd: _Reader, keep: str, name: str) -> tuple[Model, OsimInfo]:
                              f"({by_child[j.child.body].name!r}, {j.name!r})",
                              "skelid reads tree-shaped models; remove the loop-closing joint")
         by_child[j.child.body] = j
-    parent_of = {b: j.parent.body for b, j in by_child.items()}
-    marker_bodies = {m[1] for m in rd.markers}
-    for b in marker_bodies:
+    return by_child
+
+
+def _check_marker_bodies(rd: _Reader, by_child: dict) -> None:
+    for b in {m[1] for m in rd.markers}:
         if b == "ground":
             raise ModelError("a marker is fixed to the ground", "remove it: it carries no information")
         if b not in by_child:
             raise ModelError(f"body {b!r} carries markers but no joint attaches it",
                              "attach it to the model with a joint")
+
+
+def _kept_bodies(rd: _Reader, by_child: dict, keep: str) -> set:
+    """The bodies that carry markers and those between them and the ground (all with ``keep='all'``)."""
+    parent_of = {b: j.parent.body for b, j in by_child.items()}
     kept = set()
-    for b in (marker_bodies if keep == "markers" else set(by_child)):
+    for b in ({m[1] for m in rd.markers} if keep == "markers" else set(by_child)):
         while b != "ground" and b not in kept:
             kept.add(b)
             if b not in parent_of:
                 raise ModelError(f"body {b!r} is not attached to the ground through joints",
                                  "attach it with a joint")
             b = parent_of[b]
-    # coordinates coupled across joints
+    return kept
+
+
+def _check_couplers(rd: _Reader, kept: set) -> None:
+    """Refuse a coordinate coupled across joints when it moves a kept body."""
     owner = {c[0]: j for j in rd.joints for c in j.coordinates}
     for cname, dep, indep in rd.couplers:
         j = owner.get(dep)
         if j is not None and j.child.body in kept:
-            raise ModelError(f"CoordinateCouplerConstraint {cname!r} couples {dep!r} to {indep}",
-                             "skelid cannot yet follow a coordinate coupled across joints; "
-                             "remove the markers of the bodies it moves")
-    child_offset = {}
-    segments = []
-    order = [b for b in rd.bodies if b in kept]
-    for b in order:
-        j = by_child[b]
-        child_offset[b] = (j.child.R, j.child.p)
-    for b in order:
-        j = by_child[b]
-        par = j.parent.body
-        base = np.zeros(3) if par == "ground" else child_offset[par][1]
-        o = (j.parent.p - base) * M_TO_MM
-        R_pf = j.parent.R
-        motions, coords, ranges = [], [], []
-        cmap = {}
-        for ci, (cname, _rng, locked, _default, _mt) in enumerate(j.coordinates):
-            if not locked and any(c == ci for *_x, c, _f in j.motions):
-                cmap[ci] = len(coords)
-                coords.append(cname)
-        for kind, axis, ci, f in j.motions:
-            cname, rng, locked, default, _mt = j.coordinates[ci] if ci >= 0 else ("", (0, 0), True, 0.0, "")
-            if ci >= 0 and locked:
-                f = CoordinateFunction("constant", (float(f.value(np.array([default]))[0]),))
-                ci = -1
-            a = tuple(float(v) for v in R_pf @ np.asarray(axis))
-            if kind == "T":
-                f = CoordinateFunction(f.kind, f.coefficients, f.x, f.y, f.end, f.scale)
-                translational_coord = ci >= 0 and f.is_identity
-                if not translational_coord:
-                    f = CoordinateFunction(f.kind, f.coefficients, f.x, f.y, f.end, f.scale * M_TO_MM)
-                if f.is_constant:  # a fixed offset: part of the joint position
-                    o = o + np.asarray(a) * f.coefficients[0] * f.scale
-                    continue
-            motions.append(Motion(kind, a, cmap.get(ci, -1), f,
-                                  tuple(float(v) for v in axis) if kind == "T" else ()))
-        for ci, (_cname, rng, _locked, _d, _mt) in enumerate(j.coordinates):
-            if ci in cmap and any(m.kind == "R" and m.coordinate == cmap[ci] for m in motions):
-                ranges.append(tuple(float(np.degrees(v)) for v in rng))
-        C = R_pf @ j.child.R.T
-        orient = () if np.allclose(C, np.eye(3), atol=1e-15, rtol=0) else tuple(float(v) for v in C.ravel())
-        joint = Joint(j.name, "custom", tuple(float(v) for v in o), (), tuple(ranges), tuple(motions),
-                      tuple(coords), orient)
-        segments.append(Segment(b, None if par == "ground" else par, joint))
-    markers = []
-    for mname, body, loc, _fixed in rd.markers:
-        if body not in kept:
-            continue
-        r = (loc - child_offset[body][1]) * M_TO_MM
-        markers.append(Marker(mname, body, tuple(float(v) for v in r)))
-    info = OsimInfo(rd.source, child_offset, {b: by_child[b].name for b in order},
-                    frozenset(m[0] for m in rd.markers if m[3]))
-    return Model(name, 3, "mm", tuple(segments), tuple(markers)), info
+            raise ModelError(f"CoordinateCouplerConstraint {cname!r} makes coordinate {dep!r} of joint {j.name!r} "
+                             f"({j.tag}) a function of {', '.join(map(repr, indep)) or 'nothing'}, and skelid's "
+                             "joints follow only their own coordinates",
+                             f"remove the markers of body {j.child.body!r} and of the bodies below it, or write the "
+                             "coupling into the joint (a CustomJoint whose axes are functions of its own coordinate)")
+
+
+def _segment(body: str, j: _JointSpec, child_offset: dict) -> Segment:
+    """The segment of ``body`` and its joint (position, motions, coordinates, constant rotation), in mm."""
+    par = j.parent.body
+    base = np.zeros(3) if par == "ground" else child_offset[par][1]
+    position = (j.parent.p - base) * M_TO_MM
+    R_pf = j.parent.R
+    cmap, coords = _moving_coordinates(j)
+    motions = []
+    for spec in j.motions:
+        motion, offset = _motion(spec, j, R_pf, cmap)
+        position = position + offset
+        if motion is not None:
+            motions.append(motion)
+    ranges = [tuple(float(np.degrees(v)) for v in rng) for ci, (_n, rng, *_r) in enumerate(j.coordinates)
+              if ci in cmap and any(m.kind == "R" and m.coordinate == cmap[ci] for m in motions)]
+    C = R_pf @ j.child.R.T
+    orient = () if np.allclose(C, np.eye(3), atol=1e-15, rtol=0) else tuple(float(v) for v in C.ravel())
+    joint = Joint(j.name, "custom", tuple(float(v) for v in position), (), tuple(ranges), tuple(motions),
+                  tuple(coords), orient)
+    return Segment(body, None if par == "ground" else par, joint)
+
+
+def _moving_coordinates(j: _JointSpec) -> tuple[dict, list]:
+    """The joint's unlocked coordinates that drive a motion: OpenSim index -> skelid index, and their names."""
+    cmap, coords = {}, []
+    for ci, (cname, _rng, locked, _default, _mt) in enumerate(j.coordinates):
+        if not locked and any(m.coordinate == ci for m in j.motions):
+            cmap[ci] = len(coords)
+            coords.append(cname)
+    return cmap, coords
+
+
+def _motion(spec: _MotionSpec, j: _JointSpec, R_pf: np.ndarray, cmap: dict) -> tuple[Motion | None, np.ndarray]:
+    """One motion of an OpenSim joint in the parent body's frame (mm), or None and the fixed offset it is.
+
+    A locked coordinate's motion becomes a constant at its default value; a
+    constant translation is a shift of the joint's position (returned).
+    """
+    f, ci = spec.function, spec.coordinate
+    if ci >= 0 and j.coordinates[ci][2]:  # locked
+        f = CoordinateFunction("constant", (float(f.value(np.array([j.coordinates[ci][3]]))[0]),))
+        ci = -1
+    a = tuple(float(v) for v in R_pf @ np.asarray(spec.axis))
+    none = np.zeros(3)
+    if spec.kind == "R":
+        return Motion("R", a, cmap.get(ci, -1), f), none
+    if spec.kind == "C":
+        return Motion("C", a, -1, _scaled(f, M_TO_MM), tuple(float(v) for v in spec.weights),
+                      tuple(float(v) for v in R_pf @ np.asarray(spec.vector))), none
+    if not (ci >= 0 and f.is_identity):  # a translational coordinate stays in mm through the pose
+        f = _scaled(f, M_TO_MM)
+    if f.is_constant:  # a fixed offset: part of the joint position
+        return None, np.asarray(a) * f.coefficients[0] * f.scale
+    return Motion("T", a, cmap.get(ci, -1), f, tuple(float(v) for v in spec.axis)), none
+
+
+def _scaled(f: CoordinateFunction, factor: float) -> CoordinateFunction:
+    return CoordinateFunction(f.kind, f.coefficients, f.x, f.y, f.end, f.scale * factor)
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -630,17 +786,9 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
     if markers not in ("offsets", "none"):
         raise ModelError(f"unknown marker setting {markers!r}", "use offsets or none")
     present = set(model.marker_names if marker_names is None else marker_names)
-    params = []
-    lo, hi = math.exp(-5 * scale_sd_log), math.exp(5 * scale_sd_log)
-    sprior = Prior("lognormal", lo, hi, 1.0, scale_sd_log)
     seg_with = [s.name for s in model.segments
                 if sum(1 for m in model.markers if m.segment == s.name and m.name in present) >= 1]
-    for s in seg_with:
-        if scale == "bodies":
-            params.append(Parameter(f"scale_{s}", "scale", s, None, sprior, (hi - lo) / 200))
-        elif scale == "axes":
-            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, sprior, (hi - lo) / 200)
-                       for i, a in enumerate("xyz")]
+    params = _scale_parameters(seg_with, scale, info, scale_sd_log)
     if markers == "offsets":
         oprior = Prior("normal", -5 * offset_sd, 5 * offset_sd, 0.0, offset_sd)
         for m in model.markers:
@@ -649,6 +797,25 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
                            for i, a in enumerate("xyz")]
     return Model(model.name, model.dim, model.units, model.segments, model.markers, tuple(params),
                  model.description)
+
+
+def _scale_parameters(bodies, scale: str, info: OsimInfo, sd_log: float) -> list[Parameter]:
+    """One log-normal factor per body (``scale='bodies'``), three (``'axes'``) or none."""
+    if scale == "none":
+        return []
+    lo, hi = math.exp(-5 * sd_log), math.exp(5 * sd_log)
+    prior = Prior("lognormal", lo, hi, 1.0, sd_log)
+    params = []
+    for s in bodies:
+        if s in info.unscalable:
+            raise ModelError(f"body {s!r} cannot get a scale factor: {info.unscalable[s]}",
+                             "fit without scale factors (--scale none) or put the winging axis through the "
+                             "joint centre (scapula_winging_axis_origin 0 0)")
+        if scale == "bodies":
+            params.append(Parameter(f"scale_{s}", "scale", s, None, prior, (hi - lo) / 200))
+        else:
+            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, prior, (hi - lo) / 200) for i, a in enumerate("xyz")]
+    return params
 
 
 def keep_markers(model: Model, names) -> Model:
@@ -738,86 +905,107 @@ def write_scaled_osim(src, out, model: Model, info: OsimInfo, theta, marker_set=
     """Write ``src`` scaled by the fitted ``theta`` to ``out``, every other element untouched.
 
     Joint frames on a body are scaled by its factors, coupled translations of
-    a ``CustomJoint`` by its parent's factor along the axis, markers moved to
-    their fitted locations (scale and offset). Markers read from a separate
-    ``marker_set`` file are added to the model's MarkerSet.
+    a ``CustomJoint`` by its parent's factor along the axis, the ellipsoid of an
+    ``EllipsoidJoint`` or ``ScapulothoracicJoint`` by its parent's factors,
+    markers moved to their fitted locations (scale and offset). Markers read
+    from a separate ``marker_set`` file are added to the model's MarkerSet.
     """
     tree = _parse(src)
-    root = tree.getroot()
-    m_el = root.find("Model")
+    m_el = tree.getroot().find("Model")
     if name:
         m_el.set("name", name)
     scales = body_scales(model, theta)
-    locs = marker_locations(model, info, theta)
+    joints = _scale_joint_frames(m_el, scales)
+    for el, parent, child in joints:
+        _scale_joint_motion(el, scales.get(parent), scales.get(child))
+    ms = _merged_marker_set(m_el, marker_set)
+    if ms is not None:
+        _place_markers(ms, marker_locations(model, info, theta), scales)
+    tree.write(out, encoding="UTF-8", xml_declaration=True)
 
-    def sc(body):
-        return scales.get(body, np.ones(3))
 
-    def scale_vec(el, tag, body):
-        e = el.find(tag)
-        if e is not None and body in scales:
-            e.text = _fmt(np.asarray(_floats(e.text, 3, tag)) * sc(body))
+def _scale_vector(el, tag: str, factors) -> None:
+    """Multiply the three numbers of ``el``'s ``tag`` element by ``factors`` (nothing if either is absent)."""
+    e = el.find(tag)
+    if e is not None and factors is not None:
+        e.text = _fmt(np.asarray(_floats(e.text, 3, tag)) * factors)
 
+
+def _scale_joint_frames(m_el, scales: dict) -> list:
+    """Scale every joint's frames by their bodies' factors; ``(joint element, parent body, child body)`` each."""
     bodyset = m_el.find("BodySet")
-    old_layout = any(b.find("Joint") is not None for b in bodyset.iter("Body"))
     joints = []
-    if old_layout:
+    if any(b.find("Joint") is not None for b in bodyset.iter("Body")):  # 2.x / 3.x: joints inside bodies
         for b in bodyset.iter("Body"):
             jw = b.find("Joint")
             if jw is not None and len(jw):
                 el = jw[0]
                 parent = _text(el, "parent_body", "")
-                scale_vec(el, "location_in_parent", parent)
-                scale_vec(el, "location", b.get("name"))
-                joints.append((el, parent))
-    else:
-        for el in (m_el.find("JointSet").find("objects") or []):
-            fr = el.find("frames")
-            for f in (fr.iter("PhysicalOffsetFrame") if fr is not None else []):
-                body = (_text(f, "socket_parent", "") or "").rsplit("/", 1)[-1]
-                scale_vec(f, "translation", body)
-            pref = (_text(el, "socket_parent_frame", "") or "")
-            parent = pref.rsplit("/", 1)[-1]
-            if fr is not None:
-                for f in fr.iter("PhysicalOffsetFrame"):
-                    if f.get("name") == parent:
-                        parent = (_text(f, "socket_parent", "") or "").rsplit("/", 1)[-1]
-            joints.append((el, parent))
-    for el, parent in joints:
-        if el.tag != "CustomJoint" or parent not in scales:
-            continue
+                _scale_vector(el, "location_in_parent", scales.get(parent))
+                _scale_vector(el, "location", scales.get(b.get("name")))
+                joints.append((el, parent, b.get("name")))
+        return joints
+    for el in (m_el.find("JointSet").find("objects") or []):
+        fr = el.find("frames")
+        offsets = {f.get("name"): _last(_text(f, "socket_parent", "")) for f in
+                   (fr.iter("PhysicalOffsetFrame") if fr is not None else [])}
+        for f in (fr.iter("PhysicalOffsetFrame") if fr is not None else []):
+            _scale_vector(f, "translation", scales.get(offsets[f.get("name")]))
+        parent, child = (_last(_text(el, tag, "")) for tag in ("socket_parent_frame", "socket_child_frame"))
+        joints.append((el, offsets.get(parent, parent), offsets.get(child, child)))
+    return joints
+
+
+def _last(ref: str | None) -> str:
+    return (ref or "").rsplit("/", 1)[-1]
+
+
+def _scale_joint_motion(el, parent_scale, child_scale) -> None:
+    """Scale what a joint's motion holds, as OpenSim's ``extendScale`` of its type does."""
+    if el.tag == "EllipsoidJoint":
+        _scale_vector(el, "radii_x_y_z", parent_scale)
+    elif el.tag == "ScapulothoracicJoint":
+        _scale_vector(el, "thoracic_ellipsoid_radii_x_y_z", parent_scale)
+        o = el.find("scapula_winging_axis_origin")
+        if o is not None and parent_scale is not None and child_scale is not None:
+            o.text = _fmt(np.asarray(_floats(o.text, 2, "scapula_winging_axis_origin")) * child_scale[:2])
+    elif el.tag == "CustomJoint" and parent_scale is not None:
         for ta in el.iter("TransformAxis"):
             if not ta.get("name", "").startswith("translation"):
                 continue
             a = np.asarray(_floats(_text(ta, "axis"), 3, "axis"))
-            a = a / np.linalg.norm(a)
-            factor = float(a @ sc(parent))  # OpenSim: the axis (in the joint's parent frame) . scale factors
+            factor = float(a / np.linalg.norm(a) @ parent_scale)  # OpenSim: the axis (parent frame) . factors
             holder = ta.find("function")
-            if holder is None:
-                holder = ta
-            _scale_function_el(holder, factor)
+            _scale_function_el(ta if holder is None else holder, factor)
+
+
+def _merged_marker_set(m_el, marker_set):
+    """The model's MarkerSet element, with the markers of a separate ``marker_set`` file added."""
     ms = m_el.find("MarkerSet")
-    if marker_set is not None:
-        extra = _parse(marker_set).getroot()
-        extra = extra if extra.tag == "MarkerSet" else extra.find("MarkerSet")
-        if ms is None:
-            ms = ET.SubElement(m_el, "MarkerSet", {"name": "markerset"})
-        objs = ms.find("objects")
-        if objs is None:
-            objs = ET.SubElement(ms, "objects")
-        for mk in extra.iter("Marker"):
-            objs.append(copy.deepcopy(mk))
-    if ms is not None:
-        for mk in ms.iter("Marker"):
-            n = mk.get("name")
-            ref = _text(mk, "socket_parent_frame") or _text(mk, "body") or ""
-            body = ref.rsplit("/", 1)[-1]
-            loc = mk.find("location")
-            if n in locs:
-                loc.text = _fmt(locs[n])
-            elif body in scales and loc is not None:
-                loc.text = _fmt(np.asarray(_floats(loc.text, 3, "location")) * sc(body))
-    tree.write(out, encoding="UTF-8", xml_declaration=True)
+    if marker_set is None:
+        return ms
+    extra = _parse(marker_set).getroot()
+    extra = extra if extra.tag == "MarkerSet" else extra.find("MarkerSet")
+    if ms is None:
+        ms = ET.SubElement(m_el, "MarkerSet", {"name": "markerset"})
+    objs = ms.find("objects")
+    if objs is None:
+        objs = ET.SubElement(ms, "objects")
+    for mk in extra.iter("Marker"):
+        objs.append(copy.deepcopy(mk))
+    return ms
+
+
+def _place_markers(ms, locations: dict, scales: dict) -> None:
+    """Fitted markers at their fitted locations; the others scaled with their body."""
+    for mk in ms.iter("Marker"):
+        n = mk.get("name")
+        body = _last(_text(mk, "socket_parent_frame") or _text(mk, "body") or "")
+        loc = mk.find("location")
+        if n in locations:
+            loc.text = _fmt(locations[n])
+        elif body in scales and loc is not None:
+            loc.text = _fmt(np.asarray(_floats(loc.text, 3, "location")) * scales[body])
 
 
 def write_scale_set(out, model: Model, theta, name: str = "scaleset") -> None:

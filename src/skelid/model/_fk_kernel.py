@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from skelid._numba import AVAILABLE, MODE, Gate, compile_in_background, compile_lock, in_disk_cache, numba  # noqa: F401
+from skelid.model.tilts import tilt_arrays, tilted_axes_from
 
 
 def plan_tables(plan) -> tuple | None:
@@ -61,9 +62,7 @@ def plan_tables(plan) -> tuple | None:
 
 
 def tilt_tables(model) -> tuple | None:
-    """The tilted hinges' arrays (:func:`~skelid.model.kinematics.tilt_arrays`) and slots, or None."""
-    from skelid.model.kinematics import tilt_arrays
-
+    """The tilted hinges' arrays (:func:`~skelid.model.tilts.tilt_arrays`) and slots, or None."""
     if not model.axis_tilts:
         return None
     return tilt_arrays(model), np.array([[t[0], t[1], t[2]] for t in model.axis_tilts], dtype=np.int64)
@@ -82,6 +81,9 @@ if AVAILABLE:  # pragma: no branch
         ``g (Bg, G)``, ``t_axis (Bg, T, 3)`` and ``t_daxis (Bg, T, 2, 3)`` have ``Bg`` = 1 or ``B``
         rows (one shared by every element, or one each); ``pose (B, Q)``; ``tilt_slots (T, 3)``
         the pose coordinate and the two parameters (-1: none) of each tilted hinge.
+
+        Kept as one flat loop nest on purpose: numba compiles it to tight loops over small fixed-size arrays,
+        and splitting it into functions would cost calls and temporaries per segment and frame.
         """
         B, Q = pose.shape
         S = parent.shape[0]
@@ -252,7 +254,10 @@ if AVAILABLE:  # pragma: no branch
     @_jit
     def _kinematics_planar(g, pose, want_jac, parent, seg_dofs, n_dofs, is_t, dof_axis, dof_seg, ms, moves,
                            used_j, A_joint, anc, used_m, A_marker, x, Jq, oq, Jt, ot):
-        """The planar form of :func:`_kinematics`: one angle per segment (see ``_forward_planar``)."""
+        """The planar form of :func:`_kinematics`: one angle per segment (see ``_forward_planar``).
+
+        Kept as one flat loop nest on purpose, for the compiled speed (as :func:`_kinematics`).
+        """
         B, Q = pose.shape
         S = parent.shape[0]
         M = ms.shape[0]
@@ -342,6 +347,8 @@ if AVAILABLE:  # pragma: no branch
         :func:`skelid.estimators.fit.joint._selected_inverse_by_blocks`, compiled: with frame
         ``I`` and the ``u`` rows ``F`` after it, ``Z_IF = -U_II^{-1} U_IF Z_FF`` and
         ``Z_II = U_II^{-1} (U_II^{-T} - U_IF Z_FI)``.
+
+        Kept as one flat loop nest on purpose, for the compiled speed (as :func:`_kinematics`).
         """
         u = Ub.shape[1] - 1
         out = np.empty((T, Q, Q))
@@ -485,8 +492,6 @@ def kinematics(model, plan, tables, tilts, g, pose, theta, want_jac: bool = True
                            Aj, anc, um, Am, x, Jq, oq, Jt, ot)
     else:
         if tilts is not None:
-            from skelid.model.kinematics import tilted_axes_from
-
             ax, dax = tilted_axes_from(tilts[0], theta)
             t_axis, t_daxis = _rows(ax, batch, ax.shape[-2:]), _rows(dax, batch, dax.shape[-3:])
             slots = tilts[1]

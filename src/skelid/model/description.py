@@ -70,16 +70,13 @@ import numpy as np
 
 from skelid.errors import ModelError
 from skelid.model.functions import CoordinateFunction
+from skelid.model.kinds import JOINT_TYPES, MOTION_KINDS, PARAMETER_KINDS, PARAMETER_TARGET
+from skelid.model.schema import check_built, validate
 
-JOINT_TYPES = {
-    2: ("free", "revolute", "fixed"),
-    3: ("free", "hinge", "universal", "spherical", "fixed", "custom"),
-}
-PARAMETER_KINDS = ("length", "joint_position", "marker_position", "joint_centre", "axis_direction",
-                   "scale", "marker_offset", "translation_gain")
 LINEAR_SETTING_KINDS = ("length", "joint_position", "marker_position")  # replace a coordinate
 PRIOR_KINDS = ("uniform", "normal", "lognormal")
 AXES = {"x": 0, "y": 1, "z": 2}
+MOTION_KIND_OF = {v: k for k, v in MOTION_KINDS.items()}
 TILT_AXES = {"u": 0, "v": 1}
 UNITS = ("mm", "cm", "m")
 
@@ -198,13 +195,22 @@ class Motion:
     ``axis`` is a unit vector in the parent segment's frame (translations) or in
     the frame left by the joint's earlier rotations (rotations);
     ``coordinate`` indexes the joint's ``coordinates`` (-1: a constant function).
+
+    A *carried* translation (kind ``"C"``) moves the child along ``axis`` (parent
+    frame) by ``f * (axis . W v)``: the component along ``axis`` of the vector
+    ``vector`` (parent frame) turned by ``W``, the product of the joint's rotations
+    listed before it. Three of them along orthogonal axes with ``f`` the semi-axes
+    and ``v`` the normal put the joint centre at ``diag(r) W v``, a point that
+    slides over an ellipsoid as the joint turns (OpenSim's ``EllipsoidJoint``).
+    Its function is a constant (the coordinates act through ``W``).
     """
 
-    kind: str  # "R" or "T"
+    kind: str  # "R", "T" or "C"
     axis: tuple[float, ...]
     coordinate: int
     function: CoordinateFunction
-    scale_weights: tuple[float, ...] = ()  # translation scales by w . s (default: the axis squared)
+    scale_weights: tuple[float, ...] = ()  # translation scales by w . s (default: the axis squared; 0: never)
+    vector: tuple[float, ...] = ()  # carried translations: the vector v (parent frame)
 
 
 @dataclass(frozen=True)
@@ -212,9 +218,11 @@ class Joint:
     """The joint that attaches a segment to its parent.
 
     A ``custom`` joint moves its child by ``motions``: every translation first
-    (along axes of the parent's frame), then the rotations in order, then the
-    constant rotation ``orientation``; the coordinates it has are named by
-    ``coordinates`` (see :mod:`skelid.model.functions`).
+    (along axes of the parent's frame; a carried one by the component of a
+    vector turned by the rotations listed before it), then the rotations in
+    order, then the constant rotation ``orientation``; the coordinates it has
+    are named by ``coordinates`` (see :mod:`skelid.model.functions`). With no
+    motion at all it attaches its child rigidly (a weld).
     """
 
     name: str
@@ -274,139 +282,13 @@ class Model:
     description: str = field(default="", compare=False)
 
     def __post_init__(self):
-        if self.dim not in (2, 3):
-            raise ModelError(f"model {self.name!r}: dim must be 2 or 3, got {self.dim}")
-        if self.units not in UNITS:
-            raise ModelError(
-                f"model {self.name!r}: unknown units {self.units!r}", f"use one of {UNITS}"
-            )
-        seg_names = [s.name for s in self.segments]
-        if not seg_names:
-            raise ModelError(f"model {self.name!r} has no segments", "add a [[segments]] table")
-        for n in seg_names:
-            if seg_names.count(n) > 1:
-                raise ModelError(f"segment name {n!r} is used twice", "give each segment a unique name")
-        joint_names = [s.joint.name for s in self.segments]
-        for n in joint_names:
-            if joint_names.count(n) > 1:
-                raise ModelError(f"joint name {n!r} is used twice", "give each joint a unique name")
-        roots = [s for s in self.segments if s.parent is None]
-        if len(roots) != 1:
-            raise ModelError(
-                f"model {self.name!r} has {len(roots)} root segments (parent = 'ground')",
-                "exactly one segment must hang from the ground",
-            )
-        for s in self.segments:
-            if s.parent is not None and s.parent not in seg_names:
-                raise ModelError(
-                    f"segment {s.name!r} has parent {s.parent!r}, which is not a segment",
-                    f"use one of: ground, {', '.join(seg_names)}",
-                )
-            if s.joint.type not in JOINT_TYPES[self.dim]:
-                raise ModelError(
-                    f"joint {s.joint.name!r} has unknown type {s.joint.type!r} for a {self.dim}-D model",
-                    f"use one of: {', '.join(JOINT_TYPES[self.dim])}",
-                )
-            if s.joint.type == "free" and s.parent is not None:
-                raise ModelError(
-                    f"joint {s.joint.name!r}: only the root segment may have a free joint",
-                    "use revolute (2-D) or hinge/universal/spherical (3-D)",
-                )
-            if s.joint.type == "custom":
-                _check_custom(s.joint)
-            if len(s.joint.position) != self.dim:
-                raise ModelError(
-                    f"joint {s.joint.name!r}: position needs {self.dim} coordinates, "
-                    f"got {len(s.joint.position)}"
-                )
-        # order parents first (and detect cycles)
-        ordered, placed = [], set()
-        pending = list(self.segments)
-        while pending:
-            ready = [s for s in pending if s.parent is None or s.parent in placed]
-            if not ready:
-                raise ModelError(
-                    f"segments {', '.join(s.name for s in pending)} form a cycle",
-                    "the segments must form a tree",
-                )
-            for s in ready:
-                ordered.append(s)
-                placed.add(s.name)
-                pending.remove(s)
-        object.__setattr__(self, "segments", tuple(ordered))
-        mnames = [m.name for m in self.markers]
-        for m in self.markers:
-            if mnames.count(m.name) > 1:
-                raise ModelError(f"marker name {m.name!r} is used twice")
-            if m.segment not in seg_names:
-                raise ModelError(
-                    f"marker {m.name!r} is on segment {m.segment!r}, which is not in the model",
-                    f"use one of: {', '.join(seg_names)}",
-                )
-            if len(m.position) != self.dim:
-                raise ModelError(
-                    f"marker {m.name!r}: position needs {self.dim} coordinates, got {len(m.position)}"
-                )
-        if not self.markers:
-            raise ModelError(f"model {self.name!r} has no markers", "add [[markers]] tables")
-        pnames = [p.name for p in self.parameters]
-        for p in self.parameters:
-            if pnames.count(p.name) > 1:
-                raise ModelError(f"parameter name {p.name!r} is used twice")
-            on_marker = p.kind in ("marker_position", "marker_offset")
-            targets = mnames if on_marker else seg_names if p.kind == "scale" else joint_names
-            if p.target not in targets:
-                what = "marker" if on_marker else "segment" if p.kind == "scale" else "joint"
-                raise ModelError(
-                    f"parameter {p.name!r} refers to {what} {p.target!r}, which is not in the model",
-                    f"use one of: {', '.join(targets)}",
-                )
-            if p.kind == "length":
-                j = next(s.joint for s in self.segments if s.joint.name == p.target)
-                if np.linalg.norm(j.position) == 0:
-                    raise ModelError(
-                        f"parameter {p.name!r}: joint {p.target!r} sits at its parent's origin, "
-                        "so its length has no direction",
-                        "give the joint a nominal position along the segment",
-                    )
-            if p.kind in ("joint_position", "marker_position", "joint_centre", "scale", "marker_offset") \
-                    and p.axis is not None \
-                    and p.axis >= self.dim:
-                raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
-            if p.kind == "joint_centre":
-                seg = next(s for s in self.segments if s.joint.name == p.target)
-                if seg.parent is None:
-                    raise ModelError(
-                        f"parameter {p.name!r}: joint {p.target!r} attaches the root to the ground, "
-                        "so no relative motion defines its centre",
-                        "put joint_centre parameters on joints between two segments")
-                children = {c.joint.name for c in self.segments if c.parent == seg.name}
-                clash = [q.name for q in self.parameters
-                         if q.kind == "length" and (q.target == p.target or q.target in children)]
-                if clash:
-                    raise ModelError(
-                        f"parameter {p.name!r}: the joint centre {p.target!r} is an end of length "
-                        f"parameter {clash[0]!r}, whose meaning would then be unclear",
-                        "drop the length parameter: the distance between joint centres is "
-                        "reported as a derived length")
-            if p.kind == "axis_direction":
-                j = next(s.joint for s in self.segments if s.joint.name == p.target)
-                if j.type != "hinge":
-                    raise ModelError(
-                        f"parameter {p.name!r}: axis_direction needs a hinge joint, "
-                        f"{p.target!r} is {j.type}", "point it at a hinge joint")
-            if p.kind == "translation_gain":
-                _check_gain(p, next(s.joint for s in self.segments if s.joint.name == p.target))
-        gains = [(p.target, p.axis) for p in self.parameters if p.kind == "translation_gain"]
-        for g in gains:
-            if gains.count(g) > 1:
-                raise ModelError(f"joint {g[0]!r} has two translation_gain parameters for motion {g[1]}",
-                                 "give each translation at most one gain")
-        tilts = [(p.target, p.axis) for p in self.parameters if p.kind == "axis_direction"]
-        for t in tilts:
-            if tilts.count(t) > 1:
-                raise ModelError(f"joint {t[0]!r} has two axis_direction parameters for tilt "
-                                 f"{'uv'[t[1]]!r}", "give each tilt at most one parameter")
+        """Check the model with small named checkers (:data:`TREE_CHECKS`, then :data:`CONTENT_CHECKS`),
+        ordering the segments parents first in between."""
+        for check in TREE_CHECKS:
+            check(self)
+        object.__setattr__(self, "segments", _parents_first(self.segments))
+        for check in CONTENT_CHECKS:
+            check(self)
 
     # ------------------------------------------------------------ names & sizes
     @property
@@ -476,35 +358,35 @@ class Model:
         factors (``s`` for one factor) and weights ``w`` the motion's
         ``scale_weights`` (an imported OpenSim joint: its axis in the joint's
         parent frame, as OpenSim scales a ``CustomJoint``) or ``a_i^2``.
-        Translations that are a coordinate itself are not scaled. A
+        Translations that are a coordinate itself are not scaled, nor those
+        whose weights are all zero. Carried translations are scaled like the
+        others (an ellipsoid's semi-axes grow with its parent). A
         ``translation_gain`` parameter replaces that factor by its own value.
         """
         out = []
         for i, s in enumerate(self.segments):
             if s.joint.type != "custom" or s.parent is None:
                 continue
-            for j, m in enumerate(s.joint.motions):
-                if m.kind != "T" or m.function.is_identity or m.function.is_constant:
-                    continue
-                b = np.zeros(self.n_params)
-                gain = [k for k, p in enumerate(self.parameters)
-                        if p.kind == "translation_gain" and p.target == s.joint.name and p.axis == j]
-                if gain:
-                    b[gain[0]] = 1.0
-                    out.append((i, j, b, 0.0))
-                    continue
-                a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
-                covered = np.zeros(3)
-                for k, p in enumerate(self.parameters):
-                    if p.kind == "scale" and p.target == s.parent:
-                        if p.axis is None:
-                            b[k] += a2.sum()
-                            covered[:] = 1.0
-                        else:
-                            b[k] += a2[p.axis]
-                            covered[p.axis] = 1.0
-                out.append((i, j, b, float(a2 @ (1.0 - covered))))
+            out += [(i, j, *self._translation_factor(s, j, m)) for j, m in enumerate(s.joint.motions)
+                    if _scales_with_parent(m)]
         return tuple(out)
+
+    def _translation_factor(self, s: Segment, j: int, m: Motion) -> tuple[np.ndarray, float]:
+        """``(b (P,), base)`` of motion ``j`` of ``s``'s joint (see :attr:`coupled_translations`)."""
+        b = np.zeros(self.n_params)
+        gain = [k for k, p in enumerate(self.parameters)
+                if p.kind == "translation_gain" and p.target == s.joint.name and p.axis == j]
+        if gain:
+            b[gain[0]] = 1.0
+            return b, 0.0
+        a2 = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
+        covered = np.zeros(3)
+        for k, p in enumerate(self.parameters):
+            if p.kind == "scale" and p.target == s.parent:
+                axes = slice(None) if p.axis is None else p.axis
+                b[k] += a2[axes].sum()
+                covered[axes] = 1.0
+        return b, float(a2 @ (1.0 - covered))
 
     @property
     def n_pose(self) -> int:
@@ -687,51 +569,15 @@ class Model:
     # ---------------------------------------------------------------- export
     def to_dict(self) -> dict:
         """A dict that :func:`model_from_dict` turns back into an equal model."""
-        from skelid.model.schema import PARAMETER_TARGET
-
-        axis_name = "xyz"
-        d = {
-            "model": {"name": self.name, "dim": self.dim, "units": self.units},
-            "segments": [],
-            "markers": [],
-            "parameters": [],
-        }
+        head = {"name": self.name, "dim": self.dim, "units": self.units}
         if self.description:
-            d["model"]["description"] = self.description
-        for s in self.segments:
-            j = {"name": s.joint.name, "type": s.joint.type, "position": list(s.joint.position)}
-            if s.joint.type == "hinge":
-                j["axis"] = list(s.joint.axes[0])
-            elif s.joint.type == "universal":
-                j["axes"] = [list(a) for a in s.joint.axes]
-            elif s.joint.type == "custom":
-                j["coordinates"] = list(s.joint.coordinates)
-                j["motions"] = [{"kind": "rotation" if m.kind == "R" else "translation", "axis": list(m.axis)}
-                                | ({"coordinate": s.joint.coordinates[m.coordinate]} if m.coordinate >= 0 else {})
-                                | {"function": m.function.to_dict()}
-                                | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
-                                for m in s.joint.motions]
-                if s.joint.orientation:
-                    j["orientation"] = [list(s.joint.orientation[r * 3:r * 3 + 3]) for r in range(3)]
-            if s.joint.range:
-                j["range"] = [list(r) for r in s.joint.range]
-            d["segments"].append({"name": s.name, "parent": s.parent or "ground", "joint": j})
-        for m in self.markers:
-            e = {"name": m.name, "segment": m.segment, "position": list(m.position)}
-            if m.label:
-                e["label"] = m.label
-            d["markers"].append(e)
-        for p in self.parameters:
-            e = {"name": p.name, "kind": p.kind}
-            e[PARAMETER_TARGET.get(p.kind, "joint")] = p.target
-            if p.kind == "translation_gain":
-                e["motion"] = p.axis
-            elif p.axis is not None:
-                e["axis"] = ("uv" if p.kind == "axis_direction" else axis_name)[p.axis]
-            e["prior"] = p.prior.to_dict()
-            e["grid_step"] = p.grid_step
-            d["parameters"].append(e)
-        return d
+            head["description"] = self.description
+        return {"model": head,
+                "segments": [{"name": s.name, "parent": s.parent or "ground", "joint": _joint_dict(s.joint)}
+                             for s in self.segments],
+                "markers": [{"name": m.name, "segment": m.segment, "position": list(m.position)}
+                            | ({"label": m.label} if m.label else {}) for m in self.markers],
+                "parameters": [_parameter_dict(p) for p in self.parameters]}
 
     def with_parameters(self, names) -> Model:
         """A copy of the model that keeps only the parameters ``names`` unknown."""
@@ -740,14 +586,227 @@ class Model:
                      self.description)
 
 
+# ----------------------------------------------------------------------------- export
+def _joint_dict(j: Joint) -> dict:
+    """A joint as its model-file table."""
+    out = {"name": j.name, "type": j.type, "position": list(j.position)}
+    if j.type == "hinge":
+        out["axis"] = list(j.axes[0])
+    elif j.type == "universal":
+        out["axes"] = [list(a) for a in j.axes]
+    elif j.type == "custom":
+        out["coordinates"] = list(j.coordinates)
+        out["motions"] = [_motion_dict(m, j.coordinates) for m in j.motions]
+        if j.orientation:
+            out["orientation"] = [list(j.orientation[r * 3:r * 3 + 3]) for r in range(3)]
+    if j.range:
+        out["range"] = [list(r) for r in j.range]
+    return out
+
+
+def _motion_dict(m: Motion, coordinates: tuple[str, ...]) -> dict:
+    return ({"kind": MOTION_KINDS[m.kind], "axis": list(m.axis)}
+            | ({"coordinate": coordinates[m.coordinate]} if m.coordinate >= 0 else {})
+            | {"function": m.function.to_dict()}
+            | ({"scale_weights": list(m.scale_weights)} if m.scale_weights else {})
+            | ({"vector": list(m.vector)} if m.vector else {}))
+
+
+def _parameter_dict(p: Parameter) -> dict:
+    """A scalar parameter as its model-file table."""
+    e = {"name": p.name, "kind": p.kind, PARAMETER_TARGET.get(p.kind, "joint"): p.target}
+    if p.kind == "translation_gain":
+        e["motion"] = p.axis
+    elif p.axis is not None:
+        e["axis"] = ("uv" if p.kind == "axis_direction" else "xyz")[p.axis]
+    e["prior"] = p.prior.to_dict()
+    e["grid_step"] = p.grid_step
+    return e
+
+
+# ----------------------------------------------------------------------------- model checks
+# Each checker takes the model and raises ModelError naming what is wrong and the fix (the manner of
+# pinocchio's check-model: one small named check per rule, run in order by Model.__post_init__).
+def _check_header(model: Model) -> None:
+    """dim is 2 or 3, units known, at least one segment."""
+    if model.dim not in (2, 3):
+        raise ModelError(f"model {model.name!r}: dim must be 2 or 3, got {model.dim}")
+    if model.units not in UNITS:
+        raise ModelError(f"model {model.name!r}: unknown units {model.units!r}", f"use one of {UNITS}")
+    if not model.segments:
+        raise ModelError(f"model {model.name!r} has no segments", "add a [[segments]] table")
+
+
+def _check_unique_names(model: Model) -> None:
+    """No segment name and no joint name is used twice."""
+    for what, names in (("segment", [s.name for s in model.segments]),
+                        ("joint", [s.joint.name for s in model.segments])):
+        for n in names:
+            if names.count(n) > 1:
+                raise ModelError(f"{what} name {n!r} is used twice", f"give each {what} a unique name")
+
+
+def _check_one_root(model: Model) -> None:
+    roots = [s for s in model.segments if s.parent is None]
+    if len(roots) != 1:
+        raise ModelError(f"model {model.name!r} has {len(roots)} root segments (parent = 'ground')",
+                         "exactly one segment must hang from the ground")
+
+
+def _check_segments(model: Model) -> None:
+    """Every segment's parent exists and its joint fits the model (type, position)."""
+    seg_names = [s.name for s in model.segments]
+    for s in model.segments:
+        if s.parent is not None and s.parent not in seg_names:
+            raise ModelError(f"segment {s.name!r} has parent {s.parent!r}, which is not a segment",
+                             f"use one of: ground, {', '.join(seg_names)}")
+        _check_joint(model, s)
+
+
+def _check_joint(model: Model, s: Segment) -> None:
+    j = s.joint
+    if j.type not in JOINT_TYPES[model.dim]:
+        raise ModelError(f"joint {j.name!r} has unknown type {j.type!r} for a {model.dim}-D model",
+                         f"use one of: {', '.join(JOINT_TYPES[model.dim])}")
+    if j.type == "free" and s.parent is not None:
+        raise ModelError(f"joint {j.name!r}: only the root segment may have a free joint",
+                         "use revolute (2-D) or hinge/universal/spherical (3-D)")
+    if j.type == "custom":
+        _check_custom(j)
+    if len(j.position) != model.dim:
+        raise ModelError(f"joint {j.name!r}: position needs {model.dim} coordinates, got {len(j.position)}")
+
+
+def _parents_first(segments: tuple[Segment, ...]) -> tuple[Segment, ...]:
+    """The segments ordered parents first (a cycle is refused)."""
+    ordered, placed = [], set()
+    pending = list(segments)
+    while pending:
+        ready = [s for s in pending if s.parent is None or s.parent in placed]
+        if not ready:
+            raise ModelError(f"segments {', '.join(s.name for s in pending)} form a cycle",
+                             "the segments must form a tree")
+        for s in ready:
+            ordered.append(s)
+            placed.add(s.name)
+            pending.remove(s)
+    return tuple(ordered)
+
+
+def _check_markers(model: Model) -> None:
+    """Marker names unique, each on a segment of the model with a position of the model's dim; at least one."""
+    seg_names = [s.name for s in model.segments]
+    mnames = [m.name for m in model.markers]
+    for m in model.markers:
+        if mnames.count(m.name) > 1:
+            raise ModelError(f"marker name {m.name!r} is used twice")
+        if m.segment not in seg_names:
+            raise ModelError(f"marker {m.name!r} is on segment {m.segment!r}, which is not in the model",
+                             f"use one of: {', '.join(seg_names)}")
+        if len(m.position) != model.dim:
+            raise ModelError(f"marker {m.name!r}: position needs {model.dim} coordinates, got {len(m.position)}")
+    if not model.markers:
+        raise ModelError(f"model {model.name!r} has no markers", "add [[markers]] tables")
+
+
+def _check_parameters(model: Model) -> None:
+    """Each parameter: a unique name, an existing target, and the rules of its kind."""
+    pnames = [p.name for p in model.parameters]
+    for p in model.parameters:
+        if pnames.count(p.name) > 1:
+            raise ModelError(f"parameter name {p.name!r} is used twice")
+        _check_target(model, p)
+        if p.kind in ("joint_position", "marker_position", "joint_centre", "scale", "marker_offset") \
+                and p.axis is not None and p.axis >= model.dim:
+            raise ModelError(f"parameter {p.name!r}: axis 'z' does not exist in a 2-D model")
+        kind_check = PARAMETER_CHECKS.get(p.kind)
+        if kind_check is not None:
+            kind_check(model, p, next((s for s in model.segments if s.joint.name == p.target), None))
+
+
+def _check_target(model: Model, p: Parameter) -> None:
+    on_marker = p.kind in ("marker_position", "marker_offset")
+    targets = [m.name for m in model.markers] if on_marker else [s.name for s in model.segments] \
+        if p.kind == "scale" else [s.joint.name for s in model.segments]
+    if p.target not in targets:
+        what = "marker" if on_marker else "segment" if p.kind == "scale" else "joint"
+        raise ModelError(f"parameter {p.name!r} refers to {what} {p.target!r}, which is not in the model",
+                         f"use one of: {', '.join(targets)}")
+
+
+def _check_length(model: Model, p: Parameter, seg: Segment) -> None:
+    if np.linalg.norm(seg.joint.position) == 0:
+        raise ModelError(f"parameter {p.name!r}: joint {p.target!r} sits at its parent's origin, "
+                         "so its length has no direction", "give the joint a nominal position along the segment")
+
+
+def _check_joint_centre(model: Model, p: Parameter, seg: Segment) -> None:
+    if seg.parent is None:
+        raise ModelError(f"parameter {p.name!r}: joint {p.target!r} attaches the root to the ground, "
+                         "so no relative motion defines its centre",
+                         "put joint_centre parameters on joints between two segments")
+    children = {c.joint.name for c in model.segments if c.parent == seg.name}
+    clash = [q.name for q in model.parameters
+             if q.kind == "length" and (q.target == p.target or q.target in children)]
+    if clash:
+        raise ModelError(f"parameter {p.name!r}: the joint centre {p.target!r} is an end of length "
+                         f"parameter {clash[0]!r}, whose meaning would then be unclear",
+                         "drop the length parameter: the distance between joint centres is "
+                         "reported as a derived length")
+
+
+def _check_axis_direction(model: Model, p: Parameter, seg: Segment) -> None:
+    if seg.joint.type != "hinge":
+        raise ModelError(f"parameter {p.name!r}: axis_direction needs a hinge joint, "
+                         f"{p.target!r} is {seg.joint.type}", "point it at a hinge joint")
+
+
+def _check_one_per_slot(model: Model) -> None:
+    """At most one translation_gain per translation and one axis_direction per tilt of a joint."""
+    gains = [(p.target, p.axis) for p in model.parameters if p.kind == "translation_gain"]
+    for g in gains:
+        if gains.count(g) > 1:
+            raise ModelError(f"joint {g[0]!r} has two translation_gain parameters for motion {g[1]}",
+                             "give each translation at most one gain")
+    tilts = [(p.target, p.axis) for p in model.parameters if p.kind == "axis_direction"]
+    for t in tilts:
+        if tilts.count(t) > 1:
+            raise ModelError(f"joint {t[0]!r} has two axis_direction parameters for tilt "
+                             f"{'uv'[t[1]]!r}", "give each tilt at most one parameter")
+
+
+#: checks of the tree, before the segments are ordered parents first
+TREE_CHECKS = (_check_header, _check_unique_names, _check_one_root, _check_segments)
+#: checks of what hangs on the tree
+CONTENT_CHECKS = (_check_markers, _check_parameters, _check_one_per_slot)
+#: the rules of one parameter kind: (model, parameter, the segment of its target joint or None)
+PARAMETER_CHECKS = {
+    "length": _check_length,
+    "joint_centre": _check_joint_centre,
+    "axis_direction": _check_axis_direction,
+    "translation_gain": lambda model, p, seg: _check_gain(p, seg.joint),
+}
+
+
 # ----------------------------------------------------------------------------- custom joints
+def _scales_with_parent(m: Motion) -> bool:
+    """A translation by a function of a coordinate, or a carried one, unless its scale weights are all zero."""
+    if m.kind == "R" or (m.kind == "T" and (m.function.is_identity or m.function.is_constant)):
+        return False
+    return not (m.scale_weights and not any(m.scale_weights))
+
+
 def _check_custom(j: Joint) -> None:
-    if not j.motions:
-        raise ModelError(f"joint {j.name!r}: a custom joint needs at least one motion",
-                         "use a fixed joint for a weld")
+    """A custom joint's motions and coordinates agree; no motion at all is a rigid attachment (a weld)."""
     for m in j.motions:
-        if m.kind not in ("R", "T") or len(m.axis) != 3:
-            raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation and a 3-D axis")
+        if m.kind not in ("R", "T", "C") or len(m.axis) != 3:
+            raise ModelError(f"joint {j.name!r}: a motion needs kind rotation/translation/carried and a 3-D axis")
+        if (m.kind == "C") != (len(m.vector) == 3):
+            raise ModelError(f"joint {j.name!r}: a carried translation, and only one, needs a 3-D vector",
+                             "give a carried motion vector = [x, y, z] and no other motion a vector")
+        if m.kind == "C" and (m.coordinate >= 0 or not m.function.is_constant):
+            raise ModelError(f"joint {j.name!r}: a carried translation follows the joint's rotations, not a "
+                             "coordinate", "give it no coordinate and a constant function")
         if not -1 <= m.coordinate < len(j.coordinates):
             raise ModelError(f"joint {j.name!r}: a motion refers to coordinate {m.coordinate}, "
                              f"the joint has {len(j.coordinates)}")
@@ -765,9 +824,10 @@ def _check_custom(j: Joint) -> None:
 def _custom_dofs(i: int, j: Joint) -> list[Dof]:
     """One pose coordinate per coordinate of a custom joint, in the joint's order."""
     out = []
+    carried = any(m.kind == "C" for m in j.motions)  # the rotations also move the joint centre
     for c in range(len(j.coordinates)):
         ms = [m for m in j.motions if m.coordinate == c]
-        plain = len(ms) == 1 and ms[0].function.is_identity
+        plain = len(ms) == 1 and ms[0].function.is_identity and not (carried and ms[0].kind == "R")
         rot = [m for m in ms if m.kind == "R"]
         if plain:
             out.append(Dof(i, ms[0].kind, ms[0].axis))
@@ -783,16 +843,17 @@ def _custom_from_dict(j: dict, where: str):
     motions = []
     for n, m in enumerate(j.get("motions", [])):
         mw = f"{where} motion {n + 1}"
-        if not isinstance(m, dict) or m.get("kind") not in ("rotation", "translation"):
-            raise ModelError(f"{mw}: needs kind = 'rotation' or 'translation'")
+        if not isinstance(m, dict) or m.get("kind") not in MOTION_KIND_OF:
+            raise ModelError(f"{mw}: needs kind = 'rotation', 'translation' or 'carried'")
         c = m.get("coordinate", "")
         if c and c not in coords:
             raise ModelError(f"{mw}: coordinate {c!r} is not one of the joint's coordinates {coords}")
-        sw = m.get("scale_weights", ())
-        motions.append(Motion("R" if m["kind"] == "rotation" else "T", _unit(m.get("axis"), f"{mw} axis"),
+        sw, vec = m.get("scale_weights", ()), m.get("vector", ())
+        motions.append(Motion(MOTION_KIND_OF[m["kind"]], _unit(m.get("axis"), f"{mw} axis"),
                               coords.index(c) if c else -1,
                               CoordinateFunction.from_dict(m.get("function"), f"{mw} function"),
-                              _num_list(sw, 3, f"{mw} scale_weights") if sw else ()))
+                              _num_list(sw, 3, f"{mw} scale_weights") if sw else (),
+                              _num_list(vec, 3, f"{mw} vector") if vec else ()))
     orient = ()
     if "orientation" in j:
         R = np.asarray(j["orientation"], dtype=float)
@@ -889,121 +950,134 @@ def _parameters(p, i: int, source: str, segments, markers) -> list[Parameter]:
     kind = p.get("kind")
     if kind not in PARAMETER_KINDS:
         raise ModelError(f"{where}: unknown kind {kind!r}", f"use one of: {', '.join(PARAMETER_KINDS)}")
-    from skelid.model.schema import PARAMETER_TARGET
-
     target_key = PARAMETER_TARGET.get(kind, "joint")
     target = p.get(target_key)
     if target is None:
         raise ModelError(f"{where}: needs {target_key} = '...'")
-    names = AXES if kind != "axis_direction" else TILT_AXES
-    hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
+    comps = _parameter_components(p, kind, name, where)
+    priors = _parameter_priors(p, len(comps), where)
+    return [_scalar_parameter(f"{source}: parameter {pname!r}", pname, kind, str(target), axis, prior_d,
+                              p.get("grid_step"), segments, markers)
+            for (pname, axis), prior_d in zip(comps, priors, strict=True)]
+
+
+def _parameter_components(p: dict, kind: str, name: str, where: str) -> list[tuple[str, int | None]]:
+    """``(name, axis)`` of each scalar a parameter table declares."""
     if kind == "translation_gain":
         motion = p.get("motion")
         if isinstance(motion, bool) or not isinstance(motion, int) or motion < 0:
             raise ModelError(f"{where}: needs motion = N, the index (from 0) of a translation in the joint's "
                              f"motions, got {motion!r}")
-        comps = [(name, motion)]
-    elif kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
+        return [(name, motion)]
+    if kind == "length" or (kind == "scale" and "axis" not in p and "axes" not in p):
         if "axis" in p or "axes" in p:
             raise ModelError(f"{where}: a length has no axis", "remove axis/axes")
-        comps = [(name, None)]
-    elif "axes" in p:
+        return [(name, None)]
+    return _axis_components(p, kind, name, where)
+
+
+def _axis_components(p: dict, kind: str, name: str, where: str) -> list[tuple[str, int]]:
+    """The scalars of ``axis = ...`` (one) or ``axes = [...]`` (one per axis, named ``<name>_<axis>``)."""
+    names = AXES if kind != "axis_direction" else TILT_AXES
+    hint = "'x', 'y' or 'z'" if kind != "axis_direction" else "'u' or 'v'"
+    if "axes" in p:
         if "axis" in p:
             raise ModelError(f"{where}: give either axis or axes, not both")
         axes = p["axes"]
         if not isinstance(axes, list) or not axes or any(a not in names for a in axes) \
                 or len(set(axes)) != len(axes):
             raise ModelError(f"{where}: axes must be a list of distinct {hint}, got {axes!r}")
-        comps = [(f"{name}_{a}", names[a]) for a in axes]
-    else:
-        ax = p.get("axis")
-        if ax not in names:
-            raise ModelError(f"{where}: needs axis = {hint} (or axes = [...] for several)")
-        comps = [(name, names[ax])]
+        return [(f"{name}_{a}", names[a]) for a in axes]
+    ax = p.get("axis")
+    if ax not in names:
+        raise ModelError(f"{where}: needs axis = {hint} (or axes = [...] for several)")
+    return [(name, names[ax])]
+
+
+def _parameter_priors(p: dict, n: int, where: str) -> list:
+    """One prior table per scalar: the table's list of them, or its one table repeated."""
     priors = p.get("prior", {})
-    if isinstance(priors, list):
-        if len(priors) != len(comps):
-            raise ModelError(f"{where}: {len(priors)} priors for {len(comps)} axes",
-                             "give one prior table, or one per axis")
-    else:
-        priors = [priors] * len(comps)
-    steps = p.get("grid_step")
-    out = []
-    for (pname, axis), prior_d in zip(comps, priors, strict=True):
-        pwhere = f"{source}: parameter {pname!r}"
-        prior = _prior(prior_d, pwhere, _nominal(kind, str(target), axis, segments, markers))
-        step = steps if steps is not None else (prior.upper - prior.lower) / 200
-        try:
-            step = float(step)
-        except (TypeError, ValueError):
-            raise ModelError(f"{pwhere}: grid_step must be a number") from None
-        if not step > 0:
-            raise ModelError(f"{pwhere}: grid_step must be positive, got {step}")
-        out.append(Parameter(pname, kind, str(target), axis, prior, step))
-    return out
+    if not isinstance(priors, list):
+        return [priors] * n
+    if len(priors) != n:
+        raise ModelError(f"{where}: {len(priors)} priors for {n} axes", "give one prior table, or one per axis")
+    return priors
+
+
+def _scalar_parameter(where: str, name: str, kind: str, target: str, axis, prior_d, step, segments,
+                      markers) -> Parameter:
+    """One scalar parameter: its prior (centred on the nominal value where implicit) and grid step."""
+    prior = _prior(prior_d, where, _nominal(kind, target, axis, segments, markers))
+    step = step if step is not None else (prior.upper - prior.lower) / 200
+    try:
+        step = float(step)
+    except (TypeError, ValueError):
+        raise ModelError(f"{where}: grid_step must be a number") from None
+    if not step > 0:
+        raise ModelError(f"{where}: grid_step must be positive, got {step}")
+    return Parameter(name, kind, target, axis, prior, step)
 
 
 def model_from_dict(d: dict, source: str = "model") -> Model:
     """Build a :class:`Model` from the parsed TOML structure (see docs/model-format.md)."""
-    from skelid.model.schema import check_built, validate
-
     validate(d, source)  # keys, types and ranges, with key paths; what follows builds the model
     head = d.get("model", {})
     try:
         dim = int(head.get("dim", 3))
     except (TypeError, ValueError):
         raise ModelError(f"{source}: [model] dim must be 2 or 3") from None
-    name = str(head.get("name", Path(source).stem))
-    units = str(head.get("units", "mm"))
-    segments = []
-    for i, s in enumerate(d.get("segments", [])):
-        where = f"{source}: segment {s.get('name', i + 1)!r}"
-        if "name" not in s:
-            raise ModelError(f"{source}: segment number {i + 1} has no name")
-        j = s.get("joint", {})
-        if not isinstance(j, dict) or "type" not in j:
-            raise ModelError(f"{where}: needs a joint table with a type",
-                             "write joint = {type = 'revolute', position = [...]}")
-        jtype = str(j["type"])
-        if jtype not in JOINT_TYPES.get(dim, ()):
-            raise ModelError(
-                f"{where}: unknown joint type {jtype!r} for a {dim}-D model",
-                f"use one of: {', '.join(JOINT_TYPES.get(dim, ()))}",
-            )
-        pos = _num_list(j.get("position", [0.0] * dim), dim, f"{where} joint position")
-        axes: tuple = ()
-        if jtype == "hinge":
-            axes = (_unit(j.get("axis", (0, 0, 1)), f"{where} joint axis"),)
-        elif jtype == "universal":
-            ax = j.get("axes")
-            if not isinstance(ax, list) or len(ax) != 2:
-                raise ModelError(f"{where}: a universal joint needs axes = [[..], [..]]")
-            axes = tuple(_unit(a, f"{where} joint axes") for a in ax)
-        parent = s.get("parent", "ground")
-        rng = j.get("range", ())
-        if rng and not isinstance(rng[0], list):
-            rng = [rng]
-        rng = tuple(_num_list(r, 2, f"{where} joint range") for r in rng)
-        motions, coords, orient = _custom_from_dict(j, where) if jtype == "custom" else ((), (), ())
-        segments.append(Segment(
-            str(s["name"]), None if parent in (None, "ground") else str(parent),
-            Joint(str(j.get("name", s["name"])), jtype, pos, axes, rng, motions, coords, orient),
-        ))
+    segments = [_segment_from_dict(s, i, dim, source) for i, s in enumerate(d.get("segments", []))]
     aliases = d.get("aliases", {}) or {}
-    markers = []
-    for i, m in enumerate(d.get("markers", [])):
-        if "name" not in m or "segment" not in m:
-            raise ModelError(f"{source}: marker number {i + 1} needs a name and a segment")
-        pos = _num_list(m.get("position", [0.0] * dim), dim, f"{source}: marker {m['name']!r} position")
-        label = m.get("label", aliases.get(m["name"]))
-        markers.append(Marker(str(m["name"]), str(m["segment"]), pos, label))
-    params = []
-    for i, p in enumerate(d.get("parameters", [])):
-        params += _parameters(p, i, source, segments, markers)
-    model = Model(name, dim, units, tuple(segments), tuple(markers), tuple(params),
-                  str(head.get("description", "")))
+    markers = [_marker_from_dict(m, i, dim, source, aliases) for i, m in enumerate(d.get("markers", []))]
+    params = [q for i, p in enumerate(d.get("parameters", [])) for q in _parameters(p, i, source, segments, markers)]
+    model = Model(str(head.get("name", Path(source).stem)), dim, str(head.get("units", "mm")), tuple(segments),
+                  tuple(markers), tuple(params), str(head.get("description", "")))
     check_built(model, d, source)
     return model
+
+
+def _segment_from_dict(s: dict, i: int, dim: int, source: str) -> Segment:
+    """One ``[[segments]]`` table -> its segment and joint."""
+    where = f"{source}: segment {s.get('name', i + 1)!r}"
+    if "name" not in s:
+        raise ModelError(f"{source}: segment number {i + 1} has no name")
+    j = s.get("joint", {})
+    if not isinstance(j, dict) or "type" not in j:
+        raise ModelError(f"{where}: needs a joint table with a type",
+                         "write joint = {type = 'revolute', position = [...]}")
+    jtype = str(j["type"])
+    if jtype not in JOINT_TYPES.get(dim, ()):
+        raise ModelError(f"{where}: unknown joint type {jtype!r} for a {dim}-D model",
+                         f"use one of: {', '.join(JOINT_TYPES.get(dim, ()))}")
+    pos = _num_list(j.get("position", [0.0] * dim), dim, f"{where} joint position")
+    rng = j.get("range", ())
+    if rng and not isinstance(rng[0], list):
+        rng = [rng]
+    rng = tuple(_num_list(r, 2, f"{where} joint range") for r in rng)
+    motions, coords, orient = _custom_from_dict(j, where) if jtype == "custom" else ((), (), ())
+    parent = s.get("parent", "ground")
+    return Segment(str(s["name"]), None if parent in (None, "ground") else str(parent),
+                   Joint(str(j.get("name", s["name"])), jtype, pos, _joint_axes(j, jtype, where), rng, motions,
+                         coords, orient))
+
+
+def _joint_axes(j: dict, jtype: str, where: str) -> tuple:
+    """A hinge's axis or a universal joint's two axes (unit vectors); none for the other types."""
+    if jtype == "hinge":
+        return (_unit(j.get("axis", (0, 0, 1)), f"{where} joint axis"),)
+    if jtype == "universal":
+        ax = j.get("axes")
+        if not isinstance(ax, list) or len(ax) != 2:
+            raise ModelError(f"{where}: a universal joint needs axes = [[..], [..]]")
+        return tuple(_unit(a, f"{where} joint axes") for a in ax)
+    return ()
+
+
+def _marker_from_dict(m: dict, i: int, dim: int, source: str, aliases: dict) -> Marker:
+    if "name" not in m or "segment" not in m:
+        raise ModelError(f"{source}: marker number {i + 1} needs a name and a segment")
+    pos = _num_list(m.get("position", [0.0] * dim), dim, f"{source}: marker {m['name']!r} position")
+    return Marker(str(m["name"]), str(m["segment"]), pos, m.get("label", aliases.get(m["name"])))
 
 
 def load_model(path) -> Model:

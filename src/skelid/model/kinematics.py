@@ -45,6 +45,7 @@ import numpy as np
 
 from skelid.model import _fk_kernel
 from skelid.model.description import Model
+from skelid.model.tilts import tilt_arrays, tilted_axes_from  # noqa: F401  (re-exported)
 
 
 class Kinematics(NamedTuple):
@@ -161,49 +162,70 @@ def kinematics_plan(model: Model, ws: Workspace | None = None) -> KinematicsPlan
 
 
 def _build_plan(model: Model) -> KinematicsPlan:
+    """The :class:`KinematicsPlan` of ``model``: index tables, then the geometry map's parts, then custom joints."""
     D, S, M = model.dim, len(model.segments), len(model.markers)
-    dofs = model.dofs
-    Q = len(dofs)
     g_base, A = model.geometry_map
     P = A.shape[1]
-    dof_segment = np.array([d.segment for d in dofs], dtype=int)
-    is_t = np.array([d.kind == "T" for d in dofs], dtype=bool)
-    axis = np.zeros((Q, D))
-    skew = np.zeros((Q, 3, 3))
-    for k, d in enumerate(dofs):
-        if d.kind == "T" or D == 3:
-            axis[k] = d.axis
-        if d.kind == "R" and D == 3:
-            skew[k] = _skew(np.asarray(d.axis, float))
-    dof_tilt = np.full(Q, -1, dtype=int)
-    for j, t in enumerate(model.axis_tilts):
-        dof_tilt[t[0]] = j
-    seg_dofs = tuple(tuple(int(k) for k in np.flatnonzero(dof_segment == i)) for i in range(S))
-    seg_rot = tuple(tuple(k for k in ks if not is_t[k]) for ks in seg_dofs)
-    seg_trans = tuple(tuple(k for k in ks if is_t[k]) for ks in seg_dofs)
-    planar = D == 2 and not model.axis_tilts and all(
-        max(t, default=-1) < min(r, default=Q) for t, r in zip(seg_trans, seg_rot, strict=True))
+    dof_segment, is_t, axis, skew = _dof_tables(model)
+    seg_dofs, seg_rot, seg_trans = _segment_dofs(dof_segment, is_t, S)
     ms = np.asarray(model.marker_segment, dtype=int)
     A_joint = A[: S * D].reshape(S, D, P)
     A_mark = A[S * D:(S + M) * D].reshape(M, D, P)
     used_j = np.flatnonzero(np.abs(A_joint).sum(axis=(1, 2)))
     used_m = np.flatnonzero(np.abs(A_mark).sum(axis=(1, 2)))
     custom, orient = _custom_tables(model, seg_dofs)
-    ct = model.coupled_translations
-    ct_seg = np.array([c[0] for c in ct], dtype=int)
+    ct_seg = np.array([c[0] for c in model.coupled_translations], dtype=int)
     return KinematicsPlan(
-        D, S, M, Q, P, tuple(int(i) for i in model.parent_index), g_base, A, dof_segment, is_t, axis,
-        skew, skew @ skew, seg_dofs, seg_rot, seg_trans, ms,
+        D, S, M, len(dof_segment), P, tuple(int(i) for i in model.parent_index), g_base, A, dof_segment, is_t,
+        axis, skew, skew @ skew, seg_dofs, seg_rot, seg_trans, ms,
         np.asarray(model.dof_moves_marker, dtype=float), np.flatnonzero(~is_t), np.flatnonzero(is_t),
         used_j, A_joint[used_j], model.ancestor[used_j][:, ms].astype(float), used_m, A_mark[used_m],
-        dof_tilt, len(model.axis_tilts), planar, custom, orient,
-        any(c is not None for c in custom) or any(o is not None for o in orient), len(ct), ct_seg,
-        model.ancestor[ct_seg][:, ms].astype(float) if len(ct) else np.zeros((0, M)))
+        _dof_tilts(model), len(model.axis_tilts), _is_planar(model, seg_trans, seg_rot, len(dof_segment)), custom,
+        orient, any(c is not None for c in custom) or any(o is not None for o in orient), ct_seg.size, ct_seg,
+        model.ancestor[ct_seg][:, ms].astype(float) if ct_seg.size else np.zeros((0, M)))
+
+
+def _dof_tables(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose coordinate: its segment ``(Q,)``, whether it translates ``(Q,)``, its nominal axis ``(Q, D)``
+    (zero for a planar rotation) and the cross-product matrix of a 3-D rotation's axis ``(Q, 3, 3)``."""
+    dofs, D = model.dofs, model.dim
+    axis = np.zeros((len(dofs), D))
+    skew = np.zeros((len(dofs), 3, 3))
+    for k, d in enumerate(dofs):
+        if d.kind == "T" or D == 3:
+            axis[k] = d.axis
+        if d.kind == "R" and D == 3:
+            skew[k] = _skew(np.asarray(d.axis, float))
+    return (np.array([d.segment for d in dofs], dtype=int), np.array([d.kind == "T" for d in dofs], dtype=bool),
+            axis, skew)
+
+
+def _segment_dofs(dof_segment: np.ndarray, is_t: np.ndarray, S: int) -> tuple[tuple, tuple, tuple]:
+    """Per segment, the indices of its pose coordinates, of its rotations and of its translations."""
+    seg_dofs = tuple(tuple(int(k) for k in np.flatnonzero(dof_segment == i)) for i in range(S))
+    return (seg_dofs, tuple(tuple(k for k in ks if not is_t[k]) for ks in seg_dofs),
+            tuple(tuple(k for k in ks if is_t[k]) for ks in seg_dofs))
+
+
+def _dof_tilts(model: Model) -> np.ndarray:
+    """``(Q,)`` int: each pose coordinate's slot in :attr:`Model.axis_tilts`, -1 if its axis is fixed."""
+    dof_tilt = np.full(model.n_pose, -1, dtype=int)
+    for j, t in enumerate(model.axis_tilts):
+        dof_tilt[t[0]] = j
+    return dof_tilt
+
+
+def _is_planar(model: Model, seg_trans: tuple, seg_rot: tuple, Q: int) -> bool:
+    """2-D, no tilted axis, and every joint's translations before its rotation (the planar path's model)."""
+    return model.dim == 2 and not model.axis_tilts and all(
+        max(t, default=-1) < min(r, default=Q) for t, r in zip(seg_trans, seg_rot, strict=True))
 
 
 def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
     """Per segment: its custom joint's motions ``(is_translation, axis (3,), pose index or -1,
-    function, slot in g's coupled factors or -1)``, translations first; and its constant rotation."""
+    function, slot in g's coupled factors or -1, K, K^2, carried)``, translations first; and its
+    constant rotation. ``carried`` is None, or for a carried translation ``(v (3,), number of
+    rotations before it)``."""
     slot = {(c[0], c[1]): n for n, c in enumerate(model.coupled_translations)}
     custom, orient = [], []
     for i, s in enumerate(model.segments):
@@ -217,7 +239,10 @@ def _custom_tables(model: Model, seg_dofs) -> tuple[tuple, tuple]:
             k = seg_dofs[i][m.coordinate] if m.coordinate >= 0 else -1
             a = np.asarray(m.axis, float)
             K = _skew(a)
-            rows.append((m.kind == "T", a, k, m.function, slot.get((i, n), -1), K, K @ K))
+            carried = None
+            if m.kind == "C":
+                carried = (np.asarray(m.vector, float), sum(1 for x in j.motions[:n] if x.kind == "R"))
+            rows.append((m.kind != "R", a, k, m.function, slot.get((i, n), -1), K, K @ K, carried))
         rows.sort(key=lambda r: not r[0])  # translations first (stable: rotations keep their order)
         custom.append(tuple(rows))
         R = np.asarray(j.orientation, float).reshape(3, 3) if j.orientation else None
@@ -287,27 +312,6 @@ def tilted_axes(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
         batch = theta.shape[:-1]
         return np.zeros(batch + (0, 3)), np.zeros(batch + (0, 2, 3))
     return tilted_axes_from(tilt_arrays(model), theta)
-
-
-def tilt_arrays(model: Model) -> tuple:
-    """``(ku, kv, e, u, v)`` of the model's tilted hinges as arrays (see :attr:`Model.axis_tilts`)."""
-    tilts = model.axis_tilts
-    return tuple(np.array([t[i] for t in tilts]) for i in range(1, 6))
-
-
-def tilted_axes_from(arrays: tuple, theta) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`tilted_axes` from the model's :func:`tilt_arrays` (at least one tilted hinge)."""
-    ku, kv, e, u, v = arrays
-    theta = np.asarray(theta, dtype=float)
-    al = np.where(ku >= 0, np.radians(theta[..., np.maximum(ku, 0)]), 0.0)[..., None]
-    be = np.where(kv >= 0, np.radians(theta[..., np.maximum(kv, 0)]), 0.0)[..., None]
-    ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
-    axis = ca * cb * e + sa * cb * u + sb * v
-    d_al = cb * (-sa * e + ca * u)
-    d_be = -sb * (ca * e + sa * u) + cb * v
-    deg = np.pi / 180.0
-    d_axis = np.stack([d_al * (ku >= 0)[:, None], d_be * (kv >= 0)[:, None]], -2) * deg
-    return axis, d_axis
 
 
 def _axis_cross(w: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -524,12 +528,19 @@ def _custom_joint(rows, Rp, p0, pose, factors, axis, pivot, velocity, shift):
     coordinate is ``omega x (x - pivot) + v`` with ``omega = sum f'(q) w`` over
     its rotations (world axes ``w``), ``v = sum c f'(q) Rp a`` over its
     translations and the pivot at the joint centre after the translations.
+    A carried translation by ``c f (w . u)``, ``u = R_n v`` the vector turned by
+    the first ``n`` rotations (world frame ``R_n``), adds
+    ``c f w (w . (f'_j(q) w_j x u))`` to the column of each of those rotations ``j``.
     """
+    Ri, frames, spins = _custom_rotations(rows, Rp, pose, axis)
     pi = p0
-    for is_t, a, k, fun, slot, _K, _K2 in rows:
+    for is_t, a, k, fun, slot, _K, _K2, carried in rows:
         if not is_t:
             continue
         w = Rp @ a
+        if carried is not None:
+            pi = pi + _carried_translation(w, fun, slot, carried, frames, spins, factors, velocity, shift)
+            continue
         if fun.is_identity:  # a translational coordinate
             axis[..., k, :] = w
             pi = pi + w * pose[..., k, None]
@@ -541,22 +552,52 @@ def _custom_joint(rows, Rp, p0, pose, factors, axis, pivot, velocity, shift):
         pi = pi + w * (c * val)[..., None]
         if k >= 0:
             velocity[..., k, :] += w * (c * der)[..., None]
-    Ri = Rp
-    for is_t, a, k, fun, _slot, K, K2 in rows:
-        if is_t:
-            continue
-        if fun.is_identity:
-            val = pose[..., k]
-            axis[..., k, :] = Ri @ a
-        else:
-            val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
-            if k >= 0:
-                axis[..., k, :] += (Ri @ a) * der[..., None]
-        Ri = Ri @ (np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * K2 + _EYE3)
-    for is_t, _a, k, fun, _slot, _K, _K2 in rows:
+    for is_t, _a, k, fun, _slot, _K, _K2, _c in rows:
         if k >= 0 and not (is_t and fun.is_identity):
             pivot[..., k, :] = pi
     return Ri, pi
+
+
+def _custom_rotations(rows, Rp, pose, axis):
+    """The rotations of a custom joint: the child's frame, the frame after each rotation, and
+    ``(pose index, world axis, derivative of the angle)`` of each (axes written into ``axis``)."""
+    Ri = Rp
+    frames, spins = [Rp], []
+    for is_t, a, k, fun, _slot, K, K2, _c in rows:
+        if is_t:
+            continue
+        w = Ri @ a
+        if fun.is_identity:
+            val, der = pose[..., k], None
+            axis[..., k, :] = w
+        else:
+            val, der = fun.value_and_derivative(pose[..., k] if k >= 0 else np.zeros(pose.shape[:-1]))
+            if k >= 0:
+                axis[..., k, :] += w * der[..., None]
+        spins.append((k, w, der))
+        Ri = Ri @ (np.sin(val)[..., None, None] * K + (1.0 - np.cos(val))[..., None, None] * K2 + _EYE3)
+        frames.append(Ri)
+    return Ri, frames, spins
+
+
+def _carried_translation(w, fun, slot, carried, frames, spins, factors, velocity, shift):
+    """World shift ``c f (w . u) w`` of a carried translation (see :func:`_custom_joint`); its
+    columns are added to ``velocity`` and its factor's derivative written into ``shift``."""
+    v, n = carried
+    u = frames[n] @ v
+    f = float(fun.value(np.zeros(1))[0])
+    c = factors[..., slot, None] if slot >= 0 else 1.0
+    along = np.sum(w * u, axis=-1)[..., None]
+    if slot >= 0:
+        shift[..., slot, :] = w * (f * along)
+    for k, wj, der in spins[:n]:
+        if k < 0:
+            continue
+        d = np.sum(w * np.cross(wj, u), axis=-1)[..., None]
+        if der is not None:
+            d = d * der[..., None]
+        velocity[..., k, :] += w * (c * f * d)
+    return w * (c * f * along)
 
 
 _EYE3 = np.eye(3)

@@ -18,9 +18,9 @@ stops at the first problem with one line naming the key path
 Which keys a table takes can depend on one of its values (a joint's ``type``,
 a parameter's ``kind``, a prior's ``type``). Adding a joint type or a
 parameter kind is one line: its name in
-:data:`skelid.model.description.JOINT_TYPES` or ``PARAMETER_KINDS``, and, if it
-takes keys of its own, one entry in :data:`JOINT_KEYS` or
-:data:`PARAMETER_TARGET` here. The key reference in docs/model-format.md is
+:data:`skelid.model.kinds.JOINT_TYPES` or ``PARAMETER_KINDS``, and, if it
+takes keys of its own, one entry in :data:`JOINT_KEYS` here or
+:data:`skelid.model.kinds.PARAMETER_TARGET`. The key reference in docs/model-format.md is
 generated from this schema by :func:`reference_markdown` (a test keeps the two
 equal).
 
@@ -40,6 +40,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from skelid.errors import ModelError
+from skelid.model.kinds import JOINT_TYPES, MOTION_KINDS, PARAMETER_KINDS, PARAMETER_TARGET
 
 #: largest coordinate or prior bound accepted, in metres (a motion-capture volume is far smaller)
 MAX_EXTENT_M = 1000.0
@@ -50,12 +51,6 @@ MAX_ANGLE_DEG = 360.0
 #: the marks around the generated key reference in docs/model-format.md
 REFERENCE_BEGIN, REFERENCE_END = "<!-- schema-reference: begin -->", "<!-- schema-reference: end -->"
 UNIT_IN_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
-
-
-def _kinds():
-    from skelid.model import description as d
-
-    return d
 
 
 # ----------------------------------------------------------------------------- context
@@ -340,13 +335,16 @@ FUNCTION = Table({"type": Key(Str(lambda ctx: tuple(FUNCTION_KEYS)), "function t
                  example="{type = 'linear', coefficients = [1.0, 0.0]}")
 
 MOTION = Table({
-    "kind": Key(Str(("rotation", "translation")), "rotation or translation", required=True),
+    "kind": Key(Str(tuple(MOTION_KINDS.values())), "rotation, translation, or a translation carried "
+                "by the earlier rotations (along axis by f * (axis . W vector))", required=True),
     "axis": Key(Vec(3, Num(length=False), nonzero=True), "axis (parent frame for translations, the frame "
                 "left by earlier rotations for rotations)", required=True),
     "coordinate": Key(Str(), "the joint coordinate it follows", default="none: a constant function"),
     "function": Key(FUNCTION, "the amount as a function of the coordinate", required=True),
-    "scale_weights": Key(Vec(3, Num(length=False)), "a translation scales by w . (parent's scale factors)",
-                         default="the axis squared"),
+    "scale_weights": Key(Vec(3, Num(length=False)), "a translation scales by w . (parent's scale factors); "
+                         "all zero: never", default="the axis squared"),
+    "vector": Key(Vec(3, Num(length=False)), "the vector a carried translation turns with the joint "
+                  "(parent frame)", default="none (required with kind = carried)"),
 }, example="{kind = 'rotation', axis = [0, 0, 1], coordinate = 'knee', function = {...}}")
 
 JOINT_KEYS["custom"] = {
@@ -356,8 +354,6 @@ JOINT_KEYS["custom"] = {
                        default="the identity"),
 }
 
-#: the key naming what a parameter moves, by parameter kind (default: ``joint``)
-PARAMETER_TARGET: dict[str, str] = {"marker_position": "marker", "marker_offset": "marker", "scale": "segment"}
 
 #: axis names a parameter kind takes (default: x, y, z); None: no axis
 PARAMETER_AXES: dict[str, tuple[str, ...] | None] = {"length": None, "axis_direction": ("u", "v"),
@@ -379,7 +375,7 @@ PRIOR_KEYS: dict[str, dict[str, Key]] = {
 
 
 def _joint_types(ctx: Context) -> tuple[str, ...]:
-    return _kinds().JOINT_TYPES.get(ctx.dim, ())
+    return JOINT_TYPES.get(ctx.dim, ())
 
 
 def _angle_pair_list(v) -> bool:
@@ -432,7 +428,7 @@ def _prior_is_list(v) -> bool:
 
 PARAMETER = Table({
     "name": Key(Str(), "parameter name", default="p<number>"),
-    "kind": Key(Str(lambda ctx: _kinds().PARAMETER_KINDS), "parameter kind (see Parameters)", required=True),
+    "kind": Key(Str(lambda ctx: PARAMETER_KINDS), "parameter kind (see Parameters)", required=True),
     "prior": Key(OneOrList(PRIOR, _prior_is_list), "a prior table, or one per axis", required=True),
     "grid_step": Key(Num(positive=True), "spacing of grid filters' candidate values",
                      default="1/200 of the prior interval"),
@@ -560,7 +556,7 @@ def _row(k, key: Key, path, ctx, out, note):
 def _describe(node: Node, ctx: Context) -> str:
     if isinstance(node, Str) and node.choices is not None:
         opts = node.options(ctx) if not callable(node.choices) else (
-            tuple(dict.fromkeys(_kinds().JOINT_TYPES[2] + _kinds().JOINT_TYPES[3]))
+            tuple(dict.fromkeys(JOINT_TYPES[2] + JOINT_TYPES[3]))
             if node.choices is _joint_types else node.options(ctx))
         return "one of " + ", ".join(f"`{o}`" for o in opts)
     if isinstance(node, Int) and node.choices:

@@ -93,6 +93,21 @@ def moving_centre(model: Model, joint: str, degree: int = DEGREE, gain_sd: float
     ModelError
         If ``joint`` is not a hinge of a 3-D model, its axis is a fitted parameter, or ``degree < 1``.
     """
+    seg = _moving_centre_hinge(model, joint, degree)
+    if gain_sd is not None and not gain_sd > 0:
+        raise ModelError(f"the gains' prior sd must be positive, got {gain_sd}", "give a positive sd or None")
+    d = model.to_dict()
+    table = next(s for s in d["segments"] if s["name"] == seg.name)
+    table["joint"] = _sliding_hinge(table["joint"], seg.joint, degree)
+    prior = _gain_prior(model.units, gain_sd)
+    for n in range(2 * degree):
+        d["parameters"].append({"name": f"{joint}_gain{n // 2 + 1}_{'uv'[n % 2]}", "kind": "translation_gain",
+                                "joint": joint, "motion": n, "prior": dict(prior)})
+    return model_from_dict(d, f"{model.name} ({joint} with a moving centre)")
+
+
+def _moving_centre_hinge(model: Model, joint: str, degree: int):
+    """The segment of hinge ``joint``, checked to have a moving-centre variant of ``degree``."""
     seg = next((s for s in model.segments if s.joint.name == joint), None)
     if seg is None or model.dim != 3 or seg.joint.type != "hinge":
         raise ModelError(f"joint {joint!r} is not a hinge of a 3-D model, so it has no moving-centre variant",
@@ -103,28 +118,29 @@ def moving_centre(model: Model, joint: str, degree: int = DEGREE, gain_sd: float
     if axis:
         raise ModelError(f"the axis of hinge {joint!r} is fitted ({', '.join(axis)}), and a moving centre is "
                          "defined about a fixed axis", f"fix the axis at its estimate (drop {axis[0]!r}) first")
-    e, u, v = tilt_basis(seg.joint.axes[0])
-    d = model.to_dict()
-    spec = next(s for s in d["segments"] if s["name"] == seg.name)["joint"]
-    motions = []
-    for k in range(1, degree + 1):
-        for direction in (u, v):
-            motions.append({"kind": "translation", "axis": list(direction), "coordinate": joint,
-                            "function": {"type": "polynomial", "coefficients": [1.0] + [0.0] * k}})
-    motions.append({"kind": "rotation", "axis": list(e), "coordinate": joint,
+    return seg
+
+
+def _sliding_hinge(spec: dict, hinge, degree: int) -> dict:
+    """The custom joint table: translations ``q^k`` along ``u`` and ``v`` for k = 1..degree, then the rotation."""
+    e, u, v = tilt_basis(hinge.axes[0])
+    name = hinge.name
+    motions = [{"kind": "translation", "axis": list(direction), "coordinate": name,
+                "function": {"type": "polynomial", "coefficients": [1.0] + [0.0] * k}}
+               for k in range(1, degree + 1) for direction in (u, v)]
+    motions.append({"kind": "rotation", "axis": list(e), "coordinate": name,
                     "function": {"type": "linear", "coefficients": [1.0, 0.0]}})
-    custom = {"name": joint, "type": "custom", "position": spec["position"], "coordinates": [joint],
+    custom = {"name": name, "type": "custom", "position": spec["position"], "coordinates": [name],
               "motions": motions}
     if "range" in spec:
         custom["range"] = spec["range"]
-    next(s for s in d["segments"] if s["name"] == seg.name)["joint"] = custom
-    if gain_sd is not None and not gain_sd > 0:
-        raise ModelError(f"the gains' prior sd must be positive, got {gain_sd}", "give a positive sd or None")
-    bound = GAIN_BOUND_MM / _UNIT_MM[model.units]
+    return custom
+
+
+def _gain_prior(units: str, gain_sd: float | None) -> dict:
+    """Each gain's prior table: normal about 0 with ``gain_sd`` mm (uniform without), bounded at GAIN_BOUND_MM."""
+    bound = GAIN_BOUND_MM / _UNIT_MM[units]
     prior = {"type": "uniform", "lower": -bound, "upper": bound}
     if gain_sd is not None:
-        prior = dict(prior, type="normal", mean=0.0, sd=gain_sd / _UNIT_MM[model.units])
-    for n in range(2 * degree):
-        d["parameters"].append({"name": f"{joint}_gain{n // 2 + 1}_{'uv'[n % 2]}", "kind": "translation_gain",
-                                "joint": joint, "motion": n, "prior": dict(prior)})
-    return model_from_dict(d, f"{model.name} ({joint} with a moving centre)")
+        prior = dict(prior, type="normal", mean=0.0, sd=gain_sd / _UNIT_MM[units])
+    return prior
