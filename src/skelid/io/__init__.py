@@ -39,6 +39,82 @@ FORMAT_READERS = {"c3d": read_c3d, "trc": read_trc, "vicon-csv": read_csv, "csv"
 _SNIFF_BYTES = 8192
 
 
+def _read_head(path) -> bytes | None:
+    """The first :data:`_SNIFF_BYTES` bytes of ``path``, or None if it cannot be read."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(_SNIFF_BYTES)
+    except OSError:
+        return None
+
+
+def _head_text(head: bytes) -> str | None:
+    """The bytes read as text (UTF-16 by its byte-order mark, else UTF-8), or None if binary (NUL bytes)."""
+    if head[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        return head[: len(head) // 2 * 2].decode("utf-16", errors="replace")
+    if b"\x00" in head:
+        return None
+    return head.decode("utf-8-sig", errors="replace")
+
+
+def _binary_format(head: bytes) -> str | None:
+    """``"c3d"`` for binary content whose second byte is the C3D key ``0x50``, else None."""
+    return "c3d" if len(head) >= 2 and head[1] == 0x50 else None
+
+
+def _separator(line: str) -> str:
+    """The most frequent of tab, comma and semicolon in ``line`` (tab on a tie)."""
+    return max(("\t", ",", ";"), key=line.count)
+
+
+def _is_trc(first: str, field0: str) -> bool:
+    """An OpenSim TRC file opens with ``PathFileType``."""
+    return first.startswith("PathFileType")
+
+
+def _is_qualisys(first: str, field0: str) -> bool:
+    """A Qualisys TSV export opens with one of its header keys."""
+    return field0.upper() in QUALISYS_KEYS
+
+
+def _is_vicon(first: str, field0: str) -> bool:
+    """A Vicon Nexus CSV export opens with a section name (``Trajectories``, ``Devices``, ...)."""
+    return field0.lower() in VICON_SECTIONS
+
+
+#: Formats told by the first non-blank line (and its first field), tried in this order.
+_FIRST_LINE_FORMATS = (("trc", _is_trc), ("qualisys-tsv", _is_qualisys), ("vicon-csv", _is_vicon))
+
+
+def _first_line_format(lines: list[str]) -> str | None:
+    """The format that the first non-blank line names, or None."""
+    first = next((line for line in lines if line), "")
+    field0 = first.split(_separator(first), 1)[0].strip()
+    return next((fmt for fmt, test in _FIRST_LINE_FORMATS if test(first, field0)), None)
+
+
+def _header_fields(lines: list[str], head: bytes) -> list[str] | None:
+    """Fields of the first line that is neither blank nor a ``#`` comment (None if there is none).
+
+    When that line is the last one read and the read stopped at :data:`_SNIFF_BYTES`, its
+    last field may be cut and is left out.
+    """
+    k = next((i for i, line in enumerate(lines) if line and not line.startswith("#")), None)
+    if k is None:
+        return None
+    fields = [f.strip() for f in lines[k].split(_separator(lines[k]))]
+    if k == len(lines) - 1 and len(head) == _SNIFF_BYTES:
+        fields = fields[:-1]  # the header line goes on beyond the bytes read
+    return fields
+
+
+def _is_column_header(fields: list[str]) -> bool:
+    """At least two coordinate columns, and every named column a coordinate, time or frame column."""
+    coords = sum(1 for f in fields if COORD_COLUMN.match(f))
+    return coords >= 2 and all(COORD_COLUMN.match(f) or TIME_COLUMN.match(f) or FRAME_COLUMN.match(f)
+                               for f in fields if f)
+
+
 def sniff_format(path) -> str | None:
     """The format of a marker file from its first bytes, or None if not recognised.
 
@@ -47,40 +123,18 @@ def sniff_format(path) -> str | None:
     str or None
         ``"c3d"``, ``"trc"``, ``"vicon-csv"``, ``"qualisys-tsv"``, ``"csv"``.
     """
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(_SNIFF_BYTES)
-    except OSError:
+    head = _read_head(path)
+    if head is None:
         return None
-    if head[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
-        text = head[: len(head) // 2 * 2].decode("utf-16", errors="replace")
-    elif len(head) >= 2 and head[1] == 0x50 and b"\x00" in head:
-        return "c3d"
-    elif b"\x00" in head:
-        return None
-    else:
-        text = head.decode("utf-8-sig", errors="replace")
+    text = _head_text(head)
+    if text is None:
+        return _binary_format(head)
     lines = [line.strip() for line in text.replace("\r", "\n").split("\n")]
-    first = next((line for line in lines if line), "")
-    if first.startswith("PathFileType"):
-        return "trc"
-    sep = max(("\t", ",", ";"), key=first.count)
-    field0 = first.split(sep, 1)[0].strip()
-    if field0.upper() in QUALISYS_KEYS:
-        return "qualisys-tsv"
-    if field0.lower() in VICON_SECTIONS:
-        return "vicon-csv"
-    k = next((i for i, line in enumerate(lines) if line and not line.startswith("#")), None)
-    if k is None:
-        return None
-    fields = [f.strip() for f in lines[k].split(max(("\t", ",", ";"), key=lines[k].count))]
-    if k == len(lines) - 1 and len(head) == _SNIFF_BYTES:
-        fields = fields[:-1]  # the header line goes on beyond the bytes read
-    coords = sum(1 for f in fields if COORD_COLUMN.match(f))
-    if coords >= 2 and all(COORD_COLUMN.match(f) or TIME_COLUMN.match(f) or FRAME_COLUMN.match(f)
-                           for f in fields if f):
-        return "csv"
-    return None
+    fmt = _first_line_format(lines)
+    if fmt is not None:
+        return fmt
+    fields = _header_fields(lines, head)
+    return "csv" if fields is not None and _is_column_header(fields) else None
 
 
 def read_markers(path) -> MarkerData:

@@ -33,6 +33,60 @@ def _values(group: dict, key: str) -> list:
     return value if isinstance(value, list) else [value]
 
 
+def _point_arrays(data: dict):
+    """``points (F, N, 3)`` and ``residuals (F, N)`` from ezc3d's ``data`` (zero points if it holds none).
+
+    ezc3d gives points as ``(4, N, F)`` (homogeneous) and residuals as ``(1, N, F)``;
+    residuals of another shape are taken as zero (all tracked).
+    """
+    import numpy as np
+
+    pts = np.asarray(data["points"], dtype=float)
+    if pts.ndim != 3 or pts.shape[0] < 3:
+        pts = np.zeros((4, 0, 0))
+    points = np.ascontiguousarray(pts[:3].transpose(2, 1, 0))
+    res = np.asarray(data.get("meta_points", {}).get("residuals", np.zeros((1, 0, 0))), dtype=float)
+    if res.ndim == 3 and res.shape[1:] == pts.shape[1:]:
+        residuals = np.ascontiguousarray(res[0].T)
+    else:
+        residuals = np.zeros(points.shape[:2])
+    return points, residuals
+
+
+def _labels(point: dict) -> list:
+    """``POINT:LABELS`` followed by ``LABELS2``, ``LABELS3``, ... for as long as they go on."""
+    labels = [str(v) for v in _values(point, "LABELS")]
+    k = 2
+    while f"LABELS{k}" in point:
+        labels += [str(v) for v in _values(point, f"LABELS{k}")]
+        k += 1
+    return labels
+
+
+def _groups(point: dict) -> dict:
+    """Group name -> labels of the computed-point groups: the usual ones, then those in ``TYPE_GROUPS``."""
+    groups = {g: [str(v).strip() for v in _values(point, g)] for g in COMPUTED_GROUPS if g in point}
+    for g in _values(point, "TYPE_GROUPS"):
+        g = str(g).strip().upper()
+        if g and g in point and g not in groups and g != "LABELS":
+            groups[g] = [str(v).strip() for v in _values(point, g)]
+    return groups
+
+
+def _header_summary(header: dict) -> dict:
+    """The numbers of ezc3d's header summary of the points."""
+    return {key: (float(v) if isinstance(v, float) else int(v))
+            for key, v in header.get("points", {}).items() if isinstance(v, (int, float))}
+
+
+def _first_number(values: list):
+    """The first value as a float, or None if there is none or it is not a number."""
+    try:
+        return float(values[0]) if values else None
+    except (TypeError, ValueError):
+        return None
+
+
 def extract(path: str):
     """Read ``path`` with ezc3d.
 
@@ -46,42 +100,19 @@ def extract(path: str):
         ``header`` (ezc3d's header summary of the points).
     """
     import ezc3d
-    import numpy as np
 
     c = ezc3d.c3d(path, extract_forceplat_data=False)
     point = c["parameters"].get("POINT", {})
-    data = c["data"]
-    pts = np.asarray(data["points"], dtype=float)
-    if pts.ndim != 3 or pts.shape[0] < 3:
-        pts = np.zeros((4, 0, 0))
-    points = np.ascontiguousarray(pts[:3].transpose(2, 1, 0))
-    res = np.asarray(data.get("meta_points", {}).get("residuals", np.zeros((1, 0, 0))), dtype=float)
-    if res.ndim == 3 and res.shape[1:] == pts.shape[1:]:
-        residuals = np.ascontiguousarray(res[0].T)
-    else:
-        residuals = np.zeros(points.shape[:2])
-    labels = [str(v) for v in _values(point, "LABELS")]
-    k = 2
-    while f"LABELS{k}" in point:
-        labels += [str(v) for v in _values(point, f"LABELS{k}")]
-        k += 1
+    points, residuals = _point_arrays(c["data"])
+    labels = _labels(point)
     units = _values(point, "UNITS")
     rate = _values(point, "RATE")
-    groups = {g: [str(v).strip() for v in _values(point, g)] for g in COMPUTED_GROUPS if g in point}
-    for g in _values(point, "TYPE_GROUPS"):
-        g = str(g).strip().upper()
-        if g and g in point and g not in groups and g != "LABELS":
-            groups[g] = [str(v).strip() for v in _values(point, g)]
-    header = {key: (float(v) if isinstance(v, float) else int(v))
-              for key, v in c["header"].get("points", {}).items() if isinstance(v, (int, float))}
-    try:
-        rate_value = float(rate[0]) if rate else None
-    except (TypeError, ValueError):
-        rate_value = None
+    groups = _groups(point)
+    header = _header_summary(c["header"])
     info = {
         "labels": labels,
         "units": str(units[0]) if units else None,
-        "rate": rate_value,
+        "rate": _first_number(rate),
         "groups": groups,
         "header": header,
     }

@@ -277,7 +277,8 @@ def _bare(name: str) -> str:
     return name.rsplit(":", 1)[-1]
 
 
-def _to_marker_data(path: Path, points, residuals, info: dict, header: dict) -> MarkerData:
+def _checked_points(path: Path, points, residuals) -> tuple[np.ndarray, np.ndarray]:
+    """``points (F, N, 3)`` and ``residuals (F, N)`` as floats, refused if misshapen or empty."""
     points = np.asarray(points, dtype=float)
     residuals = np.asarray(residuals, dtype=float)
     if points.ndim != 3 or points.shape[2] != 3 or residuals.shape != points.shape[:2]:
@@ -288,32 +289,68 @@ def _to_marker_data(path: Path, points, residuals, info: dict, header: dict) -> 
                           "export the marker trajectories to the C3D file")
     if F == 0:
         raise FormatError(f"{path}: the file has no frames of 3-D points")
-    labels = [str(s).strip() for s in info.get("labels", [])][:N]
-    labels += [""] * (N - len(labels))
-    labels = [lab or f"point{i + 1}" for i, lab in enumerate(labels)]
+    return points, residuals
 
+
+def _point_labels(info: dict, n_points: int) -> list[str]:
+    """One label per point: the file's, cut or padded to ``n_points``, a blank one named ``point<k>``."""
+    labels = [str(s).strip() for s in info.get("labels", [])][:n_points]
+    labels += [""] * (n_points - len(labels))
+    return [lab or f"point{i + 1}" for i, lab in enumerate(labels)]
+
+
+def _is_rate(value, types) -> bool:
+    """Whether ``value`` is a finite positive number of one of ``types``."""
+    return isinstance(value, types) and math.isfinite(value) and value > 0
+
+
+def _point_rate(path: Path, info: dict, header: dict):
+    """The sampling rate: ``POINT:RATE``, else the header's."""
     rate = info.get("rate")
-    if rate is None or not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
-        rate = header.get("rate")
-        if not (isinstance(rate, float) and math.isfinite(rate) and rate > 0):
-            raise FormatError(f"{path}: no valid sampling rate in POINT:RATE ({info.get('rate')!r}) "
-                              "nor in the header", "set POINT:RATE in the file")
+    if _is_rate(rate, (int, float)):
+        return rate
+    rate = header.get("rate")
+    if not _is_rate(rate, float):
+        raise FormatError(f"{path}: no valid sampling rate in POINT:RATE ({info.get('rate')!r}) "
+                          "nor in the header", "set POINT:RATE in the file")
+    return rate
 
+
+def _with_gaps(points: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """``points`` with NaN where a point is missing: negative residual, all zeros, or not finite."""
     missing = (residuals < 0) | np.all(points == 0.0, axis=2) | ~np.isfinite(points).all(axis=2)
-    positions = np.where(missing[..., None], np.nan, points)
+    return np.where(missing[..., None], np.nan, points)
 
+
+def _point_units(path: Path, info: dict, positions: np.ndarray) -> str | None:
+    """The length unit of ``POINT:UNITS`` (None if absent), the coordinates checked for size in it."""
     units = normalise_units(info.get("units"))
     if units is not None and units not in ("mm", "cm", "m"):
         raise FormatError(f"{path}: POINT:UNITS is {units!r}; only mm, cm and m are supported",
                           "export the file in mm, cm or m")
     check_magnitude(positions, path, units or "(file units)")
-    guessed = units is None
-    if guessed:
-        units = guess_units(positions, path)
+    return units
 
+
+def _computed_indices(labels: list[str], info: dict) -> list[int]:
+    """Indices of the computed points: listed in a computed-point group, or named like one."""
     in_groups = {_bare(n) for names in info.get("groups", {}).values() for n in names if n}
-    computed = [i for i, n in enumerate(labels) if _bare(n) in in_groups or n in in_groups
-                or COMPUTED_NAME.search(_bare(n))]
+    return [i for i, n in enumerate(labels) if _bare(n) in in_groups or n in in_groups
+            or COMPUTED_NAME.search(_bare(n))]
+
+
+def _to_marker_data(path: Path, points, residuals, info: dict, header: dict) -> MarkerData:
+    """What the child read as :class:`MarkerData`: the measured markers, the computed points in ``meta``."""
+    points, residuals = _checked_points(path, points, residuals)
+    N = points.shape[1]
+    labels = _point_labels(info, N)
+    rate = _point_rate(path, info, header)
+    positions = _with_gaps(points, residuals)
+    units = _point_units(path, info, positions)
+    guessed = units is None
+    if guessed:  # guessed here, so that the warning (stacklevel 3) points at read_c3d
+        units = guess_units(positions, path)
+    computed = _computed_indices(labels, info)
     measured = [i for i in range(N) if i not in set(computed)]
     if not measured:
         raise FormatError(f"{path}: all {N} points are computed (angles, forces, joint centres); "
@@ -328,7 +365,6 @@ def _to_marker_data(path: Path, points, residuals, info: dict, header: dict) -> 
     }
     return MarkerData(positions[:, measured, :], tuple(labels[i] for i in measured), float(rate), units,
                       source=str(path), meta=meta)
-
 
 
 def bone_points(data: MarkerData) -> dict[str, dict[str, np.ndarray]]:

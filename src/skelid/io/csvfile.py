@@ -88,7 +88,11 @@ def read_csv(path) -> MarkerData:
 
 
 # --------------------------------------------------------------------- Vicon
-def _read_vicon(path: Path, lines: list[str]) -> MarkerData:
+_VICON_NAME_FIX = "every marker takes three columns X, Y, Z with its name above X"
+
+
+def _trajectories_start(path: Path, lines: list[str]) -> int:
+    """Index of the ``Trajectories`` section line, refused if absent or too short for its header."""
     start = next((i for i, line in enumerate(lines) if line.split(",", 1)[0].strip().lower() == "trajectories"),
                  None)
     if start is None:
@@ -97,39 +101,53 @@ def _read_vicon(path: Path, lines: list[str]) -> MarkerData:
     if len(lines) < start + 6:
         raise FormatError(f"{path}: the Trajectories section (line {start + 1}) ends before its data",
                           "check that the file is complete")
-    sep = ","
-    rate = parse_rate(split_fields(lines[start + 1], sep)[0], path, f"the rate on line {start + 2}")
-    name_fields = split_fields(lines[start + 2], sep)
+    return start
+
+
+def _vicon_names(path: Path, line: str, lineno: int) -> list[str]:
+    """The marker names of the name line: one above each X column, from the third column on."""
+    name_fields = split_fields(line, ",")
     last = max((i for i, n in enumerate(name_fields) if n), default=-1)
     if last < 2:
-        raise FormatError(f"{path}: line {start + 3} names no markers")
+        raise FormatError(f"{path}: line {lineno} names no markers")
     M = (last - 2) // 3 + 1
     names = []
     for k, field in enumerate(name_fields[: 2 + 3 * M]):
         if k >= 2 and (k - 2) % 3 == 0:
             if not field:
-                raise FormatError(f"{path}: line {start + 3}, column {k + 1}: marker name missing",
-                                  "every marker takes three columns X, Y, Z with its name above X")
+                raise FormatError(f"{path}: line {lineno}, column {k + 1}: marker name missing", _VICON_NAME_FIX)
             names.append(field)
         elif field:
-            raise FormatError(f"{path}: line {start + 3}, column {k + 1}: {field!r} is not above an X column",
-                              "every marker takes three columns X, Y, Z with its name above X")
-    axes = split_fields(lines[start + 3], sep)
-    want = ["X", "Y", "Z"] * M
-    got = [a.upper() for a in axes[2: 2 + 3 * M]]
-    if got != want:
-        raise FormatError(f"{path}: line {start + 4} should read 'Frame,Sub Frame' then X,Y,Z for each of the "
+            raise FormatError(f"{path}: line {lineno}, column {k + 1}: {field!r} is not above an X column",
+                              _VICON_NAME_FIX)
+    return names
+
+
+def _check_vicon_axes(path: Path, line: str, lineno: int, M: int) -> None:
+    """The axis line reads ``Frame,Sub Frame`` then X, Y, Z for each of the ``M`` markers."""
+    got = [a.upper() for a in split_fields(line, ",")[2: 2 + 3 * M]]
+    if got != ["X", "Y", "Z"] * M:
+        raise FormatError(f"{path}: line {lineno} should read 'Frame,Sub Frame' then X,Y,Z for each of the "
                           f"{M} markers", "check the header lines of the Trajectories section")
-    unit_set = {u for u in split_fields(lines[start + 4], sep)[2: 2 + 3 * M] if u}
+
+
+def _vicon_units(path: Path, line: str, lineno: int, M: int) -> str | None:
+    """The one length unit of the units line (None if blank); mixed or unknown units are refused."""
+    unit_set = {u for u in split_fields(line, ",")[2: 2 + 3 * M] if u}
     if len(unit_set) > 1:
-        raise FormatError(f"{path}: line {start + 5} mixes units {sorted(unit_set)}",
+        raise FormatError(f"{path}: line {lineno} mixes units {sorted(unit_set)}",
                           "export all trajectories in one unit")
     units = normalise_units(unit_set.pop()) if unit_set else None
     if units is not None and units not in ("mm", "cm", "m"):
-        raise FormatError(f"{path}: line {start + 5} gives units {units!r}; expected mm, cm or m")
+        raise FormatError(f"{path}: line {lineno} gives units {units!r}; expected mm, cm or m")
+    return units
+
+
+def _vicon_rows(path: Path, lines: list[str], first: int, M: int) -> list[tuple[int, list[str]]]:
+    """(line number, coordinate fields) of each data row from ``lines[first]`` to the first blank line."""
     rows = []
-    for i in range(start + 5, len(lines)):
-        f = split_fields(lines[i], sep)
+    for i in range(first, len(lines)):
+        f = split_fields(lines[i], ",")
         if not any(f):
             break  # end of the section
         if len(f) > 2 + 3 * M and any(f[2 + 3 * M:]):
@@ -138,6 +156,18 @@ def _read_vicon(path: Path, lines: list[str]) -> MarkerData:
         rows.append((i + 1, f[2: 2 + 3 * M]))
     if not rows:
         raise FormatError(f"{path}: no data rows in the Trajectories section", "check that the file is complete")
+    return rows
+
+
+def _read_vicon(path: Path, lines: list[str]) -> MarkerData:
+    """The Trajectories section of a Vicon Nexus CSV export: rate, names, axes, units, then the rows."""
+    start = _trajectories_start(path, lines)
+    rate = parse_rate(split_fields(lines[start + 1], ",")[0], path, f"the rate on line {start + 2}")
+    names = _vicon_names(path, lines[start + 2], start + 3)
+    M = len(names)
+    _check_vicon_axes(path, lines[start + 3], start + 4, M)
+    units = _vicon_units(path, lines[start + 4], start + 5, M)
+    rows = _vicon_rows(path, lines, start + 5, M)
     pos = parse_table(rows, 3 * M, path).reshape(len(rows), M, 3)
     check_magnitude(pos, path, units or "(file units)")
     guessed = units is None
@@ -148,7 +178,12 @@ def _read_vicon(path: Path, lines: list[str]) -> MarkerData:
 
 
 # ------------------------------------------------------------------- columns
-def _read_columns(path: Path, lines: list[str]) -> MarkerData:
+#: one marker's columns: name, axes (``x``, ``y``, ``z``), column indices, units written in the headers
+_Group = tuple[str, list[str], list[int], list[str]]
+
+
+def _comment_block(path: Path, lines: list[str]) -> tuple[dict[str, str], int]:
+    """``key=value`` pairs of the leading blank and ``#`` lines, and the index of the header line after them."""
     comment: dict[str, str] = {}
     h = 0
     while h < len(lines) and (not lines[h].strip() or lines[h].lstrip().startswith("#")):
@@ -156,17 +191,47 @@ def _read_columns(path: Path, lines: list[str]) -> MarkerData:
         h += 1
     if h == len(lines):
         raise FormatError(f"{path}: no header line naming the columns", "add a header line such as 'time,A_x,A_y,A_z'")
-    sep = sniff_separator(lines[h])
-    head = split_fields(lines[h], sep)
+    return comment, h
+
+
+def _header_names(path: Path, line: str, h: int, sep: str) -> list[str]:
+    """The column names of the header line (trailing blanks dropped); refused if none is a coordinate."""
+    head = split_fields(line, sep)
     while head and not head[-1]:
         head.pop()
     if not any(COORD_COLUMN.match(text) for text in head):
-        shown = lines[h].strip()
+        shown = line.strip()
         shown = shown if len(shown) <= 40 else shown[:37] + "..."
         raise FormatError(f"{path}: not a marker table: line {h + 1} ({shown!r}) names no coordinate columns",
                           "give a marker file whose header names columns '<marker>_x', '<marker>_y', '<marker>_z'")
+    return head
+
+
+def _not_a_coordinate(path: Path, h: int, c: int, text: str) -> FormatError:
+    """The error for a column that is not a coordinate: a second time or frame column, or an unknown one."""
+    if TIME_COLUMN.match(text) or FRAME_COLUMN.match(text):
+        return FormatError(f"{path}: line {h + 1}, column {c + 1}: a second {text!r} column",
+                           "keep one time column and one frame column")
+    shown = text if len(text) <= 30 else text[:27] + "..."
+    return FormatError(f"{path}: line {h + 1}, column {c + 1}: {shown!r} is neither a time, a frame nor a "
+                       "coordinate column", "name coordinate columns '<marker>_x', '<marker>_y', '<marker>_z'")
+
+
+def _add_coordinate(groups: list[_Group], m: re.Match, c: int) -> None:
+    """Put coordinate column ``c`` in its marker's group: the last one if it continues it, else a new one."""
+    name, axis, unit = m["name"], m["axis"].lower(), m["unit"]
+    if groups and groups[-1][0] == name and groups[-1][2][-1] == c - 1:
+        groups[-1][1].append(axis)
+        groups[-1][2].append(c)
+        groups[-1][3].append(unit or "")
+    else:
+        groups.append((name, [axis], [c], [unit or ""]))
+
+
+def _classify_columns(path: Path, h: int, head: list[str]) -> tuple[int | None, int | None, list[_Group]]:
+    """The time column, the frame column (the first of each; None if absent) and the markers' column groups."""
     time_col = frame_col = None
-    groups: list[tuple[str, list[str], list[int], list[str]]] = []  # name, axes, columns, units
+    groups: list[_Group] = []
     for c, text in enumerate(head):
         if TIME_COLUMN.match(text) and time_col is None:
             time_col = c
@@ -175,20 +240,14 @@ def _read_columns(path: Path, lines: list[str]) -> MarkerData:
             frame_col = c
             continue
         m = COORD_COLUMN.match(text)
-        if m is None and (TIME_COLUMN.match(text) or FRAME_COLUMN.match(text)):
-            raise FormatError(f"{path}: line {h + 1}, column {c + 1}: a second {text!r} column",
-                              "keep one time column and one frame column")
         if m is None:
-            shown = text if len(text) <= 30 else text[:27] + "..."
-            raise FormatError(f"{path}: line {h + 1}, column {c + 1}: {shown!r} is neither a time, a frame nor a "
-                              "coordinate column", "name coordinate columns '<marker>_x', '<marker>_y', '<marker>_z'")
-        name, axis, unit = m["name"], m["axis"].lower(), m["unit"]
-        if groups and groups[-1][0] == name and groups[-1][2][-1] == c - 1:
-            groups[-1][1].append(axis)
-            groups[-1][2].append(c)
-            groups[-1][3].append(unit or "")
-        else:
-            groups.append((name, [axis], [c], [unit or ""]))
+            raise _not_a_coordinate(path, h, c, text)
+        _add_coordinate(groups, m, c)
+    return time_col, frame_col, groups
+
+
+def _check_groups(path: Path, h: int, groups: list[_Group]) -> None:
+    """Every marker has columns X, Y or X, Y, Z in that order, the same for all markers."""
     dims = {"".join(g[1]) for g in groups}
     bad = next((g for g in groups if "".join(g[1]) not in ("xy", "xyz")), None)
     if bad is not None or len(dims) != 1:
@@ -196,25 +255,45 @@ def _read_columns(path: Path, lines: list[str]) -> MarkerData:
         raise FormatError(f"{path}: line {h + 1}: marker {g[0]!r} has columns {''.join(g[1]).upper()}; every "
                           "marker needs X, Y (and Z) in that order, the same for all markers",
                           "check the header line for a missing, repeated or misplaced column")
-    names = [g[0] for g in groups]
-    D = len(groups[0][1])
-    units = _units_of(path, h, groups, comment)
-    cols = [c for g in groups for c in g[2]]
+
+
+def _column_rows(path: Path, lines: list[str], h: int, sep: str, n_head: int, cols: list[int],
+                 time_col: int | None) -> tuple[list[tuple[int, list[str]]], list[tuple[int, str]]]:
+    """(line number, coordinate fields) of each data row after the header, and (line number, time) of each.
+
+    Blank and ``#`` lines are skipped; a short row is padded with blanks; a row with
+    values beyond the ``n_head`` named columns is refused.
+    """
     rows, times = [], []
     for i in range(h + 1, len(lines)):
         line = lines[i]
         if not line.strip(sep + " \t") or line.lstrip().startswith("#"):
             continue
         f = split_fields(line, sep)
-        if len(f) > len(head) and any(f[len(head):]):
-            raise FormatError(f"{path}: line {i + 1} has {len(f)} fields but the header names {len(head)} columns",
+        if len(f) > n_head and any(f[n_head:]):
+            raise FormatError(f"{path}: line {i + 1} has {len(f)} fields but the header names {n_head} columns",
                               "check the header line and the separators")
-        f += [""] * (len(head) - len(f))
+        f += [""] * (n_head - len(f))
         rows.append((i + 1, [f[c] for c in cols]))
         if time_col is not None:
             times.append((i + 1, f[time_col]))
     if not rows:
         raise FormatError(f"{path}: no data rows after the header", "check that the file is complete")
+    return rows, times
+
+
+def _read_columns(path: Path, lines: list[str]) -> MarkerData:
+    """A column-header file: comment, header line, column groups, units, rows, then the rate."""
+    comment, h = _comment_block(path, lines)
+    sep = sniff_separator(lines[h])
+    head = _header_names(path, lines[h], h, sep)
+    time_col, _, groups = _classify_columns(path, h, head)
+    _check_groups(path, h, groups)
+    names = [g[0] for g in groups]
+    D = len(groups[0][1])
+    units = _units_of(path, h, groups, comment)
+    cols = [c for g in groups for c in g[2]]
+    rows, times = _column_rows(path, lines, h, sep, len(head), cols, time_col)
     pos = parse_table(rows, len(cols), path).reshape(len(rows), len(names), D)
     rate = _rate_of(path, comment, times)
     check_magnitude(pos, path, units or "(file units)")

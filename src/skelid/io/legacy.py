@@ -81,48 +81,97 @@ def legacy_warning(text, names=()) -> Warning:
     return Warning(code, text, params)
 
 
-def _result(method: str, m: Mapping, units: str, frames_total, arrays: Mapping, kinds: Mapping) -> FitResult:
+def _own_arrays(method: str, arrays: Mapping) -> dict:
+    """The arrays named ``METHOD.KEY``, keyed by ``KEY``."""
     pre = f"{method}."
-    own = {k[len(pre):]: np.asarray(v) for k, v in arrays.items() if k.startswith(pre)}
-    status = {str(r.get("parameter")): _STATUS.get(str(r.get("status", "")).lower(), "poor")
-              for r in m.get("identifiability") or [] if isinstance(r, Mapping)}
-    crlb = own.get("crlb_sd")
-    entries = [(k, v) for k, v in m.items()
-               if k not in _RESERVED and isinstance(v, Mapping) and "map" in v and "ci95" in v]
+    return {k[len(pre):]: np.asarray(v) for k, v in arrays.items() if k.startswith(pre)}
+
+
+def _statuses(m: Mapping) -> dict:
+    """Parameter name -> typed status from the method's ``identifiability`` rows (an unknown word is poor)."""
+    return {str(r.get("parameter")): _STATUS.get(str(r.get("status", "")).lower(), "poor")
+            for r in m.get("identifiability") or [] if isinstance(r, Mapping)}
+
+
+def _is_estimate(key, value) -> bool:
+    """Whether one entry of a method's dict is a parameter estimate (not a reserved key)."""
+    return key not in _RESERVED and isinstance(value, Mapping) and "map" in value and "ci95" in value
+
+
+def _crlb_of(v: Mapping, i: int, crlb) -> float | None:
+    """A parameter's Cramér-Rao sd: its own ``crlb_sd``, else entry ``i`` of the method's ``crlb_sd`` array."""
+    c = v.get("crlb_sd")
+    if c is None and crlb is not None and i < len(crlb):
+        c = float(crlb[i])
+    return None if c is None else _float(c)
+
+
+def _parameters(m: Mapping, units: str, kinds: Mapping, status: Mapping, crlb) -> dict:
+    """The method's parameter estimates, in the order of its dict.
+
+    An axis direction is in degrees, every other parameter in ``units``; a parameter
+    without an identifiability row is ``identified`` with ``extra["status_given"] = False``.
+    """
+    entries = [(k, v) for k, v in m.items() if _is_estimate(k, v)]
     params = {}
     for i, (name, v) in enumerate(entries):
-        c = v.get("crlb_sd")
-        if c is None and crlb is not None and i < len(crlb):
-            c = float(crlb[i])
         params[name] = ParameterEstimate(
             name, "deg" if kinds.get(name) == "axis_direction" else units, _float(v["map"]),
             _float(v.get("mean", v["map"])), _float(v.get("sd")), _pair(v["ci95"]),
-            None if c is None else _float(c), status.get(name, "identified"),
+            _crlb_of(v, i, crlb), status.get(name, "identified"),
             {} if name in status else {"status_given": False})
-    derived = {k: ParameterEstimate(k, units, _float(v.get("value")), _float(v.get("value")), _float(v.get("sd")),
-                                    _pair(v.get("ci95")), None, "identified", {"status_given": False})
-               for k, v in (m.get("lengths") or {}).items() if isinstance(v, Mapping)}
+    return params
+
+
+def _derived(m: Mapping, units: str) -> dict:
+    """The derived lengths (``lengths``: name -> ``{"value", "sd", "ci95"}``) as estimates."""
+    return {k: ParameterEstimate(k, units, _float(v.get("value")), _float(v.get("value")), _float(v.get("sd")),
+                                 _pair(v.get("ci95")), None, "identified", {"status_given": False})
+            for k, v in (m.get("lengths") or {}).items() if isinstance(v, Mapping)}
+
+
+def _noise(m: Mapping) -> NoiseEstimate | None:
+    """The marker noise (``sigma``: ``{"value", "ci95", "fixed", ...}``), or None without a value."""
     sig = m.get("sigma")
-    noise = None
-    if isinstance(sig, Mapping) and "value" in sig:
-        ci = sig.get("ci95")
-        noise = NoiseEstimate(_float(sig["value"]), _pair(ci) if ci else None, bool(sig.get("fixed")),
-                              extra={k: v for k, v in sig.items() if k not in ("value", "ci95", "fixed")})
-    frames = None
-    if frames_total is not None:
-        used = m.get("frames_used", frames_total)
-        frames = FrameCounts(int(frames_total), int(used if isinstance(used, int | float) else frames_total))
-    diagnostics = {k: m[k] for k in ("identifiability", "counting", "joint_range_deg") if m.get(k) is not None}
-    if "posterior.points" in own:  # the names a typed result uses
+    if not (isinstance(sig, Mapping) and "value" in sig):
+        return None
+    ci = sig.get("ci95")
+    return NoiseEstimate(_float(sig["value"]), _pair(ci) if ci else None, bool(sig.get("fixed")),
+                         extra={k: v for k, v in sig.items() if k not in ("value", "ci95", "fixed")})
+
+
+def _frames(m: Mapping, frames_total) -> FrameCounts | None:
+    """Frames of the run and those the method used (all of them where it does not say)."""
+    if frames_total is None:
+        return None
+    used = m.get("frames_used", frames_total)
+    return FrameCounts(int(frames_total), int(used if isinstance(used, int | float) else frames_total))
+
+
+def _typed_array_names(own: dict) -> dict:
+    """The method's arrays with the posterior's also under the names a typed result uses."""
+    own = dict(own)
+    if "posterior.points" in own:
         own["samples"] = own["posterior.points"]
         if "posterior.weights" in own:
             own["weights"] = own["posterior.weights"]
     if "posterior.cov" in own:
         own["cov"] = own["posterior.cov"]
+    return own
+
+
+def _result(method: str, m: Mapping, units: str, frames_total, arrays: Mapping, kinds: Mapping) -> FitResult:
+    """One method's dict of the old layout (and its ``METHOD.KEY`` arrays) as a :class:`FitResult`."""
+    own = _own_arrays(method, arrays)
+    params = _parameters(m, units, kinds, _statuses(m), own.get("crlb_sd"))
+    derived = _derived(m, units)
+    noise = _noise(m)
+    frames = _frames(m, frames_total)
+    diagnostics = {k: m[k] for k in ("identifiability", "counting", "joint_range_deg") if m.get(k) is not None}
     provenance = {"seconds": m["seconds"]} if "seconds" in m else {}
     return FitResult(method, params, derived, noise, frames, diagnostics,
                      tuple(legacy_warning(w, list(params)) for w in m.get("warnings") or ()),
-                     provenance=provenance, arrays=own)
+                     provenance=provenance, arrays=_typed_array_names(own))
 
 
 def run_from_legacy(doc: Mapping, arrays: Mapping | None = None) -> FitRun:
