@@ -768,6 +768,76 @@ class Advice(NamedTuple):
 
 
 # --------------------------------------------------------------------------- the session
+def _check_session_settings(model: Model, method: str, rate: float, sigma: float | None) -> None:
+    """Refuse a live method, rate or noise level a :class:`Session` cannot run with.
+
+    Raises
+    ------
+    ModelError
+        An unknown method, or ``'grid'`` for more than 3 parameters.
+    DataError
+        A rate that is not positive; a negative or non-finite ``sigma``.
+    """
+    if method not in ("auto", "gaussian", "grid"):
+        raise ModelError(f"unknown live method {method!r}", "use 'auto', 'gaussian' or 'grid'")
+    if method == "grid" and model.n_params > 3:
+        raise ModelError(f"the grid form handles 1 to 3 parameters; {model.name!r} has {model.n_params}",
+                         "use method='gaussian'")
+    if not rate > 0:
+        raise DataError(f"rate must be positive, got {rate!r}", "pass the stream's frames per second")
+    if sigma is not None and not (np.isfinite(sigma) and sigma >= 0):
+        raise DataError(f"sigma must be a finite noise level >= 0, got {sigma!r}",
+                        "pass the marker noise in model units, or leave it out to estimate it")
+
+
+def _check_cutoff(model: Model, cutoff) -> bool:
+    """Whether ``cutoff`` asks for the automatic choice (``'auto'``); refuse one a session cannot use.
+
+    Raises
+    ------
+    ModelError
+        A string other than ``'auto'``, or an array of cutoffs that is not one per pose coordinate.
+    """
+    auto = isinstance(cutoff, str)
+    if auto and cutoff != "auto":
+        raise ModelError(f"unknown cutoff {cutoff!r}", "give a cutoff in Hz, 'auto' or None")
+    if not auto and cutoff is not None and np.ndim(cutoff) and np.shape(cutoff) != (model.n_pose,):
+        raise ModelError(f"cutoff has {np.size(cutoff)} values; the model has {model.n_pose} pose coordinates",
+                         "give one cutoff in Hz, one per pose coordinate, 'auto' or None")
+    return auto
+
+
+def _live_method(model: Model, method: str) -> str:
+    """The form a session runs: ``'auto'`` is the grid filter for 1-3 parameters, the Gaussian for more."""
+    if method != "auto":
+        return method
+    return "grid" if model.n_params <= 3 else "gaussian"
+
+
+class _Screened(NamedTuple):
+    """A frame's pose after the markers that do not fit were left out (:meth:`Session._screened_pose`)."""
+
+    y: np.ndarray  # (M, D) the frame, NaN for the markers left out
+    q: np.ndarray  # (Q,) its pose
+    x: np.ndarray  # (M, D) the model's markers at that pose
+    Jq: np.ndarray  # (M, D, Q) their pose Jacobian
+    Jt: np.ndarray  # (M, D, P) their parameter Jacobian
+    resid: np.ndarray  # (M,) residual distances before the last marker was left out
+    present: np.ndarray  # (M,) bool: markers used
+    n_present: int
+    rejected: list  # names of the markers left out
+    too_few: bool  # too few markers remain to fix the pose
+
+
+def _frame_rows(sc: _Screened, n_markers: int):
+    """The frame's residual ``r (m,)`` and Jacobian rows ``(m, Q)``, ``(m, P)`` of the markers used."""
+    if sc.n_present == n_markers:
+        r = (sc.y - sc.x).reshape(-1)
+        return r, sc.Jq.reshape(r.size, -1), sc.Jt.reshape(r.size, -1)
+    r = (sc.y[sc.present] - sc.x[sc.present]).reshape(-1)
+    return r, sc.Jq[sc.present].reshape(r.size, -1), sc.Jt[sc.present].reshape(r.size, -1)
+
+
 class Session:
     """A live fit of ``model`` to a stream of labelled frames.
 
@@ -818,19 +888,10 @@ class Session:
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,
                  method: str = "auto", sigma: float | None = None, outlier_sd: float = 6.0,
                  cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None):
-        if method not in ("auto", "gaussian", "grid"):
-            raise ModelError(f"unknown live method {method!r}", "use 'auto', 'gaussian' or 'grid'")
-        if method == "grid" and model.n_params > 3:
-            raise ModelError(f"the grid form handles 1 to 3 parameters; {model.name!r} has {model.n_params}",
-                             "use method='gaussian'")
-        if not rate > 0:
-            raise DataError(f"rate must be positive, got {rate!r}", "pass the stream's frames per second")
-        if sigma is not None and not (np.isfinite(sigma) and sigma >= 0):
-            raise DataError(f"sigma must be a finite noise level >= 0, got {sigma!r}",
-                            "pass the marker noise in model units, or leave it out to estimate it")
+        _check_session_settings(model, method, rate, sigma)
         self.model = model
         self.rate = float(rate)
-        self.method = ("grid" if model.n_params <= 3 else "gaussian") if method == "auto" else method
+        self.method = _live_method(model, method)
         self.sigma = sigma
         self.outlier_sd = float(outlier_sd)
         self.rng = rng if rng is not None else np.random.default_rng(0)
@@ -854,12 +915,7 @@ class Session:
         self._good: np.ndarray | None = None  # pose of the last frame whose markers all fitted
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
-        self._auto = isinstance(cutoff, str)
-        if self._auto and cutoff != "auto":
-            raise ModelError(f"unknown cutoff {cutoff!r}", "give a cutoff in Hz, 'auto' or None")
-        if not self._auto and cutoff is not None and np.ndim(cutoff) and np.shape(cutoff) != (model.n_pose,):
-            raise ModelError(f"cutoff has {np.size(cutoff)} values; the model has {model.n_pose} pose coordinates",
-                             "give one cutoff in Hz, one per pose coordinate, 'auto' or None")
+        self._auto = _check_cutoff(model, cutoff)
         self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
         self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
         self.n_iter = int(n_iter)
@@ -871,12 +927,11 @@ class Session:
         self._min_present = model.n_pose // model.dim + 1  # markers that fix a pose: n * D > Q
         if self.method == "grid":
             self._grid = MarkerGridFilter(model, sigma=sigma, history_steps=(), rng=self.rng)
-            self._state = self._grid.init_state()
-        else:
-            self._state = empty_state(model, self._prior)
+        self._state = self._grid.init_state() if self.method == "grid" else empty_state(model, self._prior)
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
         self._sigma_floor = noise_floor(model)
-        self._step = _Step(self) if self._linearise.tables is not None and self._pose_fit.tables is not None else None
+        compiled = self._linearise.tables is not None and self._pose_fit.tables is not None
+        self._step = _Step(self) if compiled else None
 
     # ------------------------------------------------------------------ names
     def _name_index(self, labels) -> dict[str, int]:
@@ -1002,7 +1057,13 @@ class Session:
         return worst if r[worst] > limit else None
 
     def _push_gaussian(self, y) -> LiveEstimate:
-        model, ws, st = self.model, self._ws, self._state
+        """One frame of the Gaussian form: screen its markers, check its pose's jump, absorb it.
+
+        A pipeline of :meth:`_screened_pose` (the pose with the markers that do not fit left out),
+        :meth:`_pose_jumped` (the pose against the motion model) and :meth:`_absorbed` (the state
+        after the frame); each way out leaves the frame unused with the problem named.
+        """
+        st = self._state
         present = ~np.isnan(y).any(axis=-1)
         n_present = int(present.sum())
         problems = [] if n_present == self._M else [f"{self._M - n_present} marker(s) missing"]
@@ -1016,21 +1077,62 @@ class Session:
             if est is not None:
                 return est
         theta = st.mean
+        sc = self._screened_pose(theta, y, self._first_pose(theta, y, st), s2, present, n_present)
+        rejected = tuple(sc.rejected)
+        if sc.too_few:
+            problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
+                            "few markers remain: frame not used")
+            self._not_used(st, sc.y, s2)
+            return self._gaussian_estimate(sc.resid, problems, rejected)
+        if rejected:
+            # a frame with a marker that does not fit (a swapped label) may have its pose fitted wrongly too, and
+            # the motion model would carry that pose into its neighbours: its data are left out, and its pose
+            # follows the motion model alone
+            problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
+                            "(swapped or wrong label?); frame not used")
+            if self._motion:
+                self._not_used(st, sc.y, s2)
+                return self._gaussian_estimate(sc.resid, problems, rejected)
+        q = self._continuous(st, sc.q)
+        r, Jq2, Jt2 = _frame_rows(sc, self._M)
+        if self._pose_jumped(st, q, Jq2, s2):
+            if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
+                problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
+                self._not_used(st, sc.y, s2, jumped=True)
+                return self._gaussian_estimate(sc.resid, problems, rejected)
+            st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
+        self._state = st = self._absorbed(st, sc, theta, q, r, Jq2, Jt2)
+        self._gap = 0
+        self._run += 1
+        if not rejected:
+            self._good = q
+        if self._remember(sc.y, q, True):
+            self._relinearise(st.mean)
+        return self._gaussian_estimate(sc.resid, problems, rejected)
+
+    def _first_pose(self, theta, y, st: GaussianState) -> np.ndarray:
+        """The frame's pose before screening: random starts for the first frame, else from the prediction."""
         if st.poses.shape[0] == 0:
-            q, _ = initial_pose(model, theta, y, self.rng, ws=ws)
-        else:
-            q = self._pose_fit(theta, y, self._predict(st))
-        rejected = []
+            return initial_pose(self.model, theta, y, self.rng, ws=self._ws)[0]
+        return self._pose_fit(theta, y, self._predict(st))
+
+    def _screened_pose(self, theta, y, q, s2: float, present, n_present: int) -> _Screened:
+        """The frame's pose with the markers beyond ``outlier_sd`` left out, worst first (at most three).
+
+        Before the first marker is left out, the pose is fitted again from the last pose whose markers all
+        fitted: the pose fit may have started in the wrong basin (a prediction carried through a glitch), and
+        the frame may be whole after all. Stops early (``too_few``) when too few markers remain.
+        ``present`` is updated in place.
+        """
+        rejected: list = []
         retried = False
         while True:
             x, Jq, Jt = self._linearise(theta, q)
             resid = np.sqrt(np.sum((y - x) ** 2, axis=-1))
             bad = self._screen(resid, s2) if len(rejected) < 3 else None  # a swapped pair needs two
             if bad is None:
-                break
+                return _Screened(y, q, x, Jq, Jt, resid, present, n_present, rejected, False)
             if not (rejected or retried) and self._good is not None:
-                # the pose fit may have started in the wrong basin (a prediction carried through a glitch): fitted
-                # again from the last pose whose markers all fitted, the frame may be whole after all
                 retried = True
                 q_alt = self._pose_fit(theta, y, self._good)
                 x_alt = self._linearise(theta, q_alt)[0]
@@ -1041,65 +1143,50 @@ class Session:
             y[bad] = np.nan
             present[bad] = False
             n_present -= 1
-            rejected.append(model.marker_names[bad])
+            rejected.append(self.model.marker_names[bad])
             if n_present < self._min_present:
-                problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
-                                "few markers remain: frame not used")
-                self._not_used(st, y, s2)
-                return self._gaussian_estimate(resid, problems, tuple(rejected))
+                return _Screened(y, q, x, Jq, Jt, resid, present, n_present, rejected, True)
             q = self._pose_fit(theta, y, q)
-        if rejected:
-            # a frame with a marker that does not fit (a swapped label) may have its pose fitted wrongly too, and
-            # the motion model would carry that pose into its neighbours: its data are left out, and its pose
-            # follows the motion model alone
-            problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
-                            "(swapped or wrong label?); frame not used")
-            if self._motion:
-                self._not_used(st, y, s2)
-                return self._gaussian_estimate(resid, problems, tuple(rejected))
-        if st.poses.shape[0]:  # angles continuous with the previous pose, for the motion model
-            last = st.poses[-1]
-            q = np.where(self._rot, last + (q - last + np.pi) % (2.0 * np.pi) - np.pi, q)
-        if n_present == self._M:
-            r = (y - x).reshape(-1)
-            Jq2 = Jq.reshape(r.size, -1)
-            Jt2 = Jt.reshape(r.size, -1)
-        else:
-            r = (y[present] - x[present]).reshape(-1)
-            Jq2 = Jq[present].reshape(r.size, -1)
-            Jt2 = Jt[present].reshape(r.size, -1)
-        jump, gate = -math.inf, math.inf
-        if self._motion and st.poses.shape[0] == _HELD:
-            gate = self._gate(st)
-            jump = pose_jump(st, q, Jq2, self._weight, s2, self._allowance())
-            self._note_jump(st, q)
-        if jump > gate:
-            if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
-                problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
-                self._not_used(st, y, s2, jumped=True)
-                return self._gaussian_estimate(resid, problems, tuple(rejected))
-            st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
-        s2 = _sigma2(st.rss + float(r @ r), st.n_obs + r.size, st.n_used + 1, model, self.sigma,
+
+    def _continuous(self, st: GaussianState, q) -> np.ndarray:
+        """``q`` with its angles continuous with the last held pose (for the motion model)."""
+        if not st.poses.shape[0]:
+            return q
+        last = st.poses[-1]
+        return np.where(self._rot, last + (q - last + np.pi) % (2.0 * np.pi) - np.pi, q)
+
+    def _pose_jumped(self, st: GaussianState, q, Jq2, s2: float) -> bool:
+        """Whether the pose jumps beyond the motion model (:func:`pose_jump`; checked once poses are held).
+
+        Records the frame's innovation (:meth:`_note_jump`) when it is checked.
+        """
+        if not (self._motion and st.poses.shape[0] == _HELD):
+            return False
+        gate = self._gate(st)
+        jump = pose_jump(st, q, Jq2, self._weight, s2, self._allowance())
+        self._note_jump(st, q)
+        return jump > gate
+
+    def _absorbed(self, st: GaussianState, sc: _Screened, theta, q, r, Jq2, Jt2) -> GaussianState:
+        """The state after the frame's rows: absorbed and solved, then linearised again ``n_iter`` times
+        at the filtered pose (iterated extended Kalman update) under a motion model."""
+        model = self.model
+        rr = float(r @ r)
+        s2 = _sigma2(st.rss + rr, st.n_obs + r.size, st.n_used + 1, model, self.sigma,
                      self._sigma_fallback, self._sigma_floor)
         motion = self._motion
-        new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, float(r @ r)), self._prior, s2,
+        new = solve_mean(absorb(st, r, Jq2, Jt2, q, theta, self._weight, r.size, rr), self._prior, s2,
                          pose=motion)
         if not motion:  # every pose free: the frame's own fit is its pose
-            new = new._replace(pose_mean=q)
-        for _ in range(self.n_iter if motion else 0):  # iterated: linearised again at the filtered pose
+            return new._replace(pose_mean=q)
+        y, present = sc.y, sc.present
+        for _ in range(self.n_iter):
             ql = new.pose_mean
             x2, Jq, Jt = self._linearise(theta, ql)
             r2 = (y[present] - x2[present]).reshape(-1)
             new = solve_mean(absorb(st, r2, Jq[present].reshape(r2.size, -1), Jt[present].reshape(r2.size, -1), ql,
-                                    theta, self._weight, r.size, float(r @ r)), self._prior, s2)
-        self._state = st = new
-        self._gap = 0
-        self._run += 1
-        if not rejected:
-            self._good = q
-        if self._remember(y, q, True):
-            self._relinearise(st.mean)
-        return self._gaussian_estimate(resid, problems, tuple(rejected))
+                                    theta, self._weight, r.size, rr), self._prior, s2)
+        return new
 
     def _relinearise(self, theta) -> None:
         """Every early frame linearised again at ``theta`` (:func:`relinearise`); with ``cutoff='auto'`` the

@@ -932,7 +932,8 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
         else:
             then = "; no built-in relaxation of this joint type, so the interval was not widened"
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
-                           f"with the joint angle (rms {v['rms']:.3g} {model.units}, {p_txt}), which "
+                           f"with the joint angle (rms {v['rms']:.3g} {model.units}, {p_txt}; it moves the estimate "
+                           f"by {v['effect']:.2g} sd), which "
                            "the joint model cannot follow (a joint centre that moves with the angle?); this is not "
                            "soft-tissue artefact; fit the joint's coupled motion or a moving centre "
                            f"(skelid.model.variants.moving_centre) to remove the bias it leaves{then}",

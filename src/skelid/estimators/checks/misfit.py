@@ -86,6 +86,9 @@ MISFIT_COMMON = 0.5
 MISFIT_DEGREE = 3
 #: share of a one-rotation joint's false-alarm rate given to its rolling-path test (the rest to the broad test)
 MISFIT_PATH_SHARE = 0.8
+#: a significant misfit is flagged only where the systematic part of the residuals would move some parameter's
+#: estimate by at least this many of its standard deviations (see model_misfit, "Effect size")
+MISFIT_EFFECT = 0.5
 #: a joint's test is not trusted when the second-order mean of its residuals could shift its statistic
 #: by more than this many times its degrees of freedom (a bound on the non-centrality, see model_misfit)
 MISFIT_NONLINEAR = 0.5
@@ -384,6 +387,61 @@ def rolling_test(G, r, Jq, Hinv, At, S_pinv, sigma: float, noise_dof: int, b=Non
     return stat, dof, float(f_dist.logsf(stat / dof, dof, max(noise_dof, 1))), lam
 
 
+def pattern_shift(G, r, Jq, Hinv, At, S_pinv, Atr) -> tuple[np.ndarray, np.ndarray]:
+    """Shift ``(P,)`` of the parameters that the residuals' part along the pattern ``G`` causes (linear response).
+
+    ``G (T, K, c)``: the pattern's columns at the rows ``K`` of the frames ``T`` it touches (zero rows
+    may be left out); ``r (T, K)``, ``Jq (T, K, Q)``, ``At (T, K, P)`` the re-projected residuals, pose
+    Jacobian and re-projected parameter Jacobian at the same rows, ``Hinv (T, Q, Q)`` per frame;
+    ``S_pinv`` the pseudo-inverse of ``S = sum_t A_t^T A_t`` and ``Atr = sum_t A_t^T r~_t`` over all rows.
+    The residuals with the parameters free, ``r_perp = r~ - A S^+ A^T r~`` (those of the per-frame
+    linearised fit: a motion model's pull on the parameters is not a misfit), are fitted on
+    ``Z_t = (I - P_t) G_t``: their systematic part is ``s = Z c``, ``c = (Z^T Z)^+ Z^T r_perp``, and a
+    perturbation ``s`` of the markers moves the estimate by ``delta = S^+ sum_t A_t^T s_t = S^+ Z_A^T c``
+    (``Z_A = sum_t Z_t^T A_t``; the per-frame form of :func:`skelid.estimators.fit.joint.influence_rows`).
+    ``(I - P_t)`` is never formed: ``Z^T x = G^T x`` for a re-projected ``x`` and
+    ``Z^T Z = G^T G - (G^T J_q) H^{-1} (J_q^T G)``.
+
+    Returns
+    -------
+    delta : (P,) float
+    noise : (P,) float
+        The variance of ``delta`` that white noise of unit sd gives under a correct model, the diagonal of
+        ``M^T (Z^T Z - Z_A S^+ Z_A^T) M`` with ``M = (Z^T Z)^+ Z_A S^+``.
+    """
+    GJ = np.swapaxes(G, -1, -2) @ Jq  # (T, c, Q)
+    ZZ = np.einsum("tkc,tkd->cd", G, G) - np.einsum("tcq,tqs,tds->cd", GJ, Hinv, GJ)
+    ZA = np.einsum("tkc,tkp->cp", G, At)
+    w, V = np.linalg.eigh(0.5 * (ZZ + ZZ.T))
+    keep = w > 1e-9 * max(w.max(), 1e-300)
+    ZZ_pinv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    c = ZZ_pinv @ (np.einsum("tkc,tk->c", G, r) - ZA @ (S_pinv @ Atr))
+    M = ZZ_pinv @ ZA @ S_pinv  # (c, P)
+    noise = np.einsum("cp,cd,dp->p", M, ZZ - ZA @ S_pinv @ ZA.T, M)
+    return S_pinv @ (ZA.T @ c), np.clip(noise, 0.0, None)
+
+
+def _broad_pattern(d: _Design) -> np.ndarray:
+    """The broad test's pattern ``G (T_ok, n D, k D)``: basis function ``j`` times the contrast's weight of each
+    marker along the parent's axis ``a`` (so that ``G^T r~`` is the contrast ``L z``)."""
+    D = d.R_parent.shape[-1]
+    k, n = d.basis.shape[1], len(d.rows) // D
+    wts = d.contrast[0, : n * D : D]  # (n,) each marker's weight in the contrast
+    G = d.basis[:, None, None, :, None] * wts[None, :, None, None, None] * d.R_parent[:, None, :, None, :]
+    return G.reshape(len(d.basis), n * D, k * D)
+
+
+def _effect(shift, noise, sigma: float, sd) -> float:
+    """``max_k sqrt(max(shift_k^2 - sigma^2 noise_k, 0)) / sd_k`` over the parameters with ``sd_k > 0``.
+
+    The noise's share of the squared shift taken out: an estimate of ``|E shift_k| / sd_k``. 0 without a
+    parameter.
+    """
+    ok = sd > 0
+    size = np.sqrt(np.clip(shift[ok] ** 2 - sigma**2 * noise[ok], 0.0, None))
+    return float(np.max(size / sd[ok])) if ok.any() else 0.0
+
+
 def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
                  alpha: float = MISFIT_ALPHA) -> dict[str, dict]:
     """Residual structure that follows a joint angle and moves a segment's markers together.
@@ -438,6 +496,33 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     ``min(p_broad / (1 - s), p_rolling / s, 1)`` with ``s = MISFIT_PATH_SHARE`` (the broad
     test's alone for joints with several rotations), and the joint is significant when it is
     below ``alpha / n_joints``: the family-wise false-alarm rate stays at most ``alpha``.
+
+    **Effect size.** A significant pattern need not matter: with many frames and little noise a
+    residual structure of a few micrometres is significant, yet moves no estimate. A joint is
+    flagged only where its pattern would also move some parameter by at least ``MISFIT_EFFECT`` of
+    its sd. For a test's pattern columns ``G`` (the broad test's: each basis function times the
+    contrast's marker weights along each parent axis, so that ``G^T r~ = L z``; the rolling test's
+    path), ``Z_t = (I - P_t) G_t``: the systematic part of the residuals is their least-squares fit
+    on the pattern, ``s = Z c`` with ``c = (Z^T Z)^+ Z^T r_perp``, where ``r_perp = r~ - A S^+ A^T r~``
+    are the residuals with the parameters free (a motion model's pull on the parameters, which
+    leaves structure even in noise-free data, is no misfit), and through the fit's linear response
+    (a marker perturbation ``delta_t`` moves the estimate by ``S^+ sum_t A_t^T delta_t``, see
+    :func:`skelid.estimators.fit.joint.influence_rows`) it moves the parameters by
+
+    .. math:: \\delta = S^+ Z_A^\\top c, \\qquad
+              \\operatorname{Var}_0(\\delta) = \\sigma^2\\, M^\\top (Z^\\top Z - Z_A S^+ Z_A^\\top) M,
+              \\quad M = (Z^\\top Z)^+ Z_A S^+
+
+    (:func:`pattern_shift`; ``Var_0`` under a correct model with white noise). The effect is
+    ``max_k sqrt(max(delta_k^2 - Var_0(delta)_kk, 0)) / sd_k`` with ``sd_k = sigma sqrt(S^+_kk)``
+    (the noise's share of ``delta_k^2`` taken out; the larger of the two tests' effects where the
+    rolling test counts). ``sigma`` is the test's, held at least at ``1e-7`` of the model's size,
+    so that structure at the data's rounding level moves nothing by a rounding-level sd.
+    ``delta^T S delta <= ||s||^2``, so the effect of a pattern is at most ``||s|| / sigma``, and
+    zero for a pattern the parameters cannot follow (``Z_A = 0``: a knee's markers sliding along
+    its hinge axis, where its centre is fitted in the plane). ``S`` is the per-frame information:
+    a fit with a motion model has at least as much, so its sd is smaller and a warning on this
+    sd is conservative.
 
     **Where the linearisation fails.** That null holds to first order in the noise. The
     fitted poses also follow the noise (``delta_t ~ N(0, sigma^2 H_t^{-1})``), and at second
@@ -494,7 +579,9 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
         patterns), "log10_p_nonrigid" (their deformation), "significant", "flagged",
         "nonlinearity" (``lambda``), "reliable", "log10_p_broad" (the broad test), "statistic_rolling",
         "dof_rolling", "log10_p_rolling", "nonlinearity_rolling", "rolling_tested" (the rolling test counts),
-        "soft_tissue" (the markers' patterns say soft tissue)}``; "log10_p" is the joint's (both tests).
+        "soft_tissue" (the markers' patterns say soft tissue), "effect" (the pattern's shift of the estimate in
+        sds, see "Effect size"), "shift" (parameter name -> that shift, model units)}``; "log10_p" is the
+        joint's (both tests); "flagged" needs "significant" and an effect of at least ``MISFIT_EFFECT``.
     """
     used = np.asarray(used, bool)
     out: dict[str, dict] = {}
@@ -519,9 +606,10 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     b = second_order_residual(model, theta, pose_u, y_u, sigma, Jq, Hinv)
     level = np.log(alpha / len(designs))
     paths = _rolling_designs(model, kin, theta, pose_u, present)
-    if paths:
-        At = _project_out(Jq, Hinv, Jt)
-        S_pinv = np.linalg.pinv(np.einsum("tka,tkc->ac", At, At), hermitian=True)
+    At = _project_out(Jq, Hinv, Jt)
+    S_pinv = np.linalg.pinv(np.einsum("tka,tkc->ac", At, At), hermitian=True)
+    Atr = np.einsum("tkp,tk->p", At, r)
+    sd = sigma * np.sqrt(np.clip(np.diag(S_pinv), 0.0, None))  # the parameters' sd, this linearisation
     for d in designs:
         z = _coefficients(d, r)  # (k, n, D)
         k, n = z.shape[:2]
@@ -547,6 +635,13 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
         log_p = (min(log_p_broad - np.log1p(-MISFIT_PATH_SHARE), log_p_path - np.log(MISFIT_PATH_SHARE), 0.0)
                  if with_path else log_p_broad)
         significant = bool(reliable and log_p < level)
+        shift, noise = pattern_shift(_broad_pattern(d), r[d.ok][:, d.rows], Jq[d.ok][:, d.rows], Hinv[d.ok],
+                                     At[d.ok][:, d.rows], S_pinv, Atr)
+        effect = _effect(shift, noise, sigma, sd)
+        if with_path:  # the larger of the two tests' effects
+            path_shift, path_noise = pattern_shift(paths[s_child], r, Jq, Hinv, At, S_pinv, Atr)
+            if _effect(path_shift, path_noise, sigma, sd) > effect:
+                shift, effect = path_shift, _effect(path_shift, path_noise, sigma, sd)
         # soft tissue: the markers' own patterns are significant and carry most of the structure, and the
         # markers deform (their distances change with the angle: no joint model can do that)
         tissue = bool(log_p_own < level and share <= MISFIT_COMMON and log_p_nonrigid < level)
@@ -558,7 +653,9 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
                         "nonlinearity_rolling": round(lam_p, 3), "rolling_tested": bool(with_path),
                         "log10_p_own": round(log_p_own / np.log(10), 2),
                         "log10_p_nonrigid": round(log_p_nonrigid / np.log(10), 2), "soft_tissue": tissue,
-                        "significant": significant, "flagged": bool(significant and len(d.child) >= 2 and not tissue),
+                        "significant": significant, "effect": round(effect, 3),
+                        "shift": dict(zip(model.parameter_names, shift.tolist(), strict=True)),
+                        "flagged": bool(significant and effect >= MISFIT_EFFECT and len(d.child) >= 2 and not tissue),
                         "nonlinearity": round(lam, 3), "reliable": bool(reliable)}
     return out
 

@@ -168,6 +168,9 @@ if AVAILABLE:  # pragma: no branch
                             ang, cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2):
         """Forward kinematics of the batch at ``pose (Q, B)`` by products of elementary rotations.
 
+        Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
+        helpers would slow this hot path down.
+
         Row ``S`` of ``R`` and ``p`` holds the ground (identity, origin 0). A
         rotation with ``tilt[k] = j >= 0`` turns about ``t_axis[j, :, b]``.
         """
@@ -263,6 +266,9 @@ if AVAILABLE:  # pragma: no branch
     @_inline
     def _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr):
         """``J^T J`` and ``J^T r`` written where ``ok`` (missing markers give zero rows).
+
+        Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
+        helpers would slow this hot path down.
 
         ``nz[k, a]`` is False where component ``a`` of column ``k`` is zero whatever
         the pose (a translation of the root along a coordinate axis): those rows
@@ -423,6 +429,9 @@ if AVAILABLE:  # pragma: no branch
     @_inline
     def _step(JtJ, Jtr, lam, Q, L, dinv, bad, A1, r1, s1, step, ridge, nf, chk):
         """Solve ``(J^T J + lam diag(J^T J) + ridge I) step = J^T r`` for the whole batch.
+
+        Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
+        helpers would slow this hot path down.
 
         ``ridge = 1e-9 mean(diag(J^T J))``. An element whose damped matrix or
         ``J^T r`` is not finite takes no step; non-finite components of a step

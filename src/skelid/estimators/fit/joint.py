@@ -545,6 +545,192 @@ def _line_minimum(c0: float, slope: float, c1: float):
     return max(alpha, 0.1) if abs(alpha - 1.0) > 0.2 else None
 
 
+class _LMProblem(NamedTuple):
+    """What every iteration of :func:`joint_fit` is measured against: data, weights, penalty, bounds, tolerances."""
+
+    model: Model
+    y: np.ndarray  # (T, M, D) markers, NaN where missing or skipped
+    sw: np.ndarray | None  # row weights (square roots), see row_weights
+    ws: Workspace
+    R: object  # the motion-model penalty (sparse, frame-major) or None
+    R_band: np.ndarray | None  # R in upper banded form
+    bounds: tuple | None
+    floor: float  # the cost of residuals at the data's rounding level
+    n_rows: int  # marker coordinates in the fit (at least 1)
+    tol: float
+    step_tol: float
+    depth: int  # steps mixed by the Anderson step
+
+    def total(self, r, q) -> float:
+        """The cost: the residual sum of squares plus the motion-model penalty ``q^T R q``."""
+        c = float(np.sum(r**2))
+        return c + float(q.ravel() @ (self.R @ q.ravel())) if self.R is not None else c
+
+    def trial(self, theta, q, alpha: float, dtheta, dq):
+        """``(theta, q, r, cost)`` a step of length ``alpha`` along ``(dtheta, dq)`` reaches (theta clipped)."""
+        th = theta + alpha * dtheta
+        if self.bounds is not None:
+            th = np.clip(th, self.bounds[0], self.bounds[1])
+        qq = q + alpha * dq
+        rr = _residuals(self.model, th, qq, self.y, self.sw, self.ws)
+        return th, qq, rr, self.total(rr, qq)
+
+
+class _LMState(NamedTuple):
+    """One iterate of :func:`joint_fit`: the estimate, its residuals and Jacobians, cost, damping, history."""
+
+    theta: np.ndarray  # (P,)
+    q: np.ndarray  # (T, Q)
+    r: np.ndarray  # (T, m) weighted residuals
+    Jq: np.ndarray  # (T, m, Q)
+    Jt: np.ndarray  # (T, m, P)
+    cost: float
+    lam: float  # Levenberg-Marquardt damping
+    stalled: bool  # the last accepted step gained less than the tolerance
+    hist: list  # (theta, q, dtheta, dq[, x, f]) of the last accepted iterations, for the Anderson step
+
+
+def _fit_frames(model: Model, y, frames):
+    """The markers with the frames the fit skips blanked (NaN: zero rows, no part in the fit), and the frames used.
+
+    Returns ``y (T, M, D)`` and ``use (T,) bool``.
+    """
+    y = np.asarray(y, dtype=float)
+    use = usable_frames(model, y)
+    if frames is not None:
+        use &= np.asarray(frames, dtype=bool)
+    return np.where(use[:, None, None], y, np.nan), use
+
+
+def _fit_start(model: Model, y, theta, q, use, sw, ws, rate, cutoff, blocks, penalty):
+    """The starting poses, their residuals and Jacobians, and the motion-model penalty (None without one).
+
+    Several trials (``blocks``) each get their own penalty and continuous angles; one trial with
+    ``rate`` and ``cutoff`` gets :func:`smoothing_penalty`; a given ``penalty`` is used as it is
+    (a continued fit's poses already follow its motion model).
+
+    Returns ``q (T, Q)``, ``r (T, m)``, ``Jq (T, m, Q)``, ``Jt (T, m, P)`` and ``R``.
+    """
+    if blocks is not None and all(c is None or r_ is None for _, _, r_, c in blocks):
+        blocks = None  # no trial smoothed: the per-frame fit
+    if blocks is not None:
+        q = np.concatenate([_continuous_poses(model, q[a:b], use[a:b]) for a, b, *_ in blocks])
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+        return q, r, Jq, Jt, block_penalty(model, pose_information(Jq), blocks)
+    if penalty is None and (cutoff is None or rate is None):
+        return (q, *weighted_terms(model, theta, q, y, sw, ws), None)
+    if penalty is None:  # a continued fit's poses already follow its motion model
+        q = _continuous_poses(model, q, use)
+    r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+    R = penalty if penalty is not None else smoothing_penalty(model, pose_information(Jq), rate, cutoff)
+    return q, r, Jq, Jt, R
+
+
+def _rounding_floor(y, n_rows: int) -> float:
+    """The cost of residuals at the data's rounding level (``1e-12`` of the largest coordinate per row).
+
+    Noise-free data converge to it.
+    """
+    return n_rows * (1e-12 * max(float(np.nanmax(np.abs(y))) if np.isfinite(y).any() else 1.0, 1e-300)) ** 2
+
+
+def _damped_step(pb: _LMProblem, s: _LMState, Hqq, Hqt, Htt, gq, gt):
+    """The damped Gauss-Newton step ``(dtheta, dq)``, the reduced information ``S`` and the cost's slope along it.
+
+    Raises ``numpy.linalg.LinAlgError``, ``RuntimeError`` or ``ValueError`` where the damped system
+    cannot be solved.
+    """
+    if pb.R is None:
+        dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, s.lam)
+        slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)))
+    else:
+        dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, s.lam, pb.R, s.q, pb.R_band)
+        slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)) - float(s.q.ravel() @ (pb.R @ dq.ravel())))
+    return dtheta, dq, S, slope
+
+
+def _lower(best, other):
+    """The trial of the two with the lower cost (``best`` on a tie or where ``other``'s is not finite)."""
+    return other if np.isfinite(other[3]) and not other[3] >= best[3] else best
+
+
+def _best_trial(pb: _LMProblem, s: _LMState, dtheta, dq, slope: float, Htt, Hqq):
+    """The lowest-cost trial of the full step, the line minimum along it and the Anderson step.
+
+    The line minimum (:func:`_line_minimum`) is tried where the cost along the step is far from the
+    Gauss-Newton model's; the Anderson step (:func:`_anderson_mixed`) once the damping is small.
+    """
+    best = pb.trial(s.theta, s.q, 1.0, dtheta, dq)
+    alpha = _line_minimum(s.cost, slope, best[3])
+    if alpha is not None:  # the cost along the step is far from the Gauss-Newton model's
+        best = _lower(best, pb.trial(s.theta, s.q, alpha, dtheta, dq))
+    if s.hist and s.lam <= 1e-4:
+        mixed = _anderson_mixed(s.theta, s.q, dtheta, dq, s.hist, Htt, Hqq)
+        if mixed is not None:
+            best = _lower(best, pb.trial(s.theta, s.q, 1.0, *mixed))
+    return best
+
+
+def _accept(pb: _LMProblem, s: _LMState, best, dtheta, dq, S) -> tuple[_LMState, bool]:
+    """The state after an accepted trial, and whether the fit has converged.
+
+    Converged: with the damping gone, the cost fell by less than ``tol`` (relative) and the step
+    moved no parameter by more than ``step_tol`` of its standard error (noise from the residuals).
+    """
+    theta, q = s.theta, s.q
+    flat = (np.concatenate([theta, q.ravel()]), np.concatenate([dtheta, dq.ravel()])) if pb.depth > 1 else ()
+    hist = [*s.hist, (theta, q, dtheta, dq, *flat)][-pb.depth:]
+    theta_new, q_new, _, cost_new = best
+    small = (s.cost - cost_new) <= pb.tol * s.cost + pb.floor
+    # the step in theta against theta's standard error (noise from the residuals)
+    sd = np.sqrt(np.clip(_inverse_diagonal(S), 0.0, None) * max(cost_new, pb.floor) / pb.n_rows)
+    still = bool(np.all(np.abs(theta_new - theta) <= pb.step_tol * sd + 1e-12 * np.maximum(np.abs(theta), 1.0)))
+    r, Jq, Jt = weighted_terms(pb.model, theta_new, q_new, pb.y, pb.sw, pb.ws)
+    lam = max(s.lam * 0.3, 1e-12)
+    # a damped step's small gain says nothing about convergence
+    return _LMState(theta_new, q_new, r, Jq, Jt, cost_new, lam, small, hist), bool(small and still and lam <= 1e-4)
+
+
+def _reject(s: _LMState, best) -> tuple[_LMState, bool]:
+    """The state after a trial that raised the cost (more damping, no history), and whether to stop.
+
+    Stops where no descent direction is left, or only steps the cost's rounding cannot tell apart.
+    """
+    lam = s.lam * 10.0
+    at_rounding = s.stalled and np.isfinite(best[3]) and best[3] - s.cost <= 1e-11 * abs(s.cost)
+    return s._replace(hist=[], lam=lam), bool(lam > 1e12 or (s.stalled and lam > 1e2) or at_rounding)
+
+
+def _lm_iteration(pb: _LMProblem, s: _LMState) -> tuple[_LMState, bool]:
+    """One Levenberg-Marquardt iteration of :func:`joint_fit`: the next state and whether the fit has converged."""
+    Hqq, Hqt, Htt, gq, gt = _normal_blocks(s.r, s.Jq, s.Jt)
+    try:
+        dtheta, dq, S, slope = _damped_step(pb, s, Hqq, Hqt, Htt, gq, gt)
+    except (np.linalg.LinAlgError, RuntimeError, ValueError):
+        return s._replace(lam=s.lam * 10.0), False
+    best = _best_trial(pb, s, dtheta, dq, slope, Htt, Hqq)
+    if np.isfinite(best[3]) and best[3] <= s.cost:
+        return _accept(pb, s, best, dtheta, dq, S)
+    return _reject(s, best)
+
+
+def _fit_information(model: Model, pb: _LMProblem, s: _LMState, use, summary: bool):
+    """``info`` (the information about theta, unit noise) and ``pose_dof`` at the fit's end.
+
+    Without a motion model ``info = sum_t K_perp^T K_perp`` and every used frame's pose counts in
+    full; with one, ``info`` is the reduced information of the smoothed normal equations and
+    ``pose_dof`` the poses' effective number (:func:`pose_edf`). ``summary`` False: None and NaN.
+    """
+    if not summary:
+        return None, float("nan")
+    if pb.R is None:
+        Kp = projected_theta_jacobian(s.Jq, s.Jt)
+        return np.einsum("tkp,tkq->pq", Kp, Kp), float(model.n_pose * use.sum())
+    Hqq, Hqt, Htt, gq, gt = _normal_blocks(s.r, s.Jq, s.Jt)
+    *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, pb.R, s.q, pb.R_band)
+    return info, pose_edf(s.Jq, pb.R, pb.R_band)  # skipped frames have no rows: they add nothing
+
+
 def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10,
               bounds: tuple | None = None, rate: float | None = None,
               cutoff: float | None = None, frames=None, weights=None, blocks=None, penalty=None,
@@ -595,114 +781,29 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         Steps mixed by the accelerated step tried beside each Gauss-Newton step
         (:func:`_anderson_mixed`; default ``ANDERSON_DEPTH``).
     """
-    y = np.asarray(y, dtype=float)
     if ws is None:
         ws = Workspace(model)
-    use = usable_frames(model, y)
-    if frames is not None:
-        use &= np.asarray(frames, dtype=bool)
-    y = np.where(use[:, None, None], y, np.nan)  # skipped frames give zero rows: no part in the fit
+    y, use = _fit_frames(model, y, frames)
     sw = row_weights(weights, y)
-    theta = np.array(theta0, dtype=float)
-    q = np.array(q0, dtype=float)
-    R = None
-    if blocks is not None and all(c is None or r_ is None for _, _, r_, c in blocks):
-        blocks = None  # no trial smoothed: the per-frame fit
-    if blocks is not None:
-        q = np.concatenate([_continuous_poses(model, q[a:b], use[a:b]) for a, b, *_ in blocks])
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
-        R = block_penalty(model, pose_information(Jq), blocks)
-    elif penalty is not None or (cutoff is not None and rate is not None):
-        if penalty is None:  # a continued fit's poses already follow its motion model
-            q = _continuous_poses(model, q, use)
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
-        R = penalty if penalty is not None else smoothing_penalty(model, pose_information(Jq), rate, cutoff)
-    else:
-        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
-
-    def total(r_, q_):
-        c = float(np.sum(r_**2))
-        return c + float(q_.ravel() @ (R @ q_.ravel())) if R is not None else c
-
-    def trial(alpha, dtheta, dq):
-        th = theta + alpha * dtheta
-        if bounds is not None:
-            th = np.clip(th, bounds[0], bounds[1])
-        qq = q + alpha * dq
-        rr = _residuals(model, th, qq, y, sw, ws)
-        return th, qq, rr, total(rr, qq)
-
-    R_band = None if R is None else penalty_band(R, model.n_pose)
-    cost = total(r, q)
+    q, r, Jq, Jt, R = _fit_start(model, y, np.array(theta0, dtype=float), np.array(q0, dtype=float), use, sw, ws,
+                                 rate, cutoff, blocks, penalty)
     n_rows = max(int(np.isfinite(y).all(axis=-1).sum() * model.dim), 1)
-    # the cost of residuals at the data's rounding level: noise-free data converge to it
-    floor = n_rows * (1e-12 * max(float(np.nanmax(np.abs(y))) if np.isfinite(y).any() else 1.0, 1e-300)) ** 2
-    lam = 1e-3
-    converged = stalled = False
-    depth = ANDERSON_DEPTH if anderson_depth is None else int(anderson_depth)
-    hist = []  # (theta, q, dtheta, dq[, x, f]) of the last accepted iterations, for the Anderson step
+    pb = _LMProblem(model, y, sw, ws, R, None if R is None else penalty_band(R, model.n_pose), bounds,
+                    _rounding_floor(y, n_rows), n_rows, tol, step_tol,
+                    ANDERSON_DEPTH if anderson_depth is None else int(anderson_depth))
+    s = _LMState(np.array(theta0, dtype=float), q, r, Jq, Jt, pb.total(r, q), 1e-3, False, [])
+    converged = False
     it = 0
     for it in range(1, n_iter + 1):  # noqa: B007 - the count is reported
-        if cost <= floor:  # the residuals are rounding: nothing left to fit
+        if s.cost <= pb.floor:  # the residuals are rounding: nothing left to fit
             converged = True
             break
-        Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
-        try:
-            if R is None:
-                dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, lam)
-                slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)))
-            else:
-                dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band)
-                slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)) - float(q.ravel() @ (R @ dq.ravel())))
-        except (np.linalg.LinAlgError, RuntimeError, ValueError):
-            lam *= 10.0
-            continue
-        best = trial(1.0, dtheta, dq)
-        alpha = _line_minimum(cost, slope, best[3])
-        if alpha is not None:  # the cost along the step is far from the Gauss-Newton model's
-            other = trial(alpha, dtheta, dq)
-            if np.isfinite(other[3]) and not other[3] >= best[3]:
-                best = other
-        if hist and lam <= 1e-4:
-            mixed = _anderson_mixed(theta, q, dtheta, dq, hist, Htt, Hqq)
-            if mixed is not None:
-                other = trial(1.0, *mixed)
-                if np.isfinite(other[3]) and not other[3] >= best[3]:
-                    best = other
-        if np.isfinite(best[3]) and best[3] <= cost:
-            flat = (np.concatenate([theta, q.ravel()]), np.concatenate([dtheta, dq.ravel()])) if depth > 1 else ()
-            hist = [*hist, (theta, q, dtheta, dq, *flat)][-depth:]
-            theta_new, q_new, r_new, cost_new = best
-            small = (cost - cost_new) <= tol * cost + floor
-            # the step in theta against theta's standard error (noise from the residuals)
-            sd = np.sqrt(np.clip(_inverse_diagonal(S), 0.0, None) * max(cost_new, floor) / n_rows)
-            still = bool(np.all(np.abs(theta_new - theta) <= step_tol * sd + 1e-12 * np.maximum(np.abs(theta), 1.0)))
-            theta, q, cost = theta_new, q_new, cost_new
-            r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
-            lam = max(lam * 0.3, 1e-12)
-            stalled = small
-            if small and still and lam <= 1e-4:  # a damped step's small gain says nothing about convergence
-                converged = True
-                break
-        else:
-            hist = []
-            lam *= 10.0
-            at_rounding = stalled and np.isfinite(best[3]) and best[3] - cost <= 1e-11 * abs(cost)
-            if lam > 1e12 or (stalled and lam > 1e2) or at_rounding:
-                # no descent direction left, or only steps the cost's rounding cannot tell apart
-                converged = True
-                break
-    if not summary:
-        info, pose_dof = None, float("nan")
-    elif R is None:
-        Kp = projected_theta_jacobian(Jq, Jt)
-        info = np.einsum("tkp,tkq->pq", Kp, Kp)
-        pose_dof = float(model.n_pose * use.sum())
-    else:
-        Hqq, Hqt, Htt, gq, gt = _normal_blocks(r, Jq, Jt)
-        *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, R, q, R_band)
-        pose_dof = pose_edf(Jq, R, R_band)  # skipped frames have no rows: they add nothing
-    return JointFit(theta, q, float(np.sum(r**2)), np.sum(r**2, axis=1), info,
+        s, stop = _lm_iteration(pb, s)
+        if stop:
+            converged = True
+            break
+    info, pose_dof = _fit_information(model, pb, s, use, summary)
+    return JointFit(s.theta, s.q, float(np.sum(s.r**2)), np.sum(s.r**2, axis=1), info,
                     int(np.isfinite(y).all(axis=-1).sum() * model.dim), use, it, converged, pose_dof, R)
 
 

@@ -512,6 +512,43 @@ def rigid_poses(model: Model, theta, y, ws: Workspace | None = None):
     return q, known
 
 
+def _plain_custom_motions(plan, s: int):
+    """The rotations and translations ``[(axis, k)]`` of custom joint ``s``'s plan, or None if not plain.
+
+    Plain: every motion driven by a coordinate is that coordinate itself (an identity
+    function), and every motion driven by none is zero at rest.
+    """
+    rows = plan.custom[s]
+    if any(k >= 0 and not f.is_identity for _t, _a, k, f, *_ in rows) \
+            or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, *_ in rows):
+        return None
+    rot = [(a, k) for t, a, k, *_ in rows if not t and k >= 0]
+    trans = [(a, k) for t, a, k, *_ in rows if t and k >= 0]
+    return rot, trans
+
+
+def _custom_rotation_angles(ax, R_rel) -> list:
+    """Angles ``[(F,)]`` about one to three perpendicular axes ``ax (n, 3)`` that make ``R_rel (F, 3, 3)``.
+
+    One axis: the hinge angle. Two or three: the Cardan angles ``Rx(a) Ry(b) Rz(c)`` in the basis of
+    the axes (the third the cross product of the first two when only two are given), made proper
+    by flipping the third axis, whose angle then changes sign.
+    """
+    F = R_rel.shape[0]
+    if len(ax) == 1:
+        return [_hinge_angle(R_rel, np.broadcast_to(ax[0], (F, 3)))]
+    if len(ax) == 0:
+        return []
+    B = np.array(ax.T) if len(ax) == 3 else np.stack([ax[0], ax[1], np.cross(ax[0], ax[1])], -1)
+    sgn = np.sign(np.linalg.det(B))
+    B[:, 2] *= sgn  # a proper rotation; the third angle changes sign with it
+    Rb = B.T @ R_rel @ B  # = Rx(a) Ry(b) Rz(c)
+    a = np.arctan2(-Rb[:, 1, 2], Rb[:, 2, 2])
+    b = np.arcsin(np.clip(Rb[:, 0, 2], -1.0, 1.0))
+    c = np.arctan2(-Rb[:, 0, 1], Rb[:, 0, 0])
+    return [a, b, sgn * c][:len(ax)]
+
+
 def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None, ws: Workspace | None = None):
     """Coordinates of custom joint ``s`` from its relative rotation, or None if not plain.
 
@@ -520,40 +557,21 @@ def custom_joint_coordinates(model: Model, s: int, R_rel, shift=None, ws: Worksp
     ``shift (F, 3)`` in the world) along independent axes.
     """
     plan = kinematics_plan(model, ws)
-    rows = plan.custom[s]
-    if any(k >= 0 and not f.is_identity for _t, _a, k, f, *_ in rows) \
-            or any(k < 0 and np.any(f.value(np.zeros(1)) != 0) for _t, _a, k, f, *_ in rows):
+    motions = _plain_custom_motions(plan, s)
+    if motions is None:
         return None
+    rot, trans = motions
     if plan.orientation[s] is not None:
         R_rel = R_rel @ plan.orientation[s].T
-    rot = [(a, k) for t, a, k, *_ in rows if not t and k >= 0]
-    trans = [(a, k) for t, a, k, *_ in rows if t and k >= 0]
     if trans and shift is None:
         return None
     ax = np.array([a for a, _ in rot])
     if len(rot) > 1 and np.abs(ax @ ax.T - np.eye(len(rot))).max() > 1e-9:
         return None
-    F = R_rel.shape[0]
-    if len(rot) == 1:
-        ang = [_hinge_angle(R_rel, np.broadcast_to(ax[0], (F, 3)))]
-    elif len(rot) >= 2:
-        B = np.array(ax.T) if len(rot) == 3 else np.stack([ax[0], ax[1], np.cross(ax[0], ax[1])], -1)
-        sgn = np.sign(np.linalg.det(B))
-        B[:, 2] *= sgn  # a proper rotation; the third angle changes sign with it
-        Rb = B.T @ R_rel @ B  # = Rx(a) Ry(b) Rz(c)
-        a = np.arctan2(-Rb[:, 1, 2], Rb[:, 2, 2])
-        b = np.arcsin(np.clip(Rb[:, 0, 2], -1.0, 1.0))
-        c = np.arctan2(-Rb[:, 0, 1], Rb[:, 0, 0])
-        ang = [a, b, sgn * c][:len(rot)]
-    else:
-        ang = []
-    tv = []
-    if trans:
-        T = np.array([a for a, _ in trans]).T  # (3, n)
-        tv = list(np.linalg.lstsq(T, shift.T, rcond=None)[0])
+    ang = _custom_rotation_angles(ax, R_rel)
+    tv = list(np.linalg.lstsq(np.array([a for a, _ in trans]).T, shift.T, rcond=None)[0]) if trans else []
     out = dict(zip([k for _, k in rot], ang, strict=True)) | dict(zip([k for _, k in trans], tv, strict=True))
-    seg_dofs = [k for k, d in enumerate(model.dofs) if d.segment == s]
-    return [out[k] for k in seg_dofs]
+    return [out[k] for k, d in enumerate(model.dofs) if d.segment == s]
 
 
 def initial_pose(model: Model, theta, y_frame, rng: np.random.Generator, n_starts: int = 64,

@@ -170,6 +170,9 @@ if AVAILABLE:  # pragma: no branch
              skew, skew2, ms, moves, nz, tilt, planar, jpar, A_joint, anc, mslot, A_marker):
         """One frame of the live Gaussian form (see :mod:`skelid.live`): pose fit, screen, update, mean.
 
+        Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
+        helpers would slow this hot path down.
+
         Parameters
         ----------
         y : (M, D) float
@@ -369,6 +372,9 @@ if AVAILABLE:  # pragma: no branch
     @_lm_kernel._inline
     def _absorb(root, rhs, poses, hdiag, n_used, r, Jq, Jt, q, theta, weight):
         """As :func:`skelid.live.absorb` with data: ``(root, rhs, poses, hdiag)`` of the new state.
+
+        Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
+        helpers would slow this hot path down.
 
         The stacked rows are triangularised by Householder reflections that touch
         only the rows with a non-zero in the column being eliminated (the old
