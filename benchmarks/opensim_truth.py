@@ -244,6 +244,8 @@ def skelid_lengths(fit) -> tuple[dict, dict]:
 
 def scale_covariance(fit, ks) -> np.ndarray:
     """The covariance of the scale parameters ``ks`` as the fit reports it (its sd on the diagonal)."""
+    if getattr(fit, "joint", None) is not None:  # scales and offsets fitted together
+        return np.asarray(fit.joint.cov, float)[np.ix_(ks, ks)]
     est = fit.estimator
     cov = getattr(est, "cov_", None)
     names = [fit.model.parameters[k].name for k in ks]
@@ -271,7 +273,8 @@ def skelid_fit(trials, scale: str) -> dict:
     crlb = getattr(est, "crlb_sd_", None)
     if crlb is None and hasattr(est, "trials_"):  # several trials: each trial's bound, combined
         crlb = np.sum([np.asarray(e.crlb_sd_, float) ** -2.0 for e in est.trials_], axis=0) ** -0.5
-    out = {"cpu_s": cpu, "sigma": fit.result.get("sigma"), "warnings": list(fit.warnings), "q": {}}
+    out = {"cpu_s": cpu, "sigma": fit.result.get("sigma"), "warnings": list(fit.warnings), "q": {},
+           "joint_fit": fit.result.get("joint_fit")}
     en = [p.name for p in est.model.parameters] if hasattr(est, "model") else []
     for k, p in enumerate(fit.model.parameters):
         e = fit.result[p.name]
