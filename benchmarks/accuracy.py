@@ -75,9 +75,9 @@ def one_trial(args):
 
     threadpool_limits(1, user_api="blas")  # a fit's small factorisations only slow down with more threads
     from skelid.errors import SkelidError
-    from skelid.estimators.grid import MarkerGridFilter
-    from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms
+    from skelid.estimators.fit.likelihood import crlb_sd, efficient_information, frame_terms
     from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.online.grid import MarkerGridFilter
     from skelid.estimators.paper import PaperFilter
     from skelid.simulate import builtin_model, simulate, sta_rms
 
@@ -150,7 +150,7 @@ def one_trial(args):
 def linear_term(model, trial) -> np.ndarray:
     """The estimate's error to first order in this trial's noise, at the truth: ``(P,)``.
 
-    ``l = S^{-1} sum_t K_t^T e_t`` (every pose free; :func:`skelid.estimators.bootstrap.linear_response`
+    ``l = S^{-1} sum_t K_t^T e_t`` (every pose free; :func:`skelid.estimators.uncertainty.bootstrap.linear_response`
     without a motion model) for the noise ``e = y - f(theta, q)`` the simulator drew. It is linear in
     Gaussian noise, so its mean is exactly zero and its variance exactly the bound, ``crlb^2``: a
     control variate for the Monte Carlo means. The estimator's error ``err`` is ``l`` plus a rest
@@ -158,7 +158,7 @@ def linear_term(model, trial) -> np.ndarray:
     Monte Carlo error several times below ``sd(err) / sqrt(n)``, and the mean squared error likewise
     (:func:`controlled`; ``summarise``: ``bias_cv``, ``rmse_cv``).
     """
-    from skelid.estimators.bootstrap import linear_response
+    from skelid.estimators.uncertainty.bootstrap import linear_response
 
     noise = trial.data.positions - trial.clean
     return linear_response(model, trial.clean, trial.theta, trial.pose, noise[None]).theta[0]
@@ -350,11 +350,13 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                     "cell it was run on)",
          "branch": "the branch check (frames on the mirrored branch of a joint that two marker distances fix "
                    "are mirrored and the motion-model fit repeated, kept at a lower penalised cost; "
-                   ":func:`skelid.estimators.singular.mirrored_start`); the near-straight sigma-5 row of this tag "
+                   ":func:`skelid.estimators.uncertainty.singular.mirrored_start`); "
+                   "the near-straight sigma-5 row of this tag "
                    "is an interrupted run (20 trials)",
          "spread": "the branch check and, where the second-order correction exceeds 0.5 sd on the expansion's "
                    "path, the covariance of the second-order term (64 Gaussian draws, "
-                   ":func:`skelid.estimators.singular.quadratic_term_draws`) added to the interval (not kept: near the "
+                   ":func:`skelid.estimators.uncertainty.singular.quadratic_term_draws`) "
+                   "added to the interval (not kept: near the "
                    "straight pose at sigma 15 mm the check mirrored 12-46 % of a trial's frames and kept minima "
                    "tens of mm from the truth, rmse 6.4 crlb)",
          "stretch": "as `spread`, the branch check limited to a joint whose minority side holds at most 10 % of "
@@ -364,7 +366,7 @@ LATER = {"selfconsistent": "a correction above 1.5 sd is evaluated again at the 
                     "settles every frame on one branch (was: one joint at a time, at most 10 % of the frames); "
                     "where a kept bias correction exceeds 0.25 sd, the sd is evaluated at the interval's ends along "
                     "the parameter's profile and the variance raised to the larger end's "
-                    "(:func:`skelid.estimators.singular.profile_sd_ratio`)",
+                    "(:func:`skelid.estimators.uncertainty.singular.profile_sd_ratio`)",
          "folded6b": "as `folded6`, and when the refit of every joint at once is not kept, the earlier rule is "
                      "tried (one joint at a time whose minority side holds at most 10 % of the frames, kept at a "
                      "lower penalised cost; tried, not kept)"}
@@ -457,7 +459,8 @@ def _write(rows):
                  "reference, `before` = the code before the graduated-smoothing start, `after` = the code after it, "
                  "`after100` = the same code at 100 trials on the near-singular cells, `deconvolved` = the check "
                  "of the local approximation and its bootstrap fallback at the deconvolved poses "
-                 "(:mod:`skelid.estimators.singular`), `main-general` = the code before that check on the cells "
+                 "(:mod:`skelid.estimators.uncertainty.singular`), `main-general` = the code before that check "
+                 "on the cells "
                  "used to see whether it holds elsewhere (another length, case B), `selfconsistent` = a large "
                  "second-order correction evaluated again at the corrected geometry and deconvolved poses and "
                  "trusted when it stays put (instead of sent to the bootstrap whenever it exceeds 1.5 sd), "

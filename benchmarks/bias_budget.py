@@ -50,10 +50,10 @@ def one_trial(args) -> dict:
     """One trial of the accuracy study's i.i.d. cell: the error's parts (first parameter)."""
     case, sigma, truth, rep = args
     warnings.simplefilter("ignore")
-    from skelid.estimators.bootstrap import linear_response
-    from skelid.estimators.joint import joint_fit, smoothed_bias
-    from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms
+    from skelid.estimators.fit.joint import joint_fit, smoothed_bias
+    from skelid.estimators.fit.likelihood import crlb_sd, efficient_information, frame_terms
     from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.uncertainty.bootstrap import linear_response
     from skelid.simulate import builtin_model, simulate
 
     model = builtin_model(case)

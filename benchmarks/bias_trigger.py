@@ -10,7 +10,7 @@ with the number of frames while the sd does, so ``|b| / sd`` grows like ``sqrt(f
 (about 1 sd at 10^3 frames, 4 sd at 10^4), so the rule "a correction above 1.5 sd goes to the
 parametric bootstrap" sends every long trial there. The study says whether the expansion would
 have been accurate where it stays put when re-evaluated
-(:func:`skelid.estimators.singular.expansion_consistent`): mean error (bias) against the sd,
+(:func:`skelid.estimators.uncertainty.singular.expansion_consistent`): mean error (bias) against the sd,
 coverage, for the estimator as it is run.
 
 Results go to ``benchmarks/results/bias_trigger.json`` and ``.md`` (keyed by frames; a re-run
@@ -40,9 +40,9 @@ TRUTH = 250.0
 
 def one_trial(frames: int, rep: int) -> dict:
     """Fit one simulated trial with the default estimator; the bias check's numbers and the error."""
-    from skelid.estimators.joint import smoothed_bias
+    from skelid.estimators.fit.joint import smoothed_bias
     from skelid.estimators.marker import MarkerEstimator
-    from skelid.estimators.singular import deconvolve_poses
+    from skelid.estimators.uncertainty.singular import deconvolve_poses
     from skelid.simulate import builtin_model, simulate
 
     model = builtin_model("case-a")

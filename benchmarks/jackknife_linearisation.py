@@ -28,7 +28,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from skelid.estimators.jackknife import fold, marker_jackknife  # noqa: E402
+from skelid.estimators.uncertainty.jackknife import fold, marker_jackknife  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -16,13 +16,13 @@ is ``(0, 0)``. Each trial is fitted with
 * ``moving``: the hinge's moving-centre variant (:func:`skelid.model.variants.moving_centre`,
   the centre's path a cubic in ``q`` with unknown gains), flat priors on the gains;
 * ``relaxed``: the same fit with the gains' normal priors combined
-  (:func:`skelid.estimators.checks.relaxed_estimate`): the refit the ``marker`` estimator makes.
+  (:func:`skelid.estimators.checks.misfit.relaxed_estimate`): the refit the ``marker`` estimator makes.
 
 ``before`` is the hinge's interval alone, and the misfit flag of the older test that
 compares the mean of a segment's markers' angle-driven residual against white noise with a
 tail probability of 1e-6 (copied below as :func:`legacy_misfit`). ``after`` is the rule of
 the ``marker`` estimator (:func:`skelid.estimators.marker.misfit_stage`): the hinge's
-interval where the test (:func:`skelid.estimators.checks.model_misfit`) does not flag the
+interval where the test (:func:`skelid.estimators.checks.misfit.model_misfit`) does not flag the
 knee, and where it does, the hull of the hinge's and the relaxed refit's intervals.
 ``flag bound`` is the most any test at level 0.01 can flag: the hinge fitted to the cell's
 noise-free trial leaves a residual sum of squares ``RSS_0`` (the squared distance from the
@@ -127,7 +127,7 @@ def knee_trial(source, n_frames: int, sigma: float, rng, flexion=FLEXION):
 
 def fast_fit(model, y, pose0):
     """Joint least squares from ``pose0``: ``(theta, sd, fit)`` with ``sd^2 = diag(sigma_hat^2 S^-1)``."""
-    from skelid.estimators.joint import joint_fit
+    from skelid.estimators.fit.joint import joint_fit
 
     fit = joint_fit(model, y, model.theta_center, pose0, n_iter=100)
     dof = fit.n_obs - fit.pose_dof - model.n_params
@@ -176,7 +176,7 @@ def one_trial(args):
     """One simulated trial of a cell: estimates, intervals and flags of every fit."""
     source_kind, sigma, rep, n_frames, use_estimator = args
     warnings.simplefilter("ignore")
-    from skelid.estimators.checks import model_misfit, relaxed_estimate
+    from skelid.estimators.checks.misfit import model_misfit, relaxed_estimate
     from skelid.model.variants import moving_centre
 
     cpu0 = time.process_time()
@@ -257,14 +257,14 @@ def one_trial(args):
 
 def _broad_flag(v: dict) -> bool:
     """The knee's flag by the broad test alone at the full level (the test before the rolling-path test)."""
-    from skelid.estimators.checks import MISFIT_ALPHA
+    from skelid.estimators.checks.misfit import MISFIT_ALPHA
 
     return bool(v["reliable"] and v["log10_p_broad"] < np.log10(MISFIT_ALPHA) and not v["soft_tissue"])
 
 
 def _rolling_significant(v: dict, n_joints: int = 1) -> bool:
     """The rolling-path test alone at its share of a joint's level."""
-    from skelid.estimators.checks import MISFIT_ALPHA, MISFIT_PATH_SHARE
+    from skelid.estimators.checks.misfit import MISFIT_ALPHA, MISFIT_PATH_SHARE
 
     return bool(v["rolling_tested"] and v["reliable"]
                 and v["log10_p_rolling"] < np.log10(MISFIT_ALPHA * MISFIT_PATH_SHARE / n_joints))
@@ -273,7 +273,7 @@ def _rolling_significant(v: dict, n_joints: int = 1) -> bool:
 def _before_and_tested(mm: dict) -> dict:
     """The test's significance without its linearisation check (the level split over the joints), and
     whether every joint was tested."""
-    from skelid.estimators.checks import MISFIT_ALPHA
+    from skelid.estimators.checks.misfit import MISFIT_ALPHA
 
     level = np.log10(MISFIT_ALPHA / max(len(mm), 1))
     return {"significant_before": any(v["log10_p"] < level for v in mm.values()),

@@ -2,7 +2,7 @@
 
 For each clean trial the estimator's first fit (joint least squares, no motion
 model) is screened twice: by the leverage-corrected screen the estimator uses
-(:func:`skelid.estimators.screen.outlying_markers`) and, for comparison, by the
+(:func:`skelid.estimators.checks.outliers.outlying_markers`) and, for comparison, by the
 plain rule it replaced (residual distance against ``threshold`` times one robust
 scale over the trial). Target: no drop in at least 95 of 100 trials.
 
@@ -25,7 +25,7 @@ def plain_screen(model, y, fit, threshold):
     """The previous rule: distance beyond threshold x (median distance / chi median), worst per frame."""
     from scipy.stats import chi
 
-    from skelid.estimators.pose import fit_pose
+    from skelid.estimators.fit.pose import fit_pose
     from skelid.model.kinematics import marker_positions
 
     pose, _ = fit_pose(model, fit.theta, y, fit.pose, n_iter=20)
@@ -37,9 +37,9 @@ def plain_screen(model, y, fit, threshold):
 
 def one(args):
     seed, n_frames, sigma = args
-    from skelid.estimators.joint import joint_fit
-    from skelid.estimators.pose import track_poses
-    from skelid.estimators.screen import outlying_markers
+    from skelid.estimators.checks.outliers import outlying_markers
+    from skelid.estimators.fit.joint import joint_fit
+    from skelid.estimators.fit.pose import track_poses
     from skelid.simulate import builtin_model, simulate
 
     model = builtin_model("case-a")

@@ -38,7 +38,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
-    from skelid.estimators import joint, marker
+    from skelid.estimators import marker
+    from skelid.estimators.fit import joint
 
     model, data, label = load_case(args.case, args.frames)
     marker.MarkerEstimator(model).fit(data)  # warm up

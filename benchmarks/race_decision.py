@@ -43,8 +43,8 @@ def race_curves(model, data) -> list[float]:
     """Penalised cost of the tracked start less the stiff start's after each of ``KS`` iterations, / sigma^2."""
     import skelid.estimators.marker as mk
     from skelid.estimators.base import make_rng
-    from skelid.estimators.joint import joint_fit
-    from skelid.estimators.pose import workspace
+    from skelid.estimators.fit.joint import joint_fit
+    from skelid.estimators.fit.pose import workspace
 
     est = mk.MarkerEstimator(model)
     y, rate = mk.marker_array(model, data, est.rate)

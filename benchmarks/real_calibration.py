@@ -59,7 +59,7 @@ import numpy as np  # noqa: E402
 from _common import git_commit, rewrite_markdown, source_key, write_results  # noqa: E402
 
 from skelid.data import MarkerData  # noqa: E402
-from skelid.estimators.artefact import artefact_covariance  # noqa: E402
+from skelid.estimators.checks.artefact import artefact_covariance  # noqa: E402
 from skelid.estimators.marker import MarkerEstimator  # noqa: E402
 from skelid.estimators.multitrial import (  # noqa: E402
     BETWEEN_TRIAL,

@@ -80,7 +80,7 @@ def _median(xs) -> float:
 
 def _update_latencies(model, n_hyp: int, n_frames: int, seed: int = 0):
     """Wall and CPU time (ms) of each update after the first (which finds the first pose)."""
-    from skelid.estimators.grid import MarkerGridFilter
+    from skelid.estimators.online.grid import MarkerGridFilter
     from skelid.simulate import simulate
 
     trial = simulate(model, sigma=15.0, n_frames=n_frames + 1, rng=np.random.default_rng(seed))
@@ -103,7 +103,7 @@ def section_online(args) -> dict:
     from skelid.simulate import builtin_model
 
     try:  # the optional compiled pose kernel
-        from skelid.estimators import _lm_kernel
+        from skelid.estimators.fit import _lm_kernel
         compiled = _lm_kernel.AVAILABLE
     except ImportError:
         compiled = False
@@ -161,7 +161,7 @@ def peer_least_squares(model, y, rng):
     import scipy.sparse as sp
     from scipy.optimize import least_squares
 
-    from skelid.estimators.pose import track_poses
+    from skelid.estimators.fit.pose import track_poses
     from skelid.model import marker_jacobian, marker_positions
 
     T, M, D = y.shape
@@ -269,7 +269,7 @@ def section_rss_child(args) -> dict:
 
         est = PaperFilter(model)
     else:
-        from skelid.estimators.grid import MarkerGridFilter
+        from skelid.estimators.online.grid import MarkerGridFilter
 
         est = MarkerGridFilter(model, axes=(np.linspace(200, 300, 256),))
     t0 = time.perf_counter()
@@ -367,8 +367,8 @@ def _planar_chain(n_markers: int):
 
 def section_scaling(args) -> dict:
     _quiet()
-    from skelid.estimators.grid import MarkerGridFilter
     from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.online.grid import MarkerGridFilter
     from skelid.estimators.paper import PaperFilter
     from skelid.simulate import builtin_model, simulate
 
@@ -444,7 +444,7 @@ _FIRST_FIT_KERNELS = (("pose", "lm", True), ("kinematics", "fk", True), ("select
 
 
 def _kernel_module(which: str):
-    from skelid.estimators import _lm_kernel
+    from skelid.estimators.fit import _lm_kernel
     from skelid.model import _fk_kernel
 
     return _lm_kernel if which == "lm" else _fk_kernel
@@ -502,7 +502,8 @@ def _latency_row(session, positions, **extra) -> dict:
 
 
 def section_live(args) -> dict:
-    from skelid.estimators import _live_kernel, _lm_kernel
+    from skelid.estimators.fit import _lm_kernel
+    from skelid.estimators.online import _live_kernel
     from skelid.live import Session
     from skelid.simulate import builtin_model, simulate
 
@@ -539,7 +540,7 @@ def section_live(args) -> dict:
 
 def _advice_session(model, theta, sigma, follow: bool, target_sd, rng, amplitude=60.0, block=20, max_frames=600):
     """Frames until every parameter's sd is at most ``target_sd`` (or ``max_frames``)."""
-    from skelid.estimators.pose import _rotation_ranges
+    from skelid.estimators.fit.pose import _rotation_ranges
     from skelid.live import Session
     from skelid.model.kinematics import marker_positions
 
@@ -584,7 +585,7 @@ def _advice_session(model, theta, sigma, follow: bool, target_sd, rng, amplitude
 
 
 def section_advice(args) -> dict:
-    from skelid.estimators import _lm_kernel
+    from skelid.estimators.fit import _lm_kernel
 
     _quiet()
     _lm_kernel.warm(False, wait=True)

@@ -30,7 +30,8 @@ def shared_data():
 
 
 def pytest_sessionstart(session):
-    from skelid.estimators import _live_kernel, _lm_kernel
+    from skelid.estimators.fit import _lm_kernel
+    from skelid.estimators.online import _live_kernel
     from skelid.model import _fk_kernel
 
     for planar in (True, False):  # compile both drivers on the side while the first tests run

@@ -9,7 +9,7 @@ import pytest
 from skelid.errors import SkelidWarning
 
 MODULES = ["skelid.result", "skelid.io.results", "skelid.registry", "skelid.estimators.paper",
-           "skelid.estimators.grid", "skelid.estimators.marker", "skelid.estimators.sampler", "skelid.live"]
+           "skelid.estimators.online.grid", "skelid.estimators.marker", "skelid.estimators.sampler", "skelid.live"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -134,7 +134,7 @@ def test_readme_live_loop_runs_as_written(capsys):
 @pytest.mark.parametrize("name", ["case-a", "arm10"])
 def test_the_sessions_own_pose_fit_is_fit_pose(name):
     """The session's direct kernel call (or, without the kernel, numpy) gives fit_pose's numbers exactly."""
-    from skelid.estimators.pose import fit_pose
+    from skelid.estimators.fit.pose import fit_pose
     from skelid.live import _FramePose
 
     root = Path(__file__).resolve().parents[1]
@@ -208,7 +208,7 @@ def test_a_swapped_label_the_marker_screen_cannot_see_does_not_pass_into_the_mot
 def test_a_noise_free_stream_is_fitted_at_the_noise_floor(monkeypatch, compiled, name, cutoff):
     """Markers without noise leave rounding-level residuals; the noise level is held at the documented floor,
     so theta's precision keeps the prior and stays regular, on the compiled and the numpy path alike."""
-    from skelid.estimators import _live_kernel
+    from skelid.estimators.online import _live_kernel
     from skelid.live import noise_floor
 
     if compiled and not _live_kernel.AVAILABLE:
@@ -297,7 +297,7 @@ def test_a_swap_does_not_leave_the_pose_fit_in_a_wrong_basin():
 def test_the_cutoff_is_chosen_again_without_pose_fits(monkeypatch):
     """The banded GCV equals the batch method's choice; the periodic re-choice uses the poses as fitted."""
     from skelid import live
-    from skelid.estimators.joint import choose_cutoffs
+    from skelid.estimators.fit.joint import choose_cutoffs
 
     model = builtin_model("case-a")
     rng = np.random.default_rng(0)
@@ -315,7 +315,7 @@ def test_the_cutoff_is_chosen_again_without_pose_fits(monkeypatch):
 def test_the_grid_form_has_a_noise_floor():
     """Noise-free markers at a grid point: the residual there is zero, which left no noise level and so no
     likelihood at all (the posterior stayed the prior); the floor gives the grid point its weight."""
-    from skelid.estimators.grid import MarkerGridFilter, noise_floor
+    from skelid.estimators.online.grid import MarkerGridFilter, noise_floor
 
     model = builtin_model("case-a")
     trial = simulate(model, n_frames=20, sigma=0.0, rng=np.random.default_rng(0))

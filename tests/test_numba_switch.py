@@ -7,7 +7,8 @@ import sys
 import pytest
 
 from skelid import _numba
-from skelid.estimators import _live_kernel, _lm_kernel
+from skelid.estimators.fit import _lm_kernel
+from skelid.estimators.online import _live_kernel
 from skelid.model import _fk_kernel
 
 
@@ -18,7 +19,9 @@ def test_every_kernel_reads_the_same_switch():
 
 
 def test_skelid_numba_0_turns_every_kernel_off_without_importing_numba():
-    code = ("import sys\nfrom skelid.estimators import _live_kernel, _lm_kernel\nfrom skelid.model import _fk_kernel\n"
+    code = ("import sys\nfrom skelid.estimators.fit import _lm_kernel\n"
+            "from skelid.estimators.online import _live_kernel\nfrom skelid.model import _fk_kernel\n"
+            "from skelid.estimators.online import _live_kernel\nfrom skelid.model import _fk_kernel\n"
             "print(_lm_kernel.AVAILABLE, _fk_kernel.AVAILABLE, _live_kernel.AVAILABLE, _lm_kernel.ready(True), "
             "_fk_kernel.ready('band'), 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, SKELID_NUMBA="0"), capture_output=True,

@@ -19,7 +19,7 @@ from skelid.cli import main
 from skelid.errors import SkelidError
 from skelid.estimators.base import RNG, Setting, positive_or_none
 from skelid.estimators.paper import PaperFilter
-from skelid.estimators.posterior import GridPosterior
+from skelid.estimators.uncertainty.posterior import GridPosterior
 from skelid.io import write_trc
 from skelid.report import NOT_AVAILABLE, SECTIONS, write_report
 from skelid.result import FitResult, FrameCounts, NoiseEstimate, ParameterEstimate

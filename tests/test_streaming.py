@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.grid import MarkerGridFilter
+from skelid.estimators.online.grid import MarkerGridFilter
 from skelid.estimators.paper import PaperFilter
 from skelid.io import read_trc, write_trc
 from skelid.simulate import builtin_model, simulate

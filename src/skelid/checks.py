@@ -30,7 +30,7 @@ import numpy as np
 
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, ModelError
-from skelid.estimators.joint import usable_frames  # the one usable-frame rule
+from skelid.estimators.fit.joint import usable_frames  # the one usable-frame rule
 from skelid.model.description import Model
 
 #: usable frames each method needs at the least (the motion model of the marker methods needs a few)

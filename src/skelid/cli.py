@@ -106,12 +106,12 @@ def cli():
 def demo(out_dir, seed, frames, sigma, as_json, quiet, overwrite, max_memory, max_time):
     """Simulate the seed paper's cases A and B, fit them, write figures and summary.json."""
     from skelid import workflows
-
-    _finite("--sigma", sigma)
+    from skelid.demo import demo as run_demo
     from skelid.demo import summary_document
 
-    runs = workflows.demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
-                          limits=_limits(max_memory, max_time), overwrite=overwrite)
+    _finite("--sigma", sigma)
+    runs = run_demo(out_dir, seed=seed, n_frames=frames, sigma=sigma, progress=not quiet,
+                    limits=_limits(max_memory, max_time), overwrite=overwrite)
     if as_json:
         _echo_json(summary_document(runs))
     elif not quiet:

@@ -9,7 +9,7 @@ Thresholds (each written once):
   file's rounding level, :data:`skelid.estimators.marker.NUMERICAL_RESIDUAL`) look like soft-tissue
   artefact; per-frame measured values of a one-parameter method, above ``MEASURED_AUTOCORR``.
 
-The lag-1 autocorrelation is :func:`skelid.estimators.joint.lag1_autocorrelation` everywhere.
+The lag-1 autocorrelation is :func:`skelid.estimators.fit.joint.lag1_autocorrelation` everywhere.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import warnings
 import numpy as np
 
 from skelid.errors import SkelidWarning
-from skelid.estimators.joint import lag1_autocorrelation
+from skelid.estimators.fit.joint import lag1_autocorrelation
 from skelid.estimators.marker import NUMERICAL_RESIDUAL, POOR_FRACTION
 from skelid.model.description import Model
 from skelid.result import FitResult, Warning

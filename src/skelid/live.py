@@ -33,7 +33,7 @@ stream keeps the prior in the precision). With a motion
 model the frame is linearised once more at its filtered pose (``n_iter``).
 The cost per frame is one pose fit, one kinematics call per linearisation
 and one small QR: it does not depend on a grid. With numba a frame is one
-compiled call (:func:`skelid.estimators._live_kernel.step`: pose fit,
+compiled call (:func:`skelid.estimators.online._live_kernel.step`: pose fit,
 screen, update and mean), equal to the numpy path to rounding; a frame with a
 marker to leave out, the first frame and the early re-linearisations take the
 general path (its pose fit and linearisation compiled too). The numpy path
@@ -88,7 +88,7 @@ geometry (13.6 sd on a tennis-arm trial with a 0.4 s dropout, 0.5 sd with the
 chain let go). No second-order bias correction is applied live.
 
 **Grid form** (1-3 parameters, or a posterior with several modes): the
-online grid filter :class:`~skelid.estimators.grid.MarkerGridFilter`; the pose
+online grid filter :class:`~skelid.estimators.online.grid.MarkerGridFilter`; the pose
 is that of the most probable grid point.
 
 **Health.** After the pose fit, a marker more than ``outlier_sd`` noise
@@ -138,10 +138,11 @@ from scipy.stats import chi2, norm
 
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError
-from skelid.estimators import _live_kernel, _lm_kernel
-from skelid.estimators.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
-from skelid.estimators.joint import _gain, smoothing_penalty
-from skelid.estimators.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
+from skelid.estimators.fit import _lm_kernel
+from skelid.estimators.fit.joint import _gain, smoothing_penalty
+from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
+from skelid.estimators.online import _live_kernel
+from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
 from skelid.model.description import Model
 from skelid.model.kinematics import (
     Workspace,
@@ -267,7 +268,7 @@ def motion_scale(cutoff, rate: float):
     """``1 / gain``: the motion model's weight per unit of pose information (0: no motion model).
 
     The batch ``marker`` method's third-difference penalty
-    (:func:`~skelid.estimators.joint.smoothing_penalty`) with one cutoff (Hz), or one per pose
+    (:func:`~skelid.estimators.fit.joint.smoothing_penalty`) with one cutoff (Hz), or one per pose
     coordinate (an array in, an array out; a coordinate at or above half the rate gets 0).
     """
     if cutoff is None:
@@ -438,7 +439,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
 
     Minimises ``S(q) = sum_t ||y_t - x(theta, q_t)||^2 + q^T R q`` over the poses
     only, ``R`` the third-difference penalty of
-    :func:`~skelid.estimators.joint.smoothing_penalty`, from the per-frame fits
+    :func:`~skelid.estimators.fit.joint.smoothing_penalty`, from the per-frame fits
     ``q`` (angles unwrapped, as the batch method starts); frames not ``used`` follow the motion model
     alone. Each Gauss-Newton
     step (one sparse solve) is halved until ``S`` decreases, and the iteration
@@ -452,7 +453,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
 
-    from skelid.estimators.joint import _continuous_poses
+    from skelid.estimators.fit.joint import _continuous_poses
 
     T, Q = q.shape
     m = np.isfinite(y).all(axis=-1) & np.asarray(used, bool)[:, None]
@@ -494,12 +495,12 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
 def gcv_cutoffs(model: Model, q, used, rate: float) -> np.ndarray:
     """Each pose coordinate's cutoff (Hz) by generalised cross-validation, doubled: ``(Q,)`` float.
 
-    The batch method's choice (:func:`~skelid.estimators.joint.choose_cutoffs`, equal to rounding), with
+    The batch method's choice (:func:`~skelid.estimators.fit.joint.choose_cutoffs`, equal to rounding), with
     the Whittaker smoother ``(I + lambda D_3^T D_3) z_hat = z`` solved as the banded symmetric system it is
     (LAPACK's ``dpbsv``) instead of a general sparse factorisation: on 200 frames the
     twelve candidates cost well under a millisecond, so a live session can choose again without a pause.
     """
-    from skelid.estimators.joint import CUTOFF_CANDIDATES, UNDERSMOOTH, _continuous_poses
+    from skelid.estimators.fit.joint import CUTOFF_CANDIDATES, UNDERSMOOTH, _continuous_poses
 
     z = _continuous_poses(model, q, used)
     T, Q = z.shape
@@ -1273,7 +1274,7 @@ class Session:
 
 
 class _FramePose:
-    """One frame's pose fit at one ``theta``: :func:`~skelid.estimators.pose.fit_pose` with ``n_iter=10``.
+    """One frame's pose fit at one ``theta``: :func:`~skelid.estimators.fit.pose.fit_pose` with ``n_iter=10``.
 
     On the compiled path the kernel is called directly with the session's own
     batch-of-one buffers (the same call and arguments as ``fit_pose`` makes, so
@@ -1313,7 +1314,7 @@ class _Linearise:
     """One frame's ``x (M, D)``, ``dx/dq (M, D, Q)`` and ``dx/dtheta (M, D, P)`` at ``(theta, q)``.
 
     :func:`~skelid.model.kinematics.marker_jacobian`, or its compiled form
-    (:func:`skelid.estimators._live_kernel.linearise`, equal to rounding) where
+    (:func:`skelid.estimators.online._live_kernel.linearise`, equal to rounding) where
     the session's pose fits take the compiled path, the model is one it covers
     and it is compiled already (decided once, so a session keeps one path).
     """
@@ -1334,7 +1335,7 @@ class _Linearise:
 
 
 class _Step:
-    """The Gaussian form's whole frame in one compiled call (:func:`skelid.estimators._live_kernel.step`).
+    """The Gaussian form's whole frame in one compiled call (:func:`skelid.estimators.online._live_kernel.step`).
 
     The same pose fit, screening, update and mean as the general path of
     :meth:`Session._push_gaussian` (equal to rounding); a frame with a marker
@@ -1403,7 +1404,7 @@ def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:
 
 def _sweeps(model: Model, q_now, amplitudes_deg, n_frames):
     """Candidate sweeps ``[(dof, lo_deg, hi_deg)]`` and their poses ``[(n_frames, Q)]``."""
-    from skelid.estimators.pose import _rotation_ranges
+    from skelid.estimators.fit.pose import _rotation_ranges
 
     ranges = _rotation_ranges(model)
     cands, poses = [], []

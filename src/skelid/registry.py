@@ -27,8 +27,8 @@ DEFAULT_METHOD = "marker"
 
 def estimators() -> dict[str, type]:
     """Estimator classes by method name (the class's ``name``)."""
-    from skelid.estimators.grid import MarkerGridFilter
     from skelid.estimators.marker import MarkerEstimator
+    from skelid.estimators.online.grid import MarkerGridFilter
     from skelid.estimators.paper import PaperFilter
     from skelid.estimators.sampler import SamplerEstimator
 

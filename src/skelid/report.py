@@ -874,7 +874,7 @@ def _body(b: _Builder, run, units: str):
             pose[~np.isfinite(np.asarray(res, float)).any(axis=1)] = np.nan
         how = f"the poses the {_e(method)} method estimated"
     else:
-        from skelid.estimators.pose import pose_determined, track_poses
+        from skelid.estimators.fit.pose import pose_determined, track_poses
 
         q, _ = track_poses(model, theta, y[keep], np.random.default_rng(0))
         q[~pose_determined(model, y[keep])] = np.nan

@@ -199,7 +199,7 @@ class JointMisfit:
     joint, segment : str
         The joint and its child segment.
     log10_p : float
-        The misfit test's tail probability (:func:`skelid.estimators.checks.model_misfit`).
+        The misfit test's tail probability (:func:`skelid.estimators.checks.misfit.model_misfit`).
     rms : float
         Root-mean-square size of the angle-driven pattern the child's markers share (model units).
     remedy : str or None
@@ -306,20 +306,6 @@ class FitResult:
     def replace(self, **changes) -> FitResult:
         """A copy with some fields changed (the result itself never changes)."""
         return replace(self, **changes)
-
-    # ------------------------------------------------------------ serialise
-    def to_dict(self) -> dict:
-        """JSON-ready dict (without ``arrays``; see :func:`skelid.io.results.result_to_dict`)."""
-        from skelid.io.results import result_to_dict
-
-        return result_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, d: Mapping, arrays: Mapping[str, np.ndarray] | None = None) -> FitResult:
-        """Inverse of :meth:`to_dict`, validated (see :func:`skelid.io.results.result_from_dict`)."""
-        from skelid.io.results import result_from_dict
-
-        return result_from_dict(d, arrays)
 
 
 @dataclass(frozen=True)

@@ -392,7 +392,7 @@ def _fit_scales(model, parts, data, multi, method, sigma, seed):
     """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``."""
     rng = np.random.default_rng(seed)
     if not model.n_params:  # nothing to scale: poses of the nominal model on the static trial only
-        from skelid.estimators.pose import track_poses
+        from skelid.estimators.fit.pose import track_poses
 
         theta = np.zeros(0)
         return None, {"warnings": []}, theta, [track_poses(model, theta, parts[0].positions, rng)[0]]

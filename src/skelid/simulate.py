@@ -37,7 +37,7 @@ import numpy as np
 
 from skelid.data import MarkerData
 from skelid.errors import ModelError
-from skelid.estimators.pose import _model_size, _rotation_ranges
+from skelid.estimators.fit.pose import _model_size, _rotation_ranges
 from skelid.model.description import Model, load_model
 from skelid.model.kinematics import marker_positions
 

@@ -1,6 +1,6 @@
 """Long trials in bounded memory: frames in chunks, the online form of an estimator.
 
-An online estimator (:class:`~skelid.estimators.grid.MarkerGridFilter`,
+An online estimator (:class:`~skelid.estimators.online.grid.MarkerGridFilter`,
 :class:`~skelid.estimators.paper.PaperFilter`) has ``init_state()`` and
 ``update(state, frame)``; its state is ``O(K)`` for ``K`` hypotheses (running
 sums, the last pose of each hypothesis, snapshots of the posterior at the

@@ -43,7 +43,7 @@ from skelid.plots import fit_figures as figures
 from skelid.provenance import model_parameters, provenance, run_context, versions
 from skelid.result import FitResult, FitRun, Warning
 
-__all__ = ["methods", "make_estimator", "fit_file", "run_fit", "run_arrays", "demo", "table", "figures",
+__all__ = ["methods", "make_estimator", "fit_file", "run_fit", "run_arrays", "table", "figures",
            "check_input_file", "check_units", "data_overview", "lag1_autocorrelation", "posterior_arrays",
            "versions", "write_json", "write_run", "run_context", "unique_warnings", "model_parameters", "provenance",
            "collect_warnings"]
@@ -216,14 +216,6 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
             figures(model, data, fitted, tmp)
             write_run(tmp, run)
     return run
-
-
-def demo(out_dir, seed: int = 0, n_frames: int = 500, sigma: float = 15.0, method_names=None,
-         progress: bool = True, limits=None, overwrite: bool = False) -> dict:
-    """Simulate cases A and B, fit, draw, summarise (see :func:`skelid.demo.demo`)."""
-    from skelid.demo import demo as run_demo
-
-    return run_demo(out_dir, seed, n_frames, sigma, method_names, progress, limits, overwrite)
 
 
 def table(runs) -> str:

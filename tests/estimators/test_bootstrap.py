@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.bootstrap import (
+from skelid.estimators.fit.joint import joint_fit, usable_frames
+from skelid.estimators.marker import MarkerEstimator
+from skelid.estimators.uncertainty.bootstrap import (
     Draws,
     as_draws,
     draws_bias,
@@ -11,9 +13,7 @@ from skelid.estimators.bootstrap import (
     draws_mc_covariance,
     linear_response,
 )
-from skelid.estimators.joint import joint_fit, usable_frames
-from skelid.estimators.marker import MarkerEstimator
-from skelid.estimators.singular import fallback_covariance
+from skelid.estimators.uncertainty.singular import fallback_covariance
 from skelid.model.kinematics import marker_positions
 from skelid.simulate import builtin_model, simulate
 from tests.estimators.test_joint import _dense_normal_matrix, _small_fit
@@ -120,7 +120,7 @@ def test_fallback_covariance_with_control_variates_closed_form():
 def test_the_linear_response_without_a_motion_model_has_the_bound_as_its_covariance():
     # every pose free: the first Gauss-Newton step is the efficient score over the efficient
     # information, so its covariance is exactly the Cramer-Rao bound (the accuracy study's control variate)
-    from skelid.estimators.likelihood import efficient_information, frame_terms
+    from skelid.estimators.fit.likelihood import efficient_information, frame_terms
 
     model = builtin_model("case-b")
     trial = simulate(model, n_frames=40, sigma=3.0, rng=np.random.default_rng(2))

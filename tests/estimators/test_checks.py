@@ -4,7 +4,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from skelid.data import MarkerData
-from skelid.estimators.checks import joint_ranges
+from skelid.estimators.checks.misfit import joint_ranges
 from skelid.estimators.marker import MarkerEstimator
 from skelid.model.description import model_from_dict
 from skelid.model.kinematics import forward_kinematics, marker_positions

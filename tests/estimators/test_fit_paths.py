@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skelid.estimators.joint import joint_fit, smoothed_bias
-from skelid.estimators.pose import track_poses
+from skelid.estimators.fit.joint import joint_fit, smoothed_bias
+from skelid.estimators.fit.pose import track_poses
 from skelid.model import _fk_kernel, load_model
 from skelid.model.kinematics import Workspace
 
@@ -55,7 +55,7 @@ def test_compiled_selected_inversion_equals_the_numpy_sweep(T, Q):
     import scipy.sparse as sp
     from scipy.linalg import cholesky_banded
 
-    from skelid.estimators.joint import _banded_system, _dense_from_banded, _selected_inverse_by_blocks
+    from skelid.estimators.fit.joint import _banded_system, _dense_from_banded, _selected_inverse_by_blocks
 
     rng = np.random.default_rng(T + Q)
     A = rng.normal(size=(T, Q, Q))

@@ -8,7 +8,7 @@ on fixed-seed trials; the stopping rule itself allows 1e-4 sd per step.
 import numpy as np
 import pytest
 
-from skelid.estimators import joint
+from skelid.estimators.fit import joint
 from skelid.estimators.marker import MarkerEstimator
 from skelid.simulate import builtin_model, simulate
 

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from skelid.estimators.grid import MarkerGridFilter
-from skelid.estimators.likelihood import frame_terms, log_det_pose_information
-from skelid.estimators.pose import fit_pose
+from skelid.estimators.fit.likelihood import frame_terms, log_det_pose_information
+from skelid.estimators.fit.pose import fit_pose
+from skelid.estimators.online.grid import MarkerGridFilter
 from skelid.simulate import builtin_model, simulate
 
 AXES = (np.linspace(240.0, 260.0, 9),)

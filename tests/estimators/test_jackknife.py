@@ -3,10 +3,10 @@
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.estimators import jackknife
-from skelid.estimators.jackknife import literal_jackknife, marker_jackknife
-from skelid.estimators.joint import joint_fit
+from skelid.estimators.fit.joint import joint_fit
 from skelid.estimators.marker import MarkerEstimator
+from skelid.estimators.uncertainty import jackknife
+from skelid.estimators.uncertainty.jackknife import literal_jackknife, marker_jackknife
 from skelid.model.kinematics import marker_positions
 from skelid.simulate import builtin_model, simulate
 from tests.estimators.test_checks import _wrist_model

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.joint import (
+from skelid.estimators.fit.joint import (
     _arrow_inverse_blocks,
     _banded,
     _dense_from_banded,
@@ -13,7 +13,7 @@ from skelid.estimators.joint import (
     smoothing_penalty,
     weighted_terms,
 )
-from skelid.estimators.likelihood import pose_information
+from skelid.estimators.fit.likelihood import pose_information
 from skelid.model.kinematics import marker_jacobian
 from skelid.simulate import builtin_model, simulate
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
+from skelid.estimators.fit.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from tests.helpers import tree_3d_functional
 
 

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skelid.estimators import _live_kernel
-from skelid.estimators.pose import workspace
+from skelid.estimators.fit.pose import workspace
+from skelid.estimators.online import _live_kernel
 from skelid.model import load_model
 from skelid.model.kinematics import Workspace, geometry, marker_jacobian
 from skelid.simulate import builtin_model, simulate

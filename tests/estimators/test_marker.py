@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from skelid.errors import IdentifiabilityError
-from skelid.estimators.joint import box_bias, joint_fit
-from skelid.estimators.likelihood import efficient_information, frame_terms
+from skelid.estimators.fit.joint import box_bias, joint_fit
+from skelid.estimators.fit.likelihood import efficient_information, frame_terms
 from skelid.estimators.marker import MarkerEstimator
 from skelid.model import model_from_dict
 from skelid.simulate import builtin_model, simulate
@@ -112,7 +112,7 @@ def test_joint_fit_uses_the_motion_model_information():
 
 
 def test_cutoffs_follow_the_motion():
-    from skelid.estimators.joint import choose_cutoffs
+    from skelid.estimators.fit.joint import choose_cutoffs
 
     model = builtin_model("case-a")
     rng = np.random.default_rng(0)
@@ -139,7 +139,7 @@ def test_automatic_cutoff_is_recorded():
 def test_selected_inverse_blocks_equal_the_dense_inverse(n_frames):
     import scipy.sparse as sp
 
-    from skelid.estimators.joint import _banded_system, band_inverse_blocks, pose_edf
+    from skelid.estimators.fit.joint import _banded_system, band_inverse_blocks, pose_edf
 
     rng = np.random.default_rng(5)
     Q = 4
@@ -160,7 +160,7 @@ def test_selected_inverse_blocks_equal_the_dense_inverse(n_frames):
 
 
 def test_artefact_influence_predicts_the_shift_of_a_refit():
-    from skelid.estimators.artefact import artefact_basis, artefact_influence
+    from skelid.estimators.checks.artefact import artefact_basis, artefact_influence
 
     model = builtin_model("case-a")
     trial = simulate(model, theta=[250.0], n_frames=300, sigma=0.0, rng=np.random.default_rng(4))

@@ -3,8 +3,8 @@
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.estimators.checks import model_misfit
-from skelid.estimators.joint import joint_fit
+from skelid.estimators.checks.misfit import model_misfit
+from skelid.estimators.fit.joint import joint_fit
 from skelid.estimators.marker import MarkerEstimator
 from skelid.model.description import model_from_dict
 from skelid.model.kinematics import marker_positions
@@ -125,7 +125,7 @@ def test_a_moving_knee_centre_is_flagged_at_5_mm_noise_and_a_hinge_is_not():
 
 def test_the_noise_level_of_the_misfit_test_ignores_a_slow_misfit():
     """Successive differences measure the white noise, not the angle-driven pattern (noise-free: ~0)."""
-    from skelid.estimators.checks import _per_frame_projection, misfit_noise
+    from skelid.estimators.checks.misfit import _per_frame_projection, misfit_noise
 
     model = _knee_model()
     for sigma in (0.0, 4.0):
@@ -228,7 +228,7 @@ def test_case_a_fitted_frame_by_frame_is_not_tested_where_its_poses_are_too_unce
         for v in res.values():
             assert v["reliable"] is reliable and not v["significant"] and not v["flagged"], (sigma, res)
         if not reliable:  # the bound on the second-order shift of the statistic is what withholds the test
-            from skelid.estimators.checks import MISFIT_NONLINEAR
+            from skelid.estimators.checks.misfit import MISFIT_NONLINEAR
 
             assert all(v["nonlinearity"] > MISFIT_NONLINEAR * v["dof"] for v in res.values())
         else:
@@ -237,8 +237,8 @@ def test_case_a_fitted_frame_by_frame_is_not_tested_where_its_poses_are_too_unce
 
 def test_second_order_residual_mean_matches_simulation_on_a_curved_one_marker_chain():
     """Reference: the Monte Carlo mean of the re-projected residual at the fitted pose, at small noise."""
-    from skelid.estimators.checks import _per_frame_projection, second_order_residual
-    from skelid.estimators.pose import fit_pose
+    from skelid.estimators.checks.misfit import _per_frame_projection, second_order_residual
+    from skelid.estimators.fit.pose import fit_pose
     from skelid.simulate import builtin_model
 
     model = builtin_model("case-a")
@@ -269,7 +269,7 @@ def _stages(y, q, misfit):
 
 
 def test_a_flagged_hinge_is_refitted_with_a_moving_centre_and_its_interval_is_the_hull_of_both():
-    from skelid.estimators.joint import joint_fit as jf
+    from skelid.estimators.fit.joint import joint_fit as jf
     from skelid.estimators.marker import Z95, Estimate, MarkerEstimator, misfit_stage
     from skelid.model.variants import moving_centre
 
@@ -314,6 +314,7 @@ def test_nothing_is_refitted_when_no_joint_is_flagged(monkeypatch):
 
 
 def test_the_result_carries_the_flagged_joint_typed_and_round_trips():
+    from skelid.io.results import result_from_dict, result_to_dict
     from skelid.result import FitResult, JointMisfit, NoiseEstimate
 
     diag = {"model_misfit": {
@@ -325,7 +326,7 @@ def test_the_result_carries_the_flagged_joint_typed_and_round_trips():
     assert set(r.misfit) == {"knee"}
     m = r.misfit["knee"]
     assert isinstance(m, JointMisfit) and m.widened == ("knee_x",) and m.relaxed_mean == {"knee_x": 0.5}
-    assert FitResult.from_dict(r.to_dict()).misfit == r.misfit
+    assert result_from_dict(result_to_dict(r)).misfit == r.misfit
 
 
 def test_a_flagged_hinge_whose_axis_is_fitted_is_reported_and_left_unwidened():
@@ -393,7 +394,7 @@ def _spline_knee_trial(seed, sigma, n=300):
 
 
 def test_rigid_motions_have_no_deformation_and_distance_changes_are_kept():
-    from skelid.estimators.checks import nonrigid_projector
+    from skelid.estimators.checks.misfit import nonrigid_projector
 
     rng = np.random.default_rng(0)
     for m, rank in ((rng.normal(size=(4, 3)), 6), (rng.normal(size=(3, 2)), 3),
@@ -432,7 +433,7 @@ def test_soft_tissue_deforms_the_segment_marker_set():
 def test_a_cubic_moving_centre_covers_the_spline_knee_centre_where_a_quadratic_does_not():
     """The centre at zero flexion is told only by the prior on the path: a quadratic path reads the spline's cubic
     shape as the centre (interval off by several sd), a cubic one leaves the centre to the prior and covers."""
-    from skelid.estimators.checks import relaxed_estimate
+    from skelid.estimators.checks.misfit import relaxed_estimate
     from skelid.model.variants import moving_centre
 
     model = _knee_model()
@@ -466,8 +467,8 @@ def test_rolling_test_equals_the_drop_in_residual_sum_of_squares_of_the_linearis
     parameter columns in one least-squares regression of the residuals (sigma = 1; Frisch-Waugh)."""
     from scipy.linalg import block_diag
 
-    from skelid.estimators.checks import _projection_terms, _rolling_designs, rolling_test
-    from skelid.estimators.likelihood import frame_terms
+    from skelid.estimators.checks.misfit import _projection_terms, _rolling_designs, rolling_test
+    from skelid.estimators.fit.likelihood import frame_terms
     from skelid.model.kinematics import forward_kinematics
 
     model = _knee_model()

@@ -6,7 +6,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2, t
 
 from skelid.data import MarkerData
-from skelid.estimators.joint import joint_fit, weighted_terms
+from skelid.estimators.fit.joint import joint_fit, weighted_terms
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.multitrial import (
     MultiTrialEstimator,
@@ -269,7 +269,7 @@ def test_prior_closed_forms():
 
 def test_prior_between_trial_in_the_estimator():
     """The estimator's 'prior' intervals are the posterior's; its prior scale is the artefact's effect."""
-    from skelid.estimators.artefact import artefact_covariance
+    from skelid.estimators.checks.artefact import artefact_covariance
 
     model = two_link()
     kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}

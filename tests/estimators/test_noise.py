@@ -3,10 +3,10 @@ import pytest
 import scipy.sparse as sp
 
 from skelid.errors import ModelError
-from skelid.estimators.joint import joint_fit, smoothing_penalty, weighted_terms
-from skelid.estimators.likelihood import pose_information
+from skelid.estimators.checks.noise import group_sigma, marker_groups, row_leverage
+from skelid.estimators.fit.joint import joint_fit, smoothing_penalty, weighted_terms
+from skelid.estimators.fit.likelihood import pose_information
 from skelid.estimators.marker import MarkerEstimator
-from skelid.estimators.noise import group_sigma, marker_groups, row_leverage
 from skelid.model import model_from_dict
 from skelid.simulate import simulate
 

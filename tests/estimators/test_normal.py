@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from skelid.estimators.normal import eliminate_poses, solve_normal
+from skelid.estimators.uncertainty.normal import eliminate_poses, solve_normal
 
 
 def _dense(Jq, Jt, R):

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from skelid.estimators import _lm_kernel
-from skelid.estimators.grid import MarkerGridFilter
+from skelid.estimators.fit import _lm_kernel
+from skelid.estimators.online.grid import MarkerGridFilter
 from skelid.model import load_model, model_from_dict
 from skelid.simulate import simulate
 
@@ -55,7 +55,7 @@ def test_online_grid_estimate_is_the_same_on_both_paths(path, monkeypatch):
 def test_tennis_forearm_first_pose_is_the_same_on_both_paths(shared_data, monkeypatch):
     """The first pose is chosen among equal-cost angle branches the same way whatever the rounding."""
     from skelid.estimators.base import prepare
-    from skelid.estimators.pose import initial_pose
+    from skelid.estimators.fit.pose import initial_pose
     from skelid.io import read_markers
 
     model = load_model(Path(__file__).resolve().parents[2] / "examples" / "tennis_forearm.toml")
@@ -69,8 +69,8 @@ def test_tennis_forearm_first_pose_is_the_same_on_both_paths(shared_data, monkey
 
 
 def test_a_fit_takes_the_path_ready_at_its_start_and_says_which(monkeypatch):
+    from skelid.estimators.fit.pose import fit_pose, workspace
     from skelid.estimators.marker import MarkerEstimator
-    from skelid.estimators.pose import fit_pose, workspace
     from skelid.simulate import builtin_model
 
     model = builtin_model("case-a")

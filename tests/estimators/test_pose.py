@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.pose import rigid_poses, segment_placements, track_poses
+from skelid.estimators.fit.pose import rigid_poses, segment_placements, track_poses
 from skelid.model import forward_kinematics, marker_positions, model_from_dict
 from skelid.simulate import simulate
 from tests.helpers import tree_3d, tree_3d_functional

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from skelid import _numba
-from skelid.estimators import _lm_kernel
-from skelid.estimators.grid import MarkerGridFilter
-from skelid.estimators.likelihood import frame_terms, log_det_pose_information
-from skelid.estimators.pose import FramePoseFitter, fit_pose, fit_pose_logdet
+from skelid.estimators.fit import _lm_kernel
+from skelid.estimators.fit.likelihood import frame_terms, log_det_pose_information
+from skelid.estimators.fit.pose import FramePoseFitter, fit_pose, fit_pose_logdet
+from skelid.estimators.online.grid import MarkerGridFilter
 from skelid.model import load_model, model_from_dict
 from skelid.model.kinematics import forward_kinematics, pose_jacobian
 from skelid.simulate import builtin_model, simulate

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from skelid.estimators.posterior import GaussianPosterior, GridPosterior, SamplePosterior
+from skelid.estimators.uncertainty.posterior import GaussianPosterior, GridPosterior, SamplePosterior
 
 
 def _gauss_grid(mu=3.0, sd=0.7):

@@ -6,10 +6,10 @@ import pytest
 import skelid.estimators.marker as marker_mod
 from skelid.data import MarkerData
 from skelid.errors import ConvergenceError
-from skelid.estimators.checks import placement_information
-from skelid.estimators.joint import box_bias
+from skelid.estimators.checks.misfit import placement_information
+from skelid.estimators.fit.joint import box_bias
 from skelid.estimators.marker import MarkerEstimator
-from skelid.estimators.singular import deconvolve_poses
+from skelid.estimators.uncertainty.singular import deconvolve_poses
 from skelid.model.kinematics import marker_positions
 from skelid.simulate import builtin_model, simulate
 from tests.estimators.test_misfit import _knee_model
@@ -87,7 +87,7 @@ def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
 def test_near_a_singular_pose_the_fit_reaches_the_minimum_a_start_at_the_truth_reaches():
     # an elbow kept near the folded pose: per-frame fits jump between pose branches, and a motion-model
     # fit started from them sticks in a local minimum unless a stiffer motion model is fitted first
-    from skelid.estimators.joint import joint_fit
+    from skelid.estimators.fit.joint import joint_fit
     from skelid.simulate import simulate_posture
 
     model = builtin_model("case-a")

@@ -10,8 +10,9 @@ from scipy.special import logsumexp
 from skelid.cli import main
 from skelid.errors import IdentifiabilityError, SkelidWarning
 from skelid.estimators.marker import MarkerEstimator
-from skelid.estimators.posterior import SamplePosterior
 from skelid.estimators.sampler import ProfileLikelihood, SamplerEstimator, sample_prior
+from skelid.estimators.uncertainty.posterior import SamplePosterior
+from skelid.io.results import result_to_dict
 from skelid.model import model_from_dict
 from skelid.registry import estimators as methods
 from skelid.simulate import builtin_model, simulate
@@ -96,7 +97,7 @@ def test_result_has_the_default_keys_and_the_sampler(case_a_fit):
     assert set(sampler) >= {"particles", "ess", "stages", "acceptance", "log_evidence"}
     assert sampler["particles"] == 300 and 0 < sampler["ess"] <= 300
     assert np.isfinite(sampler["log_evidence"])
-    json.dumps(out.to_dict())
+    json.dumps(result_to_dict(out))
 
 
 def test_posterior_against_a_prior_bound_stays_inside_it():

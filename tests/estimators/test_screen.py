@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from skelid.estimators.joint import joint_fit
-from skelid.estimators.screen import outlying_markers, robust_variance, standardised_residuals
+from skelid.estimators.checks.outliers import outlying_markers, robust_variance, standardised_residuals
+from skelid.estimators.fit.joint import joint_fit
 from skelid.simulate import builtin_model, simulate
 
 
@@ -84,8 +84,8 @@ def test_robust_variance_solves_the_same_equation_as_the_bisection():
 
 def test_standardised_residuals_equal_the_dense_hat_matrix_formula():
     """Each marker's block of I - H from its own rows equals the block of the full (M D, M D) matrix."""
-    from skelid.estimators.likelihood import frame_terms
-    from skelid.estimators.screen import V_MIN
+    from skelid.estimators.checks.outliers import V_MIN
+    from skelid.estimators.fit.likelihood import frame_terms
 
     model = builtin_model("case-b")
     trial = simulate(model, sigma=5.0, n_frames=30, rng=np.random.default_rng(2))

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from skelid.estimators.joint import box_bias, joint_fit, smoothed_bias
+from skelid.estimators.fit.joint import box_bias, joint_fit, smoothed_bias
 from skelid.estimators.marker import MarkerEstimator
-from skelid.estimators.singular import (
+from skelid.estimators.uncertainty.singular import (
     _N_CUTOFFS,
     POSE_SENSITIVE,
     branch_joints,
@@ -274,8 +274,8 @@ def test_the_minority_branch_of_every_joint_is_mirrored_back_at_once():
 def test_the_sd_along_the_profile_matches_refitted_poses_at_the_interval_ends():
     # without a motion model the profile poses at a fixed geometry are per-frame fits: the sd at the
     # interval's ends from those must match the one from the poses' linear response
-    from skelid.estimators.pose import fit_pose
-    from skelid.estimators.singular import _schur, profile_sd_ratio
+    from skelid.estimators.fit.pose import fit_pose
+    from skelid.estimators.uncertainty.singular import _schur, profile_sd_ratio
 
     model = builtin_model("case-a")
     trial = simulate_posture(model, [250.0], 60, 5.0, (150.0, 172.0), np.random.default_rng(3))
@@ -301,7 +301,7 @@ def test_the_sd_along_the_profile_matches_refitted_poses_at_the_interval_ends():
 
 
 def test_the_profile_term_raises_each_variance_to_the_larger_end():
-    from skelid.estimators.singular import profile_covariance
+    from skelid.estimators.uncertainty.singular import profile_covariance
 
     plain = np.array([[4.0, 1.0], [1.0, 9.0]])
     extra = profile_covariance([1.1, 0.9], plain)
@@ -311,7 +311,7 @@ def test_the_profile_term_raises_each_variance_to_the_larger_end():
 
 def test_a_motion_from_near_straight_to_near_folded_is_on_no_wrong_branch():
     # psi changes sign where the joint passes 90 degrees from both singular poses: not a mirrored branch
-    from skelid.estimators.singular import minority_branch
+    from skelid.estimators.uncertainty.singular import minority_branch
 
     model = builtin_model("case-a")
     trial = simulate_posture(model, [250.0], 100, 0.0, (20.0, 170.0), np.random.default_rng(6))

@@ -5,8 +5,8 @@ import pytest
 from scipy.special import logsumexp
 from scipy.stats import multivariate_normal, norm
 
-from skelid.estimators.posterior import SamplePosterior
-from skelid.estimators.smc import kish_ess, next_temperature, resample, tempered_smc
+from skelid.estimators.uncertainty.posterior import SamplePosterior
+from skelid.estimators.uncertainty.smc import kish_ess, next_temperature, resample, tempered_smc
 
 
 def test_systematic_resampling_counts_are_within_one_of_their_expectation():

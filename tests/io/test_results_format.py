@@ -70,7 +70,7 @@ def test_round_trip_through_files(tmp_path, names):
 
 def test_to_dict_from_dict_round_trip():
     r = _result(("sigma", "lengths"))
-    back = FitResult.from_dict(json.loads(json.dumps(r.to_dict())), r.arrays)
+    back = rio.result_from_dict(json.loads(json.dumps(rio.result_to_dict(r))), r.arrays)
     _same(r, back)
 
 

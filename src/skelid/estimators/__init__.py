@@ -6,10 +6,10 @@
 * :class:`MarkerGridFilter` (``marker-grid``): online grid filter with the marker-space likelihood.
 """
 
-from skelid.estimators.grid import MarkerGridFilter
 from skelid.estimators.marker import MarkerEstimator
+from skelid.estimators.online.grid import MarkerGridFilter
 from skelid.estimators.paper import ConstraintSystem, PaperFilter
-from skelid.estimators.posterior import GaussianPosterior, GridPosterior, SamplePosterior
+from skelid.estimators.uncertainty.posterior import GaussianPosterior, GridPosterior, SamplePosterior
 
 __all__ = ["ConstraintSystem", "PaperFilter", "MarkerEstimator", "MarkerGridFilter", "GridPosterior",
            "GaussianPosterior", "SamplePosterior"]

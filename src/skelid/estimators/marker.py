@@ -10,7 +10,7 @@ motion model penalises rough poses, so the estimate is
 .. math:: (\\hat\\theta, \\hat q) = \\arg\\min \\sum_{t,m} \\lVert y_{tm} - f_m(\\theta, q_t) \\rVert^2
           + q^\\top R\\, q .
 
-Steps (see :mod:`skelid.estimators.joint` for the equations):
+Steps (see :mod:`skelid.estimators.fit.joint` for the equations):
 
 1. poses tracked at the prior centre, then joint least squares over ``theta``
    and every pose (Levenberg-Marquardt with the Schur complement);
@@ -45,7 +45,6 @@ from scipy.stats import chi2
 
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError
-from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import (
     RATE,
     RNG,
@@ -62,16 +61,16 @@ from skelid.estimators.base import (
     positive_int,
     positive_or_none,
 )
-from skelid.estimators.bootstrap import Draws, as_draws, draws_bias, linear_response
-from skelid.estimators.checks import (
+from skelid.estimators.checks.artefact import artefact_covariance
+from skelid.estimators.checks.misfit import (
     DEFAULT_PLACEMENT_SD_MM,
     PLACEMENT_SHARE,
     model_misfit,
     placement_information,
     relaxed_estimate,
 )
-from skelid.estimators.jackknife import jackknife_stage
-from skelid.estimators.joint import (
+from skelid.estimators.checks.noise import marker_groups, per_marker_fit
+from skelid.estimators.fit.joint import (
     JointFit,
     box_bias,
     choose_cutoffs,
@@ -85,11 +84,12 @@ from skelid.estimators.joint import (
     usable_frames,
     weighted_terms,
 )
-from skelid.estimators.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
-from skelid.estimators.noise import marker_groups, per_marker_fit
-from skelid.estimators.pose import track_poses, workspace
-from skelid.estimators.posterior import GaussianPosterior
-from skelid.estimators.singular import (
+from skelid.estimators.fit.likelihood import crlb_sd, efficient_information, frame_terms, pose_fixed
+from skelid.estimators.fit.pose import track_poses, workspace
+from skelid.estimators.uncertainty.bootstrap import Draws, as_draws, draws_bias, linear_response
+from skelid.estimators.uncertainty.jackknife import jackknife_stage
+from skelid.estimators.uncertainty.posterior import GaussianPosterior
+from skelid.estimators.uncertainty.singular import (
     N_DRAWS,
     POSE_SENSITIVE,
     PROFILE_CHECK,
@@ -176,12 +176,12 @@ def joint_motion(model: Model, pose, used=None) -> dict:
 
     One-axis joints: the angle about its circular mean (2.5 to 97.5 percentile);
     multi-axis joints of a 3-D model: the rotation angle from the mean rotation
-    (:func:`skelid.estimators.checks.joint_ranges`), free of gimbal artefacts.
+    (:func:`skelid.estimators.checks.misfit.joint_ranges`), free of gimbal artefacts.
 
     Functional information about a joint (its centre, its axis) comes only
     from the joint moving; a range of a few degrees means little information.
     """
-    from skelid.estimators.checks import joint_ranges
+    from skelid.estimators.checks.misfit import joint_ranges
 
     return joint_ranges(model, pose, used)
 
@@ -453,7 +453,7 @@ def _penalised_cost(f: JointFit) -> float:
 
 def weights_stage(model: Model, st: Start, sc: Screen, mo: Motion, s: MarkerEstimator,
                   ws: Workspace | None = None) -> Weights:
-    """Per-marker noise levels and the weighted refit (see :mod:`skelid.estimators.noise`)."""
+    """Per-marker noise levels and the weighted refit (see :mod:`skelid.estimators.checks.noise`)."""
     if s.noise == "pooled":
         return Weights(mo.fit, None, None, None)
 
@@ -529,14 +529,14 @@ def bias_stage(est: MarkerEstimator, st: Start, sc: Screen, mo: Motion, wt: Weig
                res: Residuals, rng) -> Bias:
     """Second-order (Box) bias at the estimate, or a parametric bootstrap, or none.
 
-    Under ``'auto'`` the second-order correction is checked (:mod:`skelid.estimators.singular`):
+    Under ``'auto'`` the second-order correction is checked (:mod:`skelid.estimators.uncertainty.singular`):
     when the information about ``theta`` depends on where the poses lie within their own error
     (near a singular pose), or a correction exceeds ``BIAS_RELIABLE`` sd (what the expansion
     leaves, a fixed share of the correction, is then no longer small against the sd), a parametric
     bootstrap at the deconvolved poses stands in for it, and its spread, Monte Carlo error and
     disagreement with the second-order bias there widen the interval. A kept correction above
     ``SECOND_ORDER_SPREAD`` sd brings the covariance of the second-order term into the interval
-    (:func:`skelid.estimators.singular.quadratic_term_draws`).
+    (:func:`skelid.estimators.uncertainty.singular.quadratic_term_draws`).
     """
     model, fit, w = est.model, wt.fit, wt.weights
     sigma2 = noise.sigma**2
@@ -616,7 +616,7 @@ def profile_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise: No
 
     Where a bias correction above ``PROFILE_CHECK`` sd was found (the log-likelihood's third
     derivatives are not small), the information is evaluated along each parameter's profile at
-    the interval's ends (:func:`skelid.estimators.singular.profile_sd_ratio`) and the variance
+    the interval's ends (:func:`skelid.estimators.uncertainty.singular.profile_sd_ratio`) and the variance
     raised to the larger end's; elsewhere nothing is computed.
     """
     model, fit, w = est.model, wt.fit, wt.weights
@@ -638,7 +638,7 @@ def bootstrap_bias(est: MarkerEstimator, y, fit: JointFit, noise: Noise, st: Sta
     """Parametric bootstrap of the bias, and the covariance it adds to ``sigma^2 S^{-1}``.
 
     ``B = n_boot`` data sets are simulated from the fit and refitted; the bias is the mean
-    shift less its linear part, ``b* = mean(s_b - l_b)`` (:mod:`skelid.estimators.bootstrap`).
+    shift less its linear part, ``b* = mean(s_b - l_b)`` (:mod:`skelid.estimators.uncertainty.bootstrap`).
     Where the local approximation fails, the refits also spread more than ``sigma^2 S^{-1}``
     says: the covariance added is the excess of their covariance ``C* = Var(l) + Cov(s) - Cov(l)``
     over it (eigenvalues clipped at zero), plus ``Cov(s - l)/B``, the Monte Carlo variance of ``b*``.
@@ -719,13 +719,13 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
 
 def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEstimator,
                  ws: Workspace | None = None) -> Weights:
-    """Frames on a joint's mirrored branch (:func:`skelid.estimators.singular.branch_joints`) refitted.
+    """Frames on a joint's mirrored branch (:func:`skelid.estimators.uncertainty.singular.branch_joints`) refitted.
 
     For the joints whose centre two marker distances fix, the frames on the side of each one's
     singular pose that fewer frames take are mirrored, every joint at once, and the motion-model
-    fit is repeated from there (:func:`skelid.estimators.singular.mirrored_start`); the refit is
+    fit is repeated from there (:func:`skelid.estimators.uncertainty.singular.mirrored_start`); the refit is
     kept when it converged to a lower penalised cost (the first fit sat in a local minimum) and
-    keeps to one branch at every such joint (:func:`skelid.estimators.singular.branch_settled`).
+    keeps to one branch at every such joint (:func:`skelid.estimators.uncertainty.singular.branch_settled`).
     A model without such joints, or a fit with every frame on one branch, costs nothing.
     """
     fit = wt.fit
@@ -746,7 +746,7 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):
     """Flag parameters informed by the nominal marker placement; add its uncertainty to ``cov``.
 
-    See :func:`skelid.estimators.checks.placement_information`. The placement's standard
+    See :func:`skelid.estimators.checks.misfit.placement_information`. The placement's standard
     deviation is ``placement_sd`` when stated; otherwise ``DEFAULT_PLACEMENT_SD_MM`` for a trial
     whose joints all moved less than ``STILL_JOINT_DEG`` (a static trial), and none for a trial
     with motion (the flag is then reported without a warning).
@@ -778,7 +778,7 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
     (:func:`skelid.model.variants.moving_centre`: the centre's path cubic in the angle, each
     gain with a normal prior of sd 10 mm per radian^k about the hinge), from the fit's own
     geometry and poses, with the same motion model and weights. The refit's estimate and sd
-    combine its data with those priors (:func:`skelid.estimators.checks.relaxed_estimate`).
+    combine its data with those priors (:func:`skelid.estimators.checks.misfit.relaxed_estimate`).
     Each parameter's 95 % interval becomes the hull of its own interval and the refit's
     (``theta_v +- 1.96 sd_v``); the estimate is the hull's midpoint and the covariance is
     rescaled to the hull's half-width, keeping the correlations. See
@@ -1059,7 +1059,7 @@ class MarkerEstimator:
         (joint least-squares) estimate.
     n_boot : int
         Refits of the parametric bootstrap (the 'bootstrap' bias, and the fallback of 'auto'), each
-        with its linear control variate (:mod:`skelid.estimators.bootstrap`); default ``N_BOOT``.
+        with its linear control variate (:mod:`skelid.estimators.uncertainty.bootstrap`); default ``N_BOOT``.
     robust : {'auto', 'always', 'never'}
         Use the Newey-West covariance when residuals look like soft-tissue
         artefact ('auto'), always, or never.
@@ -1077,22 +1077,22 @@ class MarkerEstimator:
     artefact_rms : float, optional
         Stated root-mean-square soft-tissue artefact of a marker coordinate (model
         units). The covariance it adds to the estimate (the part of the artefact that
-        mimics a geometry change, see :mod:`skelid.estimators.artefact`) widens the
+        mimics a geometry change, see :mod:`skelid.estimators.checks.artefact`) widens the
         interval. None: no artefact term.
     noise : {'pooled', 'per_marker'}
         One noise level for every marker, or each marker (or declared group) its
         own, estimated from its residuals and used as weights in the fit
-        (see :mod:`skelid.estimators.noise`).
+        (see :mod:`skelid.estimators.checks.noise`).
     marker_groups : dict of str to list of str, optional
         With ``noise='per_marker'``: markers that share one noise level.
     jackknife : bool
-        Leave each marker out (one-step refits, :mod:`skelid.estimators.jackknife`) and
+        Leave each marker out (one-step refits, :mod:`skelid.estimators.uncertainty.jackknife`) and
         add the markers' disagreement beyond white noise to the covariance (only
         reported when ``artefact_rms`` is stated).
     placement_sd : float, optional
         Standard deviation (model units, per coordinate) of each marker's placement on its
         segment; it widens the interval of parameters informed by the placement rather than
-        by motion (:func:`skelid.estimators.checks.placement_information`). None: 5 mm for a
+        by motion (:func:`skelid.estimators.checks.misfit.placement_information`). None: 5 mm for a
         static trial, none otherwise.
     theta0 : (P,) float, optional
         Starting geometry (default: the prior centre).
@@ -1245,8 +1245,8 @@ class MarkerEstimator:
         """Parametric bootstrap: simulate from the fit, refit; the shifts and their linear parts.
 
         The noise of all ``n_boot`` data sets is drawn first, and the joint fit's first
-        Gauss-Newton step for each (:func:`~skelid.estimators.bootstrap.linear_response`) is the
-        control variate of its refit (:mod:`skelid.estimators.bootstrap`). Every refit starts at
+        Gauss-Newton step for each (:func:`~skelid.estimators.uncertainty.bootstrap.linear_response`) is the
+        control variate of its refit (:mod:`skelid.estimators.uncertainty.bootstrap`). Every refit starts at
         the simulated point (a start at refit 1's solution moved by the difference of the linear
         steps took more iterations, not fewer: the poses' own nonlinear parts differ from refit to
         refit), minimises the same cost (one motion-model penalty) and stops at steps below
@@ -1317,9 +1317,9 @@ class MarkerEstimator:
 def _outlying_markers(model: Model, y, fit, threshold: float, n_rounds: int = 4, ws=None) -> np.ndarray:
     """(T, M) bool: marker positions whose leverage-corrected residual is an outlier.
 
-    See :func:`skelid.estimators.screen.outlying_markers`.
+    See :func:`skelid.estimators.checks.outliers.outlying_markers`.
     """
-    from skelid.estimators.screen import outlying_markers
+    from skelid.estimators.checks.outliers import outlying_markers
 
     return outlying_markers(model, y, fit.theta, fit.pose, fit.frames_used, threshold, n_rounds, ws)
 

@@ -8,7 +8,7 @@ trial sees the same geometry ``theta``:
           \\qquad \\varepsilon_{ktm} \\sim N(0, \\sigma_{km}^2 I).
 
 **Joint estimate.** The trials are stacked along the frame axis and fitted at
-once (:func:`~skelid.estimators.joint.joint_fit` with ``blocks``: the
+once (:func:`~skelid.estimators.fit.joint.joint_fit` with ``blocks``: the
 low-pass motion-model penalty is block diagonal, so no smoothing crosses a trial
 boundary; weights ``1/sigma_{km}^2``). With ``S_k`` the information about
 ``theta`` from trial ``k`` and ``A = sum_k S_k``, the joint estimate's
@@ -69,7 +69,7 @@ skin-marker artefact would add to one trial's estimate,
           s_p = a \\sqrt{\\tfrac1K \\textstyle\\sum_k \\Sigma_{art,k}[p, p]},
 
 with ``Sigma_art,k`` the covariance of unit artefact in trial ``k``
-(:mod:`skelid.estimators.artefact`) and ``a = 10 mm`` (setting
+(:mod:`skelid.estimators.checks.artefact`) and ``a = 10 mm`` (setting
 ``prior_artefact_rms``), the lower end of the 10-30 mm reported for thigh skin
 markers. ``tau`` is then integrated out on a grid (:func:`tau_posterior`): the
 joint interval is the symmetric interval about the random-effects centre (at
@@ -98,7 +98,6 @@ from scipy.stats import t as student_t
 
 from skelid.data import MarkerData
 from skelid.errors import DataError, IdentifiabilityError, SkelidError
-from skelid.estimators.artefact import artefact_covariance
 from skelid.estimators.base import (
     Setting,
     check_fitted,
@@ -110,9 +109,10 @@ from skelid.estimators.base import (
     non_negative_or_none,
     one_of,
 )
-from skelid.estimators.joint import joint_fit
+from skelid.estimators.checks.artefact import artefact_covariance
+from skelid.estimators.fit.joint import joint_fit
 from skelid.estimators.marker import MarkerEstimator, _combine_normal_priors, marker_warnings, run_marker_fit
-from skelid.estimators.posterior import GaussianPosterior
+from skelid.estimators.uncertainty.posterior import GaussianPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_distances
 from skelid.result import FitResult, NoiseEstimate, Warning
@@ -725,7 +725,8 @@ class MultiTrialEstimator:
         """Half-normal scale of each parameter's between-trial sd: what the prior artefact does to one trial.
 
         ``s_p = a sqrt(mean_k Sigma_art,k[p, p])`` with ``Sigma_art,k`` the covariance that an artefact
-        of root-mean-square 1 adds to trial ``k``'s estimate (:func:`~skelid.estimators.artefact.artefact_covariance`)
+        of root-mean-square 1 adds to trial ``k``'s estimate
+        (:func:`~skelid.estimators.checks.artefact.artefact_covariance`)
         and ``a`` the ``prior_artefact_rms`` setting (default :data:`PRIOR_ARTEFACT_RMS_MM` in the model's units).
         """
         if self.between_trial != "prior" or len(ests) < 2:

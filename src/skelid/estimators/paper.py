@@ -65,8 +65,8 @@ from skelid.estimators.base import (
     positive_or_none,
     steps,
 )
-from skelid.estimators.pose import initial_pose
-from skelid.estimators.posterior import GridPosterior
+from skelid.estimators.fit.pose import initial_pose
+from skelid.estimators.uncertainty.posterior import GridPosterior
 from skelid.model.description import Model
 from skelid.model.kinematics import joint_positions
 from skelid.result import FitResult, NoiseEstimate, Warning

@@ -10,7 +10,7 @@ the posterior instead, with the same likelihood, motion model, noise level
 and bias correction.
 
 **Likelihood.** With the motion-model penalty ``K`` (the third-difference
-Whittaker penalty of :func:`skelid.estimators.joint.smoothing_penalty`, with
+Whittaker penalty of :func:`skelid.estimators.fit.joint.smoothing_penalty`, with
 the default fit's cutoffs), the penalised marker cost at parameters
 ``theta`` and poses ``q = (q_1..q_T)`` is
 
@@ -32,7 +32,7 @@ curvature differs by the residuals' second-order term, a few per cent at
 realistic noise).
 
 **Bias.** The penalised fit is biased by ``b`` to second order in the noise
-(:func:`skelid.estimators.joint.smoothed_bias`), a constant over the width of
+(:func:`skelid.estimators.fit.joint.smoothed_bias`), a constant over the width of
 the posterior to that order. Evaluating the likelihood at ``theta + b``
 centres it at ``theta_hat - b``, which is the default estimator's corrected
 estimate: under a flat prior this is exactly shifting every sample by
@@ -87,7 +87,7 @@ as near the fit. Final particles outside the near region are solved again to
 that tolerance and their weights multiplied by ``exp(l_solved - l_before) >=
 1`` (importance sampling), so no rough value is left in the final sample.
 
-**Sampler.** Tempered SMC from the prior (:mod:`skelid.estimators.smc`):
+**Sampler.** Tempered SMC from the prior (:mod:`skelid.estimators.uncertainty.smc`):
 adaptive temperatures keeping half the effective sample size, systematic
 resampling, random-walk Metropolis-Hastings moves scaled from the particles.
 
@@ -131,11 +131,11 @@ from skelid.estimators.base import (
     positive,
     positive_int,
 )
-from skelid.estimators.joint import _banded, _banded_solver
-from skelid.estimators.likelihood import frame_terms, pose_information
+from skelid.estimators.fit.joint import _banded, _banded_solver
+from skelid.estimators.fit.likelihood import frame_terms, pose_information
 from skelid.estimators.marker import N_BOOT, POOR_FRACTION, MarkerEstimator, _unit, marker_warnings, run_marker_fit
-from skelid.estimators.posterior import SamplePosterior, weighted_quantiles
-from skelid.estimators.smc import kish_ess, tempered_smc
+from skelid.estimators.uncertainty.posterior import SamplePosterior, weighted_quantiles
+from skelid.estimators.uncertainty.smc import kish_ess, tempered_smc
 from skelid.model.description import Model
 from skelid.model.kinematics import (
     Kinematics,

@@ -23,7 +23,7 @@ Each driver is compiled on first use and cached on disk by numba
 (``cache=True``); while it is not cached, :func:`ready` starts its compilation
 in a separate process and answers False, and the numpy path is used. The
 environment variable ``SKELID_NUMBA`` selects the path as for the pose kernel
-(:mod:`skelid.estimators._lm_kernel`): ``0`` always numpy, ``wait`` always
+(:mod:`skelid.estimators.fit._lm_kernel`): ``0`` always numpy, ``wait`` always
 compiled (compiling first if need be).
 """
 
@@ -339,7 +339,7 @@ if AVAILABLE:  # pragma: no branch
         """Diagonal ``(Q, Q)`` blocks of ``A^{-1}`` from ``A``'s banded Cholesky factor, one frame at a time.
 
         ``Ub[i, d] = U[i, i + d]`` (rows past the end zero). The same sweep as
-        :func:`skelid.estimators.joint._selected_inverse_by_blocks`, compiled: with frame
+        :func:`skelid.estimators.fit.joint._selected_inverse_by_blocks`, compiled: with frame
         ``I`` and the ``u`` rows ``F`` after it, ``Z_IF = -U_II^{-1} U_IF Z_FF`` and
         ``Z_II = U_II^{-1} (U_II^{-T} - U_IF Z_FI)``.
         """

@@ -118,7 +118,7 @@ class Workspace:
     model : Model
     compiled : bool
         Whether the pose fits of this workspace use the compiled kernel (decided
-        once, by whoever creates it; see :func:`skelid.estimators.pose.workspace`).
+        once, by whoever creates it; see :func:`skelid.estimators.fit.pose.workspace`).
 
     Examples
     --------
@@ -133,7 +133,7 @@ class Workspace:
         self.model = model
         self.plan = _build_plan(model)
         self.compiled = bool(compiled)
-        self.kernel_tables = None  # set by skelid.estimators.pose on the compiled path
+        self.kernel_tables = None  # set by skelid.estimators.fit.pose on the compiled path
         self.fk_tables = None  # the compiled kinematics' tables (False: numpy path), decided on first use
 
     @property

@@ -1,6 +1,6 @@
 """Compiled Levenberg-Marquardt pose fit (numba).
 
-The same iteration as the numpy path of :func:`skelid.estimators.pose.fit_pose`,
+The same iteration as the numpy path of :func:`skelid.estimators.fit.pose.fit_pose`,
 compiled. Every quantity is stored batch-last (``q (Q, B)``, ``J^T J (Q, Q, B)``)
 and every step of the forward kinematics, the normal equations ``J^T J``,
 ``J^T r`` and the Cholesky solve is a loop over the batch innermost, which the
@@ -713,39 +713,9 @@ def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
     """
     if not AVAILABLE:
         return False
-    code = f"from skelid.estimators._lm_kernel import _compile_here; _compile_here({planar!r})"
+    code = f"from skelid.estimators.fit._lm_warmup import compile_here; compile_here({planar!r})"
     return compile_in_background(_gate.warming, planar, code, lambda: _cached(planar), wait, timeout)
 
 
 # the module's names are looked up at each call (a test may replace them)
 _gate = Gate(lambda k: compiled(k), lambda k: _cached(k), lambda k, wait: warm(k, wait=wait), lambda: MODE)
-
-
-def _compile_here(planar: bool) -> None:
-    """Compile the driver into the cache in this process, unless another process has (one at a time)."""
-    with compile_lock("planar" if planar else "spatial"):
-        if not _cached(planar):
-            _fit_tiny_model(planar)
-
-
-def _fit_tiny_model(planar: bool) -> None:
-    """Compile (or load) the driver in this process by fitting a tiny model through the public path."""
-    from skelid.estimators.pose import fit_pose_logdet
-    from skelid.model import model_from_dict
-
-    joint = {"type": "revolute", "name": "j"} if planar else {"type": "hinge", "name": "j", "axis": [0, 0, 1]}
-    root = {"type": "free", "name": "root"}
-    d = {"model": {"name": "warm", "dim": 2 if planar else 3, "units": "m"},
-         "segments": [{"name": "a", "parent": "ground", "joint": root},
-                      {"name": "b", "parent": "a", "joint": dict(joint, position=[1.0, 0.0] if planar
-                                                                  else [1.0, 0.0, 0.0])}],
-         "markers": [{"name": f"m{k}", "segment": "ab"[k // 3],
-                      "position": ([0.1 * k, 0.2] if planar else [0.1 * k, 0.2, 0.05 * k])} for k in range(6)],
-         "parameters": [{"name": "len", "kind": "length", "joint": "j",
-                         "prior": {"type": "uniform", "lower": 0.5, "upper": 1.5}}]}
-    model = model_from_dict(d, "warm")
-    D = model.dim
-    y = np.random.default_rng(0).normal(size=(2, len(model.markers), D))
-    fit_pose_logdet(model, model.theta_center, y, np.zeros((2, model.n_pose)), n_iter=2)
-    if not compiled(planar):  # pragma: no cover - the model did not reach the kernel
-        raise RuntimeError("the warm-up fit did not use the compiled kernel")

@@ -43,15 +43,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skelid.estimators.joint import (
+from skelid.estimators.fit.joint import (
     _continuous_poses,
     penalty_band,
     smoothing_penalty,
     usable_frames,
     weighted_terms,
 )
-from skelid.estimators.likelihood import pose_information
-from skelid.estimators.normal import eliminate_poses, solve_normal
+from skelid.estimators.fit.likelihood import pose_information
+from skelid.estimators.uncertainty.normal import eliminate_poses, solve_normal
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace
 
@@ -117,8 +117,8 @@ def linear_response(model: Model, y, theta, q, noise, rate: float | None = None,
     noise : (B, T, M, D) float
         Noise draws.
     rate, cutoff : float, optional
-        With both, the refits' motion model (:func:`skelid.estimators.joint.smoothing_penalty`,
-        built from the Jacobians at ``(theta, q)``, as :func:`~skelid.estimators.joint.joint_fit`
+        With both, the refits' motion model (:func:`skelid.estimators.fit.joint.smoothing_penalty`,
+        built from the Jacobians at ``(theta, q)``, as :func:`~skelid.estimators.fit.joint.joint_fit`
         builds it from its starting poses).
     ws : Workspace, optional
 

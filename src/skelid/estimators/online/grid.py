@@ -61,9 +61,9 @@ from skelid.estimators.base import (
     positive_or_none,
     steps,
 )
-from skelid.estimators.joint import usable_frames
-from skelid.estimators.pose import FramePoseFitter, _model_size, initial_pose
-from skelid.estimators.posterior import GridPosterior
+from skelid.estimators.fit.joint import usable_frames
+from skelid.estimators.fit.pose import FramePoseFitter, _model_size, initial_pose
+from skelid.estimators.uncertainty.posterior import GridPosterior
 from skelid.model.description import Model
 from skelid.result import FitResult, NoiseEstimate, Warning
 

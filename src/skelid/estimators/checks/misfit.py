@@ -117,7 +117,7 @@ def _per_frame_projection(model: Model, theta, pose, y):
 
 def _projection_terms(model: Model, theta, pose, y):
     """:func:`_per_frame_projection`'s ``(r, Jq, Hinv)`` and the parameter Jacobian ``Jt (..., T, M*D, P)``."""
-    from skelid.estimators.likelihood import frame_terms
+    from skelid.estimators.fit.likelihood import frame_terms
 
     r, Jq, Jt = frame_terms(model, theta, pose, y)
     H = np.einsum("...kq,...kp->...qp", Jq, Jq)
@@ -305,7 +305,7 @@ def second_order_residual(model: Model, theta, pose, y, sigma: float, Jq, Hinv, 
     -------
     b : (T, K) float
     """
-    from skelid.estimators.likelihood import frame_terms
+    from skelid.estimators.fit.likelihood import frame_terms
 
     if ws is None:
         ws = Workspace(model)
@@ -574,7 +574,7 @@ def relaxed_estimate(variant: Model, fit, n_params: int) -> tuple[np.ndarray, np
     Parameters
     ----------
     variant : Model
-    fit : skelid.estimators.joint.JointFit
+    fit : skelid.estimators.fit.joint.JointFit
         The variant's joint least-squares fit.
     n_params : int
 
@@ -635,8 +635,8 @@ def placement_information(model: Model, y, theta, pose, used, R=None, weights=No
     dict
         ``share_still`` (P,) and ``cov_per_unit`` (P, P): the placement covariance for ``s = 1``.
     """
-    from skelid.estimators.joint import influence_rows, row_weights
-    from skelid.estimators.likelihood import frame_terms, projected_theta_jacobian
+    from skelid.estimators.fit.joint import influence_rows, row_weights
+    from skelid.estimators.fit.likelihood import frame_terms, projected_theta_jacobian
 
     used = np.asarray(used, bool)
     yu = np.where(used[:, None, None], y, np.nan)

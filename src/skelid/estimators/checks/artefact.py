@@ -16,7 +16,7 @@ displacement of a marker coordinate, which the user states (skin markers on the
 thigh: 10-30 mm; on the forearm or hand: a few mm). Linearising the fit, a
 marker perturbation ``delta`` moves the estimate by
 ``sum_t S^{-1} (K_t - J_t G_t)^T delta_t`` (the influence rows of the
-motion-model fit, see :func:`skelid.estimators.joint.smoothed_frame_scores`), so
+motion-model fit, see :func:`skelid.estimators.fit.joint.smoothed_frame_scores`), so
 the artefact adds
 
 .. math:: \\Sigma_{art} = g\\, \\mathrm{diag}(a^2/K_m)\\, g^\\top, \\qquad
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from skelid.estimators.likelihood import frame_terms
+from skelid.estimators.fit.likelihood import frame_terms
 from skelid.model.description import Model
 
 
@@ -82,7 +82,7 @@ def artefact_influence(model: Model, y, theta, pose, R, used):
     owner : (K,) int
         The marker coordinate (``m * D + d``) each basis function moves.
     """
-    from skelid.estimators.joint import influence_rows
+    from skelid.estimators.fit.joint import influence_rows
 
     _, Jq, Jt = frame_terms(model, theta, pose, y)
     A, _ = influence_rows(Jq, Jt, R)  # (T, m, P); rows of missing markers are zero

@@ -20,8 +20,8 @@ and eliminating the poses,
 
 ``S`` is the information about ``theta`` (unit noise); ``N^{-1} J^T epsilon`` is the estimate's
 linear response to the noise ``epsilon``, used by the bootstrap's control variate
-(:mod:`skelid.estimators.bootstrap`), the second-order term's draws and the sd along the
-profile (:mod:`skelid.estimators.singular`). One factorisation of ``A`` serves every right-hand
+(:mod:`skelid.estimators.uncertainty.bootstrap`), the second-order term's draws and the sd along the
+profile (:mod:`skelid.estimators.uncertainty.singular`). One factorisation of ``A`` serves every right-hand
 side.
 
 Example
@@ -46,7 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skelid.estimators.likelihood import pose_information
+from skelid.estimators.fit.likelihood import pose_information
 
 
 class Eliminated(NamedTuple):
@@ -78,7 +78,7 @@ def eliminate_poses(Jq, Jt, R=None, R_band=None) -> Eliminated:
     -------
     Eliminated
     """
-    from skelid.estimators.joint import _banded_solver
+    from skelid.estimators.fit.joint import _banded_solver
 
     Jq, Jt = np.asarray(Jq, float), np.asarray(Jt, float)
     T, _, Q = Jq.shape

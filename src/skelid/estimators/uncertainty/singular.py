@@ -1,7 +1,7 @@
 """Near-singular poses: a measured check of the local bias approximation, and a fallback that holds.
 
 Model: the joint fit estimates the geometry ``theta`` and every pose ``q_t``; its bias
-``b(theta, q)`` (second order, :func:`skelid.estimators.joint.smoothed_bias`) is evaluated
+``b(theta, q)`` (second order, :func:`skelid.estimators.fit.joint.smoothed_bias`) is evaluated
 at the estimate. The estimated poses carry an error,
 
 .. math:: \\hat q_t = q_t + e_t, \\qquad e_t \\approx N(0, \\Sigma_t),
@@ -48,7 +48,7 @@ trial, at twice the CPU (``benchmarks/results/bias_trigger.md``).
 by fixed-point steps of the indirect-inference equation ``E[theta* | theta_tilde] - theta_tilde
 = theta_hat - theta_tilde`` (a bias estimated where the truth probably is, not at the
 biased estimate). Each refit's shift has its first Gauss-Newton step as a control variate
-(exactly mean zero, known covariance: :mod:`skelid.estimators.bootstrap`), so a few refits
+(exactly mean zero, known covariance: :mod:`skelid.estimators.uncertainty.bootstrap`), so a few refits
 suffice. The covariance added to ``sigma^2 S^{-1}`` is the refits' excess spread, their Monte
 Carlo error ``Cov(s - l)/B``, and the square of half the disagreement between the two
 bias estimates (bootstrap and second order at ``q_tilde``): the bias estimate's own
@@ -108,9 +108,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skelid.estimators.bootstrap import Draws, as_draws, draws_bias, draws_covariance, draws_mc_covariance
-from skelid.estimators.likelihood import efficient_information, frame_terms
-from skelid.estimators.normal import eliminate_poses, solve_normal
+from skelid.estimators.fit.likelihood import efficient_information, frame_terms
+from skelid.estimators.uncertainty.bootstrap import Draws, as_draws, draws_bias, draws_covariance, draws_mc_covariance
+from skelid.estimators.uncertainty.normal import eliminate_poses, solve_normal
 from skelid.model.description import Model
 
 #: relative change of the information about a parameter, between the fitted and the deconvolved
@@ -147,7 +147,7 @@ def deconvolve_poses(q, variance, used=None) -> np.ndarray:
     q : (T, Q) float
         Estimated poses.
     variance : (T, Q) float
-        Variance of each estimate (e.g. from :func:`skelid.estimators.joint.smoothed_bias`'s
+        Variance of each estimate (e.g. from :func:`skelid.estimators.fit.joint.smoothed_bias`'s
         ``pose_var``).
     used : (T,) bool, optional
         Frames whose variance and scatter count (default: all).
@@ -257,7 +257,7 @@ def indirect_bias(refit, theta_hat, q_tilde, n_steps: int = FIXED_POINT_STEPS):
     refit : callable
         ``refit(theta, q)``: from ``B`` data sets simulated at ``(theta, q)``, always with the same
         noise draws (common random numbers), either the ``(B, P)`` estimates or a
-        :class:`~skelid.estimators.bootstrap.Draws` (shifts from ``theta`` with their linear
+        :class:`~skelid.estimators.uncertainty.bootstrap.Draws` (shifts from ``theta`` with their linear
         control variates).
     theta_hat : (P,) float
         The fit's estimate.
@@ -271,7 +271,7 @@ def indirect_bias(refit, theta_hat, q_tilde, n_steps: int = FIXED_POINT_STEPS):
     bias : (P,) float
         The last step's bias: the mean shift of its refits from the geometry they were simulated at,
         less the mean of the control variates where there are some
-        (:func:`~skelid.estimators.bootstrap.draws_bias`).
+        (:func:`~skelid.estimators.uncertainty.bootstrap.draws_bias`).
     draws : Draws
         That step's shifts (and control variates).
     """
@@ -293,7 +293,7 @@ def fallback_covariance(shifts, plain, disagreement) -> np.ndarray:
     error (the bias is a mean of ``B`` shifts: ``C*/B``, or ``Cov(s - l)/B`` with control
     variates ``l``), and ``d d^T / 4`` for the disagreement ``d`` between two estimates of the
     bias (the bias estimate's own uncertainty). With control variates the refits' covariance is
-    ``C* = Var(l) + Cov(s) - Cov(l)`` (:func:`~skelid.estimators.bootstrap.draws_covariance`).
+    ``C* = Var(l) + Cov(s) - Cov(l)`` (:func:`~skelid.estimators.uncertainty.bootstrap.draws_covariance`).
 
     Parameters
     ----------
@@ -321,7 +321,7 @@ def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weigh
               \\delta_1\\, r_i\\big), \\qquad C = (J^\\top J + R)^{-1},
 
     with ``h_i(delta) = delta^T nabla^2 f_i delta`` and ``r = epsilon - J delta_1``. Its mean is the
-    second-order bias (:func:`skelid.estimators.joint.smoothed_bias`); its spread is what the
+    second-order bias (:func:`skelid.estimators.fit.joint.smoothed_bias`); its spread is what the
     delta-method covariance ``sigma^2 S^{-1}`` leaves out. Near a singular pose the pose errors are
     large and ``h`` is far from its mean, so the spread of ``delta_2`` is no longer small. The draws
     are exact Gaussian simulations of ``delta_2``'s ``theta`` part (``epsilon`` drawn, ``delta_1``
@@ -349,7 +349,7 @@ def quadratic_term_draws(model: Model, y, theta, q, sigma2: float, R=None, weigh
     (n_draws, P) float
         ``theta`` part of ``delta_2`` for each draw.
     """
-    from skelid.estimators.joint import row_weights, weighted_terms
+    from skelid.estimators.fit.joint import row_weights, weighted_terms
     from skelid.model.kinematics import Workspace, stacked_jacobian
 
     rng = np.random.default_rng() if rng is None else rng
@@ -522,7 +522,7 @@ def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
     -------
     (T, Q) float or None
     """
-    from skelid.estimators.pose import fit_pose
+    from skelid.estimators.fit.pose import fit_pose
 
     joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
     start = np.array(q, float)
@@ -584,7 +584,7 @@ PROFILE_Z = 1.959964
 
 def _schur(model: Model, theta, q, y, sw, R, ws=None):
     """``S`` (P, P), the information about ``theta`` with the poses eliminated, and ``G`` (T, Q, P)."""
-    from skelid.estimators.joint import weighted_terms
+    from skelid.estimators.fit.joint import weighted_terms
 
     _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
     el = eliminate_poses(Jq, Jt, R)
@@ -626,7 +626,7 @@ def profile_sd_ratio(model: Model, y, theta, q, sigma: float, R=None, weights=No
     -------
     (P,) float
     """
-    from skelid.estimators.joint import row_weights
+    from skelid.estimators.fit.joint import row_weights
 
     y = np.asarray(y, float)
     theta = np.asarray(theta, float)

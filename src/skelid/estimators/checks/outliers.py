@@ -45,8 +45,8 @@ from scipy.optimize import brentq
 from scipy.special import chdtr
 from scipy.stats import chi2, norm
 
-from skelid.estimators.likelihood import frame_terms
-from skelid.estimators.pose import fit_pose
+from skelid.estimators.fit.likelihood import frame_terms
+from skelid.estimators.fit.pose import fit_pose
 from skelid.model.description import Model
 
 #: residual variance fraction (eigenvalue of ``I - H`` on a marker's block) below which a direction

@@ -44,8 +44,8 @@ marker's pull (within 20 % of the literal refits' shifts in the tests):
           S_{(-m)} = \\sum_t K_{t,(-m)}^\\top A_{t,(-m)} ,
 
 with ``g_t`` the per-frame reduced scores and ``A_t`` the influence rows of
-the motion-model fit (:func:`skelid.estimators.joint.smoothed_frame_scores`,
-:func:`skelid.estimators.joint.influence_rows`) recomputed with the marker's
+the motion-model fit (:func:`skelid.estimators.fit.joint.smoothed_frame_scores`,
+:func:`skelid.estimators.fit.joint.influence_rows`) recomputed with the marker's
 rows removed (so its poses' projection is the one of the deleted fit).
 :func:`literal_jackknife` refits instead, as a check.
 
@@ -100,8 +100,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.stats import chi2
 
-from skelid.estimators.joint import _banded_solver, joint_fit, penalty_band, row_weights
-from skelid.estimators.likelihood import frame_terms, pose_information
+from skelid.estimators.fit.joint import _banded_solver, joint_fit, penalty_band, row_weights
+from skelid.estimators.fit.likelihood import frame_terms, pose_information
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, marker_positions
 
@@ -442,7 +442,7 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
     ----------
     y : (T, M, D) float
         Markers the fit used (NaN elsewhere).
-    fit : skelid.estimators.joint.JointFit
+    fit : skelid.estimators.fit.joint.JointFit
     sigma : float
         The fit's noise level (for the white-noise null).
     cov : (P, P) float

@@ -16,13 +16,13 @@ apportioned to the markers by the leverage of the weighted fit: with
 ``H = J (J^T J + R)^{-1} J^T`` (``J`` the weighted Jacobian of all unknowns,
 ``R`` the motion-model penalty), the residual of row ``i`` has expectation
 ``E r_i^2 = sigma_i^2 (1 - H_ii)`` when the weights are right. Through the
-arrow structure of ``J`` (poses eliminated, see :mod:`skelid.estimators.joint`)
+arrow structure of ``J`` (poses eliminated, see :mod:`skelid.estimators.fit.joint`)
 
 .. math:: H_{ii} = j_i^\\top [A^{-1}]_{tt}\\, j_i + a_i^\\top S^{-1} a_i, \\qquad
           A = \\mathrm{blockdiag}(J_t^\\top J_t) + R,
 
 with ``j_i`` the row's pose Jacobian, ``a_i`` its influence row
-(:func:`~skelid.estimators.joint.influence_rows`) and ``S`` the information
+(:func:`~skelid.estimators.fit.joint.influence_rows`) and ``S`` the information
 about ``theta``. So
 
 .. math:: \\hat\\sigma_m^2 = \\frac{\\sum_{t,d} r_{tmd}^2}{n_m - \\sum_{t,d} H_{tmd,tmd}} ,
@@ -33,7 +33,7 @@ REML-like estimating equation for the variance components of a linear model).
 Example
 -------
 >>> import numpy as np
->>> from skelid.estimators.noise import group_sigma
+>>> from skelid.estimators.checks.noise import group_sigma
 >>> s, dof = group_sigma(np.array([4.0, 9.0]), np.array([1.0, 1.0]), np.array([0, 1]))
 >>> [float(v) for v in s]
 [2.0, 3.0]
@@ -46,7 +46,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 
 from skelid.errors import ModelError
-from skelid.estimators.joint import (
+from skelid.estimators.fit.joint import (
     JointFit,
     _banded_system,
     band_inverse_blocks,
@@ -54,7 +54,7 @@ from skelid.estimators.joint import (
     row_weights,
     weighted_terms,
 )
-from skelid.estimators.likelihood import pose_information
+from skelid.estimators.fit.likelihood import pose_information
 from skelid.model.description import Model
 
 #: a marker's sigma is kept within this factor of the pooled one (a marker that the fit

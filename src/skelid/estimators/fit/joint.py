@@ -2,7 +2,7 @@
 
 **Joint least squares.** Levenberg-Marquardt on ``(theta, q_1..q_T)``. Each
 iteration eliminates the poses through the Schur complement (see
-:mod:`skelid.estimators.likelihood`), so the cost is linear in ``T``:
+:mod:`skelid.estimators.fit.likelihood`), so the cost is linear in ``T``:
 
 .. math::
 
@@ -41,7 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from skelid.estimators.likelihood import frame_terms, pose_information, projected_theta_jacobian
+from skelid.estimators.fit.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from skelid.model import _fk_kernel
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, marker_jacobian, marker_positions, stacked_jacobian
@@ -452,7 +452,7 @@ def row_weights(weights, y) -> np.ndarray | None:
 
 
 def weighted_terms(model: Model, theta, q, y, sw=None, ws: Workspace | None = None):
-    """:func:`~skelid.estimators.likelihood.frame_terms` with rows scaled by ``sw`` (T, M*D)."""
+    """:func:`~skelid.estimators.fit.likelihood.frame_terms` with rows scaled by ``sw`` (T, M*D)."""
     r, Jq, Jt = frame_terms(model, theta, q, y, ws)
     if sw is None:
         return r, Jq, Jt
@@ -558,7 +558,7 @@ def joint_fit(model: Model, y, theta0, q0, n_iter: int = 100, tol: float = 1e-10
         Markers (model units), NaN where missing.
     theta0 : (P,) float
     q0 : (T, Q) float
-        Starting poses (e.g. from :func:`skelid.estimators.pose.track_poses`).
+        Starting poses (e.g. from :func:`skelid.estimators.fit.pose.track_poses`).
     bounds : (lower (P,), upper (P,)), optional
         Keep ``theta`` inside these bounds (steps are clipped).
     rate, cutoff : float, optional

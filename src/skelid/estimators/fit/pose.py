@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from skelid.estimators import _lm_kernel
+from skelid.estimators.fit import _lm_kernel
 from skelid.model.description import Model
 from skelid.model.kinematics import (
     Workspace,
@@ -54,7 +54,7 @@ def workspace(model: Model) -> Workspace:
     """A :class:`~skelid.model.kinematics.Workspace` for ``model`` whose pose fits take one path.
 
     The compiled kernel is used if it can run now (see
-    :func:`skelid.estimators._lm_kernel.ready`: numba installed, not
+    :func:`skelid.estimators.fit._lm_kernel.ready`: numba installed, not
     ``SKELID_NUMBA=0``, the kernel compiled or in numba's cache); otherwise
     every pose fit with this workspace takes the numpy path, even if the
     kernel's background compilation finishes meanwhile. An estimator creates
@@ -104,7 +104,7 @@ def fit_pose(model: Model, theta, y, q0, n_iter: int = 30, tol: float = 1e-10, d
     iterate together until every one has stopped improving (relative decrease
     below ``tol``) or is stuck (``\\lambda > 10^8``). A compiled kernel runs
     the same iteration once it is compiled (see
-    :mod:`skelid.estimators._lm_kernel`); set ``SKELID_NUMBA=0`` to use numpy.
+    :mod:`skelid.estimators.fit._lm_kernel`); set ``SKELID_NUMBA=0`` to use numpy.
     """
     q, cost, _ = _fit(model, theta, y, q0, n_iter, tol, damping, False, ws)
     return q, cost

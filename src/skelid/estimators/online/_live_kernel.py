@@ -5,7 +5,7 @@ The live session's Gaussian form linearises each frame at ``(theta, q)``:
 :func:`~skelid.model.kinematics.marker_jacobian` spends its time in Python
 overheads of many tiny array operations; this module computes the same three
 arrays in one compiled call, from the forward kinematics of the compiled pose
-kernel (:mod:`skelid.estimators._lm_kernel`, at a batch of one) and
+kernel (:mod:`skelid.estimators.fit._lm_kernel`, at a batch of one) and
 
 .. math::
 
@@ -48,7 +48,7 @@ import time
 import numpy as np
 
 from skelid._numba import AVAILABLE  # the path switch shared by every compiled kernel
-from skelid.estimators import _lm_kernel
+from skelid.estimators.fit import _lm_kernel
 
 
 def tables(ws) -> tuple | None:
@@ -71,7 +71,7 @@ def tables(ws) -> tuple | None:
 
 
 if AVAILABLE:  # pragma: no branch
-    from skelid.estimators._lm_kernel import (
+    from skelid.estimators.fit._lm_kernel import (
         _kinematics_planar,
         _kinematics_spatial,
         _lm_planar,
@@ -559,7 +559,7 @@ def numba_typeof(a):
 def ready() -> bool:
     """Whether :func:`linearise` and :func:`step` can run now without compiling in this process.
 
-    As :func:`skelid.estimators._lm_kernel.ready`: False without numba (or with
+    As :func:`skelid.estimators.fit._lm_kernel.ready`: False without numba (or with
     ``SKELID_NUMBA=0``); with ``SKELID_NUMBA=wait`` compiles first if need be;
     otherwise starts the compilation in a background process (once) and
     answers False until numba's cache holds it.
@@ -587,7 +587,7 @@ def warm(wait: bool = True, timeout: float = 600.0) -> bool:
     """Compile :func:`linearise` and :func:`step` into numba's disk cache in a separate process."""
     if not AVAILABLE:
         return False
-    code = "from skelid.estimators._live_kernel import _compile_here; _compile_here()"
+    code = "from skelid.estimators.online._live_kernel import _compile_here; _compile_here()"
     return _lm_kernel.compile_in_background(_warming, True, code, _cached, wait, timeout)
 
 

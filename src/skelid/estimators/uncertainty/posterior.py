@@ -8,7 +8,7 @@ parameters, kept as normalised log weights. Bayes' rule for one frame is
 so products of many small likelihoods never underflow. :class:`GaussianPosterior`
 is a multivariate normal (a Laplace approximation around a batch estimate).
 :class:`SamplePosterior` is a cloud of weighted draws ``(theta_i, W_i)`` (from a
-sampler such as :mod:`skelid.estimators.smc`): expectations are weighted sums,
+sampler such as :mod:`skelid.estimators.uncertainty.smc`): expectations are weighted sums,
 ``E f(theta) ~ sum_i W_i f(theta_i)``, so it can hold any shape (skewed, bounded,
 curved). All three offer ``map``, ``mean``, ``sd``, ``credible_interval(level)``,
 ``samples(n, rng)`` and ``summary()`` and are immutable: an update returns a new

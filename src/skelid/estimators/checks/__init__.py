@@ -1,0 +1,9 @@
+"""Checks on a fit: what the data say about the fit's own assumptions.
+
+* :mod:`.misfit` -- model misfit tests, joint ranges, the still-joint and rolling-centre checks.
+* :mod:`.outliers` -- the outlier screen with each frame's residual degrees of freedom.
+* :mod:`.noise` -- per-marker (or per-group) noise levels.
+* :mod:`.artefact` -- soft-tissue artefact as a random effect of stated size.
+
+Nothing here imports the estimators above it.
+"""
