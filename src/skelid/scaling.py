@@ -494,8 +494,8 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     -------
     JointOffsets
     """
-    from skelid.estimators.likelihood import frame_terms, projected_theta_jacobian
-    from skelid.estimators.pose import fit_pose, workspace
+    from skelid.estimators.fit.likelihood import frame_terms, projected_theta_jacobian
+    from skelid.estimators.fit.pose import fit_pose, workspace
 
     ws = workspace(model)
     lo = np.array([p.prior.lower for p in model.parameters])
@@ -585,7 +585,7 @@ def _posterior(model: Model, info, prior_precision, rel_tol: float = 1e-10):
 
 def _joint_refinement(model: Model, theta, trials, sigma, seed) -> JointOffsets:
     """:func:`fit_scales_and_offsets` on every frame of ``trials``, poses tracked at ``theta`` first."""
-    from skelid.estimators.pose import track_poses
+    from skelid.estimators.fit.pose import track_poses
 
     rng = np.random.default_rng(seed)
     ys = [t.positions for t in trials]
