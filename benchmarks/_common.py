@@ -47,14 +47,15 @@ def source_key(model: Path, skip: tuple[str, ...] = ()) -> str:
     return h.hexdigest()[:16]
 
 
-def write_results(out: Path, res: dict, markdown: Callable[[dict], str]) -> None:
-    """Write ``out.json`` and ``out.md`` and print the report."""
+def write_results(out: Path, res: dict, markdown: Callable[[dict], str], quiet: bool = False) -> None:
+    """Write ``out.json`` and ``out.md`` and print the report (not when ``quiet``)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
     text = markdown(res)
     out.with_suffix(".md").write_text(text)
-    print(text)
+    if not quiet:
+        print(text)
 
 
 def rewrite_markdown(out: Path, markdown: Callable[[dict], str]) -> None:

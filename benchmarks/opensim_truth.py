@@ -466,8 +466,10 @@ def summarise(draws: list[dict]) -> dict:
 def markdown(res: dict) -> str:
     p = res["provenance"]
     lines = ["# OpenSim-generated truth: skelid's OpenSim scaling against known geometry", "",
-             f"{'REDUCED run (--quick). ' if res['quick'] else ''}{res['reps']} draws per cell (geometry drawn per "
-             f"draw). Commit `{p['commit'][:10]}`, {p['date_utc']}, {p['cpu_model']}, {p['cores']} cores, load "
+             f"{'REDUCED run (--quick). ' if res['quick'] else ''}{res['draws_done']} of {res['draws_planned']} "
+             f"planned draws done ({res['reps']} planned per cell; each cell's own count is in its heading; "
+             f"geometry drawn per draw). Commit `{p['commit'][:10]}`, {p['date_utc']}, {p['cpu_model']}, "
+             f"{p['cores']} cores, load "
              f"{p['load_average_1_5_15']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
              "Cell = truth / fit / design / noise sd (mm). Truth `bodies`: one factor per body; `axes`: one per "
              "axis. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
@@ -547,26 +549,30 @@ def main(argv=None):
         g["fits"] += [f] if f not in g["fits"] else []
     w0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:
-        tasks = []
-        for gi, ((t, n), g) in enumerate(sorted(groups.items())):
-            for r in range(reps):
+        tasks = []  # rep by rep, so that every cell has about as many draws whenever the run stops
+        for r in range(reps):
+            for gi, ((t, n), g) in enumerate(sorted(groups.items())):
                 seed = args.seed + 1000 * r + gi
                 tasks.append((t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer, work))
+        keep = {f"{t}/{f}/{d}/{n:g}" for t, f, d, n in cells}
+        draws = []
+
+        def record(draw, k):  # the results so far are written after every draw
+            draw["fits"] = {key: v for key, v in draw["fits"].items() if key in keep}
+            draws.append(draw)
+            print(f"draw {k + 1}/{len(tasks)} {draw['truth_kind']} noise {draw['noise']:g}: "
+                  f"{time.perf_counter() - w0:.0f} s", flush=True)
+            res = {"provenance": prov, "quick": bool(args.quick), "reps": reps, "draws_done": len(draws),
+                   "draws_planned": len(tasks), "wall_s": time.perf_counter() - w0, "cells": summarise(draws),
+                   "draws": draws}
+            write_results(args.out, _finite(res), markdown, quiet=k + 1 < len(tasks))
         if args.jobs > 1:
             with ProcessPoolExecutor(args.jobs) as pool:
-                draws = list(pool.map(run_draw, tasks))
+                for k, draw in enumerate(pool.map(run_draw, tasks)):
+                    record(draw, k)
         else:
-            draws = []
             for k, task in enumerate(tasks):
-                draws.append(run_draw(task))
-                print(f"draw {k + 1}/{len(tasks)} {task[0]} noise {task[1]:g}: "
-                      f"{time.perf_counter() - w0:.0f} s", flush=True)
-    keep = {f"{t}/{f}/{d}/{n:g}" for t, f, d, n in cells}
-    for d in draws:
-        d["fits"] = {k: v for k, v in d["fits"].items() if k in keep}
-    res = {"provenance": prov, "quick": bool(args.quick), "reps": reps, "wall_s": time.perf_counter() - w0,
-           "cells": summarise(draws), "draws": draws}
-    write_results(args.out, _finite(res), markdown)
+                record(run_draw(task), k)
 
 
 def _finite(obj):
