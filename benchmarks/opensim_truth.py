@@ -477,7 +477,7 @@ def markdown(res: dict) -> str:
              "JSON). ScaleTool rows: OpenSim's measurement-based scaling on the same static trial (error of each "
              "axis' factor against the truth's).", ""]
     for key, c in res["cells"].items():
-        head = f"## {key}: {c['n']} draws, {c['failed']} failed, {c['cpu_s_per_fit']:.1f} s CPU per fit"
+        head = f"## {key}: {c['n']} draws, {c['failed']} failed, {_f(c['cpu_s_per_fit'], 1)} s CPU per fit"
         if c.get("sigma_mean") is not None:
             head += f", mean sigma {c['sigma_mean']:.3f} mm, warned in {c['share_warned']:.0%}"
         lines += [head, ""]
@@ -489,7 +489,7 @@ def markdown(res: dict) -> str:
         if st:
             lines += ["| quantity | bias | RMSE |", "|---|---|---|"]
             for q, r in c["rows"].items():
-                lines.append(f"| {q} | {r['bias']:.4f} | {r['rmse']:.4f} |")
+                lines.append(f"| {q} | {_f(r['bias'], 4)} | {_f(r['rmse'], 4)} |")
             lines.append("")
             continue
         lines += ["| quantity | bias | bias/CRLB | RMSE | RMSE/CRLB | RMSE/mean sd | coverage 95 % "
@@ -501,17 +501,36 @@ def markdown(res: dict) -> str:
                           "bias"):
                     pooled.setdefault(k, []).append(r[k])
                 continue
-            lines.append(f"| {q} | {r['bias']:.4f} | {r['bias_over_crlb']:.2f} | {r['rmse']:.4f} | "
-                         f"{r['rmse_over_crlb']:.2f} | {r['rmse_over_sd']:.2f} | {r['coverage95']:.2f} | "
-                         f"{r['sd_ratio']:.2f} |")
+            lines.append(f"| {q} | {_f(r['bias'], 4)} | {_f(r['bias_over_crlb'])} | {_f(r['rmse'], 4)} | "
+                         f"{_f(r['rmse_over_crlb'])} | {_f(r['rmse_over_sd'])} | {_f(r['coverage95'])} | "
+                         f"{_f(r['sd_ratio'])} |")
         if pooled:
-            m = {k: float(np.nanmean(v)) for k, v in pooled.items()}
-            lo = float(np.nanmin(pooled["coverage95"]))
-            lines.append(f"| offsets, mean over {len(pooled['bias'])} (mm) | {m['bias']:.3f} | "
-                         f"{m['bias_over_crlb']:.2f} | {m['rmse']:.3f} | {m['rmse_over_crlb']:.2f} | "
-                         f"{m['rmse_over_sd']:.2f} | {m['coverage95']:.2f} (min {lo:.2f}) | {m['sd_ratio']:.2f} |")
+            m = {k: _nanmean(v) for k, v in pooled.items()}
+            lo = _nanmin(pooled["coverage95"])
+            lines.append(f"| offsets, mean over {len(pooled['bias'])} (mm) | {_f(m['bias'], 3)} | "
+                         f"{_f(m['bias_over_crlb'])} | {_f(m['rmse'], 3)} | {_f(m['rmse_over_crlb'])} | "
+                         f"{_f(m['rmse_over_sd'])} | {_f(m['coverage95'])} (min {_f(lo)}) | {_f(m['sd_ratio'])} |")
         lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _f(v, digits: int = 2) -> str:
+    """A number for the table; '-' where it is undefined (one draw, a zero sd)."""
+    if v is None or not np.isfinite(v):
+        return "-"
+    return f"{v:.{digits}f}"
+
+
+def _nanmean(v) -> float:
+    a = np.array([np.nan if x is None else x for x in v], float)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
+def _nanmin(v) -> float:
+    a = np.array([np.nan if x is None else x for x in v], float)
+    a = a[np.isfinite(a)]
+    return float(a.min()) if a.size else float("nan")
 
 
 def parse_cells(cells) -> list[tuple]:
