@@ -27,7 +27,11 @@ The fit goes in three steps:
    run once more with every marker where step 3 put it; its checks (model
    misfit, serially correlated residuals, markers that disagree) give the
    warnings, and where they widen its interval the joint interval is widened by
-   the same ratio (:func:`check_widening`).
+   the same ratio (:func:`check_widening`). With one factor per body
+   (``scale='bodies'``), a score test per body against one factor per axis
+   (:func:`one_factor_test`, Bonferroni over the bodies at 1 %) picks one factor
+   per axis for the bodies where the data contradict one, and the joint fit is
+   run again with them.
 
 Steps 1 and 2 only give the start (and, with ``joint=False``, the answer: the
 scales with the markers at their nominal places and the offsets placed after,
@@ -261,17 +265,34 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         if joint and scale != "none" and any(p.kind == "marker_offset" for p in model.parameters):
             with warnings.catch_warnings(), _one_blas_thread():
                 warnings.simplefilter("ignore", SkelidWarning)
+                ys = [_select(t, model.marker_names).positions for t in given]
                 jo = _joint_refinement(model, theta, [_select(t, model.marker_names) for t in given], sigma, seed)
+                axes_note, tests = None, {}
+                if scale == "bodies":  # where the data contradict one factor per body, one factor per axis
+                    per_axis = osim_parameters(original, info, "axes", "offsets", present)
+                    tests = one_factor_test(model, per_axis, jo, ys)
+                    flagged = [b for b, t in tests.items() if t["p"] < AXES_TEST_LEVEL / len(tests)]
+                    if flagged:
+                        prev, model = model, _mixed_scales(model, per_axis, flagged)
+                        jo = fit_scales_and_offsets(model, ys, _map_theta(jo.theta, prev, model), jo.poses, sigma)
+                        axes_note = (f"one scale factor for {', '.join(flagged)} is contradicted by the data (score "
+                                     "test against one factor per axis, p = "
+                                     + ", ".join(f"{tests[b]['p']:.1e}" for b in flagged)
+                                     + "): those bodies were fitted with one factor per axis")
                 # the checks (misfit, serial correlation, marker jackknife) of the scale fit with every marker
                 # where the joint fit put it: they widen the joint interval, never narrow it
                 placed = _with_marker_positions(original, _placed_positions(model, jo.theta))
-                m3 = osim_parameters(placed, info, scale, "none", present)
+                m3 = _scales_only(model, placed)
                 est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in trials], data, multi,
                                               method, sigma, seed)
             widen = np.ones(model.n_params)
             widen[:m3.n_params] = check_widening(est, m3)
             jo = replace(jo, cov=jo.cov * np.outer(widen, widen))
             theta, res, joint_fit = jo.theta, _joint_result(model, jo, res3, widen), jo
+            if tests:
+                res["one_factor_test"] = tests
+            if axes_note:
+                res["warnings"] = list(res.get("warnings", [])) + [axes_note]
     seconds = time.perf_counter() - t0
     warns = []
     if info.marker_set_found_by:
@@ -655,6 +676,84 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen) -> dict:
         out["warnings"] = list(out.get("warnings", [])) + [
             f"the joint fit of scales and marker offsets did not converge in {jo.n_iter} iterations"]
     return out
+
+
+#: family-wise level of the score test of one scale factor per body against one per axis (split over the bodies)
+AXES_TEST_LEVEL = 0.01
+
+
+def one_factor_test(model: Model, per_axis: Model, jo: JointOffsets, ys) -> dict:
+    """Rao's score test, per body, of one scale factor against one per axis, at the joint fit.
+
+    At the one-factor MAP the per-axis model's efficient score ``g`` (poses profiled out, the
+    priors' gradient included) is zero along each body's common factor; its other two
+    directions test the one-factor model: ``T_b = g_b^T [H^{-1}]_{bb} g_b ~ chi^2_2`` with ``H``
+    the per-axis posterior precision (:func:`_posterior`).
+
+    Returns
+    -------
+    dict
+        Body -> ``{"stat": T_b, "p": p-value}``.
+    """
+    from scipy.stats import chi2
+
+    from skelid.estimators.fit.likelihood import frame_terms, projected_theta_jacobian
+
+    th = _map_theta(jo.theta, model, per_axis)
+    S, g = 0.0, 0.0
+    for y, q, sig in zip(ys, jo.poses, jo.sigma, strict=True):
+        r, Jq, Jt = frame_terms(per_axis, th, q, y)
+        Kp = projected_theta_jacobian(Jq, Jt)
+        S = S + np.einsum("tkp,tkq->pq", Kp, Kp) / sig**2
+        g = g + np.einsum("tkp,tk->p", Kp, r) / sig**2
+    gp, hp = _prior_terms(per_axis, th)
+    _, cov, _, _ = _posterior(per_axis, S, hp)
+    g = g - gp
+    out = {}
+    for b in dict.fromkeys(p.target for p in per_axis.parameters if p.kind == "scale"):
+        k = [i for i, p in enumerate(per_axis.parameters) if p.kind == "scale" and p.target == b]
+        t = float(g[k] @ cov[np.ix_(k, k)] @ g[k])
+        out[b] = {"stat": t, "p": float(chi2.sf(t, len(k) - 1))}
+    return out
+
+
+def _map_theta(theta, src: Model, dst: Model) -> np.ndarray:
+    """Values of ``dst``'s parameters from ``src``'s: by name, a body's axes from its one factor."""
+    idx = {p.name: k for k, p in enumerate(src.parameters)}
+    one = {p.target: theta[k] for k, p in enumerate(src.parameters) if p.kind == "scale" and p.axis is None}
+    axis = {(p.target, p.axis): theta[k] for k, p in enumerate(src.parameters) if p.kind == "scale"
+            and p.axis is not None}
+    out = np.zeros(dst.n_params)
+    for k, p in enumerate(dst.parameters):
+        if p.name in idx:
+            out[k] = theta[idx[p.name]]
+        elif p.kind == "scale" and p.axis is not None:
+            out[k] = one.get(p.target, 1.0)
+        elif p.kind == "scale":
+            out[k] = float(np.mean([v for (b, _), v in axis.items() if b == p.target] or [1.0]))
+    return out
+
+
+def _mixed_scales(model: Model, per_axis: Model, bodies) -> Model:
+    """``model`` with the one-factor scales of ``bodies`` replaced by ``per_axis``'s three."""
+    bodies = set(bodies)
+    scales = []
+    for p in model.parameters:
+        if p.kind != "scale":
+            continue
+        if p.target in bodies:
+            scales += [q for q in per_axis.parameters if q.kind == "scale" and q.target == p.target]
+        else:
+            scales.append(p)
+    rest = tuple(p for p in model.parameters if p.kind != "scale")
+    return Model(model.name, model.dim, model.units, model.segments, model.markers, tuple(scales) + rest,
+                 model.description)
+
+
+def _scales_only(model: Model, placed: Model) -> Model:
+    """The scale parameters of ``model`` on ``placed``'s markers (the scale fit's model)."""
+    return Model(placed.name, placed.dim, placed.units, placed.segments, placed.markers,
+                 tuple(p for p in model.parameters if p.kind == "scale"), model.description)
 
 
 def place_markers(model: Model, theta, pose, y, frames, movable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
