@@ -297,3 +297,25 @@ def test_batch_and_other_commands_read_an_osim_model_with_body_scales(shared_dat
     model = resolve_model(shared_data / "opensim-subject01" / "gait2354_simbody.osim")
     assert {p.kind for p in model.parameters} == {"scale"} and len(model.parameters) == 8
     assert len(model.markers) == 39  # the MarkerSet found beside the model
+
+
+def test_scales_and_offsets_fitted_together_recover_the_identified_scales(leg):
+    """Near noise-free data with moved markers: the joint fit recovers the scale the data determine (the
+    thigh's, between the functional hip and knee centres); the shank's (a leaf) and the pelvis' (one hip
+    only: a shift of all its markers mimics it) are left to the offsets' prior, and said so."""
+    truth = {"pelvis": 1.06, "thigh": 1.1, "shank": 0.95}
+    moved = {"thigh1": (6.0, -4.0, 3.0), "shank3": (-5.0, 2.0, 4.0), "pelvis0": (0.0, 3.0, -2.0),
+             "thigh3": (-3.0, 0.0, 8.0)}
+    trials = _trials(leg, truth, moved)
+    fit = fit_osim(leg, trials[1:], scale="bodies", markers="offsets")
+    assert fit.joint is not None and fit.joint.converged
+    got = {p.target: fit.theta[k] for k, p in enumerate(fit.model.parameters) if p.kind == "scale"}
+    assert got["thigh"] == pytest.approx(truth["thigh"], abs=1e-4)
+    assert any("do not determine scale_pelvis, scale_shank" in w for w in fit.warnings)
+    assert fit.result["scale_shank"]["sd"] > 0.01  # the prior's width, not rounding
+
+
+def test_a_lone_trial_is_not_thinned_as_a_static_one(leg):
+    trials = _trials(leg, {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}, frames=(8, 40))
+    fit = fit_osim(leg, trials[1:], scale="bodies", markers="none")
+    assert fit.data.meta["trial_frames_used"] == [40]

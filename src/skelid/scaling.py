@@ -9,17 +9,33 @@ and the coupled translations of the joints it is the parent of, and a
 .. math:: r_m = S_{b(m)}\\, r_m^0 + \\delta_m, \\qquad
           \\log s_b \\sim N(0, 0.15^2), \\quad \\delta_m \\sim N(0, (10\\,\\mathrm{mm})^2 I).
 
-The scale factors come from skelid's ``marker`` method (poses and geometry by
-joint least squares, intervals from the Laplace approximation) with the
-markers at their nominal places; with several trials, from its multi-trial
-form (each trial fitted alone, then all at once with one geometry, the
-between-trial spread added to the interval; see
-:mod:`skelid.estimators.multitrial`). The offsets are then placed as OpenSim's
-MarkerPlacer places them: each free marker moves to where the first (static)
-trial saw it in the fitted poses, with a standard error from the frame
-scatter (:func:`place_markers`). They are not fitted jointly with the scales:
-the joint fit has no prior penalty, and offsets of every marker of a body
-trade with the body's pose, so the data alone cannot identify them.
+The fit goes in three steps:
+
+1. the scale factors from skelid's ``marker`` method (poses and geometry by
+   joint least squares) with the markers at their nominal places; with several
+   trials, from its multi-trial form (:mod:`skelid.estimators.multitrial`);
+2. the offsets placed as OpenSim's MarkerPlacer places them: each free marker
+   moves to where the first trial saw it in the fitted poses
+   (:func:`place_markers`);
+3. scales and offsets fitted together on every frame of every trial, as the
+   MAP under their priors with every pose profiled out
+   (:func:`fit_scales_and_offsets`); its Laplace covariance is the interval, so
+   the offsets' uncertainty is carried into the scales. Offsets of all the
+   markers of a body trade with the body's pose (and a leaf body's scale with
+   its markers' offsets): there the prior decides, the posterior says so, and a
+   warning names the scales the data leave to it. The ``marker`` method is then
+   run once more with every marker where step 3 put it; its checks (model
+   misfit, serially correlated residuals, markers that disagree) give the
+   warnings, and where they widen its interval the joint interval is widened by
+   the same ratio (:func:`check_widening`). With one factor per body
+   (``scale='bodies'``), a score test per body against one factor per axis
+   (:func:`one_factor_test`, Bonferroni over the bodies at 1 %) picks one factor
+   per axis for the bodies where the data contradict one, and the joint fit is
+   run again with them.
+
+Steps 1 and 2 only give the start (and, with ``joint=False``, the answer: the
+scales with the markers at their nominal places and the offsets placed after,
+their uncertainty not carried into the scales).
 Several trials of one subject are read as one recording (:func:`join_trials`: the union of their
 markers, a gap of missing frames between trials) and fitted as separate
 trials with one geometry.
@@ -113,6 +129,7 @@ class ScalingFit:
     dropped_markers: tuple = ()
     warnings: list = field(default_factory=list)
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    joint: JointOffsets | None = None  # scales and offsets fitted together (``joint=True``)
 
 
 STATIC_FRAMES = 20
@@ -144,7 +161,7 @@ def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
              static_frames: int | None = STATIC_FRAMES, movement_frames: int | None = MOVEMENT_FRAMES,
-             joined: bool = False) -> ScalingFit:
+             joined: bool = False, joint: bool = True) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
@@ -160,19 +177,25 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     markers : {'offsets', 'none'}
         Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
     static_frames : int or None
-        The first trial, when it has more frames, contributes every ``k``-th
-        frame, at most this many (a static trial repeats one pose: more frames
-        add time, not information, since its residuals are serially
-        correlated). None: all.
+        The first trial, when movement trials follow it and it has more frames,
+        contributes every ``k``-th frame, at most this many, to steps 1 and 2 (a
+        static trial repeats one pose). A lone trial is a movement trial. None: all.
+        The joint fit of scales and offsets uses every frame.
     movement_frames : int or None
-        Each later trial, when it has more frames, contributes every ``k``-th
-        frame, at most this many (:func:`thin_trial`; the residuals of
+        Each movement trial, when it has more frames, contributes every ``k``-th
+        frame, at most this many, to steps 1 and 2 (:func:`thin_trial`; the residuals of
         neighbouring frames at motion-capture rates are strongly correlated,
         so thinning costs little information and the serial-correlation
         correction of the interval still applies). None: all.
     joined : bool
         Fit the trials as one recording with gaps (one marker fit, :func:`join_trials`)
         instead of the multi-trial fit (each trial alone, then together).
+    joint : bool
+        With ``markers='offsets'``: after the scale fit and the placement, fit the
+        scales and every offset together on every frame of every trial
+        (:func:`fit_scales_and_offsets`); the answer and its intervals are that
+        fit's. False: the scales with the markers at their nominal places, the
+        offsets placed afterwards and their uncertainty not carried into the scales.
 
     Returns
     -------
@@ -183,7 +206,10 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         raise DataError("no trial given", "give at least one marker file")
     full, info = read_osim(osim_path, marker_set)
     marker_set = info.marker_set
-    trials = [thin_trial(trials[0], static_frames)] + [
+    given = trials
+    # the first trial is a static one only when movement trials follow it; a lone trial is a movement
+    first = static_frames if len(trials) > 1 else movement_frames
+    trials = [thin_trial(trials[0], first)] + [
         thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
     multi = len(trials) > 1 and method == "marker" and not joined
     data = join_trials(trials) if not multi else None
@@ -204,7 +230,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
     t0 = time.perf_counter()
-    notes, moved = [], {}
+    notes, moved, joint_fit = [], {}, None
     with warnings.catch_warnings(), _one_blas_thread():
         warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
         if markers == "offsets" and scale != "none":
@@ -236,6 +262,37 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                                "sd": float(sd[i, p.axis]), "ci95": [float(offsets[i, p.axis] - half),
                                                                    float(offsets[i, p.axis] + half)],
                                "n_eff": float(n_eff[i]), "method": "placed on the static trial"}
+        if joint and scale != "none" and any(p.kind == "marker_offset" for p in model.parameters):
+            with warnings.catch_warnings(), _one_blas_thread():
+                warnings.simplefilter("ignore", SkelidWarning)
+                ys = [_select(t, model.marker_names).positions for t in given]
+                jo = _joint_refinement(model, theta, [_select(t, model.marker_names) for t in given], sigma, seed)
+                axes_note, tests = None, {}
+                if scale == "bodies":  # where the data contradict one factor per body, one factor per axis
+                    per_axis = osim_parameters(original, info, "axes", "offsets", present)
+                    tests = one_factor_test(model, per_axis, jo, ys)
+                    flagged = [b for b, t in tests.items() if t["p"] < AXES_TEST_LEVEL / len(tests)]
+                    if flagged:
+                        prev, model = model, _mixed_scales(model, per_axis, flagged)
+                        jo = fit_scales_and_offsets(model, ys, _map_theta(jo.theta, prev, model), jo.poses, sigma)
+                        axes_note = (f"one scale factor for {', '.join(flagged)} is contradicted by the data (score "
+                                     "test against one factor per axis, p = "
+                                     + ", ".join(f"{tests[b]['p']:.1e}" for b in flagged)
+                                     + "): those bodies were fitted with one factor per axis")
+                # the checks (misfit, serial correlation, marker jackknife) of the scale fit with every marker
+                # where the joint fit put it: they widen the joint interval, never narrow it
+                placed = _with_marker_positions(original, _placed_positions(model, jo.theta))
+                m3 = _scales_only(model, placed)
+                est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in trials], data, multi,
+                                              method, sigma, seed)
+            widen = np.ones(model.n_params)
+            widen[:m3.n_params] = check_widening(est, m3)
+            jo = replace(jo, cov=jo.cov * np.outer(widen, widen))
+            theta, res, joint_fit = jo.theta, _joint_result(model, jo, res3, widen), jo
+            if tests:
+                res["one_factor_test"] = tests
+            if axes_note:
+                res["warnings"] = list(res.get("warnings", [])) + [axes_note]
     seconds = time.perf_counter() - t0
     warns = []
     if info.marker_set_found_by:
@@ -249,7 +306,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
                        parts[0].units, source, {"trial_frames_used": frames})
     return ScalingFit(model, info, str(osim_path), marker_set, shown, est, res, seconds, dropped,
-                      list(dict.fromkeys(warns)), theta)
+                      list(dict.fromkeys(warns)), theta, joint_fit)
 
 
 def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
@@ -374,6 +431,329 @@ def _fit_scales(model, parts, data, multi, method, sigma, seed):
     est.fit(sub)
     poses = [est.pose_[a:b] for a, b in data.meta["trial_frames"]]
     return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
+
+
+#: relative change of the residual sum of squares, and largest step in prior sd, that end the joint refinement
+JOINT_TOL = 1e-12
+JOINT_STEP_SD = 1e-7
+JOINT_ITER = 30
+SIGMA_FLOOR_MM = 1e-6  # noise-free data: the noise level is rounding, not zero
+
+
+@dataclass(frozen=True)
+class JointOffsets:
+    """Scales and marker offsets fitted together (:func:`fit_scales_and_offsets`)."""
+
+    theta: np.ndarray  # (P,) MAP of every parameter of the model
+    cov: np.ndarray  # (P, P) Laplace covariance: (S / sigma^2 + prior precision)^-1
+    poses: list  # [(F_k, Q)] per trial
+    sigma: np.ndarray  # (K,) noise sd per trial (mm)
+    dof: np.ndarray  # (K,) residual degrees of freedom per trial
+    edf: float  # effective number of parameters the data determine
+    n_iter: int
+    converged: bool
+    prior_only: tuple = ()  # scale parameters the data leave to the prior
+
+
+def _prior_terms(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient and (Gauss-Newton) curvature of the negative log prior: ``(P,)``, ``(P,)``.
+
+    Normal priors: ``(theta - mu)^2 / (2 sd^2)``; log-normal ones: ``(log theta - log m)^2 / (2 sd^2)``
+    (the MAP in log space); uniform ones: nothing.
+    """
+    g = np.zeros(model.n_params)
+    h = np.zeros(model.n_params)
+    for k, p in enumerate(model.parameters):
+        if p.prior.kind == "normal":
+            g[k] = (theta[k] - p.prior.mean) / p.prior.sd**2
+            h[k] = 1.0 / p.prior.sd**2
+        elif p.prior.kind == "lognormal":
+            t = max(float(theta[k]), 1e-12)
+            g[k] = (np.log(t) - np.log(p.prior.mean)) / (p.prior.sd**2 * t)
+            h[k] = 1.0 / (p.prior.sd * t) ** 2
+    return g, h
+
+
+def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None = None,
+                           n_iter: int = JOINT_ITER) -> JointOffsets:
+    """MAP of the body scales and marker offsets together under their priors, every pose profiled out.
+
+    Model: trial ``k``, frame ``t``, marker ``m``:
+    ``y_ktm = x_m(theta, q_kt) + e``, ``e ~ N(0, sigma_k^2 I)``, with ``theta`` the
+    scales and offsets and the priors of :func:`skelid.io.osim.osim_parameters`
+    (offsets ``N(0, 10^2)`` mm, scales log-normal). The offsets of all the
+    markers of a body trade with the body's pose (and a leaf body's scale with
+    its markers' offsets), so the data alone leave directions undetermined; the
+    prior fixes them, and the posterior says how well each is known. Each
+    iteration fits every pose for the current ``theta``
+    (:func:`skelid.estimators.pose.fit_pose`), then takes the Gauss-Newton step
+    of the penalised cost with the poses eliminated (Schur complement):
+
+    .. math:: (S/\\sigma^2 + \\Lambda)\\,\\Delta = \\sum_t K_{\\perp t}^\\top r_t / \\sigma^2 - \\nabla(-\\log p),
+              \\qquad S = \\sum_t K_{\\perp t}^\\top K_{\\perp t}
+
+    (``K_perp`` from :func:`skelid.estimators.likelihood.projected_theta_jacobian`,
+    each trial with its own ``sigma_k``). The noise of each trial is re-estimated
+    at every iteration, ``sigma_k^2 = RSS_k / (n_k - Q T_k - edf n_k / n)``,
+    ``edf = tr((S/sigma^2) (S/sigma^2 + Lambda)^{-1})``. The covariance is the
+    Laplace approximation of the joint posterior, ``(S/sigma^2 + Lambda)^{-1}``
+    at the MAP.
+
+    Parameters
+    ----------
+    model : Model
+        With ``scale`` and ``marker_offset`` parameters.
+    ys : sequence of (F_k, M, 3) float
+        Markers of each trial (mm, the model's marker order, NaN where missing).
+    theta0 : (P,) float
+    poses0 : sequence of (F_k, Q) float
+        Starting poses.
+    sigma : float, optional
+        Known noise sd (mm) of every trial; estimated per trial if not given.
+
+    Returns
+    -------
+    JointOffsets
+    """
+    from skelid.estimators.fit.likelihood import frame_terms, projected_theta_jacobian
+    from skelid.estimators.fit.pose import fit_pose, workspace
+
+    ws = workspace(model)
+    lo = np.array([p.prior.lower for p in model.parameters])
+    hi = np.array([p.prior.upper for p in model.parameters])
+    prior_sd = np.array([p.prior.sd for p in model.parameters])
+    theta = np.clip(np.asarray(theta0, float), lo, hi)
+    poses = [np.asarray(q, float).copy() for q in poses0]
+    ys = [np.asarray(y, float) for y in ys]
+    K = len(ys)
+    n_obs = np.array([np.isfinite(y).all(axis=-1).sum() * 3 for y in ys], float)
+    n_pose = np.array([model.n_pose * np.isfinite(y).all(axis=-1).any(axis=-1).sum() for y in ys], float)
+    sig = np.full(K, np.nan if sigma is None else float(sigma))
+    converged, cost_prev, n_done = False, np.inf, 0
+    edf, dof = float(model.n_params), np.maximum(n_obs - n_pose - model.n_params, 1.0)
+    for it in range(1, n_iter + 1):
+        n_done = it
+        S, g, rss = [], [], np.zeros(K)
+        for k, y in enumerate(ys):
+            poses[k] = fit_pose(model, theta, y, poses[k], ws=ws)[0]
+            r, Jq, Jt = frame_terms(model, theta, poses[k], y, ws)
+            Kp = projected_theta_jacobian(Jq, Jt)
+            S.append(np.einsum("tkp,tkq->pq", Kp, Kp))
+            g.append(np.einsum("tkp,tk->p", Kp, r))
+            rss[k] = float(np.sum(r**2))
+        if sigma is None:
+            sig = np.sqrt(np.maximum(rss / dof, SIGMA_FLOOR_MM**2))
+        w = 1.0 / sig**2
+        gp, hp = _prior_terms(model, theta)
+        solve, _, edf, _ = _posterior(model, sum(wk * Sk for wk, Sk in zip(w, S, strict=True)), hp)
+        step = solve(sum(wk * gk for wk, gk in zip(w, g, strict=True)) - gp)
+        dof = np.maximum(n_obs - n_pose - edf * n_obs / n_obs.sum(), 1.0)
+        cost = float(rss.sum())  # the noise levels are re-estimated: compare the plain sum of squares
+        theta = np.clip(theta + step, lo, hi)
+        small = np.all(np.abs(step) <= JOINT_STEP_SD * np.where(np.isfinite(prior_sd), prior_sd, 1.0))
+        if small or abs(cost_prev - cost) <= JOINT_TOL * max(cost, 1e-300):
+            converged = True
+            break
+        cost_prev = cost
+    # the covariance at the final theta and poses
+    S, rss = [], np.zeros(K)
+    for k, y in enumerate(ys):
+        poses[k] = fit_pose(model, theta, y, poses[k], ws=ws)[0]
+        r, Jq, Jt = frame_terms(model, theta, poses[k], y, ws)
+        Kp = projected_theta_jacobian(Jq, Jt)
+        S.append(np.einsum("tkp,tkq->pq", Kp, Kp))
+        rss[k] = float(np.sum(r**2))
+    if sigma is None:
+        sig = np.sqrt(np.maximum(rss / dof, SIGMA_FLOOR_MM**2))
+    _, hp = _prior_terms(model, theta)
+    _, cov, edf, prior_only = _posterior(model, sum(S_k / s_k**2 for S_k, s_k in zip(S, sig, strict=True)), hp)
+    return JointOffsets(theta, cov, poses, sig, dof, edf, n_done, converged, prior_only)
+
+
+def _posterior(model: Model, info, prior_precision, rel_tol: float = 1e-10):
+    """The Gaussian posterior of data information ``info`` and a diagonal prior precision.
+
+    In coordinates scaled by the prior sd the prior precision is the identity, so with
+    ``M = V diag(w) V^T`` the posterior covariance is ``V diag(1 / (w + 1)) V^T``, computed in that basis
+    (a reconstruction of ``M`` would carry rounding of ``eps * max(w)`` into every direction: with a
+    tiny noise level, more than the prior). Directions whose ``w`` is below ``rel_tol`` times the largest
+    carry rounding only (exactly none in exact arithmetic) and get ``w = 0``.
+
+    Returns
+    -------
+    solve : callable
+        ``b (P,) -> cov @ b``.
+    cov : (P, P) float
+    edf : float
+        ``tr(cov @ info)``, the number of parameters the data determine.
+    prior_only : tuple of str
+        Scale parameters with a share above 1 % in the null directions (the data leave them to the prior).
+    """
+    d = 1.0 / np.sqrt(np.maximum(prior_precision, 1e-300))
+    M = info * np.outer(d, d)
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    null = w <= rel_tol * max(w.max(), 1e-300)
+    w = np.where(null, 0.0, w)
+    inv = 1.0 / (w + 1.0)
+    cov = (V * inv) @ V.T * np.outer(d, d)
+
+    def solve(b):
+        return d * (V @ (inv * (V.T @ (d * b))))
+    share = (V[:, null] ** 2).sum(axis=1)
+    names = tuple(p.name for k, p in enumerate(model.parameters) if p.kind == "scale" and share[k] > 0.01)
+    return solve, 0.5 * (cov + cov.T), float(np.sum(w * inv)), names
+
+
+def _joint_refinement(model: Model, theta, trials, sigma, seed) -> JointOffsets:
+    """:func:`fit_scales_and_offsets` on every frame of ``trials``, poses tracked at ``theta`` first."""
+    from skelid.estimators.fit.pose import track_poses
+
+    rng = np.random.default_rng(seed)
+    ys = [t.positions for t in trials]
+    poses = [track_poses(model, theta, y, rng)[0] for y in ys]
+    return fit_scales_and_offsets(model, ys, theta, poses, sigma)
+
+
+def _placed_positions(model: Model, theta) -> dict:
+    """Each marker's nominal position (segment frame, mm) that puts it at ``S r + delta`` unscaled."""
+    scales = body_scales(model, theta)
+    delta = np.zeros((len(model.markers), 3))
+    for k, p in enumerate(model.parameters):
+        if p.kind == "marker_offset":
+            delta[model.marker_names.index(p.target), p.axis] = theta[k]
+    return {m.name: tuple(float(v) for v in np.asarray(m.position) + delta[i] / scales.get(m.segment, np.ones(3)))
+            for i, m in enumerate(model.markers)}
+
+
+def check_widening(est, model: Model) -> np.ndarray:
+    """Per scale parameter, how much the scale fit's checks widened its interval, at least 1.
+
+    The ratio of the marker estimator's data sd (``cov_data_``) to its plain one
+    (``cov_plain_``, ``sigma^2 S^{-1}``): the plain interval widened where its checks
+    ask for it (model misfit, serially correlated residuals, markers that disagree);
+    the ratio carries that widening over to the joint fit. With several trials, the
+    trials' own variances are combined (precision-weighted); the
+    multi-trial spread between trials is not carried over (the joint fit has one
+    geometry for every trial).
+    """
+    ests = list(getattr(est, "trials_", [est]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = np.sum([1.0 / np.diag(np.asarray(e.cov_data_, float)) for e in ests], axis=0) ** -1.0
+        plain = np.sum([1.0 / np.diag(np.asarray(e.cov_plain_, float)) for e in ests], axis=0) ** -1.0
+        ratio = np.sqrt(var / plain)
+    ratio = np.where(np.isfinite(ratio), ratio, 1.0)
+    return np.maximum(ratio[:model.n_params], 1.0)
+
+
+def _joint_result(model: Model, jo: JointOffsets, res: dict, widen) -> dict:
+    """The result dict with every parameter, the noise and the lengths from the joint fit."""
+    from skelid.model.kinematics import joint_distances
+
+    out = {k: v for k, v in res.items() if k not in model.parameter_names}
+    sd = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
+    for k, p in enumerate(model.parameters):
+        v, half = float(jo.theta[k]), 1.959964 * float(sd[k])
+        out[p.name] = {"map": v, "mean": v, "sd": float(sd[k]), "ci95": [v - half, v + half],
+                       "widened_by_checks": float(widen[k]),
+                       "method": "scales and offsets fitted together (Laplace interval)"}
+    if jo.prior_only:
+        out["warnings"] = list(out.get("warnings", [])) + [
+            f"the data do not determine {', '.join(jo.prior_only)}: every marker of the body may move, so its "
+            "scale trades with its markers' offsets; its interval comes from the offsets' prior (10 mm); add a "
+            "marker whose place on the body is known (fixed in the marker set) or fix that scale"]
+    if model.derived_lengths:
+        L, grad = joint_distances(model, jo.theta)
+        lsd = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", grad, jo.cov, grad), 0.0, None))
+        out["lengths"] = {name: {"value": float(v), "sd": float(e), "ci95": [float(v - 1.959964 * e),
+                                                                              float(v + 1.959964 * e)]}
+                          for (name, _), v, e in zip(model.derived_lengths, L, lsd, strict=True)}
+    n = np.maximum(jo.dof, 1.0)
+    pooled = float(np.sqrt(np.sum(n * jo.sigma**2) / n.sum()))
+    out["sigma"] = {"value": pooled, "fixed": False, "per_trial": [float(v) for v in jo.sigma],
+                    "method": "joint fit of scales and offsets"}
+    out["joint_fit"] = {"iterations": jo.n_iter, "converged": jo.converged, "edf": jo.edf}
+    if not jo.converged:
+        out["warnings"] = list(out.get("warnings", [])) + [
+            f"the joint fit of scales and marker offsets did not converge in {jo.n_iter} iterations"]
+    return out
+
+
+#: family-wise level of the score test of one scale factor per body against one per axis (split over the bodies)
+AXES_TEST_LEVEL = 0.01
+
+
+def one_factor_test(model: Model, per_axis: Model, jo: JointOffsets, ys) -> dict:
+    """Rao's score test, per body, of one scale factor against one per axis, at the joint fit.
+
+    At the one-factor MAP the per-axis model's efficient score ``g`` (poses profiled out, the
+    priors' gradient included) is zero along each body's common factor; its other two
+    directions test the one-factor model: ``T_b = g_b^T [H^{-1}]_{bb} g_b ~ chi^2_2`` with ``H``
+    the per-axis posterior precision (:func:`_posterior`).
+
+    Returns
+    -------
+    dict
+        Body -> ``{"stat": T_b, "p": p-value}``.
+    """
+    from scipy.stats import chi2
+
+    from skelid.estimators.fit.likelihood import frame_terms, projected_theta_jacobian
+
+    th = _map_theta(jo.theta, model, per_axis)
+    S, g = 0.0, 0.0
+    for y, q, sig in zip(ys, jo.poses, jo.sigma, strict=True):
+        r, Jq, Jt = frame_terms(per_axis, th, q, y)
+        Kp = projected_theta_jacobian(Jq, Jt)
+        S = S + np.einsum("tkp,tkq->pq", Kp, Kp) / sig**2
+        g = g + np.einsum("tkp,tk->p", Kp, r) / sig**2
+    gp, hp = _prior_terms(per_axis, th)
+    _, cov, _, _ = _posterior(per_axis, S, hp)
+    g = g - gp
+    out = {}
+    for b in dict.fromkeys(p.target for p in per_axis.parameters if p.kind == "scale"):
+        k = [i for i, p in enumerate(per_axis.parameters) if p.kind == "scale" and p.target == b]
+        t = float(g[k] @ cov[np.ix_(k, k)] @ g[k])
+        out[b] = {"stat": t, "p": float(chi2.sf(t, len(k) - 1))}
+    return out
+
+
+def _map_theta(theta, src: Model, dst: Model) -> np.ndarray:
+    """Values of ``dst``'s parameters from ``src``'s: by name, a body's axes from its one factor."""
+    idx = {p.name: k for k, p in enumerate(src.parameters)}
+    one = {p.target: theta[k] for k, p in enumerate(src.parameters) if p.kind == "scale" and p.axis is None}
+    axis = {(p.target, p.axis): theta[k] for k, p in enumerate(src.parameters) if p.kind == "scale"
+            and p.axis is not None}
+    out = np.zeros(dst.n_params)
+    for k, p in enumerate(dst.parameters):
+        if p.name in idx:
+            out[k] = theta[idx[p.name]]
+        elif p.kind == "scale" and p.axis is not None:
+            out[k] = one.get(p.target, 1.0)
+        elif p.kind == "scale":
+            out[k] = float(np.mean([v for (b, _), v in axis.items() if b == p.target] or [1.0]))
+    return out
+
+
+def _mixed_scales(model: Model, per_axis: Model, bodies) -> Model:
+    """``model`` with the one-factor scales of ``bodies`` replaced by ``per_axis``'s three."""
+    bodies = set(bodies)
+    scales = []
+    for p in model.parameters:
+        if p.kind != "scale":
+            continue
+        if p.target in bodies:
+            scales += [q for q in per_axis.parameters if q.kind == "scale" and q.target == p.target]
+        else:
+            scales.append(p)
+    rest = tuple(p for p in model.parameters if p.kind != "scale")
+    return Model(model.name, model.dim, model.units, model.segments, model.markers, tuple(scales) + rest,
+                 model.description)
+
+
+def _scales_only(model: Model, placed: Model) -> Model:
+    """The scale parameters of ``model`` on ``placed``'s markers (the scale fit's model)."""
+    return Model(placed.name, placed.dim, placed.units, placed.segments, placed.markers,
+                 tuple(p for p in model.parameters if p.kind == "scale"), model.description)
 
 
 def place_markers(model: Model, theta, pose, y, frames, movable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -505,7 +885,7 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
             lines.append(f"| {n} | {e['value']:.1f} | [{lo:.1f}, {hi:.1f}] |")
         lines.append("")
     if table["marker_offsets_mm"]:
-        lines += ["## Marker offsets placed on the static trial (mm, in the body frame)", "",
+        lines += ["## Marker offsets (mm, in the body frame)", "",
                   "| marker | x | y | z | largest sd |", "|---|---|---|---|---|"]
         for m, e in table["marker_offsets_mm"].items():
             v = [e[a]["value"] if a in e else 0.0 for a in "xyz"]

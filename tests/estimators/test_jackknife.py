@@ -167,3 +167,21 @@ def test_a_refit_cut_short_by_the_iteration_cap_has_no_replicate(monkeypatch):
     monkeypatch.setattr(jackknife, "REFIT_ITER", 1)
     cut = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
     assert cut.status[0] == "refit failed" and not cut.replicate[0]
+
+
+def test_a_direction_no_replicate_moves_is_left_alone_by_the_fold():
+    """E_0 singular (a parameter that only markers without a replicate inform): the markers' spread is
+    compared with white noise's on E_0's range, and the other direction keeps the model's variance."""
+    S = np.diag([4.0, 1.0, 9.0])
+    S_sqrt, S_isqrt = np.sqrt(S), np.diag(1.0 / np.sqrt(np.diag(S)))
+    E0 = np.diag([1.0, 0.5, 0.0])
+    B, B_pinv = jackknife.null_factor(E0, S_sqrt, S_isqrt)
+    assert B.shape == (3, 2)
+    np.testing.assert_allclose(B @ B.T, E0, atol=1e-12)
+    np.testing.assert_allclose(B_pinv @ B, np.eye(2), atol=1e-12)
+    V = np.diag([0.25, 1.0, 1.0 / 9.0])
+    jk = jackknife.Jackknife(np.zeros((4, 3)), np.ones(4, bool), np.diag([3.0, 0.5, 0.0]), E0, 2.0,
+                             factor=B)
+    folded, lam = jackknife.fold(V, jk)
+    np.testing.assert_allclose(np.diag(folded), [0.25 + 2.0, 1.0, 1.0 / 9.0], atol=1e-12)
+    assert lam.shape == (3,)

@@ -132,6 +132,9 @@ REFIT_STEP_TOL = 1e-3
 #: default, 1e-10, kept the walk's refits going two to four iterations past the step rule, moving
 #: the replicates by less than 1e-4 sd)
 REFIT_TOL = 1e-7
+#: directions of E_0 (whitened by the fit's information) below this fraction of its largest eigenvalue are
+#: ones no replicate moves (see :func:`null_factor`)
+NULL_RANK_TOL = 1e-10
 _CHUNK = 25  # white-noise draws made at once
 _DRAWS_KEPT = 16_000_000  # white-noise numbers (128 MB) kept for all deletions; a longer trial draws them again
 
@@ -146,6 +149,7 @@ class Jackknife(NamedTuple):
     ratio: np.ndarray | None = None  # (M,) actual / predicted cost decrease along the one-step replicate
     corrected: np.ndarray | None = None  # (M, P) leverage-corrected replicates c_m (CR2); NaN without one
     transform: np.ndarray | None = None  # (M, P, P) c_m = transform[m] @ shifts[m]; NaN without a replicate
+    factor: np.ndarray | None = None  # (P, r) B with B B^T = E_0 on E_0's range (:func:`null_factor`)
 
     @property
     def available(self) -> bool:
@@ -354,10 +358,31 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     V_J = _cr2_cov(corrected[ok])
     V_null = np.einsum("kmp,kmq->kpq", null[:, ok], null[:, ok])  # (K, P, P)
     E0 = V_null.mean(axis=0)
-    Li = np.linalg.inv(np.linalg.cholesky(E0))
-    lam_max = np.linalg.eigvalsh(Li @ V_null @ Li.T)[:, -1]
+    B, B_pinv = null_factor(E0, S_sqrt, S_isqrt)
+    if B.shape[1] == 0:  # no replicate moves the estimate at all: nothing to compare
+        return Jackknife(shifts, ok, None, status=tuple(status), ratio=ratio, corrected=corrected,
+                         transform=transform)
+    lam_max = np.linalg.eigvalsh(B_pinv @ V_null @ B_pinv.T)[:, -1]
     return Jackknife(shifts, ok, V_J, E0, float(np.quantile(lam_max, 1.0 - FOLD_LEVEL)), tuple(status), ratio,
-                     corrected, transform)
+                     corrected, transform, B)
+
+
+def null_factor(E0, S_sqrt, S_isqrt, rel_tol: float = NULL_RANK_TOL) -> tuple[np.ndarray, np.ndarray]:
+    """A factor ``B (P, r)`` of ``E_0`` on its range, ``B B^T = E_0``, and its pseudo-inverse ``(r, P)``.
+
+    ``E_0`` is singular wherever no replicate can move the estimate: a direction that only markers
+    without a replicate inform (the essential ones, whose deletion leaves it without information;
+    with one scale per body axis, an axis that one marker alone measures is such a direction).
+    There neither the white-noise spread nor the markers' spread ``V_J`` has anything to say, so the
+    comparison is made on the range of ``E_0`` only. The range is found in coordinates whitened by
+    the fit's information (``S^{1/2} E_0 S^{1/2}``: null spread over model spread, unit-free), its
+    directions with an eigenvalue above ``rel_tol`` times the largest.
+    """
+    Z = S_sqrt @ E0 @ S_sqrt
+    w, V = np.linalg.eigh(0.5 * (Z + Z.T))
+    keep = w > rel_tol * max(float(w.max()), 1e-300)
+    root = np.sqrt(w[keep])
+    return S_isqrt @ V[:, keep] * root, (V[:, keep] / root).T @ S_sqrt
 
 
 def cr2_transform(kept_info, S_isqrt, S_sqrt) -> np.ndarray:
@@ -410,17 +435,23 @@ def fold(cov, jack: Jackknife) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     cov_folded : (P, P) float
-        ``V + E_0^{1/2} U diag((lambda - 1) [lambda > null_max]) U^T E_0^{1/2}`` (see the module notes).
+        ``V + E_0^{1/2} U diag((lambda - 1) [lambda > null_max]) U^T E_0^{1/2}`` (see the module notes),
+        with ``E_0^{1/2}`` the factor of ``E_0`` on its range (:func:`null_factor`).
     lam : (P,) float
-        Eigenvalues of ``E_0^{-1/2} V_J E_0^{-1/2}``.
+        Eigenvalues of ``E_0^{-1/2} V_J E_0^{-1/2}`` on that range; 1 for the directions off it.
     """
     if not jack.available:
         return cov, np.ones(len(cov))
-    L = np.linalg.cholesky(jack.null_mean)
-    Li = np.linalg.inv(L)
+    if jack.factor is not None:
+        L = jack.factor
+        Li = np.linalg.pinv(L)
+    else:
+        L = np.linalg.cholesky(jack.null_mean)
+        Li = np.linalg.inv(L)
     W = Li @ jack.cov @ Li.T
     lam, U = np.linalg.eigh(0.5 * (W + W.T))
     add = np.where(lam > jack.null_max, lam - 1.0, 0.0)
+    lam = np.concatenate([lam, np.ones(len(cov) - len(lam))])  # no replicate moves the other directions
     return cov + L @ (U * add) @ U.T @ L.T, lam
 
 
