@@ -1,0 +1,584 @@
+"""skelid's OpenSim scaling on data whose truth OpenSim itself generated.
+
+Each draw builds a subject with the ``opensim`` package from the generic
+gait2354 model (``../shared/data/opensim-subject01/gait2354_simbody.osim``
+with ``gait2354_Scale_MarkerSet.xml``):
+
+1. scale factors drawn per draw, uniform in [0.85, 1.15], left and right drawn
+   independently, for the eight bodies that carry markers (pelvis, torso,
+   femur, tibia, calcaneus per side; talus and toes carry none and stay at 1):
+   ``truth=bodies`` one factor per body, ``truth=axes`` one per body axis;
+   applied with OpenSim's own ``Model.scale(state, ScaleSet, ...)``;
+2. every marker moved by a known offset in its body frame, a random direction
+   of length uniform in [1, 20] mm;
+3. the motion: OpenSim's InverseKinematicsTool solution of ``subject01_walk1.trc``
+   on the generic model (151 frames, 60 Hz), and a standing pose (its IK of
+   the first second of ``subject01_static.trc``, averaged) held for 1 s (60
+   frames); computed once and cached under the system's temporary folder
+   (``skelid-opensim-truth``), never committed;
+4. markers from OpenSim's kinematics of the scaled model at those coordinates
+   (``Marker.getLocationInGround``), plus i.i.d. normal noise of sd 0, 2, 5
+   or 10 mm per coordinate.
+
+Designs: ``static+walk`` (the static trial first, as the command line takes
+it) and ``walk`` (one dynamic trial alone). skelid fits the generic model with
+:func:`skelid.scaling.fit_osim` (``scale="bodies"``, the default: the user's
+case), and, where the truth is per axis, also with ``scale="axes"`` (the
+exact structure). Reported per cell for every scale factor, segment length
+(hip-knee, knee-ankle per side at the zero pose, joint centre to joint centre)
+and marker offset: bias, bias/CRLB (skelid's Cramér-Rao sd where it reports
+one, else its sd), RMSE/mean reported sd, RMSE/CRLB, coverage of the 95 %
+interval, mean reported sd / actual sd, draws, failures. A one-factor fit of a
+per-axis truth is compared with the mean of the three true factors (its
+lengths are the quantities that matter there).
+
+Peer in the same draw: OpenSim's ScaleTool (measurement-based scaling with the
+marker pairs of ``subject01_Setup_Scale.xml``, then its MarkerPlacer) on the
+same static trial (``static+walk`` design only); its scale and length errors
+beside skelid's.
+
+Run: ``nice -n 10 python benchmarks/opensim_truth.py [--quick] [--reps N] [--cells ...] [--jobs J]
+[--out PATH]`` -> ``benchmarks/results/opensim_truth.{json,md}``. A cell is
+``truth/fit/design/noise``, e.g. ``axes/axes/walk/5``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import provenance, write_results  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data" / "opensim-subject01"
+GENERIC = DATA / "gait2354_simbody.osim"
+MARKER_SET = DATA / "gait2354_Scale_MarkerSet.xml"
+OUT = ROOT / "benchmarks" / "results" / "opensim_truth"
+CACHE = Path(tempfile.gettempdir()) / "skelid-opensim-truth"
+RATE = 60.0
+STATIC_SECONDS = 1.0
+SCALED = ("pelvis", "torso", "femur_r", "femur_l", "tibia_r", "tibia_l", "calcn_r", "calcn_l")
+SCALE_RANGE = (0.85, 1.15)
+OFFSET_RANGE_MM = (1.0, 20.0)
+LENGTHS = {"thigh_r (hip-knee)": ("femur_r", "tibia_r"), "thigh_l (hip-knee)": ("femur_l", "tibia_l"),
+           "shank_r (knee-ankle)": ("tibia_r", "talus_r"), "shank_l (knee-ankle)": ("tibia_l", "talus_l")}
+NOISES = (0.0, 2.0, 5.0, 10.0)
+# truth, fit, design
+CONFIGS = (("bodies", "bodies"), ("axes", "bodies"), ("axes", "axes"))
+DESIGNS = ("static+walk", "walk")
+Z95 = 1.959964
+
+
+def _osim():
+    import opensim as osim
+
+    osim.Logger.setLevelString("Error")
+    osim.Logger.removeFileSink()  # OpenSim would write opensim.log beside every model it loads
+    return osim
+
+
+def generic_model():
+    osim = _osim()
+    model = osim.Model(str(GENERIC))
+    model.updateMarkerSet(osim.MarkerSet(str(MARKER_SET)))
+    model.initSystem()
+    return model
+
+
+def _ik(trc: Path, name: str, t_range=None) -> tuple[list[str], np.ndarray]:
+    """OpenSim IK of ``trc`` on the generic model: coordinate names and values (F, C) in rad / m (cached)."""
+    cache = CACHE / f"{name}.npz"
+    if cache.exists():
+        z = np.load(cache, allow_pickle=False)
+        return [str(n) for n in z["names"]], z["q"]
+    osim = _osim()
+    CACHE.mkdir(parents=True, exist_ok=True)
+    model = generic_model()
+    tool = osim.InverseKinematicsTool()
+    tool.setModel(model)
+    tool.setMarkerDataFileName(str(trc))
+    tasks = tool.getIKTaskSet()
+    for i in range(model.getMarkerSet().getSize()):
+        t = osim.IKMarkerTask()
+        t.setName(model.getMarkerSet().get(i).getName())
+        t.setApply(True)
+        t.setWeight(1.0)
+        tasks.cloneAndAppend(t)
+    tvec = np.asarray(osim.TimeSeriesTableVec3(str(trc)).getIndependentColumn())
+    lo, hi = (tvec[0], tvec[-1]) if t_range is None else t_range
+    tool.setStartTime(float(lo))
+    tool.setEndTime(float(hi))
+    tool.setResultsDir(str(CACHE))
+    tool.setOutputMotionFileName(str(CACHE / f"{name}.mot"))
+    tool.run()
+    table = osim.TimeSeriesTable(str(CACHE / f"{name}.mot"))
+    cs = model.getCoordinateSet()
+    names, cols = [], []
+    for i in range(cs.getSize()):
+        c = cs.get(i)
+        v = np.asarray(table.getDependentColumn(c.getName()).to_numpy(), float)
+        if c.getMotionType() == 1:  # rotational, written in degrees
+            v = np.deg2rad(v)
+        names.append(c.getName())
+        cols.append(v)
+    q = np.stack(cols, axis=1)
+    np.savez(cache, names=np.array(names), q=q)
+    return names, q
+
+
+def motions() -> dict:
+    """The coordinates of the walk (F, C) and of the standing pose held (T, C)."""
+    names, walk = _ik(DATA / "subject01_walk1.trc", "walk1")
+    _, stand = _ik(DATA / "subject01_static.trc", "static", (1.0, 2.0))
+    hold = np.repeat(stand.mean(axis=0, keepdims=True), int(RATE * STATIC_SECONDS), axis=0)
+    return {"names": names, "walk": walk, "static": hold}
+
+
+def draw_truth(rng, truth: str, marker_names) -> dict:
+    """Per body three scale factors and per marker an offset (mm, body frame)."""
+    scales = {}
+    for b in SCALED:
+        s = rng.uniform(*SCALE_RANGE, 3 if truth == "axes" else 1)
+        scales[b] = np.broadcast_to(s, 3).astype(float).copy()
+    d = rng.normal(size=(len(marker_names), 3))
+    d *= (rng.uniform(*OFFSET_RANGE_MM, len(marker_names)) / np.linalg.norm(d, axis=1))[:, None]
+    return {"scales": scales, "offsets": dict(zip(marker_names, d, strict=True))}
+
+
+def subject(truth: dict):
+    """The generic model scaled by OpenSim with ``truth``'s factors and its markers moved."""
+    osim = _osim()
+    model = generic_model()
+    state = model.initSystem()
+    ss = osim.ScaleSet()
+    for b, s in truth["scales"].items():
+        sc = osim.Scale()
+        sc.setSegmentName(b)
+        sc.setScaleFactors(osim.Vec3(*map(float, s)))
+        sc.setApply(True)
+        ss.cloneAndAppend(sc)
+    model.scale(state, ss, False, -1.0)
+    for i in range(model.getMarkerSet().getSize()):
+        m = model.getMarkerSet().get(i)
+        loc = m.get_location()
+        d = truth["offsets"][m.getName()] / 1000.0
+        m.set_location(osim.Vec3(loc.get(0) + d[0], loc.get(1) + d[1], loc.get(2) + d[2]))
+    model.finalizeConnections()
+    model.initSystem()
+    return model
+
+
+def marker_trajectories(model, coord_names, q) -> tuple[list[str], np.ndarray]:
+    """OpenSim's marker positions (F, M, 3) in mm at the coordinates ``q (F, C)``."""
+    state = model.initSystem()
+    cs = model.getCoordinateSet()
+    coords = [cs.get(n) for n in coord_names]
+    ms = model.getMarkerSet()
+    names = [ms.get(i).getName() for i in range(ms.getSize())]
+    out = np.empty((len(q), len(names), 3))
+    for t, row in enumerate(q):
+        for c, v in zip(coords, row, strict=True):
+            c.setValue(state, float(v), False)
+        model.realizePosition(state)
+        for j in range(len(names)):
+            p = ms.get(j).getLocationInGround(state)
+            out[t, j] = (p.get(0), p.get(1), p.get(2))
+    return names, out * 1000.0
+
+
+def opensim_lengths(model, coord_names) -> dict:
+    """Distances (mm) between the joint centres of ``LENGTHS`` at the zero pose."""
+    state = model.initSystem()
+    cs = model.getCoordinateSet()
+    for n in coord_names:
+        cs.get(n).setValue(state, 0.0, False)
+    model.realizePosition(state)
+    bs = model.getBodySet()
+
+    def p(b):
+        v = bs.get(b).getPositionInGround(state)
+        return np.array([v.get(0), v.get(1), v.get(2)])
+    return {k: float(np.linalg.norm(p(a) - p(b)) * 1000.0) for k, (a, b) in LENGTHS.items()}
+
+
+# ----------------------------------------------------------------------------- skelid
+def skelid_lengths(fit) -> tuple[dict, dict]:
+    """Lengths (mm) at the zero pose from a fit and their sd (delta method over the scale covariance)."""
+    from skelid.model.kinematics import forward_kinematics
+
+    model, theta = fit.model, np.asarray(fit.theta, float)
+    idx = {s.name: i for i, s in enumerate(model.segments)}
+    zero = np.zeros(model.n_pose)
+
+    def lengths(th):
+        kin = forward_kinematics(model, th, zero)
+        return np.array([np.linalg.norm(kin.p_world_seg[idx[a]] - kin.p_world_seg[idx[b]])
+                         for a, b in LENGTHS.values()])
+    ks = [k for k, p in enumerate(model.parameters) if p.kind == "scale"]
+    L0 = lengths(theta)
+    G = np.zeros((len(LENGTHS), len(ks)))
+    for j, k in enumerate(ks):
+        th = theta.copy()
+        th[k] += 1e-6
+        G[:, j] = (lengths(th) - L0) / 1e-6
+    cov = scale_covariance(fit, ks)
+    sd = np.sqrt(np.clip(np.einsum("lp,pq,lq->l", G, cov, G), 0, None))
+    names = list(LENGTHS)
+    return dict(zip(names, L0, strict=True)), dict(zip(names, sd, strict=True))
+
+
+def scale_covariance(fit, ks) -> np.ndarray:
+    """The covariance of the scale parameters ``ks`` as the fit reports it (its sd on the diagonal)."""
+    est = fit.estimator
+    cov = getattr(est, "cov_", None)
+    names = [fit.model.parameters[k].name for k in ks]
+    if cov is not None and hasattr(est, "model") and [p.name for p in est.model.parameters][:len(ks)] == names:
+        return np.asarray(cov, float)[:len(ks), :len(ks)]
+    if cov is not None and hasattr(est, "model"):
+        en = [p.name for p in est.model.parameters]
+        i = [en.index(n) for n in names]
+        return np.asarray(cov, float)[np.ix_(i, i)]
+    sd = np.array([fit.result[n]["sd"] for n in names])
+    return np.diag(sd**2)
+
+
+def skelid_fit(trials, scale: str) -> dict:
+    from skelid.data import MarkerData
+    from skelid.scaling import fit_osim
+
+    data = [MarkerData(y, tuple(names), RATE, "mm", src) for src, names, y in trials]
+    t0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = fit_osim(GENERIC, data, marker_set=MARKER_SET, scale=scale, markers="offsets")
+    cpu = time.process_time() - t0
+    est = fit.estimator
+    crlb = getattr(est, "crlb_sd_", None)
+    if crlb is None and hasattr(est, "trials_"):  # several trials: each trial's bound, combined
+        crlb = np.sum([np.asarray(e.crlb_sd_, float) ** -2.0 for e in est.trials_], axis=0) ** -0.5
+    out = {"cpu_s": cpu, "sigma": fit.result.get("sigma"), "warnings": list(fit.warnings), "q": {}}
+    en = [p.name for p in est.model.parameters] if hasattr(est, "model") else []
+    for k, p in enumerate(fit.model.parameters):
+        e = fit.result[p.name]
+        cr = float(crlb[en.index(p.name)]) if crlb is not None and p.name in en else float("nan")
+        if p.kind == "scale":
+            key = f"scale {p.target}" + ("" if p.axis is None else f" {'xyz'[p.axis]}")
+        else:
+            key = f"offset {p.target} {'xyz'[p.axis]}"
+        out["q"][key] = {"est": float(fit.theta[k]), "sd": float(e["sd"]), "crlb": cr}
+    L, sd = skelid_lengths(fit)
+    for n in L:
+        out["q"][f"length {n}"] = {"est": L[n], "sd": sd[n], "crlb": float("nan")}
+    return out
+
+
+def true_values(truth: dict, lengths: dict, fit_scale: str) -> dict:
+    q = {}
+    for b, s in truth["scales"].items():
+        if fit_scale == "axes":
+            for i, a in enumerate("xyz"):
+                q[f"scale {b} {a}"] = float(s[i])
+        else:
+            q[f"scale {b}"] = float(np.mean(s))
+    for m, d in truth["offsets"].items():
+        for i, a in enumerate("xyz"):
+            q[f"offset {m} {a}"] = float(d[i])
+    for n, v in lengths.items():
+        q[f"length {n}"] = v
+    return q
+
+
+# ----------------------------------------------------------------------------- OpenSim's ScaleTool
+def scaletool(names, static: np.ndarray, work: Path, coord_names) -> dict:
+    """ScaleTool (measurements, then MarkerPlacer) on the static trial: its scales and lengths."""
+    osim = _osim()
+    from skelid.data import MarkerData
+    from skelid.io import write_trc
+
+    work.mkdir(parents=True, exist_ok=True)
+    for f in ("gait2354_simbody.osim", "gait2354_Scale_MarkerSet.xml", "subject01_Setup_Scale.xml"):
+        if not (work / f).exists():
+            shutil.copy(DATA / f, work / f)
+    write_trc(work / "static.trc", MarkerData(static, tuple(names), RATE, "mm", "static"))
+    cwd = os.getcwd()
+    os.chdir(work)
+    t0 = time.process_time()
+    try:
+        tool = osim.ScaleTool("subject01_Setup_Scale.xml")
+        t_end = (static.shape[0] - 1) / RATE
+        times = osim.ArrayDouble()
+        times.append(0.0)
+        times.append(t_end)
+        ms = tool.getModelScaler()
+        ms.setMarkerFileName("static.trc")
+        ms.setTimeRange(times)
+        order = osim.ArrayStr()
+        order.append("measurements")
+        ms.setScalingOrder(order)  # the setup's manual scales for femur and tibia are not the subject's
+        ms.setOutputModelFileName("scaled_only.osim")
+        ms.setOutputScaleFileName("scale_set.xml")
+        mp = tool.getMarkerPlacer()
+        mp.setStaticPoseFileName("static.trc")
+        mp.setTimeRange(times)
+        mp.setOutputModelFileName("placed.osim")
+        mp.setOutputMotionFileName("placed.mot")
+        tool.run()
+        cpu = time.process_time() - t0
+        ss = osim.ScaleSet("scale_set.xml")
+        scales = {}
+        for i in range(ss.getSize()):
+            s = ss.get(i)
+            v = s.getScaleFactors()
+            scales[s.getSegmentName()] = [v.get(0), v.get(1), v.get(2)]
+        model = osim.Model("placed.osim")
+        lengths = opensim_lengths(model, coord_names)
+        ms_ = model.getMarkerSet()
+        locs = {ms_.get(i).getName(): np.array([ms_.get(i).get_location().get(k) for k in range(3)]) * 1000.0
+                for i in range(ms_.getSize())}
+    finally:
+        os.chdir(cwd)
+    return {"scales": scales, "lengths": lengths, "locations_mm": locs, "cpu_s": cpu}
+
+
+# ----------------------------------------------------------------------------- one draw
+def run_draw(args) -> dict:
+    truth_kind, noise, seed, designs, fits, peer, work = args
+    mo = motions()
+    rng = np.random.default_rng(seed)
+    generic = generic_model()
+    mnames = [generic.getMarkerSet().get(i).getName() for i in range(generic.getMarkerSet().getSize())]
+    truth = draw_truth(rng, truth_kind, mnames)
+    model = subject(truth)
+    names, walk = marker_trajectories(model, mo["names"], mo["walk"])
+    _, static1 = marker_trajectories(model, mo["names"], mo["static"][:1])
+    static = np.repeat(static1, len(mo["static"]), axis=0)
+    lengths = opensim_lengths(model, mo["names"])
+    walk = walk + rng.normal(0.0, noise, walk.shape)
+    static = static + rng.normal(0.0, noise, static.shape)
+    out = {"seed": seed, "truth_kind": truth_kind, "noise": noise, "fits": {}}
+    for design in designs:
+        trials = ([("static", names, static)] if design == "static+walk" else []) + [("walk", names, walk)]
+        for fs in fits:
+            key = f"{truth_kind}/{fs}/{design}/{noise:g}"
+            tv = true_values(truth, lengths, fs)
+            try:
+                r = skelid_fit(trials, fs)
+            except Exception as exc:  # a failed fit is counted in its cell, with its message
+                out["fits"][key] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
+                continue
+            r["truth"] = {k: tv[k] for k in r["q"] if k in tv}
+            out["fits"][key] = r
+    if peer and "static+walk" in designs:
+        try:
+            p = scaletool(names, static, Path(work) / f"st_{os.getpid()}", mo["names"])
+            err = {}
+            for b in SCALED:
+                if b in p["scales"]:
+                    err[f"scale {b}"] = [float(v - t) for v, t in zip(p["scales"][b], truth["scales"][b],
+                                                                       strict=True)]
+            for n, v in p["lengths"].items():
+                err[f"length {n}"] = float(v - lengths[n])
+            out["scaletool"] = {"error": err, "cpu_s": p["cpu_s"]}
+        except Exception as exc:
+            out["scaletool"] = {"failed": f"{type(exc).__name__}: {exc}"[:300]}
+    return out
+
+
+# ----------------------------------------------------------------------------- summary
+def summarise(draws: list[dict]) -> dict:
+    cells: dict = {}
+    for d in draws:
+        for key, r in d["fits"].items():
+            c = cells.setdefault(key, {"n": 0, "failed": 0, "errors": [], "rows": {}, "cpu": [], "sigma": [],
+                                       "warned": 0})
+            if "error" in r:
+                c["failed"] += 1
+                c["errors"].append(r["error"])
+                continue
+            c["n"] += 1
+            c["cpu"].append(r["cpu_s"])
+            s = r.get("sigma")
+            c["sigma"].append(s.get("value") if isinstance(s, dict) else s)
+            c["warned"] += bool(r["warnings"])
+            for q, e in r["q"].items():
+                if q in r["truth"]:
+                    row = c["rows"].setdefault(q, {"err": [], "sd": [], "crlb": []})
+                    row["err"].append(e["est"] - r["truth"][q])
+                    row["sd"].append(e["sd"])
+                    row["crlb"].append(e["crlb"])
+        if "scaletool" in d and "error" in d["scaletool"]:
+            key = f"{d['truth_kind']}/scaletool/static+walk/{d['noise']:g}"
+            c = cells.setdefault(key, {"n": 0, "failed": 0, "errors": [], "rows": {}, "cpu": []})
+            c["n"] += 1
+            c["cpu"].append(d["scaletool"]["cpu_s"])
+            for q, e in d["scaletool"]["error"].items():
+                if isinstance(e, list):
+                    for i, a in enumerate("xyz"):
+                        c["rows"].setdefault(f"{q} {a}", {"err": []})["err"].append(e[i])
+                else:
+                    c["rows"].setdefault(q, {"err": []})["err"].append(e)
+    out = {}
+    for key, c in sorted(cells.items()):
+        rows = {}
+        for q, v in c["rows"].items():
+            err = np.asarray(v["err"], float)
+            row = {"n": int(err.size), "bias": float(err.mean()), "rmse": float(np.sqrt(np.mean(err**2))),
+                   "actual_sd": float(err.std(ddof=1)) if err.size > 1 else float("nan")}
+            if "sd" in v:
+                sd = np.asarray(v["sd"], float)
+                cr = np.asarray(v["crlb"], float)
+                ref = np.where(np.isfinite(cr), cr, sd)
+                row |= {"mean_sd": float(sd.mean()), "mean_crlb": float(np.nanmean(ref)),
+                        "crlb_is_sd": bool(~np.isfinite(cr).any()),
+                        "bias_over_crlb": float(err.mean() / np.nanmean(ref)),
+                        "rmse_over_sd": float(np.sqrt(np.mean(err**2)) / sd.mean()),
+                        "rmse_over_crlb": float(np.sqrt(np.mean(err**2)) / np.nanmean(ref)),
+                        "coverage95": float(np.mean(np.abs(err) <= Z95 * sd)),
+                        "sd_ratio": float(sd.mean() / err.std(ddof=1)) if err.size > 1 else float("nan")}
+            rows[q] = row
+        out[key] = {"n": c["n"], "failed": c["failed"], "errors": sorted(set(c["errors"]))[:5], "rows": rows,
+                    "cpu_s_per_fit": float(np.mean(c["cpu"])) if c["cpu"] else float("nan")}
+        if "sigma" in c:
+            sig = [s for s in c["sigma"] if s is not None]
+            out[key] |= {"sigma_mean": float(np.mean(sig)) if sig else None,
+                         "share_warned": c["warned"] / max(c["n"], 1)}
+    return out
+
+
+def markdown(res: dict) -> str:
+    p = res["provenance"]
+    lines = ["# OpenSim-generated truth: skelid's OpenSim scaling against known geometry", "",
+             f"{'REDUCED run (--quick). ' if res['quick'] else ''}{res['reps']} draws per cell (geometry drawn per "
+             f"draw). Commit `{p['commit'][:10]}`, {p['date_utc']}, {p['cpu_model']}, {p['cores']} cores, load "
+             f"{p['load_average_1_5_15']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
+             "Cell = truth / fit / design / noise sd (mm). Truth `bodies`: one factor per body; `axes`: one per "
+             "axis. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
+             "exact structure. Marker offsets are pooled over every marker and axis (per-offset rows in the "
+             "JSON). ScaleTool rows: OpenSim's measurement-based scaling on the same static trial (error of each "
+             "axis' factor against the truth's).", ""]
+    for key, c in res["cells"].items():
+        head = f"## {key}: {c['n']} draws, {c['failed']} failed, {c['cpu_s_per_fit']:.1f} s CPU per fit"
+        if c.get("sigma_mean") is not None:
+            head += f", mean sigma {c['sigma_mean']:.3f} mm, warned in {c['share_warned']:.0%}"
+        lines += [head, ""]
+        if c["errors"]:
+            lines += [f"Failures: {'; '.join(c['errors'])}", ""]
+        if not c["rows"]:
+            continue
+        st = "sd" not in next(iter(c["rows"].values()), {}) and "mean_sd" not in next(iter(c["rows"].values()))
+        if st:
+            lines += ["| quantity | bias | RMSE |", "|---|---|---|"]
+            for q, r in c["rows"].items():
+                lines.append(f"| {q} | {r['bias']:.4f} | {r['rmse']:.4f} |")
+            lines.append("")
+            continue
+        lines += ["| quantity | bias | bias/CRLB | RMSE | RMSE/CRLB | RMSE/mean sd | coverage 95 % "
+                  "| mean sd / actual sd |", "|---|---|---|---|---|---|---|---|"]
+        pooled: dict = {}
+        for q, r in c["rows"].items():
+            if q.startswith("offset"):
+                for k in ("bias_over_crlb", "rmse_over_crlb", "rmse_over_sd", "coverage95", "sd_ratio", "rmse",
+                          "bias"):
+                    pooled.setdefault(k, []).append(r[k])
+                continue
+            lines.append(f"| {q} | {r['bias']:.4f} | {r['bias_over_crlb']:.2f} | {r['rmse']:.4f} | "
+                         f"{r['rmse_over_crlb']:.2f} | {r['rmse_over_sd']:.2f} | {r['coverage95']:.2f} | "
+                         f"{r['sd_ratio']:.2f} |")
+        if pooled:
+            m = {k: float(np.nanmean(v)) for k, v in pooled.items()}
+            lo = float(np.nanmin(pooled["coverage95"]))
+            lines.append(f"| offsets, mean over {len(pooled['bias'])} (mm) | {m['bias']:.3f} | "
+                         f"{m['bias_over_crlb']:.2f} | {m['rmse']:.3f} | {m['rmse_over_crlb']:.2f} | "
+                         f"{m['rmse_over_sd']:.2f} | {m['coverage95']:.2f} (min {lo:.2f}) | {m['sd_ratio']:.2f} |")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def parse_cells(cells) -> list[tuple]:
+    out = []
+    for c in cells:
+        t, f, d, n = c.split("/")
+        out.append((t, f, d, float(n)))
+    return out
+
+
+def default_cells(quick: bool) -> list[tuple]:
+    noises = (0.0, 5.0) if quick else NOISES
+    return [(t, f, d, n) for t, f in CONFIGS for d in DESIGNS for n in noises]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--reps", type=int, default=20)
+    ap.add_argument("--cells", nargs="*", help="truth/fit/design/noise, e.g. axes/axes/walk/5")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--quick", action="store_true", help="3 draws, noise 0 and 5 mm only")
+    ap.add_argument("--no-peer", action="store_true", help="skip OpenSim's ScaleTool")
+    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--seed", type=int, default=20261202)
+    args = ap.parse_args(argv)
+    reps = 3 if args.quick and args.reps == 20 else args.reps
+    cells = parse_cells(args.cells) if args.cells else default_cells(args.quick)
+    prov = provenance(argv)
+    motions()  # the IK once, before any worker needs it
+    # one draw generates the data of every cell sharing its truth and noise
+    groups: dict = {}
+    for t, f, d, n in cells:
+        g = groups.setdefault((t, n), {"designs": [], "fits": []})
+        g["designs"] += [d] if d not in g["designs"] else []
+        g["fits"] += [f] if f not in g["fits"] else []
+    w0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as work:
+        tasks = []
+        for gi, ((t, n), g) in enumerate(sorted(groups.items())):
+            for r in range(reps):
+                seed = args.seed + 1000 * r + gi
+                tasks.append((t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer, work))
+        if args.jobs > 1:
+            with ProcessPoolExecutor(args.jobs) as pool:
+                draws = list(pool.map(run_draw, tasks))
+        else:
+            draws = []
+            for k, task in enumerate(tasks):
+                draws.append(run_draw(task))
+                print(f"draw {k + 1}/{len(tasks)} {task[0]} noise {task[1]:g}: "
+                      f"{time.perf_counter() - w0:.0f} s", flush=True)
+    keep = {f"{t}/{f}/{d}/{n:g}" for t, f, d, n in cells}
+    for d in draws:
+        d["fits"] = {k: v for k, v in d["fits"].items() if k in keep}
+    res = {"provenance": prov, "quick": bool(args.quick), "reps": reps, "wall_s": time.perf_counter() - w0,
+           "cells": summarise(draws), "draws": draws}
+    write_results(args.out, _finite(res), markdown)
+
+
+def _finite(obj):
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    if isinstance(obj, float | np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer | np.bool_):
+        return obj.item()
+    return obj
+
+
+if __name__ == "__main__":
+    main()
