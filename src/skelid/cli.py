@@ -217,7 +217,8 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
     if str(model_path).lower().endswith(".osim"):
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
-                  marker_set, as_json, quiet, overwrite)
+                  marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
+                  alternatives=alternatives, limits=(max_memory, max_time))
         return
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
@@ -251,9 +252,15 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
 
 def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
-              as_json, quiet, overwrite=False):
-    """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim."""
+              as_json, quiet, overwrite=False, cutoff=None, artefact_rms=None, noise="pooled", alternatives=(),
+              limits=(None, None)):
+    """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim.
+
+    Every option of ``fit`` reaches the fit (the estimator's options as for a ``.toml`` model) or is
+    refused here in one line.
+    """
     from skelid import scaling, workflows
+    from skelid.errors import SettingError
     from skelid.io import read_markers
     from skelid.io.atomic import atomic_dir, check_output_dir
     from skelid.io.legacy import run_from_scaling
@@ -261,6 +268,14 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
 
     if len(method_names) > 1:
         raise click.UsageError("an .osim model is fitted with one method; give --method once")
+    if alternatives:
+        raise SettingError("--alternative does not apply to an OpenSim model: the scaling fit has one model, whose "
+                           "body scales and marker offsets an alternative model of other joints would not share",
+                           "leave --alternative out and fit each .osim model with its own 'skelid fit', then "
+                           "compare their scaled_scaling.json")
+    for name, v in (("--sigma", sigma), ("--cutoff", cutoff), ("--artefact-rms", artefact_rms)):
+        _finite(name, v)
+    limits = _limits(*limits)
     if out_dir is not None:
         check_output_dir(out_dir, overwrite=overwrite)
     workflows.check_input_file(model_path, "model file")
@@ -270,7 +285,8 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
         workflows.check_input_file(p, "data file")
     trials = [read_markers(p) for p in data_paths]
     fit_ = scaling.fit_osim(model_path, trials, marker_set, scale_kind, marker_kind,
-                            method_names[0] if method_names else "marker", seed, sigma)
+                            method_names[0] if method_names else "marker", seed, sigma, cutoff=cutoff,
+                            artefact_rms=artefact_rms, noise=noise, limits=limits)
     table = scaling.scaling_table(fit_)
     _echo_warnings(table["warnings"])
     if out_dir is not None:

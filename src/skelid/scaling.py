@@ -144,7 +144,8 @@ def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
              static_frames: int | None = STATIC_FRAMES, movement_frames: int | None = MOVEMENT_FRAMES,
-             joined: bool = False) -> ScalingFit:
+             joined: bool = False, cutoff: float | None = None, artefact_rms: float | None = None,
+             noise: str = "pooled", limits=None) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
@@ -173,6 +174,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     joined : bool
         Fit the trials as one recording with gaps (one marker fit, :func:`join_trials`)
         instead of the multi-trial fit (each trial alone, then together).
+    cutoff, artefact_rms, noise
+        The ``skelid fit`` options of the same names, passed to the estimator as for a
+        ``.toml`` model (:func:`fit_settings`); one the method does not declare is refused.
+    limits : skelid.resources.Limits, optional
+        Memory and time the fit may be estimated to need (default from the environment).
 
     Returns
     -------
@@ -203,17 +209,19 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                         "rename the markers in the model's MarkerSet or in the data so that they match")
     original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
+    settings = fit_settings(original, method, multi, sigma, cutoff, artefact_rms, noise)
+    _check_cost(osim_parameters(original, info, scale, "none", present), method, trials, limits)
     t0 = time.perf_counter()
     notes, moved = [], {}
     with warnings.catch_warnings(), _one_blas_thread():
         warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
         if markers == "offsets" and scale != "none":
-            moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed)
+            moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed, settings)
             notes += [note] if note else []
         base = _with_marker_positions(original, moved)
         model = osim_parameters(base, info, scale, "none", present)
         parts = [_select(t, model.marker_names) for t in trials]
-        est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed)
+        est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed, settings)
     static = parts[0]
     if markers == "offsets":
         offsets, sd, n_eff = place_markers(model, theta, poses[0], static.positions,
@@ -252,8 +260,37 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                       list(dict.fromkeys(warns)), theta)
 
 
+def fit_settings(model: Model, method: str, multi: bool, sigma: float | None = None, cutoff: float | None = None,
+                 artefact_rms: float | None = None, noise: str = "pooled") -> dict:
+    """The scale fit's estimator settings from the ``skelid fit`` options, built as for a ``.toml`` model.
+
+    The options are checked (:func:`skelid.workflows.check_options`) and mapped onto the
+    settings the estimator declares (:func:`skelid.registry.settings_from_options`): the
+    several-trial :class:`~skelid.estimators.multitrial.MultiTrialEstimator` with ``multi``,
+    else the class of ``method``.
+
+    Raises
+    ------
+    SkelidError
+        An unusable value, or an option the method does not use (one line naming it).
+    """
+    from skelid import registry, workflows
+    from skelid.estimators.multitrial import MultiTrialEstimator
+
+    workflows.check_options(model, sigma, cutoff, artefact_rms)
+    cls = MultiTrialEstimator if multi else registry.estimator_class(method)
+    return registry.settings_from_options(cls, workflows.fit_options(sigma, cutoff, artefact_rms, noise), method)
+
+
+def _check_cost(model: Model, method: str, trials, limits) -> None:
+    """Refuse a fit estimated to need more memory or time than ``limits`` (before any fitting)."""
+    from skelid import workflows
+
+    workflows.check_cost(model, method, sum(int(t.positions.shape[0]) for t in trials), limits)
+
+
 def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
-                             seed: int = 0) -> tuple[dict, str | None]:
+                             seed: int = 0, settings: dict | None = None) -> tuple[dict, str | None]:
     """Free markers placed on the static trial after a scale fit to its fixed (anatomical) markers.
 
     OpenSim marks a marker ``fixed`` when its place on the body is known (a
@@ -265,6 +302,9 @@ def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: Ma
     free marker on a body that pass reaches is moved to where the static
     trial saw it: ``r_m^0 = S_b^{-1} mean_t R_t^T (y_mt - p_t)``. The fit of
     all trials then starts from those places.
+
+    The first pass is a :class:`~skelid.estimators.marker.MarkerEstimator` with those of
+    ``settings`` (:func:`fit_settings`) that it declares.
 
     Returns
     -------
@@ -292,7 +332,9 @@ def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: Ma
     try:
         with warnings.catch_warnings():  # a first pass: its warnings are not the answer's
             warnings.simplefilter("ignore", SkelidWarning)
-            est = MarkerEstimator(m1, sigma=sigma, rng=np.random.default_rng(seed)).fit(
+            own = {s.name for s in MarkerEstimator.settings}
+            kw = {k: v for k, v in ({"sigma": sigma} if settings is None else settings).items() if k in own}
+            est = MarkerEstimator(m1, **{**kw, "rng": np.random.default_rng(seed)}).fit(
                 _select(static, m1.marker_names))
     except SkelidError as exc:
         return {}, ("free markers placed after the scale fit only: a fit of the static trial's fixed markers "
@@ -352,9 +394,13 @@ def _as_dict(r) -> dict:
     return dict(r) if isinstance(r, dict) else summary_dict(r)
 
 
-def _fit_scales(model, parts, data, multi, method, sigma, seed):
-    """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``."""
+def _fit_scales(model, parts, data, multi, method, sigma, seed, settings: dict | None = None):
+    """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``.
+
+    ``settings``: the estimator's settings (:func:`fit_settings`; default: ``sigma`` only).
+    """
     rng = np.random.default_rng(seed)
+    settings = {"sigma": sigma} if settings is None else dict(settings)
     if not model.n_params:  # nothing to scale: poses of the nominal model on the static trial only
         from skelid.estimators.fit.pose import track_poses
 
@@ -363,14 +409,14 @@ def _fit_scales(model, parts, data, multi, method, sigma, seed):
     if multi:
         from skelid.estimators.multitrial import MultiTrialEstimator
 
-        est = MultiTrialEstimator(model, sigma=sigma, rng=rng).fit(parts)
+        est = MultiTrialEstimator(model, **{**settings, "rng": rng}).fit(parts)
         edges = np.cumsum([0] + [len(p.positions) for p in parts])
         poses = [est.pose_[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
         return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
-    from skelid.workflows import make_estimator
+    from skelid.registry import make_estimator
 
     sub = _select(data, model.marker_names)
-    est = make_estimator(method, model, sigma, rng=rng)
+    est = make_estimator(method, model, None, **{**settings, "rng": rng})
     est.fit(sub)
     poses = [est.pose_[a:b] for a, b in data.meta["trial_frames"]]
     return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
@@ -447,11 +493,22 @@ def scaling_table(fit: ScalingFit) -> dict:
         "marker_locations_m": {n: [float(v) for v in x] for n, x in locs.items()},
         "body_scale_factors": {b: [float(v) for v in s] for b, s in body_scales(fit.model, fit.theta).items()},
         "sigma_mm": res.get("sigma"),
+        "settings": _settings_json(fit.estimator),
         "frames_used": res.get("frames_used"),
         "seconds": round(fit.seconds, 3),
         "markers_left_out": list(fit.dropped_markers),
         "warnings": list(fit.warnings),
     }
+
+
+def _settings_json(est) -> dict:
+    """The scale fit's estimator and its declared settings, as JSON values (empty without a fit)."""
+    from skelid.estimators.base import get_settings, setting_json
+
+    if est is None:
+        return {}
+    return {"method": est.name, **{k: setting_json(v) for k, v in get_settings(est).items()
+                                   if k not in ("theta0", "pose0", "rng")}}
 
 
 def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, Path]:

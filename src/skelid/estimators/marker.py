@@ -1162,7 +1162,7 @@ class MarkerEstimator:
         Setting("outlier_threshold", positive_or_none, "a positive number of robust sd, or None"),
         Setting("artefact_rms", non_negative_or_none, "a distance >= 0 in model units, or None",
                 cli="artefact_rms"),
-        Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'"),
+        Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'", cli="noise"),
         Setting("marker_groups", lambda v: v is None or isinstance(v, dict), "None or {group: [marker names]}"),
         Setting("jackknife", lambda v: isinstance(v, bool), "True or False"),
         Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
