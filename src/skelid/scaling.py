@@ -26,7 +26,10 @@ trials with one geometry.
 
 :func:`write_outputs` writes the scaled ``.osim`` (every other element of the
 source kept), an OpenSim ScaleSet, and ``scaling.json`` with each factor and
-marker offset and its 95 % interval. :func:`opensim_ik` runs OpenSim's own
+marker offset and its 95 % interval, its Cramér-Rao bound, the noise level with
+its interval, the estimator's settings and, with several trials,
+:func:`trials_table`: each trial's own scale factors, the between-trial sd and
+the trials' consistency test (also in the report and in ``result.json``). :func:`opensim_ik` runs OpenSim's own
 InverseKinematicsTool on a model and a trial and returns its marker RMSE.
 """
 
@@ -477,6 +480,8 @@ def scaling_table(fit: ScalingFit) -> dict:
         e = res[p.name]
         entry = {"value": float(e["map"]), "sd": float(e.get("sd", np.nan)),
                  "ci95": [float(v) for v in e.get("ci95", (np.nan, np.nan))]}
+        entry.update({k: float(e[k]) for k in ("crlb_sd", "sd_within_trials", "sd_between_trials")
+                      if e.get(k) is not None})
         if p.kind == "scale":
             key = "xyz" if p.axis is None else "xyz"[p.axis]
             scales.setdefault(p.target, {})[key] = entry
@@ -493,12 +498,69 @@ def scaling_table(fit: ScalingFit) -> dict:
         "marker_locations_m": {n: [float(v) for v in x] for n, x in locs.items()},
         "body_scale_factors": {b: [float(v) for v in s] for b, s in body_scales(fit.model, fit.theta).items()},
         "sigma_mm": res.get("sigma"),
+        "trials": trials_table(fit),
         "settings": _settings_json(fit.estimator),
         "frames_used": res.get("frames_used"),
         "seconds": round(fit.seconds, 3),
         "markers_left_out": list(fit.dropped_markers),
         "warnings": list(fit.warnings),
     }
+
+
+def _scale_key(p) -> tuple[str, str]:
+    """``(body, axis)`` of a scale parameter as the scaling table names them."""
+    return p.target, "xyz" if p.axis is None else "xyz"[p.axis]
+
+
+def trials_table(fit: ScalingFit) -> dict | None:
+    """Several trials: each trial's own scale factors, the between-trial sd and the consistency test.
+
+    From the several-trial fit's diagnostics (:meth:`~skelid.estimators.multitrial.MultiTrialEstimator.result`);
+    None for a fit of one trial (or of trials joined into one recording).
+
+    Returns
+    -------
+    dict
+        ``n_trials``; ``per_trial``: ``[{trial, frames, frames_used, sigma_mm, scales: {body: {axis:
+        {value, sd, sd_with_between_trial, ci95}}}}]``; ``between_trial_sd``: ``{body: {axis: tau}}``;
+        ``heterogeneity``: Cochran's ``q``, ``i2``, ``dof`` by body and axis; ``consistency``:
+        ``{statistic, dof, p_value, tested, verdict}`` (``p_value`` None, "not tested", below one degree
+        of freedom); ``between_trial``: how the spread entered the intervals.
+    """
+    res = fit.result
+    rows = res.get("trials")
+    if not isinstance(rows, list) or not rows:
+        return None
+    scales = [p for p in fit.model.parameters if p.kind == "scale"]
+    per = []
+    for r in rows:
+        own: dict = {}
+        for p in scales:
+            e = (r.get("parameters") or {}).get(p.name)
+            if e is not None:
+                b, ax = _scale_key(p)
+                own.setdefault(b, {})[ax] = {"value": e["mean"], "sd": e["sd"],
+                                             "sd_with_between_trial": e["sd_with_between_trial"],
+                                             "ci95": list(e["interval"])}
+        per.append({"trial": r.get("trial"), "frames": r.get("frames"), "frames_used": r.get("frames_used"),
+                    "sigma_mm": r.get("sigma"), "scales": own})
+    het = res.get("heterogeneity") or {}
+    between: dict = {}
+    spread: dict = {}
+    for p in scales:
+        if p.name in het:
+            b, ax = _scale_key(p)
+            between.setdefault(b, {})[ax] = het[p.name]["tau"]
+            spread.setdefault(b, {})[ax] = {k: het[p.name][k] for k in ("q", "i2", "dof") if k in het[p.name]}
+    cons = dict(res.get("consistency") or {})
+    if cons:
+        if cons.get("p_value") is None:
+            cons["verdict"] = "not tested (fewer than one degree of freedom)"
+        else:
+            cons["verdict"] = ("the trials agree" if cons["p_value"] >= 0.01 else
+                               "the trials disagree beyond their own intervals")
+    return {"n_trials": len(rows), "per_trial": per, "between_trial_sd": between, "heterogeneity": spread,
+            "consistency": cons, "between_trial": res.get("between_trial")}
 
 
 def _settings_json(est) -> dict:
@@ -546,6 +608,12 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
             s = f"{sig[k]:.1f}" if sig and k < len(sig) and sig[k] is not None else "-"
             lines.append(f"| {Path(src).name} | {n} | {s} |")
         lines.append("")
+    noise = table.get("sigma_mm") or {}
+    if isinstance(noise, dict) and noise.get("value") is not None:
+        ci = noise.get("ci95")
+        lines += [f"Marker noise sd: {noise['value']:.3g} mm" + (f" [{ci[0]:.3g}, {ci[1]:.3g}]" if ci else
+                                                                 " (given, not estimated)"), ""]
+    lines += _trials_markdown(table.get("trials"))
     if table["scales"]:
         lines += ["## Body scale factors", "", "| body | axis | scale | 95 % interval |", "|---|---|---|---|"]
         for body, axes in table["scales"].items():
@@ -579,6 +647,34 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
                   "inverse kinematics with it);", f"- `{files['scale_set']}`: the scale factors as an OpenSim "
                   "ScaleSet;", f"- `{files['json']}`: every factor and offset with its sd and 95 % interval.", ""]
     return "\n".join(lines)
+
+
+def _trials_markdown(trials: dict | None) -> list[str]:
+    """The report's section on several trials: each trial's scale factors, the spread, the consistency test."""
+    if not trials:
+        return []
+    per = trials["per_trial"]
+    names = [Path(str(r["trial"])).name for r in per]
+    lines = ["## Each trial's own scale factors", "",
+             "Each trial fitted alone (sd with the between-trial spread); the joint estimate below combines them.",
+             "", "| body | axis | " + " | ".join(names) + " | between-trial sd |",
+             "|---|---|" + "---|" * (len(names) + 1)]
+    for body, axes in trials["between_trial_sd"].items():
+        for ax, tau in axes.items():
+            cells = []
+            for r in per:
+                e = r["scales"].get(body, {}).get(ax)
+                cells.append("-" if e is None else f"{e['value']:.4f} ± {e['sd_with_between_trial']:.4f}")
+            lines.append(f"| {body} | {ax} | " + " | ".join(cells) + f" | {tau:.4f} |")
+    c = trials.get("consistency") or {}
+    if c:
+        if c.get("p_value") is None:
+            lines += ["", "Consistency of the trials with the joint estimate: not tested (fewer than one degree "
+                      "of freedom)."]
+        else:
+            lines += ["", f"Consistency of the trials with the joint estimate: chi-square {c['statistic']:.1f} on "
+                      f"{c['dof']} degrees of freedom, p = {c['p_value']:.2g} ({c['verdict']})."]
+    return lines + [""]
 
 
 def _finite_or_none(obj):
