@@ -131,7 +131,18 @@ def check_noise(d, base):
 
 
 def check_alternative(d, base):
-    _refused(_run(d, ["--alternative", str(d / "leg.osim")]), "--alternative")
+    # another model of the leg (the hip 2 cm lower on the pelvis): the spread of every scale factor over both
+    alt = d / "leg_low_hip.osim"
+    alt.write_text(MODEL.replace("0.05 -0.08 0.09", "0.05 -0.10 0.09").format(markers=_marker_xml()))
+    r = _run(d, ["--alternative", str(alt)])
+    sens = r["table"]["model_sensitivity"]
+    assert sens["models"] == ["leg.osim", "leg_low_hip.osim"] and base["table"]["model_sensitivity"] is None
+    assert set(sens["spread"]) == {"scale_pelvis", "scale_thigh", "scale_shank"}
+    assert max(e["spread"] for e in sens["spread"].values()) > 1e-3
+    assert "alternative models" in (r["dir"] / "scaled_report.md").read_text()
+    toml = d / "leg.toml"
+    toml.write_text("")
+    _refused(_run(d, ["--alternative", str(toml)]), "--alternative")
 
 
 def check_seed(d, base):

@@ -292,6 +292,39 @@ def _check_cost(model: Model, method: str, trials, limits) -> None:
     workflows.check_cost(model, method, sum(int(t.positions.shape[0]) for t in trials), limits)
 
 
+def with_alternatives(fit: ScalingFit, alternatives, trials, **options) -> ScalingFit:
+    """``fit`` with the spread of its scale factors over alternative OpenSim models of the same body.
+
+    The trials are refitted under each alternative ``.osim`` model (another joint model, another
+    generic model) with the same ``options`` (the keywords of :func:`fit_osim`), and every scale
+    factor that at least two models share (by name) gets its spread
+    (:func:`skelid.sensitivity.model_spread`), in ``fit.result["model_sensitivity"]``.
+
+    Raises
+    ------
+    DataError
+        An alternative that is not an ``.osim`` model, or two models of one file name.
+    """
+    from skelid.sensitivity import model_spread
+
+    def scales(f):
+        return {p.name: {"value": float(f.result[p.name]["map"]), "sd": float(f.result[p.name]["sd"])}
+                for p in f.model.parameters if p.kind == "scale"}
+
+    fits = {Path(fit.source).name: scales(fit)}
+    for path in alternatives:
+        name = Path(path).name
+        if not name.lower().endswith(".osim"):
+            raise DataError(f"--alternative {path}: an OpenSim model's alternative must be an .osim model",
+                            "give another .osim model of the same body")
+        if name in fits:
+            raise DataError(f"model alternatives need distinct file names; {name} is given twice",
+                            "rename one of the model files")
+        fits[name] = scales(fit_osim(path, trials, **options))
+    sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+    return replace(fit, result={**fit.result, "model_sensitivity": sens})
+
+
 def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
                              seed: int = 0, settings: dict | None = None) -> tuple[dict, str | None]:
     """Free markers placed on the static trial after a scale fit to its fixed (anatomical) markers.
@@ -499,6 +532,7 @@ def scaling_table(fit: ScalingFit) -> dict:
         "body_scale_factors": {b: [float(v) for v in s] for b, s in body_scales(fit.model, fit.theta).items()},
         "sigma_mm": res.get("sigma"),
         "trials": trials_table(fit),
+        "model_sensitivity": res.get("model_sensitivity"),
         "settings": _settings_json(fit.estimator),
         "frames_used": res.get("frames_used"),
         "seconds": round(fit.seconds, 3),
@@ -636,6 +670,15 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
             v = [e[a]["value"] if a in e else 0.0 for a in "xyz"]
             sd = max(e[a]["sd"] for a in e)
             lines.append(f"| {m} | {v[0]:.1f} | {v[1]:.1f} | {v[2]:.1f} | {sd:.1f} |")
+        lines.append("")
+    sens = table.get("model_sensitivity")
+    if sens and sens["spread"]:
+        lines += ["## Scale factors under alternative models", "",
+                  "| scale | " + " | ".join(sens["models"]) + " | spread |",
+                  "|---|" + "---|" * (len(sens["models"]) + 1)]
+        for n, e in sens["spread"].items():
+            cells = [f"{e['values'][m]:.4f}" if m in e["values"] else "-" for m in sens["models"]]
+            lines.append(f"| {n} | " + " | ".join(cells) + f" | {e['spread']:.4f} |")
         lines.append("")
     if table["markers_left_out"]:
         lines += ["Markers of the model left out (not in every trial): "
