@@ -190,8 +190,8 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Marker method: one noise level for all markers, or each marker its own (estimated, "
                    "used as weights).")
 @click.option("--alternative", "alternatives", multiple=True,
-              help="Another model of the same body (repeat for several): the data are refitted under "
-                   "each and the spread of the shared quantities is reported.")
+              help="Another model of the same body (repeat for several; another .osim for an .osim model): the "
+                   "data are refitted under each and the spread of the shared quantities is reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
 @click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "none"]), default="bodies",
@@ -217,7 +217,8 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
     if str(model_path).lower().endswith(".osim"):
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
-                  marker_set, as_json, quiet, overwrite)
+                  marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
+                  alternatives=alternatives, limits=(max_memory, max_time))
         return
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
@@ -251,9 +252,15 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
 
 def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
-              as_json, quiet, overwrite=False):
-    """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim."""
+              as_json, quiet, overwrite=False, cutoff=None, artefact_rms=None, noise="pooled", alternatives=(),
+              limits=(None, None)):
+    """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim.
+
+    Every option of ``fit`` reaches the fit (the estimator's options as for a ``.toml`` model) or is
+    refused here in one line.
+    """
     from skelid import scaling, workflows
+    from skelid.errors import SettingError
     from skelid.io import read_markers
     from skelid.io.atomic import atomic_dir, check_output_dir
     from skelid.io.legacy import run_from_scaling
@@ -261,20 +268,31 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
 
     if len(method_names) > 1:
         raise click.UsageError("an .osim model is fitted with one method; give --method once")
+    for p in alternatives:
+        if not str(p).lower().endswith(".osim"):
+            raise SettingError(f"--alternative {p}: an OpenSim model's alternative must be an .osim model (the "
+                               "scale factors are compared by body)", "give another .osim model of the same body")
+    for name, v in (("--sigma", sigma), ("--cutoff", cutoff), ("--artefact-rms", artefact_rms)):
+        _finite(name, v)
+    limits = _limits(*limits)
     if out_dir is not None:
         check_output_dir(out_dir, overwrite=overwrite)
     workflows.check_input_file(model_path, "model file")
     if marker_set is not None:
         workflows.check_input_file(marker_set, "marker-set file")
-    for p in data_paths:
-        workflows.check_input_file(p, "data file")
+    for p in [*alternatives, *data_paths]:
+        workflows.check_input_file(p, "model file" if p in alternatives else "data file")
     trials = [read_markers(p) for p in data_paths]
-    fit_ = scaling.fit_osim(model_path, trials, marker_set, scale_kind, marker_kind,
-                            method_names[0] if method_names else "marker", seed, sigma)
+    options = dict(marker_set=marker_set, scale=scale_kind, markers=marker_kind,
+                   method=method_names[0] if method_names else "marker", seed=seed, sigma=sigma, cutoff=cutoff,
+                   artefact_rms=artefact_rms, noise=noise, limits=limits)
+    fit_ = scaling.fit_osim(model_path, trials, **options)
+    if alternatives:
+        fit_ = scaling.with_alternatives(fit_, alternatives, trials, **options)
     table = scaling.scaling_table(fit_)
     _echo_warnings(table["warnings"])
     if out_dir is not None:
-        with atomic_dir(out_dir, protect=[model_path, *data_paths], overwrite=overwrite) as tmp:
+        with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
             paths = scaling.write_outputs(fit_, tmp)
             write_run(tmp, run_from_scaling(fit_, table, _command(ctx)))
         table["written"] = {k: str(Path(out_dir) / v.name) for k, v in paths.items()}

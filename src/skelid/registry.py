@@ -51,6 +51,48 @@ def cli_settings(name: str) -> dict[str, str]:
     return {s.cli: s.name for s in estimator_class(name).settings if s.cli}
 
 
+def settings_from_options(cls: type, options: Mapping, method: str) -> dict:
+    """The settings of estimator class ``cls`` that the given ``skelid fit`` options set.
+
+    Parameters
+    ----------
+    cls : type
+        An estimator class with declared ``settings`` (a registered one, or the several-trial
+        :class:`~skelid.estimators.multitrial.MultiTrialEstimator`).
+    options : mapping
+        ``{option: setting value}`` of the options given (every key counts as given; ``cutoff``
+        None is "no motion model").
+    method : str
+        The method name, for the message.
+
+    Returns
+    -------
+    dict
+        ``{setting: value}``.
+
+    Raises
+    ------
+    SettingError
+        An option given that ``cls`` does not declare (it would be ignored): one line naming it.
+
+    Examples
+    --------
+    >>> from skelid.estimators.marker import MarkerEstimator
+    >>> settings_from_options(MarkerEstimator, {"cutoff": None, "noise": "per_marker"}, "marker")
+    {'cutoff': None, 'noise': 'per_marker'}
+    """
+    from skelid.errors import SettingError
+
+    declared = {s.cli: s.name for s in cls.settings if s.cli}
+    for opt in options:
+        if opt not in declared:
+            takes = [n for n, c in estimators().items() if opt in {s.cli for s in c.settings}]
+            raise SettingError(f"--{opt.replace('_', '-')} has no effect with --method {method}: the method does "
+                               "not use it", f"leave --{opt.replace('_', '-')} out"
+                               + (f", or use --method {' or '.join(takes)}" if takes else ""))
+    return {declared[opt]: v for opt, v in options.items()}
+
+
 def make_estimator(name: str, model: Model, options: Mapping | None = None, **settings):
     """Estimator ``name`` for ``model``, with the command-line ``options`` it declares and ``settings``.
 

@@ -42,7 +42,10 @@ trials with one geometry.
 
 :func:`write_outputs` writes the scaled ``.osim`` (every other element of the
 source kept), an OpenSim ScaleSet, and ``scaling.json`` with each factor and
-marker offset and its 95 % interval. :func:`opensim_ik` runs OpenSim's own
+marker offset and its 95 % interval, its Cramér-Rao bound, the noise level with
+its interval, the estimator's settings and, with several trials,
+:func:`trials_table`: each trial's own scale factors, the between-trial sd and
+the trials' consistency test (also in the report and in ``result.json``). :func:`opensim_ik` runs OpenSim's own
 InverseKinematicsTool on a model and a trial and returns its marker RMSE.
 """
 
@@ -161,7 +164,8 @@ def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
              static_frames: int | None = STATIC_FRAMES, movement_frames: int | None = MOVEMENT_FRAMES,
-             joined: bool = False, joint: bool = True) -> ScalingFit:
+             joined: bool = False, joint: bool = True, cutoff: float | None = None,
+             artefact_rms: float | None = None, noise: str = "pooled", limits=None) -> ScalingFit:
     """Fit body scales and marker offsets of an OpenSim model to marker trials.
 
     Parameters
@@ -196,6 +200,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         (:func:`fit_scales_and_offsets`); the answer and its intervals are that
         fit's. False: the scales with the markers at their nominal places, the
         offsets placed afterwards and their uncertainty not carried into the scales.
+    cutoff, artefact_rms, noise
+        The ``skelid fit`` options of the same names, passed to the estimator as for a
+        ``.toml`` model (:func:`fit_settings`); one the method does not declare is refused.
+    limits : skelid.resources.Limits, optional
+        Memory and time the fit may be estimated to need (default from the environment).
 
     Returns
     -------
@@ -229,17 +238,19 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                         "rename the markers in the model's MarkerSet or in the data so that they match")
     original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
+    settings = fit_settings(original, method, multi, sigma, cutoff, artefact_rms, noise)
+    _check_cost(osim_parameters(original, info, scale, "none", present), method, trials, limits)
     t0 = time.perf_counter()
     notes, moved, joint_fit = [], {}, None
     with warnings.catch_warnings(), _one_blas_thread():
         warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
         if markers == "offsets" and scale != "none":
-            moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed)
+            moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed, settings)
             notes += [note] if note else []
         base = _with_marker_positions(original, moved)
         model = osim_parameters(base, info, scale, "none", present)
         parts = [_select(t, model.marker_names) for t in trials]
-        est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed)
+        est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed, settings)
     static = parts[0]
     if markers == "offsets":
         offsets, sd, n_eff = place_markers(model, theta, poses[0], static.positions,
@@ -309,8 +320,70 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                       list(dict.fromkeys(warns)), theta, joint_fit)
 
 
+def fit_settings(model: Model, method: str, multi: bool, sigma: float | None = None, cutoff: float | None = None,
+                 artefact_rms: float | None = None, noise: str = "pooled") -> dict:
+    """The scale fit's estimator settings from the ``skelid fit`` options, built as for a ``.toml`` model.
+
+    The options are checked (:func:`skelid.workflows.check_options`) and mapped onto the
+    settings the estimator declares (:func:`skelid.registry.settings_from_options`): the
+    several-trial :class:`~skelid.estimators.multitrial.MultiTrialEstimator` with ``multi``,
+    else the class of ``method``.
+
+    Raises
+    ------
+    SkelidError
+        An unusable value, or an option the method does not use (one line naming it).
+    """
+    from skelid import registry, workflows
+    from skelid.estimators.multitrial import MultiTrialEstimator
+
+    workflows.check_options(model, sigma, cutoff, artefact_rms)
+    cls = MultiTrialEstimator if multi else registry.estimator_class(method)
+    return registry.settings_from_options(cls, workflows.fit_options(sigma, cutoff, artefact_rms, noise), method)
+
+
+def _check_cost(model: Model, method: str, trials, limits) -> None:
+    """Refuse a fit estimated to need more memory or time than ``limits`` (before any fitting)."""
+    from skelid import workflows
+
+    workflows.check_cost(model, method, sum(int(t.positions.shape[0]) for t in trials), limits)
+
+
+def with_alternatives(fit: ScalingFit, alternatives, trials, **options) -> ScalingFit:
+    """``fit`` with the spread of its scale factors over alternative OpenSim models of the same body.
+
+    The trials are refitted under each alternative ``.osim`` model (another joint model, another
+    generic model) with the same ``options`` (the keywords of :func:`fit_osim`), and every scale
+    factor that at least two models share (by name) gets its spread
+    (:func:`skelid.sensitivity.model_spread`), in ``fit.result["model_sensitivity"]``.
+
+    Raises
+    ------
+    DataError
+        An alternative that is not an ``.osim`` model, or two models of one file name.
+    """
+    from skelid.sensitivity import model_spread
+
+    def scales(f):
+        return {p.name: {"value": float(f.result[p.name]["map"]), "sd": float(f.result[p.name]["sd"])}
+                for p in f.model.parameters if p.kind == "scale"}
+
+    fits = {Path(fit.source).name: scales(fit)}
+    for path in alternatives:
+        name = Path(path).name
+        if not name.lower().endswith(".osim"):
+            raise DataError(f"--alternative {path}: an OpenSim model's alternative must be an .osim model",
+                            "give another .osim model of the same body")
+        if name in fits:
+            raise DataError(f"model alternatives need distinct file names; {name} is given twice",
+                            "rename one of the model files")
+        fits[name] = scales(fit_osim(path, trials, **options))
+    sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+    return replace(fit, result={**fit.result, "model_sensitivity": sens})
+
+
 def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
-                             seed: int = 0) -> tuple[dict, str | None]:
+                             seed: int = 0, settings: dict | None = None) -> tuple[dict, str | None]:
     """Free markers placed on the static trial after a scale fit to its fixed (anatomical) markers.
 
     OpenSim marks a marker ``fixed`` when its place on the body is known (a
@@ -322,6 +395,9 @@ def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: Ma
     free marker on a body that pass reaches is moved to where the static
     trial saw it: ``r_m^0 = S_b^{-1} mean_t R_t^T (y_mt - p_t)``. The fit of
     all trials then starts from those places.
+
+    The first pass is a :class:`~skelid.estimators.marker.MarkerEstimator` with those of
+    ``settings`` (:func:`fit_settings`) that it declares.
 
     Returns
     -------
@@ -349,7 +425,9 @@ def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: Ma
     try:
         with warnings.catch_warnings():  # a first pass: its warnings are not the answer's
             warnings.simplefilter("ignore", SkelidWarning)
-            est = MarkerEstimator(m1, sigma=sigma, rng=np.random.default_rng(seed)).fit(
+            own = {s.name for s in MarkerEstimator.settings}
+            kw = {k: v for k, v in ({"sigma": sigma} if settings is None else settings).items() if k in own}
+            est = MarkerEstimator(m1, **{**kw, "rng": np.random.default_rng(seed)}).fit(
                 _select(static, m1.marker_names))
     except SkelidError as exc:
         return {}, ("free markers placed after the scale fit only: a fit of the static trial's fixed markers "
@@ -409,9 +487,13 @@ def _as_dict(r) -> dict:
     return dict(r) if isinstance(r, dict) else summary_dict(r)
 
 
-def _fit_scales(model, parts, data, multi, method, sigma, seed):
-    """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``."""
+def _fit_scales(model, parts, data, multi, method, sigma, seed, settings: dict | None = None):
+    """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``.
+
+    ``settings``: the estimator's settings (:func:`fit_settings`; default: ``sigma`` only).
+    """
     rng = np.random.default_rng(seed)
+    settings = {"sigma": sigma} if settings is None else dict(settings)
     if not model.n_params:  # nothing to scale: poses of the nominal model on the static trial only
         from skelid.estimators.fit.pose import track_poses
 
@@ -420,14 +502,14 @@ def _fit_scales(model, parts, data, multi, method, sigma, seed):
     if multi:
         from skelid.estimators.multitrial import MultiTrialEstimator
 
-        est = MultiTrialEstimator(model, sigma=sigma, rng=rng).fit(parts)
+        est = MultiTrialEstimator(model, **{**settings, "rng": rng}).fit(parts)
         edges = np.cumsum([0] + [len(p.positions) for p in parts])
         poses = [est.pose_[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
         return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
-    from skelid.workflows import make_estimator
+    from skelid.registry import make_estimator
 
     sub = _select(data, model.marker_names)
-    est = make_estimator(method, model, sigma, rng=rng)
+    est = make_estimator(method, model, None, **{**settings, "rng": rng})
     est.fit(sub)
     poses = [est.pose_[a:b] for a, b in data.meta["trial_frames"]]
     return est, _as_dict(est.result()), np.asarray(est.theta_, float), poses
@@ -811,6 +893,8 @@ def scaling_table(fit: ScalingFit) -> dict:
         e = res[p.name]
         entry = {"value": float(e["map"]), "sd": float(e.get("sd", np.nan)),
                  "ci95": [float(v) for v in e.get("ci95", (np.nan, np.nan))]}
+        entry.update({k: float(e[k]) for k in ("crlb_sd", "sd_within_trials", "sd_between_trials")
+                      if e.get(k) is not None})
         if p.kind == "scale":
             key = "xyz" if p.axis is None else "xyz"[p.axis]
             scales.setdefault(p.target, {})[key] = entry
@@ -827,11 +911,80 @@ def scaling_table(fit: ScalingFit) -> dict:
         "marker_locations_m": {n: [float(v) for v in x] for n, x in locs.items()},
         "body_scale_factors": {b: [float(v) for v in s] for b, s in body_scales(fit.model, fit.theta).items()},
         "sigma_mm": res.get("sigma"),
+        "trials": trials_table(fit),
+        "model_sensitivity": res.get("model_sensitivity"),
+        "settings": _settings_json(fit.estimator),
         "frames_used": res.get("frames_used"),
         "seconds": round(fit.seconds, 3),
         "markers_left_out": list(fit.dropped_markers),
         "warnings": list(fit.warnings),
     }
+
+
+def _scale_key(p) -> tuple[str, str]:
+    """``(body, axis)`` of a scale parameter as the scaling table names them."""
+    return p.target, "xyz" if p.axis is None else "xyz"[p.axis]
+
+
+def trials_table(fit: ScalingFit) -> dict | None:
+    """Several trials: each trial's own scale factors, the between-trial sd and the consistency test.
+
+    From the several-trial fit's diagnostics (:meth:`~skelid.estimators.multitrial.MultiTrialEstimator.result`);
+    None for a fit of one trial (or of trials joined into one recording).
+
+    Returns
+    -------
+    dict
+        ``n_trials``; ``per_trial``: ``[{trial, frames, frames_used, sigma_mm, scales: {body: {axis:
+        {value, sd, sd_with_between_trial, ci95}}}}]``; ``between_trial_sd``: ``{body: {axis: tau}}``;
+        ``heterogeneity``: Cochran's ``q``, ``i2``, ``dof`` by body and axis; ``consistency``:
+        ``{statistic, dof, p_value, tested, verdict}`` (``p_value`` None, "not tested", below one degree
+        of freedom); ``between_trial``: how the spread entered the intervals.
+    """
+    res = fit.result
+    rows = res.get("trials")
+    if not isinstance(rows, list) or not rows:
+        return None
+    scales = [p for p in fit.model.parameters if p.kind == "scale"]
+    per = []
+    for r in rows:
+        own: dict = {}
+        for p in scales:
+            e = (r.get("parameters") or {}).get(p.name)
+            if e is not None:
+                b, ax = _scale_key(p)
+                own.setdefault(b, {})[ax] = {"value": e["mean"], "sd": e["sd"],
+                                             "sd_with_between_trial": e["sd_with_between_trial"],
+                                             "ci95": list(e["interval"])}
+        per.append({"trial": r.get("trial"), "frames": r.get("frames"), "frames_used": r.get("frames_used"),
+                    "sigma_mm": r.get("sigma"), "scales": own})
+    het = res.get("heterogeneity") or {}
+    between: dict = {}
+    spread: dict = {}
+    for p in scales:
+        if p.name in het:
+            b, ax = _scale_key(p)
+            between.setdefault(b, {})[ax] = het[p.name]["tau"]
+            spread.setdefault(b, {})[ax] = {k: het[p.name][k] for k in ("q", "i2", "dof") if k in het[p.name]}
+    cons = dict(res.get("consistency") or {})
+    if cons:
+        if cons.get("p_value") is None:
+            cons["verdict"] = "not tested (fewer than one degree of freedom)"
+        else:
+            cons["verdict"] = ("the trials agree" if cons["p_value"] >= 0.01 else
+                               "the trials disagree beyond their own intervals")
+    return {"n_trials": len(rows), "per_trial": per, "between_trial_sd": between, "heterogeneity": spread,
+            "consistency": cons, "between_trial": res.get("between_trial")}
+
+
+def _settings_json(est) -> dict:
+    """The scale fit's estimator and its declared settings, as JSON values (empty without a fit)."""
+    from skelid.estimators.base import get_settings, setting_json
+
+    if est is None:
+        return {}
+    return {"method": est.name, **{k: setting_json(v) for k, v in get_settings(est).items()
+                                   if k not in ("theta0", "pose0", "rng")}}
 
 
 def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, Path]:
@@ -869,6 +1022,12 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
             s = f"{sig[k]:.1f}" if sig and k < len(sig) and sig[k] is not None else "-"
             lines.append(f"| {Path(src).name} | {n} | {s} |")
         lines.append("")
+    noise = table.get("sigma_mm") or {}
+    if isinstance(noise, dict) and noise.get("value") is not None:
+        ci = noise.get("ci95")
+        lines += [f"Marker noise sd: {noise['value']:.3g} mm" + (f" [{ci[0]:.3g}, {ci[1]:.3g}]" if ci else
+                                                                 " (given, not estimated)"), ""]
+    lines += _trials_markdown(table.get("trials"))
     if table["scales"]:
         lines += ["## Body scale factors", "", "| body | axis | scale | 95 % interval |", "|---|---|---|---|"]
         for body, axes in table["scales"].items():
@@ -892,6 +1051,15 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
             sd = max(e[a]["sd"] for a in e)
             lines.append(f"| {m} | {v[0]:.1f} | {v[1]:.1f} | {v[2]:.1f} | {sd:.1f} |")
         lines.append("")
+    sens = table.get("model_sensitivity")
+    if sens and sens["spread"]:
+        lines += ["## Scale factors under alternative models", "",
+                  "| scale | " + " | ".join(sens["models"]) + " | spread |",
+                  "|---|" + "---|" * (len(sens["models"]) + 1)]
+        for n, e in sens["spread"].items():
+            cells = [f"{e['values'][m]:.4f}" if m in e["values"] else "-" for m in sens["models"]]
+            lines.append(f"| {n} | " + " | ".join(cells) + f" | {e['spread']:.4f} |")
+        lines.append("")
     if table["markers_left_out"]:
         lines += ["Markers of the model left out (not in every trial): "
                   + ", ".join(table["markers_left_out"]), ""]
@@ -902,6 +1070,34 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
                   "inverse kinematics with it);", f"- `{files['scale_set']}`: the scale factors as an OpenSim "
                   "ScaleSet;", f"- `{files['json']}`: every factor and offset with its sd and 95 % interval.", ""]
     return "\n".join(lines)
+
+
+def _trials_markdown(trials: dict | None) -> list[str]:
+    """The report's section on several trials: each trial's scale factors, the spread, the consistency test."""
+    if not trials:
+        return []
+    per = trials["per_trial"]
+    names = [Path(str(r["trial"])).name for r in per]
+    lines = ["## Each trial's own scale factors", "",
+             "Each trial fitted alone (sd with the between-trial spread); the joint estimate below combines them.",
+             "", "| body | axis | " + " | ".join(names) + " | between-trial sd |",
+             "|---|---|" + "---|" * (len(names) + 1)]
+    for body, axes in trials["between_trial_sd"].items():
+        for ax, tau in axes.items():
+            cells = []
+            for r in per:
+                e = r["scales"].get(body, {}).get(ax)
+                cells.append("-" if e is None else f"{e['value']:.4f} ± {e['sd_with_between_trial']:.4f}")
+            lines.append(f"| {body} | {ax} | " + " | ".join(cells) + f" | {tau:.4f} |")
+    c = trials.get("consistency") or {}
+    if c:
+        if c.get("p_value") is None:
+            lines += ["", "Consistency of the trials with the joint estimate: not tested (fewer than one degree "
+                      "of freedom)."]
+        else:
+            lines += ["", f"Consistency of the trials with the joint estimate: chi-square {c['statistic']:.1f} on "
+                      f"{c['dof']} degrees of freedom, p = {c['p_value']:.2g} ({c['verdict']})."]
+    return lines + [""]
 
 
 def _finite_or_none(obj):

@@ -51,6 +51,10 @@ def trials_text(result: FitResult) -> str:
     if het:
         lines.append(f"{'between-trial sd':<{width}}" + "".join(
             f"{het[n]['tau']:>24.3g}" for n in names if n in het))
+    if cons.get("p_value") is None:
+        lines.append("consistency of the trials with the joint estimate: not tested (fewer than one degree of "
+                     "freedom)")
+        return "\n".join(lines)
     verdict = "the trials agree" if cons["p_value"] >= 0.01 else "the trials disagree beyond their own intervals"
     lines.append(f"consistency of the trials with the joint estimate: chi-square {cons['statistic']:.1f} on "
                  f"{cons['dof']} degrees of freedom, p = {cons['p_value']:.2g} ({verdict})")

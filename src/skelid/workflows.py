@@ -43,7 +43,8 @@ from skelid.plots import fit_figures as figures
 from skelid.provenance import model_parameters, provenance, run_context, versions
 from skelid.result import FitResult, FitRun, Warning
 
-__all__ = ["methods", "make_estimator", "fit_file", "run_fit", "run_arrays", "table", "figures",
+__all__ = ["methods", "make_estimator", "check_options", "fit_options", "fit_file", "run_fit", "run_arrays", "table",
+           "figures",
            "check_input_file", "check_units", "data_overview", "lag1_autocorrelation", "posterior_arrays",
            "versions", "write_json", "write_run", "run_context", "unique_warnings", "model_parameters", "provenance",
            "collect_warnings"]
@@ -54,11 +55,9 @@ def methods() -> dict:
     return registry.estimators()
 
 
-def make_estimator(name: str, model: Model, sigma: float | None = None,
-                   rng: np.random.Generator | None = None, cutoff: float | None = None,
-                   artefact_rms: float | None = None):
-    """Estimator ``name`` with the command-line options it declares; a bad option is one line."""
-    registry.estimator_class(name)
+def check_options(model: Model, sigma: float | None = None, cutoff: float | None = None,
+                  artefact_rms: float | None = None) -> None:
+    """Refuse an unusable ``--sigma``, ``--cutoff`` or ``--artefact-rms`` for ``model`` in one line."""
     if sigma is not None:
         size = float(np.abs(model.nominal_geometry).max())
         if not (math.isfinite(sigma) and sigma > 0):
@@ -75,6 +74,39 @@ def make_estimator(name: str, model: Model, sigma: float | None = None,
     if cutoff is not None and not (math.isfinite(cutoff) and cutoff >= 0):
         raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
                           "use 0 for no motion model, or e.g. --cutoff 6")
+
+
+def fit_options(sigma: float | None = None, cutoff: float | None = None, artefact_rms: float | None = None,
+                noise: str | None = "pooled") -> dict:
+    """The ``skelid fit`` options given, as ``{option: setting value}``; options at their default are left out.
+
+    ``--cutoff 0`` is no motion model (the setting None), ``--artefact-rms 0`` no artefact term (the
+    default), ``--noise per-marker`` the setting ``'per_marker'``. :func:`skelid.registry.settings_from_options`
+    turns them into an estimator's settings.
+
+    Examples
+    --------
+    >>> fit_options(cutoff=0, artefact_rms=20.0, noise="per-marker")
+    {'cutoff': None, 'artefact_rms': 20.0, 'noise': 'per_marker'}
+    """
+    out: dict = {}
+    if sigma is not None:
+        out["sigma"] = sigma
+    if cutoff is not None:
+        out["cutoff"] = cutoff or None
+    if artefact_rms:
+        out["artefact_rms"] = artefact_rms
+    if noise not in (None, "pooled"):
+        out["noise"] = str(noise).replace("-", "_")
+    return out
+
+
+def make_estimator(name: str, model: Model, sigma: float | None = None,
+                   rng: np.random.Generator | None = None, cutoff: float | None = None,
+                   artefact_rms: float | None = None):
+    """Estimator ``name`` with the command-line options it declares; a bad option is one line."""
+    registry.estimator_class(name)
+    check_options(model, sigma, cutoff, artefact_rms)
     if artefact_rms and "artefact_rms" not in registry.cli_settings(name).values():
         raise SkelidError(f"--artefact-rms is not available with --method {name}: its posterior does not come "
                           "from the joint fit the artefact term is computed from",

@@ -334,6 +334,7 @@ class Covariance(NamedTuple):
     crlb_motion_sd: np.ndarray  # (P,) with the motion model
     jackknife: dict  # leave-one-marker-out summary (jackknife.jackknife_stage)
     placement: dict  # where the information comes from, and the placement term added
+    information: np.ndarray | None = None  # (P, P) efficient information of crlb_sd (several trials add it up)
 
 
 class Estimate(NamedTuple):
@@ -661,7 +662,8 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
     plain = noise.sigma**2 * info_inv
     # the bound with every pose a free unknown (no motion model), at the estimate
     _, Jq_u, Jt_u = weighted_terms(model, fit.theta, fit.pose[used], y[used], row_weights(w, y[used]))
-    crlb = crlb_sd(efficient_information(Jq_u, Jt_u, noise.sigma))
+    info_eff = efficient_information(Jq_u, Jt_u, noise.sigma)
+    crlb = crlb_sd(info_eff)
     widened = est.robust == "always" or (est.robust == "auto" and res.flagged)
     cov = plain
     y_used = np.where(used[:, None, None], y, np.nan)
@@ -685,7 +687,7 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
         cov, jack, _ = jackknife_stage(model, y_used, fit, noise.sigma, cov, fold_in=not est.artefact_rms,
                                        rng=rng, weights=w)
     cov, place = placement_stage(est, y_used, fit, used, w, ident or {}, cov)
-    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place)
+    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place, info_eff)
 
 
 def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator,
@@ -1111,6 +1113,8 @@ class MarkerEstimator:
         Estimated bias that was subtracted.
     crlb_sd_ : (P,) float
         Cramér-Rao bound (standard deviation) at the estimate.
+    crlb_information_ : (P, P) float
+        The efficient information it inverts (every pose free).
     sigma_ : float
     sigma_ci_ : (2,) float
     pose_ : (T, Q) float
@@ -1163,7 +1167,7 @@ class MarkerEstimator:
         Setting("outlier_threshold", positive_or_none, "a positive number of robust sd, or None"),
         Setting("artefact_rms", non_negative_or_none, "a distance >= 0 in model units, or None",
                 cli="artefact_rms"),
-        Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'"),
+        Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'", cli="noise"),
         Setting("marker_groups", lambda v: v is None or isinstance(v, dict), "None or {group: [marker names]}"),
         Setting("jackknife", lambda v: isinstance(v, bool), "True or False"),
         Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
@@ -1225,6 +1229,7 @@ class MarkerEstimator:
         self.bias_method_ = f.bias.method
         self.crlb_motion_sd_ = f.cov.crlb_motion_sd
         self.crlb_sd_ = f.cov.crlb_sd
+        self.crlb_information_ = f.cov.information
         self.cov_plain_ = f.cov.plain
         self.widened_ = f.cov.widened
         self.cov_artefact_ = f.cov.artefact

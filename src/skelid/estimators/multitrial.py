@@ -111,6 +111,7 @@ from skelid.estimators.base import (
 )
 from skelid.estimators.checks.artefact import artefact_covariance
 from skelid.estimators.fit.joint import joint_fit
+from skelid.estimators.fit.likelihood import crlb_sd
 from skelid.estimators.marker import MarkerEstimator, _combine_normal_priors, marker_warnings, run_marker_fit
 from skelid.estimators.uncertainty.posterior import GaussianPosterior
 from skelid.model.description import Model
@@ -154,8 +155,17 @@ def dersimonian_laird(estimates, variances):
     return tau2, q, K - 1
 
 
+#: eigenvalues of a trial's covariance below this fraction of its largest are left out of the test
+CONSISTENCY_RCOND = 1e-12
+
+
 def consistency_test(estimates, covs, joint) -> dict:
     """Chi-square test of the per-trial estimates against the joint one.
+
+    ``X^2 = sum_k d_k^T C_k^+ d_k`` with ``d_k = theta_k - theta``: the information-weighted
+    residual sum of squares of ``sum_k rank(C_k)`` observations about ``P`` parameters, so
+    ``sum_k rank(C_k) - P`` degrees of freedom (``(K - 1) P`` when every covariance is of full
+    rank). Below one degree of freedom (one trial) nothing is tested: ``p_value`` is None.
 
     Parameters
     ----------
@@ -166,13 +176,52 @@ def consistency_test(estimates, covs, joint) -> dict:
 
     Returns
     -------
-    dict with ``statistic``, ``dof`` (``(K - 1) P``) and ``p_value``.
+    dict with ``statistic``, ``dof``, ``p_value`` (None when not tested) and ``tested``.
+
+    Examples
+    --------
+    >>> consistency_test(np.array([[1.0, 2.0]]), np.array([np.eye(2)]), np.array([1.0, 2.0]))["tested"]
+    False
     """
     d = np.asarray(estimates, float) - np.asarray(joint, float)
-    stat = float(sum(dk @ np.linalg.pinv(ck, hermitian=True) @ dk
-                     for dk, ck in zip(d, np.asarray(covs, float), strict=True)))
-    dof = (d.shape[0] - 1) * d.shape[1]
-    return {"statistic": stat, "dof": int(dof), "p_value": float(chi2.sf(stat, dof)) if dof else 1.0}
+    C = np.asarray(covs, float)
+    w, V = np.linalg.eigh(0.5 * (C + np.swapaxes(C, -1, -2)))  # (K, P), (K, P, P)
+    keep = w > CONSISTENCY_RCOND * np.maximum(w.max(axis=-1, keepdims=True), 1e-300)
+    z = np.einsum("kpq,kp->kq", V, d)  # the deviations along each trial's eigenvectors
+    stat = float(np.sum(np.where(keep, z**2 / np.where(keep, w, 1.0), 0.0)))
+    dof = int(keep.sum()) - d.shape[1]
+    if dof < 1:
+        return {"statistic": stat, "dof": max(dof, 0), "p_value": None, "tested": False}
+    return {"statistic": stat, "dof": dof, "p_value": float(chi2.sf(stat, dof)), "tested": True}
+
+
+def pooled_noise_interval(sigma, dof, weights, level: float = 0.95) -> np.ndarray:
+    """Interval of the pooled noise level ``sqrt(sum_k w_k sigma_k^2)`` from the trials' own levels.
+
+    Each ``sigma_k^2`` is a chi-square estimate with ``dof_k`` degrees of freedom; their
+    weighted sum is approximated by a scaled chi-square with Satterthwaite's degrees of freedom
+    ``nu = (sum_k w_k s_k^2)^2 / sum_k (w_k s_k^2)^2 / dof_k`` (one trial: its own interval).
+
+    Parameters
+    ----------
+    sigma, dof, weights : (K,) float
+        Each trial's noise level, its degrees of freedom, and its weight (summing to 1).
+
+    Returns
+    -------
+    (2,) float
+
+    Examples
+    --------
+    >>> from scipy.stats import chi2
+    >>> lo, hi = pooled_noise_interval([2.0], [50], [1.0])
+    >>> bool(np.isclose(lo, np.sqrt(4.0 * 50 / chi2.ppf(0.975, 50))))
+    True
+    """
+    v = np.asarray(weights, float) * np.asarray(sigma, float) ** 2
+    nu = v.sum() ** 2 / np.sum(v**2 / np.maximum(np.asarray(dof, float), 1.0))
+    a = (1.0 - level) / 2.0
+    return np.sqrt(v.sum() * nu / chi2.ppf([1.0 - a, a], nu))
 
 
 def pairwise_z(estimates, sds) -> np.ndarray:
@@ -495,6 +544,11 @@ class MultiTrialEstimator:
     posterior_ : GaussianPosterior
     sigma_ : float
         Root-mean-square of the trials' noise levels, weighted by their frames used.
+    sigma_ci_ : (2,) float or None
+        Its 95 % interval (:func:`pooled_noise_interval`); None when ``sigma`` is given.
+    crlb_sd_ : (P,) float
+        Cramér-Rao bound (standard deviation) of all the trials' frames with one geometry and
+        every pose free: the inverse of the sum of the trials' efficient informations.
     frames_used_ : (sum F_k,) bool
         The trials' frames, one after the other.
     trials_ : list of MarkerEstimator
@@ -515,7 +569,8 @@ class MultiTrialEstimator:
         prior bound (their own estimates are still reported); empty when none
         was, or when every trial was.
     consistency_ : dict
-        :func:`consistency_test` of the trials against the joint estimate.
+        :func:`consistency_test` of the trials against the joint estimate (``tested`` False,
+        ``p_value`` None below one degree of freedom).
     heterogeneity_ : dict
         Per parameter: Cochran's ``Q``, ``I^2``, ``tau`` and the degrees of freedom.
     lengths_ : dict
@@ -750,6 +805,10 @@ class MultiTrialEstimator:
         n_used = np.array([e.frames_used_.sum() for e in ests], float)
         sig = np.array([e.sigma_ for e in ests])
         self.sigma_ = float(np.sqrt(np.sum(n_used * sig**2) / max(n_used.sum(), 1.0)))
+        self.sigma_ci_ = (None if self.sigma is not None else
+                          pooled_noise_interval(sig, [e.fit_.noise.dof for e in ests], n_used / max(n_used.sum(), 1.0)))
+        # the bound of all the trials' frames together: their efficient informations add up
+        self.crlb_sd_ = crlb_sd(np.sum([e.crlb_information_ for e in ests], axis=0))
         # the joint fit's poses, or (random-effects combination) each trial's own
         self.pose_ = fit.pose if fit is not None else np.concatenate([e.pose_ for e in ests])
         lens, grad = joint_distances(model, theta)
@@ -768,7 +827,7 @@ class MultiTrialEstimator:
                                "bound of the prior (the trial cannot locate these parameters), so the joint "
                                "estimate combines the other trials only"))
         c = self.consistency_
-        if c["p_value"] < 0.01:
+        if c["tested"] and c["p_value"] < 0.01:
             how = ("was added to the interval" if self.between_trial != "none" else "is not in the interval")
             new.append(Warning("trials-disagree", f"the trials disagree about the geometry beyond their own "
                                f"intervals (chi-square {c['statistic']:.1f} on {c['dof']} degrees of freedom, "
@@ -823,7 +882,8 @@ class MultiTrialEstimator:
             with np.errstate(invalid="ignore", divide="ignore"):
                 rms = np.sqrt(np.where(ok, n_used * s2, 0.0).sum(0) / np.where(ok, n_used, 0.0).sum(0))
             per = {n: float(v) for n, v in zip(model.marker_names, rms, strict=True) if np.isfinite(v)}
-        noise = NoiseEstimate(self.sigma_, None, fixed=self.sigma is not None, per_marker=per,
+        noise = NoiseEstimate(self.sigma_, None if self.sigma_ci_ is None else tuple(map(float, self.sigma_ci_)),
+                              fixed=self.sigma is not None, per_marker=per,
                               extra={"per_trial": [float(e.sigma_) for e in self.trials_]})
         skipped: dict[str, int] = {}
         for e in self.trials_:
@@ -839,7 +899,7 @@ class MultiTrialEstimator:
                               "prior_scale": {n: float(v) for n, v in zip(model.parameter_names,
                                                                           self.tau_prior_scale_, strict=True)}},
             "converged": self.converged_, "stacked_fit_iterations": self.n_iter_}
-        return build_result(self, self.posterior_, extra=extra, noise=noise, skipped=skipped,
+        return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=noise, skipped=skipped,
                             diagnostics=diagnostics, derived=self.lengths_, status={},
                             arrays={"pose": self.pose_, "trial_theta": self.trial_theta_,
                                     "trial_cov": self.trial_cov_, "trial_sd": self.trial_sd_,

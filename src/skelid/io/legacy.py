@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
@@ -206,6 +207,13 @@ def run_from_scaling(fit_, table: dict, command=None) -> FitRun:
     doc = {"units": fit_.model.units, "frames_total": int(fit_.data.positions.shape[0]),
            "methods": {"marker": fit_.result}}
     run = run_from_legacy(doc)
+    # several trials: each trial's estimate, the between-trial spread and the consistency test, typed as the
+    # several-trial fit of a .toml model keeps them
+    diag = {k: fit_.result[k] for k in ("trials", "consistency", "heterogeneity", "between_trial")
+            if fit_.result.get(k) is not None}
+    if diag:
+        r = run.results["marker"]
+        run = replace(run, results={**run.results, "marker": r.replace(diagnostics={**r.diagnostics, **diag})})
     context = {"model": fit_.model.name, "data": str(fit_.data.source), "units": fit_.model.units,
                "frames_total": int(fit_.data.positions.shape[0]), "scaling": table,
                "provenance": provenance(command)}
@@ -243,8 +251,8 @@ def summary_dict(r: FitResult) -> dict:
 
 def _noise_dict(n: NoiseEstimate) -> dict:
     sig = {"value": n.sigma, "fixed": n.fixed}
-    if n.interval is not None or n.extra:
-        sig["ci95"] = list(n.interval) if n.interval is not None else [n.sigma] * 2
+    if n.interval is not None:  # a noise level given, not estimated, has none
+        sig["ci95"] = list(n.interval)
     sig.update(n.extra)
     if n.per_marker:
         sig["per_marker"] = dict(n.per_marker)

@@ -1,0 +1,204 @@
+"""Every option of ``skelid fit`` on an OpenSim model: it changes the result, or it is refused in one line.
+
+One small fit (the three-body leg of ``test_scaling``, a static trial and a short movement) is run
+once as the baseline; each case runs it again with one option changed and checks what the option
+is for: the result differs in the way the option says, or the exit status is 2 with one line naming
+the option and nothing written.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from skelid.cli import cli, main
+from skelid.io import write_trc
+from tests.test_scaling import MARKERS, MODEL, _trials
+
+TRUTH = {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0}
+
+
+def _marker_xml() -> str:
+    return "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+                     f'<location>{x} {y} {z}</location></Marker>'
+                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """The model, the trials, and the baseline fit's scaling table."""
+    d = tmp_path_factory.mktemp("osim-options")
+    (d / "leg.osim").write_text(MODEL.format(markers=_marker_xml()))
+    (d / "bare").mkdir()
+    (d / "bare" / "leg.osim").write_text(MODEL.format(markers=""))
+    (d / "markers").mkdir()
+    (d / "markers" / "leg_markers.xml").write_text(
+        f"<OpenSimDocument><MarkerSet><objects>{_marker_xml()}</objects></MarkerSet></OpenSimDocument>")
+    static, move = _trials(d / "leg.osim", TRUTH, frames=(6, 24))
+    write_trc(d / "static.trc", static)
+    write_trc(d / "move.trc", move)
+    base = _run(d, [])
+    assert base["rc"] == 0, base["err"]
+    return d, base
+
+
+def _run(d, extra, drop=(), model=None, out="out"):
+    """``skelid fit MODEL static.trc move.trc --out DIR --json --quiet`` with ``extra``, less ``drop``."""
+    import contextlib
+    import io
+    import shutil
+
+    target = d / out
+    shutil.rmtree(target, ignore_errors=True)
+    argv = ["fit", str(model or d / "leg.osim"), str(d / "static.trc"), str(d / "move.trc"),
+            "--out", str(target), "--json", "--quiet"]
+    for opt in drop:
+        i = argv.index(opt)
+        del argv[i:i + (2 if opt == "--out" else 1)]
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        rc = main(argv + list(extra))
+    text = stdout.getvalue()
+    try:
+        table = json.loads(text)
+    except ValueError:
+        table = None
+    return {"rc": rc, "out": text, "err": stderr.getvalue(), "table": table, "dir": target}
+
+
+def _numbers(table):
+    """The fitted numbers of a scaling table (no timing, no paths)."""
+    return {k: v for k, v in table.items() if k not in ("seconds", "written")}
+
+
+def _refused(r, option):
+    lines = r["err"].strip().splitlines()
+    assert r["rc"] == 2 and len(lines) == 1 and option in lines[0], r["err"]
+    assert not r["dir"].exists()
+
+
+def _sd(table):
+    return {b: e["xyz"]["sd"] for b, e in table["scales"].items()}
+
+
+def check_method(d, base):
+    # the paper method gets the fit: here its grid over three scale factors is refused by the memory check
+    r = _run(d, ["--method", "paper"])
+    _refused(r, "the paper fit")
+
+
+def check_sigma(d, base):
+    t = _run(d, ["--sigma", "0.5"])["table"]
+    assert t["sigma_mm"]["value"] == 0.5 and t["sigma_mm"]["fixed"] and not base["table"]["sigma_mm"]["fixed"]
+    assert all(t_sd > b_sd for t_sd, b_sd in zip(_sd(t).values(), _sd(base["table"]).values(), strict=True))
+
+
+def check_json(d, base):
+    assert base["table"] is not None
+    r = _run(d, [], drop=["--json", "--quiet"])
+    assert r["rc"] == 0 and r["table"] is None and "scale pelvis" in r["out"]
+
+
+def check_quiet(d, base):
+    r = _run(d, [], drop=["--json"])
+    assert r["rc"] == 0 and r["out"] == ""
+
+
+def check_out(d, base):
+    r = _run(d, [], drop=["--out"])
+    assert r["rc"] == 0 and "written" not in r["table"] and "written" in base["table"]
+    assert not r["dir"].exists()
+    assert _numbers(r["table"]) == _numbers(base["table"])
+
+
+def check_cutoff(d, base):
+    t = _run(d, ["--cutoff", "0"])["table"]
+    assert base["table"]["settings"]["cutoff"] == "auto" and t["settings"]["cutoff"] is None
+    assert t["sigma_mm"]["per_trial"] != base["table"]["sigma_mm"]["per_trial"]
+
+
+def check_artefact_rms(d, base):
+    t = _run(d, ["--artefact-rms", "20"])["table"]
+    assert t["settings"]["artefact_rms"] == 20.0
+    assert all(t_sd > b_sd for t_sd, b_sd in zip(_sd(t).values(), _sd(base["table"]).values(), strict=True))
+
+
+def check_noise(d, base):
+    t = _run(d, ["--noise", "per-marker"])["table"]
+    assert t["settings"]["noise"] == "per_marker" and len(t["sigma_mm"]["per_marker"]) == 12
+    assert "per_marker" not in base["table"]["sigma_mm"]
+
+
+def check_alternative(d, base):
+    # another model of the leg (the hip 2 cm lower on the pelvis): the spread of every scale factor over both
+    alt = d / "leg_low_hip.osim"
+    alt.write_text(MODEL.replace("0.05 -0.08 0.09", "0.05 -0.10 0.09").format(markers=_marker_xml()))
+    r = _run(d, ["--alternative", str(alt)])
+    sens = r["table"]["model_sensitivity"]
+    assert sens["models"] == ["leg.osim", "leg_low_hip.osim"] and base["table"]["model_sensitivity"] is None
+    assert set(sens["spread"]) == {"scale_pelvis", "scale_thigh", "scale_shank"}
+    assert max(e["spread"] for e in sens["spread"].values()) > 1e-3
+    assert "alternative models" in (r["dir"] / "scaled_report.md").read_text()
+    toml = d / "leg.toml"
+    toml.write_text("")
+    _refused(_run(d, ["--alternative", str(toml)]), "--alternative")
+
+
+def check_seed(d, base):
+    t = _run(d, ["--seed", "3"])["table"]
+    assert _numbers(t) != _numbers(base["table"])
+    assert _numbers(_run(d, ["--seed", "0"])["table"]) == _numbers(base["table"])  # 0 is the default
+
+
+def check_scale(d, base):
+    t = _run(d, ["--scale", "axes"])["table"]
+    assert set(t["scales"]["thigh"]) == {"x", "y", "z"} and set(base["table"]["scales"]["thigh"]) == {"xyz"}
+
+
+def check_markers(d, base):
+    t = _run(d, ["--markers", "none"])["table"]
+    assert t["marker_offsets_mm"] == {} and len(base["table"]["marker_offsets_mm"]) == 12
+
+
+def check_marker_set(d, base):
+    bare = d / "bare" / "leg.osim"
+    assert _run(d, [], model=bare)["rc"] == 2  # no markers in the model, none beside it
+    t = _run(d, ["--marker-set", str(d / "markers" / "leg_markers.xml")], model=bare)["table"]
+    assert t["marker_set"].endswith("leg_markers.xml") and set(t["scales"]) == set(base["table"]["scales"])
+
+
+def check_overwrite(d, base):
+    (d / "taken").mkdir(exist_ok=True)
+    (d / "taken" / "old.txt").write_text("old")
+    argv = ["fit", str(d / "leg.osim"), str(d / "static.trc"), str(d / "move.trc"), "--out", str(d / "taken"),
+            "--quiet"]
+    assert main(argv) == 2 and (d / "taken" / "old.txt").exists()
+    assert main(argv + ["--overwrite"]) == 0
+    assert not (d / "taken" / "old.txt").exists() and (d / "taken" / "scaled.osim").exists()
+
+
+def check_max_memory(d, base):
+    _refused(_run(d, ["--max-memory", "1K"]), "--max-memory")
+
+
+def check_max_time(d, base):
+    _refused(_run(d, ["--max-time", "0.001s"]), "--max-time")
+
+
+CASES = {"--method": check_method, "--sigma": check_sigma, "--json": check_json, "--quiet": check_quiet,
+         "--out": check_out, "--cutoff": check_cutoff, "--artefact-rms": check_artefact_rms,
+         "--noise": check_noise, "--alternative": check_alternative, "--seed": check_seed, "--scale": check_scale,
+         "--markers": check_markers, "--marker-set": check_marker_set, "--overwrite": check_overwrite,
+         "--max-memory": check_max_memory, "--max-time": check_max_time}
+
+
+def test_every_fit_option_has_a_case():
+    options = {o for p in cli.commands["fit"].params for o in p.opts if o.startswith("--")}
+    assert options - {"--help"} == set(CASES)
+
+
+@pytest.mark.parametrize("option", list(CASES))
+def test_an_osim_fit_honours_or_refuses_the_option(case, option):
+    d, base = case
+    CASES[option](d, base)
