@@ -136,23 +136,3 @@ def rewrite_markdown(out: Path, markdown: Callable[[dict], str]) -> None:
     """Rewrite ``out.md`` from the ``out.json`` a previous run wrote."""
     out = Path(out)
     out.with_suffix(".md").write_text(markdown(json.loads(out.with_suffix(".json").read_text())))
-
-
-def provenance(argv=None) -> dict:
-    """Commit, date (UTC), CPU model, core count, load average and command line of a run."""
-    import datetime
-    import os
-    import platform
-    import sys
-
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"commit": git_commit(), "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "cpu_model": cpu, "cores": os.cpu_count(), "load_average_1_5_15": [round(v, 2) for v in os.getloadavg()],
-            "command": " ".join(["python", *(sys.argv if argv is None else ["benchmarks/...", *argv])])}

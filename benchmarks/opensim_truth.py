@@ -468,9 +468,9 @@ def markdown(res: dict) -> str:
     lines = ["# OpenSim-generated truth: skelid's OpenSim scaling against known geometry", "",
              f"{'REDUCED run (--quick). ' if res['quick'] else ''}{res['draws_done']} of {res['draws_planned']} "
              f"planned draws done ({res['reps']} planned per cell; each cell's own count is in its heading; "
-             f"geometry drawn per draw). Commit `{p['commit'][:10]}`, {p['date_utc']}, {p['cpu_model']}, "
+             f"geometry drawn per draw). Commit `{p['commit'][:10]}`, {p['date']}, {p['cpu']}, "
              f"{p['cores']} cores, load "
-             f"{p['load_average_1_5_15']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
+             f"{p['load_average']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
              "Cell = truth / fit / design / noise sd (mm). Truth `bodies`: one factor per body; `axes`: one per "
              "axis. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
              "exact structure. Marker offsets are pooled over every marker and axis (per-offset rows in the "
@@ -558,7 +558,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     reps = 3 if args.quick and args.reps == 20 else args.reps
     cells = parse_cells(args.cells) if args.cells else default_cells(args.quick)
-    prov = provenance(argv)
+    prov = provenance(None if argv is None else ["benchmarks/opensim_truth.py", *argv])
     motions()  # the IK once, before any worker needs it
     # one draw generates the data of every cell sharing its truth and noise
     groups: dict = {}
