@@ -277,7 +277,9 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
             with warnings.catch_warnings(), _one_blas_thread():
                 warnings.simplefilter("ignore", SkelidWarning)
                 ys = [_select(t, model.marker_names).positions for t in given]
-                jo = _joint_refinement(model, theta, [_select(t, model.marker_names) for t in given], sigma, seed)
+                weights = _marker_weights(model, res) if settings.get("noise") == "per_marker" else None
+                jo = _joint_refinement(model, theta, [_select(t, model.marker_names) for t in given], sigma, seed,
+                                       weights)
                 axes_note, tests = None, {}
                 if scale == "bodies":  # where the data contradict one factor per body, one factor per axis
                     per_axis = osim_parameters(original, info, "axes", "offsets", present)
@@ -285,7 +287,8 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                     flagged = [b for b, t in tests.items() if t["p"] < AXES_TEST_LEVEL / len(tests)]
                     if flagged:
                         prev, model = model, _mixed_scales(model, per_axis, flagged)
-                        jo = fit_scales_and_offsets(model, ys, _map_theta(jo.theta, prev, model), jo.poses, sigma)
+                        jo = fit_scales_and_offsets(model, ys, _map_theta(jo.theta, prev, model), jo.poses, sigma,
+                                                    weights=weights)
                         axes_note = (f"one scale factor for {', '.join(flagged)} is contradicted by the data (score "
                                      "test against one factor per axis, p = "
                                      + ", ".join(f"{tests[b]['p']:.1e}" for b in flagged)
@@ -295,11 +298,13 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
                 placed = _with_marker_positions(original, _placed_positions(model, jo.theta))
                 m3 = _scales_only(model, placed)
                 est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in trials], data, multi,
-                                              method, sigma, seed)
+                                              method, sigma, seed, settings)
+            bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
             widen = np.ones(model.n_params)
-            widen[:m3.n_params] = check_widening(est, m3)
+            widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
             jo = replace(jo, cov=jo.cov * np.outer(widen, widen))
-            theta, res, joint_fit = jo.theta, _joint_result(model, jo, res3, widen), jo
+            res = _joint_result(model, jo, res3, widen, bound, sigma, weights)
+            theta, joint_fit = jo.theta, jo
             if tests:
                 res["one_factor_test"] = tests
             if axes_note:
@@ -557,7 +562,7 @@ def _prior_terms(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None = None,
-                           n_iter: int = JOINT_ITER) -> JointOffsets:
+                           n_iter: int = JOINT_ITER, weights=None) -> JointOffsets:
     """MAP of the body scales and marker offsets together under their priors, every pose profiled out.
 
     Model: trial ``k``, frame ``t``, marker ``m``:
@@ -592,13 +597,16 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
         Starting poses.
     sigma : float, optional
         Known noise sd (mm) of every trial; estimated per trial if not given.
+    weights : (M,) float, optional
+        Relative weights ``1 / rho_m^2`` of the markers (per-marker noise ``sigma_k rho_m``): the
+        rows of marker ``m`` are scaled by ``1 / rho_m`` and the poses are the weighted fits.
 
     Returns
     -------
     JointOffsets
     """
-    from skelid.estimators.fit.likelihood import frame_terms, projected_theta_jacobian
-    from skelid.estimators.fit.pose import fit_pose, workspace
+    from skelid.estimators.fit.likelihood import projected_theta_jacobian
+    from skelid.estimators.fit.pose import workspace
 
     ws = workspace(model)
     lo = np.array([p.prior.lower for p in model.parameters])
@@ -617,8 +625,7 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
         n_done = it
         S, g, rss = [], [], np.zeros(K)
         for k, y in enumerate(ys):
-            poses[k] = fit_pose(model, theta, y, poses[k], ws=ws)[0]
-            r, Jq, Jt = frame_terms(model, theta, poses[k], y, ws)
+            poses[k], r, Jq, Jt = _posed_terms(model, theta, y, poses[k], ws, weights)
             Kp = projected_theta_jacobian(Jq, Jt)
             S.append(np.einsum("tkp,tkq->pq", Kp, Kp))
             g.append(np.einsum("tkp,tk->p", Kp, r))
@@ -640,8 +647,7 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     # the covariance at the final theta and poses
     S, rss = [], np.zeros(K)
     for k, y in enumerate(ys):
-        poses[k] = fit_pose(model, theta, y, poses[k], ws=ws)[0]
-        r, Jq, Jt = frame_terms(model, theta, poses[k], y, ws)
+        poses[k], r, Jq, Jt = _posed_terms(model, theta, y, poses[k], ws, weights)
         Kp = projected_theta_jacobian(Jq, Jt)
         S.append(np.einsum("tkp,tkq->pq", Kp, Kp))
         rss[k] = float(np.sum(r**2))
@@ -650,6 +656,42 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     _, hp = _prior_terms(model, theta)
     _, cov, edf, prior_only = _posterior(model, sum(S_k / s_k**2 for S_k, s_k in zip(S, sig, strict=True)), hp)
     return JointOffsets(theta, cov, poses, sig, dof, edf, n_done, converged, prior_only)
+
+
+#: Gauss-Newton steps of the weighted pose fit that follows the plain one (:func:`_posed_terms`)
+WEIGHTED_POSE_STEPS = 4
+
+
+def _posed_terms(model: Model, theta, y, q, ws, weights=None):
+    """Each frame's pose for ``theta``, then its residuals and Jacobians (rows weighted with ``weights``).
+
+    The plain least-squares pose (:func:`skelid.estimators.fit.pose.fit_pose`) first; with
+    ``weights``, a few Gauss-Newton steps of the weighted pose fit from there (the weights move the
+    pose little: the plain pose is close).
+
+    Returns
+    -------
+    q : (T, Q) float
+    r : (T, M*3) float
+    J_pose : (T, M*3, Q) float
+    J_theta : (T, M*3, P) float
+    """
+    from skelid.estimators.fit.joint import row_weights, weighted_terms
+    from skelid.estimators.fit.pose import fit_pose
+
+    q = fit_pose(model, theta, y, q, ws=ws)[0]
+    sw = row_weights(weights, y)
+    r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+    if sw is None:
+        return q, r, Jq, Jt
+    Q = Jq.shape[-1]
+    for _ in range(WEIGHTED_POSE_STEPS):
+        H = np.einsum("tkq,tkr->tqr", Jq, Jq)
+        ridge = 1e-9 * np.maximum(np.einsum("tqq->t", H) / max(Q, 1), 1e-300)
+        dq = np.linalg.solve(H + ridge[:, None, None] * np.eye(Q), np.einsum("tkq,tk->tq", Jq, r)[..., None])[..., 0]
+        q = q + dq
+        r, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
+    return q, r, Jq, Jt
 
 
 def _posterior(model: Model, info, prior_precision, rel_tol: float = 1e-10):
@@ -686,14 +728,63 @@ def _posterior(model: Model, info, prior_precision, rel_tol: float = 1e-10):
     return solve, 0.5 * (cov + cov.T), float(np.sum(w * inv)), names
 
 
-def _joint_refinement(model: Model, theta, trials, sigma, seed) -> JointOffsets:
+def _joint_refinement(model: Model, theta, trials, sigma, seed, weights=None) -> JointOffsets:
     """:func:`fit_scales_and_offsets` on every frame of ``trials``, poses tracked at ``theta`` first."""
     from skelid.estimators.fit.pose import track_poses
 
     rng = np.random.default_rng(seed)
     ys = [t.positions for t in trials]
     poses = [track_poses(model, theta, y, rng)[0] for y in ys]
-    return fit_scales_and_offsets(model, ys, theta, poses, sigma)
+    return fit_scales_and_offsets(model, ys, theta, poses, sigma, weights=weights)
+
+
+def _noise_interval(sigma: float, dof: float, scale_fit_sigma: dict | None) -> list:
+    """95 % interval of the joint fit's noise level ``sigma`` on ``dof`` residual degrees of freedom.
+
+    The scale fit on the same frames gives the noise level's relative uncertainty with its
+    corrections (serially correlated residuals: fewer effective degrees of freedom); its interval,
+    relative to its own value, is carried over. Without one, the chi-square interval
+    ``sigma sqrt(dof / chi2_{0.975, 0.025}(dof))``.
+    """
+    from scipy.stats import chi2
+
+    ci = (scale_fit_sigma or {}).get("ci95")
+    value = (scale_fit_sigma or {}).get("value")
+    if ci is not None and value and np.all(np.isfinite(ci)) and ci[0] < value < ci[1]:
+        return [float(sigma * ci[0] / value), float(sigma * ci[1] / value)]
+    dof = max(dof, 1.0)
+    return [float(sigma * np.sqrt(dof / chi2.ppf(0.975, dof))), float(sigma * np.sqrt(dof / chi2.ppf(0.025, dof)))]
+
+
+def _marker_weights(model: Model, res: dict) -> np.ndarray | None:
+    """Relative weights ``1 / sigma_m^2`` (geometric mean 1) from a fit's per-marker noise, or None.
+
+    A marker the fit gave no noise level gets the median weight.
+    """
+    per = ((res.get("sigma") or {}).get("per_marker")) or {}
+    s = np.array([per.get(m, np.nan) for m in model.marker_names], float)
+    ok = np.isfinite(s) & (s > 0)
+    if not ok.any():
+        return None
+    s = np.where(ok, s, np.median(s[ok]))
+    w = 1.0 / s**2
+    return w / np.exp(np.mean(np.log(w)))
+
+
+def between_trial_widening(res: dict, model: Model) -> np.ndarray:
+    """Per scale parameter of ``model``, the several-trial fit's sd over its within-trial sd, at least 1.
+
+    The joint fit has one geometry for every trial and no between-trial term; where the trials
+    disagree beyond their own intervals (a random-effects spread, :mod:`skelid.estimators.multitrial`)
+    the interval of the joint fit is widened by the same ratio. 1 for a fit of one trial.
+    """
+    out = np.ones(model.n_params)
+    for k, name in enumerate(model.parameter_names):
+        e = res.get(name) or {}
+        within, total = e.get("sd_within_trials"), e.get("sd")
+        if within and total and np.isfinite(within) and np.isfinite(total) and within > 0:
+            out[k] = max(1.0, float(total) / float(within))
+    return out
 
 
 def _placed_positions(model: Model, theta) -> dict:
@@ -727,8 +818,16 @@ def check_widening(est, model: Model) -> np.ndarray:
     return np.maximum(ratio[:model.n_params], 1.0)
 
 
-def _joint_result(model: Model, jo: JointOffsets, res: dict, widen) -> dict:
-    """The result dict with every parameter, the noise and the lengths from the joint fit."""
+def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma=None, weights=None) -> dict:
+    """The result dict with every parameter, the noise and the lengths from the joint fit.
+
+    ``res``: the result of the scale fit with every marker where the joint fit put it (its
+    several-trial diagnostics are kept; its ``sd_within_trials`` and ``sd_between_trials`` are
+    carried to the scale factors). ``bound``: the sd of the Laplace posterior before any widening,
+    ``sqrt(diag (S / sigma^2 + Lambda)^-1)``, the Bayesian (van Trees) information bound of the
+    priors and the data at the fitted noise level, given as ``crlb_sd``. ``weights``: the per-marker
+    relative weights the joint fit used (``noise='per_marker'``).
+    """
     from skelid.model.kinematics import joint_distances
 
     out = {k: v for k, v in res.items() if k not in model.parameter_names}
@@ -736,8 +835,11 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen) -> dict:
     for k, p in enumerate(model.parameters):
         v, half = float(jo.theta[k]), 1.959964 * float(sd[k])
         out[p.name] = {"map": v, "mean": v, "sd": float(sd[k]), "ci95": [v - half, v + half],
-                       "widened_by_checks": float(widen[k]),
+                       "crlb_sd": float(bound[k]), "widened_by_checks": float(widen[k]),
                        "method": "scales and offsets fitted together (Laplace interval)"}
+        own = res.get(p.name) or {}
+        out[p.name].update({key: float(own[key]) for key in ("sd_within_trials", "sd_between_trials")
+                            if own.get(key) is not None})
     if jo.prior_only:
         out["warnings"] = list(out.get("warnings", [])) + [
             f"the data do not determine {', '.join(jo.prior_only)}: every marker of the body may move, so its "
@@ -751,8 +853,13 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen) -> dict:
                           for (name, _), v, e in zip(model.derived_lengths, L, lsd, strict=True)}
     n = np.maximum(jo.dof, 1.0)
     pooled = float(np.sqrt(np.sum(n * jo.sigma**2) / n.sum()))
-    out["sigma"] = {"value": pooled, "fixed": False, "per_trial": [float(v) for v in jo.sigma],
-                    "method": "joint fit of scales and offsets"}
+    out["sigma"] = {"value": float(sigma) if sigma is not None else pooled, "fixed": sigma is not None,
+                    "per_trial": [float(v) for v in jo.sigma], "method": "joint fit of scales and offsets"}
+    if sigma is None:
+        out["sigma"]["ci95"] = _noise_interval(pooled, float(n.sum()), res.get("sigma"))
+    if weights is not None:  # each marker's sd: the fitted level times its relative sd
+        rel = 1.0 / np.sqrt(weights)
+        out["sigma"]["per_marker"] = {m: float(pooled * v) for m, v in zip(model.marker_names, rel, strict=True)}
     out["joint_fit"] = {"iterations": jo.n_iter, "converged": jo.converged, "edf": jo.edf}
     if not jo.converged:
         out["warnings"] = list(out.get("warnings", [])) + [
