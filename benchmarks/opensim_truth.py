@@ -278,7 +278,10 @@ def skelid_fit(trials, scale: str) -> dict:
     en = [p.name for p in est.model.parameters] if hasattr(est, "model") else []
     for k, p in enumerate(fit.model.parameters):
         e = fit.result[p.name]
-        cr = float(crlb[en.index(p.name)]) if crlb is not None and p.name in en else float("nan")
+        if e.get("crlb_sd") is not None:  # the joint fit's bound (its Laplace sd before any widening)
+            cr = float(e["crlb_sd"])
+        else:
+            cr = float(crlb[en.index(p.name)]) if crlb is not None and p.name in en else float("nan")
         if p.kind == "scale":
             key = f"scale {p.target}" + ("" if p.axis is None else f" {'xyz'[p.axis]}")
         else:
