@@ -74,10 +74,14 @@ def provenance(argv: list[str] | None = None) -> dict:
 
 
 def with_provenance(res):
-    """``res`` with a ``provenance`` entry (a list of rows becomes ``{"provenance": ..., "rows": [...]}``)."""
+    """``res`` with a ``provenance`` entry (a list of rows becomes ``{"provenance": ..., "rows": [...]}``).
+
+    A ``provenance`` that ``res`` already holds is kept: a run that writes its results after every
+    step took it when it started, and the checkout may have moved on since.
+    """
     if isinstance(res, list):
         return {"provenance": provenance(), "rows": res}
-    return {"provenance": provenance(), **{k: v for k, v in res.items() if k != "provenance"}}
+    return {"provenance": res.get("provenance") or provenance(), **{k: v for k, v in res.items() if k != "provenance"}}
 
 
 def write_json(path: Path, res, **dump) -> None:

@@ -17,11 +17,21 @@ with ``gait2354_Scale_MarkerSet.xml``):
    frames); computed once and cached under the system's temporary folder
    (``skelid-opensim-truth``), never committed;
 4. markers from OpenSim's kinematics of the scaled model at those coordinates
-   (``Marker.getLocationInGround``), plus i.i.d. normal noise of sd 0, 2, 5
-   or 10 mm per coordinate.
+   (``Marker.getLocationInGround``), plus noise of one of three kinds, named
+   by the cell's last field: a number (``0``, ``2``, ``5``, ``10``): i.i.d.
+   normal noise of that sd (mm) per coordinate; ``pm``: i.i.d. per marker,
+   each marker's sd drawn uniform in [1, 10] mm; ``sta``: simulated
+   soft-tissue artefact, never told to the estimator: each marker moves by
+   ``W_m (q(t) - q_static)`` (the rotational coordinates, rad), ``W_m = W_b +
+   W'_m / 2`` with ``W_b`` shared by the markers of body ``b`` and ``W'_m`` its
+   own (normal draws), scaled so that the body's markers move by an rms
+   (over the walk, per coordinate) drawn uniform in [5, 15] mm per body; zero
+   at the standing pose; plus 1 mm i.i.d. noise.
 
 Designs: ``static+walk`` (the static trial first, as the command line takes
-it) and ``walk`` (one dynamic trial alone). skelid fits the generic model with
+it), ``walk`` (one dynamic trial alone) and ``walk+walk2`` (two dynamic trials:
+the walk and the IK of ``walk_free_01.trc``, 73 frames, another walk of the
+same subject, as two trials of one fit). skelid fits the generic model with
 :func:`skelid.scaling.fit_osim` (``scale="bodies"``, the default: the user's
 case), and, where the truth is per axis, also with ``scale="axes"`` (the
 exact structure). Reported per cell for every scale factor, segment length
@@ -80,7 +90,7 @@ LENGTHS = {"thigh_r (hip-knee)": ("femur_r", "tibia_r"), "thigh_l (hip-knee)": (
 NOISES = (0.0, 2.0, 5.0, 10.0)
 # truth, fit, design
 CONFIGS = (("bodies", "bodies"), ("axes", "bodies"), ("axes", "axes"))
-DESIGNS = ("static+walk", "walk")
+DESIGNS = ("static+walk", "walk", "walk+walk2")
 Z95 = 1.959964
 
 
@@ -142,11 +152,54 @@ def _ik(trc: Path, name: str, t_range=None) -> tuple[list[str], np.ndarray]:
 
 
 def motions() -> dict:
-    """The coordinates of the walk (F, C) and of the standing pose held (T, C)."""
+    """The coordinates of the walks (F, C) and of the standing pose held (T, C)."""
     names, walk = _ik(DATA / "subject01_walk1.trc", "walk1")
+    _, walk2 = _ik(DATA / "walk_free_01.trc", "walk_free_01")
     _, stand = _ik(DATA / "subject01_static.trc", "static", (1.0, 2.0))
     hold = np.repeat(stand.mean(axis=0, keepdims=True), int(RATE * STATIC_SECONDS), axis=0)
-    return {"names": names, "walk": walk, "static": hold}
+    return {"names": names, "walk": walk, "walk2": walk2, "static": hold}
+
+
+STA_RMS_MM = (5.0, 15.0)
+STA_NOISE_MM = 1.0
+PER_MARKER_SD_MM = (1.0, 10.0)
+
+
+def noise_token(n) -> str:
+    """A cell's noise field as written in its key: a number as ``%g``, else the kind's name."""
+    try:
+        return f"{float(n):g}"
+    except ValueError:
+        if n not in ("pm", "sta"):
+            raise SystemExit(f"unknown noise {n!r}: a number (mm), 'pm' or 'sta'") from None
+        return n
+
+
+def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> dict:
+    """``trials``: name -> (positions (F, M, 3) mm, coordinates (F, C)); the noisy positions by name."""
+    ms = model.getMarkerSet()
+    M = ms.getSize()
+    if token == "pm":
+        sd = rng.uniform(*PER_MARKER_SD_MM, M)[None, :, None]
+        return {k: y + rng.normal(size=y.shape) * sd for k, (y, _) in trials.items()}
+    if token != "sta":
+        return {k: y + rng.normal(0.0, float(token), y.shape) for k, (y, _) in trials.items()}
+    cs = model.getCoordinateSet()
+    rot = np.array([cs.get(n).getMotionType() == 1 for n in coord_names])
+    bodies = [ms.get(i).getParentFrameName().split("/")[-1] for i in range(M)]
+    shared = {b: rng.normal(size=(3, rot.sum())) for b in set(bodies)}
+    W = np.stack([shared[b] + 0.5 * rng.normal(size=(3, rot.sum())) for b in bodies])  # (M, 3, C)
+    ref = static_q[0, rot]
+
+    def artefact(q):
+        return np.einsum("mjc,tc->tmj", W, q[:, rot] - ref)
+    walk = artefact(trials["walk"][1])
+    for b in set(bodies):  # each body's markers move by their drawn rms over the walk
+        idx = [i for i, x in enumerate(bodies) if x == b]
+        rms = float(np.sqrt(np.mean(walk[:, idx] ** 2)))
+        if rms > 0:
+            W[idx] *= rng.uniform(*STA_RMS_MM) / rms
+    return {k: y + artefact(q) + rng.normal(0.0, STA_NOISE_MM, y.shape) for k, (y, q) in trials.items()}
 
 
 def draw_truth(rng, truth: str, marker_names) -> dict:
@@ -373,14 +426,19 @@ def run_draw(args) -> dict:
     names, walk = marker_trajectories(model, mo["names"], mo["walk"])
     _, static1 = marker_trajectories(model, mo["names"], mo["static"][:1])
     static = np.repeat(static1, len(mo["static"]), axis=0)
+    clean = {"walk": (walk, mo["walk"]), "static": (static, mo["static"])}
+    if any(d == "walk+walk2" for d in designs):
+        clean["walk2"] = (marker_trajectories(model, mo["names"], mo["walk2"])[1], mo["walk2"])
     lengths = opensim_lengths(model, mo["names"])
-    walk = walk + rng.normal(0.0, noise, walk.shape)
-    static = static + rng.normal(0.0, noise, static.shape)
+    noisy = add_noise(rng, noise, model, mo["names"], clean, mo["static"])
+    walk, static = noisy["walk"], noisy["static"]
     out = {"seed": seed, "truth_kind": truth_kind, "noise": noise, "fits": {}}
     for design in designs:
-        trials = ([("static", names, static)] if design == "static+walk" else []) + [("walk", names, walk)]
+        trials = {"static+walk": [("static", names, static), ("walk", names, walk)],
+                  "walk": [("walk", names, walk)],
+                  "walk+walk2": [("walk", names, walk), ("walk2", names, noisy.get("walk2"))]}[design]
         for fs in fits:
-            key = f"{truth_kind}/{fs}/{design}/{noise:g}"
+            key = f"{truth_kind}/{fs}/{design}/{noise}"
             tv = true_values(truth, lengths, fs)
             try:
                 r = skelid_fit(trials, fs)
@@ -428,7 +486,7 @@ def summarise(draws: list[dict]) -> dict:
                     row["sd"].append(e["sd"])
                     row["crlb"].append(e["crlb"])
         if "scaletool" in d and "error" in d["scaletool"]:
-            key = f"{d['truth_kind']}/scaletool/static+walk/{d['noise']:g}"
+            key = f"{d['truth_kind']}/scaletool/static+walk/{d['noise']}"
             c = cells.setdefault(key, {"n": 0, "failed": 0, "errors": [], "rows": {}, "cpu": []})
             c["n"] += 1
             c["cpu"].append(d["scaletool"]["cpu_s"])
@@ -474,7 +532,9 @@ def markdown(res: dict) -> str:
              f"geometry drawn per draw). Commit `{p['commit'][:10]}`, {p['date']}, {p['cpu']}, "
              f"{p['cores']} cores, load "
              f"{p['load_average']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
-             "Cell = truth / fit / design / noise sd (mm). Truth `bodies`: one factor per body; `axes`: one per "
+             "Cell = truth / fit / design / noise (a number: i.i.d. sd in mm; `pm`: per-marker sd 1-10 mm; "
+             "`sta`: soft-tissue artefact 5-15 mm rms per body plus 1 mm, never told to the estimator)."
+             " Truth `bodies`: one factor per body; `axes`: one per "
              "axis. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
              "exact structure. Marker offsets are pooled over every marker and axis (per-offset rows in the "
              "JSON). ScaleTool rows: OpenSim's measurement-based scaling on the same static trial (error of each "
@@ -540,13 +600,16 @@ def parse_cells(cells) -> list[tuple]:
     out = []
     for c in cells:
         t, f, d, n = c.split("/")
-        out.append((t, f, d, float(n)))
+        if d not in DESIGNS:
+            raise SystemExit(f"unknown design {d!r}: one of {', '.join(DESIGNS)}")
+        out.append((t, f, d, noise_token(n)))
     return out
 
 
 def default_cells(quick: bool) -> list[tuple]:
-    noises = (0.0, 5.0) if quick else NOISES
-    return [(t, f, d, n) for t, f in CONFIGS for d in DESIGNS for n in noises]
+    noises = ("0", "5") if quick else tuple(noise_token(n) for n in NOISES) + ("pm", "sta")
+    designs = DESIGNS[:2] if quick else DESIGNS
+    return [(t, f, d, n) for t, f in CONFIGS for d in designs for n in noises]
 
 
 def main(argv=None):
@@ -576,13 +639,13 @@ def main(argv=None):
             for gi, ((t, n), g) in enumerate(sorted(groups.items())):
                 seed = args.seed + 1000 * r + gi
                 tasks.append((t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer, work))
-        keep = {f"{t}/{f}/{d}/{n:g}" for t, f, d, n in cells}
+        keep = {f"{t}/{f}/{d}/{n}" for t, f, d, n in cells}
         draws = []
 
         def record(draw, k):  # the results so far are written after every draw
             draw["fits"] = {key: v for key, v in draw["fits"].items() if key in keep}
             draws.append(draw)
-            print(f"draw {k + 1}/{len(tasks)} {draw['truth_kind']} noise {draw['noise']:g}: "
+            print(f"draw {k + 1}/{len(tasks)} {draw['truth_kind']} noise {draw['noise']}: "
                   f"{time.perf_counter() - w0:.0f} s", flush=True)
             res = {"provenance": prov, "quick": bool(args.quick), "reps": reps, "draws_done": len(draws),
                    "draws_planned": len(tasks), "wall_s": time.perf_counter() - w0, "cells": summarise(draws),

@@ -119,6 +119,15 @@ def opensim_subject4() -> str:
     return "\n".join(lines) + "\n\n" + source(path, doc)
 
 
+def _truth_values(rows: dict, prefix: str, key: str) -> list:
+    """``key`` of every row of an OpenSim-truth cell whose quantity starts with ``prefix`` (where given)."""
+    return [r[key] for q, r in rows.items() if q.startswith(prefix) and r.get(key) is not None]
+
+
+def _median_text(v) -> str:
+    return f"{sorted(v)[len(v) // 2]:.2f}" if v else "—"
+
+
 def opensim_truth() -> str:
     """Coverage on models whose true scales are known (benchmarks/opensim_truth.py), once it has run."""
     path = RESULTS / "opensim_truth.json"
@@ -126,8 +135,29 @@ def opensim_truth() -> str:
         return ("*Not measured yet.* `benchmarks/opensim_truth.py` (markers simulated on OpenSim models of known "
                 "scale) writes `benchmarks/results/opensim_truth.json`; `python benchmarks/run_all.py --full` then "
                 "`python benchmarks/render_docs.py` put its coverage here.\n")
-    return ("See [`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md) for the coverage "
-            "of each body's interval.\n\n" + source(path))
+    doc = load(path)
+    cells = doc["cells"]
+    lines = ["| cell (truth/fit/design/noise) | draws | coverage 95 %: scales, median (min) | lengths | offsets "
+             "| RMSE/sd, scales (median) | length RMSE (mm): skelid | ScaleTool | CPU s per fit |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for key, c in cells.items():
+        truth, fit, design, noise = key.split("/")
+        if fit == "scaletool" or not c["rows"]:
+            continue
+        rows = c["rows"]
+        sc, ln, of = (_truth_values(rows, p, "coverage95") for p in ("scale", "length", "offset"))
+        rs = _truth_values(rows, "scale", "rmse_over_sd")
+        lr = _truth_values(rows, "length", "rmse")
+        pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
+        med = _median_text
+        lines.append(f"| {key} | {c['n']}" + (f" ({c['failed']} failed)" if c["failed"] else "")
+                     + f" | {med(sc)} ({min(sc):.2f}) | {med(ln)} | {med(of)} | {med(rs)} | "
+                     f"{sum(lr) / len(lr):.1f} | " + (f"{sum(pr) / len(pr):.1f}" if pr else "—")
+                     + f" | {c['cpu_s_per_fit']:.0f} |")
+    note = (f"{doc['draws_done']} of {doc['draws_planned']} planned draws done; geometry drawn per draw. "
+            "Lengths: hip-knee and knee-ankle per side; RMSE averaged over the four. Per quantity: "
+            "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md).")
+    return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, doc)
 
 
 # ---------------------------------------------------------------- accuracy

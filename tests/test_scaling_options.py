@@ -91,7 +91,11 @@ def check_method(d, base):
 def check_sigma(d, base):
     t = _run(d, ["--sigma", "0.5"])["table"]
     assert t["sigma_mm"]["value"] == 0.5 and t["sigma_mm"]["fixed"] and not base["table"]["sigma_mm"]["fixed"]
-    assert all(t_sd > b_sd for t_sd, b_sd in zip(_sd(t).values(), _sd(base["table"]).values(), strict=True))
+    # a noise level 50 times the fitted one: the scale the data determine (the thigh's) is far less sure; the
+    # ones its markers' offsets leave to the prior (pelvis, shank) keep their prior-sized sd
+    t_sd, b_sd = _sd(t), _sd(base["table"])
+    assert t_sd["thigh"] > 5 * b_sd["thigh"]
+    assert all(t_sd[b] > 0.99 * b_sd[b] for b in b_sd)
 
 
 def check_json(d, base):

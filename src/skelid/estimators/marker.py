@@ -936,8 +936,9 @@ def _residual_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[W
         out.append(Warning("model-misfit", f"model misfit at joint {j}: the markers of {v['segment']} move together "
                            f"with the joint angle (rms {v['rms']:.3g} {model.units}, {p_txt}; it moves the estimate "
                            f"by {v['effect']:.2g} sd), which "
-                           "the joint model cannot follow (a joint centre that moves with the angle?); this is not "
-                           "soft-tissue artefact; fit the joint's coupled motion or a moving centre "
+                           "the joint model cannot follow: a joint centre that moves with the angle, or soft-tissue "
+                           "artefact that carries the segment's markers together (its dominant mode; markers on "
+                           "skin cannot tell the two apart); fit the joint's coupled motion or a moving centre "
                            f"(skelid.model.variants.moving_centre) to remove the bias it leaves{then}",
                            tuple(relaxed["widened"]) if relaxed and relaxed["variant"] else ()))
     if f.residuals.flagged:
