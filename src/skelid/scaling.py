@@ -214,28 +214,9 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     if not trials:
         raise DataError("no trial given", "give at least one marker file")
     full, info = read_osim(osim_path, marker_set)
-    marker_set = info.marker_set
     given = trials
-    # the first trial is a static one only when movement trials follow it; a lone trial is a movement
-    first = static_frames if len(trials) > 1 else movement_frames
-    trials = [thin_trial(trials[0], first)] + [
-        thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
-    multi = len(trials) > 1 and method == "marker" and not joined
-    data = join_trials(trials) if not multi else None
-    # the multi-trial fit needs every marker in every trial; a joined recording, in any
-    if multi:
-        def seen(n):
-            return all(n in t.names and np.isfinite(t.positions[:, t.names.index(n)]).all(axis=-1).any()
-                       for t in trials)
-    else:
-        def seen(n):
-            return n in data.names and np.isfinite(data.positions[:, data.names.index(n)]).all(axis=-1).any()
-    present = [n for n in full.marker_names if seen(n)]
-    if not present:
-        names = trials[0].names
-        raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
-                        f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(names[:4])} ...)",
-                        "rename the markers in the model's MarkerSet or in the data so that they match")
+    trials, multi, data = _prepared_trials(trials, method, static_frames, movement_frames, joined)
+    present = _present_markers(full, trials, data, multi, osim_path)
     original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
     settings = fit_settings(original, method, multi, sigma, cutoff, artefact_rms, noise)
@@ -247,69 +228,143 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
         if markers == "offsets" and scale != "none":
             moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed, settings)
             notes += [note] if note else []
-        base = _with_marker_positions(original, moved)
-        model = osim_parameters(base, info, scale, "none", present)
+        model = osim_parameters(_with_marker_positions(original, moved), info, scale, "none", present)
         parts = [_select(t, model.marker_names) for t in trials]
         est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed, settings)
-    static = parts[0]
     if markers == "offsets":
-        offsets, sd, n_eff = place_markers(model, theta, poses[0], static.positions,
-                                           (0, static.positions.shape[0]),
-                                           [m.name not in info.fixed_markers for m in model.markers])
-        if moved:  # offsets from the model's own marker places: the first placement, scaled, plus the last
-            s_body = body_scales(model, theta)
-            for i, m in enumerate(model.markers):
-                if m.name in moved:
-                    r0 = np.asarray(original.markers[original.marker_names.index(m.name)].position)
-                    offsets[i] += s_body.get(m.segment, np.ones(3)) * (np.asarray(m.position) - r0)
-        model = osim_parameters(original, info, scale, "offsets", present)
-        theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
-        for k, p in enumerate(model.parameters):
-            if p.kind == "marker_offset":
-                i = model.marker_names.index(p.target)
-                theta[k] = offsets[i, p.axis]
-                half = 1.959964 * sd[i, p.axis]
-                res[p.name] = {"map": float(offsets[i, p.axis]), "mean": float(offsets[i, p.axis]),
-                               "sd": float(sd[i, p.axis]), "ci95": [float(offsets[i, p.axis] - half),
-                                                                   float(offsets[i, p.axis] + half)],
-                               "n_eff": float(n_eff[i]), "method": "placed on the static trial"}
+        model, theta = _placed_offsets(model, theta, poses[0], parts[0], original, info, scale, present, moved, res)
         if joint and scale != "none" and any(p.kind == "marker_offset" for p in model.parameters):
-            with warnings.catch_warnings(), _one_blas_thread():
-                warnings.simplefilter("ignore", SkelidWarning)
-                ys = [_select(t, model.marker_names).positions for t in given]
-                weights = _marker_weights(model, res) if settings.get("noise") == "per_marker" else None
-                jo = _joint_refinement(model, theta, [_select(t, model.marker_names) for t in given], sigma, seed,
-                                       weights)
-                axes_note, tests = None, {}
-                if scale == "bodies":  # where the data contradict one factor per body, one factor per axis
-                    per_axis = osim_parameters(original, info, "axes", "offsets", present)
-                    tests = one_factor_test(model, per_axis, jo, ys)
-                    flagged = [b for b, t in tests.items() if t["p"] < AXES_TEST_LEVEL / len(tests)]
-                    if flagged:
-                        prev, model = model, _mixed_scales(model, per_axis, flagged)
-                        jo = fit_scales_and_offsets(model, ys, _map_theta(jo.theta, prev, model), jo.poses, sigma,
-                                                    weights=weights)
-                        axes_note = (f"one scale factor for {', '.join(flagged)} is contradicted by the data (score "
-                                     "test against one factor per axis, p = "
-                                     + ", ".join(f"{tests[b]['p']:.1e}" for b in flagged)
-                                     + "): those bodies were fitted with one factor per axis")
-                # the checks (misfit, serial correlation, marker jackknife) of the scale fit with every marker
-                # where the joint fit put it: they widen the joint interval, never narrow it
-                placed = _with_marker_positions(original, _placed_positions(model, jo.theta))
-                m3 = _scales_only(model, placed)
-                est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in trials], data, multi,
-                                              method, sigma, seed, settings)
-            bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
-            widen = np.ones(model.n_params)
-            widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
-            jo = replace(jo, cov=jo.cov * np.outer(widen, widen))
-            res = _joint_result(model, jo, res3, widen, bound, sigma, weights)
-            theta, joint_fit = jo.theta, jo
-            if tests:
-                res["one_factor_test"] = tests
-            if axes_note:
-                res["warnings"] = list(res.get("warnings", [])) + [axes_note]
-    seconds = time.perf_counter() - t0
+            stage = _ScaleStage(original, info, present, trials, data, multi, method, sigma, seed, settings)
+            model, theta, est, res, joint_fit = _joint_stage(stage, model, theta, given, scale, res)
+    warns = _fit_warnings(osim_path, info, notes, res, dropped, multi)
+    frames = [int(t.positions.shape[0]) for t in trials]
+    source = " + ".join(t.source or f"trial {k + 1}" for k, t in enumerate(trials))
+    shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
+                       parts[0].units, source, {"trial_frames_used": frames})
+    return ScalingFit(model, info, str(osim_path), info.marker_set, shown, est, res, time.perf_counter() - t0,
+                      dropped, warns, theta, joint_fit)
+
+
+def _prepared_trials(trials, method, static_frames, movement_frames, joined):
+    """The trials thinned for steps 1 and 2, whether they are fitted as several trials, and the joined recording.
+
+    The first trial is a static one only when movement trials follow it; a lone trial is a movement trial.
+    """
+    first = static_frames if len(trials) > 1 else movement_frames
+    trials = [thin_trial(trials[0], first)] + [thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
+    multi = len(trials) > 1 and method == "marker" and not joined
+    return trials, multi, (join_trials(trials) if not multi else None)
+
+
+def _present_markers(full: Model, trials, data, multi: bool, osim_path) -> list[str]:
+    """The model's markers the data hold: in every trial for the several-trial fit, in any for a joined one."""
+    def seen_in(t, n):
+        return n in t.names and np.isfinite(t.positions[:, t.names.index(n)]).all(axis=-1).any()
+    present = [n for n in full.marker_names
+               if (all(seen_in(t, n) for t in trials) if multi else seen_in(data, n))]
+    if not present:
+        names = trials[0].names
+        raise DataError(f"none of the {len(full.markers)} markers of {osim_path} is in the data "
+                        f"(model: {', '.join(full.marker_names[:4])} ...; data: {', '.join(names[:4])} ...)",
+                        "rename the markers in the model's MarkerSet or in the data so that they match")
+    return present
+
+
+def _placed_offsets(model, theta, pose, static, original, info, scale, present, moved, res):
+    """Step 2: the free markers placed on the first trial; the model with offsets and its ``theta``.
+
+    Each offset's entry is written into ``res``.
+    """
+    offsets, sd, n_eff = place_markers(model, theta, pose, static.positions, (0, static.positions.shape[0]),
+                                       [m.name not in info.fixed_markers for m in model.markers])
+    if moved:  # offsets from the model's own marker places: the first placement, scaled, plus the last
+        s_body = body_scales(model, theta)
+        for i, m in enumerate(model.markers):
+            if m.name in moved:
+                r0 = np.asarray(original.markers[original.marker_names.index(m.name)].position)
+                offsets[i] += s_body.get(m.segment, np.ones(3)) * (np.asarray(m.position) - r0)
+    model = osim_parameters(original, info, scale, "offsets", present)
+    theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
+    for k, p in enumerate(model.parameters):
+        if p.kind == "marker_offset":
+            i = model.marker_names.index(p.target)
+            theta[k] = offsets[i, p.axis]
+            half = 1.959964 * sd[i, p.axis]
+            res[p.name] = {"map": float(offsets[i, p.axis]), "mean": float(offsets[i, p.axis]),
+                           "sd": float(sd[i, p.axis]), "ci95": [float(offsets[i, p.axis] - half),
+                                                               float(offsets[i, p.axis] + half)],
+                           "n_eff": float(n_eff[i]), "method": "placed on the static trial"}
+    return model, theta
+
+
+@dataclass(frozen=True)
+class _ScaleStage:
+    """What the scale fit of step 1 was given, for its rerun in step 3."""
+
+    original: Model
+    info: object
+    present: list
+    trials: list
+    data: MarkerData | None
+    multi: bool
+    method: str
+    sigma: float | None
+    seed: int
+    settings: dict
+
+
+def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
+    """Step 3: scales and offsets fitted together, widened by the scale fit's checks.
+
+    Returns ``(model, theta, estimator, result dict, JointOffsets)``; the model gains one factor
+    per axis for the bodies where the score test contradicts one (``scale='bodies'``).
+    """
+    with warnings.catch_warnings(), _one_blas_thread():
+        warnings.simplefilter("ignore", SkelidWarning)
+        ys = [_select(t, model.marker_names).positions for t in given]
+        weights = _marker_weights(model, res) if st.settings.get("noise") == "per_marker" else None
+        jo = _joint_refinement(model, theta, [_select(t, model.marker_names) for t in given], st.sigma, st.seed,
+                               weights)
+        tests, axes_note = {}, None
+        if scale == "bodies":
+            model, jo, tests, axes_note = _per_axis_where_contradicted(st, model, jo, ys, weights)
+        # the checks (misfit, serial correlation, marker jackknife) of the scale fit with every marker
+        # where the joint fit put it: they widen the joint interval, never narrow it
+        m3 = _scales_only(model, _with_marker_positions(st.original, _placed_positions(model, jo.theta)))
+        est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in st.trials], st.data, st.multi,
+                                      st.method, st.sigma, st.seed, st.settings)
+    bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
+    widen = np.ones(model.n_params)
+    widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
+    jo = replace(jo, cov=jo.cov * np.outer(widen, widen))
+    out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
+    if tests:
+        out["one_factor_test"] = tests
+    if axes_note:
+        out["warnings"] = list(out.get("warnings", [])) + [axes_note]
+    return model, jo.theta, est, out, jo
+
+
+def _per_axis_where_contradicted(st: _ScaleStage, model, jo, ys, weights):
+    """Where the data contradict one factor per body (:func:`one_factor_test`), one factor per axis, refitted.
+
+    Returns ``(model, JointOffsets, tests, note or None)``.
+    """
+    per_axis = osim_parameters(st.original, st.info, "axes", "offsets", st.present)
+    tests = one_factor_test(model, per_axis, jo, ys)
+    flagged = [b for b, t in tests.items() if t["p"] < AXES_TEST_LEVEL / len(tests)]
+    if not flagged:
+        return model, jo, tests, None
+    prev, model = model, _mixed_scales(model, per_axis, flagged)
+    jo = fit_scales_and_offsets(model, ys, _map_theta(jo.theta, prev, model), jo.poses, st.sigma, weights=weights)
+    note = (f"one scale factor for {', '.join(flagged)} is contradicted by the data (score test against one "
+            "factor per axis, p = " + ", ".join(f"{tests[b]['p']:.1e}" for b in flagged)
+            + "): those bodies were fitted with one factor per axis")
+    return model, jo, tests, note
+
+
+def _fit_warnings(osim_path, info, notes, res, dropped, multi) -> list[str]:
+    """Every warning of an .osim fit, once each: the marker set, the placement, the fit, the markers left out."""
     warns = []
     if info.marker_set_found_by:
         warns.append(f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}")
@@ -317,12 +372,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     if dropped:
         warns.append(f"{len(dropped)} model markers are not in the data"
                      + (" (of every trial)" if multi else "") + f" and were left out: {', '.join(dropped)}")
-    frames = [int(t.positions.shape[0]) for t in trials]
-    source = " + ".join(t.source or f"trial {k + 1}" for k, t in enumerate(trials))
-    shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
-                       parts[0].units, source, {"trial_frames_used": frames})
-    return ScalingFit(model, info, str(osim_path), marker_set, shown, est, res, seconds, dropped,
-                      list(dict.fromkeys(warns)), theta, joint_fit)
+    return list(dict.fromkeys(warns))
 
 
 def fit_settings(model: Model, method: str, multi: bool, sigma: float | None = None, cutoff: float | None = None,
