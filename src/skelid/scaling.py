@@ -1178,6 +1178,14 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
     model in OpenSim.
     """
     table = scaling_table(fit) if table is None else table
+    lines = _head_markdown(fit, table) + _trials_markdown(table.get("trials"))
+    for section in (_scales_markdown, _lengths_markdown, _offsets_markdown, _sensitivity_markdown, _tail_markdown):
+        lines += section(fit, table, files)
+    return "\n".join(lines)
+
+
+def _head_markdown(fit: ScalingFit, table: dict) -> list[str]:
+    """The title, the model and data, the frames used and the noise of each trial, the noise level."""
     res = fit.result
     lines = [f"# Scaling of {Path(fit.source).name}", "",
              f"Model: `{fit.source}`" + (f" with the markers of `{fit.marker_set}`" if fit.marker_set else ""),
@@ -1195,49 +1203,67 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
         ci = noise.get("ci95")
         lines += [f"Marker noise sd: {noise['value']:.3g} mm" + (f" [{ci[0]:.3g}, {ci[1]:.3g}]" if ci else
                                                                  " (given, not estimated)"), ""]
-    lines += _trials_markdown(table.get("trials"))
-    if table["scales"]:
-        lines += ["## Body scale factors", "", "| body | axis | scale | 95 % interval |", "|---|---|---|---|"]
-        for body, axes in table["scales"].items():
-            for ax, e in axes.items():
-                lo, hi = e["ci95"]
-                lines.append(f"| {body} | {ax} | {e['value']:.4f} | [{lo:.4f}, {hi:.4f}] |")
-        lines.append("")
-    lengths = res.get("lengths") or {}
-    if lengths:
-        lines += ["## Distances between joint centres (mm)", "", "| between | value | 95 % interval |",
-                  "|---|---|---|"]
-        for n, e in lengths.items():
-            lo, hi = e.get("ci95", (np.nan, np.nan))
-            lines.append(f"| {n} | {e['value']:.1f} | [{lo:.1f}, {hi:.1f}] |")
-        lines.append("")
-    if table["marker_offsets_mm"]:
-        lines += ["## Marker offsets (mm, in the body frame)", "",
-                  "| marker | x | y | z | largest sd |", "|---|---|---|---|---|"]
-        for m, e in table["marker_offsets_mm"].items():
-            v = [e[a]["value"] if a in e else 0.0 for a in "xyz"]
-            sd = max(e[a]["sd"] for a in e)
-            lines.append(f"| {m} | {v[0]:.1f} | {v[1]:.1f} | {v[2]:.1f} | {sd:.1f} |")
-        lines.append("")
+    return lines
+
+
+def _scales_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
+    if not table["scales"]:
+        return []
+    lines = ["## Body scale factors", "", "| body | axis | scale | 95 % interval |", "|---|---|---|---|"]
+    for body, axes in table["scales"].items():
+        for ax, e in axes.items():
+            lo, hi = e["ci95"]
+            lines.append(f"| {body} | {ax} | {e['value']:.4f} | [{lo:.4f}, {hi:.4f}] |")
+    return lines + [""]
+
+
+def _lengths_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
+    lengths = fit.result.get("lengths") or {}
+    if not lengths:
+        return []
+    lines = ["## Distances between joint centres (mm)", "", "| between | value | 95 % interval |", "|---|---|---|"]
+    for n, e in lengths.items():
+        lo, hi = e.get("ci95", (np.nan, np.nan))
+        lines.append(f"| {n} | {e['value']:.1f} | [{lo:.1f}, {hi:.1f}] |")
+    return lines + [""]
+
+
+def _offsets_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
+    if not table["marker_offsets_mm"]:
+        return []
+    lines = ["## Marker offsets (mm, in the body frame)", "", "| marker | x | y | z | largest sd |",
+             "|---|---|---|---|---|"]
+    for m, e in table["marker_offsets_mm"].items():
+        v = [e[a]["value"] if a in e else 0.0 for a in "xyz"]
+        sd = max(e[a]["sd"] for a in e)
+        lines.append(f"| {m} | {v[0]:.1f} | {v[1]:.1f} | {v[2]:.1f} | {sd:.1f} |")
+    return lines + [""]
+
+
+def _sensitivity_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
     sens = table.get("model_sensitivity")
-    if sens and sens["spread"]:
-        lines += ["## Scale factors under alternative models", "",
-                  "| scale | " + " | ".join(sens["models"]) + " | spread |",
-                  "|---|" + "---|" * (len(sens["models"]) + 1)]
-        for n, e in sens["spread"].items():
-            cells = [f"{e['values'][m]:.4f}" if m in e["values"] else "-" for m in sens["models"]]
-            lines.append(f"| {n} | " + " | ".join(cells) + f" | {e['spread']:.4f} |")
-        lines.append("")
+    if not (sens and sens["spread"]):
+        return []
+    lines = ["## Scale factors under alternative models", "",
+             "| scale | " + " | ".join(sens["models"]) + " | spread |", "|---|" + "---|" * (len(sens["models"]) + 1)]
+    for n, e in sens["spread"].items():
+        cells = [f"{e['values'][m]:.4f}" if m in e["values"] else "-" for m in sens["models"]]
+        lines.append(f"| {n} | " + " | ".join(cells) + f" | {e['spread']:.4f} |")
+    return lines + [""]
+
+
+def _tail_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
+    """The markers left out, the warnings, the files written."""
+    lines = []
     if table["markers_left_out"]:
-        lines += ["Markers of the model left out (not in every trial): "
-                  + ", ".join(table["markers_left_out"]), ""]
+        lines += ["Markers of the model left out (not in every trial): " + ", ".join(table["markers_left_out"]), ""]
     if table["warnings"]:
         lines += ["## Warnings", ""] + [f"- {w}" for w in table["warnings"]] + [""]
     if files:
         lines += ["## Files", "", f"- `{files['osim']}`: the scaled model (load it in OpenSim and run "
                   "inverse kinematics with it);", f"- `{files['scale_set']}`: the scale factors as an OpenSim "
                   "ScaleSet;", f"- `{files['json']}`: every factor and offset with its sd and 95 % interval.", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def _trials_markdown(trials: dict | None) -> list[str]:
