@@ -538,38 +538,14 @@ def per_trial_html(r, units: str) -> str:
 
 def _final(b: _Builder, run, units: str):
     ctx = run.context
-    mpars = ctx.get("model_parameters") or {}
-    truth = ctx.get("truth") or {}
     for method, r in run.results.items():
         b.add(f"<h3>Method: {_e(method)}</h3>")
         if not r.parameters:
             b.add(_na("parameter estimates"))
             continue
-        a = r.arrays
-        post_names = [str(n) for n in a.get("posterior.names", [])]
-        rows, panels = [], []
-        for name, p in r.parameters.items():
-            prior = (mpars.get(name) or {}).get("prior") or {}
-            ref = truth.get(name, (mpars.get(name) or {}).get("nominal"))
-            rows.append((_e(name), _fmt(p.map), _fmt(p.mean), _fmt(p.sd), _interval(p.interval),
-                         _fmt(p.crlb_sd) if p.crlb_sd is not None else f'<span class="na">{NOT_AVAILABLE}</span>',
-                         _interval([prior.get("lower"), prior.get("upper")]) if prior else "–",
-                         _fmt(ref)))
-            panel = {"name": name, "mean": p.mean if math.isfinite(p.mean) else p.map,
-                     "sd": p.sd if math.isfinite(p.sd) else 0.0, "ci95": list(p.interval),
-                     "crlb_sd": p.crlb_sd, "refs": _refs(ctx, name)}
-            k = post_names.index(name) if name in post_names else None
-            if k is not None and f"posterior.axis.{k}" in a:
-                panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
-            elif k is not None and "samples" in a:
-                panel.update(_histogram(a["samples"][:, k], a.get("sample_weights")))
-            elif k is not None and "posterior.cov" in a:
-                panel.update(mean=float(a["posterior.mean"][k]), sd=float(np.sqrt(max(a["posterior.cov"][k, k], 0))),
-                             kind_label="posterior (Gaussian)")
-            else:
-                panel["kind_label"] = "normal with the posterior mean and sd"
-            panels.append(panel)
-        ref_head = "true value" if truth else "nominal (model file)"
+        rows = [_final_row(ctx, name, p) for name, p in r.parameters.items()]
+        panels = [_final_panel(ctx, r.arrays, name, p) for name, p in r.parameters.items()]
+        ref_head = "true value" if ctx.get("truth") else "nominal (model file)"
         b.add(_table(["parameter", f"MAP [{units}]", f"mean [{units}]", f"sd [{units}]", "95 % interval",
                       f"Cramér–Rao sd [{units}]", "prior interval", ref_head], rows))
         b.add(_noise_line(r, units))
@@ -581,6 +557,35 @@ def _final(b: _Builder, run, units: str):
             b.add(f"<p>The fit took {_fmt(r.provenance['seconds'], 3)} s.</p>")
         b.figure(partial(fig_final, panels, units, method),
                  f"final posterior of each parameter ({method})")
+
+
+def _final_row(ctx: dict, name: str, p) -> tuple:
+    """One parameter's row of the final table: estimates, interval, bound, prior interval, reference."""
+    mp = (ctx.get("model_parameters") or {}).get(name) or {}
+    prior = mp.get("prior") or {}
+    ref = (ctx.get("truth") or {}).get(name, mp.get("nominal"))
+    return (_e(name), _fmt(p.map), _fmt(p.mean), _fmt(p.sd), _interval(p.interval),
+            _fmt(p.crlb_sd) if p.crlb_sd is not None else f'<span class="na">{NOT_AVAILABLE}</span>',
+            _interval([prior.get("lower"), prior.get("upper")]) if prior else "–", _fmt(ref))
+
+
+def _final_panel(ctx: dict, a, name: str, p) -> dict:
+    """One parameter's panel of the final figure: its grid marginal, samples' histogram or normal curve."""
+    post_names = [str(n) for n in a.get("posterior.names", [])]
+    panel = {"name": name, "mean": p.mean if math.isfinite(p.mean) else p.map,
+             "sd": p.sd if math.isfinite(p.sd) else 0.0, "ci95": list(p.interval),
+             "crlb_sd": p.crlb_sd, "refs": _refs(ctx, name)}
+    k = post_names.index(name) if name in post_names else None
+    if k is not None and f"posterior.axis.{k}" in a:
+        panel.update(axis=a[f"posterior.axis.{k}"], marginal=a[f"posterior.marginal.{k}"])
+    elif k is not None and "samples" in a:
+        panel.update(_histogram(a["samples"][:, k], a.get("sample_weights")))
+    elif k is not None and "posterior.cov" in a:
+        panel.update(mean=float(a["posterior.mean"][k]), sd=float(np.sqrt(max(a["posterior.cov"][k, k], 0))),
+                     kind_label="posterior (Gaussian)")
+    else:
+        panel["kind_label"] = "normal with the posterior mean and sd"
+    return panel
 
 
 def _residuals(b: _Builder, run, units: str):

@@ -145,28 +145,8 @@ def figure_spec(model: Model, theta, poses, measured=None, frame_index=None, rat
     offsets = _lines(joints[:, model.marker_segment], fitted)  # (K, 3 M, D)
     resid = _lines(fitted, y)
 
-    every = np.concatenate([joints.reshape(-1, D), fitted.reshape(-1, D), y.reshape(-1, D)])
-    every = every[np.isfinite(every).all(axis=1)]
-    lo, hi = (every.min(axis=0), every.max(axis=0)) if every.size else (np.zeros(D), np.ones(D))
-    size = float(np.max(hi - lo)) or 1.0
-    decimals = int(max(0, 4 - math.floor(math.log10(size))))
-    pad = 0.05 * size
-    ranges = [[float(lo[k] - pad), float(hi[k] + pad)] for k in range(D)]
-
-    mnames = [_text(n) for n in model.marker_names]
-    jnames = [_text(s.joint.name) for s in model.segments]
-    styles = [
-        dict(mode="markers", marker=dict(size=5 if D == 3 else 8, color="#1f77b4"), text=mnames,
-             hovertemplate="%{text} (measured)<extra></extra>"),
-        dict(mode="markers", marker=dict(size=4 if D == 3 else 7, color="#ff7f0e", symbol="x" if D == 2 else "cross"),
-             text=mnames, hovertemplate="%{text} (model)<extra></extra>"),
-        dict(mode="lines", line=dict(color="#d62728", width=2), hoverinfo="skip"),
-        dict(mode="lines", line=dict(color="#333333", width=7 if D == 3 else 4), hoverinfo="skip"),
-        dict(mode="markers", marker=dict(size=6 if D == 3 else 9, color="#2ca02c",
-                                         symbol="diamond"), text=jnames,
-             hovertemplate="%{text} (joint centre)<extra></extra>"),
-        dict(mode="lines", line=dict(color="#aaaaaa", width=2 if D == 3 else 1), hoverinfo="skip"),
-    ]
+    ranges, decimals = _ranges(D, joints, fitted, y)
+    styles = _styles(D, [_text(n) for n in model.marker_names], [_text(s.joint.name) for s in model.segments])
     kind = "scatter3d" if D == 3 else "scatter"
     axes = "xyz"[:D]
 
@@ -183,8 +163,47 @@ def figure_spec(model: Model, theta, poses, measured=None, frame_index=None, rat
     names = [str(int(frame_index[keep[k]])) for k in range(K)]
     frames = [{"name": names[k], "data": traces(k, False), "traces": list(range(len(TRACES)))}
               for k in range(K)]
+    slider, play = _animation_controls(names, F, stride, rate)
+    layout = {"title": {"text": _text(title)}, "height": 620, "margin": {"l": 10, "r": 10, "t": 40, "b": 10},
+              "legend": {"x": 0, "y": 1}, "sliders": [slider], "updatemenus": [play],
+              "uirevision": "keep"}
+    _set_axes(layout, D, joints, ranges, units)
+    meta = {"dim": D, "frames_total": F, "frames_shown": K, "stride": stride,
+            "n_segments": S, "n_markers": M}
+    return {"data": data, "layout": layout, "frames": frames, "meta": meta}
+
+
+def _ranges(D: int, joints, fitted, y) -> tuple[list, int]:
+    """The axis ranges around everything shown (5 % padding) and the decimals worth sending."""
+    every = np.concatenate([joints.reshape(-1, D), fitted.reshape(-1, D), y.reshape(-1, D)])
+    every = every[np.isfinite(every).all(axis=1)]
+    lo, hi = (every.min(axis=0), every.max(axis=0)) if every.size else (np.zeros(D), np.ones(D))
+    size = float(np.max(hi - lo)) or 1.0
+    decimals = int(max(0, 4 - math.floor(math.log10(size))))
+    pad = 0.05 * size
+    return [[float(lo[k] - pad), float(hi[k] + pad)] for k in range(D)], decimals
+
+
+def _styles(D: int, mnames: list, jnames: list) -> list[dict]:
+    """The style of each trace of :data:`TRACES`, in order."""
+    return [
+        dict(mode="markers", marker=dict(size=5 if D == 3 else 8, color="#1f77b4"), text=mnames,
+             hovertemplate="%{text} (measured)<extra></extra>"),
+        dict(mode="markers", marker=dict(size=4 if D == 3 else 7, color="#ff7f0e", symbol="x" if D == 2 else "cross"),
+             text=mnames, hovertemplate="%{text} (model)<extra></extra>"),
+        dict(mode="lines", line=dict(color="#d62728", width=2), hoverinfo="skip"),
+        dict(mode="lines", line=dict(color="#333333", width=7 if D == 3 else 4), hoverinfo="skip"),
+        dict(mode="markers", marker=dict(size=6 if D == 3 else 9, color="#2ca02c",
+                                         symbol="diamond"), text=jnames,
+             hovertemplate="%{text} (joint centre)<extra></extra>"),
+        dict(mode="lines", line=dict(color="#aaaaaa", width=2 if D == 3 else 1), hoverinfo="skip"),
+    ]
+
+
+def _animation_controls(names: list, F: int, stride: int, rate: float) -> tuple[dict, dict]:
+    """The frame slider and the play/pause buttons."""
     anim = {"mode": "immediate", "frame": {"duration": 0, "redraw": True}, "transition": {"duration": 0}}
-    steps = [{"method": "animate", "label": names[k], "args": [[names[k]], anim]} for k in range(K)]
+    steps = [{"method": "animate", "label": n, "args": [[n], anim]} for n in names]
     slider = {"active": 0, "steps": steps, "x": 0.08, "len": 0.92, "y": 0, "pad": {"t": 30},
               "currentvalue": {"prefix": "frame ", "suffix": f" (every {stride}-th frame of {F}, {rate:g} Hz)"
                                if stride > 1 else f" of {F} ({rate:g} Hz)"}}
@@ -197,9 +216,12 @@ def figure_spec(model: Model, theta, poses, measured=None, frame_index=None, rat
                                          "transition": {"duration": 0}}]},
                         {"label": "❚❚ pause", "method": "animate",
                          "args": [[None], {"mode": "immediate", "frame": {"duration": 0, "redraw": False}}]}]}
-    layout = {"title": {"text": _text(title)}, "height": 620, "margin": {"l": 10, "r": 10, "t": 40, "b": 10},
-              "legend": {"x": 0, "y": 1}, "sliders": [slider], "updatemenus": [play],
-              "uirevision": "keep"}
+    return slider, play
+
+
+def _set_axes(layout: dict, D: int, joints, ranges: list, units: str) -> None:
+    """The 3-D scene (camera up along the body's long axis) or the 2-D axes, equal scale, into ``layout``."""
+    axes = "xyz"[:D]
     if D == 3:
         up = _up_axis(joints)
         upv = {a: 0 for a in "xyz"}
@@ -208,17 +230,15 @@ def figure_spec(model: Model, theta, poses, measured=None, frame_index=None, rat
                            **{f"{a}axis": {"range": ranges[i], "title": {"text": f"{a} [{_text(units)}]"},
                                            "autorange": False}
                               for i, a in enumerate(axes)}}
-    else:
-        layout["xaxis"] = {"range": ranges[0], "title": {"text": f"x [{_text(units)}]"}, "autorange": False}
-        layout["yaxis"] = {"range": ranges[1], "title": {"text": f"y [{_text(units)}]"}, "autorange": False,
-                           "scaleanchor": "x", "scaleratio": 1}
-        layout["margin"].update(b=60, l=70)
-        slider.update(pad={"t": 70}, x=0.13, len=0.87)  # clear of the play button beside the y axis
-        play["pad"] = {"t": 80}
-        layout["legend"] = {"x": 1.02, "y": 1}
-    meta = {"dim": D, "frames_total": F, "frames_shown": K, "stride": stride,
-            "n_segments": S, "n_markers": M}
-    return {"data": data, "layout": layout, "frames": frames, "meta": meta}
+        return
+    slider, play = layout["sliders"][0], layout["updatemenus"][0]
+    layout["xaxis"] = {"range": ranges[0], "title": {"text": f"x [{_text(units)}]"}, "autorange": False}
+    layout["yaxis"] = {"range": ranges[1], "title": {"text": f"y [{_text(units)}]"}, "autorange": False,
+                       "scaleanchor": "x", "scaleratio": 1}
+    layout["margin"].update(b=60, l=70)
+    slider.update(pad={"t": 70}, x=0.13, len=0.87)  # clear of the play button beside the y axis
+    play["pad"] = {"t": 80}
+    layout["legend"] = {"x": 1.02, "y": 1}
 
 
 def _js(obj) -> str:
