@@ -818,6 +818,10 @@ class MultiTrialEstimator:
         found = []
         for label, e in zip(self.trial_labels_, ests, strict=True):
             found += [Warning(w.code, f"{label}: {w.message}", w.parameters) for w in e.warnings_]
+        self.warnings_ = tuple(found) + emit(self._joint_warnings(fit))
+
+    def _joint_warnings(self, fit) -> list[Warning]:
+        """The joint fit's own warnings: not converged, trials set aside, trials that disagree."""
         new = []
         if fit is not None and not fit.converged:
             new.append(Warning("not-converged", "the joint fit of all trials stopped before converging; "
@@ -833,7 +837,7 @@ class MultiTrialEstimator:
                                f"intervals (chi-square {c['statistic']:.1f} on {c['dof']} degrees of freedom, "
                                f"p = {c['p_value']:.2g}): the between-trial spread {how}",
                                tuple(n for n, h in self.heterogeneity_.items() if h["tau"] > 0)))
-        self.warnings_ = tuple(found) + emit(new)
+        return new
 
     def trial_table(self) -> list[dict]:
         """Each trial's own estimate, its sd, and its sd with the between-trial variance (``t``-scaled)."""
