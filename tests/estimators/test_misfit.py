@@ -574,3 +574,24 @@ def test_noise_free_data_of_a_correct_hinge_fitted_with_a_motion_model_is_not_fl
     fit = joint_fit(model, y, model.theta_center, q, n_iter=60, rate=100.0, cutoff=6.0)
     res = model_misfit(model, y, fit.theta, fit.pose, fit.frames_used)["knee"]
     assert res["significant"] and res["effect"] < 0.5 and not res["flagged"], res
+
+
+def test_a_sliding_centre_below_what_motion_capture_resolves_is_significant_but_not_flagged():
+    """The knee centre of the sliding test above, slid 1000 times less (0.3 micrometres over the range), noise
+    stated at 0.1 micrometres: significant and moving the centre by many of its tiny sds, but its rms is below
+    MISFIT_MIN_RMS of the model's size, so it is not flagged; the slide of the test above (a thousand times larger) is."""
+    from skelid.estimators.checks.misfit import MISFIT_MIN_RMS
+
+    model, q = _planar_trial()
+    flex = q[:, 1]
+    size = float(np.abs(model.nominal_geometry).max())
+    out = {}
+    for scale in (1e-3, 1.0):
+        theta = scale * np.stack([0.3 * (1.0 - np.cos(flex)), 0.15 * np.sin(flex)], axis=-1)
+        sliding = marker_positions(model, theta, q)
+        fit = joint_fit(model, sliding, model.theta_center, q, n_iter=50)
+        out[scale] = model_misfit(model, sliding, fit.theta, fit.pose, fit.frames_used, 1e-4)["knee"]
+    tiny, small = out[1e-3], out[1.0]
+    assert tiny["significant"] and tiny["effect"] > 5.0 and tiny["rms"] < MISFIT_MIN_RMS * size, tiny
+    assert not tiny["flagged"], tiny
+    assert small["rms"] >= MISFIT_MIN_RMS * size and small["flagged"], small

@@ -89,6 +89,10 @@ MISFIT_PATH_SHARE = 0.8
 #: a significant misfit is flagged only where the systematic part of the residuals would move some parameter's
 #: estimate by at least this many of its standard deviations (see model_misfit, "Effect size")
 MISFIT_EFFECT = 0.5
+#: ... and where the pattern's rms is at least this share of the model's size (1e-5: 0.01 mm on a
+#: 1 m body, below what optical motion capture resolves; on exact data a fit stopped at that level
+#: leaves patterns of 1e-4 mm that move an estimate by many of its tiny sds but change nothing)
+MISFIT_MIN_RMS = 1e-5
 #: a joint's test is not trusted when the second-order mean of its residuals could shift its statistic
 #: by more than this many times its degrees of freedom (a bound on the non-centrality, see model_misfit)
 MISFIT_NONLINEAR = 0.5
@@ -581,7 +585,8 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
         "dof_rolling", "log10_p_rolling", "nonlinearity_rolling", "rolling_tested" (the rolling test counts),
         "soft_tissue" (the markers' patterns say soft tissue), "effect" (the pattern's shift of the estimate in
         sds, see "Effect size"), "shift" (parameter name -> that shift, model units)}``; "log10_p" is the
-        joint's (both tests); "flagged" needs "significant" and an effect of at least ``MISFIT_EFFECT``.
+        joint's (both tests); "flagged" needs "significant", an effect of at least ``MISFIT_EFFECT`` and an
+        rms of at least ``MISFIT_MIN_RMS`` of the model's size.
     """
     used = np.asarray(used, bool)
     out: dict[str, dict] = {}
@@ -595,7 +600,8 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     noise_sd, noise_dof = misfit_noise(r, Jq, Hinv, np.repeat(present, D, axis=1))
     if sigma is None:
         sigma = noise_sd
-    floor = 1e-7 * float(np.abs(model.nominal_geometry).max())  # below: rounding, not noise
+    size = float(np.abs(model.nominal_geometry).max())
+    floor = 1e-7 * size  # below: rounding, not noise
     if not np.isfinite(sigma):
         return out
     sigma = max(float(sigma), floor)
@@ -655,7 +661,8 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
                         "log10_p_nonrigid": round(log_p_nonrigid / np.log(10), 2), "soft_tissue": tissue,
                         "significant": significant, "effect": round(effect, 3),
                         "shift": dict(zip(model.parameter_names, shift.tolist(), strict=True)),
-                        "flagged": bool(significant and effect >= MISFIT_EFFECT and len(d.child) >= 2 and not tissue),
+                        "flagged": bool(significant and effect >= MISFIT_EFFECT and len(d.child) >= 2 and not tissue
+                                        and np.sqrt(max(ss_c, 0.0) / len(d.basis)) >= MISFIT_MIN_RMS * size),
                         "nonlinearity": round(lam, 3), "reliable": bool(reliable)}
     return out
 
