@@ -13,7 +13,8 @@ from skelid.errors import (
     SkelidError,
     SkelidWarning,
 )
-from skelid.model import Model, load_model
+from skelid.loading import load_model
+from skelid.model import Model
 
 try:
     __version__ = version("skelid")

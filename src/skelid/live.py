@@ -188,7 +188,10 @@ _ALLOW_EVERY = 5
 
 __all__ = ["LiveEstimate", "Session", "NOISE_FLOOR", "noise_floor", "GaussianState",
            "absorb", "drop_poses", "solve_mean", "theta_cov",
-           "prior_moments", "Advice"]
+           "prior_moments", "Advice", "SCHEMA", "message", "run"]
+
+#: the ``schema`` field of every message :func:`message` makes (docs/live-protocol.md)
+SCHEMA = "skelid.live/1"
 
 
 # --------------------------------------------------------------------------- the recursive Gaussian
@@ -1100,9 +1103,7 @@ class Session:
         ------
         LiveEstimate
         """
-        for n, frame in enumerate(frames):
-            if max_frames is not None and n >= max_frames:
-                return
+        for frame in itertools.islice(frames, max_frames):  # no frame is asked for beyond max_frames
             try:
                 yield self.push(frame)
             except DataError as exc:
@@ -1554,6 +1555,87 @@ class Session:
                               lo, hi, pname, float(sd[worst]), float(sd_after)))
         out.sort(key=lambda a: a.sd_after)
         return out
+
+
+# --------------------------------------------------------------------------- the message a stream carries
+def _json_number(x) -> float | None:
+    """A float for JSON: None for NaN or infinity (JSON has neither)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def message(estimate: LiveEstimate, advice=(), stamp: float | None = None) -> dict:
+    """The estimate as a ``skelid.live/1`` message: plain JSON values, the layout of docs/live-protocol.md.
+
+    Parameters
+    ----------
+    estimate : LiveEstimate
+    advice : sequence of Advice
+        The movements to suggest, best first (:meth:`Session.advice`; the caller decides how often).
+    stamp : float, optional
+        The source's time stamp of the frame (an LSL time stamp, s), so that a receiver can measure the delay.
+
+    Returns
+    -------
+    dict
+        ``schema``, ``model``, ``units``, ``frame``, ``time``, ``stamp``, ``healthy``, ``health``,
+        ``rejected``, ``sigma``, ``parameters`` (a list: ``name``, ``unit``, ``mean``, ``sd``, ``lower``,
+        ``upper``, ``status``), ``joint_centres`` (a list: ``joint``, ``position`` as ``[x, y, z]``, z = 0
+        for a planar model), ``advice`` (a list: ``text``, ``joint``, ``parameter``, ``sd_now``,
+        ``sd_after``). A number that is not finite is ``None`` (JSON ``null``).
+    """
+    model = estimate._model
+    params = [{"name": p.name, "unit": p.unit, "mean": _json_number(p.mean), "sd": _json_number(p.sd),
+               "lower": _json_number(p.interval[0]), "upper": _json_number(p.interval[1]), "status": p.status}
+              for p in estimate.parameters.values()]
+    centres = []
+    for joint, c in estimate.joint_centres.items():
+        xyz = [_json_number(v) for v in c] + [0.0] * (3 - len(c))
+        centres.append({"joint": joint, "position": xyz})
+    return {"schema": SCHEMA, "model": model.name, "units": model.units, "frame": int(estimate.frame),
+            "time": float(estimate.time), "stamp": None if stamp is None else _json_number(stamp),
+            "healthy": bool(estimate.healthy), "health": estimate.health, "rejected": list(estimate.rejected),
+            "sigma": _json_number(estimate.sigma), "parameters": params, "joint_centres": centres,
+            "advice": [{"text": a.text, "joint": a.joint, "parameter": a.parameter,
+                        "sd_now": _json_number(a.sd_now), "sd_after": _json_number(a.sd_after)} for a in advice]}
+
+
+def run(session: Session, frames, sinks=(), max_frames: int | None = None, advice_every: int | None = None,
+        n_advice: int = 3) -> LiveEstimate | None:
+    """Run ``session`` over ``frames`` (any iterable, such as an LSL stream) and send each estimate to ``sinks``.
+
+    Parameters
+    ----------
+    session : Session
+    frames : iterable
+        Frames as :meth:`Session.push` takes them. Where it has an attribute ``last_stamp`` (the
+        source's time stamp of the frame it yielded last), each message carries it.
+    sinks : sequence
+        Objects with ``send(message: dict)`` (:mod:`skelid.io.stream`: LSL, UDP, a JSON Lines file).
+    max_frames : int, optional
+        Stop after this many frames.
+    advice_every : int, optional
+        Frames between two calls of :meth:`Session.advice` (each message carries the latest);
+        default one second of frames. 0: no advice.
+    n_advice : int
+        Movements in each message, best first.
+
+    Returns
+    -------
+    LiveEstimate or None
+        The last estimate (None if no frame came).
+    """
+    every = max(1, round(session.rate)) if advice_every is None else int(advice_every)
+    advice: list = []
+    est = None
+    for n, est in enumerate(session.feed(frames, max_frames=max_frames)):
+        if every and n % every == 0:
+            advice = session.advice()[:n_advice]
+        if sinks:
+            msg = message(est, advice, getattr(frames, "last_stamp", None))
+            for sink in sinks:
+                sink.send(msg)
+    return est
 
 
 class _FramePose:
