@@ -412,13 +412,14 @@ def _labels(text):
     return None if text is None else [t.strip() for t in text.split(",") if t.strip()]
 
 
-def _live_model(model_path, marker_set):
+def _live_model(model_path, marker_set, names):
+    """The model of a live run; an OpenSim model keeps only the markers the stream carries (``names``)."""
     from skelid.loading import load_model
     from skelid.simulate import BUILTIN_MODELS, builtin_model
 
     if str(model_path).lower().replace("_", "-") in BUILTIN_MODELS:
         return builtin_model(model_path)
-    return load_model(model_path, marker_set)
+    return load_model(model_path, marker_set, marker_names=names)
 
 
 @cli.command(epilog=f"Example:\n\n{LIVE_EXAMPLE}")
@@ -458,8 +459,9 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
     _finite("--rate", rate)
     _finite("--sigma", sigma)
     _finite("--timeout", timeout)
-    model = _live_model(model_path, marker_set)
+    _live_model(model_path, marker_set, None)  # a model file that cannot be read is refused before any wait
     source = LslFrames(stream, labels=_labels(labels), units=units, timeout=timeout)
+    model = _live_model(model_path, marker_set, source.labels)
     rate = rate if rate is not None else source.rate
     if rate is None:
         raise SkelidError(f"stream {stream!r} has no nominal rate", "give the frames per second with --rate")
@@ -481,7 +483,8 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
             pass  # Ctrl-C ends a live run; what came is kept
         est = session.estimate
     if not quiet and est is not None:
-        params = ", ".join(f"{p.name} {p.mean:.4g} ± {p.sd:.2g} {p.unit}" for p in est.parameters.values())
+        params = ", ".join(f"{p.name} {p.mean:.4g} ± {p.sd:.2g}" + ("" if p.unit == "1" else f" {p.unit}")
+                           for p in est.parameters.values())
         click.echo(f"{est.frame} frames; {params}; health: {est.health}"
                    + (f"; messages written to {out_path}" if out_path else ""), err=True)
     if stopped is not None:

@@ -744,7 +744,7 @@ class LiveEstimate:
         lo, hi, prior_sd = self._ranges
         params = {}
         for k, p in enumerate(model.parameters):
-            unit = "deg" if p.kind == "axis_direction" else model.units
+            unit = "deg" if p.kind == "axis_direction" else "1" if p.kind == "scale" else model.units
             status = "prior" if sd[k] > 0.9 * prior_sd[k] else "identified"
             params[p.name] = ParameterEstimate(p.name, unit, float(mean[k]), float(mean[k]), float(sd[k]),
                                                (float(max(mean[k] - _Z95 * sd[k], lo[k])),

@@ -19,7 +19,7 @@ from skelid.model.description import Model
 from skelid.model.description import load_model as load_toml
 
 
-def load_model(path, marker_set=None, scale: str = "bodies", markers: str = "none") -> Model:
+def load_model(path, marker_set=None, scale: str = "bodies", markers: str = "none", marker_names=None) -> Model:
     """Read a model from a TOML file or an OpenSim ``.osim`` file.
 
     Parameters
@@ -32,6 +32,9 @@ def load_model(path, marker_set=None, scale: str = "bodies", markers: str = "non
     markers : {'offsets', 'none'}
         OpenSim only: an offset of every free marker as a parameter too, or none (the default: a live
         session with three parameters per marker is slow to settle).
+    marker_names : iterable of str, optional
+        OpenSim only: the markers the data carry; the model keeps only those (and the bodies that lead to
+        them), as ``skelid fit`` does, so that a marker the data never have is not reported missing.
 
     Returns
     -------
@@ -48,7 +51,7 @@ def load_model(path, marker_set=None, scale: str = "bodies", markers: str = "non
     if _is_osim(path):
         from skelid.io.osim import load_osim
 
-        return load_osim(path, marker_set, scale=scale, markers=markers)
+        return load_osim(path, marker_set, scale=scale, markers=markers, marker_names=marker_names)
     if marker_set is not None:
         raise ModelError(f"{path}: a marker set is for an OpenSim .osim model, not a TOML one",
                          "list the markers in the TOML file, or leave the marker set out")

@@ -171,7 +171,10 @@ class LslFrames:
                               "start the sender first (skelid replay TRIAL --lsl NAME plays a file), check the "
                               "name, or wait longer with --timeout")
         self._lsl = lsl
-        self._inlet = lsl.StreamInlet(found[0], max_buflen=360, recover=False)
+        # recover: a sender that goes away still has its frames drained from the buffer; then the timeout ends it
+        self._inlet = lsl.StreamInlet(found[0], max_buflen=360, recover=True)
+        # subscribed before the checks, so that a sender waiting for a receiver loses no frame to them
+        self._inlet.open_stream(timeout=self.timeout)
         try:
             info = self._inlet.info(timeout=self.timeout)
         except _lsl_error(lsl, "TimeoutError"):
@@ -200,7 +203,6 @@ class LslFrames:
         self.rate = float(srate) if srate > 0 else None
         self.last_stamp: float | None = None
         self.n_frames = 0
-        self._inlet.open_stream(timeout=self.timeout)
 
     def __iter__(self):
         lsl, M = self._lsl, len(self.labels)
@@ -223,7 +225,7 @@ class LslFrames:
 
 
 def publish(data, name: str, rate: float | None = None, loop: bool = False, max_frames: int | None = None,
-            wait: float = 0.0, stop=None, source_id: str | None = None) -> int:
+            wait: float = 0.0, stop=None, source_id: str | None = None, linger: float = 0.5) -> int:
     """Play ``data`` (:class:`~skelid.data.MarkerData`) as an LSL marker stream at its own rate.
 
     Each frame goes out when its time comes (``frame / rate`` after the first), x, y, z of each marker in
@@ -243,6 +245,9 @@ def publish(data, name: str, rate: float | None = None, loop: bool = False, max_
         connects later misses the frames sent before.
     stop : threading.Event, optional
         Set to stop.
+    linger : float
+        Seconds the stream stays up after the last frame while a receiver is connected (an outlet that
+        goes at once can take its last frame with it).
 
     Returns
     -------
@@ -281,6 +286,8 @@ def publish(data, name: str, rate: float | None = None, loop: bool = False, max_
             if not loop:
                 return sent
     finally:
+        if sent and outlet.have_consumers():
+            time.sleep(linger)  # the outlet's last samples are still on their way when it goes
         del outlet
 
 
