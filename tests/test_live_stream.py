@@ -231,3 +231,22 @@ def test_the_replayed_stream_carries_labels_units_and_rate(trial):
     frames = [f for _, f in zip(range(5), src, strict=False)]
     assert math.isclose(float(frames[0][0, 0]), float(np.float32(data.positions[0, 0, 0])))
     assert src.n_frames == 5 and src.last_stamp is not None
+
+
+def test_the_protocol_document_lists_exactly_the_fields_a_message_has(trial):
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "live-protocol.md").read_text()
+    tables = re.split(r"\n(?=Each entry of `parameters`)", text.split("## Fields", 1)[1].split("## Example", 1)[0])
+    documented = [re.findall(r"^\| `(\w+)`(?:, `(\w+)`)? \|", t, flags=re.M) for t in tables]
+    top = {a for a, _ in documented[0]}
+    param = {x for pair in documented[1] for x in pair if x}
+    s = Session(builtin_model("case-a"), labels=trial.data.names, method="gaussian")
+    for f in trial.data.positions[:30]:
+        est = s.push(f)
+    msg = message(est, s.advice()[:1], stamp=1.0)
+    assert top == set(msg) and param == set(msg["parameters"][0])
+    example = json.loads(text.split("```json", 1)[1].split("```", 1)[0])
+    assert set(example) == set(msg) and example["schema"] == SCHEMA
+    assert set(example["advice"][0]) == set(msg["advice"][0])
