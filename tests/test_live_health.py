@@ -133,3 +133,16 @@ def test_feed_yields_an_estimate_per_frame_and_flags_refused_frames():
     assert ests[6].frame == ests[5].frame and np.array_equal(ests[6].theta, ests[5].theta)
     assert ests[7].frame == 7 and ests[7].healthy  # the refused frame is not counted
     assert len(list(Session(model, labels=model.marker_names).feed(frames, max_frames=3))) == 3
+
+
+def test_a_swap_the_marker_screen_cannot_see_is_named_from_the_pose_jump():
+    """Case A's three markers barely fix the pose: a swapped pair fits some other pose, which jumps; swapped back,
+    the pose follows the motion model and every marker fits, so the pair is named."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=210, sigma=1.0, rng=np.random.default_rng(0))
+    y = trial.data.positions.copy()
+    y[200:204, [0, 2]] = y[200:204, [2, 0]]
+    s = Session(model, labels=trial.data.names, method="gaussian")
+    health = [s.push(f).health for f in y]
+    assert "pose jumps" in health[200] and "labels A and C look swapped" in health[200]
+    assert all(h == "ok" for h in health[:200])

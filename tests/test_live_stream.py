@@ -6,6 +6,7 @@ import socket
 import sys
 import threading
 import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -235,7 +236,6 @@ def test_the_replayed_stream_carries_labels_units_and_rate(trial):
 
 def test_the_protocol_document_lists_exactly_the_fields_a_message_has(trial):
     import re
-    from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "docs" / "live-protocol.md").read_text()
     tables = re.split(r"\n(?=Each entry of `parameters`)", text.split("## Fields", 1)[1].split("## Example", 1)[0])
@@ -250,3 +250,28 @@ def test_the_protocol_document_lists_exactly_the_fields_a_message_has(trial):
     example = json.loads(text.split("```json", 1)[1].split("```", 1)[0])
     assert set(example) == set(msg) and example["schema"] == SCHEMA
     assert set(example["advice"][0]) == set(msg["advice"][0])
+
+
+SUBJECT01 = Path(__file__).resolve().parents[2] / "shared" / "data" / "opensim-subject01"
+
+
+@pytest.mark.skipif(not SUBJECT01.is_dir(), reason="../shared/data/opensim-subject01 is not here")
+def test_a_real_walking_trial_replayed_to_an_opensim_model(tmp_path, capsys):
+    """walk_free_01.trc (41 markers, 73 frames, mm) against the scaled subject01 model (39 markers): the model
+    keeps the markers the stream carries, every frame is used, and the scales land near the model's own (1)."""
+    pytest.importorskip("pylsl")
+    from skelid.io import read_markers
+
+    name = _name("walk")
+    data = read_markers(SUBJECT01 / "walk_free_01.trc")
+    _publisher(data, name, rate=300.0)
+    out = tmp_path / "walk.jsonl"
+    code = main(["live", str(SUBJECT01 / "std_subject01_simbody.osim"), "--lsl", name, "--out", str(out),
+                 "--timeout", "1.5"])
+    err = capsys.readouterr().err
+    assert code == 2 and "sent nothing for 1.5 s after 73 frames" in err  # the trial ends: one line, kept
+    msgs = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(msgs) == 73 and msgs[-1]["units"] == "mm"
+    assert sum(m["healthy"] for m in msgs) >= 70, [m["health"] for m in msgs if not m["healthy"]]
+    scales = {p["name"]: p for p in msgs[-1]["parameters"]}
+    assert scales and all(p["unit"] == "1" and 0.9 < p["mean"] < 1.1 for p in scales.values())
