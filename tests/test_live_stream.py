@@ -275,3 +275,25 @@ def test_a_real_walking_trial_replayed_to_an_opensim_model(tmp_path, capsys):
     assert sum(m["healthy"] for m in msgs) >= 70, [m["health"] for m in msgs if not m["healthy"]]
     scales = {p["name"]: p for p in msgs[-1]["parameters"]}
     assert scales and all(p["unit"] == "1" and 0.9 < p["mean"] < 1.1 for p in scales.values())
+
+
+def test_liblsl_is_kept_quiet_unless_the_user_configured_it(monkeypatch, tmp_path):
+    import os
+
+    from skelid.io import stream
+
+    monkeypatch.delitem(sys.modules, "pylsl", raising=False)
+    monkeypatch.delenv("LSLAPICFG", raising=False)
+    monkeypatch.setattr(stream, "_LSL_CONFIGS", ())
+    stream._quiet_liblsl()
+    path = os.environ["LSLAPICFG"]
+    assert "[log]\nlevel = -3" in open(path).read()
+    own = tmp_path / "lsl_api.cfg"
+    own.write_text("[log]\nlevel = 0\n")
+    monkeypatch.setenv("LSLAPICFG", str(own))
+    stream._quiet_liblsl()
+    assert os.environ["LSLAPICFG"] == str(own)
+    monkeypatch.delenv("LSLAPICFG")
+    monkeypatch.setattr(stream, "_LSL_CONFIGS", (own,))
+    stream._quiet_liblsl()
+    assert "LSLAPICFG" not in os.environ

@@ -920,10 +920,13 @@ class Session:
     Raises
     ------
     DataError
-        Labels that match none of the model's markers, an unknown unit, or a
-        negative or non-finite ``sigma``.
+        Labels that match none of the model's markers, an unknown unit, a
+        ``rate`` that is not a positive finite number, or a ``sigma`` that is
+        not a finite number >= 0.
     ModelError
         ``method='grid'`` for more than 3 parameters.
+    SettingError
+        An ``outlier_sd`` that is not a positive finite number, an ``n_iter`` that is not a count.
     """
 
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,

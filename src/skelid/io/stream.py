@@ -24,9 +24,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import socket
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -45,8 +48,24 @@ _UNITS = {"mm": "mm", "millimeter": "mm", "millimeters": "mm", "millimetre": "mm
 _AXIS = re.compile(r"^(.*?)[\s_.:/-]*([xyzXYZ])$")
 
 
+#: where liblsl looks for its settings besides ``$LSLAPICFG``
+_LSL_CONFIGS = (Path("lsl_api.cfg"), Path.home() / "lsl_api" / "lsl_api.cfg", Path("/etc/lsl_api/lsl_api.cfg"))
+
+
+def _quiet_liblsl() -> None:
+    """Point liblsl at settings that keep its own log to fatal errors, unless the user has settings of their own.
+
+    liblsl writes INFO lines and a line per reconnection to stderr; skelid reports every stream problem in
+    one line of its own. Only before liblsl is loaded, and never over a configuration the user set up.
+    """
+    if "pylsl" in sys.modules or os.environ.get("LSLAPICFG") or any(p.is_file() for p in _LSL_CONFIGS):
+        return
+    os.environ["LSLAPICFG"] = str(Path(__file__).with_name("lsl_quiet.cfg"))
+
+
 def pylsl():
     """The pylsl module, or one line saying how to install it."""
+    _quiet_liblsl()
     try:
         import pylsl as lsl
     except (ImportError, RuntimeError, OSError) as exc:  # RuntimeError/OSError: pylsl without its liblsl
