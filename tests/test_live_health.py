@@ -146,3 +146,16 @@ def test_a_swap_the_marker_screen_cannot_see_is_named_from_the_pose_jump():
     health = [s.push(f).health for f in y]
     assert "pose jumps" in health[200] and "labels A and C look swapped" in health[200]
     assert all(h == "ok" for h in health[:200])
+
+
+@pytest.mark.parametrize("units,ok", [("mm", True), ("cm", False)])
+def test_a_stream_in_the_wrong_unit_is_not_ok_though_the_noise_is_estimated(units, ok):
+    """The seed paper's hardest noise (15 mm on case A) is fine; a stream declared in cm while it is in mm has a
+    'noise' of metres, which no marker system has."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=80, sigma=15.0, rng=np.random.default_rng(1))
+    s = Session(model, labels=trial.data.names, units=units, method="gaussian")
+    health = [s.push(f).health for f in trial.data.positions]
+    assert (health[-1] == "ok") == ok, health[-1]
+    if not ok:
+        assert "over 10% of the model's size" in health[-1] and "wrong units" in health[-1]

@@ -118,7 +118,9 @@ its residual sum of squares checked against ``sigma^2 chi^2_{nD - Q}``
 a misfit beyond what the noise explains (a wrong model, wrong units, a motion
 model too slow for the movement that has pulled theta off) is reported, not
 hidden behind ``"ok"``. An estimated noise level grows to cover a steady
-misfit, so only a stated one can show that.
+misfit, so only a stated one can show a small one; an estimated noise sd over
+10 % of the model's size (:data:`_LOOSE`; a stream in the wrong unit) is
+reported either way.
 
 Examples
 --------
@@ -183,6 +185,9 @@ _KNOWN_DOF = 30
 _JUMP_WINDOW = 25
 #: median of chi-square with one degree of freedom: a robust variance is median(nu^2) / this
 _CHI2_1_MEDIAN = 0.454936423119572
+#: a noise sd beyond this fraction of the model's size (its largest length) is no marker noise but a misfit: the
+#: seed paper's hardest case, 15 mm on a 300 mm forearm, is 5 %; a stream in the wrong unit gives far more
+_LOOSE = 0.10
 #: the allowance is recomputed every this many frames checked (every frame for the first ones)
 _ALLOW_EVERY = 5
 
@@ -1408,7 +1413,9 @@ class Session:
 
         Two chi-square checks at ``p = 1e-4``: this frame's residual sum of squares against ``s2`` on its
         ``n D - Q`` degrees of freedom (a frame that misfits as a whole, with no one marker beyond the
-        screen), and, where ``sigma`` was stated, every frame's so far against it on the session's
+        screen), a noise level over :data:`_LOOSE` of the model's size (no marker system is that noisy: the
+        stream's units or the model are wrong), and, where ``sigma`` was stated, every frame's so far against it
+        on the session's
         degrees of freedom (a wrong model, wrong units or a noise level stated too low: an estimated noise
         level would grow to cover the misfit, so this check needs a stated one).
         """
@@ -1421,6 +1428,10 @@ class Session:
         if dof > 0 and rss > s2 * _chi2_limit(dof):
             out.append(f"this frame's residuals (rms {math.sqrt(rss / (n * self._D)):.3g} {self.model.units}) "
                        f"exceed what the noise (sd {math.sqrt(s2):.3g}) explains: wrong model, units or labels?")
+        size = _model_size(self.model)
+        if s2 > (_LOOSE * size) ** 2:
+            out.append(f"noise sd {math.sqrt(s2):.3g} {self.model.units} is over {_LOOSE:.0%} of the model's size "
+                       f"({size:.3g} {self.model.units}): wrong units, wrong model or markers that do not follow it?")
         if self.sigma is not None:
             dof = st.n_obs - self.model.n_pose * st.n_used - self.model.n_params
             given = max(float(self.sigma) ** 2, self._sigma_floor)
