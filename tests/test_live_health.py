@@ -159,3 +159,21 @@ def test_a_stream_in_the_wrong_unit_is_not_ok_though_the_noise_is_estimated(unit
     assert (health[-1] == "ok") == ok, health[-1]
     if not ok:
         assert "over 10% of the model's size" in health[-1] and "wrong units" in health[-1]
+
+
+def test_a_subject_prefix_on_the_stream_names_is_tolerated_where_the_bare_name_is_unique():
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=15, sigma=1.0, rng=np.random.default_rng(2))
+    plain = Session(model, labels=trial.data.names, method="gaussian")
+    prefixed = Session(model, labels=[f"Derrick:{n}" for n in trial.data.names], method="gaussian")
+    as_dict = Session(model, method="gaussian")
+    for f in trial.data.positions:
+        a, b = plain.push(f), prefixed.push(f)
+        c = as_dict.push({f"Derrick:{n}": xyz for n, xyz in zip(trial.data.names, f, strict=True)})
+    np.testing.assert_array_equal(a.theta, b.theta)
+    np.testing.assert_array_equal(a.theta, c.theta)
+    # two subjects' markers of one bare name: neither is taken for the model's
+    with pytest.raises(DataError, match="none of the labels"):
+        Session(model, labels=["X:A", "Y:A"])
+    with pytest.raises(DataError, match="gives marker 'A' twice"):
+        as_dict.push({"X:A": [0, 0, 0], "Y:A": [1, 1, 1]})

@@ -1006,7 +1006,12 @@ class Session:
         if isinstance(labels, str) or not isinstance(labels, Sequence):
             raise DataError("labels must be a sequence of marker names or a mapping",
                             "pass the stream's marker names in the order of the array rows")
-        order = np.array([self._index.get(str(n), -1) for n in labels], dtype=int)
+        labels = [str(n) for n in labels]
+        bare = [n.rsplit(":", 1)[-1] for n in labels]
+        unique = {b for b in bare if bare.count(b) == 1}
+        # a subject prefix ("Derrick:RSHO") is tolerated where the bare name is unique, as MarkerData.select does
+        order = np.array([self._index.get(n, self._index.get(b, -1) if b in unique else -1)
+                          for n, b in zip(labels, bare, strict=True)], dtype=int)
         if not (order >= 0).any():
             raise DataError(f"none of the labels matches a marker of {self.model.name!r}",
                             f"name the stream's markers as the model does: {', '.join(self.model.marker_names)}")
@@ -1026,9 +1031,17 @@ class Session:
         y = np.full((M, D), np.nan)
         if isinstance(frame, Mapping):
             known = 0
+            seen = set()
             for name, xyz in frame.items():
-                i = self._index.get(str(name))
+                name = str(name)
+                i = self._index.get(name)
+                if i is None:  # a subject prefix ("Derrick:RSHO"), as MarkerData.select tolerates
+                    i = self._index.get(name.rsplit(":", 1)[-1])
                 if i is not None:
+                    if i in seen:
+                        raise DataError(f"the frame gives marker {model.marker_names[i]!r} twice (as {name!r} too)",
+                                        "send each marker once, or map the stream's names with labels=...")
+                    seen.add(i)
                     v = _coordinates(xyz, f"marker {name!r}").ravel()
                     if v.size < D:
                         raise DataError(f"marker {name!r} has {v.size} coordinates, the model needs {D}",
