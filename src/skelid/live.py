@@ -107,8 +107,10 @@ fit started from a prediction carried through a glitch can land in a wrong
 basin, where a good marker looks like the outlier. Either way
 ``healthy`` turns False and ``health`` says why. When two or more markers are
 left out, or the pose jumps, each pair among them and the worst residuals is
-swapped back and the pose refitted: a pair with which every marker fits (and
-the pose no longer jumps) is named (``labels A and B look swapped``).
+swapped back and the pose refitted: a pair with which every marker fits, the
+frame's residual sum of squares drops to a quarter or less (two markers close
+together fit about as well either way round) and the pose no longer jumps is
+named (``labels A and B look swapped``).
 
 A frame that repeats the last one exactly (a frozen stream) or whose markers
 all lie at one point (a zeroed stream) is not used: it would count the same
@@ -188,6 +190,9 @@ _CHI2_1_MEDIAN = 0.454936423119572
 #: a noise sd beyond this fraction of the model's size (its largest length) is no marker noise but a misfit: the
 #: seed paper's hardest case, 15 mm on a 300 mm forearm, is 5 %; a stream in the wrong unit gives far more
 _LOOSE = 0.10
+#: a swapped pair is named only when, swapped back, the frame's residual sum of squares is at most this fraction
+#: of its own (a 6 sd outlier alone is 36 noise variances per coordinate: a swap leaves about one)
+_DECISIVE = 0.25
 #: the allowance is recomputed every this many frames checked (every frame for the first ones)
 _ALLOW_EVERY = 5
 
@@ -1456,8 +1461,13 @@ class Session:
     def _swapped_pair(self, theta, y, q, s2: float, candidates, st: GaussianState | None = None):
         """Two markers whose labels look swapped in frame ``y``: the names of the first pair among
         ``candidates`` (marker indices, worst first) with which, swapped back, every marker fits within
-        ``outlier_sd`` (and, given the state ``st``, the pose no longer jumps); None if no pair does."""
+        ``outlier_sd``, the residual sum of squares is at most :data:`_DECISIVE` of the frame's as it came
+        (and, given the state ``st``, the pose no longer jumps); None if no pair does."""
         starts = [a for a in (q, self._good) if a is not None]
+        # the frame as it came, each start's best fit with every marker: a swap must fit far better than that
+        # (two markers close together, as a bent elbow brings them, fit about as well either way round)
+        rss0 = min(float(np.nansum((y - self._linearise(theta, self._pose_fit(theta, y, a))[0]) ** 2))
+                   for a in starts) if starts else math.inf
         for i, j in itertools.combinations(candidates, 2):
             if not (np.isfinite(y[i]).all() and np.isfinite(y[j]).all()):
                 continue
@@ -1466,7 +1476,8 @@ class Session:
             for start in starts:
                 qs = self._pose_fit(theta, ys, start)
                 x, Jq, _ = self._linearise(theta, qs)
-                if self._screen(np.sqrt(np.sum((ys - x) ** 2, axis=-1)), s2) is not None:
+                d2 = np.sum((ys - x) ** 2, axis=-1)
+                if self._screen(np.sqrt(d2), s2) is not None or np.nansum(d2) > _DECISIVE * rss0:
                     continue
                 if st is not None:
                     m = np.isfinite(ys).all(axis=-1)
