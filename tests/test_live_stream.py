@@ -297,3 +297,20 @@ def test_liblsl_is_kept_quiet_unless_the_user_configured_it(monkeypatch, tmp_pat
     monkeypatch.setattr(stream, "_LSL_CONFIGS", (own,))
     stream._quiet_liblsl()
     assert "LSLAPICFG" not in os.environ
+
+
+@pytest.mark.parametrize("args,words", [
+    (["--udp", "nonsense"], "--udp 'nonsense' is not HOST:PORT"),
+    (["--out", "{tmp}"], "is a folder"),
+    (["--timeout", "-1"], "timeout must be a positive number"),
+    (["--rate", "nan"], "--rate must be a finite number"),
+])
+def test_live_options_are_refused_before_any_wait_for_the_stream(args, words, tmp_path, capsys):
+    import time
+
+    t = time.perf_counter()
+    argv = ["live", "case-a", "--lsl", _name("never"), "--timeout", "10", *[a.format(tmp=tmp_path) for a in args]]
+    assert main(argv) == 2
+    assert time.perf_counter() - t < 5.0  # refused up front, not after --timeout
+    err = capsys.readouterr().err
+    assert words in err and len(err.strip().splitlines()) == 1

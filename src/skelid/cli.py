@@ -453,20 +453,24 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
     """
     from skelid.errors import StreamError
     from skelid.io import atomic_write
+    from skelid.io.atomic import check_target
     from skelid.io.stream import JsonLines, LslFrames, LslMessages, UdpMessages
     from skelid.live import Session, run
 
     _finite("--rate", rate)
     _finite("--sigma", sigma)
     _finite("--timeout", timeout)
-    _live_model(model_path, marker_set, None)  # a model file that cannot be read is refused before any wait
+    # what can be refused without the stream is refused before any wait for it
+    _live_model(model_path, marker_set, None)
+    sinks = [UdpMessages(udp)] if udp else []
+    if out_path:
+        check_target(out_path)
     source = LslFrames(stream, labels=_labels(labels), units=units, timeout=timeout)
     model = _live_model(model_path, marker_set, source.labels)
     rate = rate if rate is not None else source.rate
     if rate is None:
         raise SkelidError(f"stream {stream!r} has no nominal rate", "give the frames per second with --rate")
     session = Session(model, labels=source.labels, units=source.units, rate=rate, method=method, sigma=sigma)
-    sinks = [UdpMessages(udp)] if udp else []
     if lsl_out:
         sinks.append(LslMessages(lsl_out))
     stopped, est = None, None
