@@ -270,8 +270,13 @@ def test_the_pose_jump_check_allows_for_the_movement_seen():
     model = load_model(EXAMPLES / "tennis_arm.toml")
     trial = simulate(model, n_frames=300, sigma=0.001, rate=20.0, rng=np.random.default_rng([11, 0]))
     session = Session(model, labels=trial.data.names, rate=100.0, method="gaussian", cutoff=6.0)
-    flagged = sum(not session.push(f).healthy for f in trial.data.positions)
-    assert flagged < 30
+    health = [session.push(f).health for f in trial.data.positions]
+    assert sum("pose jumps" in h for h in health) < 30
+    # the fixed cutoff is too slow for this movement and pulls theta tens of sd off the truth: the frames' own
+    # pose fits at that theta misfit while it is pulled away, and the health says so instead of "ok"
+    est = session.estimate
+    assert np.max(np.abs(est.theta - trial.theta) / np.sqrt(np.diag(est.cov))) > 10
+    assert sum("exceed what the noise" in h for h in health) >= 5
     # the allowance only ever widens the check
     st = session._state
     q = st.poses[-1] + 0.01

@@ -12,8 +12,10 @@ from skelid.errors import (
     SettingError,
     SkelidError,
     SkelidWarning,
+    StreamError,
 )
-from skelid.model import Model, load_model
+from skelid.loading import load_model
+from skelid.model import Model
 
 try:
     __version__ = version("skelid")
@@ -22,5 +24,6 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "MarkerData", "Model", "load_model", "SkelidError", "FormatError", "ModelError",
-    "DataError", "IdentifiabilityError", "SettingError", "NotFittedError", "SkelidWarning", "__version__",
+    "DataError", "IdentifiabilityError", "SettingError", "NotFittedError", "SkelidWarning", "StreamError",
+    "__version__",
 ]

@@ -402,6 +402,128 @@ def report(result_dir, out_path, as_json, quiet):
         click.echo(f"report written to {path}")
 
 
+LIVE_EXAMPLE = """\b
+    skelid simulate case-a --frames 600 --sigma 1 --out arm.trc
+    skelid replay arm.trc --lsl arm --loop &
+    skelid live examples/case_a.toml --lsl arm --udp 127.0.0.1:9870 --out live.jsonl"""
+
+
+def _labels(text):
+    return None if text is None else [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _live_model(model_path, marker_set, names):
+    """The model of a live run; an OpenSim model keeps only the markers the stream carries (``names``)."""
+    from skelid.loading import load_model
+    from skelid.simulate import BUILTIN_MODELS, builtin_model
+
+    if str(model_path).lower().replace("_", "-") in BUILTIN_MODELS:
+        return builtin_model(model_path)
+    return load_model(model_path, marker_set, marker_names=names)
+
+
+@cli.command(epilog=f"Example:\n\n{LIVE_EXAMPLE}")
+@click.argument("model_path")
+@click.option("--lsl", "stream", required=True, metavar="NAME", help="Name of the LSL marker stream to read.")
+@click.option("--labels", default=None, metavar="A,B,...",
+              help="The stream's marker names in channel order (default: from the stream's metadata).")
+@click.option("--units", type=click.Choice(["mm", "cm", "m"]), default=None,
+              help="The stream's length unit (default: from the stream's metadata).")
+@click.option("--rate", type=float, default=None, help="Frames per second (default: the stream's nominal rate).")
+@click.option("--sigma", type=click.FloatRange(min=0.0), default=None,
+              help="Marker noise in model units (default: estimated); residuals beyond it are reported.")
+@click.option("--method", type=click.Choice(["auto", "gaussian", "grid"]), default="auto", show_default=True)
+@click.option("--out", "out_path", default=None,
+              help="JSON Lines file: every estimate as one skelid.live/1 message (written when the run ends).")
+@click.option("--udp", default=None, metavar="HOST:PORT", help="Send every estimate as a JSON datagram here.")
+@click.option("--lsl-out", default=None, metavar="NAME", help="Publish every estimate as a JSON string on an "
+              "LSL stream of this name (type skelid.live).")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Stop after this many frames.")
+@click.option("--timeout", type=float, default=5.0, show_default=True,
+              help="Seconds to wait for the stream, and for each frame.")
+@click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
+@click.option("--quiet", is_flag=True, help="No summary line at the end.")
+def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, lsl_out, max_frames, timeout,
+         marker_set, quiet):
+    """Refine MODEL_PATH's geometry from a live LSL marker stream, sending each estimate on.
+
+    Every frame's estimate (parameters with intervals, joint centres, health, advice) goes to --udp,
+    --lsl-out and --out as a skelid.live/1 JSON message (docs/live-protocol.md). The run ends after
+    --max-frames, on Ctrl-C, or when the stream stops sending (one line says so; what came is kept).
+    """
+    from skelid.errors import StreamError
+    from skelid.io import atomic_write
+    from skelid.io.atomic import check_target
+    from skelid.io.stream import JsonLines, LslFrames, LslMessages, UdpMessages
+    from skelid.live import Session, run
+
+    _finite("--rate", rate)
+    _finite("--sigma", sigma)
+    _finite("--timeout", timeout)
+    # what can be refused without the stream is refused before any wait for it
+    _live_model(model_path, marker_set, None)
+    sinks = [UdpMessages(udp)] if udp else []
+    if out_path:
+        check_target(out_path)
+    source = LslFrames(stream, labels=_labels(labels), units=units, timeout=timeout)
+    model = _live_model(model_path, marker_set, source.labels)
+    rate = rate if rate is not None else source.rate
+    if rate is None:
+        raise SkelidError(f"stream {stream!r} has no nominal rate", "give the frames per second with --rate")
+    session = Session(model, labels=source.labels, units=source.units, rate=rate, method=method, sigma=sigma)
+    if lsl_out:
+        sinks.append(LslMessages(lsl_out))
+    stopped, est = None, None
+    with contextlib.ExitStack() as stack:
+        if out_path:
+            sinks.append(JsonLines(stack.enter_context(atomic_write(out_path))))
+        try:
+            est = run(session, source, sinks, max_frames=max_frames)
+        except StreamError as exc:
+            if source.n_frames == 0:
+                raise
+            stopped = exc
+        except KeyboardInterrupt:
+            pass  # Ctrl-C ends a live run; what came is kept
+        est = session.estimate
+    if not quiet and est is not None:
+        params = ", ".join(f"{p.name} {p.mean:.4g} ± {p.sd:.2g}" + ("" if p.unit == "1" else f" {p.unit}")
+                           for p in est.parameters.values())
+        click.echo(f"{est.frame} frames; {params}; health: {est.health}"
+                   + (f"; messages written to {out_path}" if out_path else ""), err=True)
+    if stopped is not None:
+        raise stopped
+
+
+@cli.command(epilog=f"Example:\n\n{LIVE_EXAMPLE}")
+@click.argument("trial_path")
+@click.option("--lsl", "stream", required=True, metavar="NAME", help="Name of the LSL marker stream to publish.")
+@click.option("--rate", type=float, default=None, help="Frames per second (default: the file's).")
+@click.option("--loop", is_flag=True, help="Start again after the last frame.")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Stop after this many frames.")
+@click.option("--wait", type=click.FloatRange(min=0.0), default=30.0, show_default=True,
+              help="Seconds to wait for a receiver before the first frame (0: start at once).")
+@click.option("--quiet", is_flag=True, help="No line at the end.")
+def replay(trial_path, stream, rate, loop, max_frames, wait, quiet):
+    """Publish the markers of TRIAL_PATH (TRC, C3D, CSV, TSV) as an LSL marker stream at its own rate.
+
+    The channels are x, y, z of each marker in turn, labelled NAME_X, NAME_Y, NAME_Z with the file's unit,
+    as skelid live reads them.
+    """
+    from skelid.io import read_markers
+    from skelid.io.stream import publish
+
+    _finite("--rate", rate)
+    _finite("--wait", wait)
+    data = read_markers(trial_path)
+    try:
+        sent = publish(data, stream, rate=rate, loop=loop, max_frames=max_frames, wait=wait)
+    except KeyboardInterrupt:
+        return
+    if not quiet:
+        click.echo(f"{sent} frames of {trial_path} sent on LSL stream {stream!r}", err=True)
+
+
 @contextlib.contextmanager
 def _sigterm_as_exit():
     """Turn SIGTERM into SystemExit(143) so partial outputs are removed on the way out."""

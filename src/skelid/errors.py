@@ -62,5 +62,9 @@ class ConvergenceError(SkelidError):
     """The fit did not converge, so no interval can be reported."""
 
 
+class StreamError(SkelidError):
+    """A live stream cannot be found, does not match what it must carry, or stopped sending."""
+
+
 class SkelidWarning(UserWarning):
     """A problem the user should know about that does not stop the computation."""

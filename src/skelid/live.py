@@ -105,7 +105,24 @@ noise level rests on :data:`_KNOWN_DOF` degrees of freedom. Before a marker is
 blamed, the frame's pose is fitted again from the last whole frame's pose: a
 fit started from a prediction carried through a glitch can land in a wrong
 basin, where a good marker looks like the outlier. Either way
-``healthy`` turns False and ``health`` says why.
+``healthy`` turns False and ``health`` says why. When two or more markers are
+left out, or the pose jumps, each pair among them and the worst residuals is
+swapped back and the pose refitted: a pair with which every marker fits, the
+frame's residual sum of squares drops to a quarter or less (two markers close
+together fit about as well either way round) and the pose no longer jumps is
+named (``labels A and B look swapped``).
+
+A frame that repeats the last one exactly (a frozen stream) or whose markers
+all lie at one point (a zeroed stream) is not used: it would count the same
+information twice, or none. Once the noise is known, a frame used whole has
+its residual sum of squares checked against ``sigma^2 chi^2_{nD - Q}``
+(``p = 1e-4``), and with a stated ``sigma`` every frame's so far against it:
+a misfit beyond what the noise explains (a wrong model, wrong units, a motion
+model too slow for the movement that has pulled theta off) is reported, not
+hidden behind ``"ok"``. An estimated noise level grows to cover a steady
+misfit, so only a stated one can show a small one; an estimated noise sd over
+10 % of the model's size (:data:`_LOOSE`; a stream in the wrong unit) is
+reported either way.
 
 Examples
 --------
@@ -123,7 +140,10 @@ True
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
+import numbers
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -137,7 +157,7 @@ from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
 from skelid.data import unit_scale
-from skelid.errors import DataError, ModelError
+from skelid.errors import DataError, ModelError, SettingError
 from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
@@ -167,12 +187,21 @@ _KNOWN_DOF = 30
 _JUMP_WINDOW = 25
 #: median of chi-square with one degree of freedom: a robust variance is median(nu^2) / this
 _CHI2_1_MEDIAN = 0.454936423119572
+#: a noise sd beyond this fraction of the model's size (its largest length) is no marker noise but a misfit: the
+#: seed paper's hardest case, 15 mm on a 300 mm forearm, is 5 %; a stream in the wrong unit gives far more
+_LOOSE = 0.10
+#: a swapped pair is named only when, swapped back, the frame's residual sum of squares is at most this fraction
+#: of its own (a 6 sd outlier alone is 36 noise variances per coordinate: a swap leaves about one)
+_DECISIVE = 0.25
 #: the allowance is recomputed every this many frames checked (every frame for the first ones)
 _ALLOW_EVERY = 5
 
 __all__ = ["LiveEstimate", "Session", "NOISE_FLOOR", "noise_floor", "GaussianState",
            "absorb", "drop_poses", "solve_mean", "theta_cov",
-           "prior_moments", "Advice"]
+           "prior_moments", "Advice", "SCHEMA", "message", "run"]
+
+#: the ``schema`` field of every message :func:`message` makes (docs/live-protocol.md)
+SCHEMA = "skelid.live/1"
 
 
 # --------------------------------------------------------------------------- the recursive Gaussian
@@ -684,7 +713,9 @@ class LiveEstimate:
         Noise level used (model units).
     healthy : bool
         False if this frame could not be used fully (markers missing, markers
-        left out as outliers, too few markers to fix the pose).
+        left out as outliers, labels swapped, too few markers to fix the pose,
+        a frozen or zeroed stream, a frame refused) or its residuals exceed
+        what the noise explains.
     health : str
         ``"ok"`` or what went wrong.
     rejected : tuple of str
@@ -723,7 +754,7 @@ class LiveEstimate:
         lo, hi, prior_sd = self._ranges
         params = {}
         for k, p in enumerate(model.parameters):
-            unit = "deg" if p.kind == "axis_direction" else model.units
+            unit = "deg" if p.kind == "axis_direction" else "1" if p.kind == "scale" else model.units
             status = "prior" if sd[k] > 0.9 * prior_sd[k] else "identified"
             params[p.name] = ParameterEstimate(p.name, unit, float(mean[k]), float(mean[k]), float(sd[k]),
                                                (float(max(mean[k] - _Z95 * sd[k], lo[k])),
@@ -768,26 +799,46 @@ class Advice(NamedTuple):
 
 
 # --------------------------------------------------------------------------- the session
-def _check_session_settings(model: Model, method: str, rate: float, sigma: float | None) -> None:
-    """Refuse a live method, rate or noise level a :class:`Session` cannot run with.
+def _number(name: str, value, fix: str, error=SettingError) -> float:
+    """``value`` as a finite float, or one line naming the setting (a string, None or NaN is refused)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise error(f"{name} must be a number, got {value!r}", fix)
+    v = float(value)
+    if not math.isfinite(v):
+        raise error(f"{name} must be finite, got {value!r}", fix)
+    return v
+
+
+def _check_session_settings(model: Model, method: str, rate, sigma, outlier_sd=6.0, n_iter=1) -> None:
+    """Refuse a live method, rate, noise level or screen setting a :class:`Session` cannot run with.
 
     Raises
     ------
     ModelError
         An unknown method, or ``'grid'`` for more than 3 parameters.
     DataError
-        A rate that is not positive; a negative or non-finite ``sigma``.
+        A rate that is not a positive finite number; a negative or non-finite ``sigma``.
+    SettingError
+        An ``outlier_sd`` that is not a positive number, an ``n_iter`` that is not a count.
     """
     if method not in ("auto", "gaussian", "grid"):
         raise ModelError(f"unknown live method {method!r}", "use 'auto', 'gaussian' or 'grid'")
     if method == "grid" and model.n_params > 3:
         raise ModelError(f"the grid form handles 1 to 3 parameters; {model.name!r} has {model.n_params}",
                          "use method='gaussian'")
-    if not rate > 0:
-        raise DataError(f"rate must be positive, got {rate!r}", "pass the stream's frames per second")
-    if sigma is not None and not (np.isfinite(sigma) and sigma >= 0):
-        raise DataError(f"sigma must be a finite noise level >= 0, got {sigma!r}",
-                        "pass the marker noise in model units, or leave it out to estimate it")
+    fix_rate = "pass the stream's frames per second as a number, e.g. rate=100.0"
+    if not _number("rate", rate, fix_rate, DataError) > 0:
+        raise DataError(f"rate must be positive, got {rate!r}", fix_rate)
+    if sigma is not None:
+        fix = "pass the marker noise in model units, or leave it out to estimate it"
+        if not _number("sigma", sigma, fix, DataError) >= 0:
+            raise DataError(f"sigma must be a finite noise level >= 0, got {sigma!r}", fix)
+    fix = "give the residual, in noise sd, beyond which a marker is left out (default 6)"
+    if not _number("outlier_sd", outlier_sd, fix) > 0:
+        raise SettingError(f"outlier_sd must be positive, got {outlier_sd!r}", fix)
+    if isinstance(n_iter, bool) or not isinstance(n_iter, numbers.Integral) or n_iter < 0:
+        raise SettingError(f"n_iter must be a whole number >= 0, got {n_iter!r}",
+                           "give how often each frame is linearised again (default 1)")
 
 
 def _check_cutoff(model: Model, cutoff) -> bool:
@@ -879,16 +930,19 @@ class Session:
     Raises
     ------
     DataError
-        Labels that match none of the model's markers, an unknown unit, or a
-        negative or non-finite ``sigma``.
+        Labels that match none of the model's markers, an unknown unit, a
+        ``rate`` that is not a positive finite number, or a ``sigma`` that is
+        not a finite number >= 0.
     ModelError
         ``method='grid'`` for more than 3 parameters.
+    SettingError
+        An ``outlier_sd`` that is not a positive finite number, an ``n_iter`` that is not a count.
     """
 
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,
                  method: str = "auto", sigma: float | None = None, outlier_sd: float = 6.0,
                  cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None):
-        _check_session_settings(model, method, rate, sigma)
+        _check_session_settings(model, method, rate, sigma, outlier_sd, n_iter)
         self.model = model
         self.rate = float(rate)
         self.method = _live_method(model, method)
@@ -913,6 +967,8 @@ class Session:
         self._n_nu = 0
         self._allow, self._allow_at = np.zeros(model.n_pose), 0  # the allowance and self._n_nu when computed
         self._good: np.ndarray | None = None  # pose of the last frame whose markers all fitted
+        self._last_y: np.ndarray | None = None  # the last frame (model order and units), to see a frozen stream
+        self._n_repeat = 0  # frames in a row that repeat the one before exactly
         self.estimate: LiveEstimate | None = None
         self.cutoff = cutoff
         self._auto = _check_cutoff(model, cutoff)
@@ -955,43 +1011,77 @@ class Session:
         if isinstance(labels, str) or not isinstance(labels, Sequence):
             raise DataError("labels must be a sequence of marker names or a mapping",
                             "pass the stream's marker names in the order of the array rows")
-        order = np.array([self._index.get(str(n), -1) for n in labels], dtype=int)
+        labels = [str(n) for n in labels]
+        bare = [n.rsplit(":", 1)[-1] for n in labels]
+        unique = {b for b in bare if bare.count(b) == 1}
+        # a subject prefix ("Derrick:RSHO") is tolerated where the bare name is unique, as MarkerData.select does
+        order = np.array([self._index.get(n, self._index.get(b, -1) if b in unique else -1)
+                          for n, b in zip(labels, bare, strict=True)], dtype=int)
         if not (order >= 0).any():
             raise DataError(f"none of the labels matches a marker of {self.model.name!r}",
                             f"name the stream's markers as the model does: {', '.join(self.model.marker_names)}")
         return order
 
     def _frame_array(self, frame) -> np.ndarray:
-        """The frame as ``(M, D)`` in model order and units, NaN where missing."""
+        """The frame as ``(M, D)`` in model order and units, NaN where missing (or not finite).
+
+        Raises
+        ------
+        DataError
+            A frame that is neither a mapping of marker name to coordinates nor an array of one row per
+            label, coordinates that are not numbers, a mapping that names no marker of the model.
+        """
         model = self.model
         M, D = len(model.markers), model.dim
         y = np.full((M, D), np.nan)
         if isinstance(frame, Mapping):
+            known = 0
+            seen = set()
             for name, xyz in frame.items():
-                i = self._index.get(str(name))
+                name = str(name)
+                i = self._index.get(name)
+                if i is None:  # a subject prefix ("Derrick:RSHO"), as MarkerData.select tolerates
+                    i = self._index.get(name.rsplit(":", 1)[-1])
                 if i is not None:
-                    v = np.asarray(xyz, dtype=float).ravel()
+                    if i in seen:
+                        raise DataError(f"the frame gives marker {model.marker_names[i]!r} twice (as {name!r} too)",
+                                        "send each marker once, or map the stream's names with labels=...")
+                    seen.add(i)
+                    v = _coordinates(xyz, f"marker {name!r}").ravel()
                     if v.size < D:
                         raise DataError(f"marker {name!r} has {v.size} coordinates, the model needs {D}",
                                         "send x, y (and z) for every marker")
                     y[i] = v[:D]
+                    known += 1
+            if frame and not known:
+                shown = ", ".join(repr(str(n)) for n in list(frame)[:3]) + (", ..." if len(frame) > 3 else "")
+                raise DataError(f"the frame names no marker of {model.name!r} ({shown})",
+                                f"name the markers as the model does: {', '.join(model.marker_names)}, "
+                                "or map the stream's names with labels={stream: model}")
         else:
-            a = np.asarray(frame, dtype=float)
+            if isinstance(frame, str | bytes):
+                raise DataError(f"a frame must be marker positions, got the text {frame[:20]!r}",
+                                "send a mapping of marker name to (x, y, z) or an array with one row per label")
+            a = _coordinates(frame, "an array frame")
             order = self._order
+            n_rows = M if order is None else order.size
+            if a.ndim != 2 or a.shape[0] != n_rows or a.shape[1] < D:
+                how = ("one row per declared label" if order is not None
+                       else f"one row per model marker ({M}), or pass labels=... naming the rows")
+                raise DataError(f"an array frame must be ({n_rows}, {D}) or ({n_rows}, 3); got {a.shape}",
+                                f"send {how}")
             if order is None:
-                if a.shape[0] != M:
-                    raise DataError(f"an array frame has {a.shape[0]} rows; without labels it must have one per "
-                                    f"model marker ({M})", "pass labels=... naming the rows")
                 order = np.arange(M)
-            if a.ndim != 2 or a.shape[0] != order.size or a.shape[1] < D:
-                raise DataError(f"an array frame must be ({order.size}, {D}) or ({order.size}, 3); got {a.shape}",
-                                "send one row per declared label")
             if self._identity:
                 y = a[:, :D] * self.scale if a.shape[1] != D else a * self.scale
-                return y if y is not a else y.copy()
+                y = y if y is not a else y.copy()
+                y[~np.isfinite(y)] = np.nan
+                return y
             keep = order >= 0
             y[order[keep]] = a[keep, :D]
-        return y * self.scale
+        y = y * self.scale
+        y[~np.isfinite(y)] = np.nan
+        return y
 
     # ------------------------------------------------------------------ the update
     def push(self, frame) -> LiveEstimate:
@@ -1001,15 +1091,83 @@ class Session:
         ----------
         frame : mapping of str to (3,) or (D,) float, or (N, 3) array
             Marker positions by name, or as rows in the order of ``labels``. Missing
-            markers: absent from the mapping, or NaN.
+            markers: absent from the mapping, or NaN (or infinite).
+
+        Raises
+        ------
+        DataError
+            A frame of the wrong shape or not of numbers (:meth:`_frame_array`); the session is left as it
+            was. A frame that is well formed but cannot be used (it repeats the last one, its markers all
+            coincide, too few markers) is not an error: ``healthy`` is False and ``health`` says why.
         """
         y = self._frame_array(frame)
         self._frame += 1
-        if self.method == "grid":
+        problem = self._input_problem(y)
+        if problem is not None:
+            self.estimate = self._unused(y, problem)
+        elif self.method == "grid":
             self.estimate = self._push_grid(y)
         else:
             self.estimate = self._push_gaussian(y)
         return self.estimate
+
+    def feed(self, frames, max_frames: int | None = None):
+        """Push each frame of ``frames`` (any iterable) in turn, yielding the estimate after each.
+
+        A frame the session refuses (:meth:`push` raises :class:`~skelid.errors.DataError`) does not end the
+        stream: its estimate is the last one with ``healthy`` False and the problem in ``health``, and the
+        session keeps what it had.
+
+        Parameters
+        ----------
+        frames : iterable
+            Frames as :meth:`push` takes them.
+        max_frames : int, optional
+            Stop after this many frames.
+
+        Yields
+        ------
+        LiveEstimate
+        """
+        for frame in itertools.islice(frames, max_frames):  # no frame is asked for beyond max_frames
+            try:
+                yield self.push(frame)
+            except DataError as exc:
+                self.estimate = self._refused(exc)
+                yield self.estimate
+
+    def _refused(self, exc: DataError) -> LiveEstimate:
+        """The estimate after a frame that was refused: the last one, flagged with the problem."""
+        line = f"frame refused: {exc.one_line()}"
+        if self.estimate is None:
+            return self._unused(np.full((self._M, self._D), np.nan), line, count=False)
+        return dataclasses.replace(self.estimate, healthy=False, health=line, rejected=())
+
+    def _input_problem(self, y) -> str | None:
+        """Why a well-formed frame cannot be used at all: it repeats the last frame exactly (a frozen
+        stream), or its markers all lie at one point (a stream of zeros). None when it can be used."""
+        present = np.isfinite(y).all(axis=-1)
+        last, self._last_y = self._last_y, y
+        if not present.any():
+            return None  # every marker missing: the usual path says so
+        if last is not None and np.array_equal(last, y, equal_nan=True):
+            self._n_repeat += 1
+            return (f"frame repeats the last one exactly ({self._n_repeat + 1} in a row: a frozen stream?); "
+                    "frame not used")
+        self._n_repeat = 0
+        if present.sum() > 1 and float(np.ptp(y[present], axis=0).max()) <= self._sigma_floor ** 0.5:
+            return "every marker at one point (a zeroed stream?); frame not used"
+        return None
+
+    def _unused(self, y, problem: str, count: bool = True) -> LiveEstimate:
+        """The estimate after a frame whose data are not used: the state as it was, ``problem`` in health."""
+        problems = _missing(y) + [problem]
+        if self.method == "grid":
+            return self._grid_estimate(None, problems)
+        st = self._state
+        if count:
+            self._not_used(st, np.full_like(y, np.nan), self._current_sigma2())
+        return self._gaussian_estimate(None, problems, ())
 
     def _current_sigma2(self) -> float:
         st = self._state
@@ -1090,6 +1248,10 @@ class Session:
             # follows the motion model alone
             problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
                             "(swapped or wrong label?); frame not used")
+            bad = [self.model.marker_names.index(n) for n in rejected]
+            pair = self._swapped_pair(theta, y, sc.q, s2, _worst_first(sc.resid, bad))
+            if pair:
+                problems.insert(len(problems) - 1, _swap_line(pair))
             if self._motion:
                 self._not_used(st, sc.y, s2)
                 return self._gaussian_estimate(sc.resid, problems, rejected)
@@ -1098,6 +1260,9 @@ class Session:
         if self._pose_jumped(st, q, Jq2, s2):
             if self._run >= _HELD or self._jumped:  # held poses from data, or a jump still going on: left out
                 problems.append("the pose jumps beyond the motion model (swapped or wrong label?); frame not used")
+                pair = self._swapped_pair(theta, y, sc.q, s2, _worst_first(sc.resid, []), st)
+                if pair:
+                    problems.insert(len(problems) - 1, _swap_line(pair))
                 self._not_used(st, sc.y, s2, jumped=True)
                 return self._gaussian_estimate(sc.resid, problems, rejected)
             st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
@@ -1108,7 +1273,7 @@ class Session:
             self._good = q
         if self._remember(sc.y, q, True):
             self._relinearise(st.mean)
-        return self._gaussian_estimate(sc.resid, problems, rejected)
+        return self._gaussian_estimate(sc.resid, problems, rejected, used=not rejected)
 
     def _first_pose(self, theta, y, st: GaussianState) -> np.ndarray:
         """The frame's pose before screening: random starts for the first frame, else from the prediction."""
@@ -1249,23 +1414,93 @@ class Session:
         self._early.append((y, q, used))
         return n + 1 in _RELINEARISE
 
-    def _gaussian_estimate(self, resid, problems, rejected) -> LiveEstimate:
+    def _gaussian_estimate(self, resid, problems, rejected, used: bool = False) -> LiveEstimate:
+        """The estimate from the state; a frame ``used`` whole has its residuals checked (:meth:`_misfit`)."""
         st = self._state
         s2 = _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
                        self._sigma_floor)
+        if used and resid is not None:
+            problems = problems + self._misfit(st, resid, s2)
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
                             self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges)
 
+    def _misfit(self, st: GaussianState, resid, s2: float) -> list[str]:
+        """Whether the residuals exceed what the noise explains (once the noise is known).
+
+        Two chi-square checks at ``p = 1e-4``: this frame's residual sum of squares against ``s2`` on its
+        ``n D - Q`` degrees of freedom (a frame that misfits as a whole, with no one marker beyond the
+        screen), a noise level over :data:`_LOOSE` of the model's size (no marker system is that noisy: the
+        stream's units or the model are wrong), and, where ``sigma`` was stated, every frame's so far against it
+        on the session's
+        degrees of freedom (a wrong model, wrong units or a noise level stated too low: an estimated noise
+        level would grow to cover the misfit, so this check needs a stated one).
+        """
+        if not self._noise_known(st):
+            return []
+        out = []
+        n = int(np.isfinite(resid).sum())
+        dof = n * self._D - self.model.n_pose
+        rss = float(np.nansum(np.square(resid)))
+        if dof > 0 and rss > s2 * _chi2_limit(dof):
+            out.append(f"this frame's residuals (rms {math.sqrt(rss / (n * self._D)):.3g} {self.model.units}) "
+                       f"exceed what the noise (sd {math.sqrt(s2):.3g}) explains: wrong model, units or labels?")
+        size = _model_size(self.model)
+        if s2 > (_LOOSE * size) ** 2:
+            out.append(f"noise sd {math.sqrt(s2):.3g} {self.model.units} is over {_LOOSE:.0%} of the model's size "
+                       f"({size:.3g} {self.model.units}): wrong units, wrong model or markers that do not follow it?")
+        if self.sigma is not None:
+            dof = st.n_obs - self.model.n_pose * st.n_used - self.model.n_params
+            given = max(float(self.sigma) ** 2, self._sigma_floor)
+            if dof > 0 and st.rss > given * _chi2_limit(dof):
+                out.append(f"residual sd {math.sqrt(st.rss / dof):.3g} {self.model.units} exceeds the stated "
+                           f"noise sd {math.sqrt(given):.3g}: wrong model, units or noise level?")
+        return out
+
+    def _swapped_pair(self, theta, y, q, s2: float, candidates, st: GaussianState | None = None):
+        """Two markers whose labels look swapped in frame ``y``: the names of the first pair among
+        ``candidates`` (marker indices, worst first) with which, swapped back, every marker fits within
+        ``outlier_sd``, the residual sum of squares is at most :data:`_DECISIVE` of the frame's as it came
+        (and, given the state ``st``, the pose no longer jumps); None if no pair does."""
+        starts = [a for a in (q, self._good) if a is not None]
+        # the frame as it came, each start's best fit with every marker: a swap must fit far better than that
+        # (two markers close together, as a bent elbow brings them, fit about as well either way round)
+        rss0 = min(float(np.nansum((y - self._linearise(theta, self._pose_fit(theta, y, a))[0]) ** 2))
+                   for a in starts) if starts else math.inf
+        for i, j in itertools.combinations(candidates, 2):
+            if not (np.isfinite(y[i]).all() and np.isfinite(y[j]).all()):
+                continue
+            ys = y.copy()
+            ys[[i, j]] = y[[j, i]]
+            for start in starts:
+                qs = self._pose_fit(theta, ys, start)
+                x, Jq, _ = self._linearise(theta, qs)
+                d2 = np.sum((ys - x) ** 2, axis=-1)
+                if self._screen(np.sqrt(d2), s2) is not None or np.nansum(d2) > _DECISIVE * rss0:
+                    continue
+                if st is not None:
+                    m = np.isfinite(ys).all(axis=-1)
+                    qc = self._continuous(st, qs)
+                    jump = pose_jump(st, qc, Jq[m].reshape(-1, qs.size), self._weight, s2, self._allowance())
+                    if jump > self._gate(st):
+                        continue
+                names = self.model.marker_names
+                return names[i], names[j]
+        return None
+
     def _push_grid(self, y) -> LiveEstimate:
-        model = self.model
         n_present = int((~np.isnan(y).any(axis=-1)).sum())
         problems = [] if n_present == self._M else [f"{self._M - n_present} marker(s) missing"]
         usable = n_present >= self._min_present
         if not usable:
             problems.append("too few markers to fix the pose: frame not used")
-        self._state = st = self._grid.update(self._state, y)
+        self._state = self._grid.update(self._state, y)
+        return self._grid_estimate(y if usable else None, problems)
+
+    def _grid_estimate(self, y, problems) -> LiveEstimate:
+        """The grid form's estimate from its state; marker residuals of frame ``y`` (None: not used)."""
+        model, st = self.model, self._state
         q = resid = None
         lw = self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used).ravel()
         pts = self._grid._points()[1]
@@ -1275,7 +1510,7 @@ class Session:
         if st.pose is not None:
             k = int(np.argmax(lw))
             q = st.pose[k]
-            if usable:
+            if y is not None:
                 resid = partial(_grid_residuals, model, self._ws, pts[k], q, y)
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(mean), _frozen(q), self._grid_sigma(),
@@ -1358,6 +1593,87 @@ class Session:
                               lo, hi, pname, float(sd[worst]), float(sd_after)))
         out.sort(key=lambda a: a.sd_after)
         return out
+
+
+# --------------------------------------------------------------------------- the message a stream carries
+def _json_number(x) -> float | None:
+    """A float for JSON: None for NaN or infinity (JSON has neither)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def message(estimate: LiveEstimate, advice=(), stamp: float | None = None) -> dict:
+    """The estimate as a ``skelid.live/1`` message: plain JSON values, the layout of docs/live-protocol.md.
+
+    Parameters
+    ----------
+    estimate : LiveEstimate
+    advice : sequence of Advice
+        The movements to suggest, best first (:meth:`Session.advice`; the caller decides how often).
+    stamp : float, optional
+        The source's time stamp of the frame (an LSL time stamp, s), so that a receiver can measure the delay.
+
+    Returns
+    -------
+    dict
+        ``schema``, ``model``, ``units``, ``frame``, ``time``, ``stamp``, ``healthy``, ``health``,
+        ``rejected``, ``sigma``, ``parameters`` (a list: ``name``, ``unit``, ``mean``, ``sd``, ``lower``,
+        ``upper``, ``status``), ``joint_centres`` (a list: ``joint``, ``position`` as ``[x, y, z]``, z = 0
+        for a planar model), ``advice`` (a list: ``text``, ``joint``, ``parameter``, ``sd_now``,
+        ``sd_after``). A number that is not finite is ``None`` (JSON ``null``).
+    """
+    model = estimate._model
+    params = [{"name": p.name, "unit": p.unit, "mean": _json_number(p.mean), "sd": _json_number(p.sd),
+               "lower": _json_number(p.interval[0]), "upper": _json_number(p.interval[1]), "status": p.status}
+              for p in estimate.parameters.values()]
+    centres = []
+    for joint, c in estimate.joint_centres.items():
+        xyz = [_json_number(v) for v in c] + [0.0] * (3 - len(c))
+        centres.append({"joint": joint, "position": xyz})
+    return {"schema": SCHEMA, "model": model.name, "units": model.units, "frame": int(estimate.frame),
+            "time": float(estimate.time), "stamp": None if stamp is None else _json_number(stamp),
+            "healthy": bool(estimate.healthy), "health": estimate.health, "rejected": list(estimate.rejected),
+            "sigma": _json_number(estimate.sigma), "parameters": params, "joint_centres": centres,
+            "advice": [{"text": a.text, "joint": a.joint, "parameter": a.parameter,
+                        "sd_now": _json_number(a.sd_now), "sd_after": _json_number(a.sd_after)} for a in advice]}
+
+
+def run(session: Session, frames, sinks=(), max_frames: int | None = None, advice_every: int | None = None,
+        n_advice: int = 3) -> LiveEstimate | None:
+    """Run ``session`` over ``frames`` (any iterable, such as an LSL stream) and send each estimate to ``sinks``.
+
+    Parameters
+    ----------
+    session : Session
+    frames : iterable
+        Frames as :meth:`Session.push` takes them. Where it has an attribute ``last_stamp`` (the
+        source's time stamp of the frame it yielded last), each message carries it.
+    sinks : sequence
+        Objects with ``send(message: dict)`` (:mod:`skelid.io.stream`: LSL, UDP, a JSON Lines file).
+    max_frames : int, optional
+        Stop after this many frames.
+    advice_every : int, optional
+        Frames between two calls of :meth:`Session.advice` (each message carries the latest);
+        default one second of frames. 0: no advice.
+    n_advice : int
+        Movements in each message, best first.
+
+    Returns
+    -------
+    LiveEstimate or None
+        The last estimate (None if no frame came).
+    """
+    every = max(1, round(session.rate)) if advice_every is None else int(advice_every)
+    advice: list = []
+    est = None
+    for n, est in enumerate(session.feed(frames, max_frames=max_frames)):
+        if every and n % every == 0:
+            advice = session.advice()[:n_advice]
+        if sinks:
+            msg = message(est, advice, getattr(frames, "last_stamp", None))
+            for sink in sinks:
+                sink.send(msg)
+    return est
 
 
 class _FramePose:
@@ -1465,7 +1781,7 @@ class _Step:
         if ses._remember(y, q, True):
             ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
-        return ses._gaussian_estimate(resid, problems, ())
+        return ses._gaussian_estimate(resid, problems, (), used=True)
 
 
 def _for_all(cutoffs) -> np.ndarray:
@@ -1525,6 +1841,36 @@ def _words(model: Model, k: int, lo: float, hi: float) -> str:
     a = int(np.argmax(np.abs(axis)))
     about = f"its {names[a]} axis" if abs(axis[a]) > 0.99 else f"axis {ks.index(k) + 1} of {len(ks)}"
     return f"turn the {j.name} about {about} through {rng}"
+
+
+@lru_cache(maxsize=256)
+def _chi2_limit(dof: int, p_value: float = 1e-4) -> float:
+    """The ``1 - p_value`` quantile of chi-square on ``dof`` degrees of freedom."""
+    return float(chi2.isf(p_value, dof))
+
+
+def _worst_first(resid, first, n: int = 4) -> list[int]:
+    """Marker indices to try in a swap: ``first`` (the markers left out), then the largest residuals, at most
+    ``n + len(first)``."""
+    r = np.where(np.isfinite(resid), resid, -np.inf)
+    rest = [int(k) for k in np.argsort(-r) if int(k) not in first and np.isfinite(r[k])]
+    return list(first) + rest[:n]
+
+
+def _swap_line(pair) -> str:
+    return f"labels {pair[0]} and {pair[1]} look swapped (swapped back, every marker fits)"
+
+
+def _coordinates(value, what: str) -> np.ndarray:
+    """``value`` as a float array, or one line saying it is not numbers."""
+    if isinstance(value, str | bytes):
+        raise DataError(f"{what} is the text {value[:20]!r}, not coordinates",
+                        "send numbers: (x, y, z) per marker")
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(f"{what} is not numbers: {str(value)[:40]!r}",
+                        "send numbers: (x, y, z) per marker, NaN for a missing one") from None
 
 
 def _missing(y) -> list[str]:
