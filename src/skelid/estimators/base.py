@@ -250,8 +250,9 @@ def _status(s) -> str:
 
 
 def parameter_unit(model: Model, k: int) -> str:
-    """Unit of parameter ``k``: degrees for axis tilts, the model's length unit otherwise."""
-    return "deg" if model.parameters[k].kind == "axis_direction" else model.units
+    """Unit of parameter ``k``: degrees for axis tilts, ``"1"`` for scale factors, the model's length unit otherwise."""
+    kind = model.parameters[k].kind
+    return "deg" if kind == "axis_direction" else "1" if kind == "scale" else model.units
 
 
 def build_result(est, posterior, *, noise=None, skipped=None, crlb_sd=None, extra=None, status=None,
