@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from skelid.errors import FormatError
+from skelid.io._common import as_path
 from skelid.io.atomic import atomic_write
 from skelid.result import (
     STATUSES,
@@ -433,7 +434,7 @@ def _no_constant(token: str):
 
 def load_json(path) -> Any:
     """Parse ``path`` as JSON with the size, nesting and number bounds; one FormatError line otherwise."""
-    path = Path(path)
+    path = as_path(path, "result file")
     try:
         size = path.stat().st_size
         if not path.is_file():
@@ -459,7 +460,7 @@ def load_json(path) -> Any:
 
 def load_npz(path) -> dict[str, np.ndarray]:
     """Every array of an ``.npz`` file, bounded in size and kind; one FormatError line otherwise."""
-    path = Path(path)
+    path = as_path(path, "result file")
     try:
         if not path.is_file():
             raise FormatError(f"{path} is not a regular file", _FIX)
@@ -498,7 +499,7 @@ def read_run(result_dir) -> FitRun:
         The folder, ``result.json`` or ``arrays.npz`` is missing, damaged, of an unknown or
         newer version, or not as documented; one line naming the file and the key path.
     """
-    d = Path(result_dir)
+    d = as_path(result_dir, "result folder")
     if not d.is_dir():
         raise FormatError(f"result folder {d} does not exist" if not d.exists()
                           else f"{d} is not a result folder", "give the folder 'skelid fit --out DIR' wrote")
