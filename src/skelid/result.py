@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 #: the statuses a parameter can have
-STATUSES = ("identified", "poor", "unidentified", "prior")
+STATUSES = ("identified", "poor", "unidentified", "prior", "on-bound")
 
 
 @dataclass(frozen=True)
@@ -61,8 +61,10 @@ class ParameterEstimate:
         Central 95 % interval.
     crlb_sd : float or None
         Cramér-Rao bound on the standard deviation, where the estimator computes one.
-    status : {'identified', 'poor', 'unidentified', 'prior'}
-        ``prior``: the data add nothing and the value is the prior's.
+    status : {'identified', 'poor', 'unidentified', 'prior', 'on-bound'}
+        ``prior``: the data add nothing and the value is the prior's. ``on-bound``: the fit's
+        optimum sits on (or beyond) a bound of the prior's support; the point reported is on
+        the bound, never outside it (the unbounded value is in ``extra['beyond_bound']``).
     extra : mapping
         Estimator-specific numbers (``bias_removed``, ``crlb_sd_motion_model``, ``jackknife_sd``, ...),
         JSON values only.

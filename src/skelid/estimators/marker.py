@@ -52,6 +52,7 @@ from skelid.estimators.base import (
     array_or_none,
     build_result,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     make_rng,
@@ -375,6 +376,7 @@ class MarkerFit(NamedTuple):
     summary: Summary
     pose_path: str = "numpy"  # "compiled" or "numpy": the path every pose fit took (see pose.workspace)
     misfit: Misfit | None = None  # model misfit: refits and widening (misfit_stage)
+    beyond: np.ndarray | None = None  # (P,) the unbounded estimate where support_stage put it on a bound, else NaN
 
 
 # ================================================================================ stages
@@ -890,11 +892,13 @@ def _bound_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
                            "interval: the data do not pin them inside it", pinned) if model.n_params > 1 else
                    Warning("on-bound", f"parameter {pinned[0]} ended on a bound of its prior interval: the "
                            "data do not pin it inside it", pinned))
-    theta = f.estimate.theta
+    beyond = f.beyond if f.beyond is not None else np.full(model.n_params, np.nan)
     for k, p in enumerate(model.parameters):
-        if not p.prior.lower <= theta[k] <= p.prior.upper:
-            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
-                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
+        if np.isfinite(beyond[k]):
+            out.append(Warning("outside-prior", f"the estimate of parameter {p.name} ({beyond[k]:.4g} after the "
+                               "corrections) lies beyond its prior bounds "
+                               f"[{p.prior.lower:g}, {p.prior.upper:g}]; it is reported on the bound "
+                               f"{f.estimate.theta[k]:g}: the data do not place it inside its prior", (p.name,)))
     return out
 
 
@@ -1042,8 +1046,21 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
     estimate = mis.estimate if mis is not None else estimate
-    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate), ws.path, mis)
+    estimate, beyond = support_stage(st, estimate)
+    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned | np.isfinite(beyond), res, bias, cov, estimate,
+                     summary_stage(model, ident, estimate), ws.path, mis, beyond)
+
+
+def support_stage(st: Start, estimate: Estimate) -> tuple[Estimate, np.ndarray]:
+    """The estimate held inside its prior's support: a value the bias correction, a normal prior or the
+    misfit widening moved beyond a bound is put on that bound (no estimate leaves its prior's support).
+
+    Returns the estimate and ``beyond (P,)``: the unbounded value where it was moved, NaN elsewhere.
+    """
+    lo, hi = st.bounds
+    theta = np.clip(estimate.theta, lo, hi)
+    beyond = np.where(theta != estimate.theta, estimate.theta, np.nan)
+    return estimate._replace(theta=theta), beyond
 
 
 # ============================================================================== estimator
@@ -1181,7 +1198,7 @@ class MarkerEstimator:
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
                  noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None,
                  jackknife: bool = True, placement_sd: float | None = None):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
         self.bias_correction = bias_correction
@@ -1202,7 +1219,7 @@ class MarkerEstimator:
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerEstimator:
         """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""
         check_settings(self)
-        y, rate = marker_array(self.model, data, self.rate)
+        y, rate = marker_array(self.model, data, self.rate, self.name)
         f = run_marker_fit(self, y, rate, make_rng(self.rng))
         self._publish(f, emit(marker_warnings(self.model, self, f)))
         if progress is not None:

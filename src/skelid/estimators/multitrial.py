@@ -101,6 +101,7 @@ from skelid.errors import DataError, IdentifiabilityError, SkelidError
 from skelid.estimators.base import (
     Setting,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     get_settings,
@@ -510,6 +511,21 @@ def _as_trials(trials) -> list:
                         "give a list of MarkerData, one per trial") from None
 
 
+def _check_distinct_trials(trials) -> None:
+    """Refuse a trial given twice (the same object, or the same positions): it would count twice."""
+    for k, a in enumerate(trials):
+        pa = a.positions if isinstance(a, MarkerData) else a
+        for j in range(k):
+            b = trials[j]
+            pb = b.positions if isinstance(b, MarkerData) else b
+            same = a is b or (isinstance(pa, np.ndarray) and isinstance(pb, np.ndarray) and pa.shape == pb.shape
+                              and np.array_equal(pa, pb, equal_nan=pa.dtype.kind == "f" and pb.dtype.kind == "f"))
+            if same:
+                raise DataError(f"{_trial_label(a, k)} is the same trial as {_trial_label(b, j)} (identical "
+                                "positions): its frames would count as two trials' worth of information",
+                                "give each trial once")
+
+
 class MultiTrialEstimator:
     """One geometry from several trials of one body.
 
@@ -592,7 +608,7 @@ class MultiTrialEstimator:
 
     def __init__(self, model: Model, between_trial: str = "prior", prior_artefact_rms: float | None = None,
                  **settings):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.between_trial = between_trial
         self.prior_artefact_rms = prior_artefact_rms
         # the single-trial estimator's declared settings and defaults, stored here as well
@@ -616,6 +632,7 @@ class MultiTrialEstimator:
         trials = _as_trials(trials)
         if not trials:
             raise DataError("no trials to fit", "give at least one marker file")
+        _check_distinct_trials(trials)
         ests, labels = [], []
         for k, data in enumerate(trials):
             label = _trial_label(data, k)
@@ -647,7 +664,7 @@ class MultiTrialEstimator:
         check_settings(self)
         est = MarkerEstimator(self.model, **self._trial_settings())
         check_settings(est)
-        y, rate = marker_array(self.model, data, est.rate)
+        y, rate = marker_array(self.model, data, est.rate, est.name)
         f = run_marker_fit(est, y, rate, make_rng(est.rng), on_bound="warn")
         est._publish(f, emit(marker_warnings(self.model, est, f)))
         return est
