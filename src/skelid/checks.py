@@ -17,7 +17,8 @@ fit:
   number.
 
 Before those, the checks of the input itself: :func:`check_input_file` (an existing,
-readable, non-empty file), :func:`check_units` (marker distances against the model's), and
+readable, non-empty file), :func:`check_distinct_files` (no file given twice),
+:func:`check_units` (marker distances against the model's), and
 :func:`data_overview` (what the file holds, each marker's gaps).
 """
 
@@ -97,6 +98,24 @@ def check_input_file(path, what: str = "data file") -> Path:
     if not head:
         raise cls(f"{what} {path} is empty", "check that the file was written completely")
     return path
+
+
+def check_distinct_files(paths, what: str = "data file") -> None:
+    """Refuse the same file given twice (by path, links followed) in one line: its trial would count twice."""
+    import os
+
+    seen: dict = {}
+    for p in paths:
+        try:
+            st = os.stat(p)
+            key = (st.st_dev, st.st_ino)
+        except OSError:
+            key = os.path.abspath(p)  # a missing file is refused by check_input_file
+        if key in seen:
+            same = "" if str(seen[key]) == str(p) else f" (as {seen[key]})"
+            raise DataError(f"{what} {p} is given twice{same}: its frames would count as two trials' worth "
+                            "of information", "give each trial once")
+        seen[key] = p
 
 
 def _model_names_in_file(model: Model, data: MarkerData) -> dict[str, str]:

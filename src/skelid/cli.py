@@ -214,7 +214,9 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     receives the scaled .osim, its ScaleSet and scaling.json with the intervals.
     """
     from skelid import workflows
+    from skelid.checks import check_distinct_files
 
+    check_distinct_files(data_paths)
     if str(model_path).lower().endswith(".osim"):
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
