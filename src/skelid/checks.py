@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import DataError, FormatError, ModelError
+from skelid.errors import DataError, FormatError, ModelError, SettingError
 from skelid.estimators.fit.joint import usable_frames  # the one usable-frame rule
 from skelid.model.description import Model
 
@@ -39,6 +39,15 @@ MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5}
 DEFAULT_MIN_FRAMES = 5
 #: a coordinate whose peak-to-peak range over the frames is below this fraction of the model's size is still
 MOTION_RTOL = 1e-9
+
+
+def check_finite(name: str, value):
+    """``value`` if it is None or a finite number, else a one-line :class:`SettingError` naming ``name``."""
+    import math
+
+    if value is not None and not math.isfinite(value):
+        raise SettingError(f"{name} must be a finite number, got {value}", f"give {name} a number such as 15")
+    return value
 
 
 def check_surplus(model, where: str = "the data") -> None:
