@@ -20,9 +20,11 @@ from skelid.errors import DataError
 #: sampling rates accepted, in Hz
 RATE_RANGE = (1e-2, 1e6)
 UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-#: largest marker coordinate a fit accepts, in mm (10 km): beyond it a file is corrupt or in the wrong units,
-#: and the fit's rounding error grows with the distance of the data from the origin
-MAX_FIT_COORDINATE_MM = 1e7
+#: largest marker coordinate a fit accepts, in mm (100 m; capture volumes span a few metres). The fit's
+#: rounding grows with the data's distance from the origin: under a rigid shift of up to 1e5 mm the
+#: estimates of cases A and B moved by at most 3e-5 of their value and their sd by 2e-4, under 1e7 mm
+#: the sd by 27 % (tests/test_api_contract.py measures the first)
+MAX_FIT_COORDINATE_MM = 1e5
 
 
 def unit_scale(src: str, dst: str) -> float:
@@ -79,7 +81,7 @@ def check_range(pos: np.ndarray, units: str, where: str, max_mm: float = MAX_FIT
         big = np.abs(pos) > limit
     if big.any():
         raise DataError(f"marker coordinates in {where} reach {float(np.nanmax(np.abs(pos))):.3g} {units}, beyond "
-                        f"the {limit:g} {units} ({max_mm / 1e6:g} km) a fit accepts",
+                        f"the {limit:g} {units} ({max_mm / 1e3:g} m) a fit accepts",
                         "check the file's units, or subtract a reference point (e.g. the lab origin) first")
 
 
@@ -135,6 +137,14 @@ class MarkerData:
         Length unit of ``positions``: ``"mm"``, ``"cm"`` or ``"m"``.
     source : str, optional
         Where the data came from (a path), for messages.
+
+    Raises
+    ------
+    DataError
+        In one line: positions that are not an ``(F, M, 2 or 3)`` array of real numbers, or hold
+        an infinity (NaN is a missing marker; an infinity is not); names that are not one string
+        per marker, or not unique (a single string is one name); a rate outside
+        :data:`RATE_RANGE` (or not a number); units other than mm, cm and m.
     """
 
     positions: np.ndarray

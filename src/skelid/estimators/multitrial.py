@@ -511,21 +511,6 @@ def _as_trials(trials) -> list:
                         "give a list of MarkerData, one per trial") from None
 
 
-def _check_distinct_trials(trials) -> None:
-    """Refuse a trial given twice (the same object, or the same positions): it would count twice."""
-    for k, a in enumerate(trials):
-        pa = a.positions if isinstance(a, MarkerData) else a
-        for j in range(k):
-            b = trials[j]
-            pb = b.positions if isinstance(b, MarkerData) else b
-            same = a is b or (isinstance(pa, np.ndarray) and isinstance(pb, np.ndarray) and pa.shape == pb.shape
-                              and np.array_equal(pa, pb, equal_nan=pa.dtype.kind == "f" and pb.dtype.kind == "f"))
-            if same:
-                raise DataError(f"{_trial_label(a, k)} is the same trial as {_trial_label(b, j)} (identical "
-                                "positions): its frames would count as two trials' worth of information",
-                                "give each trial once")
-
-
 class MultiTrialEstimator:
     """One geometry from several trials of one body.
 
@@ -632,7 +617,6 @@ class MultiTrialEstimator:
         trials = _as_trials(trials)
         if not trials:
             raise DataError("no trials to fit", "give at least one marker file")
-        _check_distinct_trials(trials)
         ests, labels = [], []
         for k, data in enumerate(trials):
             label = _trial_label(data, k)
