@@ -390,6 +390,23 @@ def test_frozen_data_are_refused(name):
         ESTIMATORS[name](CASE_A).fit(frozen)
 
 
+def test_frames_that_repeat_exactly_are_flagged():
+    """A capture frozen half way: the copies would pass for information, so the fit says so."""
+    from skelid.estimators.marker import repeated_frames
+
+    y = np.array(TRIAL.data.positions)
+    assert repeated_frames(y) == 0
+    y[25:] = y[24]
+    y[30, 0] = np.nan  # a gap breaks the run: frame 30 differs from 29, and 31 from 30
+    assert repeated_frames(y) == 15 - 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkelidWarning)
+        est = MarkerEstimator(CASE_A, rng=0).fit(TRIAL.data.replace(positions=y))
+        plain = MarkerEstimator(CASE_A, rng=0).fit(TRIAL.data)
+    assert "repeated-frames" in {w.code for w in est.warnings_}
+    assert "repeated-frames" not in {w.code for w in plain.warnings_}
+
+
 def test_the_same_file_twice_is_refused(tmp_path):
     from skelid.checks import check_distinct_files
     from skelid.io import write_trc

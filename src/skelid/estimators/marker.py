@@ -876,11 +876,28 @@ def _data_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warni
         out.append(Warning("outliers", f"{int(out_.sum())} marker positions in {int(out_.any(axis=1).sum())} "
                            f"frames lie more than {s.outlier_threshold:g} robust standard deviations from the "
                            "fitted model (mislabelled or glitched markers?) and were left out"))
+    n_rep = repeated_frames(f.start.y)
+    if n_rep:
+        out.append(Warning("repeated-frames", f"{n_rep} of {len(f.start.y)} frames repeat the frame before them "
+                           "exactly (a frozen capture, or a file padded with copies?): each is counted as new "
+                           "information, so the interval is too narrow by up to the square root of the share "
+                           "of distinct frames; remove the copies"))
     n_skip = int((~f.frames.used).sum())
     if n_skip:
         out.append(Warning("frames-skipped", f"{n_skip} of {len(f.frames.used)} frames have too few markers "
                            "to fix the pose and were skipped"))
     return out
+
+
+def repeated_frames(y) -> int:
+    """Frames ``y (T, M, D)`` identical to the one before them in every coordinate (NaN where NaN), with a
+    marker present: real noise never repeats a frame exactly, a frozen capture or a padded file does."""
+    y = np.asarray(y, float)
+    if len(y) < 2:
+        return 0
+    a, b = y[1:], y[:-1]
+    same = ((a == b) | (np.isnan(a) & np.isnan(b))).all(axis=(1, 2))
+    return int((same & np.isfinite(a).all(axis=2).any(axis=1)).sum())
 
 
 def _bound_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
