@@ -34,8 +34,9 @@ from skelid.errors import DataError, FormatError, ModelError, SettingError
 from skelid.estimators.fit.joint import usable_frames  # the one usable-frame rule
 from skelid.model.description import Model
 
-#: usable frames each method needs at the least (the motion model of the marker methods needs a few)
-MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5}
+#: usable frames each method needs at the least (the motion model of the marker methods needs a few); a
+#: trial among several ('marker-multi') need not stand alone, and its motion model asks for 3 frames itself
+MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5, "marker-multi": 1}
 DEFAULT_MIN_FRAMES = 5
 #: a coordinate whose peak-to-peak range over the frames is below this fraction of the model's size is still
 MOTION_RTOL = 1e-9

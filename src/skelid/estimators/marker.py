@@ -114,6 +114,7 @@ from skelid.result import FitResult, NoiseEstimate, Warning
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
+MOTION_MIN_FRAMES = 3  # the motion model penalises second differences of the poses
 STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
@@ -432,6 +433,9 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
                             min(MIN_AUTO_CUTOFF, rate / 2))
     if cutoff is None:
         return Motion(sc.fit, None)
+    if len(sc.y) < MOTION_MIN_FRAMES:
+        raise DataError(f"{len(sc.y)} frame(s): the motion model (cutoff) smooths second differences of the poses "
+                        f"and needs at least {MOTION_MIN_FRAMES} frames", "give a longer trial, or cutoff=None")
     # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
     # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays).
     # Near a singular pose the per-frame fits jump between branches, so the second start is a fit whose

@@ -648,7 +648,7 @@ class MultiTrialEstimator:
         check_settings(self)
         est = MarkerEstimator(self.model, **self._trial_settings())
         check_settings(est)
-        y, rate = marker_array(self.model, data, est.rate, est.name)
+        y, rate = marker_array(self.model, data, est.rate, self.name)
         f = run_marker_fit(est, y, rate, make_rng(est.rng), on_bound="warn")
         est._publish(f, emit(marker_warnings(self.model, est, f)))
         return est

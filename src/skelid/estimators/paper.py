@@ -95,6 +95,7 @@ class ConstraintSystem:
     """
 
     def __init__(self, model: Model):
+        check_model(model, type(self).__name__)
         if model.n_params != 1 or model.parameters[0].kind != "length":
             raise ModelError(
                 f"the paper method needs exactly one parameter of kind 'length'; model "
