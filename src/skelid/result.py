@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+from skelid.errors import SettingError  # a ValueError too
+
 #: the statuses a parameter can have
 STATUSES = ("identified", "poor", "unidentified", "prior", "on-bound")
 
@@ -82,7 +84,7 @@ class ParameterEstimate:
 
     def __post_init__(self):
         if self.status not in STATUSES:
-            raise ValueError(f"status must be one of {', '.join(STATUSES)}, got {self.status!r}")
+            raise SettingError(f"status must be one of {', '.join(STATUSES)}, got {self.status!r}")
         lo, hi = self.interval
         object.__setattr__(self, "interval", (float(lo), float(hi)))
         for f in ("map", "mean", "sd"):
@@ -264,7 +266,7 @@ class FitResult:
             table = dict(getattr(self, name))
             for key, p in table.items():
                 if not isinstance(p, ParameterEstimate) or p.name != key:
-                    raise ValueError(f"{name}[{key!r}] must be a ParameterEstimate named {key!r}")
+                    raise SettingError(f"{name}[{key!r}] must be a ParameterEstimate named {key!r}")
             object.__setattr__(self, name, table)
         object.__setattr__(self, "warnings", tuple(
             w if isinstance(w, Warning) else Warning("note", str(w)) for w in self.warnings))
@@ -336,7 +338,7 @@ class FitRun:
         results = dict(self.results)
         for k, r in results.items():
             if not isinstance(r, FitResult):
-                raise ValueError(f"results[{k!r}] must be a FitResult")
+                raise SettingError(f"results[{k!r}] must be a FitResult")
         object.__setattr__(self, "results", results)
         object.__setattr__(self, "context", dict(self.context))
         object.__setattr__(self, "warnings", tuple(
