@@ -150,6 +150,17 @@ def test_marker_data_refusals_name_the_problem():
     assert MarkerData(P[:, :1], "ABC", 100.0).names == ("ABC",)
 
 
+@FAST
+@given(names=NAMES | st.just("A"), start=st.integers(-3, 50) | ODD, stop=st.none() | st.integers(-3, 50) | ODD,
+       units=UNITS)
+def test_marker_data_methods_return_marker_data_or_refuse(names, start, stop, units):
+    for f, args in ((TRIAL.data.select, (names,)), (TRIAL.data.frames, (start, stop)), (TRIAL.data.to_units, (units,))):
+        kind, d = outcome(f, *args)
+        if kind == "ok":
+            check_marker_data(d)
+    assert TRIAL.data.select("A").names == ("A",)
+
+
 # --------------------------------------------------------------------------- estimators
 ESTIMATORS = {"marker": MarkerEstimator, "paper": PaperFilter, "marker-grid": MarkerGridFilter,
               "marker-smc": SamplerEstimator, "marker-multi": MultiTrialEstimator}
@@ -175,6 +186,13 @@ def test_settings_are_checked_before_any_work(setting, value):
         assert isinstance(exc, SettingError) and setting in str(exc)
         with pytest.raises(SettingError):  # fit refuses it the same way, before reading the data
             est.fit(TRIAL.data)
+
+
+@pytest.mark.parametrize("setting, value", [("theta0", [250.0, 1.0]), ("theta0", 250.0),
+                                            ("pose0", np.zeros((3, 5))), ("pose0", np.zeros((40, 2)))])
+def test_starting_values_of_the_wrong_shape_are_setting_errors(setting, value):
+    with pytest.raises(SettingError, match=f"setting {setting} of shape"):
+        MarkerEstimator(CASE_A, **{setting: value}).fit(TRIAL.data)
 
 
 def test_negative_n_iter_is_a_setting_error():

@@ -112,6 +112,14 @@ def check_names(names, n_markers: int, where: str = "the data") -> tuple[str, ..
     return names
 
 
+def _iterable(v) -> bool:
+    try:
+        iter(v)
+    except TypeError:
+        return False
+    return True
+
+
 def check_rate(rate, where: str = "the data") -> float:
     """A sampling rate in Hz within :data:`RATE_RANGE`, or a one-line :class:`DataError`."""
     numeric = isinstance(rate, int | float | np.integer | np.floating) and not isinstance(rate, bool | np.bool_)
@@ -232,7 +240,17 @@ class MarkerData:
         DataError
             Naming every marker that is not in the data.
         """
+        if isinstance(names, str):
+            names = (names,)  # one name, never its letters
+        if not _iterable(names):
+            raise DataError(f"the names to select must be a sequence of strings, got {type(names).__name__}",
+                            "give the marker names, e.g. ('RSHO', 'RELB')")
+        names = tuple(names)
+        names = check_names(names, len(names), "the names to select")
         aliases = aliases or {}
+        if not isinstance(aliases, Mapping):
+            raise DataError(f"aliases must be a dict of model name to name in the file, got {type(aliases).__name__}",
+                            "give {model name: file name} or leave it out")
         index = {n: i for i, n in enumerate(self.names)}
         wanted = [aliases.get(n, n) for n in names]
         missing = [w for w in wanted if w not in index]
@@ -257,6 +275,9 @@ class MarkerData:
 
     def frames(self, start: int = 0, stop: int | None = None) -> MarkerData:
         """Frames ``start:stop``."""
+        for name, v in (("start", start), ("stop", stop)):
+            if not (v is None and name == "stop") and not (isinstance(v, int | np.integer) and not isinstance(v, bool)):
+                raise DataError(f"frames({name}={v!r}): a frame index must be an integer", "e.g. data.frames(0, 100)")
         return self.replace(positions=self.positions[start:stop])
 
     def __repr__(self) -> str:

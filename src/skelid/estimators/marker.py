@@ -44,7 +44,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError, SettingError
 from skelid.estimators.base import (
     RATE,
     RNG,
@@ -387,9 +387,17 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | 
         raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
                                    "add a [[parameters]] table")
     theta0 = model.theta_center if s.theta0 is None else np.asarray(s.theta0, float)
+    if theta0.shape != (model.n_params,):
+        raise SettingError(f"{type(s).__name__} setting theta0 of shape {theta0.shape} does not fit model "
+                           f"{model.name!r}", f"give {model.n_params} starting values, one per parameter "
+                           f"{list(model.parameter_names)}, or None")
     bounds = (np.array([p.prior.lower for p in model.parameters]),
               np.array([p.prior.upper for p in model.parameters]))
     pose0 = s.pose0
+    if pose0 is not None and np.shape(pose0) != (len(y), model.n_pose):
+        raise SettingError(f"{type(s).__name__} setting pose0 of shape {np.shape(pose0)} does not fit these data "
+                           f"({len(y)} frames) and model {model.name!r} ({model.n_pose} pose coordinates)",
+                           f"give ({len(y)}, {model.n_pose}) starting poses, or None")
     if pose0 is None:
         stride = max(1, int(rate // 25))  # track at about 25 Hz, interpolate between
         pose0, _ = track_poses(model, theta0, y, rng, stride=stride, ws=ws)
