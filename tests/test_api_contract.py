@@ -200,12 +200,19 @@ def test_negative_n_iter_is_a_setting_error():
         MarkerEstimator(CASE_A, n_iter=-3).fit(TRIAL.data)
 
 
-@pytest.mark.parametrize("name", ["marker", "marker-smc", "marker-multi"])
+@pytest.mark.parametrize("name", ["marker", "marker-smc"])
 @pytest.mark.parametrize("n_frames", [1, 3])
 def test_too_few_frames_are_refused_with_the_count(name, n_frames):
     data = MarkerData(TRIAL.data.positions[:n_frames], TRIAL.data.names, 100.0)
     with pytest.raises(DataError, match=f"has {n_frames} frame"):
         ESTIMATORS[name](CASE_A).fit(data)
+
+
+@pytest.mark.parametrize("n_frames", [1, 2])
+def test_a_trial_among_several_needs_the_frames_of_its_motion_model(n_frames):
+    short = MarkerData(TRIAL.data.positions[:n_frames], TRIAL.data.names, 100.0, source="short.trc")
+    with pytest.raises(DataError, match="short.trc: .*needs at least 3 frames"):
+        MultiTrialEstimator(CASE_A, rng=0).fit([short, TRIAL.data])
 
 
 @st.composite
