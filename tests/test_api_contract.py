@@ -446,12 +446,11 @@ def test_the_same_file_twice_is_refused(tmp_path):
 
 
 # --------------------------------------------------------------------------- where the data sit
-#: largest relative change of the estimate, its sd and sigma under a rigid shift of up to 1e4 mm.
-#: Measured (4 random shifts each): case A, 40 frames, 1.0e-7, 1.6e-7 and 2.8e-7; case B, 80 frames,
-#: 4.5e-7, 6.0e-6 and 7.4e-8. The fit's stopping rule (steps below 1e-4 sd), not rounding, sets them:
-#: a shift of 1 mm already changes the estimate by 2e-10. Up to 1e5 mm (the fit's range) they stay
-#: below 3e-5, 2.2e-4 and 2.2e-6.
-SHIFT_RTOL = {"mean": 1e-6, "sd": 1e-5, "sigma": 1e-5}
+#: largest relative change of the estimate, its sd and sigma under a rigid shift of up to 1e4 mm:
+#: ten times the worst that benchmarks/shift_invariance.py measured (case A, 40 frames: 3.1e-6, 2.7e-5
+#: and 1.8e-7; case B, 80 frames: 5.7e-8, 7.9e-7 and 1.7e-8). The fit's stopping rule, not rounding,
+#: sets them: a shift of 1 mm already changes the estimate by 2e-10 of its value.
+SHIFT_RTOL = {"mean": 3e-5, "sd": 3e-4, "sigma": 3e-6}
 
 
 def _fit_values(data):
@@ -465,7 +464,7 @@ def _fit_values(data):
 BASE = _fit_values(TRIAL.data)
 
 
-@settings(max_examples=3, deadline=None, derandomize=True, database=None)
+@settings(max_examples=5, deadline=None, derandomize=True, database=None)
 @given(shift=hnp.arrays(float, 2, elements=st.floats(-1e4, 1e4)))
 def test_a_rigid_shift_leaves_the_estimates_unchanged(shift):
     mean, sd, sigma = _fit_values(TRIAL.data.replace(positions=TRIAL.data.positions + shift))
