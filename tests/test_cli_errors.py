@@ -30,6 +30,8 @@ def files(tmp_path_factory):
          "binary_model": d / "binary.toml", "a_file": d / "plain_file", "c3d_named": d / "data.xyz",
          "broken_result": d / "broken_result", "no_result": d / "no_result", "ok_result": d / "ok_result"}
     write_trc(f["good"], trial.data)
+    f["good_link"] = d / "link.trc"
+    os.symlink(f["good"], f["good_link"])
     f["dir"].mkdir()
     f["empty"].write_bytes(b"")
     f["empty_model"].write_bytes(b"")
@@ -47,6 +49,13 @@ def files(tmp_path_factory):
 
     f["ok_result"].mkdir()
     write_run(f["ok_result"], FitRun())
+    f["nameless_result"] = d / "nameless_result"
+    f["nameless_result"].mkdir()
+    write_run(f["nameless_result"], FitRun(context={"data_overview": {"markers": [{"used_by_model": True}]}}))
+    f["rate0_result"] = d / "rate0_result"
+    f["rate0_result"].mkdir()
+    write_run(f["rate0_result"], FitRun(arrays={"markers": trial.data.positions, "rate": np.array(0.0),
+                                                "marker_names": np.array(trial.data.names), "units": np.array("mm")}))
     return {k: str(v) for k, v in f.items()}
 
 
@@ -81,6 +90,11 @@ BAD = {
     "report of a damaged result.json": ("report {broken_result} --out {out}.html", "is not valid JSON"),
     "report over its own input": ("report {ok_result} --out {ok_result}/result.json", "would overwrite the input"),
     "report into a folder": ("report {ok_result} --out {dir}", "is a folder"),
+    "report of a result whose markers have no names": ("report {nameless_result} --out {out}.html",
+                                                       "markers[0]: has no key 'name'"),
+    "report of arrays.npz with a rate of 0": ("report {rate0_result} --out {out}.html", "rate] is 0 Hz"),
+    "the same data file twice": ("fit {case_a} {good} {good} --out {out}", "is given twice"),
+    "the same data file twice under two names": ("fit {case_a} {good} {good_link} --out {out}", "is given twice"),
 }
 
 

@@ -17,7 +17,8 @@ fit:
   number.
 
 Before those, the checks of the input itself: :func:`check_input_file` (an existing,
-readable, non-empty file), :func:`check_units` (marker distances against the model's), and
+readable, non-empty file), :func:`check_distinct_files` (no file given twice),
+:func:`check_units` (marker distances against the model's), and
 :func:`data_overview` (what the file holds, each marker's gaps).
 """
 
@@ -29,15 +30,25 @@ from pathlib import Path
 import numpy as np
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import DataError, FormatError, ModelError
+from skelid.errors import DataError, FormatError, ModelError, SettingError
 from skelid.estimators.fit.joint import usable_frames  # the one usable-frame rule
 from skelid.model.description import Model
 
-#: usable frames each method needs at the least (the motion model of the marker methods needs a few)
-MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5}
+#: usable frames each method needs at the least (the motion model of the marker methods needs a few); a
+#: trial among several ('marker-multi') need not stand alone, and its motion model asks for 3 frames itself
+MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5, "marker-multi": 1}
 DEFAULT_MIN_FRAMES = 5
 #: a coordinate whose peak-to-peak range over the frames is below this fraction of the model's size is still
 MOTION_RTOL = 1e-9
+
+
+def check_finite(name: str, value):
+    """``value`` if it is None or a finite number, else a one-line :class:`SettingError` naming ``name``."""
+    import math
+
+    if value is not None and not math.isfinite(value):
+        raise SettingError(f"{name} must be a finite number, got {value}", f"give {name} a number such as 15")
+    return value
 
 
 def check_surplus(model, where: str = "the data") -> None:
@@ -97,6 +108,24 @@ def check_input_file(path, what: str = "data file") -> Path:
     if not head:
         raise cls(f"{what} {path} is empty", "check that the file was written completely")
     return path
+
+
+def check_distinct_files(paths, what: str = "data file") -> None:
+    """Refuse the same file given twice (by path, links followed) in one line: its trial would count twice."""
+    import os
+
+    seen: dict = {}
+    for p in paths:
+        try:
+            st = os.stat(p)
+            key = (st.st_dev, st.st_ino)
+        except OSError:
+            key = os.path.abspath(p)  # a missing file is refused by check_input_file
+        if key in seen:
+            same = "" if str(seen[key]) == str(p) else f" (as {seen[key]})"
+            raise DataError(f"{what} {p} is given twice{same}: its frames would count as two trials' worth "
+                            "of information", "give each trial once")
+        seen[key] = p
 
 
 def _model_names_in_file(model: Model, data: MarkerData) -> dict[str, str]:

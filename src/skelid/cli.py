@@ -11,7 +11,6 @@ only JSON on stdout; progress bars go to stderr and only to a terminal.
 from __future__ import annotations
 
 import contextlib
-import math
 import signal
 import sys
 import threading
@@ -62,9 +61,10 @@ def _echo_json(obj) -> None:
 
 
 def _finite(name: str, value):
-    if value is not None and not math.isfinite(value):
-        raise SkelidError(f"{name} must be a finite number, got {value}", f"give {name} a number such as 15")
-    return value
+    """:func:`skelid.checks.check_finite` (imported when a command runs, so that --help stays quick)."""
+    from skelid.checks import check_finite
+
+    return check_finite(name, value)
 
 
 def _limit_options(f):
@@ -214,7 +214,9 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     receives the scaled .osim, its ScaleSet and scaling.json with the intervals.
     """
     from skelid import workflows
+    from skelid.checks import check_distinct_files
 
+    check_distinct_files(data_paths)
     if str(model_path).lower().endswith(".osim"):
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,

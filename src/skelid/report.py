@@ -375,7 +375,7 @@ def _refs(ctx: Mapping, pname: str) -> dict:
     if isinstance(truth, Mapping) and pname in truth:
         refs["true value"] = float(truth[pname])
     mp = (ctx.get("model_parameters") or {}).get(pname) or {}
-    if "nominal" in mp and "true value" not in refs:
+    if mp.get("nominal") is not None and "true value" not in refs:
         refs["nominal (model file)"] = float(mp["nominal"])
     return refs
 

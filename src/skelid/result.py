@@ -42,8 +42,10 @@ from typing import Any
 
 import numpy as np
 
+from skelid.errors import SettingError  # a ValueError too
+
 #: the statuses a parameter can have
-STATUSES = ("identified", "poor", "unidentified", "prior")
+STATUSES = ("identified", "poor", "unidentified", "prior", "on-bound")
 
 
 @dataclass(frozen=True)
@@ -61,8 +63,10 @@ class ParameterEstimate:
         Central 95 % interval.
     crlb_sd : float or None
         Cramér-Rao bound on the standard deviation, where the estimator computes one.
-    status : {'identified', 'poor', 'unidentified', 'prior'}
-        ``prior``: the data add nothing and the value is the prior's.
+    status : {'identified', 'poor', 'unidentified', 'prior', 'on-bound'}
+        ``prior``: the data add nothing and the value is the prior's. ``on-bound``: the fit's
+        optimum sits on (or beyond) a bound of the prior's support; the point reported is on
+        the bound, never outside it (the unbounded value is in ``extra['beyond_bound']``).
     extra : mapping
         Estimator-specific numbers (``bias_removed``, ``crlb_sd_motion_model``, ``jackknife_sd``, ...),
         JSON values only.
@@ -80,7 +84,7 @@ class ParameterEstimate:
 
     def __post_init__(self):
         if self.status not in STATUSES:
-            raise ValueError(f"status must be one of {', '.join(STATUSES)}, got {self.status!r}")
+            raise SettingError(f"status must be one of {', '.join(STATUSES)}, got {self.status!r}")
         lo, hi = self.interval
         object.__setattr__(self, "interval", (float(lo), float(hi)))
         for f in ("map", "mean", "sd"):
@@ -262,7 +266,7 @@ class FitResult:
             table = dict(getattr(self, name))
             for key, p in table.items():
                 if not isinstance(p, ParameterEstimate) or p.name != key:
-                    raise ValueError(f"{name}[{key!r}] must be a ParameterEstimate named {key!r}")
+                    raise SettingError(f"{name}[{key!r}] must be a ParameterEstimate named {key!r}")
             object.__setattr__(self, name, table)
         object.__setattr__(self, "warnings", tuple(
             w if isinstance(w, Warning) else Warning("note", str(w)) for w in self.warnings))
@@ -334,7 +338,7 @@ class FitRun:
         results = dict(self.results)
         for k, r in results.items():
             if not isinstance(r, FitResult):
-                raise ValueError(f"results[{k!r}] must be a FitResult")
+                raise SettingError(f"results[{k!r}] must be a FitResult")
         object.__setattr__(self, "results", results)
         object.__setattr__(self, "context", dict(self.context))
         object.__setattr__(self, "warnings", tuple(

@@ -141,6 +141,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
         repeated), written to ``out_dir`` through :func:`skelid.io.results.write_run`.
     """
     from skelid import workflows
+    from skelid.checks import check_distinct_files
     from skelid.errors import SkelidError
     from skelid.io import read_markers
     from skelid.io.atomic import atomic_dir, check_output_dir
@@ -162,6 +163,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
     others = [load_model(p) for p in alternatives]
     for p in data_paths:
         workflows.check_input_file(p, "data file")
+    check_distinct_files(data_paths)
     # bad settings fail before any reading
     workflows.make_estimator("marker", model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
     settings = {"sigma": sigma, "rng": np.random.default_rng(seed), "noise": noise,

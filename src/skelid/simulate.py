@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.errors import ModelError
+from skelid.errors import ModelError, SettingError, SkelidError
 from skelid.estimators.fit.pose import _model_size, _rotation_ranges
 from skelid.model.description import Model, load_model
 from skelid.model.kinematics import marker_positions
@@ -153,6 +153,62 @@ def sta_rms(model: Model, amplitude: float) -> float:
     return float(amplitude * np.sqrt(1.0 / (2.0 * model.dim) + 1.0 / 9.0))
 
 
+def _is_number(v) -> bool:
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool | np.bool_) \
+        and bool(np.isfinite(v))
+
+
+def _pair(v, name: str) -> tuple[float, float]:
+    try:
+        lo, hi = v
+    except (TypeError, ValueError):
+        raise SettingError(f"{name}={v!r} is not a pair of numbers", f"give {name} as (lower, upper)") from None
+    if not (_is_number(lo) and _is_number(hi)):
+        raise SettingError(f"{name}={v!r} is not a pair of finite numbers", f"give {name} as (lower, upper)")
+    return float(lo), float(hi)
+
+
+def check_simulation(model, theta, n_frames, rate, sigma, rng, noise: str = "iid", sta_amplitude: float = 0.0,
+                     hard_poses: bool = False, nominal: bool = True) -> tuple[np.ndarray, np.random.Generator]:
+    """The checks of :func:`simulate`'s arguments: ``(theta (P,), rng)``, or a one-line :class:`SettingError`
+    (:class:`ModelError` for something that is not a model)."""
+    from skelid.data import check_rate
+    from skelid.estimators.base import check_model
+
+    check_model(model, "simulate")
+    if not (isinstance(n_frames, int | np.integer) and not isinstance(n_frames, bool) and n_frames >= 1):
+        raise SettingError(f"n_frames={n_frames!r} is not a number of frames", "give an integer >= 1")
+    try:
+        check_rate(rate, "simulate")
+    except SkelidError as exc:
+        raise SettingError(exc.problem, exc.fix) from None
+    for name, v in (("sigma", sigma), ("sta_amplitude", sta_amplitude)):
+        if not (_is_number(v) and v >= 0):
+            raise SettingError(f"{name}={v!r} is not a noise level", f"give {name} as a finite number >= 0 "
+                               f"in {model.units}")
+    if not isinstance(noise, str) or noise not in ("iid", "sta"):
+        raise SettingError(f"noise={noise!r} is not a noise model", "give noise='iid' or noise='sta'")
+    if not isinstance(hard_poses, bool | np.bool_):
+        raise SettingError(f"hard_poses={hard_poses!r} is not True or False", "give hard_poses=True or False")
+    if rng is None:
+        rng = np.random.default_rng(0)
+    elif not isinstance(rng, np.random.Generator):
+        raise SettingError(f"rng={rng!r} is not a numpy.random.Generator",
+                           "give rng=numpy.random.default_rng(seed)")
+    if theta is None and nominal:
+        return model.theta_nominal, rng
+    try:
+        th = np.array(theta, dtype=float)
+    except (TypeError, ValueError):
+        raise SettingError(f"theta={theta!r} is not an array of numbers",
+                           f"give {model.n_params} values, one per parameter {list(model.parameter_names)}") from None
+    if th.shape != (model.n_params,) or not np.isfinite(th).all():
+        raise SettingError(f"theta of shape {th.shape} does not fit model {model.name!r} "
+                           f"({model.n_params} parameters), or is not finite",
+                           f"give {model.n_params} finite values, one per parameter {list(model.parameter_names)}")
+    return th, rng
+
+
 def simulate(model: Model, theta=None, n_frames: int = 500, rate: float = 100.0,
              sigma: float = 15.0, rng: np.random.Generator | None = None,
              hard_poses: bool = False, noise: str = "iid", sta_amplitude: float = 10.0) -> Trial:
@@ -181,11 +237,17 @@ def simulate(model: Model, theta=None, n_frames: int = 500, rate: float = 100.0,
     Returns
     -------
     Trial
+
+    Raises
+    ------
+    SettingError
+        An argument out of its range (``n_frames < 1``, ``sigma < 0``, a rate outside
+        :data:`skelid.data.RATE_RANGE`, a ``theta`` of the wrong length, ...), in one line.
+    ModelError
+        ``model`` is not a :class:`~skelid.model.description.Model`.
     """
-    if noise not in ("iid", "sta"):
-        raise ValueError(f"noise must be 'iid' or 'sta', got {noise!r}")
-    rng = np.random.default_rng(0) if rng is None else rng
-    theta = model.theta_nominal if theta is None else np.asarray(theta, dtype=float)
+    theta, rng = check_simulation(model, theta, n_frames, rate, sigma, rng, noise=noise, sta_amplitude=sta_amplitude,
+                                  hard_poses=hard_poses)
     pose = simulate_motion(model, n_frames, rate, rng, hard_poses)
     clean = marker_positions(model, theta, pose)
     noisy = clean + rng.normal(0.0, sigma, size=clean.shape)
@@ -205,8 +267,21 @@ def simulate_posture(model: Model, theta, n_frames: int, sigma: float, degrees: 
     Returns
     -------
     Trial
+
+    Raises
+    ------
+    SettingError
+        An argument out of its range (``n_frames < 1``, ``sigma < 0``, a rate outside
+        :data:`skelid.data.RATE_RANGE`, a ``theta`` of the wrong length, ...), in one line.
+    ModelError
+        ``model`` is not a :class:`~skelid.model.description.Model`.
     """
-    theta = np.asarray(theta, dtype=float)
+    theta, rng = check_simulation(model, theta, n_frames, rate, sigma, rng, nominal=False)
+    lo_deg, hi_deg = _pair(degrees, "degrees")
+    if not lo_deg < hi_deg:
+        raise SettingError(f"simulate_posture degrees=({lo_deg:g}, {hi_deg:g}) is not an interval",
+                           "give (lower, upper) in degrees with lower < upper")
+    degrees = (lo_deg, hi_deg)
     pose = simulate_motion(model, n_frames, rate, rng)
     lo, hi = np.radians(degrees)
     for k, d in enumerate(model.dofs):

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from skelid.data import MarkerData, unit_scale
-from skelid.errors import DataError, NotFittedError, SettingError, SkelidWarning
+from skelid.data import MarkerData, check_positions, check_range, unit_scale
+from skelid.errors import DataError, ModelError, NotFittedError, SettingError, SkelidWarning
 from skelid.model.description import Model
 from skelid.result import Warning
 
@@ -131,6 +131,19 @@ def make_rng(rng) -> np.random.Generator:
     return np.random.default_rng(0 if rng is None else int(rng))
 
 
+def check_model(model, who: str) -> Model:
+    """``model`` if it is a :class:`~skelid.model.description.Model`, else a one-line :class:`ModelError`.
+
+    Every estimator's ``__init__`` calls it: a model is not a setting, and a wrong one would
+    otherwise surface as an ``AttributeError`` deep inside ``fit``.
+    """
+    if not isinstance(model, Model):
+        raise ModelError(f"{who} needs a skelid Model as its first argument, got {type(model).__name__}",
+                         "load one with skelid.load_model('model.toml') or "
+                         "skelid.simulate.builtin_model('case-a')")
+    return model
+
+
 def check_fitted(est, attr: str = "frames_used_") -> None:
     """Raise :class:`~skelid.errors.NotFittedError` if ``est`` has not been fitted."""
     if not hasattr(est, attr):
@@ -149,34 +162,49 @@ def setting_json(v):
     return v if v is None or isinstance(v, bool | int | float | str) else repr(v)
 
 
-def marker_array(model: Model, data, rate) -> tuple[np.ndarray, float]:
+def marker_array(model: Model, data, rate, method: str | None = None) -> tuple[np.ndarray, float]:
     """``(y (F, M, D), rate)`` from ``data``: a :class:`MarkerData`, or an array with the ``rate`` setting.
+
+    With ``method`` (the estimator's name), the data are also checked as ``skelid fit`` checks
+    them (:func:`skelid.checks.check_data`): enough usable frames for the method, more marker
+    coordinates than pose coordinates, something that moves.
 
     Raises
     ------
     DataError
-        See :func:`prepare`; an array of another shape than ``(F, M, D)`` for the model.
+        See :func:`prepare` and :func:`skelid.checks.check_data`; an array of another shape than
+        ``(F, M, D)`` for the model, or of anything but real numbers.
     SettingError
         An array without a ``rate``.
     """
     if isinstance(data, MarkerData):
-        return prepare(model, data), data.rate
+        y, rate, where = prepare(model, data), data.rate, data.source or "the data"
+    else:
+        y, rate, where = _array_data(model, data, rate), float(rate), "the marker array"
+    check_range(y, model.units, where)
+    if method is not None:
+        from skelid.checks import check_data  # the checks of skelid fit, the one place they live
+
+        check_data(model, y, [method], where)
+    return y, rate
+
+
+def _array_data(model: Model, data, rate) -> np.ndarray:
+    if isinstance(data, str | bytes) or data is None or isinstance(data, dict):
+        raise DataError(f"data must be MarkerData or an array (frames, markers, coordinates) of numbers, "
+                        f"got {type(data).__name__}", "give a MarkerData (skelid.io.read_markers(path)) or an array")
     if rate is None:
         raise SettingError("marker data given as an array need the sampling rate (setting rate=None)",
                            "pass rate=HZ to the estimator, or give a MarkerData")
-    try:
-        y = np.array(data, dtype=float)
-    except (TypeError, ValueError):
-        raise DataError(f"data must be MarkerData or an array of numbers, got {type(data).__name__}") from None
+    y = check_positions(data, model.units, "the marker array")
     shape = (len(model.markers), model.dim)
     if y.ndim != 3 or y.shape[1:] != shape:
         raise DataError(f"marker array of shape {y.shape} does not fit model {model.name!r}",
                         f"give (frames, {shape[0]}, {shape[1]}): the model's markers in model order and units")
-    y[~np.isfinite(y)] = np.nan
     if len(y) == 0:
         raise DataError("the marker array has no frames", "give at least one frame")
     _check_present(model, y, "the marker array")
-    return y, float(rate)
+    return y
 
 
 def _check_present(model: Model, y: np.ndarray, source: str) -> None:
@@ -245,6 +273,35 @@ def warn_once(message: str, record: list | None = None) -> None:
         record.append(message)
 
 
+#: a point within this fraction of its prior's width from a bound sits on the bound
+ON_BOUND_RTOL = 1e-6
+
+
+def in_support(prior, points, interval, status: str) -> tuple[tuple[float, ...], tuple[float, float], str]:
+    """Points (MAP, mean) and interval of one parameter held inside its prior's support ``[lower, upper]``.
+
+    A point on or beyond a bound gets the status ``'on-bound'`` (unless the parameter is
+    unidentified) and is put on the bound; when one is moved, the interval is cut to the
+    support as well. A point inside leaves everything as it is.
+    """
+    lo, hi = float(prior.lower), float(prior.upper)
+    tol = ON_BOUND_RTOL * (hi - lo)
+    moved = any(not lo <= x <= hi for x in points)
+    on = moved or any(x <= lo + tol or x >= hi - tol for x in points)
+    if on and status != "unidentified":
+        status = "on-bound"
+    if moved:
+        points = tuple(min(max(x, lo), hi) for x in points)
+        interval = (min(max(interval[0], lo), hi), min(max(interval[1], lo), hi))
+    return points, interval, status
+
+
+def _beyond(posterior, k: int, point) -> dict:
+    """``{'beyond_bound': {'map', 'mean'}}``: the unbounded values, where the point was put on a bound."""
+    raw = (float(posterior.map[k]), float(posterior.mean[k]))
+    return {} if raw == tuple(point) else {"beyond_bound": {"map": raw[0], "mean": raw[1]}}
+
+
 def _status(s) -> str:
     return {"unidentifiable": "unidentified"}.get(str(s), str(s)) if s else "identified"
 
@@ -281,10 +338,11 @@ def build_result(est, posterior, *, noise=None, skipped=None, crlb_sd=None, extr
     params = {}
     for k, n in enumerate(model.parameter_names):
         crlb = None if crlb_sd is None or not np.isfinite(crlb_sd[k]) else float(crlb_sd[k])
-        params[n] = ParameterEstimate(n, parameter_unit(model, k), float(posterior.map[k]),
-                                      float(posterior.mean[k]), float(posterior.sd[k]),
-                                      (float(ci[k, 0]), float(ci[k, 1])), crlb_sd=crlb,
-                                      status=_status(status.get(n)), extra=(extra or {}).get(n, {}))
+        point, ext, st = in_support(model.parameters[k].prior, (float(posterior.map[k]), float(posterior.mean[k])),
+                                    (float(ci[k, 0]), float(ci[k, 1])), _status(status.get(n)))
+        params[n] = ParameterEstimate(n, parameter_unit(model, k), point[0], point[1], float(posterior.sd[k]),
+                                      ext, crlb_sd=crlb, status=st,
+                                      extra={**(extra or {}).get(n, {}), **_beyond(posterior, k, point)})
     der = {n: ParameterEstimate(n, model.units, v["value"], v["value"], v["sd"], tuple(v["ci95"]))
            for n, v in (derived or {}).items()}
     used = np.asarray(est.frames_used_, bool)

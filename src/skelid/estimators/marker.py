@@ -44,7 +44,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError, SettingError
 from skelid.estimators.base import (
     RATE,
     RNG,
@@ -52,6 +52,7 @@ from skelid.estimators.base import (
     array_or_none,
     build_result,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     make_rng,
@@ -113,6 +114,7 @@ from skelid.result import FitResult, NoiseEstimate, Warning
 NUMERICAL_RESIDUAL = 1e-6  # residual rms, relative to the model's size, that is only rounding
 STA_AUTOCORRELATION = 0.25  # mean lag-1 residual autocorrelation that flags soft-tissue artefact
 MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised for faster motion
+MOTION_MIN_FRAMES = 3  # the motion model penalises second differences of the poses
 STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
 STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
@@ -375,6 +377,7 @@ class MarkerFit(NamedTuple):
     summary: Summary
     pose_path: str = "numpy"  # "compiled" or "numpy": the path every pose fit took (see pose.workspace)
     misfit: Misfit | None = None  # model misfit: refits and widening (misfit_stage)
+    beyond: np.ndarray | None = None  # (P,) the unbounded estimate where support_stage put it on a bound, else NaN
 
 
 # ================================================================================ stages
@@ -384,9 +387,17 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | 
         raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
                                    "add a [[parameters]] table")
     theta0 = model.theta_center if s.theta0 is None else np.asarray(s.theta0, float)
+    if theta0.shape != (model.n_params,):
+        raise SettingError(f"{type(s).__name__} setting theta0 of shape {theta0.shape} does not fit model "
+                           f"{model.name!r}", f"give {model.n_params} starting values, one per parameter "
+                           f"{list(model.parameter_names)}, or None")
     bounds = (np.array([p.prior.lower for p in model.parameters]),
               np.array([p.prior.upper for p in model.parameters]))
     pose0 = s.pose0
+    if pose0 is not None and np.shape(pose0) != (len(y), model.n_pose):
+        raise SettingError(f"{type(s).__name__} setting pose0 of shape {np.shape(pose0)} does not fit these data "
+                           f"({len(y)} frames) and model {model.name!r} ({model.n_pose} pose coordinates)",
+                           f"give ({len(y)}, {model.n_pose}) starting poses, or None")
     if pose0 is None:
         stride = max(1, int(rate // 25))  # track at about 25 Hz, interpolate between
         pose0, _ = track_poses(model, theta0, y, rng, stride=stride, ws=ws)
@@ -430,6 +441,9 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
                             min(MIN_AUTO_CUTOFF, rate / 2))
     if cutoff is None:
         return Motion(sc.fit, None)
+    if len(sc.y) < MOTION_MIN_FRAMES:
+        raise DataError(f"{len(sc.y)} frame(s): the motion model (cutoff) smooths second differences of the poses "
+                        f"and needs at least {MOTION_MIN_FRAMES} frames", "give a longer trial, or cutoff=None")
     # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
     # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays).
     # Near a singular pose the per-frame fits jump between branches, so the second start is a fit whose
@@ -874,11 +888,28 @@ def _data_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warni
         out.append(Warning("outliers", f"{int(out_.sum())} marker positions in {int(out_.any(axis=1).sum())} "
                            f"frames lie more than {s.outlier_threshold:g} robust standard deviations from the "
                            "fitted model (mislabelled or glitched markers?) and were left out"))
+    n_rep = repeated_frames(f.start.y)
+    if n_rep:
+        out.append(Warning("repeated-frames", f"{n_rep} of {len(f.start.y)} frames repeat the frame before them "
+                           "exactly (a frozen capture, or a file padded with copies?): each is counted as new "
+                           "information, so the interval is too narrow by up to the square root of the share "
+                           "of distinct frames; remove the copies"))
     n_skip = int((~f.frames.used).sum())
     if n_skip:
         out.append(Warning("frames-skipped", f"{n_skip} of {len(f.frames.used)} frames have too few markers "
                            "to fix the pose and were skipped"))
     return out
+
+
+def repeated_frames(y) -> int:
+    """Frames ``y (T, M, D)`` identical to the one before them in every coordinate (NaN where NaN), with a
+    marker present: real noise never repeats a frame exactly, a frozen capture or a padded file does."""
+    y = np.asarray(y, float)
+    if len(y) < 2:
+        return 0
+    a, b = y[1:], y[:-1]
+    same = ((a == b) | (np.isnan(a) & np.isnan(b))).all(axis=(1, 2))
+    return int((same & np.isfinite(a).all(axis=2).any(axis=1)).sum())
 
 
 def _bound_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
@@ -890,11 +921,13 @@ def _bound_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warn
                            "interval: the data do not pin them inside it", pinned) if model.n_params > 1 else
                    Warning("on-bound", f"parameter {pinned[0]} ended on a bound of its prior interval: the "
                            "data do not pin it inside it", pinned))
-    theta = f.estimate.theta
+    beyond = f.beyond if f.beyond is not None else np.full(model.n_params, np.nan)
     for k, p in enumerate(model.parameters):
-        if not p.prior.lower <= theta[k] <= p.prior.upper:
-            out.append(Warning("outside-prior", f"parameter {p.name} = {theta[k]:.4g} lies outside its prior "
-                               f"bounds [{p.prior.lower:g}, {p.prior.upper:g}]", (p.name,)))
+        if np.isfinite(beyond[k]):
+            out.append(Warning("outside-prior", f"the estimate of parameter {p.name} ({beyond[k]:.4g} after the "
+                               "corrections) lies beyond its prior bounds "
+                               f"[{p.prior.lower:g}, {p.prior.upper:g}]; it is reported on the bound "
+                               f"{f.estimate.theta[k]:g}: the data do not place it inside its prior", (p.name,)))
     return out
 
 
@@ -1043,8 +1076,21 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
     mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
     estimate = mis.estimate if mis is not None else estimate
-    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned, res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate), ws.path, mis)
+    estimate, beyond = support_stage(st, estimate)
+    return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned | np.isfinite(beyond), res, bias, cov, estimate,
+                     summary_stage(model, ident, estimate), ws.path, mis, beyond)
+
+
+def support_stage(st: Start, estimate: Estimate) -> tuple[Estimate, np.ndarray]:
+    """The estimate held inside its prior's support: a value the bias correction, a normal prior or the
+    misfit widening moved beyond a bound is put on that bound (no estimate leaves its prior's support).
+
+    Returns the estimate and ``beyond (P,)``: the unbounded value where it was moved, NaN elsewhere.
+    """
+    lo, hi = st.bounds
+    theta = np.clip(estimate.theta, lo, hi)
+    beyond = np.where(theta != estimate.theta, estimate.theta, np.nan)
+    return estimate._replace(theta=theta), beyond
 
 
 # ============================================================================== estimator
@@ -1182,7 +1228,7 @@ class MarkerEstimator:
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
                  noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None,
                  jackknife: bool = True, placement_sd: float | None = None):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
         self.bias_correction = bias_correction
@@ -1203,7 +1249,7 @@ class MarkerEstimator:
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerEstimator:
         """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""
         check_settings(self)
-        y, rate = marker_array(self.model, data, self.rate)
+        y, rate = marker_array(self.model, data, self.rate, self.name)
         f = run_marker_fit(self, y, rate, make_rng(self.rng))
         self._publish(f, emit(marker_warnings(self.model, self, f)))
         if progress is not None:

@@ -101,6 +101,7 @@ from skelid.errors import DataError, IdentifiabilityError, SkelidError
 from skelid.estimators.base import (
     Setting,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     get_settings,
@@ -592,7 +593,7 @@ class MultiTrialEstimator:
 
     def __init__(self, model: Model, between_trial: str = "prior", prior_artefact_rms: float | None = None,
                  **settings):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.between_trial = between_trial
         self.prior_artefact_rms = prior_artefact_rms
         # the single-trial estimator's declared settings and defaults, stored here as well
@@ -647,7 +648,7 @@ class MultiTrialEstimator:
         check_settings(self)
         est = MarkerEstimator(self.model, **self._trial_settings())
         check_settings(est)
-        y, rate = marker_array(self.model, data, est.rate)
+        y, rate = marker_array(self.model, data, est.rate, self.name)
         f = run_marker_fit(est, y, rate, make_rng(est.rng), on_bound="warn")
         est._publish(f, emit(marker_warnings(self.model, est, f)))
         return est

@@ -57,6 +57,7 @@ from skelid.estimators.base import (
     Setting,
     build_result,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     make_rng,
@@ -94,6 +95,7 @@ class ConstraintSystem:
     """
 
     def __init__(self, model: Model):
+        check_model(model, type(self).__name__)
         if model.n_params != 1 or model.parameters[0].kind != "length":
             raise ModelError(
                 f"the paper method needs exactly one parameter of kind 'length'; model "
@@ -263,7 +265,7 @@ class PaperFilter:
 
     def __init__(self, model: Model, sigma: float | None = None, history_steps=(50, 100, 500),
                  max_iter: int = 50, rng: np.random.Generator | int | None = None, rate: float | None = None):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.history_steps = history_steps
         self.max_iter = max_iter
@@ -346,7 +348,7 @@ class PaperFilter:
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> PaperFilter:
         """Fold :meth:`update` over a whole trial (``progress``: called with 1 after each frame)."""
         check_settings(self)
-        y, _ = marker_array(self.model, data, self.rate)
+        y, _ = marker_array(self.model, data, self.rate, self.name)
         found = []
         gaps = int((~np.isfinite(y).all(axis=(1, 2))).sum())
         if gaps:

@@ -124,6 +124,7 @@ from skelid.estimators.base import (
     Setting,
     build_result,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     make_rng,
@@ -621,7 +622,7 @@ class SamplerEstimator:
                  n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8,
                  artefact_rms: float | None = None, noise: str = "pooled", marker_groups: dict | None = None,
                  jackknife: bool = True, placement_sd: float | None = None):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
         self.bias_correction = bias_correction
@@ -647,7 +648,7 @@ class SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
         check_settings(self)
         model = self.model
-        y, rate = marker_array(model, data, self.rate)
+        y, rate = marker_array(model, data, self.rate, self.name)
         marker = MarkerEstimator(model, **{s.name: getattr(self, s.name) for s in MarkerEstimator.settings
                                            if hasattr(self, s.name)})
         rng = make_rng(self.rng)

@@ -106,6 +106,22 @@ def parse_rate(text: str, path: Path, where: str) -> float:
     return rate
 
 
+def as_path(path, what: str = "data file", cls=FormatError) -> Path:
+    """``path`` (a str or os.PathLike) as a :class:`~pathlib.Path`, or ``cls`` with one line for anything else."""
+    import os
+
+    if isinstance(path, bytes):
+        path = os.fsdecode(path)
+    if not isinstance(path, str | os.PathLike):
+        raise cls(f"the {what} must be given as a path (str or pathlib.Path), got {type(path).__name__}",
+                  f"give the path of the {what}")
+    if not str(path).strip():
+        raise cls(f"the {what} path is empty", f"give the path of the {what}")
+    if "\0" in str(path):
+        raise cls(f"the {what} path {str(path)!r} contains a NUL character", f"give the path of the {what}")
+    return Path(path)
+
+
 def check_regular_file(path, what: str = "data file", cls=FormatError) -> Path:
     """An existing regular file, checked without opening it (a FIFO would block, a device never end).
 
@@ -114,7 +130,7 @@ def check_regular_file(path, what: str = "data file", cls=FormatError) -> Path:
     import os
     import stat
 
-    path = Path(path)
+    path = as_path(path, what, cls)
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -156,6 +172,11 @@ def parse_table(rows: list[tuple[int, list[str]]], n_cols: int, path: Path) -> n
             out[k] = [float(v) if v else nan for v in fields[:n_cols]]
         except ValueError:
             out[k] = _parse_row_slowly(fields[:n_cols], lineno, path)
+    inf = np.isinf(out)
+    if inf.any():
+        k, col = (int(i) for i in np.argwhere(inf)[0])
+        raise FormatError(f"{path}: line {rows[k][0]}, data column {col + 1}: an infinite coordinate",
+                          "blank the value (a blank field is a missing marker) or fix it")
     return out
 
 

@@ -27,6 +27,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from skelid.errors import FormatError, ModelError
+from skelid.io._common import as_path
 
 _BOMS = ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"), (codecs.BOM_UTF8, "utf-8-sig"),
          (codecs.BOM_UTF16_LE, "utf-16"), (codecs.BOM_UTF16_BE, "utf-16"))
@@ -101,7 +102,7 @@ def read_xml(path, what: str = "file") -> ET.ElementTree:
     FormatError
         If it is not well-formed XML, or its encoding is unknown.
     """
-    path = Path(path)
+    path = as_path(path, what, ModelError)
     try:
         data = path.read_bytes()
     except FileNotFoundError:

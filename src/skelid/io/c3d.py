@@ -71,7 +71,7 @@ import numpy as np
 from skelid.data import MarkerData
 from skelid.errors import FormatError, SkelidWarning
 from skelid.io import _c3d_child
-from skelid.io._common import check_magnitude, guess_units, normalise_units, read_bytes
+from skelid.io._common import as_path, check_magnitude, guess_units, normalise_units, read_bytes
 
 #: Names of computed (not measured) points, matched against the label without
 #: a ``Subject:`` prefix: joint centres (``LHJC``, ``R_KJC``, ``LHipJointCentre``),
@@ -124,7 +124,7 @@ def check_c3d_header(path, raw: bytes | None = None) -> dict:
         parameter section outside the file, an unknown processor type, or
         fewer data bytes than the header declares (a truncated file).
     """
-    path = Path(path)
+    path = as_path(path, "data file")
     if raw is None:
         raw = read_bytes(path, "C3D")
     size = len(raw)
@@ -202,7 +202,7 @@ def read_c3d(path, *, isolate: bool = True, timeout: float | None = None) -> Mar
     FormatError
         For anything that is not a readable C3D file, naming the file.
     """
-    path = Path(path)
+    path = as_path(path, "data file")
     raw = read_bytes(path, "C3D")
     header = check_c3d_header(path, raw)
     extracted = _extract_in_child(path, len(raw), timeout) if isolate else None

@@ -36,6 +36,7 @@ import numpy as np
 from skelid.data import MarkerData
 from skelid.errors import FormatError, SkelidWarning
 from skelid.io._common import (
+    as_path,
     check_magnitude,
     guess_units,
     normalise_units,
@@ -76,7 +77,7 @@ def read_csv(path) -> MarkerData:
         Naming the file and line, for anything that is not a readable file of
         either layout.
     """
-    path = Path(path)
+    path = as_path(path, "data file")
     lines = split_lines(read_text(path, "CSV"))
     first = next((i for i, line in enumerate(lines) if line.strip()), None)
     if first is None:

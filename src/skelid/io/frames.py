@@ -43,13 +43,13 @@ from __future__ import annotations
 
 import importlib
 import math
+import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from skelid.errors import SkelidError
+from skelid.errors import SettingError, SkelidError
 
 #: the columns of :func:`to_dataframe`, in order
 COLUMNS = ("method", "name", "kind", "unit", "estimate", "map", "sd", "lower", "upper", "crlb_sd", "status")
@@ -82,11 +82,14 @@ def as_run(result, arrays: Mapping | None = None):
     from skelid.io.results import read_run, run_from_dict
     from skelid.result import FitResult, FitRun
 
+    if arrays is not None and not isinstance(arrays, Mapping):
+        raise SettingError(f"arrays must be a mapping of name to array (arrays.npz's content), got "
+                           f"{type(arrays).__name__}", "give dict(numpy.load('arrays.npz')) or leave it out")
     if isinstance(result, FitRun):
         return result
     if isinstance(result, FitResult):
         return FitRun({result.method: result})
-    if isinstance(result, str | Path):
+    if isinstance(result, str | os.PathLike):
         return read_run(result)
     if isinstance(result, Mapping):
         if "schema_version" in result:
@@ -100,6 +103,9 @@ def _pick(run, method: str | None, prefer=()):
     """The result of ``method``; by default the first that has one of the arrays ``prefer``, else the first."""
     if not run.results:
         raise SkelidError("the result holds no method", "fit first: skelid fit MODEL DATA --out DIR")
+    if method is not None and not isinstance(method, str):
+        raise SettingError(f"method must be a method name (str) or None, got {type(method).__name__}",
+                           f"use one of: {', '.join(run.results)}")
     if method is None:
         return next((r for r in run.results.values() if any(k in r.arrays for k in prefer)),
                     next(iter(run.results.values())))
@@ -310,8 +316,11 @@ def to_inference_data(result, method: str | None = None, n_draws: int = 1000,
         the result holds them.
     """
     az = _need("arviz")
-    if int(n_draws) < 1:
-        raise SkelidError(f"n_draws must be at least 1, got {n_draws}", "e.g. n_draws=1000")
+    if not (isinstance(n_draws, int | np.integer) and not isinstance(n_draws, bool) and n_draws >= 1):
+        raise SettingError(f"n_draws must be an integer of at least 1, got {n_draws!r}", "e.g. n_draws=1000")
+    if rng is not None and not isinstance(rng, np.random.Generator):
+        raise SettingError(f"rng must be a numpy.random.Generator or None, got {type(rng).__name__}",
+                           "give rng=numpy.random.default_rng(seed)")
     rng = np.random.default_rng(0) if rng is None else rng
     run = as_run(result, arrays)
     r = _pick(run, method)

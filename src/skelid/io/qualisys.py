@@ -22,6 +22,7 @@ import numpy as np
 from skelid.data import MarkerData
 from skelid.errors import FormatError
 from skelid.io._common import (
+    as_path,
     check_magnitude,
     normalise_units,
     parse_rate,
@@ -158,7 +159,7 @@ def read_tsv(path) -> MarkerData:
     FormatError
         Naming the file and line, for anything that is not a readable file.
     """
-    path = Path(path)
+    path = as_path(path, "data file")
     lines = split_lines(read_text(path, "TSV"))
     first = split_fields(lines[0], "\t")[0].upper()
     if first not in QUALISYS_KEYS:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from skelid.errors import FormatError
+from skelid.io._common import as_path
 from skelid.io.atomic import atomic_write
 from skelid.result import (
     STATUSES,
@@ -433,7 +434,7 @@ def _no_constant(token: str):
 
 def load_json(path) -> Any:
     """Parse ``path`` as JSON with the size, nesting and number bounds; one FormatError line otherwise."""
-    path = Path(path)
+    path = as_path(path, "result file")
     try:
         size = path.stat().st_size
         if not path.is_file():
@@ -459,7 +460,7 @@ def load_json(path) -> Any:
 
 def load_npz(path) -> dict[str, np.ndarray]:
     """Every array of an ``.npz`` file, bounded in size and kind; one FormatError line otherwise."""
-    path = Path(path)
+    path = as_path(path, "result file")
     try:
         if not path.is_file():
             raise FormatError(f"{path} is not a regular file", _FIX)
@@ -498,7 +499,7 @@ def read_run(result_dir) -> FitRun:
         The folder, ``result.json`` or ``arrays.npz`` is missing, damaged, of an unknown or
         newer version, or not as documented; one line naming the file and the key path.
     """
-    d = Path(result_dir)
+    d = as_path(result_dir, "result folder")
     if not d.is_dir():
         raise FormatError(f"result folder {d} does not exist" if not d.exists()
                           else f"{d} is not a result folder", "give the folder 'skelid fit --out DIR' wrote")
@@ -518,7 +519,8 @@ def read_run(result_dir) -> FitRun:
 # ``context`` and ``diagnostics`` are open objects (any JSON value under a new key), but the
 # keys below are read by the report and the conversions, so their shapes are checked too.
 # A spec is a type (str, int, float, bool), ``_Opt(spec)`` (null allowed), ``[spec]`` (a list),
-# ``_MapOf(spec)`` (an object with any keys) or a dict (an object with these optional keys).
+# ``_MapOf(spec)`` (an object with any keys) or a dict (an object with these optional keys; a key
+# whose spec is ``_Need((spec,))`` must be there).
 class _Opt(tuple):
     pass
 
@@ -527,8 +529,12 @@ class _MapOf(tuple):
     pass
 
 
+class _Need(tuple):
+    """A key of an object spec that must be there (the report and the conversions index it)."""
+
+
 _NUMBER = _Opt((float,))
-_MARKER_ROW = {"name": str, "used_by_model": bool, "frames_missing": int, "gaps": int, "longest_gap": int}
+_MARKER_ROW = {"name": _Need((str,)), "used_by_model": bool, "frames_missing": int, "gaps": int, "longest_gap": int}
 _PRIOR = _MapOf((_Opt((float, str)),))
 CONTEXT_KEYS = {
     "model": str, "units": str, "frames_total": int,
@@ -561,8 +567,13 @@ def _check(v, spec, where: str) -> None:
     elif isinstance(spec, _MapOf):
         for k, x in _obj(v, where).items():
             _check(x, spec[0], f"{where}.{k}")
+    elif isinstance(spec, _Need):
+        _check(v, spec[0], where)
     elif isinstance(spec, dict):
         d = _obj(v, where)
+        missing = [k for k, s in spec.items() if isinstance(s, _Need) and k not in d]
+        if missing:
+            raise _Bad(where, f"has no key {missing[0]!r}")
         for k in spec.keys() & d.keys():
             _check(d[k], spec[k], f"{where}.{k}")
     elif isinstance(spec, list):
@@ -596,6 +607,14 @@ def _check_run_arrays(arrays: Mapping[str, np.ndarray]) -> None:
         if a is not None and (a.dtype.kind not in kinds or a.ndim != ndim):
             raise _Bad(f"$.arrays.{k}", f"{ARRAYS_NPZ}[run/{k}] is a {a.ndim}-d array of dtype {a.dtype}, "
                        f"not the {ndim}-d array skelid writes")
+    rate = arrays.get("rate")
+    if rate is not None:
+        from skelid.data import RATE_RANGE
+
+        r = float(rate)
+        if not RATE_RANGE[0] <= r <= RATE_RANGE[1]:  # NaN fails too
+            raise _Bad("$.arrays.rate", f"{ARRAYS_NPZ}[run/rate] is {r:g} Hz, not a sampling rate between "
+                       f"{RATE_RANGE[0]:g} and {RATE_RANGE[1]:g} Hz")
     y, names = arrays.get("markers"), arrays.get("marker_names")
     if y is not None and names is not None and y.shape[1] != names.shape[0]:
         raise _Bad("$.arrays.markers", f"{y.shape[1]} markers but {names.shape[0]} marker names")

@@ -22,6 +22,7 @@ import numpy as np
 from skelid.data import MarkerData
 from skelid.errors import DataError, FormatError, SkelidWarning
 from skelid.io._common import (
+    as_path,
     check_magnitude,
     normalise_units,
     parse_rate,
@@ -67,7 +68,7 @@ def read_trc(path) -> MarkerData:
     FormatError
         Naming the file and line, for anything that is not a readable TRC file.
     """
-    path = Path(path)
+    path = as_path(path, "data file")
     lines = split_lines(read_text(path, "TRC"))
     if not lines[0].lstrip().startswith("PathFileType"):
         raise FormatError(f"{path}: line 1 does not start with 'PathFileType'; not a TRC file",

@@ -52,6 +52,7 @@ from skelid.estimators.base import (
     array_or_none,
     build_result,
     check_fitted,
+    check_model,
     check_settings,
     emit,
     make_rng,
@@ -145,7 +146,7 @@ class MarkerGridFilter:
     def __init__(self, model: Model, sigma: float | None = None, likelihood: str = "laplace",
                  axes=None, history_steps=(50, 100, 500), n_iter: int = 8,
                  rng: np.random.Generator | int | None = None, rate: float | None = None):
-        self.model = model
+        self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.likelihood = likelihood
         self.axes = axes
@@ -256,7 +257,7 @@ class MarkerGridFilter:
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerGridFilter:
         """Fold :meth:`update` over every frame (the one loop over frames)."""
         check_settings(self)
-        y, _ = marker_array(self.model, data, self.rate)
+        y, _ = marker_array(self.model, data, self.rate, self.name)
         axes, _ = self._points()
         state = self.init_state()
         shape = tuple(a.size for a in axes)
