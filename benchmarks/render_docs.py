@@ -157,7 +157,29 @@ def opensim_truth() -> str:
     note = (f"{doc['draws_done']} of {doc['draws_planned']} planned draws done; geometry drawn per draw. "
             "Lengths: hip-knee and knee-ankle per side; RMSE averaged over the four. Per quantity: "
             "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md).")
-    return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, doc)
+    out = "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, doc)
+    exact = RESULTS / "opensim_truth_exact.json"
+    return out + ("\n" + opensim_truth_exact(exact) if exact.exists() else "")
+
+
+def opensim_truth_exact(path: Path) -> str:
+    """Noise-free cells: the noise level found, the largest errors, the warnings given."""
+    doc = load(path)
+    lines = ["| noise-free cell | draws | mean σ (mm) | largest error: scale | length (mm) | warned of misfit |",
+             "|---|---|---|---|---|---|"]
+    for key, c in doc["cells"].items():
+        if key.split("/")[1] == "scaletool" or not c["rows"]:
+            continue
+        fits = [d["fits"][key] for d in doc["draws"] if key in d["fits"] and "error" not in d["fits"][key]]
+        misfit = sum(any("model misfit" in w for w in f["warnings"]) for f in fits)
+        worst = {k: max((abs(f["q"][q]["est"] - f["truth"][q]) for f in fits for q in f["truth"]
+                         if q.startswith(k) and q in f["q"]), default=float("nan")) for k in ("scale", "length")}
+        lines.append(f"| {key} | {c['n']} | {c.get('sigma_mean') or float('nan'):.2g} | {worst['scale']:.2g} | "
+                     f"{worst['length']:.2g} | {misfit} of {len(fits)} |")
+    return ("\n".join(lines) + "\n\nScales the data leave to the prior (the warning names them: every marker of "
+            "the body free to move) keep the prior's interval and miss the truth by up to the largest error above; "
+            "per quantity: [`benchmarks/results/opensim_truth_exact.md`](/benchmarks/results/opensim_truth_exact.md)."
+            "\n\n" + source(path, doc))
 
 
 # ---------------------------------------------------------------- accuracy
