@@ -162,6 +162,37 @@ def opensim_truth() -> str:
     return out + ("\n" + opensim_truth_exact(exact) if exact.exists() else "")
 
 
+#: the cells the README sums up, and what each is
+SUMMARY_CELLS = (("axes/axes/static+walk/5", "the exact model (one factor per axis), static + walk, i.i.d. 5 mm"),
+                 ("axes/bodies/static+walk/5", "the default (one factor per body) on per-axis truth, static + walk, "
+                                               "i.i.d. 5 mm"),
+                 ("axes/axes/static+walk/pm", "per-marker noise 1-10 mm"),
+                 ("axes/axes/static+walk/sta", "soft-tissue artefact 5-15 mm rms"))
+
+
+def opensim_truth_summary() -> str:
+    """The README's lines: per summed-up cell, the lengths' coverage and RMSE beside the ScaleTool's."""
+    path = RESULTS / "opensim_truth.json"
+    if not path.exists():
+        return opensim_truth()
+    doc = load(path)
+    cells = doc["cells"]
+    lines = []
+    for key, what in SUMMARY_CELLS:
+        c = cells.get(key)
+        if not c or not c["rows"]:
+            continue
+        ln = _truth_values(c["rows"], "length", "coverage95")
+        lr = _truth_values(c["rows"], "length", "rmse")
+        truth, _, design, noise = key.split("/")
+        pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
+        lines.append(f"- {what}: hip-knee and knee-ankle intervals cover {min(ln):.2f}-{max(ln):.2f}, RMSE "
+                     f"{sum(lr) / len(lr):.1f} mm" + (f" (ScaleTool {sum(pr) / len(pr):.1f} mm)" if pr else "")
+                     + f"; {c['n']} draws")
+    return ("\n".join(lines) + "\n\nEvery cell, scale and offset: "
+            "[docs/opensim.md](docs/opensim.md#coverage-on-opensim-truth).\n\n" + source(path, doc))
+
+
 def opensim_truth_exact(path: Path) -> str:
     """Noise-free cells: the noise level found, the largest errors, the warnings given."""
     doc = load(path)
@@ -394,6 +425,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "opensim-scales": opensim_scales,
     "opensim-subject4": opensim_subject4,
     "opensim-truth": opensim_truth,
+    "opensim-truth-summary": opensim_truth_summary,
     "accuracy-main": accuracy_main,
     "accuracy-artefact": accuracy_artefact,
     "accuracy-control": accuracy_control,
