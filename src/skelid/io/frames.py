@@ -216,31 +216,11 @@ def to_xarray(result, method: str | None = None, arrays: Mapping | None = None):
     run = as_run(result, arrays)
     r = _pick(run, method, prefer=("pose", "residuals"))
     shared = dict(run.arrays)
-    own = dict(r.arrays)
     model = _model(run)
     units = str(run.context.get("units") or shared.get("units", "") or "")
     rate = float(shared["rate"]) if "rate" in shared else float("nan")
     names = [str(n) for n in shared.get("marker_names", model.marker_names if model else [])]
-    data = {}
-    y = shared.get("markers")
-    if y is not None:
-        y = np.asarray(y, float)
-        names = names if len(names) == y.shape[1] else [f"m{k}" for k in range(y.shape[1])]
-        data["markers"] = (("frame", "marker", "axis"), y)
-    pose = own.get("pose", own.get("poses"))
-    coords = {}
-    if pose is not None:
-        pose = np.asarray(pose, float)
-        cn = _coordinate_names(model) if model is not None and model.n_pose == pose.shape[1] else \
-            [f"q{k}" for k in range(pose.shape[1])]
-        data["pose"] = (("frame", "coordinate"), pose)
-        coords["coordinate"] = cn
-    res = own.get("residuals")
-    if res is not None and np.ndim(res) == 2:
-        res = np.asarray(res, float)
-        if len(names) != res.shape[1]:
-            names = [f"m{k}" for k in range(res.shape[1])]
-        data["residuals"] = (("frame", "marker"), res)
+    data, coords, names = _frame_variables(shared, dict(r.arrays), model, names)
     if not data:
         raise SkelidError(f"the {r.method} method's result holds no per-frame arrays",
                           "write the result with 'skelid fit ... --out DIR' (arrays.npz)")
@@ -253,6 +233,33 @@ def to_xarray(result, method: str | None = None, arrays: Mapping | None = None):
     if "markers" in data:
         coords["axis"] = list("xyz"[: data["markers"][1].shape[2]])
     return xr.Dataset(data, coords=coords, attrs={"method": r.method, "units": units, "rate_hz": rate})
+
+
+def _frame_variables(shared: dict, own: dict, model, names: list) -> tuple[dict, dict, list]:
+    """The dataset's variables (measured markers, poses, residuals), the coordinate names and the marker names.
+
+    Marker names that do not match the arrays' marker count become ``m0, m1, ...``.
+    """
+    data, coords = {}, {}
+    y = shared.get("markers")
+    if y is not None:
+        y = np.asarray(y, float)
+        names = names if len(names) == y.shape[1] else [f"m{k}" for k in range(y.shape[1])]
+        data["markers"] = (("frame", "marker", "axis"), y)
+    pose = own.get("pose", own.get("poses"))
+    if pose is not None:
+        pose = np.asarray(pose, float)
+        cn = _coordinate_names(model) if model is not None and model.n_pose == pose.shape[1] else \
+            [f"q{k}" for k in range(pose.shape[1])]
+        data["pose"] = (("frame", "coordinate"), pose)
+        coords["coordinate"] = cn
+    res = own.get("residuals")
+    if res is not None and np.ndim(res) == 2:
+        res = np.asarray(res, float)
+        if len(names) != res.shape[1]:
+            names = [f"m{k}" for k in range(res.shape[1])]
+        data["residuals"] = (("frame", "marker"), res)
+    return data, coords, names
 
 
 # ----------------------------------------------------------------------------- arviz
@@ -287,6 +294,33 @@ def _draws(r, names: list[str], n_draws: int, rng: np.random.Generator) -> tuple
     if not (np.isfinite(mean).all() and np.isfinite(cov).all()):
         raise SkelidError(f"the {r.method} method's posterior is not finite", "check the fit's warnings")
     return rng.multivariate_normal(mean, cov, size=n_draws, method="eigh"), how
+
+
+def _derived_draws(r, model, names: list, theta, rng, post: dict) -> str:
+    """Draws of the derived lengths into ``post``; how they were made.
+
+    Through the model's geometry from each draw of the parameters where the result holds the model,
+    else independent normals with each length's mean and sd.
+    """
+    if not r.derived:
+        return ""
+    lengths, how = None, ""
+    if model is not None and tuple(model.parameter_names) == tuple(names):
+        from skelid.model.kinematics import joint_distances
+
+        keys = [k for k, _ in model.derived_lengths]
+        if set(r.derived) <= set(keys):
+            L, _ = joint_distances(model, theta)
+            lengths = {k: L[:, keys.index(k)] for k in r.derived}
+            how = "computed from each draw of the parameters through the model's geometry"
+    if lengths is None:
+        lengths = {k: rng.normal(p.mean, p.sd, size=theta.shape[0]) for k, p in r.derived.items()}
+        how = "independent normals with each length's mean and sd (no model in the result)"
+    for k, v in lengths.items():
+        if k in post:
+            raise SkelidError(f"derived length {k!r} has the name of a parameter", "rename the parameter or the joint")
+        post[k] = np.asarray(v)[None, :]
+    return how
 
 
 def to_inference_data(result, method: str | None = None, n_draws: int = 1000,
@@ -327,26 +361,7 @@ def to_inference_data(result, method: str | None = None, n_draws: int = 1000,
     names = list(r.parameters)
     theta, how = _draws(r, names, int(n_draws), rng) if names else (np.zeros((int(n_draws), 0)), "")
     post: dict[str, Any] = {n: theta[None, :, k] for k, n in enumerate(names)}
-    model = _model(run)
-    derived_how = ""
-    if r.derived:
-        lengths = None
-        if model is not None and tuple(model.parameter_names) == tuple(names):
-            from skelid.model.kinematics import joint_distances
-
-            keys = [k for k, _ in model.derived_lengths]
-            if set(r.derived) <= set(keys):
-                lengths, _ = joint_distances(model, theta)
-                lengths = {k: lengths[:, keys.index(k)] for k in r.derived}
-                derived_how = "computed from each draw of the parameters through the model's geometry"
-        if lengths is None:
-            lengths = {k: rng.normal(p.mean, p.sd, size=theta.shape[0]) for k, p in r.derived.items()}
-            derived_how = "independent normals with each length's mean and sd (no model in the result)"
-        for k, v in lengths.items():
-            if k in post:
-                raise SkelidError(f"derived length {k!r} has the name of a parameter",
-                                  "rename the parameter or the joint")
-            post[k] = np.asarray(v)[None, :]
+    derived_how = _derived_draws(r, _model(run), names, theta, rng, post)
     attrs = {"method": r.method, "draws_from": how, "derived_from": derived_how,
              "units": str(run.context.get("units", ""))}
     groups = {"posterior": post, "posterior_attrs": attrs}
