@@ -1031,57 +1031,74 @@ class Session:
             A frame that is neither a mapping of marker name to coordinates nor an array of one row per
             label, coordinates that are not numbers, a mapping that names no marker of the model.
         """
-        model = self.model
-        M, D = len(model.markers), model.dim
-        y = np.full((M, D), np.nan)
         if isinstance(frame, Mapping):
-            known = 0
-            seen = set()
-            for name, xyz in frame.items():
-                name = str(name)
-                i = self._index.get(name)
-                if i is None:  # a subject prefix ("Derrick:RSHO"), as MarkerData.select tolerates
-                    i = self._index.get(name.rsplit(":", 1)[-1])
-                if i is not None:
-                    if i in seen:
-                        raise DataError(f"the frame gives marker {model.marker_names[i]!r} twice (as {name!r} too)",
-                                        "send each marker once, or map the stream's names with labels=...")
-                    seen.add(i)
-                    v = _coordinates(xyz, f"marker {name!r}").ravel()
-                    if v.size < D:
-                        raise DataError(f"marker {name!r} has {v.size} coordinates, the model needs {D}",
-                                        "send x, y (and z) for every marker")
-                    y[i] = v[:D]
-                    known += 1
-            if frame and not known:
-                shown = ", ".join(repr(str(n)) for n in list(frame)[:3]) + (", ..." if len(frame) > 3 else "")
-                raise DataError(f"the frame names no marker of {model.name!r} ({shown})",
-                                f"name the markers as the model does: {', '.join(model.marker_names)}, "
-                                "or map the stream's names with labels={stream: model}")
+            y = self._mapping_frame(frame)
         else:
-            if isinstance(frame, str | bytes):
-                raise DataError(f"a frame must be marker positions, got the text {frame[:20]!r}",
-                                "send a mapping of marker name to (x, y, z) or an array with one row per label")
-            a = _coordinates(frame, "an array frame")
-            order = self._order
-            n_rows = M if order is None else order.size
-            if a.ndim != 2 or a.shape[0] != n_rows or a.shape[1] < D:
-                how = ("one row per declared label" if order is not None
-                       else f"one row per model marker ({M}), or pass labels=... naming the rows")
-                raise DataError(f"an array frame must be ({n_rows}, {D}) or ({n_rows}, 3); got {a.shape}",
-                                f"send {how}")
-            if order is None:
-                order = np.arange(M)
-            if self._identity:
-                y = a[:, :D] * self.scale if a.shape[1] != D else a * self.scale
-                y = y if y is not a else y.copy()
-                y[~np.isfinite(y)] = np.nan
+            y, final = self._array_frame(frame)
+            if final:  # rows in model order: scaled and cleaned there
                 return y
-            keep = order >= 0
-            y[order[keep]] = a[keep, :D]
         y = y * self.scale
         y[~np.isfinite(y)] = np.nan
         return y
+
+    def _mapping_frame(self, frame: Mapping) -> np.ndarray:
+        """A mapping of marker name to coordinates as ``(M, D)`` in model order (NaN where not given)."""
+        model = self.model
+        M, D = len(model.markers), model.dim
+        y = np.full((M, D), np.nan)
+        seen = set()
+        for name, xyz in frame.items():
+            name = str(name)
+            i = self._index.get(name)
+            if i is None:  # a subject prefix ("Derrick:RSHO"), as MarkerData.select tolerates
+                i = self._index.get(name.rsplit(":", 1)[-1])
+            if i is None:
+                continue
+            if i in seen:
+                raise DataError(f"the frame gives marker {model.marker_names[i]!r} twice (as {name!r} too)",
+                                "send each marker once, or map the stream's names with labels=...")
+            seen.add(i)
+            v = _coordinates(xyz, f"marker {name!r}").ravel()
+            if v.size < D:
+                raise DataError(f"marker {name!r} has {v.size} coordinates, the model needs {D}",
+                                "send x, y (and z) for every marker")
+            y[i] = v[:D]
+        if frame and not seen:
+            shown = ", ".join(repr(str(n)) for n in list(frame)[:3]) + (", ..." if len(frame) > 3 else "")
+            raise DataError(f"the frame names no marker of {model.name!r} ({shown})",
+                            f"name the markers as the model does: {', '.join(model.marker_names)}, "
+                            "or map the stream's names with labels={stream: model}")
+        return y
+
+    def _array_frame(self, frame) -> tuple[np.ndarray, bool]:
+        """An array frame (one row per label) as ``(M, D)`` in model order, and whether it is final.
+
+        Rows already in model order come back scaled, non-finite values NaN (final); others in model
+        order only.
+        """
+        model = self.model
+        M, D = len(model.markers), model.dim
+        if isinstance(frame, str | bytes):
+            raise DataError(f"a frame must be marker positions, got the text {frame[:20]!r}",
+                            "send a mapping of marker name to (x, y, z) or an array with one row per label")
+        a = _coordinates(frame, "an array frame")
+        order = self._order
+        n_rows = M if order is None else order.size
+        if a.ndim != 2 or a.shape[0] != n_rows or a.shape[1] < D:
+            how = ("one row per declared label" if order is not None
+                   else f"one row per model marker ({M}), or pass labels=... naming the rows")
+            raise DataError(f"an array frame must be ({n_rows}, {D}) or ({n_rows}, 3); got {a.shape}",
+                            f"send {how}")
+        if self._identity:
+            y = a[:, :D] * self.scale if a.shape[1] != D else a * self.scale
+            y = y if y is not a else y.copy()
+            y[~np.isfinite(y)] = np.nan
+            return y, True
+        order = np.arange(M) if order is None else order
+        y = np.full((M, D), np.nan)
+        keep = order >= 0
+        y[order[keep]] = a[keep, :D]
+        return y, False
 
     # ------------------------------------------------------------------ the update
     def push(self, frame) -> LiveEstimate:
