@@ -73,7 +73,7 @@ comes from the geometry's covariance alone.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +116,15 @@ class FittedGeometry:
     coordinates: tuple[OsimCoordinate, ...]
     sigma: float | None
     source: str
+    widening: np.ndarray | None = None  # (P,) how much the fit's checks widened each sd (None: not at all)
+
+    def laplace(self) -> FittedGeometry:
+        """The geometry with the joint fit's Laplace covariance before its checks widened it."""
+        if self.widening is None or not np.any(self.widening != 1.0):
+            return self
+        w = np.asarray(self.widening, float)
+        return replace(self, cov=self.cov / np.outer(w, w), covariance=f"{self.covariance}, laplace",
+                       widening=None)
 
 
 def fitted_geometry(fit) -> FittedGeometry:
@@ -127,8 +136,11 @@ def fitted_geometry(fit) -> FittedGeometry:
     from skelid.io.osim import osim_coordinates
 
     model, theta = fit.model, np.asarray(fit.theta, float)
+    widening = None
     if fit.joint is not None and np.shape(fit.joint.cov) == (model.n_params, model.n_params):
         cov, kind = np.asarray(fit.joint.cov, float), "joint"
+        widening = np.array([float((fit.result.get(p.name) or {}).get("widened_by_checks") or 1.0)
+                             for p in model.parameters])
     elif model.n_params:
         sd = np.array([float((fit.result.get(p.name) or {}).get("sd", np.nan)) for p in model.parameters])
         sd = np.where(np.isfinite(sd), sd, 0.0)
@@ -139,7 +151,7 @@ def fitted_geometry(fit) -> FittedGeometry:
     sigma = sig.get("value") if isinstance(sig, dict) else sig
     sigma = float(sigma) if isinstance(sigma, int | float) and np.isfinite(sigma) else None
     return FittedGeometry(model, theta, 0.5 * (cov + cov.T), kind, osim_coordinates(fit.source), sigma,
-                          str(fit.source))
+                          str(fit.source), widening)
 
 
 def geometry_document(geom: FittedGeometry) -> dict:
@@ -148,6 +160,7 @@ def geometry_document(geom: FittedGeometry) -> dict:
             "model": geom.model.to_dict(), "parameters": list(geom.model.parameter_names),
             "theta": [float(v) for v in geom.theta], "cov": [[float(v) for v in row] for row in geom.cov],
             "covariance": geom.covariance, "sigma_mm": geom.sigma,
+            "widening": [1.0] * geom.model.n_params if geom.widening is None else [float(v) for v in geom.widening],
             "coordinates": [c._asdict() for c in geom.coordinates]}
 
 
@@ -180,6 +193,11 @@ def find_geometry(result_dir) -> Path:
                     "give the folder 'skelid fit MODEL.osim ... --out DIR' wrote")
 
 
+def _bound(v) -> float:
+    """A range bound as JSON holds it (None: unbounded, JSON has no infinity)."""
+    return float(v) if v is not None else float("nan")
+
+
 def read_geometry(result_dir) -> FittedGeometry:
     """The :class:`FittedGeometry` in an OpenSim fit's result folder, every part checked.
 
@@ -209,7 +227,11 @@ def read_geometry(result_dir) -> FittedGeometry:
         theta = np.asarray(doc["theta"], float)
         cov = np.asarray(doc["cov"], float).reshape(theta.size, theta.size) if theta.size else np.zeros((0, 0))
         coords = tuple(OsimCoordinate(str(c["name"]), str(c["joint"]), bool(c["rotational"]), bool(c["locked"]),
-                                      float(c["default"])) for c in doc["coordinates"])
+                                      float(c["default"]), tuple(_bound(v) for v in c["range"]), bool(c["clamped"]))
+                       for c in doc["coordinates"])
+        if any(len(c.range) != 2 for c in coords):
+            raise ValueError("a coordinate's range is not two numbers")
+        widening = np.asarray(doc["widening"], float)
         kind = str(doc["covariance"])
         sigma = doc.get("sigma_mm")
         sigma = None if sigma is None else float(sigma)
@@ -217,7 +239,8 @@ def read_geometry(result_dir) -> FittedGeometry:
         raise bad(f"its model does not load ({exc.problem})") from None
     except (KeyError, TypeError, ValueError) as exc:
         raise bad(f"missing or malformed entry ({type(exc).__name__}: {str(exc)[:80]})") from None
-    if tuple(doc.get("parameters", ())) != model.parameter_names or theta.size != model.n_params:
+    if tuple(doc.get("parameters", ())) != model.parameter_names or theta.size != model.n_params \
+            or widening.shape != theta.shape or not np.all(np.isfinite(widening) & (widening > 0)):
         raise bad("its parameters do not match its model")
     if not (np.isfinite(theta).all() and np.isfinite(cov).all()) or (cov.size and np.linalg.eigvalsh(
             0.5 * (cov + cov.T)).min() < -1e-9 * max(float(np.abs(cov).max()), 1e-300)):
@@ -226,7 +249,7 @@ def read_geometry(result_dir) -> FittedGeometry:
     missing = [n for s in model.segments for n in s.joint.coordinates if n not in known]
     if missing:
         raise bad(f"coordinates {', '.join(missing[:3])} of its model are not in its coordinate list")
-    return FittedGeometry(model, theta, cov, kind, coords, sigma, str(doc.get("source_model", "")))
+    return FittedGeometry(model, theta, cov, kind, coords, sigma, str(doc.get("source_model", "")), widening)
 
 
 # ----------------------------------------------------------------------------- the angles
@@ -254,6 +277,7 @@ class JointAngles:
     sigma: float  # marker noise of the trial (mm) used for sd_pose
     n_draws: int
     covariance: str
+    outside_range: np.ndarray  # (C,) int: frames where a clamped coordinate lies outside its range
     source: str = ""
 
     def geometry_share(self) -> np.ndarray:
@@ -275,7 +299,8 @@ class JointAngles:
                          "rms_sd_pose": _nanrms(self.sd_pose[:, c]) * f,
                          "rms_sd_geometry": _nanrms(self.sd_geometry[:, c]) * f,
                          "rms_sd_geometry_linear": _nanrms(self.sd_geometry_linear[:, c]) * f,
-                         "geometry_share": float(share[c])}
+                         "geometry_share": float(share[c]),
+                         "frames_outside_range": int(self.outside_range[c])}
         return {"trial": self.source, "frames": int(self.time.size), "frames_fixed": int(self.fixed.sum()),
                 "sigma_mm": self.sigma, "draws": self.n_draws, "covariance": self.covariance,
                 "coordinates": coords}
@@ -369,7 +394,7 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
     -------
     JointAngles
     """
-    from skelid.estimators.fit.likelihood import frame_terms, pose_fixed
+    from skelid.estimators.fit.likelihood import pose_fixed
     from skelid.estimators.fit.pose import fit_pose, pose_determined, track_poses, workspace
 
     if n_draws < 0 or int(n_draws) != n_draws:
@@ -381,7 +406,7 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
     ws = workspace(model)
     rot_pose = np.array([d.kind == "R" for d in model.dofs])
     q, rss = track_poses(model, theta, y, rng, ws=ws)
-    r, Jq, Jt = frame_terms(model, theta, q, y, ws)
+    Jq, Jt = _jacobians(model, theta, q, y, ws)
     fixed = pose_determined(model, y) & np.isfinite(rss) & pose_fixed(Jq)
     H = np.einsum("tkq,tkr->tqr", Jq, Jq)
     H[~fixed] = np.eye(Q)
@@ -410,6 +435,17 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
         var_geo = var_lin
     return _to_coordinates(geom, data, q, var_pose, var_geo, var_lin, fixed, sigma, int(n_draws) if
                            model.n_params else 0)
+
+
+def _jacobians(model, theta, q, y, ws):
+    """Pose and parameter Jacobians of every frame, rows of missing markers zero: ``(F, 3M, Q)``, ``(F, 3M, P)``."""
+    from skelid.model.kinematics import marker_jacobian
+
+    _, Jq, Jt = marker_jacobian(model, theta, q, ws)
+    w = np.isfinite(y).all(axis=-1)[..., None, None]
+    F = y.shape[0]
+    return (np.where(w, Jq, 0.0).reshape(F, -1, model.n_pose),
+            np.where(w, Jt, 0.0).reshape(F, -1, model.n_params) if model.n_params else None)
 
 
 def _draw_variance(model, draws, y, q, fixed, rot, ws, batch, fit_pose) -> np.ndarray:
@@ -459,9 +495,15 @@ def _to_coordinates(geom, data, q, var_pose, var_geo, var_lin, fixed, sigma, n_d
     ok = fixed
     if ok.any():
         value[np.ix_(ok, wrap)] = np.unwrap(value[np.ix_(ok, wrap)], axis=0)
+    lo = np.array([c.range[0] for c in coords], float)
+    hi = np.array([c.range[1] for c in coords], float)
+    clamped = np.array([c.clamped and s == "fitted" for c, s in zip(coords, status, strict=True)])
+    with np.errstate(invalid="ignore"):
+        outside = (((value < lo - 1e-9) | (value > hi + 1e-9)) & clamped).sum(axis=0)
     time = _times(data)
     return JointAngles(tuple(c.name for c in coords), rot, time, value, np.sqrt(vp + vg), np.sqrt(vp), np.sqrt(vg),
-                       np.sqrt(vl), fixed, tuple(status), sigma, n_draws, geom.covariance, str(data.source or ""))
+                       np.sqrt(vl), fixed, tuple(status), sigma, n_draws, geom.covariance, outside,
+                       str(data.source or ""))
 
 
 def _times(data: MarkerData) -> np.ndarray:
@@ -546,6 +588,9 @@ def ik_document(results: dict) -> dict:
 
 
 def run_ik(geom: FittedGeometry, trials: dict, n_draws: int = N_DRAWS, seed: int = 0) -> dict:
-    """:func:`joint_angles` of each trial (stem -> MarkerData), each with its own seeded generator."""
-    return {stem: joint_angles(geom, data, n_draws, np.random.default_rng([seed, k]))
-            for k, (stem, data) in enumerate(trials.items())}
+    """:func:`joint_angles` of each trial (stem -> MarkerData), each with a generator seeded by ``seed`` and its
+    stem (a trial gets the same draws whichever trials come with it)."""
+    import zlib
+
+    return {stem: joint_angles(geom, data, n_draws, np.random.default_rng([seed, zlib.crc32(stem.encode())]))
+            for stem, data in trials.items()}

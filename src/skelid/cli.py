@@ -343,11 +343,14 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
                    "(0: the geometry's first-order effect only).")
 @click.option("--out", "out_dir", default=None,
               help="Folder for the .mot files and ik.json (default RESULT_DIR/ik); must be new, or see --overwrite.")
+@click.option("--covariance", type=click.Choice(["reported", "laplace"]), default="reported", show_default=True,
+              help="The geometry's covariance as the fit reports it (widened by its checks for model misfit and "
+                   "correlated residuals), or the joint fit's Laplace covariance before that widening.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print each trial's summary as JSON on stdout, nothing else.")
 @click.option("--quiet", is_flag=True, help="No table: only warnings and errors.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole.")
-def ik(result_dir, trial_paths, draws, out_dir, seed, as_json, quiet, overwrite):
+def ik(result_dir, trial_paths, draws, covariance, out_dir, seed, as_json, quiet, overwrite):
     """Every OpenSim coordinate of each TRIAL on the model fitted in RESULT_DIR, with its sd.
 
     RESULT_DIR is the folder 'skelid fit MODEL.osim ... --out DIR' wrote. For each trial,
@@ -360,6 +363,7 @@ def ik(result_dir, trial_paths, draws, out_dir, seed, as_json, quiet, overwrite)
     from skelid.io.atomic import atomic_dir, check_output_dir
 
     geom = angles.read_geometry(result_dir)
+    geom = geom.laplace() if covariance == "laplace" else geom
     out_dir = str(Path(result_dir) / "ik") if out_dir is None else out_dir
     check_output_dir(out_dir, overwrite=overwrite)
     stems = angles.check_trial_names(trial_paths)
@@ -383,8 +387,9 @@ def ik(result_dir, trial_paths, draws, out_dir, seed, as_json, quiet, overwrite)
             if c["status"] != "fitted":
                 click.echo(f"  {name:<20} {c['mean']:>9.3f} {'-':>8} {c['status']:>15}")
                 continue
+            out = c["frames_outside_range"]
             click.echo(f"  {name:<20} {c['mean']:>9.3f} {c['mean_sd']:>8.3f} {c['geometry_share']:>15.2f}  "
-                       f"{c['unit']}")
+                       f"{c['unit']}" + (f"  ({out} frames outside its range)" if out else ""))
     click.echo(f"angles (.mot), their sd (_sd.mot) and ik.json written to {out_dir}")
 
 

@@ -586,6 +586,8 @@ class OsimCoordinate(NamedTuple):
     rotational: bool  # it turns a rotation axis of its joint (OpenSim writes it in degrees)
     locked: bool
     default: float  # OpenSim units: radians or metres
+    range: tuple = (-math.inf, math.inf)  # OpenSim units
+    clamped: bool = False  # OpenSim keeps it inside its range (its inverse kinematics, too)
 
 
 def osim_coordinates(path) -> tuple[OsimCoordinate, ...]:
@@ -599,13 +601,17 @@ def osim_coordinates(path) -> tuple[OsimCoordinate, ...]:
     FormatError, ModelError
         As :func:`read_osim`.
     """
-    rd = _Reader(_parse(path).getroot(), str(path))
+    root = _parse(path).getroot()
+    rd = _Reader(root, str(path))
     rd.read()
+    clamped = {c.get("name"): (_text(c, "clamped", "false") or "false").lower() == "true"
+               for c in root.iter("Coordinate")}
     out = []
     for j in rd.joints:
-        for ci, (cname, _rng, locked, default, _mt) in enumerate(j.coordinates):
+        for ci, (cname, rng, locked, default, _mt) in enumerate(j.coordinates):
             rot = any(m.kind == "R" and m.coordinate == ci for m in j.motions)
-            out.append(OsimCoordinate(cname, j.name, rot, locked, float(default)))
+            out.append(OsimCoordinate(cname, j.name, rot, locked, float(default), tuple(float(v) for v in rng),
+                                      clamped.get(cname, False)))
     return tuple(out)
 
 
