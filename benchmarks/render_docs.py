@@ -130,6 +130,41 @@ def opensim_truth() -> str:
             "of each body's interval.\n\n" + source(path))
 
 
+def ik_angles() -> str:
+    """Joint angles against OpenSim's IK on subject01's walk, their sd and geometry share; the coverage check."""
+    path = RESULTS / "ik_angles.json"
+    if not path.exists():
+        return ("*Not measured yet.* `python benchmarks/ik_angles.py` writes `benchmarks/results/ik_angles.json`; "
+                "`python benchmarks/render_docs.py` then puts its table here.\n")
+    doc = load(path)
+    o = doc.get("opensim")
+    lines = []
+
+    def f(v, fmt=".2f"):
+        return "—" if v is None else format(v, fmt)
+    if o:
+        lines += [f"subject01 walk, {o['frames']} frames, {o['markers']} markers, {o['draws']} draws of the geometry; "
+                  f"skelid's marker cost at or below OpenSim's on {o['frames_skelid_cost_not_above_opensim']:.0%} of "
+                  f"the frames. Rotations in degrees, translations in mm; the difference over the frames where "
+                  "OpenSim does not hold the coordinate at a bound of its range (frames held in brackets).", "",
+                  "| coordinate | rms difference to OpenSim IK | mean sd | geometry share | mean sd, Laplace "
+                  "covariance | geometry share, Laplace |", "|---|---|---|---|---|---|"]
+        for n, r in o["coordinates"].items():
+            if r["status"] != "fitted":
+                continue
+            held = f" ({r['frames_at_opensim_bound']})" if r.get("frames_at_opensim_bound") else ""
+            lines.append(f"| {n} | {f(r.get('rms_difference'))}{held} | {f(r['mean_sd'], '.1f')} | "
+                         f"{f(r['geometry_share'])} | {f(r['laplace_mean_sd'], '.1f')} | "
+                         f"{f(r['laplace_geometry_share'])} |")
+    c = doc.get("coverage")
+    if c and c.get("coordinates"):
+        lines += ["", f"Coverage of the true coordinates by the 95 % intervals on the synthetic leg "
+                  f"({c['reps_done']} of {c['reps']} repetitions, noise {c['noise_mm']:g} mm): mean "
+                  f"{c['mean_coverage_95']:.3f}, per coordinate " + ", ".join(
+                      f"{n} {r['coverage_95']:.2f}" for n, r in c["coordinates"].items()) + "."]
+    return "\n".join(lines) + "\n\n" + source(path, doc)
+
+
 # ---------------------------------------------------------------- accuracy
 
 
@@ -342,6 +377,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "opensim-scales": opensim_scales,
     "opensim-subject4": opensim_subject4,
     "opensim-truth": opensim_truth,
+    "ik-angles": ik_angles,
     "accuracy-main": accuracy_main,
     "accuracy-artefact": accuracy_artefact,
     "accuracy-control": accuracy_control,

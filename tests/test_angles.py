@@ -29,8 +29,8 @@ def _marker_xml(markers=MARKERS) -> str:
 
 
 #: the leg with a locked coordinate (h3) and a foot that carries no marker (its ankle coordinate)
-LOCKED_FOOT = (MODEL.replace('<Coordinate name="h3"/>',
-                             '<Coordinate name="h3"><locked>true</locked><default_value>0.1</default_value></Coordinate>')
+LOCKED_H3 = '<Coordinate name="h3"><locked>true</locked><default_value>0.1</default_value></Coordinate>'
+LOCKED_FOOT = (MODEL.replace('<Coordinate name="h3"/>', LOCKED_H3)
                .replace('<Body name="shank"/>', '<Body name="shank"/><Body name="foot"/>')
                .replace("</objects></JointSet>",
                         '<PinJoint name="ankle"><socket_parent_frame>/bodyset/shank</socket_parent_frame>'
