@@ -287,3 +287,36 @@ def test_angles_agree_with_opensim_ik_on_a_gait2354_clip(shared_data, tmp_path):
         theirs = np.asarray(ref.getDependentColumn(name).to_numpy())
         rms = np.sqrt(np.mean((ours[:, c] - theirs) ** 2))
         assert rms <= (0.5 if a.rotational[c] else 0.001), (name, rms)
+
+
+def test_the_laplace_covariance_is_the_fits_before_its_checks_widened_it(fitted):
+    table = json.loads((fitted / "scaled_scaling.json").read_text())
+    g = angles.read_geometry(fitted)
+    lap = g.laplace()
+    assert g.widening is not None and np.all(g.widening >= 1.0)
+    sd_rep, sd_lap = np.sqrt(np.diag(g.cov)), np.sqrt(np.diag(lap.cov))
+    n = 0
+    for k, p in enumerate(g.model.parameters):
+        if p.kind != "scale":
+            continue
+        e = table["scales"][p.target]["xyz" if p.axis is None else "xyz"[p.axis]]
+        assert sd_rep[k] == pytest.approx(e["sd"], rel=1e-9)
+        assert sd_lap[k] == pytest.approx(e["crlb_sd"], rel=1e-9)  # the Laplace sd before any widening
+        n += 1
+    assert n == 3 and "laplace" in lap.covariance
+    rc, out, err = _cli(["ik", str(fitted), str(fitted.parent / "move.trc"), "--draws", "4", "--covariance",
+                         "laplace", "--out", str(fitted.parent / "laplace"), "--json"])
+    assert rc == 0, err
+    assert "laplace" in json.loads(out)["move"]["covariance"]
+
+
+def test_the_batches_of_draws_and_frames_do_not_change_the_answer(leg):
+    geom = _true_geometry(leg / "leg.osim", cov_scale=0.05)
+    q = _poses(geom.model, F=9)
+    y = marker_positions(geom.model, geom.theta, q) + np.random.default_rng(4).normal(0, 0.5, (9, 12, 3))
+    data = MarkerData(y, geom.model.marker_names, 60.0, "mm")
+    big = angles.joint_angles(geom, data, n_draws=6, rng=np.random.default_rng(5))
+    small = angles.joint_angles(geom, data, n_draws=6, rng=np.random.default_rng(5), batch=4)  # 2 frames a block
+    np.testing.assert_allclose(small.value, big.value, atol=1e-12)
+    np.testing.assert_allclose(small.sd, big.sd, rtol=1e-6)
+    np.testing.assert_allclose(small.sd_geometry_linear, big.sd_geometry_linear, rtol=1e-9)

@@ -408,11 +408,21 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
     ws = workspace(model)
     rot_pose = np.array([d.kind == "R" for d in model.dofs])
     q, rss = track_poses(model, theta, y, rng, ws=ws)
-    Jq, Jt = _jacobians(model, theta, q, y, ws)
-    fixed = pose_determined(model, y) & np.isfinite(rss) & pose_fixed(Jq)
-    H = np.einsum("tkq,tkr->tqr", Jq, Jq)
-    H[~fixed] = np.eye(Q)
-    Hinv = np.linalg.inv(H)
+    fixed = pose_determined(model, y) & np.isfinite(rss)
+    Hinv_diag, var_lin = np.zeros((F, Q)), np.zeros((F, Q))
+    step = max(1, int(batch) // 8)
+    for a in range(0, F, step):  # in blocks of frames: the parameter Jacobian is (frames, 3M, P)
+        sl = slice(a, a + step)
+        Jq, Jt = _jacobians(model, theta, q[sl], y[sl], ws)
+        fixed[sl] &= pose_fixed(Jq)
+        H = np.einsum("tkq,tkr->tqr", Jq, Jq)
+        H[~fixed[sl]] = np.eye(Q)
+        Hinv = np.linalg.inv(H)
+        Hinv_diag[sl] = np.einsum("tqq->tq", Hinv)
+        if model.n_params:
+            # first order: dq/dtheta = -(Jq^T Jq)^-1 Jq^T J_theta
+            G = -np.einsum("tqr,tkr,tkp->tqp", Hinv, Jq, Jt)
+            var_lin[sl] = np.einsum("tqp,pr,tqr->tq", G, geom.cov, G)
     n_obs = np.isfinite(y).all(axis=-1).sum(axis=-1) * 3
     dof = float(np.sum(n_obs[fixed] - Q))
     if dof >= 1:
@@ -423,13 +433,7 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
         raise DataError(f"{data.source or 'the trial'}: its markers do not fix any frame's pose with residual "
                         "degrees of freedom to spare, so the noise of the angles cannot be estimated",
                         "give a trial with more of the fit's markers")
-    var_pose = sigma**2 * np.einsum("tqq->tq", Hinv)
-    # first order: dq/dtheta = -(Jq^T Jq)^-1 Jq^T J_theta (r = y - x, so the sign of J is the same for both)
-    if model.n_params:
-        G = -np.einsum("tqr,tkr,tkp->tqp", Hinv, Jq, Jt)
-        var_lin = np.einsum("tqp,pr,tqr->tq", G, geom.cov, G)
-    else:
-        var_lin = np.zeros((F, Q))
+    var_pose = sigma**2 * Hinv_diag
     if n_draws and model.n_params:
         draws = draw_geometry(geom, int(n_draws), rng)
         var_geo = _draw_variance(model, draws, y, q, fixed, rot_pose, ws, batch, fit_pose)
@@ -452,18 +456,25 @@ def _jacobians(model, theta, q, y, ws):
 
 def _draw_variance(model, draws, y, q, fixed, rot, ws, batch, fit_pose) -> np.ndarray:
     """(F, Q) variance over the draws of each frame's refitted pose (every draw x frame batched)."""
-    D, F = draws.shape[0], y.shape[0]
+    D, F, Q = draws.shape[0], y.shape[0], q.shape[1]
+    total, square = np.zeros((F, Q)), np.zeros((F, Q))  # of the deviations from the MAP pose, over the draws
     idx = np.flatnonzero(fixed)
-    dq = np.zeros((D, F, q.shape[1]))
     if idx.size == 0:
-        return np.zeros((F, q.shape[1]))
-    per = max(1, int(batch) // idx.size)
-    for a in range(0, D, per):
-        th = draws[a:a + per, None, :]
-        qd, _ = fit_pose(model, th, y[None, idx], np.broadcast_to(q[idx], (th.shape[0], idx.size, q.shape[1])),
-                         n_iter=DRAW_ITER, ws=ws)
-        dq[a:a + per, idx] = _wrap(qd - q[idx], rot)
-    return dq.var(axis=0, ddof=1) if D > 1 else dq[0] ** 2
+        return total
+    per_draws = max(1, int(batch) // idx.size)  # draws per batch (all frames), or frames per batch (one draw)
+    per_frames = min(idx.size, int(batch))
+    for a in range(0, D, per_draws):
+        th = draws[a:a + per_draws, None, :]
+        for b in range(0, idx.size, per_frames):
+            f = idx[b:b + per_frames]
+            qd, _ = fit_pose(model, th, y[None, f], np.broadcast_to(q[f], (th.shape[0], f.size, Q)),
+                             n_iter=DRAW_ITER, ws=ws)
+            dq = _wrap(qd - q[f], rot)
+            total[f] += dq.sum(axis=0)
+            square[f] += (dq**2).sum(axis=0)
+    if D == 1:
+        return square
+    return np.maximum(square - total**2 / D, 0.0) / (D - 1)
 
 
 def _to_coordinates(geom, data, q, var_pose, var_geo, var_lin, fixed, sigma, n_draws) -> JointAngles:
