@@ -158,10 +158,14 @@ def ik_angles() -> str:
                          f"{f(r['laplace_geometry_share'])} |")
     c = doc.get("coverage")
     if c and c.get("coordinates"):
+        lap = c.get("laplace_mean_coverage_95")
         lines += ["", f"Coverage of the true coordinates by the 95 % intervals on the synthetic leg "
                   f"({c['reps_done']} of {c['reps']} repetitions, noise {c['noise_mm']:g} mm): mean "
-                  f"{c['mean_coverage_95']:.3f}, per coordinate " + ", ".join(
-                      f"{n} {r['coverage_95']:.2f}" for n, r in c["coordinates"].items()) + "."]
+                  f"{c['mean_coverage_95']:.3f} with the reported covariance (per coordinate " + ", ".join(
+                      f"{n} {r['coverage_95']:.2f}" for n, r in c["coordinates"].items()) + ")"
+                  + (f", {lap:.3f} with the Laplace covariance (per coordinate " + ", ".join(
+                      f"{n} {r['coverage_95']:.2f}" for n, r in c["laplace_coordinates"].items()) + ")"
+                     if lap is not None else "") + "."]
     return "\n".join(lines) + "\n\n" + source(path, doc)
 
 
