@@ -23,18 +23,25 @@ Two sources of uncertainty reach an angle:
   (``v^pose_tc``, its diagonal), ``sigma`` estimated from the trial's residuals
   on ``sum_t (3 M_t - Q)`` degrees of freedom.
 
-The two are independent (the geometry comes from the fit's frames, the noise
-from this frame's markers; for a trial that was part of the fit this neglects
-the small correlation between the two), so
+The two are taken as independent (the geometry comes from the fit's frames, the
+noise from this frame's markers; for a trial that was part of the fit they are
+not exactly so, and that correlation is neglected), so
 
 .. math:: \\mathrm{sd}_{tc} = \\sqrt{v^{geo}_{tc} + v^{pose}_{tc}}, \\qquad
           \\text{geometry share}_c = \\frac{\\sum_t v^{geo}_{tc}}{\\sum_t (v^{geo}_{tc} + v^{pose}_{tc})}.
+
+The covariance is the one the fit reports (its intervals in ``scaled_scaling.json``): the joint
+fit's Laplace covariance widened, parameter by parameter, where the fit's checks found model misfit
+or serially correlated residuals. :meth:`FittedGeometry.laplace` gives the covariance before that
+widening (``skelid ik --covariance laplace``), to see how much of an angle's sd the widening makes.
 
 Every coordinate of the OpenSim model is reported (:func:`skelid.io.osim.osim_coordinates`):
 a locked one at its default value with sd 0 (as OpenSim's IK holds it), one that no marker
 reaches (a body without markers, left out of skelid's model) at its default value with
 sd NaN (the data say nothing about it). A frame whose markers do not fix the pose
-gets NaN for every coordinate.
+gets NaN for every coordinate. The pose fit is unconstrained: where a coordinate OpenSim clamps
+lies outside its range, OpenSim's IK would hold it at the bound; those frames are counted
+(``frames_outside_range``), not moved.
 
 Files (:func:`write_ik`): ``<trial>.mot`` (OpenSim's motion format, rotational coordinates in
 degrees, ``inDegrees=yes``, read by ``opensim.TimeSeriesTable``), ``<trial>_sd.mot`` (the total
