@@ -334,8 +334,8 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
 
 
 @cli.command(epilog="Example:\n\n\b\n"
-             "    skelid fit gait2354_simbody.osim static.trc walk.trc --out fit\n"
-             "    skelid ik fit walk.trc --draws 100")
+             "    skelid fit gait2354_simbody.osim static.trc walk.trc --out /tmp/fit\n"
+             "    skelid ik /tmp/fit walk.trc --draws 100")
 @click.argument("result_dir")
 @click.argument("trial_paths", nargs=-1, required=True)
 @click.option("--draws", type=click.IntRange(min=0), default=N_DRAWS_DEFAULT, show_default=True,
