@@ -145,15 +145,20 @@ def ik_angles() -> str:
     if o:
         lines += [f"subject01 walk, {o['frames']} frames, {o['markers']} markers, {o['draws']} draws of the geometry; "
                   f"skelid's marker cost at or below OpenSim's on {o['frames_skelid_cost_not_above_opensim']:.0%} of "
-                  f"the frames. Rotations in degrees, translations in mm; the difference over the frames where "
-                  "OpenSim does not hold the coordinate at a bound of its range (frames held in brackets).", "",
-                  "| coordinate | rms difference to OpenSim IK | mean sd | geometry share | mean sd, Laplace "
-                  "covariance | geometry share, Laplace |", "|---|---|---|---|---|---|"]
+                  "the frames" + (f", the two models' markers {o['model_gap_mm']:.1e} mm apart at OpenSim's "
+                                  "coordinates" if o.get("model_gap_mm") is not None else "")
+                  + ". Rotations in degrees, translations in mm; the difference over the frames where "
+                  "OpenSim does not hold the coordinate at a bound of its range (frames held in brackets)"
+                  + ("; and over every frame to OpenSim's IK run at accuracy 1e-8 instead of its default 1e-5"
+                     if o.get("rms_difference_to_opensim_accuracy_1e-8") else "") + ".", "",
+                  "| coordinate | rms difference to OpenSim IK | at accuracy 1e-8 | mean sd | geometry share | "
+                  "mean sd, Laplace covariance | geometry share, Laplace |", "|---|---|---|---|---|---|---|"]
+        tight = o.get("rms_difference_to_opensim_accuracy_1e-8") or {}
         for n, r in o["coordinates"].items():
             if r["status"] != "fitted":
                 continue
             held = f" ({r['frames_at_opensim_bound']})" if r.get("frames_at_opensim_bound") else ""
-            lines.append(f"| {n} | {f(r.get('rms_difference'))}{held} | {f(r['mean_sd'], '.1f')} | "
+            lines.append(f"| {n} | {f(r.get('rms_difference'))}{held} | {f(tight.get(n))} | {f(r['mean_sd'], '.1f')} | "
                          f"{f(r['geometry_share'])} | {f(r['laplace_mean_sd'], '.1f')} | "
                          f"{f(r['laplace_geometry_share'])} |")
     c = doc.get("coverage")
