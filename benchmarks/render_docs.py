@@ -213,6 +213,50 @@ def opensim_truth_exact(path: Path) -> str:
             "\n\n" + source(path, doc))
 
 
+def ik_angles() -> str:
+    """Joint angles against OpenSim's IK on subject01's walk, their sd and geometry share; the coverage check."""
+    path = RESULTS / "ik_angles.json"
+    if not path.exists():
+        return ("*Not measured yet.* `python benchmarks/ik_angles.py` writes `benchmarks/results/ik_angles.json`; "
+                "`python benchmarks/render_docs.py` then puts its table here.\n")
+    doc = load(path)
+    o = doc.get("opensim")
+    lines = []
+
+    def f(v, fmt=".2f"):
+        return "—" if v is None else format(v, fmt)
+    if o:
+        lines += [f"subject01 walk, {o['frames']} frames, {o['markers']} markers, {o['draws']} draws of the geometry; "
+                  f"skelid's marker cost at or below OpenSim's on {o['frames_skelid_cost_not_above_opensim']:.0%} of "
+                  "the frames" + (f", the two models' markers {o['model_gap_mm']:.1e} mm apart at OpenSim's "
+                                  "coordinates" if o.get("model_gap_mm") is not None else "")
+                  + ". Rotations in degrees, translations in mm; the difference over the frames where "
+                  "OpenSim does not hold the coordinate at a bound of its range (frames held in brackets)"
+                  + ("; and over every frame to OpenSim's IK run at accuracy 1e-8 instead of its default 1e-5"
+                     if o.get("rms_difference_to_opensim_accuracy_1e-8") else "") + ".", "",
+                  "| coordinate | rms difference to OpenSim IK | at accuracy 1e-8 | mean sd | geometry share | "
+                  "mean sd, Laplace covariance | geometry share, Laplace |", "|---|---|---|---|---|---|---|"]
+        tight = o.get("rms_difference_to_opensim_accuracy_1e-8") or {}
+        for n, r in o["coordinates"].items():
+            if r["status"] != "fitted":
+                continue
+            held = f" ({r['frames_at_opensim_bound']})" if r.get("frames_at_opensim_bound") else ""
+            lines.append(f"| {n} | {f(r.get('rms_difference'))}{held} | {f(tight.get(n))} | {f(r['mean_sd'], '.1f')} | "
+                         f"{f(r['geometry_share'])} | {f(r['laplace_mean_sd'], '.1f')} | "
+                         f"{f(r['laplace_geometry_share'])} |")
+    c = doc.get("coverage")
+    if c and c.get("coordinates"):
+        lap = c.get("laplace_mean_coverage_95")
+        lines += ["", f"Coverage of the true coordinates by the 95 % intervals on the synthetic leg "
+                  f"({c['reps_done']} of {c['reps']} repetitions, noise {c['noise_mm']:g} mm): mean "
+                  f"{c['mean_coverage_95']:.3f} with the reported covariance (per coordinate " + ", ".join(
+                      f"{n} {r['coverage_95']:.2f}" for n, r in c["coordinates"].items()) + ")"
+                  + (f", {lap:.3f} with the Laplace covariance (per coordinate " + ", ".join(
+                      f"{n} {r['coverage_95']:.2f}" for n, r in c["laplace_coordinates"].items()) + ")"
+                     if lap is not None else "") + "."]
+    return "\n".join(lines) + "\n\n" + source(path, doc)
+
+
 # ---------------------------------------------------------------- accuracy
 
 
@@ -426,6 +470,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "opensim-subject4": opensim_subject4,
     "opensim-truth": opensim_truth,
     "opensim-truth-summary": opensim_truth_summary,
+    "ik-angles": ik_angles,
     "accuracy-main": accuracy_main,
     "accuracy-artefact": accuracy_artefact,
     "accuracy-control": accuracy_control,

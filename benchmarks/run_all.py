@@ -123,6 +123,7 @@ BENCHMARKS: tuple[Bench, ...] = (
     B("opensim_peer", "opensim_peer.py", (), ("--quick",), ("opensim_peer.json", "opensim_peer.md"), needs_data=True),
     B("opensim_truth", "opensim_truth.py", (), ("--quick",), ("opensim_truth.json", "opensim_truth.md"),
       needs_data=True),
+    B("ik_angles", "ik_angles.py", (), ("--quick",), ("ik_angles.json", "ik_angles.md"), needs_data=True),
 )
 
 

@@ -9,7 +9,8 @@ import pytest
 from skelid.errors import SkelidWarning
 
 MODULES = ["skelid.result", "skelid.io.results", "skelid.registry", "skelid.estimators.paper",
-           "skelid.estimators.online.grid", "skelid.estimators.marker", "skelid.estimators.sampler", "skelid.live"]
+           "skelid.estimators.online.grid", "skelid.estimators.marker", "skelid.estimators.sampler", "skelid.live",
+           "skelid.angles"]
 
 
 @pytest.mark.parametrize("name", MODULES)

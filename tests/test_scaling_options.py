@@ -190,11 +190,28 @@ def check_max_time(d, base):
     _refused(_run(d, ["--max-time", "0.001s"]), "--max-time")
 
 
+def check_ik(d, base):
+    r = _run(d, ["--ik", "--ik-draws", "3"])
+    assert sorted(p.name for p in (r["dir"] / "ik").iterdir()) == ["ik.json", "move.mot", "move_sd.mot",
+                                                                  "static.mot", "static_sd.mot"]
+    assert set(r["table"]["ik"]) == {"static", "move"} and "ik" not in base["table"]
+    rest = {k: v for k, v in _numbers(r["table"]).items() if k != "ik"}
+    assert rest == _numbers(base["table"])  # the fit is the same
+    _refused(_run(d, ["--ik"], drop=["--out"]), "--out")
+
+
+def check_ik_draws(d, base):
+    t = _run(d, ["--ik", "--ik-draws", "0"])["table"]
+    assert {s["draws"] for s in t["ik"].values()} == {0}
+    _refused(_run(d, ["--ik-draws", "3"]), "--ik-draws")
+
+
 CASES = {"--method": check_method, "--sigma": check_sigma, "--json": check_json, "--quiet": check_quiet,
          "--out": check_out, "--cutoff": check_cutoff, "--artefact-rms": check_artefact_rms,
          "--noise": check_noise, "--alternative": check_alternative, "--seed": check_seed, "--scale": check_scale,
          "--markers": check_markers, "--marker-set": check_marker_set, "--overwrite": check_overwrite,
-         "--max-memory": check_max_memory, "--max-time": check_max_time}
+         "--max-memory": check_max_memory, "--max-time": check_max_time, "--ik": check_ik,
+         "--ik-draws": check_ik_draws}
 
 
 def test_every_fit_option_has_a_case():

@@ -32,6 +32,7 @@ FIT_EXAMPLE = """\b
 EXAMPLES_EPILOG = f"Example (from the skelid repository root):\n\n{FIT_EXAMPLE}"
 
 SEED = click.IntRange(min=0)
+N_DRAWS_DEFAULT = 100  # skelid.angles.N_DRAWS, without importing the library at start-up
 
 
 def _warning_line(message, category, filename, lineno, file=None, line=None):
@@ -202,10 +203,14 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (its old contents "
               "are removed).")
+@click.option("--ik", "with_ik", is_flag=True, help="OpenSim models: also every coordinate of every trial with its "
+              "sd (as 'skelid ik' writes them), in --out/ik.")
+@click.option("--ik-draws", type=click.IntRange(min=0), default=None, metavar="N",
+              help="With --ik: draws of the geometry (default 100; 0: its first-order effect).")
 @_limit_options
 @click.pass_context
 def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
-        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, max_memory, max_time):
+        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, with_ik, ik_draws, max_memory, max_time):
     """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
 
     Several files are trials of one body: one geometry is fitted to all of them, with each
@@ -218,10 +223,17 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
     check_distinct_files(data_paths)
     if str(model_path).lower().endswith(".osim"):
+        if ik_draws is not None and not with_ik:
+            raise click.UsageError("--ik-draws is for --ik; add --ik or leave it out")
+        if with_ik and out_dir is None:
+            raise click.UsageError("--ik writes the angles into the --out folder; give --out DIR")
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
-                  alternatives=alternatives, limits=(max_memory, max_time))
+                  alternatives=alternatives, limits=(max_memory, max_time),
+                  ik_draws=(N_DRAWS_DEFAULT if ik_draws is None else ik_draws) if with_ik else None)
         return
+    if with_ik or ik_draws is not None:
+        raise click.UsageError("--ik gives the joint angles of an OpenSim model; fit an .osim model to use it")
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
@@ -255,7 +267,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
 
 def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
               as_json, quiet, overwrite=False, cutoff=None, artefact_rms=None, noise="pooled", alternatives=(),
-              limits=(None, None)):
+              limits=(None, None), ik_draws=None):
     """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim.
 
     Every option of ``fit`` reaches the fit (the estimator's options as for a ``.toml`` model) or is
@@ -284,6 +296,10 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
         workflows.check_input_file(marker_set, "marker-set file")
     for p in [*alternatives, *data_paths]:
         workflows.check_input_file(p, "model file" if p in alternatives else "data file")
+    if ik_draws is not None:
+        from skelid.angles import check_trial_names
+
+        stems = check_trial_names(data_paths)
     trials = [read_markers(p) for p in data_paths]
     options = dict(marker_set=marker_set, scale=scale_kind, markers=marker_kind,
                    method=method_names[0] if method_names else "marker", seed=seed, sigma=sigma, cutoff=cutoff,
@@ -296,6 +312,13 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     if out_dir is not None:
         with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
             paths = scaling.write_outputs(fit_, tmp)
+            if ik_draws is not None:
+                from skelid import angles
+
+                ik = angles.run_ik(angles.fitted_geometry(fit_), dict(zip(stems, trials, strict=True)), ik_draws,
+                                   seed)
+                angles.write_ik(tmp / "ik", ik)
+                table["ik"] = angles.ik_document(ik)
             write_run(tmp, run_from_scaling(fit_, table, _command(ctx)))
         table["written"] = {k: str(Path(out_dir) / v.name) for k, v in paths.items()}
     if as_json:
@@ -308,6 +331,68 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
         click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
         if out_dir:
             click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")
+        if ik_draws is not None:
+            click.echo(f"joint angles and their sd written to {Path(out_dir) / 'ik'}")
+
+
+@cli.command(epilog="Example:\n\n\b\n"
+             "    skelid fit gait2354_simbody.osim static.trc walk.trc --out /tmp/fit\n"
+             "    skelid ik /tmp/fit walk.trc --draws 100")
+@click.argument("result_dir")
+@click.argument("trial_paths", nargs=-1, required=True)
+@click.option("--draws", type=click.IntRange(min=0), default=N_DRAWS_DEFAULT, show_default=True,
+              help="Draws of the geometry from the fit's posterior, each trial's poses refitted for each "
+                   "(0: the geometry's first-order effect only).")
+@click.option("--out", "out_dir", default=None,
+              help="Folder for the .mot files and ik.json (default RESULT_DIR/ik); must be new, or see --overwrite.")
+@click.option("--covariance", type=click.Choice(["reported", "laplace"]), default="reported", show_default=True,
+              help="The geometry's covariance as the fit reports it (widened by its checks for model misfit and "
+                   "correlated residuals), or the joint fit's Laplace covariance before that widening.")
+@click.option("--seed", type=SEED, default=0, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print each trial's summary as JSON on stdout, nothing else.")
+@click.option("--quiet", is_flag=True, help="No table: only warnings and errors.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole.")
+def ik(result_dir, trial_paths, draws, covariance, out_dir, seed, as_json, quiet, overwrite):
+    """Every OpenSim coordinate of each TRIAL on the model fitted in RESULT_DIR, with its sd.
+
+    RESULT_DIR is the folder 'skelid fit MODEL.osim ... --out DIR' wrote. For each trial,
+    TRIAL.mot holds the coordinates (degrees for rotational ones, as OpenSim writes them),
+    TRIAL_sd.mot their sd (the geometry's posterior and the frame's marker noise together),
+    and ik.json each coordinate's mean sd and the share of its variance from the geometry.
+    """
+    from skelid import angles, workflows
+    from skelid.io import read_markers
+    from skelid.io.atomic import atomic_dir, check_output_dir
+
+    geom = angles.read_geometry(result_dir)
+    geom = geom.laplace() if covariance == "laplace" else geom
+    out_dir = str(Path(result_dir) / "ik") if out_dir is None else out_dir
+    check_output_dir(out_dir, overwrite=overwrite)
+    stems = angles.check_trial_names(trial_paths)
+    for p in trial_paths:
+        workflows.check_input_file(p, "data file")
+    trials = dict(zip(stems, (read_markers(p) for p in trial_paths), strict=True))
+    results = angles.run_ik(geom, trials, draws, seed)
+    with atomic_dir(out_dir, protect=[*trial_paths], overwrite=overwrite) as tmp:
+        angles.write_ik(tmp, results)
+    doc = angles.ik_document(results)
+    if as_json:
+        _echo_json(doc)
+        return
+    if quiet:
+        return
+    for stem, s in doc.items():
+        click.echo(f"{stem}: {s['frames_fixed']} of {s['frames']} frames, marker noise {s['sigma_mm']:.2f} mm, "
+                   f"{s['draws']} draws of the geometry ({s['covariance']} covariance)")
+        click.echo(f"  {'coordinate':<20} {'mean':>9} {'mean sd':>8} {'geometry share':>15}")
+        for name, c in s["coordinates"].items():
+            if c["status"] != "fitted":
+                click.echo(f"  {name:<20} {c['mean']:>9.3f} {'-':>8} {c['status']:>15}")
+                continue
+            out = c["frames_outside_range"]
+            click.echo(f"  {name:<20} {c['mean']:>9.3f} {c['mean_sd']:>8.3f} {c['geometry_share']:>15.2f}  "
+                       f"{c['unit']}" + (f"  ({out} frames outside its range)" if out else ""))
+    click.echo(f"angles (.mot), their sd (_sd.mot) and ik.json written to {out_dir}")
 
 
 @cli.group("model")

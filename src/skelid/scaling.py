@@ -1161,7 +1161,8 @@ def _settings_json(est) -> dict:
 
 
 def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, Path]:
-    """Write ``<name>.osim``, ``<name>_scale_set.xml``, ``<name>_scaling.json`` and ``<name>_report.md``."""
+    """Write ``<name>.osim``, ``<name>_scale_set.xml``, ``<name>_scaling.json``, ``<name>_report.md`` and
+    ``<name>_geometry.json`` (the fitted model and its covariance, for :mod:`skelid.angles`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"osim": out_dir / f"{name}.osim", "scale_set": out_dir / f"{name}_scale_set.xml",
@@ -1171,6 +1172,9 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
     table = scaling_table(fit)
     paths["json"].write_text(json.dumps(_finite_or_none(table), indent=1, allow_nan=False) + "\n")
     paths["report"].write_text(report_markdown(fit, table, {k: v.name for k, v in paths.items()}))
+    from skelid.angles import fitted_geometry, write_geometry  # what 'skelid ik' needs from the fit
+
+    paths["geometry"] = write_geometry(fitted_geometry(fit), out_dir, name)
     return paths
 
 

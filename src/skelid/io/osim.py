@@ -578,6 +578,43 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
                           marker_set_found_by=found_by)
 
 
+class OsimCoordinate(NamedTuple):
+    """One coordinate of an OpenSim model, as OpenSim lists it (joint order, then the joint's order)."""
+
+    name: str
+    joint: str
+    rotational: bool  # it turns a rotation axis of its joint (OpenSim writes it in degrees)
+    locked: bool
+    default: float  # OpenSim units: radians or metres
+    range: tuple = (-math.inf, math.inf)  # OpenSim units
+    clamped: bool = False  # OpenSim keeps it inside its range (its inverse kinematics, too)
+
+
+def osim_coordinates(path) -> tuple[OsimCoordinate, ...]:
+    """Every coordinate of the model in ``path``, in the order OpenSim's coordinate set has them.
+
+    A coordinate is rotational when it drives a rotation of its joint (as OpenSim decides a
+    coordinate's motion type), translational otherwise.
+
+    Raises
+    ------
+    FormatError, ModelError
+        As :func:`read_osim`.
+    """
+    root = _parse(path).getroot()
+    rd = _Reader(root, str(path))
+    rd.read()
+    clamped = {c.get("name"): (_text(c, "clamped", "false") or "false").lower() == "true"
+               for c in root.iter("Coordinate")}
+    out = []
+    for j in rd.joints:
+        for ci, (cname, rng, locked, default, _mt) in enumerate(j.coordinates):
+            rot = any(m.kind == "R" and m.coordinate == ci for m in j.motions)
+            out.append(OsimCoordinate(cname, j.name, rot, locked, float(default), tuple(float(v) for v in rng),
+                                      clamped.get(cname, False)))
+    return tuple(out)
+
+
 def _document_kind(path: Path) -> str | None:
     """The tag of an OpenSim XML document's top object (``ScaleTool``, ``MarkerSet``, ``Model`` ...), cheaply."""
     return first_tag(path)

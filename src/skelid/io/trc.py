@@ -8,7 +8,7 @@ trusts the rows and the name line; blank fields and ``NaN`` are missing markers.
 The sampling rate is ``DataRate``; where the ``Time`` column's mean step per row
 differs from ``1 / DataRate`` by more than 5 % (a decimated export), a
 :class:`~skelid.errors.SkelidWarning` says so; ``meta["time_step"]`` holds the
-step the Time column shows.
+step the Time column shows and ``meta["time_start"]`` its first time (None without one).
 """
 
 from __future__ import annotations
@@ -103,8 +103,9 @@ def read_trc(path) -> MarkerData:
     if step is not None and abs(step * rate - 1.0) > 0.05:
         warnings.warn(f"{path}: the Time column advances {step:.6g} s per row but DataRate says {rate:g} Hz "
                       f"({1 / rate:.6g} s); using DataRate (the rows may be decimated)", SkelidWarning, stacklevel=2)
+    start = next((float(v) for _i, v in times if v.strip()), None)  # checked by _time_step
     return MarkerData(pos, tuple(names), rate, units, source=str(path),
-                      meta={"header": header, "format": "trc", "time_step": step})
+                      meta={"header": header, "format": "trc", "time_step": step, "time_start": start})
 
 
 def _time_step(times: list[tuple[int, str]], path: Path) -> float | None:
