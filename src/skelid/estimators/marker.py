@@ -716,8 +716,10 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
         more = joint_fit(model, sc.y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
                          penalty=fit.penalty, weights=wt.weights, ws=ws)
         dof = max(more.n_obs - more.pose_dof - model.n_params, 1.0)
+        # exact data: the noise level is rounding (NUMERICAL_RESIDUAL of the model's size), not the residuals'
+        sigma2 = max(more.rss / dof, (NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())) ** 2)
         try:
-            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * more.rss / dof)
+            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(more.info)), 0, None) * sigma2)
         except np.linalg.LinAlgError:
             return wt._replace(fit=more)
         step = np.abs(more.theta - fit.theta)
