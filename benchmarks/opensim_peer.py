@@ -61,6 +61,20 @@ OUT = results_dir()
 JOINED = False  # --joined: trials as one recording with gaps, one marker fit
 
 
+
+def scale_entries(table: dict) -> list[tuple]:
+    """``(label, body, axis, entry)`` of every scale factor of a scaling table: one per body, or per axis
+    where the fit gave the body one factor per axis (``"femur_r x"``)."""
+    return [(body if ax == "xyz" else f"{body} {ax}", body, ax, e)
+            for body, axes in table["scales"].items() for ax, e in axes.items()]
+
+
+def _axis(scales: dict, body: str, ax: str):
+    """A peer's factors of ``body``: all three for one factor per body, the one of axis ``ax`` otherwise."""
+    v = scales.get(body)
+    return v if v is None or ax == "xyz" else [v["xyz".index(ax)]]
+
+
 def _every(data: MarkerData, step: int) -> MarkerData:
     return MarkerData(data.positions[::step], data.names, data.rate / step, data.units, data.source, data.meta)
 
@@ -125,10 +139,8 @@ def subject01(tmp: Path, quick: bool) -> dict:
         fit = fit_osim(S01 / "gait2354_simbody.osim", trials, scale="bodies", markers="offsets", joined=JOINED)
     paths = write_outputs(fit, tmp / "skelid01")
     table = scaling_table(fit)
-    rows = []
-    for body, e in table["scales"].items():
-        rows.append({"body": body, "skelid": e["xyz"]["value"], "skelid_ci95": e["xyz"]["ci95"],
-                     "opensim": peer["scales"].get(body)})
+    rows = [{"body": label, "skelid": e["value"], "skelid_ci95": e["ci95"], "opensim": _axis(peer["scales"], body, ax)}
+            for label, body, ax, e in scale_entries(table)]
     ik_sk = _ik(paths["osim"], S01 / "subject01_walk1.trc", tmp / "ik01_skelid")
     peer_cpu = peer["time"]["cpu_s"] + ik_os["cpu_s"]
     return {"frames_given": {"static": int(static.positions.shape[0]), "walk": int(trials[1].positions.shape[0])},
@@ -226,9 +238,10 @@ def subject4(tmp: Path, quick: bool) -> dict:
           for m in ("skelid", "addbiomechanics", "expert")}
     return {"fit_trials": fit_names, "frames_given": {n: int(trials[n].positions.shape[0]) for n in fit_names},
             "frames_used": fit.data.meta.get("trial_frames_used"),
-            "scales": {b: {"skelid": e["xyz"]["value"], "skelid_ci95": e["xyz"]["ci95"],
-                           "addbiomechanics": scales["addbiomechanics"].get(b), "expert": scales["expert"].get(b)}
-                       for b, e in table["scales"].items()},
+            "scales": {label: {"skelid": e["value"], "skelid_ci95": e["ci95"],
+                               "addbiomechanics": _axis(scales["addbiomechanics"], b, ax),
+                               "expert": _axis(scales["expert"], b, ax)}
+                       for label, b, ax, e in scale_entries(table)},
             "key_lengths_mm": lengths, "ik": ik,
             "seconds": {"skelid_fit": clock.dict()},
             "skelid_sigma_mm": table["sigma_mm"], "markers_left_out": table["markers_left_out"],
