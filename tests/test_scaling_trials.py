@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -109,3 +110,17 @@ def test_below_one_degree_of_freedom_nothing_is_tested():
     lines = "\n".join(_trials_markdown({"per_trial": [{"trial": "a.trc", "scales": {}}], "between_trial_sd": {},
                                         "consistency": {**one, "verdict": "not tested"}}))
     assert "not tested (fewer than one degree of freedom)" in lines
+
+
+def test_a_still_static_trial_beside_a_moving_one_is_fitted_and_trials_of_which_none_moves_are_refused(leg_trials):
+    """A noise-free static trial repeats one frame exactly (synthetic truth does): beside a walk it is fitted, alone
+    or beside other still trials it is refused in one line."""
+    from skelid.errors import DataError
+
+    d, trials = leg_trials
+    static = trials[0]
+    still = replace(static, positions=np.repeat(static.positions[:1], len(static.positions), axis=0))
+    fit = fit_osim(d / "leg.osim", [still, trials[1]])
+    assert all(np.isfinite(fit.result[p.name]["sd"]) for p in fit.model.parameters if p.kind == "scale")
+    with pytest.raises(DataError, match="nothing moves"):
+        fit_osim(d / "leg.osim", [still, replace(still, source="still2.trc")])

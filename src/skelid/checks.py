@@ -84,12 +84,17 @@ def check_motion(model, y: np.ndarray, where: str = "the data") -> None:
             "give a trial in which the joints move")
 
 
-def check_data(model, y: np.ndarray, methods, where: str = "the data") -> None:
-    """Run every check on ``y (F, M, D)`` (model markers, model units) for each method."""
+def check_data(model, y: np.ndarray, methods, where: str = "the data", motion: bool = True) -> None:
+    """Run every check on ``y (F, M, D)`` (model markers, model units) for each method.
+
+    ``motion=False`` leaves out :func:`check_motion`: a still trial among several (a static trial
+    beside movement trials) is checked for motion with the others.
+    """
     check_surplus(model, where)
     for m in methods:
         check_frames(model, y, m, where)
-    check_motion(model, y, where)
+    if motion:
+        check_motion(model, y, where)
 
 
 def check_input_file(path, what: str = "data file") -> Path:

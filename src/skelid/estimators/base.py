@@ -162,12 +162,13 @@ def setting_json(v):
     return v if v is None or isinstance(v, bool | int | float | str) else repr(v)
 
 
-def marker_array(model: Model, data, rate, method: str | None = None) -> tuple[np.ndarray, float]:
+def marker_array(model: Model, data, rate, method: str | None = None, motion: bool = True) -> tuple[np.ndarray, float]:
     """``(y (F, M, D), rate)`` from ``data``: a :class:`MarkerData`, or an array with the ``rate`` setting.
 
     With ``method`` (the estimator's name), the data are also checked as ``skelid fit`` checks
     them (:func:`skelid.checks.check_data`): enough usable frames for the method, more marker
-    coordinates than pose coordinates, something that moves.
+    coordinates than pose coordinates, something that moves (not with ``motion=False``: a trial
+    among several, whose motion is checked with the others).
 
     Raises
     ------
@@ -185,7 +186,7 @@ def marker_array(model: Model, data, rate, method: str | None = None) -> tuple[n
     if method is not None:
         from skelid.checks import check_data  # the checks of skelid fit, the one place they live
 
-        check_data(model, y, [method], where)
+        check_data(model, y, [method], where, motion=motion)
     return y, rate
 
 

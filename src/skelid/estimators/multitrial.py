@@ -493,6 +493,23 @@ def random_effects(estimates, covs, tau2):
     return theta, cov, satterthwaite_dof(total, between, K - 1)
 
 
+def _check_some_trial_moves(model: Model, trials, rate) -> None:
+    """Refuse trials of which none moves (:func:`skelid.checks.check_motion`, the first trial's message)."""
+    from skelid.checks import check_motion
+
+    first = None
+    for k, data in enumerate(trials):
+        try:
+            check_motion(model, marker_array(model, data, rate)[0], _trial_label(data, k))
+            return
+        except DataError as exc:
+            first = first or exc
+        except SkelidError:
+            return  # the trial's own fit says what is wrong with it
+    if first is not None:
+        raise first
+
+
 def _trial_label(data, k: int) -> str:
     src = getattr(data, "source", None)
     if src:
@@ -618,10 +635,12 @@ class MultiTrialEstimator:
         if not trials:
             raise DataError("no trials to fit", "give at least one marker file")
         ests, labels = [], []
+        if len(trials) > 1:  # a still trial (a static one) among several is fine where another moves
+            _check_some_trial_moves(self.model, trials, self.rate)
         for k, data in enumerate(trials):
             label = _trial_label(data, k)
             try:
-                est = self.fit_trial(data)
+                est = self.fit_trial(data, alone=len(trials) == 1)
             except SkelidError as exc:
                 raise type(exc)(f"{label}: {exc.problem}", exc.fix) from None
             ests.append(est)
@@ -637,8 +656,9 @@ class MultiTrialEstimator:
         rates = [d.rate if isinstance(d, MarkerData) else float(self.rate) for d in trials]
         return self.combine(ests, rates, labels)
 
-    def fit_trial(self, data) -> MarkerEstimator:
-        """One trial's own fit, as :meth:`fit` makes it.
+    def fit_trial(self, data, alone: bool = True) -> MarkerEstimator:
+        """One trial's own fit, as :meth:`fit` makes it (``alone=False``: a trial among several, which
+        may be still).
 
         As :meth:`MarkerEstimator.fit <skelid.estimators.marker.MarkerEstimator.fit>` with this
         estimator's settings, except that a fit ending on a bound of the prior warns instead of
@@ -648,7 +668,7 @@ class MultiTrialEstimator:
         check_settings(self)
         est = MarkerEstimator(self.model, **self._trial_settings())
         check_settings(est)
-        y, rate = marker_array(self.model, data, est.rate, self.name)
+        y, rate = marker_array(self.model, data, est.rate, self.name, motion=alone)
         f = run_marker_fit(est, y, rate, make_rng(est.rng), on_bound="warn")
         est._publish(f, emit(marker_warnings(self.model, est, f)))
         return est
