@@ -124,3 +124,21 @@ def test_a_still_static_trial_beside_a_moving_one_is_fitted_and_trials_of_which_
     assert all(np.isfinite(fit.result[p.name]["sd"]) for p in fit.model.parameters if p.kind == "scale")
     with pytest.raises(DataError, match="nothing moves"):
         fit_osim(d / "leg.osim", [still, replace(still, source="still2.trc")])
+
+
+def test_a_scale_fit_that_does_not_converge_is_tried_once_more_with_more_iterations(leg_trials, monkeypatch):
+    import skelid.scaling as sc
+    from skelid.errors import ConvergenceError
+
+    d, trials = leg_trials
+    calls, real = [], sc._fit_scales_once
+
+    def once(model, parts, data, multi, method, sigma, seed, settings=None):
+        calls.append(dict(settings or {}))
+        if len(calls) == 1:
+            raise ConvergenceError("the joint fit did not converge", "raise n_iter")
+        return real(model, parts, data, multi, method, sigma, seed, settings)
+
+    monkeypatch.setattr(sc, "_fit_scales_once", once)
+    fit = fit_osim(d / "leg.osim", trials[:2], markers="none")
+    assert calls[1]["n_iter"] == sc.RETRY_ITER_FACTOR * 100 and np.isfinite(fit.result["scale_thigh"]["sd"])
