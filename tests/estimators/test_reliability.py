@@ -5,7 +5,7 @@ import pytest
 
 import skelid.estimators.marker as marker_mod
 from skelid.data import MarkerData
-from skelid.errors import ConvergenceError
+from skelid.errors import ConvergenceError, SettingError, SkelidWarning
 from skelid.estimators.checks.misfit import placement_information
 from skelid.estimators.fit.joint import box_bias
 from skelid.estimators.marker import MarkerEstimator
@@ -30,6 +30,25 @@ def test_a_fit_that_does_not_converge_fails_in_one_line(monkeypatch):
     with pytest.raises(ConvergenceError) as exc:
         MarkerEstimator(model, n_iter=5, cutoff=None, jackknife=False).fit(trial.data)
     assert "\n" not in exc.value.one_line() and "did not converge" in exc.value.one_line()
+
+
+def test_a_fit_that_keeps_moving_is_kept_and_flagged_when_asked(monkeypatch):
+    model = builtin_model("case-b")
+    trial = simulate(model, n_frames=120, sigma=2.0, rng=np.random.default_rng(0))
+    real = marker_mod.joint_fit
+    calls = []
+
+    def creeping(*args, **kwargs):
+        calls.append(1)
+        f = real(*args, **kwargs)
+        return f._replace(converged=False, theta=f.theta + 2.0 * len(calls))
+
+    monkeypatch.setattr(marker_mod, "joint_fit", creeping)
+    with pytest.warns(SkelidWarning, match="stopped before converging"):
+        est = MarkerEstimator(model, n_iter=5, cutoff=None, jackknife=False, on_nonconvergence="warn").fit(trial.data)
+    assert np.all(np.isfinite(est.theta_)) and not est.fit_info_.converged
+    with pytest.raises(SettingError, match="on_nonconvergence"):
+        MarkerEstimator(model, on_nonconvergence="ignore").fit(trial.data)
 
 
 def test_a_slow_fit_is_continued_until_it_settles():

@@ -708,7 +708,8 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
                    ws: Workspace | None = None) -> Weights:
     """A fit that stopped early is continued (up to ``CONTINUE_ROUNDS`` times ``n_iter`` more
     iterations); if its estimate still moves by more than ``CONVERGED_SD`` of its sd in the last
-    round, no interval is reported (one line)."""
+    round, no interval is reported (one line), or, with ``on_nonconvergence='warn'``, the estimate
+    is kept and flagged (the ``not-converged`` warning): for a caller that only starts from it."""
     fit = wt.fit
     for _ in range(CONTINUE_ROUNDS):
         if fit.converged:
@@ -726,7 +727,7 @@ def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights,
         fit = more
         if not np.any(step > CONVERGED_SD * np.maximum(sd, 1e-300)):
             return wt._replace(fit=more)
-    if fit.converged:
+    if fit.converged or s.on_nonconvergence == "warn":  # "warn": the estimate as it stands, flagged
         return wt._replace(fit=fit)
     k = int(np.argmax(step / np.maximum(sd, 1e-300)))
     raise ConvergenceError(
@@ -1150,6 +1151,11 @@ class MarkerEstimator:
         Starting geometry (default: the prior centre).
     pose0 : (T, Q) float, optional
         Starting poses (default: tracked at the starting geometry).
+    on_nonconvergence : {'error', 'warn'}
+        A joint fit that still moves after its continuations raises
+        :class:`~skelid.errors.ConvergenceError` (no interval), or, with ``'warn'``, keeps its
+        estimate with the ``not-converged`` warning (for a fit that only starts or checks
+        another, as the scale fit of an OpenSim model does).
 
     Attributes
     ----------
@@ -1222,6 +1228,7 @@ class MarkerEstimator:
         Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
         Setting("theta0", array_or_none, "None or finite starting values, one per parameter"),
         Setting("pose0", array_or_none, "None or finite starting poses (frames, pose coordinates)"),
+        Setting("on_nonconvergence", one_of("error", "warn"), "'error' or 'warn'"),
     )
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",
@@ -1229,7 +1236,7 @@ class MarkerEstimator:
                  rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
                  noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None,
-                 jackknife: bool = True, placement_sd: float | None = None):
+                 jackknife: bool = True, placement_sd: float | None = None, on_nonconvergence: str = "error"):
         self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
@@ -1247,6 +1254,7 @@ class MarkerEstimator:
         self.placement_sd = placement_sd
         self.theta0 = theta0
         self.pose0 = pose0
+        self.on_nonconvergence = on_nonconvergence
 
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerEstimator:
         """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""
