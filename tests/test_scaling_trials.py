@@ -142,3 +142,19 @@ def test_a_scale_fit_that_does_not_converge_is_tried_once_more_with_more_iterati
     monkeypatch.setattr(sc, "_fit_scales_once", once)
     fit = fit_osim(d / "leg.osim", trials[:2], markers="none")
     assert calls[1]["n_iter"] == sc.RETRY_ITER_FACTOR * 100 and np.isfinite(fit.result["scale_thigh"]["sd"])
+    assert "on_nonconvergence" not in calls[0] and calls[1]["on_nonconvergence"] == "warn"
+
+
+def test_the_check_fit_of_an_osim_fit_keeps_an_unconverged_estimate(leg_trials, monkeypatch):
+    import skelid.scaling as sc
+
+    d, trials = leg_trials
+    calls, real = [], sc._fit_scales_once
+
+    def once(model, parts, data, multi, method, sigma, seed, settings=None):
+        calls.append(dict(settings or {}))
+        return real(model, parts, data, multi, method, sigma, seed, settings)
+
+    monkeypatch.setattr(sc, "_fit_scales_once", once)
+    fit_osim(d / "leg.osim", trials[:2])
+    assert [c.get("on_nonconvergence") for c in calls] == [None, "warn"]

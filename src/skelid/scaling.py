@@ -61,6 +61,7 @@ import numpy as np
 
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, SkelidWarning
+from skelid.estimators.checks.pose_artefact import pose_artefact
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
@@ -332,17 +333,48 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
         # where the joint fit put it: they widen the joint interval, never narrow it
         m3 = _scales_only(model, _with_marker_positions(st.original, _placed_positions(model, jo.theta)))
         est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in st.trials], st.data, st.multi,
-                                      st.method, st.sigma, st.seed, st.settings)
+                                      st.method, st.sigma, st.seed, st.settings, checks_only=True)
+        # the soft-tissue artefact the residuals show: the part of it that mimics the geometry is added
+        art = pose_artefact(model, jo.theta, ys, jo.poses, jo.sigma, jo.cov, weights)
     bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
     widen = np.ones(model.n_params)
     widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
-    jo = replace(jo, cov=jo.cov * np.outer(widen, widen))
+    jo = replace(jo, cov=jo.cov * np.outer(widen, widen) + art.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
+    out["artefact"] = _artefact_entry(art, bound)
+    if out["artefact"]["warn"]:
+        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, bound)]
     if tests:
         out["one_factor_test"] = tests
     if axes_note:
         out["warnings"] = list(out.get("warnings", [])) + [axes_note]
     return model, jo.theta, est, out, jo
+
+
+#: the artefact's term is named in a warning where it widens some sd by at least this share of the bound
+#: (an estimate it could move by half an sd, as for the misfit test)
+ARTEFACT_EFFECT = 0.5
+
+
+def _artefact_entry(art, bound) -> dict:
+    """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact."""
+    ratio = np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
+    return {"present": bool(art.present), "p_value": float(art.p_value), "rms": float(art.rms),
+            "slope_sd_shared": float(art.tau_shared), "slope_sd_own": float(art.tau_own),
+            "sigma_white": list(art.sigma_white), "largest_sd_ratio": float(ratio.max(initial=0.0)),
+            "warn": bool(art.present and ratio.max(initial=0.0) >= ARTEFACT_EFFECT),
+            "method": "residuals against a marker slide linear in the joint angles (skelid.estimators.checks."
+                      "pose_artefact)"}
+
+
+def _artefact_warning(model: Model, art, bound) -> str:
+    """One line naming the artefact the residuals show and what it does to the intervals."""
+    ratio = np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
+    k = int(np.argmax(ratio))
+    return (f"the residuals follow the pose: a soft-tissue artefact of about {art.rms:.2g} {model.units} rms per "
+            f"marker coordinate (F test p = {art.p_value:.1e}); the part of it that looks like a change of the "
+            f"geometry is in the intervals (the largest effect: {model.parameter_names[k]}, "
+            f"{ratio[k]:.1f} times the sd the residuals alone give)")
 
 
 def _per_axis_where_contradicted(st: _ScaleStage, model, jo, ys, weights):
@@ -548,22 +580,30 @@ def _as_dict(r) -> dict:
 RETRY_ITER_FACTOR = 4
 
 
-def _fit_scales(model, parts, data, multi, method, sigma, seed, settings: dict | None = None):
+def _fit_scales(model, parts, data, multi, method, sigma, seed, settings: dict | None = None,
+                checks_only: bool = False):
     """The scale fit: ``(estimator, result dict, theta, [pose (F_k, Q) of each trial])``.
 
-    ``settings``: the estimator's settings (:func:`fit_settings`; default: ``sigma`` only). A fit
-    that does not converge is tried once more with :data:`RETRY_ITER_FACTOR` times the iterations.
+    ``settings``: the estimator's settings (:func:`fit_settings`; default: ``sigma`` only). The
+    scale fit only starts the joint fit of scales and offsets (or, ``checks_only``, gives its
+    checks), so a fit that does not converge is not fatal: it is tried once more with
+    :data:`RETRY_ITER_FACTOR` times the iterations, and its estimate then kept as it stands with
+    the ``not-converged`` warning (``checks_only``: kept at once). Only the marker methods.
     """
     from skelid.errors import ConvergenceError
 
+    settings = dict(settings or {"sigma": sigma})
+    marker = method in ("marker", "marker-multi")
+    if marker and checks_only:
+        settings["on_nonconvergence"] = "warn"
     try:
         return _fit_scales_once(model, parts, data, multi, method, sigma, seed, settings)
     except ConvergenceError:
-        if method not in ("marker", "marker-multi"):
+        if not marker:
             raise
         from skelid.estimators.marker import MarkerEstimator
 
-        more = dict(settings or {"sigma": sigma})
+        more = dict(settings, on_nonconvergence="warn")
         more["n_iter"] = RETRY_ITER_FACTOR * int(more.get("n_iter") or MarkerEstimator(model).n_iter)
         return _fit_scales_once(model, parts, data, multi, method, sigma, seed, more)
 

@@ -1,0 +1,92 @@
+"""A soft-tissue artefact that follows the pose is found in the residuals of an OpenSim fit and widens it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skelid.data import MarkerData
+from skelid.estimators.checks.pose_artefact import artefact_coordinates, pose_artefact
+from skelid.io.osim import osim_parameters, read_osim
+from skelid.model.kinematics import forward_kinematics, marker_positions
+from skelid.scaling import fit_osim
+from tests.test_scaling import MARKERS, MODEL
+
+FRAMES = 240
+
+
+@pytest.fixture(scope="module")
+def leg(tmp_path_factory):
+    d = tmp_path_factory.mktemp("artefact")
+    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+                     f'<location>{x} {y} {z}</location></Marker>'
+                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
+    (d / "leg.osim").write_text(MODEL.format(markers=text))
+    base, info = read_osim(d / "leg.osim")
+    model = osim_parameters(base, info, "bodies", "offsets")
+    theta = model.theta_nominal.copy()
+    for k, p in enumerate(model.parameters):
+        if p.kind == "scale":
+            theta[k] = {"pelvis": 1.02, "thigh": 1.1, "shank": 0.95}[p.target]
+    t = np.arange(FRAMES) / 60.0
+    q = np.zeros((FRAMES, model.n_pose))
+    q[:, 3:6] = [100.0, 900.0, 50.0]
+    q[:, 6] = 0.5 * np.sin(2 * np.pi * 1.1 * t)
+    q[:, 7] = 0.3 * np.sin(2 * np.pi * 0.7 * t + 1)
+    q[:, 8] = 0.3 * np.sin(2 * np.pi * 0.9 * t + 2)
+    q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
+    q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    return d / "leg.osim", model, theta, q
+
+
+def _markers(model, theta, q, rng, noise: float, artefact_rms: float = 0.0) -> MarkerData:
+    x = marker_positions(model, theta, q)
+    if artefact_rms:
+        c = artefact_coordinates(model)
+        dq = q[:, c] - q[:, c].mean(axis=0)
+        seg = np.asarray(model.marker_segment)
+        V = {b: rng.normal(size=(3, c.size)) for b in np.unique(seg)}  # each body's skin slides as a whole
+        R = forward_kinematics(model, theta, q).R_world_seg[:, seg]
+        d = np.einsum("tmij,mjc,tc->tmi", R, np.stack([V[b] + 0.3 * rng.normal(size=(3, c.size)) for b in seg]), dq)
+        x = x + d * artefact_rms / np.sqrt(np.mean(d**2))
+    x = x + rng.normal(0.0, noise, x.shape)
+    return MarkerData(x, model.marker_names, 60.0, "mm", "walk.trc")
+
+
+def test_white_noise_shows_no_artefact(leg):
+    path, model, theta, q = leg
+    fit = fit_osim(path, [_markers(model, theta, q, np.random.default_rng(1), 2.0)])
+    art = fit.result["artefact"]
+    assert not art["present"] and not art["warn"] and art["p_value"] > 0.01
+    assert not any("soft-tissue artefact of about" in w for w in fit.warnings)
+    assert art["sigma_white"][0] == pytest.approx(2.0, rel=0.15)
+
+
+def test_an_artefact_that_follows_the_pose_is_named_and_widens_the_intervals(leg):
+    path, model, theta, q = leg
+    rng = np.random.default_rng(2)
+    data = _markers(model, theta, q, rng, 0.5, artefact_rms=8.0)
+    fit = fit_osim(path, [data])
+    art = fit.result["artefact"]
+    assert art["present"] and art["p_value"] < 1e-6
+    assert 8.0 / 3 < art["rms"] < 8.0 * 3  # the moment estimate of its size, within a factor of three
+    assert art["sigma_white"][0] < 2.0  # the white part is told apart from the slide
+    assert any("soft-tissue artefact of about" in w for w in fit.warnings)
+    sd = np.sqrt(np.diag(fit.joint.cov))
+    ratio = [sd[k] / fit.result[p.name]["crlb_sd"] for k, p in enumerate(fit.model.parameters) if p.kind == "scale"]
+    assert max(ratio) > 1.5 and art["largest_sd_ratio"] > 0.5
+
+
+def test_the_added_covariance_is_the_artefacts_effect_through_the_fit(leg):
+    """With the fit's linearisation, the term is H^-1 G Sigma_V G^T H^-1: symmetric, positive semi-definite,
+    and proportional to the artefact's variance."""
+    path, model, theta, q = leg
+    rng = np.random.default_rng(3)
+    y = _markers(model, theta, q, rng, 0.5, artefact_rms=6.0).positions
+    hinv = np.eye(model.n_params) * 1e-3
+    a = pose_artefact(model, theta, [y], [q], np.array([3.0]), hinv)
+    assert a.present
+    w = np.linalg.eigvalsh(a.cov)
+    assert np.allclose(a.cov, a.cov.T) and w.min() > -1e-9 * w.max()
+    b = pose_artefact(model, theta, [y], [q], np.array([3.0]), 2.0 * hinv)
+    assert np.allclose(b.cov, 4.0 * a.cov)
