@@ -187,14 +187,14 @@ def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> di
     cs = model.getCoordinateSet()
     rot = np.array([cs.get(n).getMotionType() == 1 for n in coord_names])
     bodies = [ms.get(i).getParentFrameName().split("/")[-1] for i in range(M)]
-    shared = {b: rng.normal(size=(3, rot.sum())) for b in set(bodies)}
+    shared = {b: rng.normal(size=(3, rot.sum())) for b in sorted(set(bodies))}
     W = np.stack([shared[b] + 0.5 * rng.normal(size=(3, rot.sum())) for b in bodies])  # (M, 3, C)
     ref = static_q[0, rot]
 
     def artefact(q):
         return np.einsum("mjc,tc->tmj", W, q[:, rot] - ref)
     walk = artefact(trials["walk"][1])
-    for b in set(bodies):  # each body's markers move by their drawn rms over the walk
+    for b in sorted(set(bodies)):  # each body's markers move by their drawn rms over the walk
         idx = [i for i, x in enumerate(bodies) if x == b]
         rms = float(np.sqrt(np.mean(walk[:, idx] ** 2)))
         if rms > 0:
@@ -312,22 +312,26 @@ def scale_covariance(fit, ks) -> np.ndarray:
     return np.diag(sd**2)
 
 
-def skelid_fit(trials, scale: str) -> dict:
+def skelid_fit(trials, fit: str) -> dict:
+    """``fit``: the scale mode, with ``+pm`` for per-marker noise (``noise='per_marker'``)."""
     from skelid.data import MarkerData
     from skelid.scaling import fit_osim
+
+    scale, _, extra = fit.partition("+")
+    noise = "per_marker" if extra == "pm" else "pooled"
 
     data = [MarkerData(y, tuple(names), RATE, "mm", src) for src, names, y in trials]
     t0 = time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fit = fit_osim(GENERIC, data, marker_set=MARKER_SET, scale=scale, markers="offsets")
+        fit = fit_osim(GENERIC, data, marker_set=MARKER_SET, scale=scale, markers="offsets", noise=noise)
     cpu = time.process_time() - t0
     est = fit.estimator
     crlb = getattr(est, "crlb_sd_", None)
     if crlb is None and hasattr(est, "trials_"):  # several trials: each trial's bound, combined
         crlb = np.sum([np.asarray(e.crlb_sd_, float) ** -2.0 for e in est.trials_], axis=0) ** -0.5
     out = {"cpu_s": cpu, "sigma": fit.result.get("sigma"), "warnings": list(fit.warnings), "q": {},
-           "joint_fit": fit.result.get("joint_fit")}
+           "joint_fit": fit.result.get("joint_fit"), "artefact": fit.result.get("artefact")}
     en = [p.name for p in est.model.parameters] if hasattr(est, "model") else []
     for k, p in enumerate(fit.model.parameters):
         e = fit.result[p.name]
@@ -438,7 +442,7 @@ def run_draw(args) -> dict:
                   "walk+walk2": [("walk", names, walk), ("walk2", names, noisy.get("walk2"))]}[design]
         for fs in fits:
             key = f"{truth_kind}/{fs}/{design}/{noise}"
-            tv = true_values(truth, lengths, fs)
+            tv = true_values(truth, lengths, fs.partition("+")[0])
             try:
                 r = skelid_fit(trials, fs)
             except Exception as exc:  # a failed fit is counted in its cell, with its message
@@ -463,12 +467,16 @@ def run_draw(args) -> dict:
 
 
 # ----------------------------------------------------------------------------- summary
+#: the words of skelid's warning that names a soft-tissue artefact the residuals show
+ARTEFACT_WARNING = "soft-tissue artefact of about"
+
+
 def summarise(draws: list[dict]) -> dict:
     cells: dict = {}
     for d in draws:
         for key, r in d["fits"].items():
             c = cells.setdefault(key, {"n": 0, "failed": 0, "errors": [], "rows": {}, "cpu": [], "sigma": [],
-                                       "warned": 0})
+                                       "warned": 0, "artefact": 0, "art_term": 0})
             if "error" in r:
                 c["failed"] += 1
                 c["errors"].append(r["error"])
@@ -478,6 +486,8 @@ def summarise(draws: list[dict]) -> dict:
             s = r.get("sigma")
             c["sigma"].append(s.get("value") if isinstance(s, dict) else s)
             c["warned"] += bool(r["warnings"])
+            c["artefact"] += any(ARTEFACT_WARNING in w for w in r["warnings"])
+            c["art_term"] += bool((r.get("artefact") or {}).get("present"))
             for q, e in r["q"].items():
                 if q in r["truth"]:
                     row = c["rows"].setdefault(q, {"err": [], "sd": [], "crlb": []})
@@ -519,7 +529,9 @@ def summarise(draws: list[dict]) -> dict:
         if "sigma" in c:
             sig = [s for s in c["sigma"] if s is not None]
             out[key] |= {"sigma_mean": float(np.mean(sig)) if sig else None,
-                         "share_warned": c["warned"] / max(c["n"], 1)}
+                         "share_warned": c["warned"] / max(c["n"], 1),
+                         "share_artefact_named": c["artefact"] / max(c["n"], 1),
+                         "share_artefact_term": c["art_term"] / max(c["n"], 1)}
     return out
 
 
@@ -535,13 +547,20 @@ def markdown(res: dict) -> str:
              "`sta`: soft-tissue artefact 5-15 mm rms per body plus 1 mm, never told to the estimator)."
              " Truth `bodies`: one factor per body; `axes`: one per "
              "axis. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
-             "exact structure. Marker offsets are pooled over every marker and axis (per-offset rows in the "
-             "JSON). ScaleTool rows: OpenSim's measurement-based scaling on the same static trial (error of each "
+             "exact structure; `axes+pm`: the same with `noise='per_marker'`. Marker offsets are pooled over "
+             "every marker and axis (per-offset rows in the JSON). \"Artefact term added\": the fit found a "
+             "pose-dependent artefact in its residuals (F test) and added its effect to the intervals; "
+             "\"named\": it also warned. ScaleTool rows: OpenSim's measurement-based scaling on the same static "
+             "trial (error of each "
              "axis' factor against the truth's).", ""]
     for key, c in res["cells"].items():
         head = f"## {key}: {c['n']} draws, {c['failed']} failed, {_f(c['cpu_s_per_fit'], 1)} s CPU per fit"
         if c.get("sigma_mean") is not None:
             head += f", mean sigma {c['sigma_mean']:.3f} mm, warned in {c['share_warned']:.0%}"
+            if c.get("share_artefact_named") is not None:
+                head += f", artefact named in {c['share_artefact_named']:.0%}"
+            if c.get("share_artefact_term") is not None:
+                head += f", artefact term added in {c['share_artefact_term']:.0%}"
         lines += [head, ""]
         if c["errors"]:
             lines += [f"Failures: {'; '.join(c['errors'])}", ""]
@@ -682,7 +701,7 @@ def rescore(path: Path) -> None:
             if "error" in r:
                 continue
             lengths = {q[len("length "):]: v for q, v in r["truth"].items() if q.startswith("length ")}
-            tv = true_values(truth, lengths, key.split("/")[1])
+            tv = true_values(truth, lengths, key.split("/")[1].partition("+")[0])
             r["truth"] = {k: tv[k] for k in r["q"] if k in tv}
     res["cells"] = summarise(res["draws"])
     res["rescored"] = "true values recomputed from each draw's seed by --rescore"
