@@ -128,6 +128,11 @@ def _median_text(v) -> str:
     return f"{sorted(v)[len(v) // 2]:.2f}" if v else "—"
 
 
+def _share_text(cell: dict, key: str) -> str:
+    v = cell.get(key)
+    return "—" if v is None else f"{v:.0%}"
+
+
 def opensim_truth() -> str:
     """Coverage on models whose true scales are known (benchmarks/opensim_truth.py), once it has run."""
     path = RESULTS / "opensim_truth.json"
@@ -138,8 +143,9 @@ def opensim_truth() -> str:
     doc = load(path)
     cells = doc["cells"]
     lines = ["| cell (truth/fit/design/noise) | draws | coverage 95 %: scales, median (min) | lengths | offsets "
-             "| RMSE/sd, scales (median) | length RMSE (mm): skelid | ScaleTool | CPU s per fit |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| RMSE/sd, scales (median) | length RMSE (mm): skelid | ScaleTool | artefact found / named "
+             "| CPU s per fit |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for key, c in cells.items():
         truth, fit, design, noise = key.split("/")
         if fit == "scaletool" or not c["rows"]:
@@ -153,6 +159,7 @@ def opensim_truth() -> str:
         lines.append(f"| {key} | {c['n']}" + (f" ({c['failed']} failed)" if c["failed"] else "")
                      + f" | {med(sc)} ({min(sc):.2f}) | {med(ln)} | {med(of)} | {med(rs)} | "
                      f"{sum(lr) / len(lr):.1f} | " + (f"{sum(pr) / len(pr):.1f}" if pr else "—")
+                     + f" | {_share_text(c, 'share_artefact_term')} / {_share_text(c, 'share_artefact_named')}"
                      + f" | {c['cpu_s_per_fit']:.0f} |")
     note = (f"{doc['draws_done']} of {doc['draws_planned']} planned draws done; geometry drawn per draw. "
             "Lengths: hip-knee and knee-ankle per side; RMSE averaged over the four. Per quantity: "
@@ -166,8 +173,11 @@ def opensim_truth() -> str:
 SUMMARY_CELLS = (("axes/axes/static+walk/5", "the exact model (one factor per axis), static + walk, i.i.d. 5 mm"),
                  ("axes/bodies/static+walk/5", "the default (one factor per body) on per-axis truth, static + walk, "
                                                "i.i.d. 5 mm"),
-                 ("axes/axes/static+walk/pm", "per-marker noise 1-10 mm"),
-                 ("axes/axes/static+walk/sta", "soft-tissue artefact 5-15 mm rms"))
+                 ("axes/axes/static+walk/pm", "per-marker noise 1-10 mm, pooled noise fitted"),
+                 ("axes/axes+pm/static+walk/pm", "per-marker noise 1-10 mm, `--noise per-marker`"),
+                 ("axes/axes/static+walk/sta", "soft-tissue artefact 5-15 mm rms, static + walk"),
+                 ("axes/axes/walk/sta", "soft-tissue artefact, one walk alone"),
+                 ("axes/axes/walk+walk2/sta", "soft-tissue artefact, two walks"))
 
 
 def opensim_truth_summary() -> str:
@@ -196,17 +206,19 @@ def opensim_truth_summary() -> str:
 def opensim_truth_exact(path: Path) -> str:
     """Noise-free cells: the noise level found, the largest errors, the warnings given."""
     doc = load(path)
-    lines = ["| noise-free cell | draws | mean σ (mm) | largest error: scale | length (mm) | warned of misfit |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| noise-free cell | draws | mean σ (mm) | largest error: scale | length (mm) | warned of misfit "
+             "| of artefact |",
+             "|---|---|---|---|---|---|---|"]
     for key, c in doc["cells"].items():
         if key.split("/")[1] == "scaletool" or not c["rows"]:
             continue
         fits = [d["fits"][key] for d in doc["draws"] if key in d["fits"] and "error" not in d["fits"][key]]
         misfit = sum(any("model misfit" in w for w in f["warnings"]) for f in fits)
+        artefact = sum(any("soft-tissue artefact of about" in w for w in f["warnings"]) for f in fits)
         worst = {k: max((abs(f["q"][q]["est"] - f["truth"][q]) for f in fits for q in f["truth"]
                          if q.startswith(k) and q in f["q"]), default=float("nan")) for k in ("scale", "length")}
         lines.append(f"| {key} | {c['n']} | {c.get('sigma_mean') or float('nan'):.2g} | {worst['scale']:.2g} | "
-                     f"{worst['length']:.2g} | {misfit} of {len(fits)} |")
+                     f"{worst['length']:.2g} | {misfit} of {len(fits)} | {artefact} of {len(fits)} |")
     return ("\n".join(lines) + "\n\nScales the data leave to the prior (the warning names them: every marker of "
             "the body free to move) keep the prior's interval and miss the truth by up to the largest error above; "
             "per quantity: [`benchmarks/results/opensim_truth_exact.md`](/benchmarks/results/opensim_truth_exact.md)."
