@@ -119,9 +119,28 @@ def test_nan_rows_warn_once_and_still_fit(tmp_path):
     y[10:14] = np.nan
     p = tmp_path / "gappy.trc"
     write_trc(p, trial.data.replace(positions=y))
-    code, err = _run(["fit", str(EXAMPLES / "case_a.toml"), str(p), "--quiet"], tmp_path)
+    code, err = _run(["fit", str(EXAMPLES / "case_a.toml"), str(p)], tmp_path)
     assert code == 0
     assert err.count("4 of 60 frames have too few markers to fix the pose") == 1
+    code, err = _run(["fit", str(EXAMPLES / "case_a.toml"), str(p), "--quiet"], tmp_path)
+    assert code == 0 and "warning" not in err and not err.strip()
+
+
+def test_a_long_warning_takes_one_short_line_and_says_where_the_rest_is(tmp_path, capsys):
+    from skelid.cli import WARNING_WIDTH, _echo_warnings, short_warning
+
+    long = ("the residuals follow the pose: a soft-tissue artefact of about 7.7 mm rms per marker coordinate "
+            "(F test p = 1.0e-255); the part of it that looks like a change of the geometry is in the intervals "
+            "(the largest effect: scale_femur_r_y, 3.1 times the sd the residuals alone give)")
+    _echo_warnings([long, "short one", long], full_in=tmp_path / "out")
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 3 and all(len(x) <= WARNING_WIDTH for x in lines)
+    assert lines[0].endswith("...") and "soft-tissue artefact of about 7.7 mm" in lines[0]
+    assert lines[1] == "skelid: warning: short one"
+    assert str(tmp_path / "out" / "result.json") in lines[2]
+    assert short_warning("a\n  b") == "a b" and short_warning("x" * 400).endswith("...")
+    _echo_warnings([long], quiet=True)
+    assert not capsys.readouterr().err
 
 
 def test_cutoff_option_sets_the_motion_model(tmp_path, capsys):

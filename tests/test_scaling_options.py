@@ -106,7 +106,10 @@ def check_json(d, base):
 
 def check_quiet(d, base):
     r = _run(d, [], drop=["--json"])
-    assert r["rc"] == 0 and r["out"] == ""
+    assert r["rc"] == 0 and r["out"] == "" and "warning" not in r["err"]
+    loud = _run(d, [], drop=["--quiet"])  # the same fit prints its warnings, one short line each
+    assert base["table"]["warnings"] and "skelid: warning: " in loud["err"]
+    assert all(len(line) <= 160 for line in loud["err"].splitlines())
 
 
 def check_out(d, base):

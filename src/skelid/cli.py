@@ -35,12 +35,42 @@ SEED = click.IntRange(min=0)
 N_DRAWS_DEFAULT = 100  # skelid.angles.N_DRAWS, without importing the library at start-up
 
 
+#: longest line a warning takes on the terminal (its full text is in the result folder and --json)
+WARNING_WIDTH = 160
+WARNING_PREFIX = "skelid: warning: "
+
+
+def short_warning(message) -> str:
+    """One line of at most :data:`WARNING_WIDTH` characters (with its prefix) for a warning's text.
+
+    A longer text is cut at its last clause boundary (``; ``, ``: ``, `` (``, ``, ``) that
+    keeps at least half the line, else at a word, and ends in ``...``.
+    """
+    text = " ".join(str(message).split())
+    room = WARNING_WIDTH - len(WARNING_PREFIX)
+    if len(text) <= room:
+        return text
+    cut = text[:room - 3]
+    for sep in ("; ", ": ", " (", ", "):
+        k = cut.rfind(sep)
+        if k >= room // 2:
+            return cut[:k].rstrip(" ,;:") + "..."
+    k = cut.rfind(" ")
+    return (cut[:k] if k > 0 else cut).rstrip(" ,;:") + "..."
+
+
 def _warning_line(message, category, filename, lineno, file=None, line=None):
     """Show a SkelidWarning as one line."""
     if issubclass(category, SkelidWarning):
-        click.echo(f"skelid: warning: {message}", err=True)
+        click.echo(WARNING_PREFIX + short_warning(message), err=True)
     else:  # pragma: no cover - library warnings keep their usual form
         sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
+def _quiet_warnings(ctx: click.Context) -> None:
+    """``--quiet``: no warning reaches the terminal for the rest of the command (the results keep them)."""
+    ctx.with_resource(warnings.catch_warnings())
+    warnings.simplefilter("ignore", SkelidWarning)
 
 
 def _command(ctx: click.Context) -> list[str]:
@@ -50,9 +80,18 @@ def _command(ctx: click.Context) -> list[str]:
     return ["skelid", *sys.argv[1:]]
 
 
-def _echo_warnings(messages) -> None:
-    for w in dict.fromkeys(messages):  # each once, in order
-        click.echo(f"skelid: warning: {w}", err=True)
+def _echo_warnings(messages, quiet: bool = False, full_in=None) -> None:
+    """Each warning once, in order, in one line; ``full_in``: where the whole texts are written."""
+    if quiet:
+        return
+    cut = False
+    for w in dict.fromkeys(messages):
+        line = short_warning(w)
+        cut |= line != " ".join(str(w).split())
+        click.echo(WARNING_PREFIX + line, err=True)
+    if cut:
+        where = f"{Path(full_in) / 'result.json'}" if full_in is not None else "--json, or --out DIR (result.json)"
+        click.echo(f"skelid: the warnings in full: {where}", err=True)
 
 
 def _echo_json(obj) -> None:
@@ -194,7 +233,8 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Another model of the same body (repeat for several; another .osim for an .osim model): the "
                    "data are refitted under each and the spread of the shared quantities is reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
-@click.option("--quiet", is_flag=True, help="No progress bar, no table: only warnings and errors.")
+@click.option("--quiet", is_flag=True, help="No progress bar, no table, no warnings: only errors (the warnings are "
+              "kept in --out's result.json and in --json).")
 @click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "none"]), default="bodies",
               show_default=True, help="OpenSim models: one scale factor per body with markers, three per axis, "
               "or none.")
@@ -221,6 +261,8 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     from skelid import workflows
     from skelid.checks import check_distinct_files
 
+    if quiet:
+        _quiet_warnings(ctx)
     check_distinct_files(data_paths)
     if str(model_path).lower().endswith(".osim"):
         if ik_draws is not None and not with_ik:
@@ -251,7 +293,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
                                    overwrite=overwrite)
     from skelid.io.results import run_to_dict
 
-    _echo_warnings(w.message for w in run.warnings)
+    _echo_warnings((w.message for w in run.warnings), quiet, out_dir)
     if as_json:
         _echo_json(run_to_dict(run))
     elif not quiet:
@@ -308,7 +350,7 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     if alternatives:
         fit_ = scaling.with_alternatives(fit_, alternatives, trials, **options)
     table = scaling.scaling_table(fit_)
-    _echo_warnings(table["warnings"])
+    _echo_warnings(table["warnings"], quiet, out_dir)
     if out_dir is not None:
         with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
             paths = scaling.write_outputs(fit_, tmp)
@@ -482,7 +524,7 @@ def report(result_dir, out_path, as_json, quiet):
     from skelid.report import write_report
 
     path, notes = write_report(result_dir, out_path, progress=not quiet)
-    _echo_warnings(notes)
+    _echo_warnings(notes, quiet)
     if as_json:
         _echo_json({"report": str(path)})
     elif not quiet:

@@ -621,7 +621,7 @@ class SamplerEstimator:
                  outlier_threshold: float | None = 8.0, theta0=None, pose0=None, n_particles: int = 200,
                  n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8,
                  artefact_rms: float | None = None, noise: str = "pooled", marker_groups: dict | None = None,
-                 jackknife: bool = True, placement_sd: float | None = None):
+                 jackknife: bool = True, placement_sd: float | None = None, on_nonconvergence: str = "error"):
         self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
@@ -643,6 +643,7 @@ class SamplerEstimator:
         self.marker_groups = marker_groups
         self.jackknife = jackknife
         self.placement_sd = placement_sd
+        self.on_nonconvergence = on_nonconvergence
 
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
