@@ -70,7 +70,7 @@ def test_an_artefact_that_follows_the_pose_is_named_and_widens_the_intervals(leg
     art = fit.result["artefact"]
     assert art["present"] and art["p_value"] < 1e-6
     assert 8.0 / 3 < art["rms"] < 8.0 * 3  # the moment estimate of its size, within a factor of three
-    assert art["sigma_white"][0] < 2.0  # the white part is told apart from the slide
+    assert art["sigma_white"][0] < 8.0 / 2  # the white part is told apart from the slide
     assert any("soft-tissue artefact of about" in w for w in fit.warnings)
     sd = np.sqrt(np.diag(fit.joint.cov))
     ratio = [sd[k] / fit.result[p.name]["crlb_sd"] for k, p in enumerate(fit.model.parameters) if p.kind == "scale"]
