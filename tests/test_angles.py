@@ -17,15 +17,9 @@ from skelid.errors import DataError, FormatError
 from skelid.io import write_trc
 from skelid.io.osim import osim_coordinates, osim_parameters, read_osim
 from skelid.model.kinematics import marker_positions
-from tests.test_scaling import MARKERS, MODEL, _trials
+from tests.test_scaling import MODEL, _trials, marker_xml
 
 TRUTH = {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0}
-
-
-def _marker_xml(markers=MARKERS) -> str:
-    return "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-                     f'<location>{x} {y} {z}</location></Marker>'
-                     for b, locs in markers.items() for i, (x, y, z) in enumerate(locs))
 
 
 #: the leg with a locked coordinate (h3) and a foot that carries no marker (its ankle coordinate)
@@ -42,7 +36,7 @@ LOCKED_FOOT = (MODEL.replace('<Coordinate name="h3"/>', LOCKED_H3)
 @pytest.fixture(scope="module")
 def leg(tmp_path_factory):
     d = tmp_path_factory.mktemp("ik-leg")
-    (d / "leg.osim").write_text(MODEL.format(markers=_marker_xml()))
+    (d / "leg.osim").write_text(MODEL.format(markers=marker_xml()))
     static, move = _trials(d / "leg.osim", TRUTH, frames=(6, 24))
     write_trc(d / "static.trc", static)
     write_trc(d / "move.trc", move)
@@ -122,7 +116,7 @@ def test_the_pose_sd_matches_the_spread_of_refits_under_noise(leg):
 
 def test_a_locked_coordinate_holds_its_default_and_one_no_marker_reaches_has_no_sd(tmp_path):
     path = tmp_path / "leg.osim"
-    path.write_text(LOCKED_FOOT.format(markers=_marker_xml()))
+    path.write_text(LOCKED_FOOT.format(markers=marker_xml()))
     coords = {c.name: c for c in osim_coordinates(path)}
     assert coords["h3"].locked and not coords["a"].locked and coords["a"].rotational and not coords["tx"].rotational
     base, info = read_osim(path)

@@ -48,13 +48,17 @@ MARKERS = {"pelvis": [(0.1, 0.05, 0.1), (0.1, 0.05, -0.1), (-0.1, 0.06, 0.0), (0
            "shank": [(0.03, -0.1, 0.04), (0.04, -0.25, 0.05), (-0.03, -0.2, 0.05), (0.0, -0.38, 0.04)]}
 
 
+def marker_xml(markers=MARKERS) -> str:
+    """The MarkerSet entries of the leg model's markers."""
+    return "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+                     f'<location>{x} {y} {z}</location></Marker>'
+                     for b, locs in markers.items() for i, (x, y, z) in enumerate(locs))
+
+
 @pytest.fixture
 def leg(tmp_path):
-    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-                     f'<location>{x} {y} {z}</location></Marker>'
-                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
     p = tmp_path / "leg.osim"
-    p.write_text(MODEL.format(markers=text))
+    p.write_text(MODEL.format(markers=marker_xml()))
     return p
 
 

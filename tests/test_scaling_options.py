@@ -14,27 +14,21 @@ import pytest
 
 from skelid.cli import cli, main
 from skelid.io import write_trc
-from tests.test_scaling import MARKERS, MODEL, _trials
+from tests.test_scaling import MODEL, _trials, marker_xml
 
 TRUTH = {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0}
-
-
-def _marker_xml() -> str:
-    return "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-                     f'<location>{x} {y} {z}</location></Marker>'
-                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
 
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
     """The model, the trials, and the baseline fit's scaling table."""
     d = tmp_path_factory.mktemp("osim-options")
-    (d / "leg.osim").write_text(MODEL.format(markers=_marker_xml()))
+    (d / "leg.osim").write_text(MODEL.format(markers=marker_xml()))
     (d / "bare").mkdir()
     (d / "bare" / "leg.osim").write_text(MODEL.format(markers=""))
     (d / "markers").mkdir()
     (d / "markers" / "leg_markers.xml").write_text(
-        f"<OpenSimDocument><MarkerSet><objects>{_marker_xml()}</objects></MarkerSet></OpenSimDocument>")
+        f"<OpenSimDocument><MarkerSet><objects>{marker_xml()}</objects></MarkerSet></OpenSimDocument>")
     static, move = _trials(d / "leg.osim", TRUTH, frames=(6, 24))
     write_trc(d / "static.trc", static)
     write_trc(d / "move.trc", move)
@@ -140,7 +134,7 @@ def check_noise(d, base):
 def check_alternative(d, base):
     # another model of the leg (the hip 2 cm lower on the pelvis): the spread of every scale factor over both
     alt = d / "leg_low_hip.osim"
-    alt.write_text(MODEL.replace("0.05 -0.08 0.09", "0.05 -0.10 0.09").format(markers=_marker_xml()))
+    alt.write_text(MODEL.replace("0.05 -0.08 0.09", "0.05 -0.10 0.09").format(markers=marker_xml()))
     r = _run(d, ["--alternative", str(alt)])
     sens = r["table"]["model_sensitivity"]
     assert sens["models"] == ["leg.osim", "leg_low_hip.osim"] and base["table"]["model_sensitivity"] is None

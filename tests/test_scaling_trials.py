@@ -13,17 +13,14 @@ import pytest
 from skelid.data import MarkerData
 from skelid.estimators.multitrial import consistency_test
 from skelid.scaling import _trials_markdown, fit_osim, write_outputs
-from tests.test_scaling import MARKERS, MODEL, _trials
+from tests.test_scaling import MARKERS, MODEL, _trials, marker_xml
 
 
 @pytest.fixture(scope="module")
 def leg_trials(tmp_path_factory):
     """The leg model, a static trial and two movement trials."""
     d = tmp_path_factory.mktemp("osim-trials")
-    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-                     f'<location>{x} {y} {z}</location></Marker>'
-                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
-    (d / "leg.osim").write_text(MODEL.format(markers=text))
+    (d / "leg.osim").write_text(MODEL.format(markers=marker_xml()))
     static, move = _trials(d / "leg.osim", {"pelvis": 1.02, "thigh": 1.1, "shank": 0.97}, frames=(6, 48))
     trials = [MarkerData(static.positions, static.names, 60.0, "mm", "static.trc"),
               MarkerData(move.positions[:24], move.names, 60.0, "mm", "walk1.trc"),

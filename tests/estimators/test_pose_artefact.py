@@ -10,7 +10,7 @@ from skelid.estimators.checks.pose_artefact import artefact_coordinates, pose_ar
 from skelid.io.osim import osim_parameters, read_osim
 from skelid.model.kinematics import forward_kinematics, marker_positions
 from skelid.scaling import fit_osim
-from tests.test_scaling import MARKERS, MODEL
+from tests.test_scaling import MODEL, marker_xml
 
 FRAMES = 240
 
@@ -18,10 +18,7 @@ FRAMES = 240
 @pytest.fixture(scope="module")
 def leg(tmp_path_factory):
     d = tmp_path_factory.mktemp("artefact")
-    text = "\n".join(f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-                     f'<location>{x} {y} {z}</location></Marker>'
-                     for b, locs in MARKERS.items() for i, (x, y, z) in enumerate(locs))
-    (d / "leg.osim").write_text(MODEL.format(markers=text))
+    (d / "leg.osim").write_text(MODEL.format(markers=marker_xml()))
     base, info = read_osim(d / "leg.osim")
     model = osim_parameters(base, info, "bodies", "offsets")
     theta = model.theta_nominal.copy()
