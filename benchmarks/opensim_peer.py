@@ -55,7 +55,7 @@ DATA = ROOT.parent / "shared" / "data"
 S01 = DATA / "opensim-subject01"
 S04 = DATA / "addbio-subject4"
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import results_dir, write_json  # noqa: E402
+from _common import provenance, results_dir, write_json  # noqa: E402
 
 OUT = results_dir()
 JOINED = False  # --joined: trials as one recording with gaps, one marker fit
@@ -373,7 +373,9 @@ def main(argv=None):
     import skelid.estimators.multitrial  # noqa: F401  (imports outside the timed fit)
     import skelid.workflows  # noqa: F401
 
-    res = {"reduced": bool(args.quick), "trials": "joined" if args.joined else "multi-trial",
+    # the commit and load the run starts from (a run of many minutes must not name a later commit)
+    res = {"provenance": provenance(None if argv is None else ["benchmarks/opensim_peer.py", *argv]),
+           "reduced": bool(args.quick), "trials": "joined" if args.joined else "multi-trial",
            "import_cpu_s": round(time.process_time() - c0, 2)}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
