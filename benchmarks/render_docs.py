@@ -85,10 +85,16 @@ def opensim_scales() -> str:
     doc = load(path)
     s = doc["subject01"]
     lines = ["| body | skelid factor [95 % interval] | OpenSim ScaleTool |", "|---|---|---|"]
+    bodies: dict = {}  # a body fitted per axis: its three factors in one row
     for row in s["scales"]:
-        tool = sorted(set(row["opensim"]))
-        lines.append(f"| {row['body']} | {row['skelid']:.3f} [{row['skelid_ci95'][0]:.3f}, "
-                     f"{row['skelid_ci95'][1]:.3f}] | {', '.join(f'{v:.3f}' for v in tool)} |")
+        name, _, axis = row["body"].rpartition(" ")
+        body, axis = (name, axis) if name and axis in ("x", "y", "z") else (row["body"], "")
+        bodies.setdefault(body, []).append((axis, row))
+    for body, rows in bodies.items():
+        tool = sorted({v for _, row in rows for v in row["opensim"]})
+        cells = "; ".join(f"{axis + ' ' if axis else ''}{row['skelid']:.3f} [{row['skelid_ci95'][0]:.3f}, "
+                          f"{row['skelid_ci95'][1]:.3f}]" for axis, row in rows)
+        lines.append(f"| {body} | {cells} | {', '.join(f'{v:.3f}' for v in tool)} |")
     ik, sec = s["ik_walk"], s["seconds"]
     lines += ["", f"OpenSim's inverse kinematics on the walk: marker RMSE {ik['skelid']['rmse_mm']:.1f} mm with "
               f"skelid's scaled model, {ik['opensim_scaletool']['rmse_mm']:.1f} mm with the ScaleTool's; skelid's "
@@ -169,36 +175,42 @@ def opensim_truth() -> str:
     return out + ("\n" + opensim_truth_exact(exact) if exact.exists() else "")
 
 
-#: the cells the README sums up, and what each is
-SUMMARY_CELLS = (("axes/axes/static+walk/5", "the exact model (one factor per axis), static + walk, i.i.d. 5 mm"),
-                 ("axes/bodies/static+walk/5", "the default (one factor per body) on per-axis truth, static + walk, "
-                                               "i.i.d. 5 mm"),
-                 ("axes/axes/static+walk/pm", "per-marker noise 1-10 mm, pooled noise fitted"),
-                 ("axes/axes+pm/static+walk/pm", "per-marker noise 1-10 mm, `--noise per-marker`"),
-                 ("axes/axes/static+walk/sta", "soft-tissue artefact 5-15 mm rms, static + walk"),
-                 ("axes/axes/walk/sta", "soft-tissue artefact, one walk alone"),
-                 ("axes/axes/walk+walk2/sta", "soft-tissue artefact, two walks"))
+#: the README's lines: what each sums up, and its cells (several: one line, the coverage of each named)
+SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 5 mm",
+                  (("", "axes/axes/static+walk/5"),)),
+                 ("the default (one factor per body) on per-axis truth, static + walk, i.i.d. 5 mm",
+                  (("", "axes/bodies/static+walk/5"),)),
+                 ("per-marker noise 1-10 mm, static + walk",
+                  (("pooled noise", "axes/axes/static+walk/pm"),
+                   ("`--noise per-marker`", "axes/axes+pm/static+walk/pm"))),
+                 ("soft-tissue artefact 5-15 mm rms",
+                  (("static + walk", "axes/axes/static+walk/sta"), ("one walk", "axes/axes/walk/sta"),
+                   ("two walks", "axes/axes/walk+walk2/sta"))))
 
 
 def opensim_truth_summary() -> str:
-    """The README's lines: per summed-up cell, the lengths' coverage and RMSE beside the ScaleTool's."""
+    """The README's lines: per summed-up design, the lengths' coverage and RMSE beside the ScaleTool's."""
     path = RESULTS / "opensim_truth.json"
     if not path.exists():
         return opensim_truth()
     doc = load(path)
     cells = doc["cells"]
     lines = []
-    for key, what in SUMMARY_CELLS:
-        c = cells.get(key)
-        if not c or not c["rows"]:
-            continue
-        ln = _truth_values(c["rows"], "length", "coverage95")
-        lr = _truth_values(c["rows"], "length", "rmse")
-        truth, _, design, noise = key.split("/")
-        pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
-        lines.append(f"- {what}: hip-knee and knee-ankle intervals cover {min(ln):.2f}-{max(ln):.2f}, RMSE "
-                     f"{sum(lr) / len(lr):.1f} mm" + (f" (ScaleTool {sum(pr) / len(pr):.1f} mm)" if pr else "")
-                     + f"; {c['n']} draws")
+    for what, parts in SUMMARY_CELLS:
+        shown = []
+        for label, key in parts:
+            c = cells.get(key)
+            if not c or not c["rows"]:
+                continue
+            ln = _truth_values(c["rows"], "length", "coverage95")
+            lr = _truth_values(c["rows"], "length", "rmse")
+            truth, _, design, noise = key.split("/")
+            pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
+            shown.append((f"{label}: " if label else "") + f"cover {min(ln):.2f}-{max(ln):.2f}, RMSE "
+                         f"{sum(lr) / len(lr):.1f} mm" + (f" (ScaleTool {sum(pr) / len(pr):.1f} mm)" if pr else "")
+                         + f", {c['n']} draws")
+        if shown:
+            lines.append(f"- {what}, hip-knee and knee-ankle intervals: " + "; ".join(shown))
     return ("\n".join(lines) + "\n\nEvery cell, scale and offset: "
             "[docs/opensim.md](docs/opensim.md#coverage-on-opensim-truth).\n\n" + source(path, doc))
 
