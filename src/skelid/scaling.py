@@ -341,9 +341,10 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
     jo = replace(jo, cov=jo.cov * np.outer(widen, widen) + art.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
-    out["artefact"] = _artefact_entry(art, bound)
+    ratio = _artefact_ratio(art, bound)
+    out["artefact"] = _artefact_entry(art, ratio)
     if out["artefact"]["warn"]:
-        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, bound)]
+        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio)]
     if tests:
         out["one_factor_test"] = tests
     if axes_note:
@@ -356,9 +357,13 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
 ARTEFACT_EFFECT = 0.5
 
 
-def _artefact_entry(art, bound) -> dict:
+def _artefact_ratio(art, bound) -> np.ndarray:
+    """Per parameter, the sd the artefact's term adds over the sd the residuals alone give."""
+    return np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
+
+
+def _artefact_entry(art, ratio) -> dict:
     """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact."""
-    ratio = np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
     return {"present": bool(art.present), "p_value": float(art.p_value), "rms": float(art.rms),
             "slope_sd_shared": float(art.tau_shared), "slope_sd_own": float(art.tau_own),
             "sigma_white": list(art.sigma_white), "largest_sd_ratio": float(ratio.max(initial=0.0)),
@@ -367,9 +372,8 @@ def _artefact_entry(art, bound) -> dict:
                       "pose_artefact)"}
 
 
-def _artefact_warning(model: Model, art, bound) -> str:
+def _artefact_warning(model: Model, art, ratio) -> str:
     """One line naming the artefact the residuals show and what it does to the intervals."""
-    ratio = np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
     k = int(np.argmax(ratio))
     return (f"the residuals follow the pose: a soft-tissue artefact of about {art.rms:.2g} {model.units} rms per "
             f"marker coordinate (F test p = {art.p_value:.1e}); the part of it that looks like a change of the "
