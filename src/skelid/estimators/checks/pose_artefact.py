@@ -83,6 +83,7 @@ class PoseArtefact:
     rms: float  # root-mean-square displacement of a marker coordinate over the trials (model units)
     sigma_white: tuple  # each trial's noise level with the artefact taken out
     cov: np.ndarray  # (P, P) the covariance it adds (zero where not present)
+    score_cov: np.ndarray | None = None  # (P, P) the covariance it adds to the fit's score (the sandwich's meat)
 
 
 def artefact_coordinates(model: Model) -> np.ndarray:
@@ -176,7 +177,7 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None) -> 
     hinv = np.asarray(hinv, float)
     cov = hinv @ C @ hinv
     return PoseArtefact(True, p_value, float(np.sqrt(tau_s2)), float(np.sqrt(tau_o2)), rms, white,
-                        0.5 * (cov + cov.T))
+                        0.5 * (cov + cov.T), 0.5 * (C + C.T))
 
 
 def _moment_fit(x, g, z, K, M):

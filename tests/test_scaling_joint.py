@@ -1,0 +1,100 @@
+"""The joint fit of scales and marker offsets: bounds, convergence, the one-factor test, the free markers' prior."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from skelid.io.osim import osim_parameters, read_osim
+from skelid.scaling import (_bounded_step, _centred_offsets, _joint_refinement, fit_osim, fit_scales_and_offsets,
+                            one_factor_test)
+from tests.test_scaling import _trials, leg  # noqa: F401  (the fixture)
+
+
+def test_a_parameter_pressing_on_its_bound_is_held_and_the_others_take_their_conditional_step():
+    info = np.array([[2.0, 1.0], [1.0, 2.0]])
+    hp = np.full(2, 1e-9)  # a flat prior
+    score = np.array([-3.0, 2.0])  # the first wants to go down, from its lower bound
+    theta, lo, hi = np.array([0.0, 0.0]), np.array([0.0, -10.0]), np.array([10.0, 10.0])
+    step = _bounded_step(info, hp, score, theta, lo, hi)
+    assert step[0] == 0.0
+    assert step[1] == pytest.approx(score[1] / info[1, 1], rel=1e-6)  # the optimum with the first held
+    free = _bounded_step(info, hp, score, np.array([1.0, 0.0]), lo, hi)  # off its bound: the full step
+    np.testing.assert_allclose(free, np.linalg.solve(info, score), rtol=1e-6)
+
+
+def test_the_joint_fit_converges_with_an_offset_held_at_its_bound(leg):  # noqa: F811
+    """A marker 80 mm from its model place: its offset stays at the prior's bound (50 mm) and the fit
+    still converges (the full step clipped at the bound instead stalled, moving the others as if it had
+    moved)."""
+    truth = {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0}
+    trials = _trials(leg, truth, {"thigh1": (80.0, 0.0, 0.0)})
+    base, info = read_osim(leg)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    theta = model.theta_nominal.copy()
+    jo = _joint_refinement(model, theta, trials[1:], None, 0)
+    assert jo.converged and jo.n_iter < 30
+    k = model.parameter_names.index("offset_thigh1_x")
+    assert jo.theta[k] == pytest.approx(50.0)
+
+
+def test_the_one_factor_test_holds_at_a_fit_short_of_its_optimum(leg):  # noqa: F811
+    """One factor per body is the truth: the test does not reject it, at the optimum or 3 sd away from it in
+    the offsets (a quadratic form of the score alone counted the offsets' scores: T of 1e5 and more)."""
+    truth = {"pelvis": 1.04, "thigh": 1.1, "shank": 0.95}
+    trials = _trials(leg, truth, {"thigh1": (6.0, -4.0, 3.0), "shank3": (-5.0, 2.0, 4.0)})
+    base, info = read_osim(leg)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    per_axis = osim_parameters(base, info, "axes", "offsets")
+    ys = [t.positions for t in trials[1:]]
+    jo = fit_scales_and_offsets(model, ys, model.theta_nominal, _joint_refinement(
+        model, model.theta_nominal, trials[1:], None, 0).poses)
+    sd = np.sqrt(np.diag(jo.cov))
+    off = np.array([p.kind == "marker_offset" for p in model.parameters])
+    away = replace(jo, theta=jo.theta + 3.0 * sd * off * np.where(np.arange(off.size) % 2, 1, -1))
+    for fit in (jo, away):
+        tests = one_factor_test(model, per_axis, fit, ys)
+        assert set(tests) == {"pelvis", "thigh", "shank"}
+        for b, t in tests.items():
+            assert t["p"] > 1e-3, (b, t)
+            assert len(t["sd"]) == 3 and len(t["axis_identified"]) == 3
+
+
+def test_a_free_markers_offset_prior_is_centred_on_its_placement(leg):  # noqa: F811
+    base, info = read_osim(leg)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    centred = _centred_offsets(model, {"thigh1": np.array([70.0, -20.0, 0.0])})
+    for p, q in zip(model.parameters, centred.parameters, strict=True):
+        if p.target == "thigh1":
+            shift = [70.0, -20.0, 0.0][p.axis]
+            assert q.prior.mean == p.prior.mean + shift and q.prior.sd == p.prior.sd
+            assert (q.prior.lower, q.prior.upper) == (p.prior.lower + shift, p.prior.upper + shift)
+        else:
+            assert q == p
+
+
+def test_a_scale_factors_interval_is_never_below_zero(leg):  # noqa: F811
+    """The 95 % interval of a scale factor is taken in log space, where its prior is normal."""
+    trials = _trials(leg, {"pelvis": 1.0, "thigh": 1.1, "shank": 0.95})
+    fit = fit_osim(leg, trials[1:], scale="bodies", markers="offsets")
+    for p in fit.model.parameters:
+        if p.kind == "scale":
+            e = fit.result[p.name]
+            lo, hi = e["ci95"]
+            assert 0.0 < lo < e["map"] < hi
+            assert np.log(hi) - np.log(e["map"]) == pytest.approx(np.log(e["map"]) - np.log(lo), rel=1e-9)
+
+
+def test_a_factor_beyond_the_priors_central_99_percent_is_implausible(leg):  # noqa: F811
+    from skelid.scaling import _implausible_bodies
+
+    base, info = read_osim(leg)
+    model = osim_parameters(base, info, "axes", "offsets")
+    theta = model.theta_nominal.copy()
+    k = model.parameter_names.index("scale_pelvis_y")
+    theta[k] = 0.6  # |log 0.6| / 0.15 = 3.4 prior sd
+    theta[model.parameter_names.index("scale_thigh_x")] = 1.4  # 2.2 prior sd: plausible
+    assert _implausible_bodies(model, theta, ["pelvis", "thigh", "shank"]) == ["pelvis"]
+    assert _implausible_bodies(model, theta, ["thigh"]) == []
