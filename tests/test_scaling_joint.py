@@ -115,3 +115,30 @@ def test_the_checks_widen_the_joint_interval_to_their_sd_not_by_their_ratio():
     np.testing.assert_allclose(check_widening(est, model, np.array([0.01, 0.001])),
                                [combined[0] / 0.01, combined[1] / 0.001])
     np.testing.assert_array_equal(check_widening(est, model, np.array([0.5, 0.5])), [1.0, 1.0])
+
+
+def test_an_osim_result_folder_holds_poses_residuals_and_draws_with_scales_as_ratios(leg, tmp_path):  # noqa: F811
+    from skelid.cli import main
+    from skelid.io import write_trc
+    from skelid.io.frames import to_dataframe, to_xarray
+
+    static, move = _trials(leg, {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0}, {"thigh1": (5.0, 0.0, -3.0)})
+    write_trc(tmp_path / "static.trc", static)
+    write_trc(tmp_path / "move.trc", move)
+    out = tmp_path / "fit"
+    assert main(["fit", str(leg), str(tmp_path / "static.trc"), str(tmp_path / "move.trc"), "--out", str(out),
+                 "--quiet"]) == 0
+    ds = to_xarray(out)
+    n = static.positions.shape[0] + move.positions.shape[0]  # every frame of every trial
+    assert ds["pose"].shape[0] == n and ds["residuals"].shape == (n, len(static.names))
+    assert float(np.nanmax(ds["residuals"].values)) < 0.2  # mm: near noise-free data
+    with np.load(out / "arrays.npz") as a:
+        draws = a["marker/posterior.points"]
+        assert draws.shape[0] == 400 and np.array_equal(np.unique(a["run/trial"]), [0, 1])
+    df = to_dataframe(out)
+    scales = df[df["name"].str.startswith("scale_")]
+    assert set(scales["unit"]) == {"1"} and scales["crlb_sd"].notna().all()
+    k = list(df["name"]).index("scale_thigh")
+    assert draws[:, k].std() == pytest.approx(float(df["sd"].iloc[k]), rel=0.15)
+    offsets = df[df["name"].str.startswith("offset_")]
+    assert set(offsets["unit"]) == {"mm"}

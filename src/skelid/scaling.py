@@ -30,8 +30,9 @@ The fit goes in three steps:
    give (:func:`check_widening`). With one factor per body
    (``scale='bodies'``), a score test per body against one factor per axis
    (:func:`one_factor_test`, Bonferroni over the bodies at 1 %) picks one factor
-   per axis for the bodies where the data contradict one, and the joint fit is
-   run again with them.
+   per axis for the bodies where the data contradict one and determine three
+   within the prior's range (:func:`_per_axis_where_contradicted`), and the
+   joint fit is run again with them; the others are named.
 
 Steps 1 and 2 only give the start (and, with ``joint=False``, the answer: the
 scales with the markers at their nominal places and the offsets placed after,
@@ -134,6 +135,7 @@ class ScalingFit:
     warnings: list = field(default_factory=list)
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))
     joint: JointOffsets | None = None  # scales and offsets fitted together (``joint=True``)
+    trials: tuple = ()  # every trial as given, the model's markers in its order (the joint fit's frames)
 
 
 STATIC_FRAMES = 20
@@ -243,7 +245,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
                        parts[0].units, source, {"trial_frames_used": frames})
     return ScalingFit(model, info, str(osim_path), info.marker_set, shown, est, res, time.perf_counter() - t0,
-                      dropped, warns, theta, joint_fit)
+                      dropped, warns, theta, joint_fit, tuple(_select(t, model.marker_names) for t in given))
 
 
 def _prepared_trials(trials, method, static_frames, movement_frames, joined):

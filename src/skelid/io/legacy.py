@@ -110,14 +110,14 @@ def _crlb_of(v: Mapping, i: int, crlb) -> float | None:
 def _parameters(m: Mapping, units: str, kinds: Mapping, status: Mapping, crlb) -> dict:
     """The method's parameter estimates, in the order of its dict.
 
-    An axis direction is in degrees, every other parameter in ``units``; a parameter
+    An axis direction is in degrees, a scale factor a ratio (unit ``1``), every other parameter in ``units``; a parameter
     without an identifiability row is ``identified`` with ``extra["status_given"] = False``.
     """
     entries = [(k, v) for k, v in m.items() if _is_estimate(k, v)]
     params = {}
     for i, (name, v) in enumerate(entries):
         params[name] = ParameterEstimate(
-            name, "deg" if kinds.get(name) == "axis_direction" else units, _float(v["map"]),
+            name, {"axis_direction": "deg", "scale": "1"}.get(kinds.get(name), units), _float(v["map"]),
             _float(v.get("mean", v["map"])), _float(v.get("sd")), _pair(v["ci95"]),
             _crlb_of(v, i, crlb), status.get(name, "identified"),
             {} if name in status else {"status_given": False})
@@ -205,8 +205,9 @@ def run_from_scaling(fit_, table: dict, command=None) -> FitRun:
     from skelid.provenance import provenance
 
     doc = {"units": fit_.model.units, "frames_total": int(fit_.data.positions.shape[0]),
-           "methods": {"marker": fit_.result}}
-    run = run_from_legacy(doc)
+           "methods": {"marker": fit_.result},
+           "model_parameters": {p.name: {"kind": p.kind} for p in fit_.model.parameters}}
+    run = run_from_legacy(doc, scaling_arrays(fit_))
     # several trials: each trial's estimate, the between-trial spread and the consistency test, typed as the
     # several-trial fit of a .toml model keeps them
     diag = {k: fit_.result[k] for k in ("trials", "consistency", "heterogeneity", "between_trial")
@@ -217,7 +218,41 @@ def run_from_scaling(fit_, table: dict, command=None) -> FitRun:
     context = {"model": fit_.model.name, "data": str(fit_.data.source), "units": fit_.model.units,
                "frames_total": int(fit_.data.positions.shape[0]), "scaling": table,
                "provenance": provenance(command)}
-    return FitRun(run.results, context, tuple(fit_.warnings))
+    return FitRun(run.results, context, tuple(fit_.warnings), run.arrays)
+
+
+#: posterior draws of the geometry an OpenSim fit's ``arrays.npz`` keeps (from its Laplace posterior)
+SCALING_DRAWS = 400
+
+
+def scaling_arrays(fit_, n_draws: int = SCALING_DRAWS, seed: int = 0) -> dict:
+    """What an OpenSim fit's ``arrays.npz`` holds: every trial's markers, poses and residuals, and draws.
+
+    Shared: ``markers`` (frames of every trial one after another, the model's markers, model
+    units), ``marker_names``, ``rate`` (the first trial's), ``trial`` (each frame's trial, from
+    0). The method's (``marker``): ``pose`` (the joint fit's poses), ``residuals`` (each marker's
+    distance from the fitted model, NaN where missing), ``posterior.cov`` and ``n_draws`` equal-
+    weight draws ``posterior.points`` of the parameters from the joint fit's posterior (its
+    Laplace approximation with the checks' widening and the artefact's term). Empty without a
+    joint fit (``joint=False`` or no marker offsets).
+    """
+    from skelid.model.kinematics import marker_positions
+
+    jo = getattr(fit_, "joint", None)
+    trials = getattr(fit_, "trials", ())
+    if jo is None or not trials or len(trials) != len(jo.poses):
+        return {}
+    y = np.concatenate([np.asarray(t.positions, float) for t in trials])
+    q = np.concatenate([np.asarray(p, float) for p in jo.poses])
+    x = marker_positions(fit_.model, fit_.theta, q)
+    res = np.linalg.norm(y - x, axis=-1)
+    w, V = np.linalg.eigh(0.5 * (jo.cov + jo.cov.T))
+    z = np.random.default_rng(seed).standard_normal((n_draws, w.size))
+    draws = np.asarray(fit_.theta, float) + (z * np.sqrt(np.clip(w, 0.0, None))) @ V.T
+    return {"markers": y, "marker_names": np.array(fit_.model.marker_names), "rate": np.float64(trials[0].rate),
+            "trial": np.repeat(np.arange(len(trials)), [len(t.positions) for t in trials]),
+            "marker.pose": q, "marker.residuals": res, "marker.posterior.cov": np.asarray(jo.cov, float),
+            "marker.posterior.points": draws, "marker.posterior.weights": np.full(n_draws, 1.0 / n_draws)}
 
 
 def summary_dict(r: FitResult) -> dict:
