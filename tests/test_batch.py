@@ -191,3 +191,26 @@ def test_missing_extra_is_one_line(tmp_path, capsys, monkeypatch):
     assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r.parquet")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "dask[distributed]" in err[0] and "pip install" in err[0]
+
+
+def test_an_osim_models_trial_that_lacks_some_markers_is_fitted_with_those_it_has(tmp_path):
+    """A lab's marker set is its whole protocol: a trial without one of its markers is fitted with the model
+    of the markers it has (as 'skelid fit' does), not failed; one without the model's file is still refused."""
+    from skelid.batch import fit_trial
+    from skelid.data import MarkerData
+    from tests.test_scaling import MODEL, _trials, marker_xml
+
+    leg = tmp_path / "leg.osim"
+    leg.write_text(MODEL.format(markers=marker_xml()))
+    _, move = _trials(leg, {"pelvis": 1.0, "thigh": 1.1, "shank": 1.0})
+    keep = [i for i, n in enumerate(move.names) if n != "thigh2"]
+    write_trc(tmp_path / "miss.trc", MarkerData(move.positions[:, keep], [move.names[i] for i in keep], move.rate,
+                                                move.units, "sim"))
+    from skelid.simulate import resolve_model
+
+    model = resolve_model(leg)
+    row = fit_trial(str(tmp_path / "miss.trc"), model, osim=str(leg))
+    assert row["error"] is None
+    assert row["scale_thigh"] == pytest.approx(1.1, abs=1e-3)
+    strict = fit_trial(str(tmp_path / "miss.trc"), model)
+    assert "thigh2" in strict["error"]

@@ -168,11 +168,16 @@ def row_checksum(row, cols) -> str:
 
 
 def fit_trial(path: str, model, method: str = "marker", sigma: float | None = None, seed: int = 0,
-              limits=None, ident: dict | None = None, results_dir=None, command=None) -> dict:
+              limits=None, ident: dict | None = None, results_dir=None, command=None,
+              osim: str | None = None) -> dict:
     """Read and fit one trial; never raises for the trial's own problems.
 
     With ``results_dir``, the trial's run is written to its own folder there
-    (:func:`result_folder`) through :func:`skelid.io.results.write_run`.
+    (:func:`result_folder`) through :func:`skelid.io.results.write_run`. With
+    ``osim``, the ``.osim`` file ``model`` was read from (its marker set is a lab's
+    whole protocol): a trial that lacks some of its markers is fitted with the
+    model of the markers it has, as ``skelid fit`` does (:func:`skelid.loading.load_model`
+    with ``marker_names``); a body left without markers has no estimate in its row.
 
     Returns
     -------
@@ -198,15 +203,21 @@ def fit_trial(path: str, model, method: str = "marker", sigma: float | None = No
             check_input_file(path)
             resources.check(resources.read_cost(path), limits, f"reading {path}")
             data = read_markers(path)
-            check_units(model, data)
+            model_t = model
+            if osim is not None and not set(model.marker_names) <= set(data.names):
+                from skelid.loading import load_model
+
+                model_t = load_model(osim, marker_names=[n for n in model.marker_names if n in data.names])
+                est = make_estimator(method, model_t, sigma=sigma, rng=np.random.default_rng(seed))
+            check_units(model_t, data)
             row["n_frames"] = int(data.n_frames)
-            check_data(model, prepare(model, data), [method], str(path))
-            check_cost(model, method, data.n_frames, limits)
+            check_data(model_t, prepare(model_t, data), [method], str(path))
+            check_cost(model_t, method, data.n_frames, limits)
             est.fit(data)
-            res = method_result(model, est)
-        row.update(result_values(res, model.parameter_names, estimate_fields))
+            res = method_result(model_t, est)
+        row.update(result_values(res, [n for n in model.parameter_names if n in res.parameters], estimate_fields))
         if results_dir is not None:
-            row["result_dir"] = str(write_trial_run(results_dir, row, model, data, res, command))
+            row["result_dir"] = str(write_trial_run(results_dir, row, model_t, data, res, command))
         notes = list(dict.fromkeys([*(w.message for w in res.warnings),
                                     *(str(w.message) for w in caught if issubclass(w.category, SkelidWarning))]))
         row["warnings"] = " | ".join(_one_line(w) for w in notes) or None
@@ -475,8 +486,9 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     client, cluster = _client(workers, scheduler)
     unsaved = False
     try:
+        osim = str(Path(model_path).absolute()) if str(model_path).lower().endswith(".osim") else None
         futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f], results_dir, command,
-                                 key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
+                                 osim, key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
         path_of = {fut.key: f for fut, f in zip(futures, todo, strict=True)}
         bar = tqdm(total=len(todo), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,
                    disable=not progress or not sys.stderr.isatty())

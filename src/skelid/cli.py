@@ -499,7 +499,10 @@ def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_b
 @click.pass_context
 def batch(ctx, model_path, pattern, out_path, method, sigma, workers, scheduler, seed, retry_failed, results_dir,
           as_json, quiet, max_memory, max_time):
-    """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out."""
+    """Fit MODEL_PATH to every trial matching PATTERN on a Dask cluster; one row per trial in --out.
+
+    With an OpenSim model, a trial that lacks some of its markers is fitted with the markers it has.
+    """
     from skelid.batch import run_batch
 
     _finite("--sigma", sigma)
