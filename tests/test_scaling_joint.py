@@ -142,3 +142,17 @@ def test_an_osim_result_folder_holds_poses_residuals_and_draws_with_scales_as_ra
     assert draws[:, k].std() == pytest.approx(float(df["sd"].iloc[k]), rel=0.15)
     offsets = df[df["name"].str.startswith("offset_")]
     assert set(offsets["unit"]) == {"mm"}
+    # the report answers first: the scaled model's section before the generic ones, every trial named
+    import base64
+    import re
+    import struct
+
+    assert main(["report", str(out)]) == 0
+    html = (out / "report.html").read_text()
+    assert html.index('id="opensim"') < html.index('id="summary"')
+    first = html[html.index('id="opensim"'):html.index('id="summary"')]
+    assert "static.trc, move.trc" in first and "Scale factors (ratios" in first and "thigh1" in first
+    assert "skelid report: leg on static.trc + move.trc" in html
+    for png in re.findall(r'src="data:image/png;base64,([^"]+)"', html):
+        height = struct.unpack(">I", base64.b64decode(png)[20:24])[0]
+        assert height <= 2000

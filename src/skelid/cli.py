@@ -41,22 +41,11 @@ WARNING_PREFIX = "skelid: warning: "
 
 
 def short_warning(message) -> str:
-    """One line of at most :data:`WARNING_WIDTH` characters (with its prefix) for a warning's text.
+    """One line of at most :data:`WARNING_WIDTH` characters (with its prefix) for a warning's text
+    (:func:`skelid.errors.headline`)."""
+    from skelid.errors import headline
 
-    A longer text is cut at its last clause boundary (``; ``, ``: ``, `` (``, ``, ``) that
-    keeps at least half the line, else at a word, and ends in ``...``.
-    """
-    text = " ".join(str(message).split())
-    room = WARNING_WIDTH - len(WARNING_PREFIX)
-    if len(text) <= room:
-        return text
-    cut = text[:room - 3]
-    for sep in ("; ", ": ", " (", ", "):
-        k = cut.rfind(sep)
-        if k >= room // 2:
-            return cut[:k].rstrip(" ,;:") + "..."
-    k = cut.rfind(" ")
-    return (cut[:k] if k > 0 else cut).rstrip(" ,;:") + "..."
+    return headline(message, WARNING_WIDTH - len(WARNING_PREFIX))
 
 
 def _warning_line(message, category, filename, lineno, file=None, line=None):

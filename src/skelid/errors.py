@@ -68,3 +68,21 @@ class StreamError(SkelidError):
 
 class SkelidWarning(UserWarning):
     """A problem the user should know about that does not stop the computation."""
+
+
+def headline(message, width: int) -> str:
+    """A message in one line of at most ``width`` characters: its text, or its head ending in ``...``.
+
+    A longer text is cut at its last clause boundary (``; ``, ``: ``, `` (``, ``, ``) that keeps at
+    least half the line, else at a word.
+    """
+    text = " ".join(str(message).split())
+    if len(text) <= width:
+        return text
+    cut = text[:width - 3]
+    for sep in ("; ", ": ", " (", ", "):
+        k = cut.rfind(sep)
+        if k >= width // 2:
+            return cut[:k].rstrip(" ,;:") + "..."
+    k = cut.rfind(" ")
+    return (cut[:k] if k > 0 else cut).rstrip(" ,;:") + "..."

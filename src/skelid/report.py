@@ -555,7 +555,9 @@ def _final(b: _Builder, run, units: str):
             b.add(f"<p>Frames used: {_fmt(r.frames.used)} of {_fmt(r.frames.total)}{dropped}.</p>")
         if "seconds" in r.provenance:
             b.add(f"<p>The fit took {_fmt(r.provenance['seconds'], 3)} s.</p>")
-        b.figure(partial(fig_final, panels, units, method),
+        if len(panels) > MAX_PANELS:  # one image no taller than about 2000 px; the table lists every one
+            b.add(f"<p>The figure shows the first {MAX_PANELS} of the {len(panels)} parameters.</p>")
+        b.figure(partial(fig_final, panels[:MAX_PANELS], units, method),
                  f"final posterior of each parameter ({method})")
 
 
@@ -719,6 +721,77 @@ def _status_cell(p) -> str:
     if not p.extra.get("status_given", True):
         return "–"
     return f'<span class="status-{_e(p.status)}">{_e(p.status)}</span>'
+
+
+#: panels of the final-posterior figure (six rows of three: an image about 2000 px tall)
+MAX_PANELS = 18
+#: rows of a long table shown before the rest folds away
+TABLE_ROWS = 16
+
+
+def _folded_table(head, rows, what: str, left=(0,)) -> str:
+    """A table whose rows beyond :data:`TABLE_ROWS` fold away under a summary line."""
+    if len(rows) <= TABLE_ROWS:
+        return _table(head, rows, left=left)
+    return (_table(head, rows[:TABLE_ROWS], left=left) + f"<details><summary>{len(rows) - TABLE_ROWS} more "
+            f"{_e(what)}</summary>{_table(head, rows[TABLE_ROWS:], left=left)}</details>")
+
+
+def _opensim(b: _Builder, run, units: str):
+    """An OpenSim scaling, answered first: each body's scale factors (ratios) with their intervals, the
+    lengths between joint centres, each marker's residual (landmarks apart from placed markers), each
+    warning once in a line with its detail folded."""
+    from skelid.errors import headline
+
+    sc = run.context.get("scaling") or {}
+    trials = sc.get("trial_names") or [str(run.context.get("data", ""))]
+    b.add(f"<p><b>{_e(Path(str(sc.get('source_model', ''))).name)}</b> scaled to {len(trials)} trial(s): "
+          f"{_e(', '.join(trials))}. The scaled model, its ScaleSet and the scaling table are beside this "
+          "report.</p>")
+    rows = []
+    for body, axes in (sc.get("scales") or {}).items():
+        for ax, e in axes.items():
+            rows.append((_e(body), "one factor" if ax == "xyz" else ax, _fmt(e.get("value")),
+                         _interval(e.get("ci95")), _fmt(e.get("crlb_sd"))))
+    b.add("<h3>Scale factors (ratios to the generic model)</h3>")
+    b.add(_folded_table(["body", "axis", "factor", "95 % interval", "Cramér–Rao sd"], rows, "scale factors")
+          if rows else _na("scale factors"))
+    lengths = sc.get("lengths_mm") or {}
+    if lengths:
+        b.add(f"<h3>Lengths between joint centres [{_e(units)}]</h3>")
+        b.add(_folded_table(["segment", "length", "95 % interval"],
+                            [(_e(k), _fmt(v.get("value"), 5), _interval(v.get("ci95"))) for k, v in lengths.items()],
+                            "lengths"))
+    b.add(_marker_residuals(run, set(sc.get("fixed_markers") or []), units))
+    warns = list(dict.fromkeys(str(w) for w in (sc.get("warnings") or [])))
+    if warns:
+        b.add(f"<h3>Warnings ({len(warns)})</h3><ul class=\"w\">" + "".join(
+            f"<li>{_e(headline(w, 160))}" + (f"<details><summary>detail</summary>{_e(w)}</details>"
+                                              if headline(w, 160) != " ".join(w.split()) else "") + "</li>"
+            for w in warns) + "</ul>")
+
+
+def _marker_residuals(run, fixed: set, units: str) -> str:
+    """Each marker's rms and largest distance from the fitted model, the landmarks (fixed) apart from the
+    markers placed on the subject, largest first."""
+    r = next(iter(run.results.values()), None)
+    res = None if r is None else r.arrays.get("residuals")
+    names = [str(n) for n in run.arrays.get("marker_names", [])]
+    if res is None or np.ndim(res) != 2 or np.shape(res)[1] != len(names):
+        return _na("per-marker residuals (no arrays.npz)")
+    res = np.asarray(res, float)
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(np.nanmean(res**2, axis=0))
+        big = np.nanmax(np.where(np.isfinite(res), res, -np.inf), axis=0)
+    out = [f"<h3>Residuals per marker [{_e(units)}]</h3>"]
+    for label, keep in (("landmarks (fixed in the marker set)", lambda n: n in fixed),
+                        ("markers placed on the subject", lambda n: n not in fixed)):
+        idx = sorted((k for k, n in enumerate(names) if keep(n)), key=lambda k: -rms[k] if np.isfinite(rms[k]) else 0)
+        if idx:
+            out.append(f"<p>{_e(label)}: {len(idx)}</p>" + _folded_table(
+                ["marker", "rms", "largest"], [(_e(names[k]), _fmt(rms[k], 2), _fmt(big[k], 2)) for k in idx],
+                "markers"))
+    return "".join(out)
 
 
 def _summary(b: _Builder, run, units: str, notes: list[str]):
@@ -936,20 +1009,23 @@ def build_html(result, arrays=None, notes=(), progress: bool = False) -> str:
     units = str(ctx.get("units") or run.arrays.get("units", "") or
                 next((p.unit for r in run.results.values() for p in r.parameters.values()), ""))
     b = _Builder()
-    title = f"skelid report: {ctx.get('model', 'model')} on {Path(str(ctx.get('data', ''))).name or 'data'}"
+    data = " + ".join(Path(d.strip()).name for d in str(ctx.get("data", "")).split(" + ") if d.strip())
+    title = f"skelid report: {ctx.get('model', 'model')} on {data or 'data'}"
     head = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{_e(title)}</title>\n'
             f"<style>{CSS}</style>\n")
     b.add("</head>\n<body>\n" f"<h1>{_e(title)}</h1>")
     methods = ", ".join(run.results) or "none"
     b.add(f"<p>Methods: {_e(methods)}. All lengths are in {_e(units)}.</p>")
-    b.add("<nav><ol>" + "".join(f'<li><a href="#{k}">{_e(t)}</a></li>' for k, t in SECTIONS) + "</ol></nav>")
-    sections = {"summary": lambda: _summary(b, run, units, list(notes)), "body": lambda: _body(b, run, units),
+    shown = ((("opensim", "The scaled OpenSim model"),) if ctx.get("scaling") else ()) + SECTIONS
+    b.add("<nav><ol>" + "".join(f'<li><a href="#{k}">{_e(t)}</a></li>' for k, t in shown) + "</ol></nav>")
+    sections = {"opensim": lambda: _opensim(b, run, units),
+                "summary": lambda: _summary(b, run, units, list(notes)), "body": lambda: _body(b, run, units),
                 "overview": lambda: _overview(b, run), "trajectories": lambda: _trajectories(b, run.arrays),
                 "evolution": lambda: _evolution(b, run, units), "posterior": lambda: _final(b, run, units),
                 "residuals": lambda: _residuals(b, run, units),
                 "identifiability": lambda: _identifiability(b, run, units),
                 "warnings": lambda: _warnings(b, run, list(notes)), "provenance": lambda: _provenance(b, run)}
-    for key, heading in SECTIONS:
+    for key, heading in shown:
         b.add(f'<h2 id="{key}">{_e(heading)}</h2>')
         sections[key]()
     b.add("</body>\n</html>")

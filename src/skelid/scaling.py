@@ -1352,6 +1352,10 @@ def scaling_table(fit: ScalingFit) -> dict:
         "marker_locations_m": {n: [float(v) for v in x] for n, x in locs.items()},
         "body_scale_factors": {b: [float(v) for v in s] for b, s in body_scales(fit.model, fit.theta).items()},
         "sigma_mm": res.get("sigma"),
+        "lengths_mm": res.get("lengths"),
+        "fixed_markers": sorted(set(fit.info.fixed_markers) & set(fit.model.marker_names)),
+        "trial_names": [Path(str(t.source)).name if t.source else f"trial {k + 1}"
+                        for k, t in enumerate(fit.trials)],
         "trials": trials_table(fit),
         "model_sensitivity": res.get("model_sensitivity"),
         "settings": _settings_json(fit.estimator),

@@ -202,11 +202,10 @@ def run_from_legacy(doc: Mapping, arrays: Mapping | None = None) -> FitRun:
 def run_from_scaling(fit_, table: dict, command=None) -> FitRun:
     """The run ``skelid fit MODEL.osim`` writes as ``result.json``: the scale and offset estimates
     (converted from the scaling fit's flat dict), the scaling table in the context."""
-    from skelid.provenance import provenance
+    from skelid.provenance import model_parameters, provenance
 
     doc = {"units": fit_.model.units, "frames_total": int(fit_.data.positions.shape[0]),
-           "methods": {"marker": fit_.result},
-           "model_parameters": {p.name: {"kind": p.kind} for p in fit_.model.parameters}}
+           "methods": {"marker": fit_.result}, "model_parameters": model_parameters(fit_.model)}
     run = run_from_legacy(doc, scaling_arrays(fit_))
     # several trials: each trial's estimate, the between-trial spread and the consistency test, typed as the
     # several-trial fit of a .toml model keeps them
@@ -217,6 +216,7 @@ def run_from_scaling(fit_, table: dict, command=None) -> FitRun:
         run = replace(run, results={**run.results, "marker": r.replace(diagnostics={**r.diagnostics, **diag})})
     context = {"model": fit_.model.name, "data": str(fit_.data.source), "units": fit_.model.units,
                "frames_total": int(fit_.data.positions.shape[0]), "scaling": table,
+               "model_parameters": doc["model_parameters"], "model_description": fit_.model.to_dict(),
                "provenance": provenance(command)}
     return FitRun(run.results, context, tuple(fit_.warnings), run.arrays)
 
