@@ -857,19 +857,23 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
         # backtracking on the penalised cost at this iteration's noise levels: the full Gauss-Newton
         # step overshoots where poses, offsets and scales trade (a body's few markers, each offset free)
         cost = 0.5 * float(w @ rss) + _prior_cost(model, theta)
+        full = None
         for _ in range(JOINT_HALVINGS):
             trial = np.clip(theta + step, lo, hi)
             new = terms(trial, [t[0] for t in now])
             new_cost = 0.5 * float(w @ np.array([t[3] for t in new])) + _prior_cost(model, trial)
+            full = full or (trial, new, step, new_cost)
             if new_cost <= cost + JOINT_TOL * abs(cost):
                 break
             step = 0.5 * step
-        else:  # no step lowers the cost: the fit is at its optimum to the precision the poses allow
-            converged = True
-            break
+        else:  # no shorter step lowers the cost at these noise levels either: the full one, and the noise
+            # levels follow it (a trial that fits exactly, a static one whose markers were placed on it,
+            # weighs a million times the others; at its weights every step away from it costs, and only
+            # the full step, with the levels re-estimated after it, leads on to the optimum)
+            trial, new, step, new_cost = full
         theta, now = trial, new
         small = np.all(np.abs(step) <= JOINT_STEP_SD * np.where(np.isfinite(prior_sd), prior_sd, 1.0))
-        if small or cost - new_cost <= JOINT_TOL * max(abs(cost), 1e-300):
+        if small or 0.0 <= cost - new_cost <= JOINT_TOL * max(abs(cost), 1e-300):
             converged = True
             break
     # the covariance at the final theta and poses
