@@ -156,3 +156,23 @@ def test_an_osim_result_folder_holds_poses_residuals_and_draws_with_scales_as_ra
     for png in re.findall(r'src="data:image/png;base64,([^"]+)"', html):
         height = struct.unpack(">I", base64.b64decode(png)[20:24])[0]
         assert height <= 2000
+
+
+def test_an_exactly_fitted_static_trial_does_not_hold_the_joint_fit_at_its_start(leg):  # noqa: F811
+    """A static trial without noise: the markers placed on it fit it exactly, so it weighs far more than the
+    walk (1 mm noise), and at those weights every step away from the start costs; the fit must still go on
+    to the optimum (it stopped after one step with the walk's noise at 2.2 mm and the thigh 3 % long)."""
+    from skelid.data import MarkerData
+
+    truth = {"pelvis": 1.04, "thigh": 1.1, "shank": 0.95}
+    static, move = _trials(leg, truth, {"thigh1": (25.0, -4.0, 3.0), "shank3": (-25.0, 2.0, 4.0),
+                                        "pelvis0": (0.0, 25.0, 0.0)})
+    walk = MarkerData(move.positions + np.random.default_rng(1).normal(0, 1.0, move.positions.shape), move.names,
+                      move.rate, move.units, "walk")
+    exact = MarkerData(np.repeat(static.positions[:1], len(static.positions), axis=0), static.names, static.rate,
+                       static.units, "static")
+    fit = fit_osim(leg, [exact, walk], scale="bodies", markers="offsets")
+    assert fit.joint.converged and fit.joint.n_iter > 1
+    assert fit.joint.sigma[1] < 1.2  # mm: the walk's noise is 1 mm
+    got = {p.target: fit.theta[k] for k, p in enumerate(fit.model.parameters) if p.kind == "scale"}
+    assert got["thigh"] == pytest.approx(truth["thigh"], abs=5e-3)

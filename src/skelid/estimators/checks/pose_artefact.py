@@ -202,7 +202,10 @@ def _moment_fit(x, g, z, K, M):
         return np.where(den > 0, num / np.maximum(den, 1e-300), 0.0), den
 
     a0, _ = group_fit(np.ones_like(z), z)
-    mu0 = np.maximum(np.maximum(a0, 0.0)[g] * p, 1e-300)
+    mu0 = np.maximum(a0, 0.0)[g] * p
+    # a trial fitted exactly (markers placed on a static one) has means near zero: floored at 1e-12 of the
+    # largest, so that the weights stay finite (1e-300 squared overflowed)
+    mu0 = np.maximum(mu0, 1e-12 * max(float(mu0.max(initial=0.0)), 1e-300))
     w = mu0 ** -2.0
     a, den = group_fit(w, z)
     zt = z - a[g] * p
