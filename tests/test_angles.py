@@ -284,24 +284,36 @@ def test_angles_agree_with_opensim_ik_on_a_gait2354_clip(shared_data, tmp_path):
 
 
 def test_the_laplace_covariance_is_the_fits_before_its_checks_widened_it(fitted):
+    from dataclasses import replace
+
     table = json.loads((fitted / "scaled_scaling.json").read_text())
     g = angles.read_geometry(fitted)
-    lap = g.laplace()
     assert g.widening is not None and np.all(g.widening >= 1.0)
-    sd_rep, sd_lap = np.sqrt(np.diag(g.cov)), np.sqrt(np.diag(lap.cov))
+    w = np.asarray(g.widening, float)
+    sd_rep, sd_lap = np.sqrt(np.diag(g.cov)), np.sqrt(np.diag(g.laplace().cov))
     n = 0
     for k, p in enumerate(g.model.parameters):
         if p.kind != "scale":
             continue
         e = table["scales"][p.target]["xyz" if p.axis is None else "xyz"[p.axis]]
         assert sd_rep[k] == pytest.approx(e["sd"], rel=1e-9)
-        assert sd_lap[k] == pytest.approx(e["crlb_sd"], rel=1e-9)  # the Laplace sd before any widening
+        if w[k] == 1.0:  # not widened: the Laplace sd is the one reported, the bound unless an artefact adds
+            assert sd_lap[k] == pytest.approx(sd_rep[k], rel=1e-12) and e["crlb_sd"] <= e["sd"] * (1 + 1e-9)
+        else:
+            assert sd_lap[k] == pytest.approx(e["crlb_sd"], rel=1e-9)  # the Laplace sd before any widening
         n += 1
-    assert n == 3 and "laplace" in lap.covariance
+    assert n == 3
+    # widened by the checks: laplace() takes the widening back out
+    more = np.linspace(1.5, 3.0, w.size)
+    wide = replace(g, cov=g.cov * np.outer(more, more), widening=more)
+    lap = wide.laplace()
+    np.testing.assert_allclose(lap.cov, g.cov, rtol=1e-12, atol=0)
+    assert "laplace" in lap.covariance and lap.widening is None
     rc, out, err = _cli(["ik", str(fitted), str(fitted.parent / "move.trc"), "--draws", "4", "--covariance",
                          "laplace", "--out", str(fitted.parent / "laplace"), "--json"])
     assert rc == 0, err
-    assert "laplace" in json.loads(out)["move"]["covariance"]
+    # the command line's laplace covariance: the fit's own where its checks widened nothing
+    assert ("laplace" in json.loads(out)["move"]["covariance"]) == bool(np.any(w != 1.0))
 
 
 def test_the_batches_of_draws_and_frames_do_not_change_the_answer(leg):
