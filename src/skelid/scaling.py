@@ -446,8 +446,8 @@ def _per_axis_where_contradicted(st: _ScaleStage, model, jo, ys, weights):
     if kept:
         notes.append(f"one scale factor for {', '.join(kept)} is contradicted by the data (p = "
                      + ", ".join(f"{tests[b]['p']:.1e}" for b in kept) + "), but per axis these trials would not "
-                     "determine its factors or would put one outside the prior's 99 %: a misfit of the model "
-                     "(marker places, joint centres, soft tissue), not of its proportions; one factor kept")
+                     "determine its factors or would put one outside the prior's 99 %: more likely a misfit of the "
+                     "model (marker places, joint centres, soft tissue) than of its proportions; one factor kept")
     for b, t in tests.items():
         t["fitted_per_axis"] = b in switch
     return model, jo, tests, notes
