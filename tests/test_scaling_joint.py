@@ -100,23 +100,6 @@ def test_a_factor_beyond_the_priors_central_99_percent_is_implausible(leg):  # n
     assert _implausible_bodies(model, theta, ["thigh"]) == []
 
 
-def test_the_checks_widen_the_joint_interval_to_their_sd_not_by_their_ratio():
-    """A static trial that mostly places markers has a scale-only plain sd far below the joint fit's;
-    its checks' ratio (data sd over plain sd) must not multiply the joint sd, their sd floors it."""
-    from types import SimpleNamespace
-
-    from skelid.scaling import check_widening
-
-    model = SimpleNamespace(n_params=2)
-    static = SimpleNamespace(cov_data_=np.diag([0.02, 0.01]) ** 2, cov_plain_=np.diag([3e-4, 2e-4]) ** 2)
-    walk = SimpleNamespace(cov_data_=np.diag([0.06, 0.03]) ** 2, cov_plain_=np.diag([5e-3, 3e-3]) ** 2)
-    est = SimpleNamespace(trials_=[static, walk])
-    combined = np.array([(0.02**-2 + 0.06**-2) ** -0.5, (0.01**-2 + 0.03**-2) ** -0.5])
-    np.testing.assert_allclose(check_widening(est, model, np.array([0.01, 0.001])),
-                               [combined[0] / 0.01, combined[1] / 0.001])
-    np.testing.assert_array_equal(check_widening(est, model, np.array([0.5, 0.5])), [1.0, 1.0])
-
-
 def test_an_osim_result_folder_holds_poses_residuals_and_draws_with_scales_as_ratios(leg, tmp_path):  # noqa: F811
     from skelid.cli import main
     from skelid.io import write_trc

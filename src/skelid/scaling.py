@@ -26,8 +26,8 @@ The fit goes in three steps:
    warning names the scales the data leave to it. The ``marker`` method is then
    run once more with every marker where step 3 put it; its checks (model
    misfit, serially correlated residuals, markers that disagree) give the
-   warnings, and the joint interval is widened to at least the sd its checks
-   give (:func:`check_widening`). With one factor per body
+   warnings, and where they widen its interval the joint interval is widened by
+   the same ratio (:func:`check_widening`). With one factor per body
    (``scale='bodies'``), a score test per body against one factor per axis
    (:func:`one_factor_test`, Bonferroni over the bodies at 1 %) picks one factor
    per axis for the bodies where the data contradict one and determine three
@@ -362,10 +362,10 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
         art = pose_artefact(model, jo.theta, ys, jo.poses, jo.sigma, jo.cov, weights)
     bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
     widen = np.ones(model.n_params)
-    widen[:m3.n_params] = check_widening(est, m3, bound) * between_trial_widening(res3, m3)
+    widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
     jo = replace(jo, cov=jo.cov * np.outer(widen, widen) + art.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
-    ratio = np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
+    ratio = _artefact_ratio(art, bound)
     out["artefact"] = _artefact_entry(art, ratio)
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio)]
@@ -379,6 +379,11 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
 #: the artefact's term is named in a warning where it widens some sd by at least this share of the bound
 #: (an estimate it could move by half an sd, as for the misfit test)
 ARTEFACT_EFFECT = 0.5
+
+
+def _artefact_ratio(art, bound) -> np.ndarray:
+    """Per parameter, the sd the artefact's term adds over the sd the residuals alone give."""
+    return np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
 
 
 def _artefact_entry(art, ratio) -> dict:
@@ -1076,25 +1081,24 @@ def _placed_positions(model: Model, theta) -> dict:
             for i, m in enumerate(model.markers)}
 
 
-def check_widening(est, model: Model, bound) -> np.ndarray:
-    """Per scale parameter, how far the scale fit's checks ask the joint fit's sd ``bound`` to widen, at least 1.
+def check_widening(est, model: Model) -> np.ndarray:
+    """Per scale parameter, how much the scale fit's checks widened its interval, at least 1.
 
-    The marker estimator's data sd (``cov_data_``: its plain interval widened where its checks
-    ask for it: model misfit, serially correlated residuals, markers that disagree), the trials'
-    combined (precision-weighted), is a floor under the joint fit's sd: the ratio of the two,
-    at least 1. Not the checks' own ratio (data sd over plain sd) carried over: the scale fit
-    holds the markers where the joint fit put them, so a trial that mostly places markers (a
-    static trial: 0.45 mm residuals on subject01) has a plain sd far below the joint fit's,
-    and its ratio (70) widened intervals the joint fit had already made honest (a pelvis scale
-    with an sd of 1.4). The multi-trial spread between trials is not carried over here
-    (:func:`between_trial_widening`).
+    The ratio of the marker estimator's data sd (``cov_data_``) to its plain one
+    (``cov_plain_``, ``sigma^2 S^{-1}``): the plain interval widened where its checks
+    ask for it (model misfit, serially correlated residuals, markers that disagree);
+    the ratio carries that widening over to the joint fit. With several trials, the
+    trials' own variances are combined (precision-weighted); the
+    multi-trial spread between trials is not carried over (the joint fit has one
+    geometry for every trial).
     """
     ests = list(getattr(est, "trials_", [est]))
     with np.errstate(divide="ignore", invalid="ignore"):
         var = np.sum([1.0 / np.diag(np.asarray(e.cov_data_, float)) for e in ests], axis=0) ** -1.0
-        ratio = np.sqrt(var[:model.n_params]) / np.asarray(bound, float)[:model.n_params]
+        plain = np.sum([1.0 / np.diag(np.asarray(e.cov_plain_, float)) for e in ests], axis=0) ** -1.0
+        ratio = np.sqrt(var / plain)
     ratio = np.where(np.isfinite(ratio), ratio, 1.0)
-    return np.maximum(ratio, 1.0)
+    return np.maximum(ratio[:model.n_params], 1.0)
 
 
 def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma=None, weights=None) -> dict:
