@@ -728,7 +728,7 @@ JOINT_POSE_ITER = 4
 POSE_ITER = 30
 #: Newton decrement (squared length of the step in posterior sd) below which the joint fit is at its optimum
 JOINT_DECREMENT = 1e-3
-#: halvings of a joint-fit step before the fit is taken as at its optimum
+#: halvings of a joint-fit step tried before the full step is taken anyway (the noise levels re-estimated after it)
 JOINT_HALVINGS = 8
 #: noise-free data: the noise level is rounding, not zero; its floor, relative to the model's size, is the
 #: marker estimator's (:data:`skelid.estimators.marker.NUMERICAL_RESIDUAL`: 1e-3 mm on a 1 m body). With a
