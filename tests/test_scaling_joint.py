@@ -159,3 +159,103 @@ def test_an_exactly_fitted_static_trial_does_not_hold_the_joint_fit_at_its_start
     assert fit.joint.sigma[1] < 1.2  # mm: the walk's noise is 1 mm
     got = {p.target: fit.theta[k] for k, p in enumerate(fit.model.parameters) if p.kind == "scale"}
     assert got["thigh"] == pytest.approx(truth["thigh"], abs=5e-3)
+
+
+def test_the_checks_ratios_leave_out_the_placement_term_the_offsets_already_carry():
+    """A static trial's 5 mm placement term is in its data covariance; the joint fit, whose offsets are
+    parameters, takes only what the other checks added (here a serial-correlation factor of 2 on the
+    second parameter)."""
+    from types import SimpleNamespace
+
+    from skelid.scaling import check_ratios
+
+    names = ("scale_a", "scale_b")
+    plain = np.diag([1.0, 1.0])
+    data = np.diag([1.0 + 9.0, 4.0 + 16.0])  # checks: 1 and 4; placement: 9 and 16
+    placement = {"parameters": {"scale_a": {"sd_added": 3.0}, "scale_b": {"sd_added": 4.0}}}
+    est = SimpleNamespace(cov_data_=data, cov_plain_=plain, placement_=placement,
+                          model=SimpleNamespace(parameter_names=names))
+    np.testing.assert_allclose(check_ratios(est, SimpleNamespace(n_params=2)), [[1.0, 2.0]])
+    est.placement_ = {"parameters": {}}  # no placement term: the whole ratio
+    np.testing.assert_allclose(check_ratios(est, SimpleNamespace(n_params=2)), [np.sqrt([10.0, 20.0])])
+    several = SimpleNamespace(trials_=[est, est])
+    assert check_ratios(several, SimpleNamespace(n_params=2)).shape == (2, 2)
+
+
+def test_a_trials_checks_widen_the_joint_interval_by_that_trials_weight_in_the_joint_fit():
+    """Two trials, the first with 100 times the information: its checks' ratio of 3 widens the joint sd
+    almost threefold, the second's hardly at all, whatever the trials' own scale fits said."""
+    from types import SimpleNamespace
+
+    from skelid.scaling import deflated_widening
+
+    info = (np.diag([100.0, 100.0, 50.0]), np.diag([1.0, 1.0, 1.0]))
+    hp = np.full(3, 1e-12)
+    jo = SimpleNamespace(info_trials=info, cov=np.linalg.inv(sum(info) + np.diag(hp)))
+    first = deflated_widening(jo, hp, np.array([[3.0, 1.0], [1.0, 1.0]]))
+    np.testing.assert_allclose(first, [np.sqrt(101.0 / (100.0 / 9.0 + 1.0)), 1.0], rtol=1e-6)
+    second = deflated_widening(jo, hp, np.array([[1.0, 1.0], [3.0, 1.0]]))
+    np.testing.assert_allclose(second, [np.sqrt(101.0 / (100.0 + 1.0 / 9.0)), 1.0], rtol=1e-6)
+    # correlated information: a scalar per trial never narrows any sd
+    A = np.array([[4.0, 3.9, 0.0], [3.9, 4.0, 0.0], [0.0, 0.0, 1.0]])
+    jo = SimpleNamespace(info_trials=(A, np.eye(3)), cov=np.linalg.inv(A + np.eye(3) + np.diag(hp)))
+    assert np.all(deflated_widening(jo, hp, np.array([[5.0, 1.0], [1.0, 2.0]])) >= 1.0)
+    one = deflated_widening(jo, hp, np.array([[2.0, 2.0]]))  # one recording: its ratio for every trial
+    np.testing.assert_allclose(one, [2.0, 2.0], rtol=1e-6)
+
+
+def _linear_trials(rng, tau, K=3, P=12, n_off=8, n=60):
+    """A linear model of a joint fit: K trials sharing P parameters, the last n_off offsets, each trial's
+    offsets moved by N(0, tau^2); unit noise. Returns the informations, scores, posterior covariance, the
+    offsets' mask, the estimate and the truth."""
+    off = np.zeros(P, bool)
+    off[P - n_off:] = True
+    lam = np.full(P, 1e-2)
+    A = [rng.normal(size=(n, P)) for _ in range(K)]
+    truth = rng.normal(size=P)
+    ys = []
+    for a in A:
+        u = np.zeros(P)
+        u[off] = rng.normal(0.0, tau, n_off)
+        ys.append(a @ (truth + u) + rng.normal(size=n))
+    info = [a.T @ a for a in A]
+    H = np.linalg.inv(sum(info) + np.diag(lam))
+    est = H @ sum(a.T @ y for a, y in zip(A, ys, strict=True))
+    scores = [a.T @ (y - a @ est) for a, y in zip(A, ys, strict=True)]
+    return info, scores, H, off, est, truth
+
+
+def test_the_trials_placement_test_holds_its_level_and_the_spread_it_adds_covers():
+    from skelid.estimators.checks.trial_placement import trial_placement
+
+    rng = np.random.default_rng(7)
+    p = [trial_placement(*_linear_trials(rng, 0.0)[:4]).p_value for _ in range(400)]
+    assert 0.002 <= np.mean(np.array(p) < 0.05) <= 0.1  # about 5 %
+    z, taus = [], []
+    for _ in range(200):
+        info, scores, H, off, est, truth = _linear_trials(rng, 0.5)
+        tp = trial_placement(info, scores, H, off)
+        taus.append(tp.tau)
+        z.append((est - truth) / np.sqrt(np.diag(H + tp.cov)))
+        assert tp.present or tp.p_value >= 0.01
+    z = np.concatenate(z)
+    assert abs(np.mean(taus) - 0.5) < 0.05
+    assert 0.92 <= np.mean(np.abs(z) <= 1.96) <= 0.975  # the plain posterior alone covers far less
+    info, scores, H, off, est, truth = _linear_trials(rng, 0.5)
+    naive = (est - truth) / np.sqrt(np.diag(H))
+    assert np.sqrt(np.mean(naive**2)) > 1.5
+    one = trial_placement(info[:1], scores[:1], H, off)  # one trial: its offsets take up its placement
+    assert not one.present and not one.cov.any()
+
+
+def test_the_joint_result_drops_the_scale_fits_warnings_of_terms_it_carries_itself():
+    from types import SimpleNamespace
+
+    from skelid.result import Warning
+    from skelid.scaling import _without_carried_warnings
+
+    w = [Warning("placement-informed", "static: placed", ()), Warning("misfit", "knee misfit", ()),
+         Warning("trials-disagree", "the trials disagree", ())]
+    res = {"warnings": ["static: placed", "knee misfit", "the trials disagree"]}
+    out = _without_carried_warnings(res, SimpleNamespace(warnings_=tuple(w)))
+    assert out["warnings"] == ["knee misfit"] and len(res["warnings"]) == 3

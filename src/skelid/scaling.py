@@ -27,7 +27,10 @@ The fit goes in three steps:
    run once more with every marker where step 3 put it; its checks (model
    misfit, serially correlated residuals, markers that disagree) give the
    warnings, and where they widen its interval the joint interval is widened by
-   the same ratio (:func:`check_widening`), never beyond the prior's sd. With one factor per body
+   each trial's information in it deflated by that trial's ratio (:func:`check_ratios`,
+   :func:`deflated_widening`; the markers' placement term excepted, which the offsets already
+   carry), never beyond the prior's sd; with several trials, the spread of the markers' placement
+   from trial to trial is added (:mod:`skelid.estimators.checks.trial_placement`). With one factor per body
    (``scale='bodies'``), a score test per body against one factor per axis
    (:func:`one_factor_test`, Bonferroni over the bodies at 1 %) picks one factor
    per axis for the bodies where the data contradict one and determine three
@@ -63,6 +66,7 @@ import numpy as np
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, SkelidWarning
 from skelid.estimators.checks.pose_artefact import pose_artefact
+from skelid.estimators.checks.trial_placement import trial_placement
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
@@ -358,21 +362,28 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
         m3 = _scales_only(model, _with_marker_positions(st.original, _placed_positions(model, jo.theta)))
         est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in st.trials], st.data, st.multi,
                                       st.method, st.sigma, st.seed, st.settings, checks_only=True)
+        res3 = _without_carried_warnings(res3, est)
         # the soft-tissue artefact the residuals show: the part of it that mimics the geometry is added
         art = pose_artefact(model, jo.theta, ys, jo.poses, jo.sigma, jo.cov, weights)
+        # markers that sit elsewhere on the body in each trial (the slide's mean follows the trial's mean pose)
+        offsets = np.array([p.kind == "marker_offset" for p in model.parameters])
+        placed = trial_placement(jo.info_trials, jo.score_trials, jo.cov, offsets)
     bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
     widen = np.ones(model.n_params)
-    widen[:m3.n_params] = check_widening(est, m3) * between_trial_widening(res3, m3)
+    widen[:m3.n_params] = deflated_widening(jo, _prior_terms(model, jo.theta)[1], check_ratios(est, m3))
     # never wider than the prior: the data cannot leave a parameter less known than before them (a static
     # trial's checks' ratio, 70 on subject01 and 10^6 on an exactly fitted one, asked for far more)
     prior_sd = 1.0 / np.sqrt(np.maximum(_prior_terms(model, jo.theta)[1], 1e-300))
     widen = np.maximum(np.minimum(widen, prior_sd / np.maximum(bound, 1e-300)), 1.0)
-    jo = replace(jo, cov=jo.cov * np.outer(widen, widen) + art.cov)
+    jo = replace(jo, cov=jo.cov * np.outer(widen, widen) + art.cov + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
     ratio = _artefact_ratio(art, bound)
     out["artefact"] = _artefact_entry(art, ratio)
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio)]
+    out["trial_placement"] = _placement_entry(placed, bound)
+    if out["trial_placement"]["warn"]:
+        out["warnings"] = list(out.get("warnings", [])) + [_placement_warning(model, placed, bound, len(given))]
     if tests:
         out["one_factor_test"] = tests
     if axes_notes:
@@ -387,7 +398,7 @@ ARTEFACT_EFFECT = 0.5
 
 def _artefact_ratio(art, bound) -> np.ndarray:
     """Per parameter, the sd the artefact's term adds over the sd the residuals alone give."""
-    return np.sqrt(np.diag(art.cov)) / np.maximum(bound, 1e-300)
+    return np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
 
 
 def _artefact_entry(art, ratio) -> dict:
@@ -407,6 +418,26 @@ def _artefact_warning(model: Model, art, ratio) -> str:
             f"marker coordinate (F test p = {art.p_value:.1e}); the part of it that looks like a change of the "
             f"geometry is in the intervals (the largest effect: {model.parameter_names[k]}, "
             f"{ratio[k]:.1f} times the sd the residuals alone give)")
+
+
+def _placement_entry(placed, bound) -> dict:
+    """The result's ``trial_placement`` entry: how far the trials' marker placements differ."""
+    ratio = _artefact_ratio(placed, bound)
+    return {"present": bool(placed.present), "p_value": float(placed.p_value), "sd_between_trials": float(placed.tau),
+            "largest_sd_ratio": float(ratio.max(initial=0.0)),
+            "warn": bool(placed.present and ratio.max(initial=0.0) >= ARTEFACT_EFFECT),
+            "method": "a random effect on each trial's marker offsets, sized from the trials' scores "
+                      "(skelid.estimators.checks.trial_placement)"}
+
+
+def _placement_warning(model: Model, placed, bound, n_trials: int) -> str:
+    """One line naming the placement spread between the trials and what it does to the intervals."""
+    ratio = _artefact_ratio(placed, bound)
+    k = int(np.argmax(ratio))
+    return (f"the {n_trials} trials see the markers at different places on the body: about {placed.tau:.2g} "
+            f"{model.units} per offset coordinate from trial to trial (test p = {placed.p_value:.1e}), as skin "
+            f"that slides with each trial's mean pose does; that spread is in the intervals (the largest effect: "
+            f"{model.parameter_names[k]}, {ratio[k]:.1f} times the sd the residuals alone give)")
 
 
 def _per_axis_where_contradicted(st: _ScaleStage, model, jo, ys, weights):
@@ -750,6 +781,8 @@ class JointOffsets:
     n_iter: int
     converged: bool
     prior_only: tuple = ()  # scale parameters the data leave to the prior
+    info_trials: tuple = ()  # [(P, P)] each trial's information S_k / sigma_k^2 (their sum is the data's)
+    score_trials: tuple = ()  # [(P,)] each trial's score K^T r / sigma_k^2 at theta
 
 
 def _prior_terms(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
@@ -900,8 +933,10 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     if sigma is None:
         sig = np.sqrt(np.maximum(rss / dof, floor**2))
     _, hp = _prior_terms(model, theta)
-    _, cov, edf, prior_only = _posterior(model, sum(S_k / s_k**2 for S_k, s_k in zip(S, sig, strict=True)), hp)
-    return JointOffsets(theta, cov, poses, sig, dof, edf, n_done, converged, prior_only)
+    info = tuple(S_k / s_k**2 for S_k, s_k in zip(S, sig, strict=True))
+    scores = tuple(t[2] / s_k**2 for t, s_k in zip(now, sig, strict=True))
+    _, cov, edf, prior_only = _posterior(model, sum(info), hp)
+    return JointOffsets(theta, cov, poses, sig, dof, edf, n_done, converged, prior_only, info, scores)
 
 
 #: Gauss-Newton steps of the weighted pose fit that follows the plain one (:func:`_posed_terms`)
@@ -1047,33 +1082,6 @@ def _marker_weights(model: Model, res: dict) -> np.ndarray | None:
     return w / np.exp(np.mean(np.log(w)))
 
 
-#: level of the several-trial consistency test below which the between-trial spread widens the joint interval
-BETWEEN_TRIAL_LEVEL = 0.01
-
-
-def between_trial_widening(res: dict, model: Model) -> np.ndarray:
-    """Per scale parameter of ``model``, the several-trial fit's sd over its within-trial sd, at least 1.
-
-    The joint fit has one geometry for every trial and no between-trial term; where the trials
-    disagree beyond their own intervals (the several-trial fit's consistency test rejects at
-    :data:`BETWEEN_TRIAL_LEVEL`: a random-effects spread, :mod:`skelid.estimators.multitrial`) the
-    interval of the joint fit is widened by the same ratio. Where they agree it is not: with two
-    trials the random-effects interval rests on one degree of freedom (a ``t_1`` quantile, 6.5 times
-    the normal one), which on trials of one body with no spread gave intervals 4-14 times wider
-    than the errors. 1 for a fit of one trial.
-    """
-    out = np.ones(model.n_params)
-    c = res.get("consistency") or {}
-    if not (c.get("tested") and c.get("p_value") is not None and c["p_value"] < BETWEEN_TRIAL_LEVEL):
-        return out
-    for k, name in enumerate(model.parameter_names):
-        e = res.get(name) or {}
-        within, total = e.get("sd_within_trials"), e.get("sd")
-        if within and total and np.isfinite(within) and np.isfinite(total) and within > 0:
-            out[k] = max(1.0, float(total) / float(within))
-    return out
-
-
 def _placed_positions(model: Model, theta) -> dict:
     """Each marker's nominal position (segment frame, mm) that puts it at ``S r + delta`` unscaled."""
     scales = body_scales(model, theta)
@@ -1085,24 +1093,81 @@ def _placed_positions(model: Model, theta) -> dict:
             for i, m in enumerate(model.markers)}
 
 
-def check_widening(est, model: Model) -> np.ndarray:
-    """Per scale parameter, how much the scale fit's checks widened its interval, at least 1.
+#: warnings of the scale fit behind the joint fit's checks about terms the joint fit carries itself
+CARRIED_WARNINGS = ("placement-informed", "trials-disagree")
+
+
+def _without_carried_warnings(res: dict, est) -> dict:
+    """``res`` without the scale fit's warnings about what the joint fit models itself.
+
+    ``placement-informed``: a trial's scales follow the markers' nominal placement; in the joint
+    fit the placement is a parameter (the offsets, with their prior), so its uncertainty is
+    already in the joint interval and the scale fit's placement term is not carried over
+    (:func:`check_ratios`). ``trials-disagree``: the several-trial scale fit, which holds every
+    marker where the joint fit put it, finds the trials' scales apart beyond its within-trial
+    intervals; those leave out the offsets' uncertainty (on one exactly modelled body with
+    i.i.d. noise it rejected at 1 % in 3 fits of 12), and the joint fit's own test of the
+    trials' placement (:mod:`skelid.estimators.checks.trial_placement`) takes its place. Both
+    warnings say their term was added, which would be wrong.
+    """
+    drop = {w.message for w in getattr(est, "warnings_", ()) if w.code in CARRIED_WARNINGS}
+    return dict(res, warnings=[w for w in res.get("warnings", []) if w not in drop]) if drop else res
+
+
+def _placement_variance(e) -> np.ndarray:
+    """Per parameter, the variance the marker estimator's placement term added (zero if none)."""
+    pars = ((getattr(e, "placement_", None) or {}).get("parameters")) or {}
+    return np.array([float((pars.get(n) or {}).get("sd_added") or 0.0) ** 2 for n in e.model.parameter_names])
+
+
+def check_ratios(est, model: Model) -> np.ndarray:
+    """Per trial and scale parameter, how much the scale fit's checks widened its sd: ``(K, P)``, at least 1.
 
     The ratio of the marker estimator's data sd (``cov_data_``) to its plain one
-    (``cov_plain_``, ``sigma^2 S^{-1}``): the plain interval widened where its checks
-    ask for it (model misfit, serially correlated residuals, markers that disagree);
-    the ratio carries that widening over to the joint fit. With several trials, the
-    trials' own variances are combined (precision-weighted); the
-    multi-trial spread between trials is not carried over (the joint fit has one
-    geometry for every trial).
+    (``cov_plain_``, ``sigma^2 S^{-1}``) for each trial's own fit: the plain interval
+    widened where its checks ask for it (model misfit, serially correlated residuals,
+    markers that disagree). The term for the markers' nominal placement (a static trial's
+    ``placement_sd``) is left out: the joint fit has the markers' offsets as parameters, so
+    it is already in the joint interval (carried again, it gave a static trial plus a walk
+    4 times the sd of the scales the walk determines). One row for a fit of one recording.
     """
-    ests = list(getattr(est, "trials_", [est]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        var = np.sum([1.0 / np.diag(np.asarray(e.cov_data_, float)) for e in ests], axis=0) ** -1.0
-        plain = np.sum([1.0 / np.diag(np.asarray(e.cov_plain_, float)) for e in ests], axis=0) ** -1.0
-        ratio = np.sqrt(var / plain)
-    ratio = np.where(np.isfinite(ratio), ratio, 1.0)
-    return np.maximum(ratio[:model.n_params], 1.0)
+    rows = []
+    for e in getattr(est, "trials_", [est]):
+        plain = np.diag(np.asarray(e.cov_plain_, float))
+        var = np.maximum(np.diag(np.asarray(e.cov_data_, float)) - _placement_variance(e), plain)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.sqrt(var / plain)
+        rows.append(np.maximum(np.where(np.isfinite(r), r, 1.0)[:model.n_params], 1.0))
+    return np.array(rows)
+
+
+def deflated_widening(jo: JointOffsets, prior_precision, ratios) -> np.ndarray:
+    """Per scale parameter ``i``, the joint sd with each trial's information deflated by its checks, over the bound.
+
+    For parameter ``i``, trial ``k``'s information ``I_k`` in the joint fit is divided by
+    ``r_ki^2`` (``ratios``, :func:`check_ratios`) and the posterior variance of ``i``
+    recomputed: ``[(sum_k I_k / r_ki^2 + Lambda)^-1]_ii``. Each trial counts with the weight
+    it has in the joint fit: a static trial whose scale fit holds the markers where the joint
+    fit put them has a plain sd far below its share of the joint fit, and its precision no
+    longer drowns the widening a walk's checks ask for (a soft-tissue artefact of 5-15 mm:
+    hip-knee intervals covered 0.50-0.67 of OpenSim-generated subjects that way). A scalar
+    per trial and parameter can only widen (the deflated information is below the full one
+    in the Loewner order), and never beyond the prior. One row of ``ratios`` for every trial
+    of a fit of one recording.
+    """
+    K, P3 = len(jo.info_trials), ratios.shape[1]
+    if K == 0 or not np.any(ratios > 1.0):
+        return np.ones(P3)
+    r = np.broadcast_to(ratios, (K, P3)) if ratios.shape[0] != K else ratios
+    bound2 = np.clip(np.diag(jo.cov), 1e-300, None)
+    out = np.ones(P3)
+    for i in range(P3):
+        if np.all(r[:, i] <= 1.0):
+            continue
+        info = sum(I / r[k, i] ** 2 for k, I in enumerate(jo.info_trials))
+        _, cov, _, _ = _posterior_solver(info, prior_precision)
+        out[i] = max(1.0, float(np.sqrt(cov[i, i] / bound2[i])))
+    return out
 
 
 def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma=None, weights=None) -> dict:
@@ -1436,10 +1501,18 @@ def trials_table(fit: ScalingFit) -> dict | None:
         if cons.get("p_value") is None:
             cons["verdict"] = "not tested (fewer than one degree of freedom)"
         else:
-            cons["verdict"] = ("the trials agree" if cons["p_value"] >= 0.01 else
-                               "the trials disagree beyond their own intervals")
+            # the trials' scales with every marker held where the joint fit put it: their within-trial
+            # intervals leave out the offsets' uncertainty, so this is a diagnostic, not the interval's term
+            cons["verdict"] = ("the trials' scales agree" if cons["p_value"] >= 0.01 else
+                               "the trials' scales differ beyond their within-trial intervals (markers held "
+                               "where the joint fit put them)")
+    placement = res.get("trial_placement")
+    if placement:
+        placement = dict(placement, verdict=(
+            "the trials see the markers at different places on the body; the spread is in the intervals"
+            if placement.get("present") else "one marker placement fits every trial"))
     return {"n_trials": len(rows), "per_trial": per, "between_trial_sd": between, "heterogeneity": spread,
-            "consistency": cons, "between_trial": res.get("between_trial")}
+            "consistency": cons, "between_trial": res.get("between_trial"), "placement": placement}
 
 
 def _settings_json(est) -> dict:
@@ -1592,6 +1665,10 @@ def _trials_markdown(trials: dict | None) -> list[str]:
         else:
             lines += ["", f"Consistency of the trials with the joint estimate: chi-square {c['statistic']:.1f} on "
                       f"{c['dof']} degrees of freedom, p = {c['p_value']:.2g} ({c['verdict']})."]
+    pl = trials.get("placement") or {}
+    if pl:
+        lines += ["", f"Marker placement from trial to trial (joint fit): about {pl['sd_between_trials']:.2g} mm per "
+                  f"offset coordinate, p = {pl['p_value']:.2g} ({pl['verdict']})."]
     return lines + [""]
 
 

@@ -4,6 +4,8 @@
 * :mod:`.outliers` -- the outlier screen with each frame's residual degrees of freedom.
 * :mod:`.noise` -- per-marker (or per-group) noise levels.
 * :mod:`.artefact` -- soft-tissue artefact as a random effect of stated size.
+* :mod:`.pose_artefact` -- a pose-dependent artefact sized from a joint fit's residuals.
+* :mod:`.trial_placement` -- markers placed differently in each trial of a joint fit.
 
 Nothing here imports the estimators above it.
 """
