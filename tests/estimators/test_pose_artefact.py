@@ -87,3 +87,39 @@ def test_the_added_covariance_is_the_artefacts_effect_through_the_fit(leg):
     assert np.allclose(a.cov, a.cov.T) and w.min() > -1e-9 * w.max()
     b = pose_artefact(model, theta, [y], [q], np.array([3.0]), 2.0 * hinv)
     assert np.allclose(b.cov, 4.0 * a.cov)
+
+
+def test_a_still_trial_without_the_slide_sizes_the_walks_slide_from_its_excess(leg):
+    """A static trial (the artefact is zero at its pose) and a walk whose markers slide by 8 mm rms from
+    there: with one white level per marker for both trials (one camera system), the walk's slide is its
+    excess over the static trial's noise; a level per marker and trial took most of it for noise."""
+    from skelid.estimators.checks import pose_artefact as pa
+
+    path, model, theta, q = leg
+    rng = np.random.default_rng(4)
+    c = artefact_coordinates(model)
+    seg = np.asarray(model.marker_segment)
+    V = np.stack([rng.normal(size=(3, c.size)) for _ in seg]) + np.stack(
+        [{b: rng.normal(size=(3, c.size)) for b in np.unique(seg)}[b] for b in seg])
+    still = np.repeat(q[:1], 60, axis=0)
+
+    def trial(qq):
+        R = forward_kinematics(model, theta, qq).R_world_seg[:, seg]
+        d = np.einsum("tmij,mjc,tc->tmi", R, V, qq[:, c] - q[0, c])
+        return d, marker_positions(model, theta, qq)
+    d_walk, x_walk = trial(q)
+    k = 8.0 / np.sqrt(np.mean(d_walk**2))
+    walk = MarkerData(x_walk + k * d_walk + rng.normal(0.0, 0.5, x_walk.shape), model.marker_names, 60.0, "mm", "walk")
+    x_still = marker_positions(model, theta, still)
+    static = MarkerData(x_still + rng.normal(0.0, 0.5, x_still.shape), model.marker_names, 60.0, "mm", "static")
+    fit = fit_osim(path, [static, walk])
+    jo, m = fit.joint, fit.model
+    ys = [t.positions for t in fit.trials]
+    both = pa.pose_artefact(m, jo.theta, ys, jo.poses, jo.sigma, jo.cov)
+    assert both.present
+    n = np.mean(np.concatenate([np.sum((p[:, c] - np.concatenate(jo.poses)[:, c].mean(axis=0)) ** 2, axis=1)
+                                for p in jo.poses]))
+    # V's entries have variance 2 (shared plus own): the slide k V dq has slopes of variance 2 k^2
+    # (a white level per marker and trial: 41 % short; one per marker for both trials: 18 %)
+    assert both.tau_shared**2 + both.tau_own**2 == pytest.approx(2 * k**2, rel=0.3)
+    assert both.rms == pytest.approx(np.sqrt((both.tau_shared**2 + both.tau_own**2) * n))
