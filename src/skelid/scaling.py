@@ -1149,8 +1149,9 @@ def deflated_widening(jo: JointOffsets, prior_precision, ratios) -> np.ndarray:
     recomputed: ``[(sum_k I_k / r_ki^2 + Lambda)^-1]_ii``. Each trial counts with the weight
     it has in the joint fit: a static trial whose scale fit holds the markers where the joint
     fit put them has a plain sd far below its share of the joint fit, and its precision no
-    longer drowns the widening a walk's checks ask for (a soft-tissue artefact of 5-15 mm:
-    hip-knee intervals covered 0.50-0.67 of OpenSim-generated subjects that way). A scalar
+    longer drowns the widening a walk's checks ask for (static trial plus walk with a 5-15 mm
+    soft-tissue artefact on OpenSim-generated subjects: hip-knee coverage 0.50-0.67 with the
+    precision-weighted ratio, 0.50-0.75 so; the artefact's size did the rest). A scalar
     per trial and parameter can only widen (the deflated information is below the full one
     in the Loewner order), and never beyond the prior. One row of ``ratios`` for every trial
     of a fit of one recording.
