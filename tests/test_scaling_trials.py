@@ -55,9 +55,11 @@ def test_three_trials_give_each_trials_scales_the_spread_the_test_the_bound_and_
     noise = table["sigma_mm"]
     lo, hi = noise["ci95"]
     assert lo < noise["value"] < hi and hi - lo > 1e-6 * noise["value"]
+    pl = tr["placement"]  # the joint fit's own test of one marker placement for every trial
+    assert 0.0 <= pl["p_value"] <= 1.0 and pl["sd_between_trials"] >= 0 and pl["verdict"]
     report = paths["report"].read_text()
     assert "Each trial's own scale factors" in report and "walk2.trc" in report
-    assert f"on {c['dof']} degrees of freedom" in report
+    assert f"on {c['dof']} degrees of freedom" in report and "Marker placement from trial to trial" in report
 
 
 def test_the_consistency_test_counts_the_scale_factors_of_every_axis_not_the_offsets(leg_trials):
