@@ -97,11 +97,17 @@ def trial_placement(info_trials, score_trials, hinv, offsets) -> TrialPlacement:
                          for k in range(K)))
     e0, e1 = mean(info), mean(X1)
     # the null covariance of the scores, block by block (V_k = I_k): C_kl = d_kl I_k - 2 I_k H I_l + I_k H S H I_l
-    S = sum(info)
-    SH = S @ H
-    HC = [[Wm @ ((info[k] if k == l else 0.0) - 2.0 * B[k] @ info[l] + B[k] @ SH @ info[l]) for l in range(K)]
-          for k in range(K)]
-    var = 2.0 * float(sum(np.sum(HC[k][l] * HC[l][k].T) for k in range(K) for l in range(K)))
+    SH = sum(info) @ H
+
+    def wc(k, l):  # W C_kl
+        return Wm @ ((info[k] if k == l else 0.0) - 2.0 * B[k] @ info[l] + B[k] @ SH @ info[l])
+    # pair by pair, so that memory stays at a few (P, P) matrices whatever the number of trials
+    var = 0.0
+    for k in range(K):
+        for l in range(k, K):
+            a, b = wc(k, l), (wc(l, k) if l != k else None)
+            var += float(np.sum(a * a.T)) if b is None else 2.0 * float(np.sum(a * b.T))
+    var *= 2.0
     if not (e0 > 0 and var > 0 and e1 > 0 and np.isfinite([Q, e0, e1, var]).all()):
         return TrialPlacement(False, 1.0, 0.0, Q, e0, zero)
     a, nu = var / (2.0 * e0), 2.0 * e0**2 / var
