@@ -47,8 +47,8 @@ of the slide and size it from its variation in time alone (on simulated walks
 markers' noise differs, and one level per marker for every trial (one camera
 system) sizes a walk's slide from its excess over a static trial, whose pose
 has none (on OpenSim-generated subjects, static trial plus walk with a 5-15 mm
-artefact: hip-knee intervals covered 0.50-0.83 of the time with the first two,
-0.92-1.00 with all three).
+artefact: hip-knee intervals covered 0.50-0.83 of the time with the first two;
+with all three, 0.83-1.00 in ``benchmarks/results/opensim_truth.md``).
 
 Effect. The fit moves by ``H^{-1} sum_t K_t^T W delta_t`` (``K_t``: the
 geometry's Jacobian with the poses profiled out, ``W`` the fit's weights,
