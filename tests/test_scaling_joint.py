@@ -259,3 +259,57 @@ def test_the_joint_result_drops_the_scale_fits_warnings_of_terms_it_carries_itse
     res = {"warnings": ["static: placed", "knee misfit", "the trials disagree"]}
     out = _without_carried_warnings(res, SimpleNamespace(warnings_=tuple(w)))
     assert out["warnings"] == ["knee misfit"] and len(res["warnings"]) == 3
+
+
+def _noisy_walk(leg, marker_sd, n_frames=300, seed=3):  # noqa: F811
+    """The leg's walk of :func:`tests.test_scaling._trials` with each marker's own noise sd (mm)."""
+    from skelid.data import MarkerData
+    from skelid.model.kinematics import marker_positions
+
+    base, info = read_osim(leg)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    truth = model.theta_nominal.copy()
+    t = np.arange(n_frames) / 60.0
+    q = np.zeros((n_frames, model.n_pose))
+    q[:, 3:6] = [100.0, 900.0, 50.0]
+    q[:, 6] = 0.5 * np.sin(2 * np.pi * 1.1 * t)
+    q[:, 7] = 0.3 * np.sin(2 * np.pi * 0.7 * t + 1)
+    q[:, 8] = 0.3 * np.sin(2 * np.pi * 0.9 * t + 2)
+    q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
+    q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    rng = np.random.default_rng(seed)
+    sd = np.resize(np.asarray(marker_sd, float), len(model.markers))
+    x = marker_positions(model, truth, q) + rng.normal(0, 1, (n_frames, len(model.markers), 3)) * sd[:, None]
+    return model, MarkerData(x, model.marker_names, 60.0, "mm", "sim"), sd
+
+
+def test_each_markers_noise_level_is_read_from_the_residuals_and_carried_into_the_interval(leg):  # noqa: F811
+    """Markers of 0.5 and 4 mm fitted with one noise level: each marker's level is recovered from its
+    residuals (the pose's share of each marker's residual taken out; a quiet marker's level is the
+    difference of its residual and what the pose carries over from its noisy neighbours, so it is known
+    less well), and the interval is the sandwich with those levels, which the Laplace interval of one
+    level is not."""
+    from skelid.estimators.fit.likelihood import projected_theta_jacobian
+    from skelid.estimators.fit.pose import workspace
+    from skelid.scaling import _posed_terms, _prior_terms
+
+    model, walk, sd = _noisy_walk(leg, [0.5, 4.0])
+    jo = _joint_refinement(model, model.theta_nominal.copy(), [walk], None, 0)
+    np.testing.assert_allclose(jo.marker_sd[0][sd > 1], 4.0, rtol=0.06)
+    assert np.all(jo.marker_sd[0][sd < 1] < 1.0)
+    # the sandwich with the true levels, at the fit
+    _, r, Jq, Jt = _posed_terms(model, jo.theta, walk.positions, jo.poses[0], workspace(model))
+    Kp = projected_theta_jacobian(Jq, Jt)
+    J = np.einsum("tkp,k,tkq->pq", Kp, np.repeat(sd**2, 3), Kp) / jo.sigma[0] ** 4
+    want = jo.cov @ (J + np.diag(_prior_terms(model, jo.theta)[1])) @ jo.cov
+    scales = [k for k, p in enumerate(model.parameters) if p.kind == "scale"]
+    got_sd, want_sd, laplace_sd = (np.sqrt(np.diag(c))[scales] for c in (jo.cov_noise, want, jo.cov))
+    np.testing.assert_allclose(got_sd, want_sd, rtol=0.1)
+    assert np.max(np.abs(laplace_sd / want_sd - 1.0)) > 0.1  # one level is wrong here
+
+
+def test_with_one_noise_level_the_sandwich_is_the_laplace_interval(leg):  # noqa: F811
+    model, walk, _ = _noisy_walk(leg, [2.0])
+    jo = _joint_refinement(model, model.theta_nominal.copy(), [walk], None, 0)
+    np.testing.assert_allclose(np.sqrt(np.diag(jo.cov_noise)), np.sqrt(np.diag(jo.cov)), rtol=0.1)
+    np.testing.assert_allclose(jo.marker_sd[0], 2.0, rtol=0.1)
