@@ -219,7 +219,6 @@ def read_geometry(result_dir) -> FittedGeometry:
     """
     from skelid.errors import SkelidError
     from skelid.io.results import load_json
-    from skelid.model import model_from_dict
 
     path = find_geometry(result_dir)
     doc = load_json(path)
@@ -232,33 +231,51 @@ def read_geometry(result_dir) -> FittedGeometry:
     if doc.get("version") != GEOMETRY_VERSION:
         raise bad(f"version {doc.get('version')!r}; this skelid reads version {GEOMETRY_VERSION}")
     try:
-        model = model_from_dict(doc["model"], str(path))
-        theta = np.asarray(doc["theta"], float)
-        cov = np.asarray(doc["cov"], float).reshape(theta.size, theta.size) if theta.size else np.zeros((0, 0))
-        coords = tuple(OsimCoordinate(str(c["name"]), str(c["joint"]), bool(c["rotational"]), bool(c["locked"]),
-                                      float(c["default"]), tuple(_bound(v) for v in c["range"]), bool(c["clamped"]))
-                       for c in doc["coordinates"])
-        if any(len(c.range) != 2 for c in coords):
-            raise ValueError("a coordinate's range is not two numbers")
-        widening = np.asarray(doc["widening"], float)
-        kind = str(doc["covariance"])
-        sigma = doc.get("sigma_mm")
-        sigma = None if sigma is None else float(sigma)
+        model, theta, cov, coords, widening, kind, sigma = _geometry_entries(doc, str(path))
     except SkelidError as exc:
         raise bad(f"its model does not load ({exc.problem})") from None
     except (KeyError, TypeError, ValueError) as exc:
         raise bad(f"missing or malformed entry ({type(exc).__name__}: {str(exc)[:80]})") from None
+    problem = _geometry_problem(doc, model, theta, cov, coords, widening)
+    if problem:
+        raise bad(problem)
+    return FittedGeometry(model, theta, cov, kind, coords, sigma, str(doc.get("source_model", "")), widening)
+
+
+def _geometry_entries(doc: dict, source: str) -> tuple:
+    """The geometry file's entries as read: ``(model, theta, cov, coordinates, widening, kind, sigma)``.
+
+    Raises KeyError, TypeError or ValueError where an entry is missing or malformed, and the
+    model's own error where it does not load.
+    """
+    from skelid.model import model_from_dict
+
+    model = model_from_dict(doc["model"], source)
+    theta = np.asarray(doc["theta"], float)
+    cov = np.asarray(doc["cov"], float).reshape(theta.size, theta.size) if theta.size else np.zeros((0, 0))
+    coords = tuple(OsimCoordinate(str(c["name"]), str(c["joint"]), bool(c["rotational"]), bool(c["locked"]),
+                                  float(c["default"]), tuple(_bound(v) for v in c["range"]), bool(c["clamped"]))
+                   for c in doc["coordinates"])
+    if any(len(c.range) != 2 for c in coords):
+        raise ValueError("a coordinate's range is not two numbers")
+    sigma = doc.get("sigma_mm")
+    return (model, theta, cov, coords, np.asarray(doc["widening"], float), str(doc["covariance"]),
+            None if sigma is None else float(sigma))
+
+
+def _geometry_problem(doc: dict, model, theta, cov, coords, widening) -> str | None:
+    """What is inconsistent in a geometry file's entries (one line), or None."""
     if tuple(doc.get("parameters", ())) != model.parameter_names or theta.size != model.n_params \
             or widening.shape != theta.shape or not np.all(np.isfinite(widening) & (widening > 0)):
-        raise bad("its parameters do not match its model")
+        return "its parameters do not match its model"
     if not (np.isfinite(theta).all() and np.isfinite(cov).all()) or (cov.size and np.linalg.eigvalsh(
             0.5 * (cov + cov.T)).min() < -1e-9 * max(float(np.abs(cov).max()), 1e-300)):
-        raise bad("its parameters or covariance are not finite, or the covariance is not positive semi-definite")
+        return "its parameters or covariance are not finite, or the covariance is not positive semi-definite"
     known = {c.name for c in coords}
     missing = [n for s in model.segments for n in s.joint.coordinates if n not in known]
     if missing:
-        raise bad(f"coordinates {', '.join(missing[:3])} of its model are not in its coordinate list")
-    return FittedGeometry(model, theta, cov, kind, coords, sigma, str(doc.get("source_model", "")), widening)
+        return f"coordinates {', '.join(missing[:3])} of its model are not in its coordinate list"
+    return None
 
 
 # ----------------------------------------------------------------------------- the angles

@@ -448,23 +448,10 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     dict
         ``{"out", "trials", "fitted", "failed", "skipped", "seconds"}``.
     """
-    from skelid.simulate import BUILTIN_MODELS, resolve_model
-    from skelid.workflows import check_cost, check_input_file, make_estimator
+    from skelid import __version__
 
     out = Path(out)
-    if results_dir is not None:  # a file, link or device there is refused before any work
-        from skelid.io.atomic import check_target
-
-        check_target(Path(results_dir), folder=True)
-        results_dir = Path(results_dir).absolute()
-    parquet = _fmt(out) == "parquet"
-    require_dask(parquet)
-    if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
-        check_input_file(model_path, "model file")
-    model = resolve_model(model_path)
-    make_estimator(method, model, sigma)  # an unknown method or a bad sigma fails before any work
-    check_cost(model, method, 1, limits)  # a grid too large for any trial
-    from skelid import __version__
+    model, results_dir = _checked_batch(model_path, out, method, sigma, limits, results_dir)
 
     cols = columns(model)
     files = find_trials(pattern)
@@ -480,20 +467,53 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     if not todo:
         return summary
     t0 = time.perf_counter()
+    client, cluster = _client(workers, scheduler)
+    osim = str(Path(model_path).absolute()) if str(model_path).lower().endswith(".osim") else None
+    try:
+        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f], results_dir, command,
+                                 osim, key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
+        _collect(futures, {fut.key: f for fut, f in zip(futures, todo, strict=True)}, ident, rows, cols, out,
+                 summary, progress)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return summary
+
+
+def _checked_batch(model_path, out: Path, method: str, sigma, limits, results_dir):
+    """A batch's model and settings checked before any work: ``(model, absolute results folder or None)``."""
+    from skelid.simulate import BUILTIN_MODELS, resolve_model
+    from skelid.workflows import check_cost, check_input_file, make_estimator
+
+    if results_dir is not None:  # a file, link or device there is refused before any work
+        from skelid.io.atomic import check_target
+
+        check_target(Path(results_dir), folder=True)
+        results_dir = Path(results_dir).absolute()
+    require_dask(_fmt(out) == "parquet")
+    if str(model_path).lower().replace("_", "-") not in BUILTIN_MODELS:
+        check_input_file(model_path, "model file")
+    model = resolve_model(model_path)
+    make_estimator(method, model, sigma)  # an unknown method or a bad sigma fails before any work
+    check_cost(model, method, 1, limits)  # a grid too large for any trial
+    return model, results_dir
+
+
+def _collect(futures, path_of: dict, ident: dict, rows: dict, cols, out: Path, summary: dict, progress: bool):
+    """Each finished trial's row into ``rows`` and the table, written every :data:`WRITE_INTERVAL` s.
+
+    A worker that died or a task that could not run gives its trial an error row. Interrupted,
+    what finished is written, so that a re-run resumes from there.
+    """
     from distributed import as_completed
     from tqdm import tqdm
 
-    client, cluster = _client(workers, scheduler)
-    unsaved = False
+    bar = tqdm(total=len(futures), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,
+               disable=not progress or not sys.stderr.isatty())
+    last, unsaved = time.monotonic(), False
     try:
-        osim = str(Path(model_path).absolute()) if str(model_path).lower().endswith(".osim") else None
-        futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f], results_dir, command,
-                                 osim, key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
-        path_of = {fut.key: f for fut, f in zip(futures, todo, strict=True)}
-        bar = tqdm(total=len(todo), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,
-                   disable=not progress or not sys.stderr.isatty())
-        last = time.monotonic()
-        unsaved = False
         with bar:
             for fut in as_completed(futures):
                 try:
@@ -514,8 +534,3 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
     finally:
         if unsaved:  # interrupted: keep what finished, so that a re-run resumes from there
             write_table(out, list(rows.values()), cols)
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    summary["seconds"] = round(time.perf_counter() - t0, 3)
-    return summary

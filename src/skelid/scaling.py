@@ -469,30 +469,46 @@ def _per_axis_where_contradicted(st: _ScaleStage, model, jo, ys, weights):
             th1[k] += tests[p.target]["step"][p.axis]
     wild = _implausible_bodies(one_step, th1, flagged)
     switch = [b for b in flagged if tests[b]["identified"] and b not in wild]
-    notes = []
     if switch:
-        new = _mixed_scales(model, per_axis, switch)
-        fit = fit_scales_and_offsets(new, ys, _map_theta(jo.theta, model, new), jo.poses, st.sigma, weights=weights)
-        wild = _implausible_bodies(new, fit.theta, switch)
-        if wild:
-            switch = [b for b in switch if b not in wild]
-            new = _mixed_scales(model, per_axis, switch)
-            fit = (fit_scales_and_offsets(new, ys, _map_theta(jo.theta, model, new), jo.poses, st.sigma,
-                                          weights=weights) if switch else jo)
-        model, jo = (new, fit) if switch else (model, jo)
+        model, jo, switch = _refit_per_axis(st, model, per_axis, jo, ys, weights, switch)
+    for b, t in tests.items():
+        t["fitted_per_axis"] = b in switch
+    return model, jo, tests, _axes_notes(tests, switch, [b for b in flagged if b not in switch])
+
+
+def _refit_per_axis(st: _ScaleStage, model, per_axis, jo, ys, weights, switch):
+    """The joint fit with ``switch``'s bodies per axis, less those whose refit leaves the prior's 99 %.
+
+    Returns ``(model, JointOffsets, bodies fitted per axis)``.
+    """
+    def refit(bodies):
+        new = _mixed_scales(model, per_axis, bodies)
+        return new, fit_scales_and_offsets(new, ys, _map_theta(jo.theta, model, new), jo.poses, st.sigma,
+                                           weights=weights)
+
+    new, fit = refit(switch)
+    wild = _implausible_bodies(new, fit.theta, switch)
+    if wild:  # once more without them, and that refit stands
+        switch = [b for b in switch if b not in wild]
+        if not switch:
+            return model, jo, []
+        new, fit = refit(switch)
+    return new, fit, switch
+
+
+def _axes_notes(tests: dict, switch, kept) -> list[str]:
+    """The warnings of the one-factor test: the bodies fitted per axis, and those contradicted but kept."""
+    notes = []
     if switch:
         notes.append(f"one scale factor for {', '.join(switch)} is contradicted by the data (score test against "
                      "one factor per axis, p = " + ", ".join(f"{tests[b]['p']:.1e}" for b in switch)
                      + "): fitted with one factor per axis")
-    kept = [b for b in flagged if b not in switch]
     if kept:
         notes.append(f"one scale factor for {', '.join(kept)} is contradicted by the data (p = "
                      + ", ".join(f"{tests[b]['p']:.1e}" for b in kept) + "), but per axis these trials would not "
                      "determine its factors or would put one outside the prior's 99 %: more likely a misfit of the "
                      "model (marker places, joint centres, soft tissue) than of its proportions; one factor kept")
-    for b, t in tests.items():
-        t["fitted_per_axis"] = b in switch
-    return model, jo, tests, notes
+    return notes
 
 
 #: a factor fitted per axis is plausible within this many prior sd of the prior's median (its central 99 %)
@@ -865,13 +881,11 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     -------
     JointOffsets
     """
-    from skelid.estimators.fit.likelihood import projected_theta_jacobian
     from skelid.estimators.fit.pose import workspace
 
     ws = workspace(model)
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
-    prior_sd = np.array([p.prior.sd for p in model.parameters])
     theta = np.clip(np.asarray(theta0, float), lo, hi)
     poses = [np.asarray(q, float).copy() for q in poses0]
     ys = [np.asarray(y, float) for y in ys]
@@ -880,82 +894,110 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     n_pose = np.array([model.n_pose * np.isfinite(y).all(axis=-1).any(axis=-1).sum() for y in ys], float)
     sig = np.full(K, np.nan if sigma is None else float(sigma))
     floor = SIGMA_FLOOR * float(np.abs(model.nominal_geometry).max())
-    converged, n_done = False, 0
-    edf, dof = float(model.n_params), np.maximum(n_obs - n_pose - model.n_params, 1.0)
+    dof = np.maximum(n_obs - n_pose - model.n_params, 1.0)
 
     def terms(th, qs, pose_iter=JOINT_POSE_ITER):  # each trial's poses at ``th``, its information, score, RSS
-        out = []
-        for y, q in zip(ys, qs, strict=True):
-            q, r, Jq, Jt = _posed_terms(model, th, y, q, ws, weights, pose_iter)
-            Kp = projected_theta_jacobian(Jq, Jt)
-            out.append((q, np.einsum("tkp,tkq->pq", Kp, Kp), np.einsum("tkp,tk->p", Kp, r), float(np.sum(r**2))))
-        return out
+        return [_trial_terms(model, th, y, q, ws, weights, pose_iter) for y, q in zip(ys, qs, strict=True)]
 
-    now = terms(theta, poses)
+    def penalised(th, tt, w):  # the penalised cost at noise weights ``w``
+        return 0.5 * float(w @ np.array([t[3] for t in tt])) + _prior_cost(model, th)
+
+    theta, now, dof, n_done, converged = _iterate(model, terms, penalised, theta, terms(theta, poses), dof,
+                                                  None if sigma is None else sig, (n_obs, n_pose, floor), n_iter)
+    # the covariance at the final theta, every pose fitted to convergence; with the noise estimated,
+    # each marker's own level too (a sandwich): the fit weighs every marker alike, and where their levels
+    # differ its Laplace interval is wrong (1-10 mm per marker on OpenSim-generated walks: 0.5-0.8 of
+    # the actual spread)
+    final = [_trial_terms(model, theta, y, t[0], ws, weights, POSE_ITER, floor if sigma is None else None)
+             for y, t in zip(ys, now, strict=True)]
+    rss = np.array([t[3] for t in final])
+    if sigma is None:
+        sig = np.sqrt(np.maximum(rss / dof, floor**2))
+    _, hp = _prior_terms(model, theta)
+    info = tuple(t[1] / s_k**2 for t, s_k in zip(final, sig, strict=True))
+    scores = tuple(t[2] / s_k**2 for t, s_k in zip(final, sig, strict=True))
+    _, cov, edf, prior_only = _posterior(model, sum(info), hp)
+    cov_noise, marker_sd = None, None
+    if sigma is None:
+        J = sum(t[4] / s_k**4 for t, s_k in zip(final, sig, strict=True))
+        cov_noise = cov @ (J + np.diag(hp)) @ cov
+        cov_noise = 0.5 * (cov_noise + cov_noise.T)
+        marker_sd = np.sqrt(np.array([t[5] for t in final]))
+    return JointOffsets(theta, cov, [t[0] for t in final], sig, dof, edf, n_done, converged, prior_only, info,
+                        scores, cov_noise, marker_sd)
+
+
+def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_iter: int):
+    """The joint fit's Gauss-Newton iterations: ``(theta, terms, dof, iterations, converged)``.
+
+    ``terms(theta, poses)`` gives each trial's ``(poses, S, K^T r, RSS)``, ``penalised(theta, terms,
+    w)`` the penalised cost at noise weights ``w``; ``sig`` the known noise sd per trial or None
+    (estimated each iteration), ``counts`` ``(n_obs, n_pose, floor)``.
+    """
+    lo = np.array([p.prior.lower for p in model.parameters])
+    hi = np.array([p.prior.upper for p in model.parameters])
+    prior_sd = np.array([p.prior.sd for p in model.parameters])
+    tiny = JOINT_STEP_SD * np.where(np.isfinite(prior_sd), prior_sd, 1.0)
+    n_obs, n_pose, floor = counts
     for it in range(1, n_iter + 1):
-        n_done = it
         rss = np.array([t[3] for t in now])
-        if sigma is None:
-            sig = np.sqrt(np.maximum(rss / dof, floor**2))
-        w = 1.0 / sig**2
+        s = np.sqrt(np.maximum(rss / dof, floor**2)) if sig is None else sig
+        w = 1.0 / s**2
         gp, hp = _prior_terms(model, theta)
         info = sum(wk * t[1] for wk, t in zip(w, now, strict=True))
         _, _, edf, _ = _posterior(model, info, hp)
         score = sum(wk * t[2] for wk, t in zip(w, now, strict=True)) - gp
         step = _bounded_step(info, hp, score, theta, lo, hi)
         if float(score @ step) <= JOINT_DECREMENT:  # within 0.03 sd of the optimum
-            converged = True
-            break
+            return theta, now, dof, it, True
         dof = np.maximum(n_obs - n_pose - edf * n_obs / n_obs.sum(), 1.0)
-        # backtracking on the penalised cost at this iteration's noise levels: the full Gauss-Newton
-        # step overshoots where poses, offsets and scales trade (a body's few markers, each offset free)
-        cost = 0.5 * float(w @ rss) + _prior_cost(model, theta)
-        full = None
-        for _ in range(JOINT_HALVINGS):
-            trial = np.clip(theta + step, lo, hi)
-            new = terms(trial, [t[0] for t in now])
-            new_cost = 0.5 * float(w @ np.array([t[3] for t in new])) + _prior_cost(model, trial)
-            full = full or (trial, new, step, new_cost)
-            if new_cost <= cost + JOINT_TOL * abs(cost):
-                break
-            step = 0.5 * step
-        else:  # no shorter step lowers the cost at these noise levels either: the full one, and the noise
-            # levels follow it (a trial that fits exactly, a static one whose markers were placed on it,
-            # weighs a million times the others; at its weights every step away from it costs, and only
-            # the full step, with the levels re-estimated after it, leads on to the optimum)
-            trial, new, step, new_cost = full
-        theta, now = trial, new
-        small = np.all(np.abs(step) <= JOINT_STEP_SD * np.where(np.isfinite(prior_sd), prior_sd, 1.0))
-        if small or 0.0 <= cost - new_cost <= JOINT_TOL * max(abs(cost), 1e-300):
-            converged = True
-            break
-    # the covariance at the final theta, every pose fitted to convergence
-    final = []
-    for y, q in zip(ys, [t[0] for t in now], strict=True):
-        q, r, Jq, Jt = _posed_terms(model, theta, y, q, ws, weights, POSE_ITER)
-        Kp = projected_theta_jacobian(Jq, Jt)
-        final.append((q, r, Jq, Kp, np.isfinite(y).all(axis=-1)))
-    poses = [f[0] for f in final]
-    S = [np.einsum("tkp,tkq->pq", f[3], f[3]) for f in final]
-    rss = np.array([float(np.sum(f[1] ** 2)) for f in final])
-    if sigma is None:
-        sig = np.sqrt(np.maximum(rss / dof, floor**2))
-    _, hp = _prior_terms(model, theta)
-    info = tuple(S_k / s_k**2 for S_k, s_k in zip(S, sig, strict=True))
-    scores = tuple(np.einsum("tkp,tk->p", f[3], f[1]) / s_k**2 for f, s_k in zip(final, sig, strict=True))
-    _, cov, edf, prior_only = _posterior(model, sum(info), hp)
-    cov_noise, marker_sd = None, None
-    if sigma is None:  # each marker's own noise level in the interval (a sandwich): the fit weighs every
-        # marker alike, and where their levels differ its Laplace interval is wrong (1-10 mm per marker on
-        # OpenSim-generated walks: 0.5-0.8 of the actual spread)
-        var = [np.maximum(marker_noise_variances(f[2], f[1], f[4]), floor**2) for f in final]
-        J = sum(np.einsum("tkp,k,tkq->pq", f[3], np.repeat(v, f[1].shape[1] // v.size), f[3]) / s_k**4
-                for f, v, s_k in zip(final, var, sig, strict=True))
-        cov_noise = cov @ (J + np.diag(hp)) @ cov
-        cov_noise = 0.5 * (cov_noise + cov_noise.T)
-        marker_sd = np.sqrt(np.array(var))
-    return JointOffsets(theta, cov, poses, sig, dof, edf, n_done, converged, prior_only, info, scores,
-                        cov_noise, marker_sd)
+        cost = penalised(theta, now, w)
+        poses = [t[0] for t in now]
+        theta, now, step, new_cost = _backtrack(theta, step, lo, hi, cost, lambda th, q=poses: terms(th, q),
+                                                lambda th, tt, w=w: penalised(th, tt, w))
+        if np.all(np.abs(step) <= tiny) or 0.0 <= cost - new_cost <= JOINT_TOL * max(abs(cost), 1e-300):
+            return theta, now, dof, it, True
+    return theta, now, dof, n_iter, False
+
+
+def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) -> tuple:
+    """One trial's poses at ``theta`` and the sums the joint fit needs.
+
+    Returns ``(poses, S, K^T r, RSS)`` with ``S = sum_t K_perp^T K_perp``; with a noise ``floor``
+    (mm) also ``sum_t K_perp^T diag(s^2) K_perp`` with each marker's noise variance
+    ``s_m^2`` (:func:`marker_noise_variances`, at least ``floor^2``) and those variances ``(M,)``.
+    """
+    from skelid.estimators.fit.likelihood import projected_theta_jacobian
+
+    q, r, Jq, Jt = _posed_terms(model, theta, y, q, ws, weights, pose_iter)
+    Kp = projected_theta_jacobian(Jq, Jt)
+    out = (q, np.einsum("tkp,tkq->pq", Kp, Kp), np.einsum("tkp,tk->p", Kp, r), float(np.sum(r**2)))
+    if floor is None:
+        return out
+    var = np.maximum(marker_noise_variances(Jq, r, np.isfinite(y).all(axis=-1)), floor**2)
+    return out + (np.einsum("tkp,k,tkq->pq", Kp, np.repeat(var, r.shape[1] // var.size), Kp), var)
+
+
+def _backtrack(theta, step, lo, hi, cost, terms, penalised):
+    """The joint fit's step, halved until the penalised cost falls: ``(theta, terms, step, cost)``.
+
+    The full Gauss-Newton step overshoots where poses, offsets and scales trade (a body's few
+    markers, each offset free). Where no shorter step lowers the cost at these noise levels
+    either, the full one is taken and the noise levels follow it (a trial that fits exactly, a
+    static one whose markers were placed on it, weighs a million times the others; at its weights
+    every step away from it costs, and only the full step, with the levels re-estimated after it,
+    leads on to the optimum).
+    """
+    full = None
+    for _ in range(JOINT_HALVINGS):
+        trial = np.clip(theta + step, lo, hi)
+        new = terms(trial)
+        new_cost = penalised(trial, new)
+        full = full or (trial, new, step, new_cost)
+        if new_cost <= cost + JOINT_TOL * abs(cost):
+            return trial, new, step, new_cost
+        step = 0.5 * step
+    return full
 
 
 #: frames per block of the pose projection in :func:`marker_noise_variances` (bounded memory)
@@ -1383,7 +1425,7 @@ def _spread_prior(model: Model, body: str) -> Model:
 
 
 def _embedding(full: Model, sub: Model) -> np.ndarray:
-    """``(P_full, P_sub)``: ``full``'s parameters as a linear function of ``sub``'s (a body's axes from its one factor)."""
+    """``(P_full, P_sub)``: ``full``'s parameters as a linear function of ``sub``'s (a body's axes from one factor)."""
     col = {p.name: j for j, p in enumerate(sub.parameters)}
     one = {p.target: j for j, p in enumerate(sub.parameters) if p.kind == "scale" and p.axis is None}
     E = np.zeros((full.n_params, sub.n_params))
