@@ -373,16 +373,22 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     widen[:m3.n_params] = deflated_widening(jo, _prior_terms(model, jo.theta)[1], check_ratios(est, m3))
     # never wider than the prior: the data cannot leave a parameter less known than before them (a static
     # trial's checks' ratio, 70 on subject01 and 10^6 on an exactly fitted one, asked for far more)
-    prior_sd = 1.0 / np.sqrt(np.maximum(_prior_terms(model, jo.theta)[1], 1e-300))
-    widen = np.maximum(np.minimum(widen, prior_sd / np.maximum(bound, 1e-300)), 1.0)
-    # the interval with each marker's own noise level (the sandwich), widened by the checks
+    # the interval with each marker's own noise level (the sandwich), widened by the checks and by the
+    # fit's errors on data simulated from its own answer (whichever asks for more)
     base = jo.cov if jo.cov_noise is None else jo.cov_noise
+    bias, boot, boot_entry = bootstrap_check(model, jo, ys, base, st.sigma, weights, st.seed)
+    lo = np.array([p.prior.lower for p in model.parameters])
+    hi = np.array([p.prior.upper for p in model.parameters])
+    jo = replace(jo, theta=np.clip(jo.theta - bias, lo, hi))
+    prior_sd = 1.0 / np.sqrt(np.maximum(_prior_terms(model, jo.theta)[1], 1e-300))
+    widen = np.maximum(np.minimum(np.maximum(widen, boot), prior_sd / np.maximum(bound, 1e-300)), 1.0)
     jo = replace(jo, cov=base * np.outer(widen, widen) + art.cov + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
     ratio = _artefact_ratio(art, bound)
     out["artefact"] = _artefact_entry(art, ratio)
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio)]
+    out["bootstrap"] = boot_entry
     out["trial_placement"] = _placement_entry(placed, bound)
     if out["trial_placement"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_placement_warning(model, placed, bound, len(given))]
@@ -959,6 +965,90 @@ def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_ite
             return theta, now, dof, it, True
     return theta, now, dof, n_iter, False
 
+
+#: data sets simulated from the joint fit's own answer (:func:`bootstrap_check`)
+BOOTSTRAP_SETS = 12
+#: Gauss-Newton steps of each simulated frame's pose from the fitted one (the noise moves it little)
+BOOTSTRAP_POSE_ITER = 8
+
+
+def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights=None,
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The joint fit's bias and the widening its errors ask for, from data simulated from its answer.
+
+    :data:`BOOTSTRAP_SETS` data sets: every trial's markers where the MAP ``theta`` and poses
+    put them, plus independent noise with each marker's fitted level (``jo.marker_sd``; the
+    known ``sigma`` where given), missing where the data are. On each, every frame's pose is
+    fitted afresh (from the fitted one) and one Gauss-Newton step of ``theta`` is taken from
+    the MAP with the fit's information, ``d_b = (S/sigma^2 + Lambda)^-1 g_b`` (``g_b`` the
+    data's score with those poses; the prior's pull is the posterior's own). A linear fit would give ``E[d_b] = 0`` and
+    ``Cov(d_b) = cov``; the poses, fitted frame by frame from noisy markers, are not linear in
+    the noise, and ``mean(d_b)`` estimates the fit's bias (a marker of 10 mm noise among quiet
+    ones moved a thigh length by 1-2 sd of its interval, consistently, on OpenSim-generated
+    walks), which is taken off the estimate. Where the steps' variance, plus the variance the
+    correction adds (``1/B`` of it), exceeds what a linear fit gives them (``cov`` less the
+    prior's part, ``C Lambda C``) by the upper 10 % point of
+    chi-square(B-1)/(B-1), the sd is widened to cover it; where the same ratio pooled over the
+    scales (or the offsets) that the data determine exceeds its own 10 % point, all of them are.
+
+    Returns
+    -------
+    bias : (P,) float
+        To subtract from ``theta``.
+    widen : (P,) float
+        At least 1.
+    entry : dict
+        The result's ``bootstrap`` entry.
+    """
+    from scipy.stats import chi2
+
+    from skelid.estimators.fit.pose import workspace
+    from skelid.model.kinematics import marker_positions
+
+    rng = np.random.default_rng(seed)
+    ws = workspace(model)
+    _, hp = _prior_terms(model, jo.theta)
+    solve = _posterior_solver(sum(jo.info_trials), hp)[0]
+    B = BOOTSTRAP_SETS
+    steps = np.empty((B, model.n_params))
+    for b in range(B):
+        score = np.zeros(model.n_params)  # the data's part: the prior's pull is the posterior's, not a bias
+        for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
+            if jo.marker_sd is not None:
+                sd = jo.marker_sd[k] / (1.0 if weights is None else np.sqrt(np.maximum(weights, 1e-300)))
+            else:
+                sd = np.full(y.shape[1], float(sigma if sigma is not None else jo.sigma[k]))
+            x = marker_positions(model, jo.theta, q)
+            sim = np.where(np.isfinite(y), x + rng.normal(size=x.shape) * sd[None, :, None], np.nan)
+            g = _trial_terms(model, jo.theta, sim, q, ws, weights, BOOTSTRAP_POSE_ITER)[2]
+            score = score + g / jo.sigma[k] ** 2
+        steps[b] = solve(score)
+    # the steps' variance under a linear fit: the data's part of the interval, without the prior's
+    var = np.clip(np.diag(cov) - np.einsum("ip,p,ip->i", jo.cov, hp, jo.cov), 1e-300, None)
+    bias = steps.mean(axis=0)
+    ratio = steps.var(axis=0, ddof=1) * (1.0 + 1.0 / B) / var
+    widen = np.where(ratio > chi2.ppf(0.9, B - 1) / (B - 1), np.sqrt(ratio), 1.0)
+    prior_sd = 1.0 / np.sqrt(np.maximum(hp, 1e-300))
+    determined = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None)) <= AXES_IDENTIFIED * prior_sd
+    kinds = np.array([p.kind for p in model.parameters])
+    pooled = {}
+    for kind in np.unique(kinds):
+        g = (kinds == kind) & determined
+        if g.any():
+            df = (B - 1) * int(g.sum())
+            pooled[str(kind)] = float(np.mean(ratio[g]))
+            if pooled[str(kind)] > chi2.ppf(0.9, df) / df:
+                widen[g] = np.maximum(widen[g], np.sqrt(pooled[str(kind)]))
+    z = bias / np.sqrt(var)
+    k = int(np.argmax(np.abs(z))) if z.size else 0
+    entry = {"sets": B, "largest_bias_sd": float(z[k]) if z.size else 0.0,
+             "largest_bias_parameter": model.parameter_names[k] if z.size else None,
+             "pooled_sd_ratio": {kk: float(np.sqrt(v)) for kk, v in pooled.items()},
+             "widened": [n for n, w in zip(model.parameter_names, widen, strict=True) if w > 1.0],
+             "method": "data simulated from the fit with each marker's noise level; one Gauss-Newton step "
+                       "from the fit on each: their mean is the bias taken off, their spread widens the sd "
+                       "where it exceeds it"}
+    return bias, widen, entry
 
 def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) -> tuple:
     """One trial's poses at ``theta`` and the sums the joint fit needs.
