@@ -313,3 +313,19 @@ def test_with_one_noise_level_the_sandwich_is_the_laplace_interval(leg):  # noqa
     jo = _joint_refinement(model, model.theta_nominal.copy(), [walk], None, 0)
     np.testing.assert_allclose(np.sqrt(np.diag(jo.cov_noise)), np.sqrt(np.diag(jo.cov)), rtol=0.1)
     np.testing.assert_allclose(jo.marker_sd[0], 2.0, rtol=0.1)
+
+
+def test_data_simulated_from_the_fit_spread_as_its_interval_says_where_the_fit_is_linear(leg):  # noqa: F811
+    """Small i.i.d. noise: the simulated data's steps from the MAP spread as the data's part of the
+    interval (the prior's part, C Lambda C, left out: with it the ratio was 0.7-0.8), show no bias
+    and widen nothing as a class."""
+    from skelid.scaling import bootstrap_check
+
+    model, walk, _ = _noisy_walk(leg, [0.5])
+    jo = _joint_refinement(model, model.theta_nominal.copy(), [walk], None, 0)
+    bias, widen, entry = bootstrap_check(model, jo, [walk.positions], jo.cov_noise, seed=1)
+    sd = np.sqrt(np.diag(jo.cov_noise))
+    assert np.all(np.abs(bias) < 1.0 * sd)
+    for kind, r in entry["pooled_sd_ratio"].items():
+        assert 0.8 < r < 1.25, (kind, r)
+    assert np.mean(widen > 1.0) < 0.3

@@ -377,6 +377,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     # fit's errors on data simulated from its own answer (whichever asks for more)
     base = jo.cov if jo.cov_noise is None else jo.cov_noise
     bias, boot, boot_entry = bootstrap_check(model, jo, ys, base, st.sigma, weights, st.seed)
+    base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
     jo = replace(jo, theta=np.clip(jo.theta - bias, lo, hi))
@@ -970,6 +971,9 @@ def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_ite
 BOOTSTRAP_SETS = 12
 #: Gauss-Newton steps of each simulated frame's pose from the fitted one (the noise moves it little)
 BOOTSTRAP_POSE_ITER = 8
+#: a class of parameters is widened together only where its steps spread at least this much wider
+#: than the interval says (the same effect size as the misfit test's half sd, in quadrature)
+BOOTSTRAP_POOLED_EFFECT = 1.1
 
 
 def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights=None,
@@ -986,10 +990,12 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
     the noise, and ``mean(d_b)`` estimates the fit's bias (a marker of 10 mm noise among quiet
     ones moved a thigh length by 1-2 sd of its interval, consistently, on OpenSim-generated
     walks), which is taken off the estimate. Where the steps' variance, plus the variance the
-    correction adds (``1/B`` of it), exceeds what a linear fit gives them (``cov`` less the
+    exceeds what a linear fit gives them (``cov`` less the
     prior's part, ``C Lambda C``) by the upper 10 % point of
     chi-square(B-1)/(B-1), the sd is widened to cover it; where the same ratio pooled over the
-    scales (or the offsets) that the data determine exceeds its own 10 % point, all of them are.
+    scales (or the offsets) that the data determine exceeds its own 10 % point and
+    :data:`BOOTSTRAP_POOLED_EFFECT` squared, all of them are. The correction's own noise, ``1/B``
+    of the variance, is added to every parameter by the caller.
 
     Returns
     -------
@@ -1026,7 +1032,7 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
     # the steps' variance under a linear fit: the data's part of the interval, without the prior's
     var = np.clip(np.diag(cov) - np.einsum("ip,p,ip->i", jo.cov, hp, jo.cov), 1e-300, None)
     bias = steps.mean(axis=0)
-    ratio = steps.var(axis=0, ddof=1) * (1.0 + 1.0 / B) / var
+    ratio = steps.var(axis=0, ddof=1) / var
     widen = np.where(ratio > chi2.ppf(0.9, B - 1) / (B - 1), np.sqrt(ratio), 1.0)
     prior_sd = 1.0 / np.sqrt(np.maximum(hp, 1e-300))
     determined = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None)) <= AXES_IDENTIFIED * prior_sd
@@ -1037,11 +1043,11 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
         if g.any():
             df = (B - 1) * int(g.sum())
             pooled[str(kind)] = float(np.mean(ratio[g]))
-            if pooled[str(kind)] > chi2.ppf(0.9, df) / df:
+            if pooled[str(kind)] > max(chi2.ppf(0.9, df) / df, BOOTSTRAP_POOLED_EFFECT**2):
                 widen[g] = np.maximum(widen[g], np.sqrt(pooled[str(kind)]))
     z = bias / np.sqrt(var)
     k = int(np.argmax(np.abs(z))) if z.size else 0
-    entry = {"sets": B, "largest_bias_sd": float(z[k]) if z.size else 0.0,
+    entry = {"sets": B, "variance_added_by_correction": 1.0 / B, "largest_bias_sd": float(z[k]) if z.size else 0.0,
              "largest_bias_parameter": model.parameter_names[k] if z.size else None,
              "pooled_sd_ratio": {kk: float(np.sqrt(v)) for kk, v in pooled.items()},
              "widened": [n for n, w in zip(model.parameter_names, widen, strict=True) if w > 1.0],
