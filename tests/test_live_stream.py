@@ -258,7 +258,8 @@ SUBJECT01 = Path(__file__).resolve().parents[2] / "shared" / "data" / "opensim-s
 @pytest.mark.skipif(not SUBJECT01.is_dir(), reason="../shared/data/opensim-subject01 is not here")
 def test_a_real_walking_trial_replayed_to_an_opensim_model(tmp_path, capsys):
     """walk_free_01.trc (41 markers, 73 frames, mm) against the scaled subject01 model (39 markers): the model
-    keeps the markers the stream carries, every frame is used, and the scales land near the model's own (1)."""
+    keeps the markers the stream carries, every frame is used, the scales land near the model's own (1), and the
+    markers the model does not follow (residuals of 50-78 mm against a noise sd of 14 mm) are named."""
     pytest.importorskip("pylsl")
     from skelid.io import read_markers
 
@@ -272,7 +273,8 @@ def test_a_real_walking_trial_replayed_to_an_opensim_model(tmp_path, capsys):
     assert code == 2 and "sent nothing for 1.5 s after 73 frames" in err  # the trial ends: one line, kept
     msgs = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(msgs) == 73 and msgs[-1]["units"] == "mm"
-    assert sum(m["healthy"] for m in msgs) >= 70, [m["health"] for m in msgs if not m["healthy"]]
+    assert not any("not used" in m["health"] for m in msgs), [m["health"] for m in msgs if not m["healthy"]]
+    assert all("markers that do not follow the model" in m["health"] for m in msgs[10:])
     scales = {p["name"]: p for p in msgs[-1]["parameters"]}
     assert scales and all(p["unit"] == "1" and 0.9 < p["mean"] < 1.1 for p in scales.values())
 

@@ -93,8 +93,11 @@ is that of the most probable grid point.
 
 **Health.** After the pose fit, a marker more than ``outlier_sd`` noise
 standard deviations from the model (a swapped label, a ghost marker) is left
-out and the frame refitted without it; a frame with too few markers to fix
-the pose leaves the estimate as it was. Under the motion model a frame whose
+out and the frame refitted without it (in the grid form, at the most probable
+grid point, the grid updated again without it); a frame with too few markers
+to fix the pose leaves the estimate as it was (in the grid form also one whose
+markers leave the pose unfixed at some grid point: its log determinant,
+``-inf`` there, would leave every later posterior NaN). Under the motion model a frame whose
 freely fitted pose jumps away from the prediction (:func:`pose_jump`; a
 swapped label where the markers barely fix the pose, so that the pose fit
 absorbs it and no marker stands out) is not used either; the check allows
@@ -112,17 +115,33 @@ frame's residual sum of squares drops to a quarter or less (two markers close
 together fit about as well either way round) and the pose no longer jumps is
 named (``labels A and B look swapped``).
 
-A frame that repeats the last one exactly (a frozen stream) or whose markers
-all lie at one point (a zeroed stream) is not used: it would count the same
-information twice, or none. Once the noise is known, a frame used whole has
-its residual sum of squares checked against ``sigma^2 chi^2_{nD - Q}``
-(``p = 1e-4``), and with a stated ``sigma`` every frame's so far against it:
-a misfit beyond what the noise explains (a wrong model, wrong units, a motion
-model too slow for the movement that has pulled theta off) is reported, not
-hidden behind ``"ok"``. An estimated noise level grows to cover a steady
-misfit, so only a stated one can show a small one; an estimated noise sd over
-10 % of the model's size (:data:`_LOOSE`; a stream in the wrong unit) is
-reported either way.
+The checks below apply to both forms (:mod:`skelid.live_health` states
+their statistics). A frame that repeats the last one exactly (a frozen
+stream), or whose markers all lie within 5 % of the model's size of one point
+(a zeroed stream; no pose of a model puts the markers that fix it that close),
+is not used: it would count the same information twice, or none. Before any
+pose is fitted, each marker's position is compared with its own track (the
+constant-velocity prediction from its last two positions, against a robust
+scale of its recent innovations): two markers that both leave their tracks
+(``chi^2_D``, ``p = 1e-6``) and each land on the other's are named as swapped
+and the frame is not used, from the first swapped frame on and before the
+noise level or a motion model exists, unless the model clearly fits the
+labels as they came and not swapped back (the tracks may have followed a swap
+that began where they could not see it).
+
+Once the noise is known, a frame used whole has its residual sum of squares
+checked against ``sigma^2`` on ``nD - Q`` degrees of freedom (``p = 1e-7``;
+an ``F`` quantile against an estimated noise level), and the last 50 such
+frames as a whole and marker by marker (:class:`~skelid.live_health.MisfitWindow`):
+the window's residual variance beyond 4 times a stated ``sigma^2`` or that of
+the frames before the window, or one marker's mean squared residual beyond
+``4 D sigma^2`` (both at ``p = 1e-6``), is a misfit the noise does not
+explain (a wrong model, wrong units, a marker placed elsewhere or loose, a
+motion model too slow for the movement that has pulled theta off), reported,
+not hidden behind ``"ok"``. An estimated noise level grows to cover a misfit
+of every marker alike, so only a stated one can show that; an estimated noise
+sd over 10 % of the model's size (:data:`_LOOSE`; a stream in the wrong unit)
+is reported either way.
 
 Examples
 --------
@@ -163,6 +182,7 @@ from skelid.estimators.fit.joint import _gain, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.estimators.online import _live_kernel
 from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
+from skelid.live_health import EFFECT_MARKER, MarkerTracks, MisfitWindow, ratio_limit
 from skelid.model.description import Model
 from skelid.model.kinematics import (
     Workspace,
@@ -195,6 +215,15 @@ _LOOSE = 0.10
 _DECISIVE = 0.25
 #: the allowance is recomputed every this many frames checked (every frame for the first ones)
 _ALLOW_EVERY = 5
+#: markers within this fraction of the model's size of one point coincide: a zeroed or stuck stream. Any set of
+#: markers that can fix a pose spans at least 0.126 of the model's size (the pendulum; 0.17-0.76 for the other
+#: example models) through the poses simulate(hard_poses=True) visits; case A's chain folds to fit three markers
+#: within a few millimetres of one point, which then passed for data (L2 "identified", health "ok")
+_COINCIDE = 0.05
+#: tail probability of one frame's residual sum of squares beyond which the frame misfits as a whole: per frame
+#: a test at 1e-4 fired on 1-3 of 10-20 clean simulated sessions of 300 frames (the pose fit's tail is
+#: a little heavier than chi-square's); a lasting misfit too small for this is the window's (skelid.live_health)
+_FRAME_P = 1e-7
 
 __all__ = ["LiveEstimate", "Session", "NOISE_FLOOR", "noise_floor", "GaussianState",
            "absorb", "drop_poses", "solve_mean", "theta_cov",
@@ -714,8 +743,8 @@ class LiveEstimate:
     healthy : bool
         False if this frame could not be used fully (markers missing, markers
         left out as outliers, labels swapped, too few markers to fix the pose,
-        a frozen or zeroed stream, a frame refused) or its residuals exceed
-        what the noise explains.
+        a frozen or zeroed stream, a frame refused) or its residuals, or those
+        of the recent frames, exceed what the noise explains (module notes).
     health : str
         ``"ok"`` or what went wrong.
     rejected : tuple of str
@@ -909,7 +938,10 @@ class Session:
     sigma : float, optional
         Marker noise (model units); estimated from the residuals if not given.
         Either way the Gaussian form holds it at least at :func:`noise_floor`
-        (``1e-5`` of the model's size), so a noise-free stream works.
+        (``1e-5`` of the model's size), so a noise-free stream works. Stated, it is
+        also what the recent residuals are checked against (module notes): the
+        health then shows a misfit of every marker alike, which an estimated
+        noise level would grow to cover.
     outlier_sd : float
         Residual, in noise standard deviations, beyond which a marker is left out of a frame.
     cutoff : float, (Q,) float, 'auto' or None
@@ -986,6 +1018,12 @@ class Session:
         self._state = self._grid.init_state() if self.method == "grid" else empty_state(model, self._prior)
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
         self._sigma_floor = noise_floor(model)
+        self._size = _model_size(model)
+        self._marker_cap = self._D * ratio_limit(_FRAME_P, self._D)  # one marker's r^2 / sigma^2 at 1 - _FRAME_P
+        self._coincide = max(_COINCIDE * self._size, math.sqrt(self._sigma_floor))
+        self._tracks = MarkerTracks(self._M, self._D, self._sigma_floor)  # each marker's path: swapped labels
+        self._claim = None  # the evidence on the tracks' present claim of a swap (see _labels_fit)
+        self._window = MisfitWindow(self._M, self._D, model.n_pose, self._sigma_floor)  # a lasting misfit
         compiled = self._linearise.tables is not None and self._pose_fit.tables is not None
         self._step = _Step(self) if compiled else None
 
@@ -1059,7 +1097,7 @@ class Session:
                                 "send each marker once, or map the stream's names with labels=...")
             seen.add(i)
             v = _coordinates(xyz, f"marker {name!r}").ravel()
-            if v.size < D:
+            if not D <= v.size <= 3:
                 raise DataError(f"marker {name!r} has {v.size} coordinates, the model needs {D}",
                                 "send x, y (and z) for every marker")
             y[i] = v[:D]
@@ -1084,7 +1122,7 @@ class Session:
         a = _coordinates(frame, "an array frame")
         order = self._order
         n_rows = M if order is None else order.size
-        if a.ndim != 2 or a.shape[0] != n_rows or a.shape[1] < D:
+        if a.ndim != 2 or a.shape[0] != n_rows or not D <= a.shape[1] <= 3:
             how = ("one row per declared label" if order is not None
                    else f"one row per model marker ({M}), or pass labels=... naming the rows")
             raise DataError(f"an array frame must be ({n_rows}, {D}) or ({n_rows}, 3); got {a.shape}",
@@ -1113,15 +1151,19 @@ class Session:
         Raises
         ------
         DataError
-            A frame of the wrong shape or not of numbers (:meth:`_frame_array`); the session is left as it
-            was. A frame that is well formed but cannot be used (it repeats the last one, its markers all
-            coincide, too few markers) is not an error: ``healthy`` is False and ``health`` says why.
+            A frame of the wrong shape or not of real numbers (text, complex numbers, true/false values;
+            :meth:`_frame_array`); the session is left as it was. A frame that is well formed but cannot be
+            used (it repeats the last one, its markers all coincide, labels swapped, too few markers) is not
+            an error: ``healthy`` is False and ``health`` says why.
         """
         y = self._frame_array(frame)
         self._frame += 1
         problem = self._input_problem(y)
         if problem is not None:
+            self._tracks.reset()
             self.estimate = self._unused(y, problem)
+        elif pairs := self._swaps(y):
+            self.estimate = self._swapped(y, pairs)
         elif self.method == "grid":
             self.estimate = self._push_grid(y)
         else:
@@ -1162,7 +1204,9 @@ class Session:
 
     def _input_problem(self, y) -> str | None:
         """Why a well-formed frame cannot be used at all: it repeats the last frame exactly (a frozen
-        stream), or its markers all lie at one point (a stream of zeros). None when it can be used."""
+        stream), or the markers that would fix its pose all lie at one point (a stream of zeros; within
+        :data:`_COINCIDE` of the model's size, closer than any pose of a model puts them). None when it can be
+        used."""
         present = np.isfinite(y).all(axis=-1)
         last, self._last_y = self._last_y, y
         if not present.any():
@@ -1172,19 +1216,102 @@ class Session:
             return (f"frame repeats the last one exactly ({self._n_repeat + 1} in a row: a frozen stream?); "
                     "frame not used")
         self._n_repeat = 0
-        if present.sum() > 1 and float(np.ptp(y[present], axis=0).max()) <= self._sigma_floor ** 0.5:
-            return "every marker at one point (a zeroed stream?); frame not used"
+        if present.sum() >= self._min_present and float(np.ptp(y[present], axis=0).max()) <= self._coincide:
+            return (f"every marker at one point (all within {self._coincide:.3g} {self.model.units}: a zeroed "
+                    "stream?); frame not used")
         return None
 
-    def _unused(self, y, problem: str, count: bool = True) -> LiveEstimate:
+    def _unused(self, y, problem: str, count: bool = True, rejected: tuple = ()) -> LiveEstimate:
         """The estimate after a frame whose data are not used: the state as it was, ``problem`` in health."""
         problems = _missing(y) + [problem]
         if self.method == "grid":
-            return self._grid_estimate(None, problems)
+            return self._grid_estimate(None, problems, rejected)
         st = self._state
         if count:
             self._not_used(st, np.full_like(y, np.nan), self._current_sigma2())
-        return self._gaussian_estimate(None, problems, ())
+        return self._gaussian_estimate(None, problems, rejected)
+
+    def _swaps(self, y) -> list[tuple[int, int]]:
+        """Pairs of markers (model indices) whose labels look swapped against the markers' own tracks
+        (:class:`~skelid.live_health.MarkerTracks`), unless the model fits the labels as they came and not
+        swapped back (:meth:`_labels_fit`: the tracks' history may itself hold a swap that began where no
+        track could see it, and the tracks would call its end a swap)."""
+        pairs = self._tracks.check(y)
+        if not pairs:
+            self._claim = None
+        elif self._labels_fit(y, pairs):
+            self._tracks.amend(pairs)  # the history keeps the labels as they came
+            self._claim = None
+            return []
+        return pairs
+
+    def _labels_fit(self, y, pairs) -> bool:
+        """Whether the frames of the tracks' present claim (``pairs`` swapped in ``y`` and the frames before
+        it that the same claim covered) fit the model as labelled, their pose fits' residual sum of squares
+        within the ``1 - 1e-4`` chi-square quantile of the noise on their degrees of freedom, while with
+        ``pairs`` swapped back they do not.
+
+        The evidence adds up over the claim's frames, so that a model whose frames tell the labellings
+        apart only weakly (case A's have one degree of freedom each) decides after a few. Only asked when
+        the tracks see a swap; False while the noise level is not known (the tracks are then trusted).
+        """
+        ref = self._reference()
+        n = int(np.isfinite(y).all(axis=-1).sum())
+        dof = n * self._D - self.model.n_pose
+        if ref is None or dof <= 0:
+            self._claim = None
+            return False
+        theta, q0, s2 = ref
+        key = tuple(pairs)
+        claim = self._claim if self._claim is not None and self._claim[0] == key else (key, q0, q0, 0.0, 0.0, 0)
+        back = y.copy()
+        for i, j in pairs:
+            back[[i, j]] = y[[j, i]]
+        q_as, q_back = self._pose_fit(theta, y, claim[1]), self._pose_fit(theta, back, claim[2])
+        rss_as = claim[3] + float(np.nansum((y - self._linearise(theta, q_as)[0]) ** 2))
+        rss_back = claim[4] + float(np.nansum((back - self._linearise(theta, q_back)[0]) ** 2))
+        dof += claim[5]
+        self._claim = (key, q_as, q_back, rss_as, rss_back, dof)
+        limit = s2 * _chi2_limit(dof)
+        return rss_as <= limit < rss_back
+
+    def _grid_noise(self) -> float | None:
+        """The grid form's noise variance once it is known (stated, or on :data:`_KNOWN_DOF` degrees of
+        freedom), else None."""
+        st = self._state
+        if st.pose is None or (self.sigma is None and st.n_obs - self.model.n_pose * st.n_used
+                               - self.model.n_params < _KNOWN_DOF):
+            return None
+        s2 = self._grid_sigma() ** 2
+        return s2 if np.isfinite(s2) else None
+
+    def _reference(self):
+        """``(theta, pose, sigma^2)`` to fit a frame at once the noise level is known (None before)."""
+        if self.method == "grid":
+            s2 = self._grid_noise()
+            if s2 is None:
+                return None
+            st = self._state
+            k = self._grid_map(st)
+            return self._grid._points()[1][k], st.pose[k], s2
+        st = self._state
+        if not st.poses.shape[0] or not self._noise_known(st):
+            return None
+        return st.mean, self._good if self._good is not None else self._predict(st), self._current_sigma2()
+
+    def _swapped(self, y, pairs) -> LiveEstimate:
+        """The estimate after a frame whose labels look swapped: the frame is not used, the pairs named."""
+        names = self.model.marker_names
+        line = "; ".join(f"labels {names[i]} and {names[j]} look swapped (each marker jumped onto the "
+                         "other's track)" for i, j in pairs) + "; frame not used"
+        rejected = tuple(names[k] for pair in pairs for k in pair)
+        if self.method == "grid":
+            return self._unused(y, line, rejected=rejected)
+        problems = _missing(y) + [line]
+        blank = y.copy()
+        blank[[k for pair in pairs for k in pair]] = np.nan
+        self._not_used(self._state, blank, self._current_sigma2())
+        return self._gaussian_estimate(None, problems, rejected)
 
     def _current_sigma2(self) -> float:
         st = self._state
@@ -1254,9 +1381,11 @@ class Session:
         theta = st.mean
         sc = self._screened_pose(theta, y, self._first_pose(theta, y, st), s2, present, n_present)
         rejected = tuple(sc.rejected)
+        bad = [self.model.marker_names.index(n) for n in rejected]
         if sc.too_few:
             problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
                             "few markers remain: frame not used")
+            self._tracks.amend(lost=bad)
             self._not_used(st, sc.y, s2)
             return self._gaussian_estimate(sc.resid, problems, rejected)
         if rejected:
@@ -1265,8 +1394,8 @@ class Session:
             # follows the motion model alone
             problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
                             "(swapped or wrong label?); frame not used")
-            bad = [self.model.marker_names.index(n) for n in rejected]
             pair = self._swapped_pair(theta, y, sc.q, s2, _worst_first(sc.resid, bad))
+            self._amend_tracks(pair, bad)
             if pair:
                 problems.insert(len(problems) - 1, _swap_line(pair))
             if self._motion:
@@ -1280,6 +1409,7 @@ class Session:
                 pair = self._swapped_pair(theta, y, sc.q, s2, _worst_first(sc.resid, []), st)
                 if pair:
                     problems.insert(len(problems) - 1, _swap_line(pair))
+                    self._amend_tracks(pair, ())
                 self._not_used(st, sc.y, s2, jumped=True)
                 return self._gaussian_estimate(sc.resid, problems, rejected)
             st = drop_poses(st)  # the prediction ran on through frames without data: a new chain from this frame
@@ -1291,6 +1421,13 @@ class Session:
         if self._remember(sc.y, q, True):
             self._relinearise(st.mean)
         return self._gaussian_estimate(sc.resid, problems, rejected, used=not rejected)
+
+    def _amend_tracks(self, pair, lost) -> None:
+        """Tell the markers' tracks what the model found in the frame: a swapped ``pair`` of names (the tracks
+        follow the markers, not the labels), markers ``lost`` (indices) left out as outliers."""
+        index = self.model.marker_names.index
+        pairs = [(index(pair[0]), index(pair[1]))] if pair else []
+        self._tracks.amend(pairs, [k for k in lost if not any(k in p for p in pairs)])
 
     def _first_pose(self, theta, y, st: GaussianState) -> np.ndarray:
         """The frame's pose before screening: random starts for the first frame, else from the prediction."""
@@ -1437,42 +1574,80 @@ class Session:
         s2 = _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
                        self._sigma_floor)
         if used and resid is not None:
-            problems = problems + self._misfit(st, resid, s2)
+            problems = problems + self._misfit(resid, s2, st.n_obs - self.model.n_pose * st.n_used
+                                               - self.model.n_params)
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
                             self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges)
 
-    def _misfit(self, st: GaussianState, resid, s2: float) -> list[str]:
-        """Whether the residuals exceed what the noise explains (once the noise is known).
+    def _misfit(self, resid, s2: float, dof_noise: int) -> list[str]:
+        """What of a frame used whole and of the recent frames exceeds what the noise explains.
 
-        Two chi-square checks at ``p = 1e-4``: this frame's residual sum of squares against ``s2`` on its
-        ``n D - Q`` degrees of freedom (a frame that misfits as a whole, with no one marker beyond the
-        screen), a noise level over :data:`_LOOSE` of the model's size (no marker system is that noisy: the
-        stream's units or the model are wrong), and, where ``sigma`` was stated, every frame's so far against it
-        on the session's
-        degrees of freedom (a wrong model, wrong units or a noise level stated too low: an estimated noise
-        level would grow to cover the misfit, so this check needs a stated one).
+        ``resid (M,)`` is the frame's residual distances (its pose fitted freely), ``s2`` the noise variance
+        (stated, or estimated on ``dof_noise`` degrees of freedom).
+        The frame joins the misfit window (:class:`~skelid.live_health.MisfitWindow`); once the noise is
+        known (stated, or :data:`_KNOWN_DOF` degrees of freedom) four checks:
+
+        - the frame: its residual sum of squares against ``s2`` on its ``n D - Q`` degrees of freedom, beyond
+          the ``1 - 1e-7`` quantile (:data:`_FRAME_P`; ``chi^2`` for a stated noise level, ``F`` against
+          an estimated one): a frame that misfits as a whole, no one marker beyond the screen;
+        - the window: the last 50 frames' residual variance against the stated noise level, or against that of
+          the frames before them, beyond the ``1 - 1e-6`` quantile and :data:`~skelid.live_health.EFFECT_WINDOW`
+          (4) times the noise variance (a misfit that began, a stated noise level too low);
+        - each marker over the window: its mean squared residual distance beyond
+          :data:`~skelid.live_health.EFFECT_MARKER` ``D s^2`` (4) and the quantile (a marker that does not
+          follow the model while the rest do: placed elsewhere, loose);
+        - a noise sd over :data:`_LOOSE` of the model's size (no marker system is that noisy: the stream's
+          units or the model are wrong).
+
+        An estimated noise level grows to cover a misfit of every marker alike; only a stated one can show
+        that.
         """
-        if not self._noise_known(st):
+        r2 = resid * resid
+        seen = r2 == r2  # not NaN
+        n = int(np.count_nonzero(seen))
+        if n < self._M:
+            r2 = np.where(seen, r2, 0.0)
+        rss = float(r2.sum())
+        stated = self.sigma is not None
+        if not stated and dof_noise < _KNOWN_DOF:
+            self._window.add(r2, seen, rss, n)
             return []
+        units = self.model.units
         out = []
-        n = int(np.isfinite(resid).sum())
         dof = n * self._D - self.model.n_pose
-        rss = float(np.nansum(np.square(resid)))
-        if dof > 0 and rss > s2 * _chi2_limit(dof):
-            out.append(f"this frame's residuals (rms {math.sqrt(rss / (n * self._D)):.3g} {self.model.units}) "
+        frame_cap = s2 * dof * ratio_limit(_FRAME_P, dof, None if stated else dof_noise) if dof > 0 else math.inf
+        if rss > frame_cap:
+            out.append(f"this frame's residuals (rms {math.sqrt(rss / (n * self._D)):.3g} {units}) "
                        f"exceed what the noise (sd {math.sqrt(s2):.3g}) explains: wrong model, units or labels?")
-        size = _model_size(self.model)
+        # the window takes each frame, and each marker in it, at most at its own bound: a few frames already
+        # reported (a swap the tracks missed and the model took in) would otherwise fill it for 50 frames
+        self._window.add(np.minimum(r2, s2 * self._marker_cap), seen, min(rss, frame_cap), n)
+        mis = self._window.check(s2, None if stated else dof_noise)
+        if mis is not None:
+            out += self._window_lines(mis, s2, stated)
+        size = self._size
         if s2 > (_LOOSE * size) ** 2:
-            out.append(f"noise sd {math.sqrt(s2):.3g} {self.model.units} is over {_LOOSE:.0%} of the model's size "
-                       f"({size:.3g} {self.model.units}): wrong units, wrong model or markers that do not follow it?")
-        if self.sigma is not None:
-            dof = st.n_obs - self.model.n_pose * st.n_used - self.model.n_params
-            given = max(float(self.sigma) ** 2, self._sigma_floor)
-            if dof > 0 and st.rss > given * _chi2_limit(dof):
-                out.append(f"residual sd {math.sqrt(st.rss / dof):.3g} {self.model.units} exceeds the stated "
-                           f"noise sd {math.sqrt(given):.3g}: wrong model, units or noise level?")
+            out.append(f"noise sd {math.sqrt(s2):.3g} {units} is over {_LOOSE:.0%} of the model's size "
+                       f"({size:.3g} {units}): wrong units, wrong model or markers that do not follow it?")
+        return out
+
+    def _window_lines(self, mis, s2: float, stated: bool) -> list[str]:
+        """The problem lines of a misfit window's finding (:class:`~skelid.live_health.Misfit`)."""
+        units, names = self.model.units, self.model.marker_names
+        out = []
+        if mis.sd is not None:
+            against = (f"stated noise sd {mis.noise_sd:.3g}: wrong model, units or noise level?" if stated else
+                       f"{mis.noise_sd:.3g} of the frames before: the markers or the movement changed (a marker "
+                       "slipped, a label changed?)")
+            out.append(f"residual sd {mis.sd:.3g} {units} over the last {mis.n_frames} frames exceeds the {against}")
+        if mis.markers.size:
+            shown = ", ".join(f"{names[k]} {v:.3g}" for k, v in zip(mis.markers[:3], mis.marker_rms[:3], strict=True))
+            more = f" and {mis.markers.size - 3} more" if mis.markers.size > 3 else ""
+            out.append(f"markers that do not follow the model over the last {mis.n_frames} frames (rms residual "
+                       f"{shown}{more} {units}, beyond the {math.sqrt(EFFECT_MARKER * self._D * s2):.3g} that the "
+                       f"noise sd {math.sqrt(s2):.3g} allows): placed elsewhere, loose, or mislabelled?")
         return out
 
     def _swapped_pair(self, theta, y, q, s2: float, candidates, st: GaussianState | None = None):
@@ -1507,31 +1682,86 @@ class Session:
         return None
 
     def _push_grid(self, y) -> LiveEstimate:
+        """One frame of the grid form: the grid filter's update, with the markers beyond ``outlier_sd`` noise
+        sds of the most probable grid point left out (worst first, at most three, each time updating again
+        from the state before the frame) once the noise level is known."""
         n_present = int((~np.isnan(y).any(axis=-1)).sum())
         problems = [] if n_present == self._M else [f"{self._M - n_present} marker(s) missing"]
-        usable = n_present >= self._min_present
-        if not usable:
+        if n_present < self._min_present:
             problems.append("too few markers to fix the pose: frame not used")
-        self._state = self._grid.update(self._state, y)
-        return self._grid_estimate(y if usable else None, problems)
+            self._state = self._grid.update(self._state, y)
+            return self._grid_estimate(None, problems)
+        before = self._state
+        s2 = self._grid_noise()
+        limit = math.inf if s2 is None else self.outlier_sd * math.sqrt(self._D * s2)
+        names, rejected = self.model.marker_names, []
+        y0, first = y, None
+        while True:
+            st = self._grid.update(before, y)
+            if n_present < self._M and not (np.isfinite(st.logdet).all() and np.isfinite(st.rss).all()):
+                # the markers left fix no pose at some grid point (J^T J singular): the frame would poison every
+                # later posterior (log det -inf everywhere, the posterior NaN), so it is not used
+                self._tracks.amend(lost=[names.index(n) for n in rejected])
+                problems.append((f"left out {', '.join(rejected)}; " if rejected else "")
+                                + "the markers left do not fix the pose: frame not used")
+                return self._grid_estimate(None, problems, tuple(rejected))
+            lw = self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used).ravel()
+            k = int(np.argmax(lw))
+            resid = _grid_residuals(self.model, self._ws, self._grid._points()[1][k], st.pose[k], y)
+            first = first or (self._grid._points()[1][k], st.pose[k], resid)
+            if not np.fmax.reduce(resid) > limit or len(rejected) == 3:  # fmax: NaN (missing) never the largest
+                break
+            worst = int(np.nanargmax(resid))
+            y = y.copy()
+            y[worst] = np.nan
+            rejected.append(names[worst])
+            n_present -= 1
+            if n_present < self._min_present:
+                self._tracks.amend(lost=[names.index(n) for n in rejected])
+                problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
+                                "few markers remain: frame not used")
+                return self._grid_estimate(None, problems, tuple(rejected))
+        self._state = st
+        if rejected:
+            bad = [names.index(n) for n in rejected]
+            theta, q, resid0 = first
+            pair = self._swapped_pair(theta, y0, q, s2, _worst_first(resid0, bad))
+            self._amend_tracks(pair, bad)
+            problems.append(f"left out {', '.join(rejected)}: residual beyond {self.outlier_sd:g} noise sd "
+                            "(swapped or wrong label?)")
+            if pair:
+                problems.insert(len(problems) - 1, _swap_line(pair))
+        return self._grid_estimate(y, problems, tuple(rejected), resid=resid, lw=lw)
 
-    def _grid_estimate(self, y, problems) -> LiveEstimate:
-        """The grid form's estimate from its state; marker residuals of frame ``y`` (None: not used)."""
+    def _grid_map(self, st) -> int:
+        """Index of the most probable grid point of state ``st``."""
+        return int(np.argmax(self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used)))
+
+    def _grid_estimate(self, y, problems, rejected: tuple = (), resid=None, lw=None) -> LiveEstimate:
+        """The grid form's estimate from its state (``lw``: its log weights, where already computed); frame
+        ``y`` (None: not used) has the marker residuals ``resid (M,)`` at the most probable grid point, and,
+        used whole, is checked against the noise (:meth:`_misfit`)."""
         model, st = self.model, self._state
-        q = resid = None
-        lw = self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used).ravel()
+        q = None
+        if lw is None:
+            lw = self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used).ravel()
         pts = self._grid._points()[1]
         w = np.exp(lw - lw.max())
         w /= w.sum()
         mean = w @ pts
+        sigma = self._grid_sigma()
         if st.pose is not None:
             k = int(np.argmax(lw))
             q = st.pose[k]
             if y is not None:
-                resid = partial(_grid_residuals, model, self._ws, pts[k], q, y)
+                if resid is None:
+                    resid = _grid_residuals(model, self._ws, pts[k], q, y)
+                if np.isfinite(sigma) and not rejected:
+                    problems = problems + self._misfit(resid, sigma * sigma, st.n_obs - model.n_pose * st.n_used
+                                                       - model.n_params)
         healthy = not problems
-        return LiveEstimate(self._frame, self._frame / self.rate, _frozen(mean), _frozen(q), self._grid_sigma(),
-                            healthy, "ok" if healthy else "; ".join(problems), (), model,
+        return LiveEstimate(self._frame, self._frame / self.rate, _frozen(mean), _frozen(q), sigma,
+                            healthy, "ok" if healthy else "; ".join(problems), rejected, model,
                             partial(self._grid_cov, w, mean), resid, self._ranges)
 
     def _grid_cov(self, w, mean) -> np.ndarray:
@@ -1819,7 +2049,8 @@ def _for_all(cutoffs) -> np.ndarray:
 
 def _grid_residuals(model, ws, theta, q, y) -> np.ndarray:
     """Distance ``(M,)`` of each observed marker ``y (M, D)`` from the model at ``theta, q`` (NaN where missing)."""
-    return np.sqrt(np.sum((y - forward_kinematics(model, theta, q, ws).markers) ** 2, axis=-1))
+    d = y - marker_positions(model, theta, q, ws)
+    return np.sqrt((d * d).sum(axis=-1))
 
 
 def _sweeps(model: Model, q_now, amplitudes_deg, n_frames):
@@ -1879,15 +2110,27 @@ def _swap_line(pair) -> str:
 
 
 def _coordinates(value, what: str) -> np.ndarray:
-    """``value`` as a float array, or one line saying it is not numbers."""
+    """``value`` as a float array, or one line saying it is not real numbers (text, numbers written as text,
+    complex numbers, anything numpy cannot make a float of)."""
     if isinstance(value, str | bytes):
         raise DataError(f"{what} is the text {value[:20]!r}, not coordinates",
                         "send numbers: (x, y, z) per marker")
+    fix = "send real numbers: (x, y, z) per marker, NaN for a missing one"
     try:
-        return np.asarray(value, dtype=float)
+        a = np.asarray(value)
     except (TypeError, ValueError):
-        raise DataError(f"{what} is not numbers: {str(value)[:40]!r}",
-                        "send numbers: (x, y, z) per marker, NaN for a missing one") from None
+        raise DataError(f"{what} is not numbers: {str(value)[:40]!r}", fix) from None
+    if a.dtype.kind == "O":  # mixed or ragged: numbers written as text or complex numbers hide in here
+        flat = a.ravel()
+        if any(isinstance(v, str | bytes | complex | np.complexfloating) for v in flat):
+            raise DataError(f"{what} is not real numbers: {str(value)[:40]!r}", fix)
+    if a.dtype.kind in "USbc":
+        kind = {"c": "complex numbers", "b": "true/false values"}.get(a.dtype.kind, "text")
+        raise DataError(f"{what} holds {kind}, not coordinates: {str(value)[:40]!r}", fix)
+    try:
+        return a.astype(float, copy=False)
+    except (TypeError, ValueError):
+        raise DataError(f"{what} is not numbers: {str(value)[:40]!r}", fix) from None
 
 
 def _missing(y) -> list[str]:
