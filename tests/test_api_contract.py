@@ -24,7 +24,7 @@ from skelid import load_model
 from skelid.data import MarkerData
 from skelid.errors import DataError, ModelError, SettingError, SkelidError, SkelidWarning
 from skelid.estimators import MarkerEstimator, MarkerGridFilter, PaperFilter
-from skelid.estimators.base import check_settings, in_support
+from skelid.estimators.base import MAX_COUNT, check_settings, in_support
 from skelid.estimators.multitrial import MultiTrialEstimator
 from skelid.estimators.sampler import SamplerEstimator
 from skelid.io import read_markers
@@ -198,6 +198,38 @@ def test_starting_values_of_the_wrong_shape_are_setting_errors(setting, value):
 def test_negative_n_iter_is_a_setting_error():
     with pytest.raises(SettingError, match="n_iter=-3"):
         MarkerEstimator(CASE_A, n_iter=-3).fit(TRIAL.data)
+
+
+COUNT_SETTINGS = [("marker", "n_iter"), ("marker", "n_boot"), ("paper", "max_iter"), ("marker-grid", "n_iter"),
+                  ("marker-smc", "n_particles"), ("marker-smc", "n_moves"), ("marker-smc", "inner_iter"),
+                  ("marker-multi", "n_iter")]
+
+
+@pytest.mark.parametrize("name, setting", COUNT_SETTINGS)
+@pytest.mark.parametrize("value", [10**30, MAX_COUNT + 1], ids=["huge", "one-too-many"])
+def test_absurd_counts_are_setting_errors_before_any_work(name, setting, value):
+    est = ESTIMATORS[name](CASE_A, **{setting: value})
+    with pytest.raises(SettingError, match=f"setting {setting}={value} is not usable .*from [12] to {MAX_COUNT}"):
+        est.fit([TRIAL.data] if name == "marker-multi" else TRIAL.data)
+
+
+@pytest.mark.parametrize("name, setting", COUNT_SETTINGS)
+def test_the_largest_count_is_usable(name, setting):
+    check_settings(ESTIMATORS[name](CASE_A, **{setting: MAX_COUNT}))
+
+
+@pytest.mark.parametrize("setting", ["outlier_threshold", "sigma", "artefact_rms", "placement_sd"])
+def test_an_integer_beyond_int64_is_a_setting_error(setting):
+    with pytest.raises(SettingError, match=f"setting {setting}={10**30} is not usable"):
+        MarkerEstimator(CASE_A, **{setting: 10**30}).fit(TRIAL.data)
+
+
+@pytest.mark.parametrize("axes", [[1], (np.linspace(230.0, 270.0, 5), np.linspace(0.0, 1.0, 3)),
+                                  (np.ones((3, 2)),), (np.linspace(270.0, 230.0, 5),), (np.array([250.0, 250.0]),)],
+                         ids=["scalar", "two-for-one-parameter", "2-d", "decreasing", "repeated"])
+def test_grid_axes_that_do_not_fit_the_model_are_setting_errors(axes):
+    with pytest.raises(SettingError, match=r"setting axes does not fit model 'case_a': 1 parameter\(s\) \['L2'\]"):
+        MarkerGridFilter(CASE_A, axes=axes).fit(TRIAL.data)
 
 
 @pytest.mark.parametrize("name", ["marker", "marker-smc"])
@@ -443,6 +475,21 @@ def test_the_same_file_twice_is_refused(tmp_path):
     for twice in ([path, path], [path, tmp_path / "link.trc"]):
         with pytest.raises(DataError, match="is given twice"):
             check_distinct_files(twice)
+
+
+def test_a_copy_of_a_file_is_refused_and_a_file_of_the_same_size_is_not(tmp_path):
+    from skelid.checks import check_distinct_files
+    from skelid.io import write_trc
+
+    path, copy, other = tmp_path / "trial.trc", tmp_path / "copy.trc", tmp_path / "other.trc"
+    write_trc(path, TRIAL.data)
+    copy.write_bytes(path.read_bytes())
+    text = path.read_text()
+    other.write_text(text.replace("\t0.010000\t", "\t0.010001\t", 1))  # one digit more: same size, other bytes
+    assert other.stat().st_size == path.stat().st_size and other.read_bytes() != path.read_bytes()
+    check_distinct_files([path, other])
+    with pytest.raises(DataError, match="copy.trc holds the same bytes as .*trial.trc"):
+        check_distinct_files([path, other, copy])
 
 
 # --------------------------------------------------------------------------- where the data sit

@@ -32,6 +32,8 @@ def files(tmp_path_factory):
     write_trc(f["good"], trial.data)
     f["good_link"] = d / "link.trc"
     os.symlink(f["good"], f["good_link"])
+    f["good_copy"] = d / "copy.trc"
+    f["good_copy"].write_bytes(f["good"].read_bytes())
     f["dir"].mkdir()
     f["empty"].write_bytes(b"")
     f["empty_model"].write_bytes(b"")
@@ -95,6 +97,8 @@ BAD = {
     "report of arrays.npz with a rate of 0": ("report {rate0_result} --out {out}.html", "rate] is 0 Hz"),
     "the same data file twice": ("fit {case_a} {good} {good} --out {out}", "is given twice"),
     "the same data file twice under two names": ("fit {case_a} {good} {good_link} --out {out}", "is given twice"),
+    "a copy of a data file beside it": ("fit {case_a} {good} {good_copy} --out {out}",
+                                        "copy.trc holds the same bytes as"),
 }
 
 

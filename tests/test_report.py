@@ -554,3 +554,76 @@ def test_old_layout_and_demo_folders_are_refused_in_one_line(tmp_path, capfd):
         err = capfd.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0] and "skelid fit" in err[0], err
     assert not (tmp_path / "r.html").exists()
+
+
+# ----------------------------------------------------------------------------- arrays that do not hang together
+def _with_paper_arrays(src, dst, change):
+    """A copy of result folder ``src`` in ``dst`` with the paper method's arrays edited by ``change(arrays)``
+    in ``arrays.npz`` and in the index of ``result.json`` alike (so that each array has the size the index says)."""
+    res = json.loads((src / "result.json").read_text())
+    with np.load(src / "arrays.npz") as z:
+        own = {k.removeprefix("paper/"): z[k] for k in z.files if k.startswith("paper/")}
+        rest = {k: z[k] for k in z.files if not k.startswith("paper/")}
+    change(own)
+    res["results"]["paper"]["arrays"] = {k: {"shape": list(v.shape), "dtype": v.dtype.str} for k, v in own.items()}
+    dst.mkdir()
+    (dst / "result.json").write_text(json.dumps(res))
+    np.savez(dst / "arrays.npz", **rest, **{f"paper/{k}": v for k, v in own.items()})
+    return dst
+
+
+def _drop(key):
+    return lambda a: a.pop(key)
+
+
+def _set(key, value):
+    return lambda a: a.__setitem__(key, value(a) if callable(value) else value)
+
+
+#: how the arrays are damaged, and what the one line says
+DAMAGED_ARRAYS = {
+    "marginal-missing": (_drop("posterior.marginal.0"),
+                         r"paper/posterior.axis.0\] is there but paper/posterior.marginal.0 is not"),
+    "axis-missing": (_drop("posterior.axis.0"),
+                     r"paper/posterior.marginal.0\] is there but paper/posterior.axis.0 is not"),
+    "axis-shorter": (_set("posterior.axis.0", lambda a: a["posterior.axis.0"][:5]),
+                     r"posterior.marginal.0\] has shape \(201,\), not \(5,\)"),
+    "axis-not-finite": (_set("posterior.axis.0", np.full(201, np.nan)),
+                        r"posterior.axis.0\] holds values that are not finite"),
+    "history-steps-short": (_set("posterior.history_steps", np.array([50])),
+                            r"posterior.history.0\] has shape \(2, 201\), not \(1, 201\)"),
+    "names-scalar": (_set("posterior.names", np.array("L2")), r"posterior.names\] is a 0-d array"),
+    "measured-short": (_set("measured", lambda a: a["measured"][:10]),
+                       r"paper/measured\] has shape \(10,\), not \(160,\)"),
+    "cov-without-mean": (_set("posterior.cov", np.ones((1, 1))),
+                         r"posterior.cov\] is there but paper/posterior.mean is not"),
+    "samples-too-wide": (_set("samples", np.ones((10, 2))), r"paper/samples\] has shape \(10, 2\), not \(10, 1\)"),
+    "weights-without-samples": (_set("sample_weights", np.ones(10)),
+                                r"sample_weights\] is there but paper/samples is not"),
+    "residuals-empty": (_set("residuals", np.zeros((0, 3))), r"paper/residuals\] has no frames"),
+    "map-path-2d": (_set("map_path", np.zeros((160, 1))),
+                    r"paper/map_path\] is a 2-d array of dtype float64, not the 1-d array"),
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGED_ARRAYS))
+def test_a_result_whose_arrays_do_not_hang_together_is_refused_in_one_line(paper_fit, tmp_path, capfd, damage):
+    import re
+
+    change, needle = DAMAGED_ARRAYS[damage]
+    d = _with_paper_arrays(paper_fit / "fit", tmp_path / "edited", change)
+    capfd.readouterr()
+    assert main(["report", str(d), "--quiet"]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(needle, err[0]) and "(fix: " in err[0], err
+    assert not (d / "report.html").exists()
+
+
+def test_extra_arrays_that_hang_together_are_accepted(paper_fit, tmp_path):
+    def add_samples(a):
+        a["samples"] = np.linspace(240.0, 260.0, 30)[:, None]
+        a["sample_weights"] = np.full(30, 1.0 / 30)
+
+    d = _with_paper_arrays(paper_fit / "fit", tmp_path / "with-samples", add_samples)
+    path, _ = write_report(d)
+    _check_html(path, min_images=4)

@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 
 from skelid.io.osim import osim_parameters, read_osim
-from skelid.scaling import (_bounded_step, _centred_offsets, _joint_refinement, fit_osim, fit_scales_and_offsets,
-                            one_factor_test)
+from skelid.scaling import (
+    _bounded_step,
+    _centred_offsets,
+    _joint_refinement,
+    fit_osim,
+    fit_scales_and_offsets,
+    one_factor_test,
+)
 from tests.test_scaling import _trials, leg  # noqa: F401  (the fixture)
 
 

@@ -17,7 +17,7 @@ fit:
   number.
 
 Before those, the checks of the input itself: :func:`check_input_file` (an existing,
-readable, non-empty file), :func:`check_distinct_files` (no file given twice),
+readable, non-empty file), :func:`check_distinct_files` (no file given twice, nor a copy of one),
 :func:`check_units` (marker distances against the model's), and
 :func:`data_overview` (what the file holds, each marker's gaps).
 """
@@ -116,21 +116,51 @@ def check_input_file(path, what: str = "data file") -> Path:
 
 
 def check_distinct_files(paths, what: str = "data file") -> None:
-    """Refuse the same file given twice (by path, links followed) in one line: its trial would count twice."""
+    """Refuse the same file given twice in one line: by path (links followed) or as a byte-for-byte
+    copy under another name. Its trial would count twice."""
     import os
+    import stat
 
     seen: dict = {}
+    sizes: dict[int, list] = {}
     for p in paths:
         try:
             st = os.stat(p)
             key = (st.st_dev, st.st_ino)
         except OSError:
-            key = os.path.abspath(p)  # a missing file is refused by check_input_file
+            key, st = os.path.abspath(p), None  # a missing file is refused by check_input_file
         if key in seen:
             same = "" if str(seen[key]) == str(p) else f" (as {seen[key]})"
             raise DataError(f"{what} {p} is given twice{same}: its frames would count as two trials' worth "
                             "of information", "give each trial once")
         seen[key] = p
+        if st is not None and stat.S_ISREG(st.st_mode):  # never open a pipe or a device here
+            sizes.setdefault(st.st_size, []).append(p)
+    for group in sizes.values():
+        _check_distinct_contents(group, what)
+
+
+def _check_distinct_contents(paths, what: str) -> None:
+    """Among files of one size, refuse two with the same bytes (read only where sizes match)."""
+    import hashlib
+
+    if len(paths) < 2:
+        return
+    digests: dict = {}
+    for p in paths:
+        h = hashlib.sha256()
+        try:
+            with open(p, "rb") as fh:
+                for block in iter(lambda fh=fh: fh.read(1 << 20), b""):
+                    h.update(block)
+        except OSError:
+            continue  # an unreadable file is refused by check_input_file
+        d = h.digest()
+        if d in digests:
+            raise DataError(f"{what} {p} holds the same bytes as {digests[d]}: its frames would count as two "
+                            "trials' worth of information", "give each trial once (a copy of a file is the "
+                            "same trial)")
+        digests[d] = p
 
 
 def _model_names_in_file(model: Model, data: MarkerData) -> dict[str, str]:

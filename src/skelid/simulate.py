@@ -46,7 +46,7 @@ BUILTIN_MODELS = {"case-a": "case_a.toml", "case-b": "case_b.toml"}
 
 def builtin_model(name: str) -> Model:
     """One of the models that ship with skelid (``case-a``, ``case-b``)."""
-    key = name.lower().replace("_", "-")
+    key = name.lower().replace("_", "-") if isinstance(name, str) else None
     if key not in BUILTIN_MODELS:
         raise ModelError(f"no built-in model {name!r}",
                          f"use one of: {', '.join(BUILTIN_MODELS)} or a .toml file")
@@ -89,7 +89,20 @@ class Trial:
 
 def simulate_motion(model: Model, n_frames: int, rate: float, rng: np.random.Generator,
                     hard_poses: bool = False) -> np.ndarray:
-    """Smooth random poses ``(F, Q)`` (angles in radians)."""
+    """Smooth random poses ``(F, Q)`` (angles in radians).
+
+    Raises
+    ------
+    SettingError
+        ``n_frames < 1`` or not an integer, a rate outside :data:`skelid.data.RATE_RANGE`,
+        an ``rng`` that is not a :class:`numpy.random.Generator`, in one line.
+    ModelError
+        ``model`` is not a :class:`~skelid.model.description.Model`.
+    """
+    _check_model(model, "simulate_motion")
+    _check_n_frames(n_frames)
+    rate = _check_rate(rate)
+    _check_generator(rng)
     t = np.arange(n_frames) / rate
     ranges = _rotation_ranges(model)
     size = _model_size(model)
@@ -116,7 +129,29 @@ def simulate_motion(model: Model, n_frames: int, rate: float, rng: np.random.Gen
 
 def soft_tissue_artefact(model: Model, pose: np.ndarray, amplitude: float, rate: float,
                          rng: np.random.Generator) -> np.ndarray:
-    """Marker drift ``(F, M, D)`` that follows neighbouring joint angles and is slow in time."""
+    """Marker drift ``(F, M, D)`` that follows neighbouring joint angles and is slow in time.
+
+    Parameters
+    ----------
+    pose : (F, Q) float
+        Poses of ``model`` (angles in radians), e.g. from :func:`simulate_motion`.
+    amplitude : float
+        Norm of each marker's angle coefficients, model units (>= 0; 0 gives no drift).
+
+    Raises
+    ------
+    SettingError
+        A pose array that is not ``(F, Q)`` finite numbers, an amplitude that is negative or not
+        finite, a rate outside :data:`skelid.data.RATE_RANGE`, an ``rng`` that is not a
+        :class:`numpy.random.Generator`, in one line.
+    ModelError
+        ``model`` is not a :class:`~skelid.model.description.Model`.
+    """
+    _check_model(model, "soft_tissue_artefact")
+    pose = _check_pose(model, pose)
+    _check_level("amplitude", amplitude, model)
+    rate = _check_rate(rate)
+    _check_generator(rng)
     F, M, D = pose.shape[0], len(model.markers), model.dim
     if amplitude <= 0:
         return np.zeros((F, M, D))
@@ -150,6 +185,8 @@ def sta_rms(model: Model, amplitude: float) -> float:
     ``D`` coordinates and ``E sin^2 = 1/2``; the Gauss-Markov part has standard deviation
     ``amplitude / 3``: ``rms = amplitude * sqrt(1 / (2 D) + 1 / 9)``.
     """
+    _check_model(model, "sta_rms")
+    _check_level("amplitude", amplitude, model)
     return float(amplitude * np.sqrt(1.0 / (2.0 * model.dim) + 1.0 / 9.0))
 
 
@@ -168,35 +205,75 @@ def _pair(v, name: str) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def _check_model(model, who: str) -> Model:
+    from skelid.estimators.base import check_model
+
+    return check_model(model, who)
+
+
+def _check_n_frames(n_frames) -> int:
+    if not (isinstance(n_frames, int | np.integer) and not isinstance(n_frames, bool) and n_frames >= 1):
+        raise SettingError(f"n_frames={n_frames!r} is not a number of frames", "give an integer >= 1")
+    return int(n_frames)
+
+
+def _check_rate(rate) -> float:
+    from skelid.data import check_rate
+
+    try:
+        return check_rate(rate, "simulate")
+    except SkelidError as exc:
+        raise SettingError(exc.problem, exc.fix) from None
+
+
+def _check_level(name: str, v, model: Model) -> float:
+    """A noise or artefact level: a finite number >= 0 in model units."""
+    if not (_is_number(v) and v >= 0):
+        raise SettingError(f"{name}={v!r} is not a noise level", f"give {name} as a finite number >= 0 "
+                           f"in {model.units}")
+    return float(v)
+
+
+def _check_generator(rng) -> np.random.Generator:
+    if not isinstance(rng, np.random.Generator):
+        raise SettingError(f"rng={rng!r} is not a numpy.random.Generator",
+                           "give rng=numpy.random.default_rng(seed)")
+    return rng
+
+
+def _check_pose(model: Model, pose) -> np.ndarray:
+    try:
+        q = np.asarray(pose)
+    except (TypeError, ValueError):
+        q = None
+    if q is None or q.dtype.kind not in "iuf" or q.ndim != 2 or q.shape[1] != model.n_pose \
+            or not np.isfinite(q).all():
+        shape = "" if q is None else f" of shape {q.shape}"
+        raise SettingError(f"pose{shape} is not (frames, {model.n_pose}) real, finite numbers for model {model.name!r}",
+                           "give the poses simulate_motion(model, ...) returns")
+    return q.astype(float)
+
+
 def check_simulation(model, theta, n_frames, rate, sigma, rng, noise: str = "iid", sta_amplitude: float = 0.0,
                      hard_poses: bool = False, nominal: bool = True) -> tuple[np.ndarray, np.random.Generator]:
     """The checks of :func:`simulate`'s arguments: ``(theta (P,), rng)``, or a one-line :class:`SettingError`
     (:class:`ModelError` for something that is not a model)."""
-    from skelid.data import check_rate
-    from skelid.estimators.base import check_model
-
-    check_model(model, "simulate")
-    if not (isinstance(n_frames, int | np.integer) and not isinstance(n_frames, bool) and n_frames >= 1):
-        raise SettingError(f"n_frames={n_frames!r} is not a number of frames", "give an integer >= 1")
-    try:
-        check_rate(rate, "simulate")
-    except SkelidError as exc:
-        raise SettingError(exc.problem, exc.fix) from None
+    _check_model(model, "simulate")
+    _check_n_frames(n_frames)
+    _check_rate(rate)
     for name, v in (("sigma", sigma), ("sta_amplitude", sta_amplitude)):
-        if not (_is_number(v) and v >= 0):
-            raise SettingError(f"{name}={v!r} is not a noise level", f"give {name} as a finite number >= 0 "
-                               f"in {model.units}")
+        _check_level(name, v, model)
     if not isinstance(noise, str) or noise not in ("iid", "sta"):
         raise SettingError(f"noise={noise!r} is not a noise model", "give noise='iid' or noise='sta'")
     if not isinstance(hard_poses, bool | np.bool_):
         raise SettingError(f"hard_poses={hard_poses!r} is not True or False", "give hard_poses=True or False")
-    if rng is None:
-        rng = np.random.default_rng(0)
-    elif not isinstance(rng, np.random.Generator):
-        raise SettingError(f"rng={rng!r} is not a numpy.random.Generator",
-                           "give rng=numpy.random.default_rng(seed)")
+    rng = np.random.default_rng(0) if rng is None else _check_generator(rng)
     if theta is None and nominal:
         return model.theta_nominal, rng
+    if theta is None:
+        raise SettingError("theta=None: the true parameters are needed here",
+                           f"give {model.n_params} values, one per parameter {list(model.parameter_names)} "
+                           "(e.g. model.theta_nominal)")
     try:
         th = np.array(theta, dtype=float)
     except (TypeError, ValueError):

@@ -160,3 +160,46 @@ def test_plain_tsv_is_read_as_columns(tmp_path):
     path.write_text("# rate=50 units=cm\nframe\tA_x\tA_y\tA_z\n1\t1\t2\t3\n")
     d = read_markers(path)
     assert (d.rate, d.units, d.names) == (50.0, "cm", ("A",))
+
+
+# ------------------------------------------------ the time column, one check for every text reader
+def _rows_with_times(fmt, times):
+    """A file of format ``fmt`` with one marker and one row per time (data rows start on line 7 in each)."""
+    if fmt == "trc":
+        head = ("PathFileType\t4\t(X/Y/Z)\tx.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n"
+                "100\t100\t9\t1\tmm\nFrame#\tTime\tA\t\t\n\t\tX1\tY1\tZ1\n\n")
+        rows = "".join(f"{k + 1}\t{t}\t{k}.0\t1.0\t2.0\n" for k, t in enumerate(times))
+    elif fmt == "csv":  # the comment gives the rate: the time column is checked all the same
+        head = "# units=mm rate=100\n# a note\n# another\n# and one more\n# the header is next\ntime,A_x,A_y,A_z\n"
+        rows = "".join(f"{t},{k}.0,1.0,2.0\n" for k, t in enumerate(times))
+    else:
+        head = ("NO_OF_FRAMES\t9\nNO_OF_MARKERS\t1\nFREQUENCY\t100\nDATA_INCLUDED\t3D\nMARKER_NAMES\tA\n"
+                "Frame\tTime\tA X\tA Y\tA Z\n")
+        rows = "".join(f"{k + 1}\t{t}\t{k}.0\t1.0\t2.0\n" for k, t in enumerate(times))
+    return head + rows
+
+
+@pytest.mark.parametrize("fmt", ["trc", "csv", "tsv"])
+@pytest.mark.parametrize("times, message", [
+    (["0.00", "0.01", "0.01", "0.03"], r"line 9: time 0.01 does not increase \(line 8 has 0.01\)"),  # repeated
+    (["0.03", "0.02", "0.01"], r"line 8: time 0.02 does not increase \(line 7 has 0.03\)"),  # reversed
+    (["0.00", "0.01", "0.02", "0.00", "0.01"], r"line 10: time 0 does not increase \(line 9 has 0.02\)"),  # pasted
+    (["0.00", "0.01", "x"], "line 9: time 'x' is not a number"),
+    (["0.00", "inf", "0.02"], "line 8: time 'inf' is not a finite number"),
+    (["0.00", "", "0.02"], "line 8: the [Tt]ime field is empty while other rows have one"),
+])
+def test_every_text_reader_refuses_a_time_column_out_of_order(tmp_path, fmt, times, message):
+    path = tmp_path / f"t.{fmt}"
+    path.write_text(_rows_with_times(fmt, times))
+    with pytest.raises(FormatError, match=message) as info:
+        read_markers(path)
+    assert "\n" not in str(info.value) and "(fix: " in str(info.value)
+
+
+@pytest.mark.parametrize("fmt", ["trc", "csv", "tsv"])
+def test_an_increasing_time_column_reads_in_every_text_reader(tmp_path, fmt):
+    path = tmp_path / f"t.{fmt}"
+    path.write_text(_rows_with_times(fmt, ["0.00", "0.01", "0.02"]))
+    d = read_markers(path)
+    assert (d.n_frames, d.rate) == (3, 100.0)
+    np.testing.assert_array_equal(d.positions[:, 0, 0], [0.0, 1.0, 2.0])

@@ -58,8 +58,19 @@ class Setting:
     cli: str | None = None
 
 
+#: integers a numeric setting takes lie in numpy's int64 range: a larger Python int becomes an object array
+INT_RANGE = (-2**63, 2**63 - 1)
+#: the largest count a setting takes (iterations, replicates, particles, moves): a larger one is a slip that
+#: would overflow the compiled kernels or ask for arrays no memory holds
+MAX_COUNT = 10**6
+
+
 def _number(v) -> bool:
-    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) and math.isfinite(v)
+    if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+        return False
+    if isinstance(v, int) and not INT_RANGE[0] <= v <= INT_RANGE[1]:
+        return False
+    return math.isfinite(v)
 
 
 def positive(v) -> bool:
@@ -76,6 +87,16 @@ def non_negative_or_none(v) -> bool:
 
 def positive_int(v) -> bool:
     return isinstance(v, int | np.integer) and not isinstance(v, bool) and v > 0
+
+
+def count(v) -> bool:
+    """A positive integer up to :data:`MAX_COUNT` (iterations, replicates, particles, moves)."""
+    return positive_int(v) and v <= MAX_COUNT
+
+
+def counted(what: str, low: int = 1) -> str:
+    """The usable values of a :func:`count` setting in words."""
+    return f"a number of {what} from {low} to {MAX_COUNT}"
 
 
 def one_of(*values) -> Callable[[Any], bool]:

@@ -59,10 +59,11 @@ from skelid.estimators.base import (
     check_fitted,
     check_model,
     check_settings,
+    count,
+    counted,
     emit,
     make_rng,
     marker_array,
-    positive_int,
     positive_or_none,
     steps,
 )
@@ -258,7 +259,7 @@ class PaperFilter:
     settings = (
         Setting("sigma", positive_or_none, "a positive width in model units, or None for 15 mm", cli="sigma"),
         Setting("history_steps", steps, "a sequence of positive frame counts"),
-        Setting("max_iter", positive_int, "a positive number of iterations"),
+        Setting("max_iter", count, counted("iterations")),
         RNG,
         RATE,
     )

@@ -126,11 +126,12 @@ from skelid.estimators.base import (
     check_fitted,
     check_model,
     check_settings,
+    count,
+    counted,
     emit,
     make_rng,
     marker_array,
     positive,
-    positive_int,
 )
 from skelid.estimators.fit.joint import _banded, _banded_solver
 from skelid.estimators.fit.likelihood import frame_terms, pose_information
@@ -609,10 +610,10 @@ class SamplerEstimator:
               "sta_score_", "widened_", "cov_plain_", "cov_data_", "cov_artefact_", "theta_profile_",
               "fit_info_")
     settings = MarkerEstimator.settings + (
-        Setting("n_particles", lambda v: positive_int(v) and v >= 2, "an integer number of particles >= 2"),
-        Setting("n_moves", positive_int, "a positive number of moves per stage"),
+        Setting("n_particles", lambda v: count(v) and v >= 2, counted("particles", 2)),
+        Setting("n_moves", count, counted("moves per stage")),
         Setting("ess_fraction", lambda v: positive(v) and v < 1, "a fraction between 0 and 1"),
-        Setting("inner_iter", positive_int, "a positive number of iterations"),
+        Setting("inner_iter", count, counted("iterations")),
     )
 
     def __init__(self, model: Model, sigma: float | None = None, cutoff: float | str | None = "auto",

@@ -106,6 +106,54 @@ def parse_rate(text: str, path: Path, where: str) -> float:
     return rate
 
 
+def time_column(times: list[tuple[int, str]], path: Path, column: str = "time") -> np.ndarray | None:
+    """The times of a file's rows in seconds, checked; None where every time field is blank.
+
+    Parameters
+    ----------
+    times : list of (line number, text)
+        The time field of each data row, in file order.
+    column : str
+        The column's name in the file, for messages.
+
+    Returns
+    -------
+    (R,) float or None
+
+    Raises
+    ------
+    FormatError
+        Naming the file and line: a time field blank while others are not, a time that is not a
+        finite number, or one that does not increase on the row before (a row out of order, a
+        repeated row, a jump back where two takes were pasted together). The rows' order is the
+        trial's time, so such a file is refused rather than read in a wrong order.
+    """
+    if not any(v.strip() for _i, v in times):
+        return None
+    t = np.empty(len(times))
+    for k, (i, v) in enumerate(times):
+        v = v.strip()
+        if not v:
+            raise FormatError(f"{path}: line {i}: the {column} field is empty while other rows have one",
+                              f"fill in the {column} column of every row, or leave it empty in all of them")
+        try:
+            t[k] = float(v)
+        except ValueError:
+            raise FormatError(f"{path}: line {i}: time {v[:20]!r} is not a number",
+                              f"check the {column} column") from None
+        if not math.isfinite(t[k]):
+            raise FormatError(f"{path}: line {i}: time {v[:20]!r} is not a finite number",
+                              f"check the {column} column")
+    with np.errstate(over="ignore", invalid="ignore"):
+        back = ~(np.diff(t) > 0)  # differences of finite numbers; an overflow is +-inf, never NaN
+    if back.any():
+        k = int(np.argmax(back))
+        raise FormatError(f"{path}: line {times[k + 1][0]}: time {t[k + 1]:g} does not increase "
+                          f"(line {times[k][0]} has {t[k]:g})",
+                          "sort the rows by time and remove repeated rows (or split pasted takes into files)")
+    return t
+
+
 def as_path(path, what: str = "data file", cls=FormatError) -> Path:
     """``path`` (a str or os.PathLike) as a :class:`~pathlib.Path`, or ``cls`` with one line for anything else."""
     import os

@@ -21,7 +21,9 @@ comment or, failing that, from the time column:
 .. math:: \\text{rate} = 1 / \\operatorname{median}_k (t_{k+1} - t_k),
 
 with a :class:`~skelid.errors.SkelidWarning` if the steps are not uniform to
-within 1 %. Blank fields and ``NaN`` are missing; ``0,0,0`` is a valid
+within 1 %. A time column, where there is one, must increase row by row (also when
+the comment gives the rate): rows out of order, repeated or pasted from two takes
+are refused with their line. Blank fields and ``NaN`` are missing; ``0,0,0`` is a valid
 position here (a pendulum's pivot sits at the origin).
 """
 
@@ -40,13 +42,13 @@ from skelid.io._common import (
     check_magnitude,
     guess_units,
     normalise_units,
-    parse_number,
     parse_rate,
     parse_table,
     read_text,
     sniff_separator,
     split_fields,
     split_lines,
+    time_column,
 )
 
 VICON_SECTIONS = ("trajectories", "devices", "joints", "model outputs", "segments")
@@ -322,19 +324,20 @@ def _units_of(path: Path, h: int, groups, comment: dict) -> str | None:
 
 
 def _rate_of(path: Path, comment: dict, times: list[tuple[int, str]]) -> float:
+    """The rate of the ``# rate=`` comment, else of the time column's median step.
+
+    A time column is checked either way (:func:`skelid.io._common.time_column`): rows out of
+    order are refused even where the comment gives the rate.
+    """
+    t = time_column(times, path)
     if "rate" in comment:
         return parse_rate(comment["rate"], path, "the rate in the comment line")
-    if len(times) < 2:
-        raise FormatError(f"{path}: no sampling rate: no '# rate=' comment and "
-                          f"{'only one row' if times else 'no time column'}",
+    if t is None or t.size < 2:
+        why = "no time column" if not times else "an empty time column" if t is None else "only one row"
+        raise FormatError(f"{path}: no sampling rate: no '# rate=' comment and {why}",
                           "add a time column or a first line '# rate=<Hz>'")
-    t = np.array([parse_number(v, path, f"the time on line {i}") for i, v in times])
     with np.errstate(over="ignore", invalid="ignore"):
         dt = np.diff(t)
-    if np.any(dt <= 0):
-        k = int(np.argmax(dt <= 0))
-        raise FormatError(f"{path}: line {times[k + 1][0]}: time {t[k + 1]:g} does not increase",
-                          "sort the rows by time and remove repeated rows")
     if not np.all(np.isfinite(dt)):
         raise FormatError(f"{path}: time values too large to give a sampling rate", "check the time column")
     step = float(np.median(dt))

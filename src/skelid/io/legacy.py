@@ -110,7 +110,8 @@ def _crlb_of(v: Mapping, i: int, crlb) -> float | None:
 def _parameters(m: Mapping, units: str, kinds: Mapping, status: Mapping, crlb) -> dict:
     """The method's parameter estimates, in the order of its dict.
 
-    An axis direction is in degrees, a scale factor a ratio (unit ``1``), every other parameter in ``units``; a parameter
+    An axis direction is in degrees, a scale factor a ratio (unit ``1``), every other parameter in ``units``;
+    a parameter
     without an identifiability row is ``identified`` with ``extra["status_given"] = False``.
     """
     entries = [(k, v) for k, v in m.items() if _is_estimate(k, v)]

@@ -9,6 +9,8 @@ say). A marker is missing where its fields are blank or ``NaN``, or where
 ``X = Y = Z = 0``, which is how Qualisys writes an untracked marker.
 
 Header counts (``NO_OF_FRAMES``) are not trusted: the rows present are read.
+The rate is ``FREQUENCY``; a ``Time`` column, where the column line has one, must
+increase row by row (rows out of order or pasted from two takes are refused).
 A ``.tsv`` file without the Qualisys header is read as a column-header file by
 :func:`skelid.io.read_csv`.
 """
@@ -30,6 +32,7 @@ from skelid.io._common import (
     read_text,
     split_fields,
     split_lines,
+    time_column,
 )
 
 #: Header keys that identify a Qualisys TSV file (any of them on line 1).
@@ -142,6 +145,20 @@ def _data_rows(path: Path, lines: list[str], h: int, M: int, columns: list[str] 
     return rows
 
 
+def _check_time(path: Path, lines: list[str], rows: list[tuple[int, list[str]]], columns: list[str] | None,
+                lead: int) -> None:
+    """The ``Time`` column of the column line, where there is one, increases row by row
+    (:func:`skelid.io._common.time_column`); ``FREQUENCY`` gives the rate."""
+    col = next((k for k, c in enumerate((columns or [])[:lead]) if c.lower() == "time"), None)
+    if col is None:
+        return
+    times = []
+    for i, _ in rows:
+        f = split_fields(lines[i - 1], "\t")
+        times.append((i, f[col] if col < len(f) else ""))
+    time_column(times, path, "Time")
+
+
 def read_tsv(path) -> MarkerData:
     """Read a Qualisys TSV export (or, without its header, a column-header TSV).
 
@@ -173,6 +190,7 @@ def read_tsv(path) -> MarkerData:
     names, lead = _marker_names(path, header, columns, h)
     M = len(names)
     rows = _data_rows(path, lines, h, M, columns, lead)
+    _check_time(path, lines, rows, columns, lead)
     pos = parse_table(rows, 3 * M, path).reshape(len(rows), M, 3)
     pos[np.all(pos == 0.0, axis=2)] = np.nan
     check_magnitude(pos, path, units)

@@ -6,7 +6,8 @@ The one serializer of :class:`~skelid.result.FitResult` and :class:`~skelid.resu
 
 Reading never trusts the files: a hand-edited or damaged ``result.json`` or
 ``arrays.npz`` (wrong types, missing keys, deep nesting, huge numbers, arrays of the
-wrong shape, a newer or unknown ``schema_version``) is refused with one
+wrong shape or that do not fit one another, such as a marginal without its grid or
+samples with a column too many, a newer or unknown ``schema_version``) is refused with one
 :class:`~skelid.errors.FormatError` line naming the file, the key path and the
 problem, before anything uses it. Sizes are bounded before reading.
 
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -361,6 +363,7 @@ def _result(d, arrays, where: str, prefix: str) -> FitResult:
     _check(diagnostics, DIAGNOSTIC_KEYS, f"{where}.diagnostics")
     specs = _array_specs(d.get("arrays", {}), f"{where}.arrays")
     arr = {} if arrays is None else _take_arrays(specs, arrays, prefix, f"{where}.arrays")
+    _check_result_arrays(arr, f"{where}.arrays", prefix, len(params))
     return FitResult(
         method=_str(d["method"], f"{where}.method"), parameters=params, derived=derived, noise=noise,
         frames=frames, diagnostics=diagnostics,
@@ -618,6 +621,125 @@ def _check_run_arrays(arrays: Mapping[str, np.ndarray]) -> None:
     y, names = arrays.get("markers"), arrays.get("marker_names")
     if y is not None and names is not None and y.shape[1] != names.shape[0]:
         raise _Bad("$.arrays.markers", f"{y.shape[1]} markers but {names.shape[0]} marker names")
+
+
+#: the arrays of one method's result that the report reads: (dtype kinds, dimensions). ``posterior.axis``,
+#: ``posterior.marginal`` and ``posterior.history`` stand for ``posterior.axis.K`` ... of each parameter K
+RESULT_ARRAYS = {
+    "posterior.kind": ("U", 0), "posterior.names": ("U", 1),
+    "posterior.mean": ("fiu", 1), "posterior.cov": ("fiu", 2),
+    "posterior.history_steps": ("fiu", 1), "posterior.history_mean": ("fiu", 2), "posterior.history_cov": ("fiu", 3),
+    "posterior.axis": ("fiu", 1), "posterior.marginal": ("fiu", 1), "posterior.history": ("fiu", 2),
+    "samples": ("fiu", 2), "sample_weights": ("fiu", 1),
+    "residuals": ("fiu", 2), "pose": ("fiu", 2), "measured": ("fiu", 1), "map_path": ("fiu", 1),
+}
+_GRID_KEY = re.compile(r"^posterior\.(axis|marginal|history)\.(\d+)$")
+
+
+def _check_result_arrays(a: Mapping[str, np.ndarray], where: str, prefix: str, n_params: int) -> None:
+    """The arrays of one method's result hang together as the estimators write them (see
+    :func:`posterior_arrays`), so that the report can index one by another; raises _Bad naming
+    the first that does not (an array another one needs, or one of another shape or dtype)."""
+    for k, x in a.items():
+        spec = RESULT_ARRAYS.get(_GRID_KEY.sub(r"posterior.\1", k))
+        if spec is not None and (x.dtype.kind not in spec[0] or x.ndim != spec[1]):
+            what = "strings" if spec[0] == "U" else "numbers"
+            raise _Bad(f"{where}.{k}", f"{ARRAYS_NPZ}[{prefix}{k}] is a {x.ndim}-d array of dtype {x.dtype}, "
+                       f"not the {spec[1]}-d array of {what} skelid writes")
+    check = _ArrayCheck(a, where, prefix)
+    check.posterior(n_params)
+    check.samples()
+    check.paths()
+
+
+class _ArrayCheck:
+    """The checks of :func:`_check_result_arrays` that relate one array to another."""
+
+    def __init__(self, a: Mapping[str, np.ndarray], where: str, prefix: str):
+        self.a, self.where, self.prefix = a, where, prefix
+
+    def bad(self, k: str, problem: str) -> _Bad:
+        return _Bad(f"{self.where}.{k}", f"{ARRAYS_NPZ}[{self.prefix}{k}] {problem}")
+
+    def need(self, k: str, other: str) -> None:
+        """``other`` is there where ``k`` is."""
+        if k in self.a and other not in self.a:
+            raise self.bad(k, f"is there but {self.prefix}{other} is not")
+
+    def shape(self, k: str, shape: tuple[int, ...], what: str) -> None:
+        if k in self.a and self.a[k].shape != shape:
+            raise self.bad(k, f"has shape {self.a[k].shape}, not {shape} ({what})")
+
+    def finite(self, k: str, low: float = -math.inf) -> None:
+        x = self.a.get(k)
+        if x is not None and not (np.isfinite(x).all() and (x >= low).all()):
+            raise self.bad(k, "holds values that are not finite numbers" + (f" >= {low:g}" if low > -math.inf else ""))
+
+    def posterior(self, n_params: int) -> None:
+        """Mean and covariance sized by ``posterior.names``, and the grids and histories.
+
+        The report indexes the mean, covariance and samples by ``posterior.names`` (without it
+        they are not drawn, as in an OpenSim fit's result), and the histories by those names or
+        else by the result's ``n_params`` parameters.
+        """
+        a = self.a
+        names = a.get("posterior.names")
+        P = n_params if names is None else len(names)
+        if names is not None:
+            per = f"one per parameter in {self.prefix}posterior.names"
+            self.need("posterior.mean", "posterior.cov")
+            self.need("posterior.cov", "posterior.mean")
+            self.shape("posterior.mean", (P,), per)
+            self.shape("posterior.cov", (P, P), per)
+        steps = a.get("posterior.history_steps")
+        for k in ("posterior.history_mean", "posterior.history_cov"):
+            self.need(k, "posterior.history_steps")
+            self.need(k, "posterior.history_mean" if k.endswith("cov") else "posterior.history_cov")
+        if steps is not None:
+            S = len(steps)
+            self.shape("posterior.history_mean", (S, P), "one row per history step and parameter")
+            self.shape("posterior.history_cov", (S, P, P), "one matrix per history step")
+        for k in sorted({int(m.group(2)) for m in map(_GRID_KEY.match, a) if m}):
+            self.grid(k, steps)
+
+    def grid(self, k: int, steps) -> None:
+        """Parameter ``k``'s grid: an axis of finite numbers, its marginal, its history."""
+        axis, marginal, history = f"posterior.axis.{k}", f"posterior.marginal.{k}", f"posterior.history.{k}"
+        self.need(marginal, axis)
+        self.need(axis, marginal)
+        self.need(history, axis)
+        self.need(history, "posterior.history_steps")
+        n = len(self.a[axis])
+        if n == 0:
+            raise self.bad(axis, "is empty (a grid has at least one point)")
+        self.finite(axis)
+        self.shape(marginal, (n,), f"one value per point of {self.prefix}{axis}")
+        if steps is not None:
+            self.shape(history, (len(steps), n), "one marginal per history step")
+
+    def samples(self) -> None:
+        """Posterior samples ``(N, P)`` of finite numbers and their N weights."""
+        x = self.a.get("samples")
+        self.need("sample_weights", "samples")
+        if x is None:
+            return
+        if "posterior.names" in self.a:
+            self.shape("samples", (len(x), len(self.a["posterior.names"])),
+                       f"one column per parameter in {self.prefix}posterior.names")
+        if len(x) == 0:
+            raise self.bad("samples", "is empty")
+        self.finite("samples")
+        self.shape("sample_weights", (len(x),), f"one weight per row of {self.prefix}samples")
+        self.finite("sample_weights", 0.0)
+        if "sample_weights" in self.a and not self.a["sample_weights"].sum() > 0:
+            raise self.bad("sample_weights", "sums to 0")
+
+    def paths(self) -> None:
+        """Per-frame arrays: residuals of at least one frame; the measured values beside the MAP path."""
+        if "residuals" in self.a and len(self.a["residuals"]) == 0:
+            raise self.bad("residuals", "has no frames")
+        if "measured" in self.a and "map_path" in self.a:
+            self.shape("measured", self.a["map_path"].shape, f"one value per frame of {self.prefix}map_path")
 
 
 # ============================================================ arrays of a fitted estimator

@@ -30,6 +30,7 @@ from skelid.io._common import (
     read_text,
     split_fields,
     split_lines,
+    time_column,
 )
 from skelid.io.atomic import atomic_write
 
@@ -111,40 +112,15 @@ def read_trc(path) -> MarkerData:
 def _time_step(times: list[tuple[int, str]], path: Path) -> float | None:
     """Mean step of the Time column; None where the column is blank (DataRate alone gives the rate).
 
-    A Time column that is written must be numbers that increase row by row: a
-    row out of order, a repeated row or a jump back (two takes pasted together)
-    is refused with its line, since the rows' order is the trial's time.
+    The column is checked as every text reader checks its time column
+    (:func:`skelid.io._common.time_column`): numbers that increase row by row.
     """
-    given = [(i, v.strip()) for i, v in times if v.strip()]
-    if not given:
+    t = time_column(times, path, "Time")
+    if t is None or t.size < 2:
         return None
-    if len(given) < len(times):
-        i = next(i for i, v in times if not v.strip())
-        raise FormatError(f"{path}: line {i}: the Time field is empty while other rows have one",
-                          "fill in the Time column of every row, or leave it empty in all of them")
-    t = np.array([_time_value(v, i, path) for i, v in given])
-    if t.size < 2:
-        return None
-    dt = np.diff(t)
-    if np.any(dt <= 0):
-        k = int(np.argmax(dt <= 0))
-        raise FormatError(f"{path}: line {given[k + 1][0]}: time {t[k + 1]:g} does not increase "
-                          f"(line {given[k][0]} has {t[k]:g})",
-                          "sort the rows by time and remove repeated rows (or split pasted takes into files)")
-    step = (t[-1] - t[0]) / (t.size - 1)
+    with np.errstate(over="ignore"):
+        step = (t[-1] - t[0]) / (t.size - 1)
     return float(step) if math.isfinite(step) and step > 0 else None
-
-
-def _time_value(v: str, line: int, path: Path) -> float:
-    try:
-        x = float(v)
-    except ValueError:
-        raise FormatError(f"{path}: line {line}: time {v[:20]!r} is not a number",
-                          "check the Time column (the second field of each row)") from None
-    if not math.isfinite(x):
-        raise FormatError(f"{path}: line {line}: time {v[:20]!r} is not a finite number",
-                          "check the Time column (the second field of each row)")
-    return x
 
 
 def _number(x: float) -> str:

@@ -17,7 +17,8 @@ normal equations (``I_k`` its information, ``U_k`` its columns for the offsets,
 .. math:: \\operatorname{Cov}(g_k, g_l) = \\delta_{kl} V_k - V_k H I_l - I_k H V_l
           + I_k H \\Big(\\sum_j V_j\\Big) H I_l, \\qquad V_k = I_k + \\tau^2 U_k U_k^\\top .
 
-Size. ``Q = sum_k g_k^T W g_k`` (``W``: ``H`` on the offsets, zero elsewhere) has mean ``E_0 + tau^2 E_1`` (both from the formula
+Size. ``Q = sum_k g_k^T W g_k`` (``W``: ``H`` on the offsets, zero elsewhere) has mean
+``E_0 + tau^2 E_1`` (both from the formula
 above, with ``V_k = I_k`` and ``V_k = U_k U_k^T``), so ``tau^2 = max(0, (Q - E_0) / E_1)``
 (a moment estimate, added wherever it is positive, as a random-effects spread
 is; gated by the test below, spreads the test misses left the intervals short:

@@ -44,7 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from skelid.data import MarkerData
-from skelid.errors import DataError, ModelError
+from skelid.errors import DataError, ModelError, SettingError
 from skelid.estimators.base import (
     RATE,
     RNG,
@@ -54,11 +54,12 @@ from skelid.estimators.base import (
     check_fitted,
     check_model,
     check_settings,
+    count,
+    counted,
     emit,
     make_rng,
     marker_array,
     one_of,
-    positive_int,
     positive_or_none,
     steps,
 )
@@ -138,7 +139,7 @@ class MarkerGridFilter:
         Setting("axes", lambda v: v is None or all(array_or_none(a) and np.size(a) > 0 for a in v),
                 "None or one non-empty sequence of finite grid values per parameter"),
         Setting("history_steps", steps, "a sequence of positive frame counts"),
-        Setting("n_iter", positive_int, "a positive number of iterations"),
+        Setting("n_iter", count, counted("iterations")),
         RNG,
         RATE,
     )
@@ -162,8 +163,23 @@ class MarkerGridFilter:
                 f"a grid filter handles 1 to 3 parameters; model {self.model.name!r} has "
                 f"{self.model.n_params}", "use --method marker for more parameters")
         if self.axes is not None:
-            return tuple(np.asarray(a, float) for a in self.axes)
+            return self._given_axes()
         return tuple(p.grid for p in self.model.parameters)
+
+    def _given_axes(self) -> tuple[np.ndarray, ...]:
+        """The ``axes`` setting as one increasing 1-D grid per parameter, or a one-line :class:`SettingError`."""
+        names = list(self.model.parameter_names)
+        try:
+            axes = tuple(np.asarray(a, float) for a in self.axes)
+        except (TypeError, ValueError):
+            axes = ()
+        if len(axes) != len(names) or not all(a.ndim == 1 and a.size and bool(np.all(np.diff(a) > 0))
+                                              for a in axes):
+            raise SettingError(f"{type(self).__name__} setting axes does not fit model {self.model.name!r}: "
+                               f"{len(names)} parameter(s) {names} need one increasing grid each",
+                               f"give {len(names)} one-dimensional increasing arrays, e.g. "
+                               "(numpy.linspace(230.0, 270.0, 41),), or None for the priors' grids")
+        return axes
 
     def _grid(self):
         """``(axes, points (K, n_params), log prior (K,))``, built once per model and axes."""
