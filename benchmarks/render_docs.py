@@ -193,8 +193,8 @@ def opensim_truth_prior(path: Path) -> str:
         if key.split("/")[1] == "scaletool" or not c["rows"]:
             continue
         ln = _truth_values(c["rows"], "length", "coverage95")
-        lines.append(f"| {key} | {c['n']} | {_pooled_text(c, 'scales')} | {_pooled_text(c, 'scales', 'prior-dominated')}"
-                     f" | {_pooled_text(c, 'offsets')} | {_pooled_text(c, 'offsets', 'prior-dominated')} | "
+        lines.append(f"| {key} | {c['n']} | {_pooled_text(c, 'scales')} | "
+                     f"{_pooled_text(c, 'scales', 'prior-dominated')} | {_pooled_text(c, 'offsets')} | {_pooled_text(c, 'offsets', 'prior-dominated')} | "
                      f"{min(ln):.2f}-{max(ln):.2f} |")
     return ("\n".join(lines) + "\n\nFactors (log-normal, sd 0.15 per axis) and offsets (normal, 10 mm) drawn from "
             "the priors the fit uses: a right posterior covers 95 % of every quantity here, also of those the data "
@@ -530,6 +530,57 @@ def live_speed() -> str:
     return "\n".join(lines) + "\n\n" + source(path, d)
 
 
+def live_health() -> str:
+    """The live health flags on simulated faults (benchmarks/live_health.py): detection, delay, naming, false alarms."""
+    path = RESULTS / "live_health.json"
+    if not path.exists():
+        return ("*Not measured yet.* `python benchmarks/live_health.py` writes `benchmarks/results/live_health.json`; "
+                "`python benchmarks/render_docs.py` then puts its table here.\n")
+    d = load(path)
+
+    def share(k, n):
+        return f"{k}/{n}"
+
+    lines = ["| fault | model | sessions | detected (within N frames) | median frames to detection | named right "
+             "| false alarms | final error, median (max) |", "|---|---|---|---|---|---|---|---|"]
+    for c in d["cells"].values():
+        n = c["sessions"]
+        if c["fault"] == "clean":
+            found = ["—", "—", "—"]
+        else:
+            med = c["median_frames_to_detection"]
+            named = (f"{c['named_right']}/{c['named']}" if c["named"] else
+                     "not named" if c["fault"] == "dropout" else "none named")
+            found = [f"{share(c['detected'], n)} (N {c['detection_window']})", "—" if med is None else f"{med:g}",
+                     named]
+        fa = "—" if c["false_alarms"] is None else share(c["false_alarms"], n)
+        lines.append(f"| {c['fault']} | {c['model']} ({c['method']}) | {n} | " + " | ".join(found)
+                     + f" | {fa} | {c['final_error_median']:.2f} ({c['final_error_max']:.3g}) |")
+    drop = "; ".join(f"{c['model']} {share(c['dropout_as_rule'], c['sessions'])}" for c in d["cells"].values()
+                     if c["fault"] == "dropout")
+    alarms = {}  # per model: the trials (seeds) with a false alarm in any cell, and those of the clean control
+    for c in d["cells"].values():
+        seen, clean = alarms.setdefault(c["model"], (set(), set()))
+        seen.update(c["false_alarm_sessions"])
+        if c["fault"] == "clean":
+            clean.update(c["false_alarm_sessions"])
+    same = "; ".join(f"{m}: {len(seen)} trials, {len(seen & clean)} of them with one in the clean replay too"
+                     for m, (seen, clean) in alarms.items() if seen)
+    note = (f"{d['frames']} frames per session at {d['rate']:g} Hz, noise sd {d['sigma']:g} mm, the geometry drawn "
+            f"per session, the fault from a frame drawn in {d['start'][0]}-{d['start'][1]} (the units: the whole "
+            "stream). Named right: of the sessions whose health named a pair (swap) or a marker (knocked marker), "
+            "those that named the right one; for the frozen stream and the units, whether the text names the cause. "
+            f"False alarms: sessions with a not-ok frame from frame {d['warmup']} on outside the fault and the "
+            f"{d['margin']} frames after it (every fault replays the same trials, so that one trial can count in "
+            f"several rows; {same or 'none'}). Final error: the largest |estimate − truth| / sd over the parameters at "
+            "the last frame (the clean row is the reference). A missing marker is reported by design; on every "
+            "dropout frame the health said the marker is missing and nothing else where the markers left fix the "
+            f"pose, `too few markers` where they do not (case A) in: {drop}. The rules: `benchmarks/live_health.py`; "
+            "the report with the texts of the false alarms: "
+            "[`benchmarks/results/live_health.md`](/benchmarks/results/live_health.md).")
+    return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, d)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "demo": demo,
     "opensim-scales": opensim_scales,
@@ -548,6 +599,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "screens": screens,
     "speed": speed,
     "live-speed": live_speed,
+    "live-health": live_health,
 }
 
 

@@ -110,6 +110,7 @@ BENCHMARKS: tuple[Bench, ...] = (
        "case-a sigma 1 mm", "case-a sigma 5 mm"),
       ("--reps", "2", "--jobs", "2", "--cutoffs", "auto", "--no-glitch", "--tag", "case_a", "--cells",
        "case-a sigma 5 mm"), ("live_agreement_case_a.json", "live_agreement_case_a.md")),
+    B("live_health", "live_health.py", (), ("--quick",), ("live_health.json", "live_health.md")),
     B("sampler", "sampler.py", (), (), ("sampler.md",)),
     B("speed", "speed.py", (), ("--only", "online", "fit", "--repeats", "1", "--online-frames", "300"),
       ("speed.json", "speed.md")),
