@@ -194,7 +194,8 @@ def opensim_truth_prior(path: Path) -> str:
             continue
         ln = _truth_values(c["rows"], "length", "coverage95")
         lines.append(f"| {key} | {c['n']} | {_pooled_text(c, 'scales')} | "
-                     f"{_pooled_text(c, 'scales', 'prior-dominated')} | {_pooled_text(c, 'offsets')} | {_pooled_text(c, 'offsets', 'prior-dominated')} | "
+                     f"{_pooled_text(c, 'scales', 'prior-dominated')} | {_pooled_text(c, 'offsets')} | "
+                     f"{_pooled_text(c, 'offsets', 'prior-dominated')} | "
                      f"{min(ln):.2f}-{max(ln):.2f} |")
     return ("\n".join(lines) + "\n\nFactors (log-normal, sd 0.15 per axis) and offsets (normal, 10 mm) drawn from "
             "the priors the fit uses: a right posterior covers 95 % of every quantity here, also of those the data "
