@@ -304,29 +304,15 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     Every option of ``fit`` reaches the fit (the estimator's options as for a ``.toml`` model) or is
     refused here in one line.
     """
-    from skelid import scaling, workflows
-    from skelid.errors import SettingError
+    from skelid import scaling
     from skelid.io import read_markers
-    from skelid.io.atomic import atomic_dir, check_output_dir
+    from skelid.io.atomic import atomic_dir
     from skelid.io.legacy import run_from_scaling
     from skelid.io.results import write_run
 
-    if len(method_names) > 1:
-        raise click.UsageError("an .osim model is fitted with one method; give --method once")
-    for p in alternatives:
-        if not str(p).lower().endswith(".osim"):
-            raise SettingError(f"--alternative {p}: an OpenSim model's alternative must be an .osim model (the "
-                               "scale factors are compared by body)", "give another .osim model of the same body")
-    for name, v in (("--sigma", sigma), ("--cutoff", cutoff), ("--artefact-rms", artefact_rms)):
-        _finite(name, v)
+    _check_osim_fit(model_path, data_paths, method_names, sigma, out_dir, marker_set, overwrite, cutoff,
+                    artefact_rms, alternatives)
     limits = _limits(*limits)
-    if out_dir is not None:
-        check_output_dir(out_dir, overwrite=overwrite)
-    workflows.check_input_file(model_path, "model file")
-    if marker_set is not None:
-        workflows.check_input_file(marker_set, "marker-set file")
-    for p in [*alternatives, *data_paths]:
-        workflows.check_input_file(p, "model file" if p in alternatives else "data file")
     if ik_draws is not None:
         from skelid.angles import check_trial_names
 
@@ -355,15 +341,44 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     if as_json:
         _echo_json(table)
     elif not quiet:
-        for body, s in table["scales"].items():
-            for ax, e in s.items():
-                lo, hi = e["ci95"]
-                click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
-        click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
-        if out_dir:
-            click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")
-        if ik_draws is not None:
-            click.echo(f"joint angles and their sd written to {Path(out_dir) / 'ik'}")
+        _echo_scaling(table, out_dir, ik_draws is not None)
+
+
+def _check_osim_fit(model_path, data_paths, method_names, sigma, out_dir, marker_set, overwrite, cutoff,
+                    artefact_rms, alternatives):
+    """The options and files of an ``.osim`` fit checked before any work (one line each)."""
+    from skelid import workflows
+    from skelid.errors import SettingError
+    from skelid.io.atomic import check_output_dir
+
+    if len(method_names) > 1:
+        raise click.UsageError("an .osim model is fitted with one method; give --method once")
+    for p in alternatives:
+        if not str(p).lower().endswith(".osim"):
+            raise SettingError(f"--alternative {p}: an OpenSim model's alternative must be an .osim model (the "
+                               "scale factors are compared by body)", "give another .osim model of the same body")
+    for name, v in (("--sigma", sigma), ("--cutoff", cutoff), ("--artefact-rms", artefact_rms)):
+        _finite(name, v)
+    if out_dir is not None:
+        check_output_dir(out_dir, overwrite=overwrite)
+    workflows.check_input_file(model_path, "model file")
+    if marker_set is not None:
+        workflows.check_input_file(marker_set, "marker-set file")
+    for p in [*alternatives, *data_paths]:
+        workflows.check_input_file(p, "model file" if p in alternatives else "data file")
+
+
+def _echo_scaling(table: dict, out_dir, ik: bool) -> None:
+    """The scale factors with their intervals, and what was written where."""
+    for body, s in table["scales"].items():
+        for ax, e in s.items():
+            lo, hi = e["ci95"]
+            click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
+    click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
+    if out_dir:
+        click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")
+    if ik:
+        click.echo(f"joint angles and their sd written to {Path(out_dir) / 'ik'}")
 
 
 @cli.command(epilog="Example:\n\n\b\n"
