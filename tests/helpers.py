@@ -1,5 +1,7 @@
 """Models built in Python for tests."""
 
+import numpy as np
+
 from skelid.model import model_from_dict
 
 
@@ -119,3 +121,16 @@ def opensim_marker_gap(model, osim_model, rng, n_poses: int = 100, limit: float 
                         for m in model.markers]) * 1000.0
         worst = max(worst, float(np.abs(x - ref).max()))
     return worst
+
+
+def leg_walk_poses(n_frames: int, n_pose: int, rate: float = 60.0) -> np.ndarray:
+    """``(F, Q)`` poses of the test leg's walk: pelvis at (100, 900, 50) mm, each joint swinging at its own rate."""
+    t = np.arange(n_frames) / rate
+    q = np.zeros((n_frames, n_pose))
+    q[:, 3:6] = [100.0, 900.0, 50.0]
+    q[:, 6] = 0.5 * np.sin(2 * np.pi * 1.1 * t)
+    q[:, 7] = 0.3 * np.sin(2 * np.pi * 0.7 * t + 1)
+    q[:, 8] = 0.3 * np.sin(2 * np.pi * 0.9 * t + 2)
+    q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
+    q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    return q

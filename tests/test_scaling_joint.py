@@ -271,18 +271,12 @@ def _noisy_walk(leg, marker_sd, n_frames=300, seed=3):  # noqa: F811
     """The leg's walk of :func:`tests.test_scaling._trials` with each marker's own noise sd (mm)."""
     from skelid.data import MarkerData
     from skelid.model.kinematics import marker_positions
+    from tests.helpers import leg_walk_poses
 
     base, info = read_osim(leg)
     model = osim_parameters(base, info, "bodies", "offsets")
     truth = model.theta_nominal.copy()
-    t = np.arange(n_frames) / 60.0
-    q = np.zeros((n_frames, model.n_pose))
-    q[:, 3:6] = [100.0, 900.0, 50.0]
-    q[:, 6] = 0.5 * np.sin(2 * np.pi * 1.1 * t)
-    q[:, 7] = 0.3 * np.sin(2 * np.pi * 0.7 * t + 1)
-    q[:, 8] = 0.3 * np.sin(2 * np.pi * 0.9 * t + 2)
-    q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
-    q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    q = leg_walk_poses(n_frames, model.n_pose)
     rng = np.random.default_rng(seed)
     sd = np.resize(np.asarray(marker_sd, float), len(model.markers))
     x = marker_positions(model, truth, q) + rng.normal(0, 1, (n_frames, len(model.markers), 3)) * sd[:, None]

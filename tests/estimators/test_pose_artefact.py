@@ -10,6 +10,7 @@ from skelid.estimators.checks.pose_artefact import artefact_coordinates, pose_ar
 from skelid.io.osim import osim_parameters, read_osim
 from skelid.model.kinematics import forward_kinematics, marker_positions
 from skelid.scaling import fit_osim
+from tests.helpers import leg_walk_poses
 from tests.test_scaling import MODEL, marker_xml
 
 FRAMES = 240
@@ -25,14 +26,7 @@ def leg(tmp_path_factory):
     for k, p in enumerate(model.parameters):
         if p.kind == "scale":
             theta[k] = {"pelvis": 1.02, "thigh": 1.1, "shank": 0.95}[p.target]
-    t = np.arange(FRAMES) / 60.0
-    q = np.zeros((FRAMES, model.n_pose))
-    q[:, 3:6] = [100.0, 900.0, 50.0]
-    q[:, 6] = 0.5 * np.sin(2 * np.pi * 1.1 * t)
-    q[:, 7] = 0.3 * np.sin(2 * np.pi * 0.7 * t + 1)
-    q[:, 8] = 0.3 * np.sin(2 * np.pi * 0.9 * t + 2)
-    q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
-    q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
+    q = leg_walk_poses(FRAMES, model.n_pose)
     return d / "leg.osim", model, theta, q
 
 
