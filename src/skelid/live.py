@@ -127,7 +127,14 @@ scale of its recent innovations): two markers that both leave their tracks
 and the frame is not used, from the first swapped frame on and before the
 noise level or a motion model exists, unless the model clearly fits the
 labels as they came and not swapped back (the tracks may have followed a swap
-that began where they could not see it).
+that began where they could not see it). Each frame's scale is compared with
+the model's (:class:`~skelid.live_health.ScaleCheck`: distances within rigid
+segments, or the markers' spread against its range over the model's poses):
+a scale more than 1.5 times off is reported with the stream unit it points
+to (a spread that is the model's over 1000 names metres, not a zeroed
+stream), the frame still used. A parameter whose estimate sits on its
+prior's bound has status ``on-bound``; where the data put it more than
+:data:`~skelid.live_health.BOUND_Z` sd beyond, the health says so.
 
 Once the noise is known, a frame used whole has its residual sum of squares
 checked against ``sigma^2`` on ``nD - Q`` degrees of freedom (``p = 1e-7``;
@@ -141,7 +148,11 @@ motion model too slow for the movement that has pulled theta off), reported,
 not hidden behind ``"ok"``. An estimated noise level grows to cover a misfit
 of every marker alike, so only a stated one can show that; an estimated noise
 sd over 10 % of the model's size (:data:`_LOOSE`; a stream in the wrong unit)
-is reported either way.
+is reported either way. A marker is named only where leaving the markers out
+in turn tells it from the others (:func:`~skelid.live_health.alike_markers`);
+a frame whose screen would leave too few markers to fix the pose blames none
+(case A has one residual degree of freedom per frame: any marker left out
+leaves the other two fitting).
 
 Examples
 --------
@@ -182,7 +193,17 @@ from skelid.estimators.fit.joint import _gain, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.estimators.online import _live_kernel
 from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
-from skelid.live_health import EFFECT_MARKER, MarkerTracks, MisfitWindow, ratio_limit
+from skelid.live_health import (
+    BOUND_Z,
+    EFFECT_MARKER,
+    SCALE_EVERY,
+    MarkerTracks,
+    MisfitWindow,
+    ScaleCheck,
+    gaussian_bound_z,
+    grid_bound_z,
+    ratio_limit,
+)
 from skelid.model.description import Model
 from skelid.model.kinematics import (
     Workspace,
@@ -752,7 +773,10 @@ class LiveEstimate:
     cov : (P, P) float
         Posterior covariance of ``theta``.
     parameters : mapping of str to ParameterEstimate
-        Mean, sd and 95 % interval of each parameter (model units).
+        Mean, sd and 95 % interval of each parameter (model units); status ``'prior'`` where the data
+        have added little, ``'on-bound'`` where the estimate sits on its prior's bound (the Gaussian
+        form's mean held there, the grid form's marginal posterior largest at its edge), else
+        ``'identified'``.
     joint_centres : mapping of str to (D,) float
         World position of each segment's joint (model units); empty without a pose.
     marker_residuals : mapping of str to float
@@ -771,6 +795,7 @@ class LiveEstimate:
     _cov: Callable[[], np.ndarray] | None = field(default=None, repr=False)
     _residuals: np.ndarray | Callable[[], np.ndarray] | None = field(default=None, repr=False)
     _ranges: tuple | None = field(default=None, repr=False)  # (lower, upper, prior sd) of each parameter
+    _on_bound: np.ndarray | None = field(default=None, repr=False)  # (P,) bool: the estimate sits on a bound
 
     @cached_property
     def cov(self) -> np.ndarray:
@@ -782,9 +807,10 @@ class LiveEstimate:
         sd = np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
         lo, hi, prior_sd = self._ranges
         params = {}
+        on = np.zeros(mean.size, dtype=bool) if self._on_bound is None else self._on_bound
         for k, p in enumerate(model.parameters):
-            unit = "deg" if p.kind == "axis_direction" else "1" if p.kind == "scale" else model.units
-            status = "prior" if sd[k] > 0.9 * prior_sd[k] else "identified"
+            unit = _unit(model, p)
+            status = "prior" if sd[k] > 0.9 * prior_sd[k] else "on-bound" if on[k] else "identified"
             params[p.name] = ParameterEstimate(p.name, unit, float(mean[k]), float(mean[k]), float(sd[k]),
                                                (float(max(mean[k] - _Z95 * sd[k], lo[k])),
                                                 float(min(mean[k] + _Z95 * sd[k], hi[k]))), status=status)
@@ -1015,6 +1041,7 @@ class Session:
         self._min_present = model.n_pose // model.dim + 1  # markers that fix a pose: n * D > Q
         if self.method == "grid":
             self._grid = MarkerGridFilter(model, sigma=sigma, history_steps=(), rng=self.rng)
+            self._grid_shape = tuple(a.size for a in self._grid._points()[0])
         self._state = self._grid.init_state() if self.method == "grid" else empty_state(model, self._prior)
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
         self._sigma_floor = noise_floor(model)
@@ -1024,6 +1051,9 @@ class Session:
         self._tracks = MarkerTracks(self._M, self._D, self._sigma_floor)  # each marker's path: swapped labels
         self._claim = None  # the evidence on the tracks' present claim of a swap (see _labels_fit)
         self._window = MisfitWindow(self._M, self._D, model.n_pose, self._sigma_floor)  # a lasting misfit
+        self._declared = units or model.units
+        self._scale_check = ScaleCheck(model, self._declared)  # each frame's scale: a stream in the wrong unit
+        self._scale_line: str | None = None  # what the scale check found in the frame (None: nothing)
         compiled = self._linearise.tables is not None and self._pose_fit.tables is not None
         self._step = _Step(self) if compiled else None
 
@@ -1205,8 +1235,14 @@ class Session:
     def _input_problem(self, y) -> str | None:
         """Why a well-formed frame cannot be used at all: it repeats the last frame exactly (a frozen
         stream), or the markers that would fix its pose all lie at one point (a stream of zeros; within
-        :data:`_COINCIDE` of the model's size, closer than any pose of a model puts them). None when it can be
-        used."""
+        :data:`_COINCIDE` of the model's size, closer than any pose of a model puts them; where their spread
+        is the model's scaled by a unit's factor, a stream in that unit). None when it can be used.
+
+        The frame's scale is checked against the model's on the way
+        (:class:`~skelid.live_health.ScaleCheck`, every :data:`~skelid.live_health.SCALE_EVERY` frames while
+        it is on scale): a stream in the wrong unit is reported on every frame (``_scale_line``), its frames
+        still used.
+        """
         present = np.isfinite(y).all(axis=-1)
         last, self._last_y = self._last_y, y
         if not present.any():
@@ -1216,9 +1252,19 @@ class Session:
             return (f"frame repeats the last one exactly ({self._n_repeat + 1} in a row: a frozen stream?); "
                     "frame not used")
         self._n_repeat = 0
-        if present.sum() >= self._min_present and float(np.ptp(y[present], axis=0).max()) <= self._coincide:
-            return (f"every marker at one point (all within {self._coincide:.3g} {self.model.units}: a zeroed "
-                    "stream?); frame not used")
+        if present.sum() >= self._min_present:
+            extent = float(np.ptp(y[present], axis=0).max())
+            if extent <= self._coincide:
+                self._scale_line = None  # said here, if at all
+                scale = self._scale_check.check(y, present, keep=False) if extent > 0 else None
+                if scale is not None and scale.unit is not None:
+                    return (f"every marker within {extent:.3g} {self.model.units} of one point: "
+                            f"{_scale_words(scale, self._declared)}; frame not used")
+                return (f"every marker at one point (all within {self._coincide:.3g} {self.model.units}: a zeroed "
+                        "stream?); frame not used")
+        if self._scale_line is not None or self._frame <= SCALE_EVERY or self._frame % SCALE_EVERY == 0:
+            scale = self._scale_check.check(y, present)
+            self._scale_line = _scale_words(scale, self._declared) if scale is not None and scale.off else None
         return None
 
     def _unused(self, y, problem: str, count: bool = True, rejected: tuple = ()) -> LiveEstimate:
@@ -1383,11 +1429,12 @@ class Session:
         rejected = tuple(sc.rejected)
         bad = [self.model.marker_names.index(n) for n in rejected]
         if sc.too_few:
-            problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
-                            "few markers remain: frame not used")
-            self._tracks.amend(lost=bad)
+            # without the last marker left out too few remain to fix the pose: every marker taken out would
+            # leave the rest fitting, so the frame cannot say which misfits
+            problems.append(_too_few_line(rejected[:-1], self.outlier_sd))
+            self._tracks.amend(lost=bad[:-1])
             self._not_used(st, sc.y, s2)
-            return self._gaussian_estimate(sc.resid, problems, rejected)
+            return self._gaussian_estimate(sc.resid, problems, rejected[:-1])
         if rejected:
             # a frame with a marker that does not fit (a swapped label) may have its pose fitted wrongly too, and
             # the motion model would carry that pose into its neighbours: its data are left out, and its pose
@@ -1420,7 +1467,7 @@ class Session:
             self._good = q
         if self._remember(sc.y, q, True):
             self._relinearise(st.mean)
-        return self._gaussian_estimate(sc.resid, problems, rejected, used=not rejected)
+        return self._gaussian_estimate(sc.resid, problems, rejected, used=not rejected, y=sc.y, q=q)
 
     def _amend_tracks(self, pair, lost) -> None:
         """Tell the markers' tracks what the model found in the frame: a swapped ``pair`` of names (the tracks
@@ -1568,24 +1615,45 @@ class Session:
         self._early.append((y, q, used))
         return n + 1 in _RELINEARISE
 
-    def _gaussian_estimate(self, resid, problems, rejected, used: bool = False) -> LiveEstimate:
-        """The estimate from the state; a frame ``used`` whole has its residuals checked (:meth:`_misfit`)."""
+    def _gaussian_estimate(self, resid, problems, rejected, used: bool = False, y=None, q=None) -> LiveEstimate:
+        """The estimate from the state; a frame ``used`` whole (``y (M, D)``, its pose ``q (Q,)``) has its
+        residuals checked (:meth:`_misfit`); the frame's scale and the estimate's bounds are reported
+        (:meth:`_notes`)."""
         st = self._state
         s2 = _sigma2(st.rss, st.n_obs, st.n_used, self.model, self.sigma, self._sigma_fallback,
                        self._sigma_floor)
         if used and resid is not None:
             problems = problems + self._misfit(resid, s2, st.n_obs - self.model.n_pose * st.n_used
-                                               - self.model.n_params)
+                                               - self.model.n_params, y, q, st.mean)
+        on, lines = self._gaussian_bound(st, s2)
+        problems = problems + self._notes(lines)
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
-                            self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges)
+                            self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges, on)
 
-    def _misfit(self, resid, s2: float, dof_noise: int) -> list[str]:
+    def _gaussian_bound(self, st: GaussianState, s2: float) -> tuple[np.ndarray | None, list[str]]:
+        """Which parameters' means are held on a prior bound ``(P,)`` (None: none), and the lines of those
+        the unbounded solve puts beyond it by more than :data:`~skelid.live_health.BOUND_Z` sd."""
+        lo, hi = self._ranges[0], self._ranges[1]
+        on = (st.mean <= lo) | (st.mean >= hi)  # solve_mean clips: a mean held on a bound equals it
+        if not on.any():
+            return None, []
+        Lam, eta = _theta_information(st, self._prior, s2)
+        cov = np.linalg.inv(Lam)
+        z = gaussian_bound_z(cov @ eta, np.sqrt(np.diag(cov)), lo, hi)
+        return on, _bound_lines(self.model, np.where(on, z, -np.inf), np.where(st.mean <= lo, -1, 1))
+
+    def _notes(self, bound_lines) -> list[str]:
+        """What is reported whatever became of the frame: its scale off the model's, estimates on a bound."""
+        return ([] if self._scale_line is None else [self._scale_line]) + bound_lines
+
+    def _misfit(self, resid, s2: float, dof_noise: int, y=None, q=None, theta=None) -> list[str]:
         """What of a frame used whole and of the recent frames exceeds what the noise explains.
 
-        ``resid (M,)`` is the frame's residual distances (its pose fitted freely), ``s2`` the noise variance
-        (stated, or estimated on ``dof_noise`` degrees of freedom).
+        ``resid (M,)`` is the frame's residual distances (its pose ``q`` fitted freely to the frame ``y``),
+        ``s2`` the noise variance (stated, or estimated on ``dof_noise`` degrees of freedom), ``theta`` the
+        parameters now (where the window's markers are left out in turn).
         The frame joins the misfit window (:class:`~skelid.live_health.MisfitWindow`); once the noise is
         known (stated, or :data:`_KNOWN_DOF` degrees of freedom) four checks:
 
@@ -1597,7 +1665,9 @@ class Session:
           (4) times the noise variance (a misfit that began, a stated noise level too low);
         - each marker over the window: its mean squared residual distance beyond
           :data:`~skelid.live_health.EFFECT_MARKER` ``D s^2`` (4) and the quantile (a marker that does not
-          follow the model while the rest do: placed elsewhere, loose);
+          follow the model while the rest do: placed elsewhere, loose), named only where leaving the markers
+          out in turn tells it from the others (:func:`~skelid.live_health.alike_markers`), else the
+          candidates listed;
         - a noise sd over :data:`_LOOSE` of the model's size (no marker system is that noisy: the stream's
           units or the model are wrong).
 
@@ -1612,7 +1682,7 @@ class Session:
         rss = float(r2.sum())
         stated = self.sigma is not None
         if not stated and dof_noise < _KNOWN_DOF:
-            self._window.add(r2, seen, rss, n)
+            self._window.add(r2, seen, rss, n, y, q)
             return []
         units = self.model.units
         out = []
@@ -1623,8 +1693,9 @@ class Session:
                        f"exceed what the noise (sd {math.sqrt(s2):.3g}) explains: wrong model, units or labels?")
         # the window takes each frame, and each marker in it, at most at its own bound: a few frames already
         # reported (a swap the tracks missed and the model took in) would otherwise fill it for 50 frames
-        self._window.add(np.minimum(r2, s2 * self._marker_cap), seen, min(rss, frame_cap), n)
-        mis = self._window.check(s2, None if stated else dof_noise)
+        self._window.add(np.minimum(r2, s2 * self._marker_cap), seen, min(rss, frame_cap), n, y, q)
+        linearise = None if theta is None else partial(_window_linearise, self.model, self._ws, theta)
+        mis = self._window.check(s2, None if stated else dof_noise, linearise)
         if mis is not None:
             out += self._window_lines(mis, s2, stated)
         size = self._size
@@ -1642,6 +1713,13 @@ class Session:
                        f"{mis.noise_sd:.3g} of the frames before: the markers or the movement changed (a marker "
                        "slipped, a label changed?)")
             out.append(f"residual sd {mis.sd:.3g} {units} over the last {mis.n_frames} frames exceeds the {against}")
+        if mis.alike.size:
+            shown = ", ".join(f"{names[k]} {v:.3g}" for k, v in zip(mis.alike[:4], mis.alike_rms[:4], strict=True))
+            more = f" and {mis.alike.size - 4} more" if mis.alike.size > 4 else ""
+            out.append(f"markers that do not follow the model over the last {mis.n_frames} frames, but the residuals "
+                       f"(beyond what the noise sd {math.sqrt(s2):.3g} allows) cannot say which: any one of {shown}"
+                       f"{more} {units} (rms residual) taken out, the rest fit alike (placed elsewhere, loose, or "
+                       "mislabelled?)")
         if mis.markers.size:
             shown = ", ".join(f"{names[k]} {v:.3g}" for k, v in zip(mis.markers[:3], mis.marker_rms[:3], strict=True))
             more = f" and {mis.markers.size - 3} more" if mis.markers.size > 3 else ""
@@ -1716,11 +1794,11 @@ class Session:
             y[worst] = np.nan
             rejected.append(names[worst])
             n_present -= 1
-            if n_present < self._min_present:
-                self._tracks.amend(lost=[names.index(n) for n in rejected])
-                problems.append(f"left out {', '.join(rejected)} (residual beyond {self.outlier_sd:g} sd) and too "
-                                "few markers remain: frame not used")
-                return self._grid_estimate(None, problems, tuple(rejected))
+            if n_present < self._min_present:  # as in the Gaussian form: the last one cannot be told
+                named = rejected[:-1]
+                self._tracks.amend(lost=[names.index(n) for n in named])
+                problems.append(_too_few_line(named, self.outlier_sd))
+                return self._grid_estimate(None, problems, tuple(named))
         self._state = st
         if rejected:
             bad = [names.index(n) for n in rejected]
@@ -1750,19 +1828,28 @@ class Session:
         w /= w.sum()
         mean = w @ pts
         sigma = self._grid_sigma()
+        k = int(np.argmax(lw))
         if st.pose is not None:
-            k = int(np.argmax(lw))
             q = st.pose[k]
             if y is not None:
                 if resid is None:
                     resid = _grid_residuals(model, self._ws, pts[k], q, y)
                 if np.isfinite(sigma) and not rejected:
                     problems = problems + self._misfit(resid, sigma * sigma, st.n_obs - model.n_pose * st.n_used
-                                                       - model.n_params)
+                                                       - model.n_params, y, q, pts[k])
+        shape = self._grid_shape
+        at = np.unravel_index(k, shape)
+        on = None
+        lines = []
+        if any(i == 0 or i == n - 1 for i, n in zip(at, shape, strict=True)):  # the most probable point on an edge
+            z, edge = grid_bound_z(lw.reshape(shape), at)
+            on = edge != 0
+            lines = _bound_lines(model, z, edge)
+        problems = problems + self._notes(lines)
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(mean), _frozen(q), sigma,
                             healthy, "ok" if healthy else "; ".join(problems), rejected, model,
-                            partial(self._grid_cov, w, mean), resid, self._ranges)
+                            partial(self._grid_cov, w, mean), resid, self._ranges, on)
 
     def _grid_cov(self, w, mean) -> np.ndarray:
         """Covariance of the grid posterior with weights ``w (K,)``, plus the grid's quantisation variance
@@ -2028,7 +2115,7 @@ class _Step:
         if ses._remember(y, q, True):
             ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
-        return ses._gaussian_estimate(resid, problems, (), used=True)
+        return ses._gaussian_estimate(resid, problems, (), used=True, y=y, q=q)
 
 
 def _for_all(cutoffs) -> np.ndarray:
@@ -2107,6 +2194,67 @@ def _worst_first(resid, first, n: int = 4) -> list[int]:
 
 def _swap_line(pair) -> str:
     return f"labels {pair[0]} and {pair[1]} look swapped (swapped back, every marker fits)"
+
+
+def _too_few_line(named, outlier_sd: float) -> str:
+    """The problem line of a frame whose screen ran out of markers: ``named`` were left out while enough
+    remained to single them out; the marker that would have left too few cannot be told from the others
+    (taking any one of them out leaves the rest fitting), so none is blamed for what remains."""
+    if named:
+        return (f"left out {', '.join(named)} (residual beyond {outlier_sd:g} sd); the rest still misfit and too "
+                "few markers remain to tell which: frame not used")
+    return (f"residuals beyond {outlier_sd:g} noise sd that no one marker can be blamed for (without any one "
+            "of them too few markers remain to fix the pose): frame not used")
+
+
+def _unit(model: Model, p) -> str:
+    """The unit of parameter ``p``: degrees for a tilt, 1 for a scale factor, else the model's length unit."""
+    return "deg" if p.kind == "axis_direction" else "1" if p.kind == "scale" else model.units
+
+
+def _bound_lines(model: Model, z, edge) -> list[str]:
+    """A line for each parameter pressed against its prior's bound: ``z (P,)`` sd beyond it
+    (:func:`~skelid.live_health.gaussian_bound_z`, :func:`~skelid.live_health.grid_bound_z`) at least
+    :data:`~skelid.live_health.BOUND_Z`, on the bound ``edge (P,)`` (-1 lower, 1 upper)."""
+    out = []
+    for k in np.flatnonzero(z >= BOUND_Z):
+        p = model.parameters[k]
+        side, bound = ("lower", p.prior.lower) if edge[k] < 0 else ("upper", p.prior.upper)
+        far = "beyond it, further than the grid shows" if math.isinf(z[k]) else f"{z[k]:.3g} sd beyond it"
+        out.append(f"{p.name} sits on its prior's {side} bound {bound:g} {_unit(model, p)} (the data put it {far}): "
+                   "check the stream's units and the model")
+    return out
+
+
+#: how the scale finding names a stream unit
+_UNIT_WORDS = {"mm": "millimetres", "cm": "centimetres", "m": "metres", "in": "inches"}
+
+
+def _scale_words(scale, declared: str) -> str:
+    """The finding of :meth:`~skelid.live_health.ScaleCheck.check` in words: how far off, and the likely unit."""
+    lo, hi = (1.0 / scale.high, 1.0 / scale.low) if scale.high < 1.0 else (scale.low, scale.high)
+    how = _times(lo) if hi == lo else f"{_times(lo)}-{_times(hi)}"
+    how += " times closer together" if scale.high < 1.0 else " times farther apart"
+    basis = "distances within its rigid segments" if scale.rigid else "their spread over the poses it allows"
+    text = f"the markers lie {how} than the model puts them ({basis})"
+    if scale.unit is None:
+        return text + ": wrong units or wrong model?"
+    f = scale.factor if scale.factor >= 1 else 1.0 / scale.factor
+    fix = "convert it to mm, cm or m" if scale.unit == "in" else f"give units={scale.unit!r}"
+    return (text + f": the stream looks to be in {_UNIT_WORDS[scale.unit]}, not {declared} (units off by a factor "
+            f"{f:.4g}); {fix}")
+
+
+def _times(v: float) -> str:
+    """A factor in a few digits: 2.5, 14, 680."""
+    return f"{v:.2g}" if v < 10 else f"{v:.0f}"
+
+
+def _window_linearise(model: Model, ws: Workspace, theta, q):
+    """Marker positions ``(T, M, D)`` and their pose Jacobian ``(T, M, D, Q)`` at ``theta (P,)`` and the poses
+    ``q (T, Q)`` (the misfit window's frames, when its markers are left out in turn)."""
+    x, Jq, _ = marker_jacobian(model, theta, q, ws)
+    return x, Jq
 
 
 def _coordinates(value, what: str) -> np.ndarray:
