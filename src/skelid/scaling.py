@@ -1017,15 +1017,18 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
     solve = _posterior_solver(sum(jo.info_trials), hp)[0]
     B = BOOTSTRAP_SETS
     steps = np.empty((B, model.n_params))
+    fitted = []  # each trial's fitted markers and each marker's noise sd, the same for every data set
+    for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
+        if jo.marker_sd is not None:
+            sd = jo.marker_sd[k] / (1.0 if weights is None else np.sqrt(np.maximum(weights, 1e-300)))
+        else:
+            sd = np.full(y.shape[1], float(sigma if sigma is not None else jo.sigma[k]))
+        fitted.append((marker_positions(model, jo.theta, q), sd[None, :, None]))
     for b in range(B):
         score = np.zeros(model.n_params)  # the data's part: the prior's pull is the posterior's, not a bias
         for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
-            if jo.marker_sd is not None:
-                sd = jo.marker_sd[k] / (1.0 if weights is None else np.sqrt(np.maximum(weights, 1e-300)))
-            else:
-                sd = np.full(y.shape[1], float(sigma if sigma is not None else jo.sigma[k]))
-            x = marker_positions(model, jo.theta, q)
-            sim = np.where(np.isfinite(y), x + rng.normal(size=x.shape) * sd[None, :, None], np.nan)
+            x, sd = fitted[k]
+            sim = np.where(np.isfinite(y), x + rng.normal(size=x.shape) * sd, np.nan)
             g = _trial_terms(model, jo.theta, sim, q, ws, weights, BOOTSTRAP_POSE_ITER)[2]
             score = score + g / jo.sigma[k] ** 2
         steps[b] = solve(score)
