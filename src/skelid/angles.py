@@ -87,6 +87,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skelid._linalg import frame_gram
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, SettingError
 from skelid.io.osim import OsimCoordinate
@@ -439,7 +440,7 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
         sl = slice(a, a + step)
         Jq, Jt = _jacobians(model, theta, q[sl], y[sl], ws)
         fixed[sl] &= pose_fixed(Jq)
-        H = np.einsum("tkq,tkr->tqr", Jq, Jq)
+        H = frame_gram(Jq)
         H[~fixed[sl]] = np.eye(Q)
         Hinv = np.linalg.inv(H)
         Hinv_diag[sl] = np.einsum("tqq->tq", Hinv)

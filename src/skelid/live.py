@@ -186,6 +186,7 @@ from scipy.linalg.lapack import dgeqrf as _dgeqrf
 from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
+from skelid._linalg import frame_gram
 from skelid.data import unit_scale
 from skelid.errors import DataError, ModelError, SettingError
 from skelid.estimators.fit import _lm_kernel
@@ -544,7 +545,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
 
     x, Jq, _ = marker_jacobian(model, theta, q, ws)
     J = (Jq * m[..., None, None]).reshape(T, -1, Q)
-    Hqq = np.einsum("tni,tnj->tij", J, J)
+    Hqq = frame_gram(J)
     R = smoothing_penalty(model, Hqq, rate, cutoff)
     S = objective(x, q)
     for _ in range(n_iter):
@@ -567,7 +568,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
             break
         x, Jq, _ = marker_jacobian(model, theta, q, ws)
         J = (Jq * m[..., None, None]).reshape(T, -1, Q)
-        Hqq = np.einsum("tni,tnj->tij", J, J)
+        Hqq = frame_gram(J)
     return q
 
 

@@ -63,6 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
+from skelid._linalg import frame_gram, summed_gram, summed_product
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, SkelidWarning
 from skelid.estimators.checks.pose_artefact import pose_artefact
@@ -1070,11 +1071,11 @@ def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) 
 
     q, r, Jq, Jt = _posed_terms(model, theta, y, q, ws, weights, pose_iter)
     Kp = projected_theta_jacobian(Jq, Jt)
-    out = (q, np.einsum("tkp,tkq->pq", Kp, Kp), np.einsum("tkp,tk->p", Kp, r), float(np.sum(r**2)))
+    out = (q, summed_gram(Kp), summed_product(Kp, r), float(np.sum(r**2)))
     if floor is None:
         return out
     var = np.maximum(marker_noise_variances(Jq, r, np.isfinite(y).all(axis=-1)), floor**2)
-    return out + (np.einsum("tkp,k,tkq->pq", Kp, np.repeat(var, r.shape[1] // var.size), Kp), var)
+    return out + (summed_gram(Kp, w=np.repeat(var, r.shape[1] // var.size)), var)
 
 
 def _backtrack(theta, step, lo, hi, cost, terms, penalised):
@@ -1136,7 +1137,7 @@ def marker_noise_variances(J_pose, r, observed) -> np.ndarray:
     A = np.zeros((M, M))
     for a in range(0, T, LEVERAGE_BLOCK):
         Jb, wb = J_pose[a:a + LEVERAGE_BLOCK], rows[a:a + LEVERAGE_BLOCK]
-        H = np.einsum("tkq,tkr->tqr", Jb, Jb)
+        H = frame_gram(Jb)
         ridge = 1e-12 * np.maximum(np.einsum("tqq->t", H) / max(Q, 1), 1e-300)
         G = np.linalg.solve(H + ridge[:, None, None] * np.eye(Q), np.swapaxes(Jb, 1, 2))
         E = (wb[:, :, None] * wb[:, None, :]) * (np.eye(MD) - Jb @ G)
@@ -1177,7 +1178,7 @@ def _posed_terms(model: Model, theta, y, q, ws, weights=None, pose_iter: int = P
         return q, r, Jq, Jt
     Q = Jq.shape[-1]
     for _ in range(WEIGHTED_POSE_STEPS):
-        H = np.einsum("tkq,tkr->tqr", Jq, Jq)
+        H = frame_gram(Jq)
         ridge = 1e-9 * np.maximum(np.einsum("tqq->t", H) / max(Q, 1), 1e-300)
         dq = np.linalg.solve(H + ridge[:, None, None] * np.eye(Q), np.einsum("tkq,tk->tq", Jq, r)[..., None])[..., 0]
         q = q + dq
@@ -1480,8 +1481,8 @@ def one_factor_test(model: Model, per_axis: Model, jo: JointOffsets, ys, weights
         r, Jq, Jt = weighted_terms(per_axis, th, q, y, row_weights(weights, y), ws)
         r = np.where(np.isfinite(r), r, 0.0)
         Kp = projected_theta_jacobian(Jq, Jt)
-        S = S + np.einsum("tkp,tkq->pq", Kp, Kp) / sig**2
-        g = g + np.einsum("tkp,tk->p", Kp, r) / sig**2
+        S = S + summed_gram(Kp) / sig**2
+        g = g + summed_product(Kp, r) / sig**2
     C = np.zeros_like(S) if score_cov is None else np.asarray(score_cov, float)
     L = np.array([[1.0, -1.0, 0.0], [0.0, 1.0, -1.0]])
     out = {}

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from skelid._linalg import summed_gram
 from skelid.estimators.fit.likelihood import frame_terms
 from skelid.model.description import Model
 
@@ -87,7 +88,7 @@ def artefact_influence(model: Model, y, theta, pose, R, used):
     _, Jq, Jt = frame_terms(model, theta, pose, y)
     A, _ = influence_rows(Jq, Jt, R)  # (T, m, P); rows of missing markers are zero
     funcs, owner = artefact_basis(model, pose, used)
-    S = np.einsum("tkp,tkq->pq", Jt, A)
+    S = summed_gram(Jt, A)
     return np.linalg.pinv(S) @ np.einsum("tjp,tj->pj", A[:, owner, :], funcs), owner
 
 

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from skelid._linalg import summed_gram, summed_product
 from skelid.model.description import Model
 from skelid.model.kinematics import Workspace, forward_kinematics
 
@@ -614,7 +615,7 @@ def model_misfit(model: Model, y, theta, pose, used, sigma: float | None = None,
     paths = _rolling_designs(model, kin, theta, pose_u, present)
     At = _project_out(Jq, Hinv, Jt)
     S_pinv = np.linalg.pinv(np.einsum("tka,tkc->ac", At, At), hermitian=True)
-    Atr = np.einsum("tkp,tk->p", At, r)
+    Atr = summed_product(At, r)
     sd = sigma * np.sqrt(np.clip(np.diag(S_pinv), 0.0, None))  # the parameters' sd, this linearisation
     for d in designs:
         z = _coefficients(d, r)  # (k, n, D)
@@ -749,7 +750,7 @@ def placement_information(model: Model, y, theta, pose, used, R=None, weights=No
     if sw is not None:
         Jq, Jt = Jq * sw[..., None], Jt * sw[..., None]
     A, _ = influence_rows(Jq, Jt, R)
-    S = np.einsum("tkp,tkq->pq", Jt, A)
+    S = summed_gram(Jt, A)
     S_inv = np.linalg.pinv(S)
     # a still trial at the frame nearest the median pose
     idx = np.flatnonzero(used)

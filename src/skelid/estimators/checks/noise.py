@@ -45,6 +45,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
+from skelid._linalg import summed_gram
 from skelid.errors import ModelError
 from skelid.estimators.fit.joint import (
     JointFit,
@@ -86,7 +87,7 @@ def row_leverage(Jq, Jt, R=None) -> np.ndarray:
     else:
         Ainv = band_inverse_blocks(_banded_system(Hqq, R), Q)
     A, _ = influence_rows(Jq, Jt, R)
-    S = np.einsum("tkp,tkq->pq", Jt, A)
+    S = summed_gram(Jt, A)
     S_inv = np.linalg.pinv(0.5 * (S + S.T), hermitian=True)
     return np.einsum("tki,tij,tkj->tk", Jq, Ainv, Jq) + np.einsum("tkp,pq,tkq->tk", A, S_inv, A)
 

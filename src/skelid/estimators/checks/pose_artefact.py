@@ -64,6 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from skelid._linalg import frame_gram
 from skelid.estimators.checks.misfit import MISFIT_MIN_RMS
 from skelid.model.description import Model
 
@@ -241,7 +242,7 @@ def _moment_rows(Jq, s, g2, bodies, M) -> np.ndarray:
     shared part ``sum_b g2 ||(P U_b)_m||_F^2`` with ``U_b = S (1_b (x) I_3)``.
     """
     T, n, Q = Jq.shape
-    H = np.einsum("tkq,tkr->tqr", Jq, Jq)
+    H = frame_gram(Jq)
     tr = np.einsum("tqq->t", H) / max(Q, 1)
     Hi = np.linalg.inv(H + 1e-12 * np.maximum(tr, 1e-300)[:, None, None] * np.eye(Q))
     JH = Jq @ Hi  # (T, n, Q)

@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid._linalg import frame_gram, summed_gram, summed_product
 from skelid.estimators.fit.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from skelid.model import _fk_kernel
 from skelid.model.description import Model
@@ -725,7 +726,7 @@ def _fit_information(model: Model, pb: _LMProblem, s: _LMState, use, summary: bo
         return None, float("nan")
     if pb.R is None:
         Kp = projected_theta_jacobian(s.Jq, s.Jt)
-        return np.einsum("tkp,tkq->pq", Kp, Kp), float(model.n_pose * use.sum())
+        return summed_gram(Kp), float(model.n_pose * use.sum())
     Hqq, Hqt, Htt, gq, gt = _normal_blocks(s.r, s.Jq, s.Jt)
     *_, info = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, 0.0, pb.R, s.q, pb.R_band)
     return info, pose_edf(s.Jq, pb.R, pb.R_band)  # skipped frames have no rows: they add nothing
@@ -833,11 +834,11 @@ def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weigh
     sw = row_weights(weights, np.asarray(y, float))
     r, Jq, Jt = weighted_terms(model, theta, q, y, sw)
     Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
+    Hqt = frame_gram(Jq, Jt)
     Hqq_inv = np.linalg.pinv(Hqq, hermitian=True)
     G = Hqq_inv @ Hqt  # (T, Q, P)
     Kp = Jt - Jq @ G
-    S = np.einsum("tkp,tkq->pq", Kp, Kp)
+    S = summed_gram(Kp)
     S_inv = np.linalg.inv(S)
     T = len(q)
     C = np.empty((T, P + Q, P + Q))
@@ -865,7 +866,7 @@ def box_bias(model: Model, y, theta, q, sigma2: float, step: float = 1e-4, weigh
     d = (second.sum(axis=1) * mask[..., None]).reshape(T, -1)  # (T, M*D)
     if sw is not None:
         d = d * sw
-    return -0.5 * sigma2 * S_inv @ np.einsum("tkp,tk->p", Kp, d)
+    return -0.5 * sigma2 * S_inv @ summed_product(Kp, d)
 
 
 def frame_scores(model: Model, y, theta, q, weights=None) -> np.ndarray:
@@ -1025,7 +1026,7 @@ def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
         except np.linalg.LinAlgError:
             continue
     G = cho_solve_banded((U, False), scale * Hqt.reshape(T * Q, P), check_finite=False).reshape(T, Q, P)
-    S = scale * Htt - scale * np.einsum("tip,tiq->pq", Hqt, G)
+    S = scale * Htt - scale * summed_gram(Hqt, G)
     S_inv = np.linalg.inv(0.5 * (S + S.T))
     GS = G @ S_inv  # (T, Q, P)
     out = np.empty((T, P + Q, P + Q))
@@ -1057,8 +1058,8 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
     m = Jq.shape[1]
     Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
+    Hqt = frame_gram(Jq, Jt)
+    Htt = summed_gram(Jt)
     h = _SANDWICH_STEP
     plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h)
     minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h)

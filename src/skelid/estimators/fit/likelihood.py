@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from skelid._linalg import summed_gram
 from skelid.model.description import Model
 from skelid.model.kinematics import marker_jacobian
 
@@ -128,7 +129,7 @@ def efficient_information(J_pose, J_theta, sigma: float = 1.0) -> np.ndarray:
         Marker noise standard deviation.
     """
     Kp = projected_theta_jacobian(J_pose, J_theta)
-    return np.einsum("tkp,tkq->pq", Kp, Kp) / sigma**2
+    return summed_gram(Kp) / sigma**2
 
 
 def crlb_sd(info: np.ndarray) -> np.ndarray:

@@ -46,6 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid._linalg import frame_gram, summed_gram
 from skelid.estimators.fit.likelihood import pose_information
 
 
@@ -84,8 +85,8 @@ def eliminate_poses(Jq, Jt, R=None, R_band=None) -> Eliminated:
     T, _, Q = Jq.shape
     P = Jt.shape[-1]
     Hqq = pose_information(Jq)
-    Hqt = np.einsum("tki,tkp->tip", Jq, Jt)
-    Htt = np.einsum("tkp,tkq->pq", Jt, Jt)
+    Hqt = frame_gram(Jq, Jt)
+    Htt = summed_gram(Jt)
     if R is None:
         d = np.einsum("tii->ti", Hqq)
         scale = np.maximum(d.mean(axis=1), max(d.mean(), 1e-300))
@@ -98,7 +99,7 @@ def eliminate_poses(Jq, Jt, R=None, R_band=None) -> Eliminated:
     else:
         solve = _banded_solver(Hqq, R, R_band)
     G = solve(Hqt.reshape(T * Q, P)).reshape(T, Q, P)
-    S = Htt - np.einsum("tip,tiq->pq", Hqt, G)
+    S = Htt - summed_gram(Hqt, G)
     return Eliminated(0.5 * (S + S.T), G, solve, Hqq, Hqt)
 
 
