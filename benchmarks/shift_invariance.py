@@ -6,10 +6,13 @@ Case A (40 frames, sigma 3 mm) and case B (80 frames, sigma 5 mm) are fitted wit
 default MarkerEstimator, then again after adding a random shift (uniform in
 ``[-s, s]`` per coordinate) to every marker, for ``s`` from 1e2 to 1e7 mm. The largest
 relative change of the estimate, its sd and sigma over the shifts is recorded for each
-``s``. Both models have a free root, so the exact answer is no change at all: what is
-left is the fit's stopping rule (small shifts) and rounding (large ones). It is what
-sets ``skelid.data.MAX_FIT_COORDINATE_MM`` and the tolerances of the shift property in
-``tests/test_api_contract.py``. Writes ``results/shift_invariance.json`` and ``.md``.
+``s``. Both models have a free root, so the exact answer is no change at all. The fit works
+about the data's centre (``skelid.estimators.base.fit_origin``), so what is left is the
+shifted data's own rounding (the shifts are not whole millimetres), moved by the fit's
+stopping rule: the same at every distance. It is what the tolerances of the shift
+properties in ``tests/test_api_contract.py`` and ``tests/test_invariance.py`` and the
+comment on ``skelid.data.MAX_FIT_COORDINATE_MM`` quote. Writes
+``results/shift_invariance.json`` and ``.md``.
 """
 
 from __future__ import annotations

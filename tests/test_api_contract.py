@@ -493,11 +493,11 @@ def test_a_copy_of_a_file_is_refused_and_a_file_of_the_same_size_is_not(tmp_path
 
 
 # --------------------------------------------------------------------------- where the data sit
-#: largest relative change of the estimate, its sd and sigma under a rigid shift of up to 1e4 mm:
-#: ten times the worst that benchmarks/shift_invariance.py measured (case A, 40 frames: 3.1e-6, 2.7e-5
-#: and 1.8e-7; case B, 80 frames: 5.7e-8, 7.9e-7 and 1.7e-8). The fit's stopping rule, not rounding,
-#: sets them: a shift of 1 mm already changes the estimate by 2e-10 of its value.
-SHIFT_RTOL = {"mean": 3e-5, "sd": 3e-4, "sigma": 3e-6}
+#: largest relative change of the estimate, its sd and sigma under a rigid shift of up to 1e4 mm: about
+#: thirty times the worst that benchmarks/shift_invariance.py measured for any shift up to 1e7 mm (case A,
+#: 40 frames: 1e-7, 5.2e-7 and 2.1e-7). The fit works about the data's centre, so what is left is the
+#: shifted data's rounding moved by the fit's stopping rule (tests/test_invariance.py: none for whole mm).
+SHIFT_RTOL = {"mean": 3e-6, "sd": 3e-5, "sigma": 6e-6}
 
 
 def _fit_values(data):
@@ -521,11 +521,11 @@ def test_a_rigid_shift_leaves_the_estimates_unchanged(shift):
 
 
 def test_coordinates_beyond_the_fit_range_are_refused_in_one_line():
-    far = TRIAL.data.replace(positions=TRIAL.data.positions + 2e5)
-    with pytest.raises(DataError, match="beyond the 100000 mm \\(100 m\\) a fit accepts"):
+    far = TRIAL.data.replace(positions=TRIAL.data.positions + 2e7)
+    with pytest.raises(DataError, match="beyond the 1e\\+07 mm \\(10000 m\\) a fit accepts"):
         MarkerEstimator(CASE_A).fit(far)
-    with pytest.raises(DataError, match="beyond the 100000 mm"):  # in the model's units, whatever the data's
+    with pytest.raises(DataError, match="beyond the 1e\\+07 mm"):  # in the model's units, whatever the data's
         PaperFilter(CASE_A).fit(far.to_units("m"))
-    with pytest.raises(DataError, match="beyond the 100000 mm"):  # an array as well
+    with pytest.raises(DataError, match="beyond the 1e\\+07 mm"):  # an array as well
         MarkerGridFilter(CASE_A, rate=100.0).fit(np.asarray(far.positions))
-    PaperFilter(CASE_A).fit(TRIAL.data.replace(positions=TRIAL.data.positions + 9e4))  # inside: fitted
+    PaperFilter(CASE_A).fit(TRIAL.data.replace(positions=TRIAL.data.positions + 9e6))  # inside: fitted

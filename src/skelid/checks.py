@@ -40,6 +40,9 @@ MIN_FRAMES = {"paper": 1, "marker-grid": 1, "marker": 5, "marker-smc": 5, "marke
 DEFAULT_MIN_FRAMES = 5
 #: a coordinate whose peak-to-peak range over the frames is below this fraction of the model's size is still
 MOTION_RTOL = 1e-9
+#: frames (evenly spread) whose marker distances check_units compares with the model's: the (F, M, M)
+#: distances of a long trial would take more memory than the fit
+UNIT_CHECK_FRAMES = 1000
 
 
 def check_finite(name: str, value):
@@ -228,7 +231,8 @@ def check_units(model: Model, data: MarkerData) -> None:
         return
     idx = {n: data.names.index(f) for n, f in names.items()}
     mi = [i for i, m in enumerate(model.marker_names) if m in idx]
-    y = data.positions[:, [idx[model.marker_names[i]] for i in mi]] * unit_scale(data.units, model.units)
+    step = max(1, data.n_frames // UNIT_CHECK_FRAMES)  # the median distances of evenly spread frames
+    y = data.positions[::step, [idx[model.marker_names[i]] for i in mi]] * unit_scale(data.units, model.units)
     with warnings.catch_warnings(), np.errstate(invalid="ignore"):
         warnings.simplefilter("ignore", RuntimeWarning)
         d = np.nanmedian(np.linalg.norm(y[:, :, None] - y[:, None, :], axis=-1), axis=0)

@@ -20,11 +20,14 @@ from skelid.errors import DataError
 #: sampling rates accepted, in Hz
 RATE_RANGE = (1e-2, 1e6)
 UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-#: largest marker coordinate a fit accepts, in mm (100 m; capture volumes span a few metres). The fit's
-#: rounding grows with the data's distance from the origin: under a rigid shift of up to 1e5 mm the
-#: estimates of cases A and B moved by at most 1.5e-5 of their value and their sd by 1.4e-4, under
-#: 1e7 mm the sd by 27 % and sigma by 26 % (benchmarks/shift_invariance.py)
-MAX_FIT_COORDINATE_MM = 1e5
+#: largest marker coordinate a fit accepts, in mm (10 km: capture volumes span a few metres, so a
+#: coordinate beyond it is a unit or an origin gone wrong). The fits work about the data's own centre
+#: (:func:`skelid.estimators.base.fit_origin`), so where the data sit changes no number beyond rounding:
+#: random shifts of 1e2 to 1e7 mm moved the marker fit's estimates of cases A and B by at most 4.4e-7 of
+#: their value, their sd by 6.5e-6 and sigma by 2.1e-7, as much at 1e2 mm as at 1e7 mm
+#: (benchmarks/shift_invariance.py); shifts by whole millimetres of data on a binary grid change nothing
+#: at all (tests/test_invariance.py)
+MAX_FIT_COORDINATE_MM = 1e7
 
 
 def unit_scale(src: str, dst: str) -> float:

@@ -152,8 +152,9 @@ def test_a_large_correction_goes_to_the_bootstrap_even_where_it_stays_put(monkey
     assert est.bias_fallback_["consistent"] == [True]
     # the reference: the second-order bias at the estimate, which moves by less than sd / sqrt(n_boot)
     # when evaluated at the corrected geometry and the deconvolved poses
-    fit, used = est.fit_info_, est.frames_used_
-    y = np.where(used[:, None, None], est.y_, np.nan)
+    # in the fit's own frame (the data less origin_), where its numbers were computed
+    fit, used = est.fit_.weights.fit, est.frames_used_
+    y = np.where(used[:, None, None], est.fit_.screen.y, np.nan)
     var = []
     b = smoothed_bias(model, y, fit.theta, fit.pose, est.sigma_**2, fit.penalty, weights=est.marker_weights_,
                       pose_var=var)

@@ -187,9 +187,10 @@ def marker_array(model: Model, data, rate, method: str | None = None, motion: bo
     """``(y (F, M, D), rate)`` from ``data``: a :class:`MarkerData`, or an array with the ``rate`` setting.
 
     With ``method`` (the estimator's name), the data are also checked as ``skelid fit`` checks
-    them (:func:`skelid.checks.check_data`): enough usable frames for the method, more marker
-    coordinates than pose coordinates, something that moves (not with ``motion=False``: a trial
-    among several, whose motion is checked with the others).
+    them (:func:`skelid.checks.check_units`, :func:`skelid.checks.check_data`): marker distances
+    of the model's size (not data in other units than they say), enough usable frames for the
+    method, more marker coordinates than pose coordinates, something that moves (not with
+    ``motion=False``: a trial among several, whose motion is checked with the others).
 
     Raises
     ------
@@ -205,10 +206,51 @@ def marker_array(model: Model, data, rate, method: str | None = None, motion: bo
         y, rate, where = _array_data(model, data, rate), float(rate), "the marker array"
     check_range(y, model.units, where)
     if method is not None:
-        from skelid.checks import check_data  # the checks of skelid fit, the one place they live
+        from skelid.checks import check_data, check_units  # the checks of skelid fit, the one place they live
 
+        check_units(model, data if isinstance(data, MarkerData) else MarkerData(y, model.marker_names, rate,
+                                                                                model.units, source=where))
         check_data(model, y, [method], where, motion=motion)
     return y, rate
+
+
+def fit_origin(model: Model, y) -> np.ndarray:
+    """``(D,) float``: the point a fit moves the origin to, so that its numbers do not depend on where the data sit.
+
+    For a model whose root hangs from the ground by a free joint, a rigid shift of every marker is
+    taken up exactly by the root's translation: the fit works on ``y - origin`` with ``origin`` the
+    mean of the present marker coordinates rounded to whole model units (whole units, so that data
+    shifted by whole units give the fit the same numbers, bit for bit), and :func:`move_root` puts
+    the fitted poses back. Any other root is fixed in the laboratory: zeros (no move).
+
+    Parameters
+    ----------
+    y : (F, M, D) float
+        Markers, NaN where missing.
+    """
+    y = np.asarray(y, dtype=float)
+    root = next(s for s in model.segments if s.parent is None)
+    present = np.isfinite(y).all(axis=-1)
+    if root.joint.type != "free" or not present.any():
+        return np.zeros(y.shape[-1])
+    return np.round(y[present].mean(axis=0))
+
+
+def move_root(model: Model, pose, offset) -> np.ndarray:
+    """``pose (..., Q)`` with the root's translation moved by ``offset (D,)``: every marker moves by ``offset``.
+
+    The inverse of the move :func:`fit_origin` asks for is ``move_root(model, pose, origin)``; a
+    zero offset returns ``pose`` unchanged (a copy).
+    """
+    pose = np.array(pose, dtype=float)
+    offset = np.asarray(offset, dtype=float)
+    if not offset.any():
+        return pose
+    root = next(i for i, s in enumerate(model.segments) if s.parent is None)
+    k = [j for j, d in enumerate(model.dofs) if d.segment == root and d.kind == "T"]
+    axes = np.array([model.dofs[j].axis for j in k])  # (D, D): a free root translates along the world's axes
+    pose[..., k] += axes @ offset
+    return pose
 
 
 def _array_data(model: Model, data, rate) -> np.ndarray:

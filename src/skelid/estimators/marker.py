@@ -57,8 +57,10 @@ from skelid.estimators.base import (
     count,
     counted,
     emit,
+    fit_origin,
     make_rng,
     marker_array,
+    move_root,
     non_negative_or_none,
     one_of,
     positive_or_none,
@@ -379,11 +381,17 @@ class MarkerFit(NamedTuple):
     pose_path: str = "numpy"  # "compiled" or "numpy": the path every pose fit took (see pose.workspace)
     misfit: Misfit | None = None  # model misfit: refits and widening (misfit_stage)
     beyond: np.ndarray | None = None  # (P,) the unbounded estimate where support_stage put it on a bound, else NaN
+    origin: np.ndarray | None = None  # (D,) where the stages put the origin: their data and poses are less it
 
 
 # ================================================================================ stages
-def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | None = None) -> Start:
-    """Starting geometry and poses; which frames' markers fix the pose."""
+def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | None = None,
+                origin=None) -> Start:
+    """Starting geometry and poses; which frames' markers fix the pose.
+
+    ``y`` is the data less ``origin (D,)`` (:func:`~skelid.estimators.base.fit_origin`; None: not
+    moved); the ``pose0`` setting, in the data's frame, is moved with them.
+    """
     if model.n_params == 0:
         raise IdentifiabilityError(f"model {model.name!r} has no [[parameters]] to estimate",
                                    "add a [[parameters]] table")
@@ -399,6 +407,8 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | 
         raise SettingError(f"{type(s).__name__} setting pose0 of shape {np.shape(pose0)} does not fit these data "
                            f"({len(y)} frames) and model {model.name!r} ({model.n_pose} pose coordinates)",
                            f"give ({len(y)}, {model.n_pose}) starting poses, or None")
+    if pose0 is not None and origin is not None:
+        pose0 = move_root(model, pose0, -np.asarray(origin, float))
     if pose0 is None:
         stride = max(1, int(rate // 25))  # track at about 25 Hz, interpolate between
         pose0, _ = track_poses(model, theta0, y, rng, stride=stride, ws=ws)
@@ -1063,7 +1073,8 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     """
     model = est.model
     ws = workspace(model)  # one path (compiled or numpy) for every pose fit of this fit
-    st = start_stage(model, y, rate, est, rng, ws)
+    origin = fit_origin(model, y)  # the stages see the same numbers wherever the data sit
+    st = start_stage(model, np.asarray(y, float) - origin, rate, est, rng, ws, origin)
     sc = screen_stage(model, st, est, ws)
     mo = motion_stage(model, st, sc, est, ws)
     wt = weights_stage(model, st, sc, mo, est, ws)
@@ -1082,7 +1093,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     estimate = mis.estimate if mis is not None else estimate
     estimate, beyond = support_stage(st, estimate)
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned | np.isfinite(beyond), res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate), ws.path, mis, beyond)
+                     summary_stage(model, ident, estimate), ws.path, mis, beyond, origin)
 
 
 def support_stage(st: Start, estimate: Estimate) -> tuple[Estimate, np.ndarray]:
@@ -1203,7 +1214,12 @@ class MarkerEstimator:
     marker_weights_ : (M,) float or None
         The weights of the fit (``sigma_^2 / marker_sigma_^2`` up to rounding).
     fit_ : MarkerFit
-        Every stage's value.
+        Every stage's value. The stages work on the data less ``origin_``; ``pose_``, ``y_`` and
+        ``fit_info_`` are in the data's frame.
+    origin_ : (D,) float
+        Where the stages put the origin (:func:`~skelid.estimators.base.fit_origin`: the markers'
+        mean in whole model units for a free root, else zeros), so that a rigid shift of all markers
+        leaves every number of the fit where it was.
     warnings_ : tuple of Warning
     """
 
@@ -1270,7 +1286,10 @@ class MarkerEstimator:
     def _publish(self, f: MarkerFit, found) -> None:
         """Set the fitted attributes from the stages' values."""
         fit, used = f.weights.fit, f.frames.used
+        origin = np.zeros(self.model.dim) if f.origin is None else f.origin
+        fit = fit._replace(pose=move_root(self.model, fit.pose, origin))  # the poses in the data's frame
         self.fit_ = f
+        self.origin_ = origin
         self.fit_info_ = fit
         self.cutoff_ = f.motion.cutoff
         self.outliers_ = f.screen.outliers
@@ -1299,7 +1318,7 @@ class MarkerEstimator:
         self.cov_data_ = f.cov.data + f.bias.cov  # with the bootstrap's spread when it stood in
         self.theta_, self.cov_ = f.estimate
         self.pose_ = fit.pose
-        self.y_ = np.where(used[:, None, None], f.screen.y, np.nan)
+        self.y_ = np.where(used[:, None, None], f.screen.y + origin, np.nan)
         self.posterior_ = GaussianPosterior(self.model.parameter_names, self.theta_, self.cov_)
         self.lengths_ = f.summary.lengths
         self.marker_weights_, self.marker_sigma_, self.marker_dof_ = f.weights[1:]

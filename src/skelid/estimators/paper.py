@@ -178,8 +178,21 @@ class ConstraintSystem:
         -------
         x : (J*D + 1,) float
         converged : bool
+
+        Notes
+        -----
+        The equations hold distances only: the frame is solved about its markers' mean (in whole
+        units), so that where the frame sits changes neither the iteration nor its tests.
         """
+        y = np.asarray(y, dtype=float)
         ok = np.isfinite(y).all(axis=1)
+        centre = np.round(y[ok].mean(axis=0)) if ok.any() else np.zeros(y.shape[-1])
+        move = np.append(np.tile(centre, self.n_joints), 0.0)  # joint positions move, the length does not
+        x, converged = self._newton(y - centre, np.asarray(x0, dtype=float) - move, ok, max_iter, tol)
+        return x + move, converged
+
+    def _newton(self, y, x0, ok, max_iter: int, tol: float):
+        """:meth:`solve` on a frame ``y (M, D)`` about its centre; ``ok (M,)``: markers present."""
         J = self.n_joints
         use = np.ones(len(self.eq_a), bool)
         for end in (self.eq_a, self.eq_b):

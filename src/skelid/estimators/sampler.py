@@ -119,6 +119,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.special import logsumexp
 from scipy.stats import norm
 
+from skelid._linalg import frame_gram
 from skelid.data import MarkerData
 from skelid.estimators.base import (
     Setting,
@@ -430,7 +431,7 @@ class ProfileLikelihood:
         _, Jq, Jt = frame_terms(model, self.theta_fit, self.pose_fit, self.y)
         Hqq = pose_information(Jq)
         self.system = PoseSystem(Hqq, R)
-        gn = self._gauss_newton_response(Hqq, np.einsum("tki,tkp->tip", Jq, Jt))
+        gn = self._gauss_newton_response(Hqq, frame_gram(Jq, Jt))
         h = np.ones(P) if scale is None else 2.0 * np.asarray(scale, float)
         if bounds is not None:
             h = np.minimum(h, 0.1 * (np.asarray(bounds[1], float) - np.asarray(bounds[0], float)))
@@ -692,7 +693,9 @@ class SamplerEstimator:
             tau = min(float(model.n_params / np.trace(np.linalg.solve(marker.cov_plain_, marker.cov_data_))), 1.0)
         bounds = (np.array([p.prior.lower for p in model.parameters]),
                   np.array([p.prior.upper for p in model.parameters]))
-        like = ProfileLikelihood(model, marker.y_, fit.theta, fit.pose, fit.penalty, marker.sigma_**2,
+        # in the marker fit's own frame (the data less its origin_): no number depends on where the data sit
+        y = np.where(marker.frames_used_[:, None, None], marker.fit_.screen.y, np.nan)
+        like = ProfileLikelihood(model, y, fit.theta, marker.fit_.weights.fit.pose, fit.penalty, marker.sigma_**2,
                                  marker.bias_, tau=tau, scale=np.sqrt(np.diag(marker.cov_data_)), bounds=bounds,
                                  n_iter=self.inner_iter)
         init = sample_prior(model, self.n_particles, rng)
