@@ -48,9 +48,12 @@ into its own folder ``DIR/<file stem>-<hash of the row's key>``, which
 
 A trial that fails (an unreadable file, a missing marker, no solution) becomes
 a row with its error and never stops the batch. The table is rewritten
-atomically as trials finish, so an interrupted batch leaves a valid table, and
-a re-run fits only the trials whose key is not in it yet (``retry_failed`` fits
-the failed ones again). ``dask[distributed]`` and ``pyarrow`` come with the
+atomically as trials finish, so an interrupted batch (Ctrl-C, ``SIGTERM``, or
+the end of ``--max-time``) leaves a valid table, and a re-run fits only the
+trials whose key is not in it yet (``retry_failed`` fits the failed ones
+again). A batch whose trials together are estimated to take longer than the
+limits (:func:`skelid.resources.batch_cost`) is refused before its cluster
+starts. ``dask[distributed]`` and ``pyarrow`` come with the
 ``[dask]`` extra.
 """
 
@@ -66,6 +69,7 @@ import time
 import warnings
 from pathlib import Path
 
+from skelid import _stop
 from skelid.errors import SkelidError, SkelidWarning
 
 #: columns before and after the per-parameter ones
@@ -84,6 +88,9 @@ PARAM_SUFFIXES = tuple(PARAM_FIELDS)
 PARAM_STRING_SUFFIXES = ("_status",)
 #: rewrite the table at most this often while trials finish (seconds)
 WRITE_INTERVAL = 2.0
+#: run in each worker process of the local cluster: Ctrl-C in a terminal reaches every process of the
+#: command, and the batch itself stops the workers (a worker would print its own traceback)
+WORKER_IGNORES_SIGINT = "import signal; signal.signal(signal.SIGINT, signal.SIG_IGN)"
 
 
 def require_dask(parquet: bool = True) -> None:
@@ -413,7 +420,7 @@ def _client(workers: int | None, scheduler: str | None):
                               "check the address (e.g. tcp://host:8786) and that the scheduler runs") from None
     n = workers or max(1, os.cpu_count() or 1)
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR)
+                           silence_logs=logging.ERROR, preload=[WORKER_IGNORES_SIGINT])
     return Client(cluster), cluster
 
 
@@ -466,20 +473,36 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
                "skipped": len(files) - len(todo), "seconds": 0.0}
     if not todo:
         return summary
+    if scheduler is None:  # refused before a cluster is started
+        _check_batch_cost(model, method, todo, limits, workers or max(1, os.cpu_count() or 1))
     t0 = time.perf_counter()
-    client, cluster = _client(workers, scheduler)
     osim = str(Path(model_path).absolute()) if str(model_path).lower().endswith(".osim") else None
+    client = cluster = None
     try:
+        with _stop.deferred():  # a stop while the cluster starts takes effect once it can be closed
+            client, cluster = _client(workers, scheduler)
+        if scheduler is not None:
+            _check_batch_cost(model, method, todo, limits, sum(client.nthreads().values()))
         futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f], results_dir, command,
                                  osim, key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
         _collect(futures, {fut.key: f for fut, f in zip(futures, todo, strict=True)}, ident, rows, cols, out,
                  summary, progress)
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        with _stop.deferred():  # closed whole, even when a second signal comes
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return summary
+
+
+def _check_batch_cost(model, method: str, paths, limits, n_workers: int) -> None:
+    """Refuse a batch whose trials together are estimated to exceed ``limits`` (:func:`skelid.resources.batch_cost`)."""
+    from skelid import resources
+
+    resources.check(resources.batch_cost(model, method, paths, n_workers), limits,
+                    f"skelid batch of {len(paths)} trials")
 
 
 def _checked_batch(model_path, out: Path, method: str, sigma, limits, results_dir):
@@ -524,6 +547,7 @@ def _collect(futures, path_of: dict, ident: dict, rows: dict, cols, out: Path, s
                                 "error": _one_line(f"worker failed on this trial: {type(exc).__name__}: {exc}")})
                 rows[row_key(row)] = row
                 unsaved = True
+                _stop.check()  # a stop that a library dropped on its way: the rows so far are kept
                 summary["failed" if row["error"] is not None else "fitted"] += 1
                 bar.update(1)
                 if time.monotonic() - last > WRITE_INTERVAL:
@@ -533,4 +557,5 @@ def _collect(futures, path_of: dict, ident: dict, rows: dict, cols, out: Path, s
         unsaved = False
     finally:
         if unsaved:  # interrupted: keep what finished, so that a re-run resumes from there
-            write_table(out, list(rows.values()), cols)
+            with _stop.cleanup():
+                write_table(out, list(rows.values()), cols)

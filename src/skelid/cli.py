@@ -2,8 +2,9 @@
 
 A :class:`~skelid.errors.SkelidError` or a usage mistake becomes one line on
 stderr (``skelid: error: ...``) and exit status 2; Ctrl-C or SIGTERM exit with
-130 or 143 after removing any partial output; any other exception is a bug and
-keeps its traceback (status 1). Warnings are printed once each as
+130 or 143 and one line after removing any partial output, and a command that
+runs past ``--max-time`` stops the same way with status 2 (:mod:`skelid._stop`);
+any other exception is a bug and keeps its traceback (status 1). Warnings are printed once each as
 ``skelid: warning: ...`` and recorded in the JSON results. ``--json`` puts
 only JSON on stdout; progress bars go to stderr and only to a terminal.
 """
@@ -11,9 +12,9 @@ only JSON on stdout; progress bars go to stderr and only to a terminal.
 from __future__ import annotations
 
 import contextlib
+import functools
 import signal
 import sys
-import threading
 import traceback
 import warnings
 from pathlib import Path
@@ -21,7 +22,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from skelid import __version__
+from skelid import __version__, _stop
 from skelid.errors import SkelidError, SkelidWarning
 
 FIT_EXAMPLE = """\b
@@ -97,13 +98,37 @@ def _finite(name: str, value):
 
 
 def _limit_options(f):
-    """``--max-memory`` and ``--max-time``: the limits a job's estimated cost must stay under."""
+    """``--max-memory`` and ``--max-time``: the limits a job's estimated cost must stay under; a job
+    that runs past ``--max-time`` all the same is stopped (:func:`_time_limited`)."""
     f = click.option("--max-time", default=None, metavar="DURATION",
-                     help="Refuse a job estimated to take longer (e.g. 2h, 90m; default 30m or "
-                          "$SKELID_MAX_TIME).")(f)
+                     help="Refuse a job estimated to take longer, and stop one that runs longer (e.g. 2h, "
+                          "90m; default 30m or $SKELID_MAX_TIME).")(_time_limited(f))
     return click.option("--max-memory", default=None, metavar="SIZE",
                         help="Refuse a job estimated to need more memory (e.g. 8G, 512M; default 4G or "
                              "$SKELID_MAX_MEMORY).")(f)
+
+
+def _time_limited(f):
+    """Run command ``f`` under its ``--max-time``: past it, the command stops with one line (nothing
+    half-written is left; a batch keeps the rows of the trials that finished)."""
+    name = f.__name__.replace("model_", "model ")
+
+    @functools.wraps(f)
+    def limited(*args, **kwargs):
+        from skelid.resources import ENV_TIME, ResourceError, format_seconds
+
+        limits = _limits(kwargs.get("max_memory"), kwargs.get("max_time"))
+        left = ("the trials that finished are in the table" if name == "batch"
+                else "nothing half-written was left")
+        fix = ("run the same command again to fit the rest (the trials in the table are skipped), or raise "
+               f"the limit with --max-time or {ENV_TIME}" if name == "batch" else
+               f"raise the limit with --max-time or {ENV_TIME}, or give it less work (fewer frames or trials)")
+        error = ResourceError(f"skelid {name} ran past its time limit of {format_seconds(limits.seconds)} and was "
+                              f"stopped; {left}", fix)
+        with _stop.deadline(limits.seconds, error):
+            return f(*args, **kwargs)
+
+    return limited
 
 
 def _limits(max_memory, max_time):
@@ -271,6 +296,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     if len(data_paths) > 1 or alternatives or noise != "pooled":
         from skelid.sensitivity import run_fit_trials
 
+        _check_trials_cost(model_path, data_paths, alternatives, method_names, _limits(max_memory, max_time))
         run = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
                                 out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
                                 artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
@@ -294,6 +320,27 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")
+
+
+def _check_trials_cost(model_path, data_paths, alternatives, method_names, limits) -> None:
+    """Refuse a joint fit of several trials estimated, over all its trials and models, to exceed ``limits``
+    (:func:`skelid.resources.trials_cost`), before any trial is read. Only for the marker method: another
+    is refused by :func:`skelid.sensitivity.run_fit_trials`."""
+    from skelid import resources, workflows
+    from skelid.simulate import BUILTIN_MODELS, resolve_model
+
+    if tuple(method_names) not in ((), ("marker",)):
+        return
+
+    models = []
+    for p in (model_path, *alternatives):
+        if str(p).lower().replace("_", "-") not in BUILTIN_MODELS:
+            workflows.check_input_file(p, "model file")
+        models.append(resolve_model(p))
+    for p in data_paths:
+        workflows.check_input_file(p, "data file")
+    resources.check(resources.trials_cost(models, data_paths), limits,
+                    f"the marker fit of {len(data_paths)} trial{'s' if len(data_paths) > 1 else ''}")
 
 
 def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
@@ -457,15 +504,18 @@ def model_group():
 @click.option("--markers", "marker_kind", type=click.Choice(["offsets", "none"]), default="none",
               show_default=True, help="Marker-offset parameters to declare.")
 @click.option("--all-bodies", is_flag=True, help="Keep bodies without markers too.")
-def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_bodies):
+@_limit_options
+def model_import(osim_path, out_path, marker_set, scale_kind, marker_kind, all_bodies, max_memory, max_time):
     """Convert an OpenSim .osim model (4.x or older) into a skelid .toml model."""
     import tomli_w
 
-    from skelid import workflows
+    from skelid import resources, workflows
     from skelid.io.atomic import atomic_write
     from skelid.io.osim import osim_parameters, read_osim
 
     workflows.check_input_file(osim_path, "model file")
+    for p in (osim_path, *([marker_set] if marker_set else [])):
+        resources.check(resources.read_cost(p), _limits(max_memory, max_time), f"reading {p}")
     model, info = read_osim(osim_path, marker_set, keep="all" if all_bodies else "markers")
     if info.marker_set_found_by:
         _echo_warnings([f"{Path(osim_path).name} has no markers: {info.marker_set_found_by}"])
@@ -660,24 +710,6 @@ def replay(trial_path, stream, rate, loop, max_frames, wait, quiet):
         click.echo(f"{sent} frames of {trial_path} sent on LSL stream {stream!r}", err=True)
 
 
-@contextlib.contextmanager
-def _sigterm_as_exit():
-    """Turn SIGTERM into SystemExit(143) so partial outputs are removed on the way out."""
-    if threading.current_thread() is not threading.main_thread() \
-            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
-        yield
-        return
-
-    def handler(signum, frame):
-        raise SystemExit(128 + signum)
-
-    signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
@@ -689,18 +721,47 @@ def _one_blas_thread():
     return threadpool_limits(1, user_api="blas")
 
 
+#: the line a stop by a signal leaves on stderr, and the exit status
+STOPPED = {signal.SIGINT: ("skelid: interrupted; no partial output was left", 130),
+           signal.SIGTERM: ("skelid: terminated (SIGTERM); no partial output was left", 143)}
+
+
+def _stopped(request) -> int:
+    """One line for a stop request (:mod:`skelid._stop`) on stderr; its exit status."""
+    if request in STOPPED:
+        line, code = STOPPED[request]
+        click.echo(line, err=True)
+        return code
+    click.echo(f"skelid: error: {request.one_line()}", err=True)
+    return 2
+
+
 def main(argv=None) -> int:
-    """Entry point: run the CLI, turning user errors into one line and exit status 2."""
+    """Entry point: run the CLI, turning user errors into one line and exit status 2.
+
+    Without ``argv`` (the ``skelid`` program itself, whose process ends with it), SIGINT and SIGTERM
+    are ignored once the command is over, while the interpreter shuts down (:func:`skelid._stop.handling`).
+    """
     args = list(sys.argv[1:] if argv is None else argv)
+    with _stop.handling(process_ends=argv is None):
+        code = _main(args)
+        request = _stop.pending()  # also one that a library dropped on its way (see skelid._stop)
+        return code if request is None else _stopped(request)
+
+
+def _main(args) -> int:
     try:
-        with _sigterm_as_exit(), _one_blas_thread():
+        with _one_blas_thread():
             cli.main(args=args, prog_name="skelid", standalone_mode=False, obj={"argv": ["skelid", *args]})
     except SkelidError as exc:
         click.echo(f"skelid: error: {exc.one_line()}", err=True)
         return 2
-    except (click.exceptions.Abort, KeyboardInterrupt):
-        click.echo("skelid: interrupted; no partial output was left", err=True)
-        return 130
+    except (click.exceptions.Abort, KeyboardInterrupt, SystemExit, _stop.DeadlineExceeded) as exc:
+        if _stop.pending() is not None:
+            return -1  # reported by main
+        if isinstance(exc, SystemExit):
+            raise
+        return _stopped(signal.SIGINT)
     except click.UsageError as exc:
         where = exc.ctx.command_path if exc.ctx is not None else "skelid"
         click.echo(f"skelid: error: {_one_line(exc.format_message())} (fix: see '{where} --help')", err=True)
@@ -711,6 +772,8 @@ def main(argv=None) -> int:
     except click.exceptions.Exit as exc:
         return exc.exit_code
     except Exception:
+        if _stop.pending() is not None:  # the stop's exception, turned into another on its way (numba's
+            return -1  # compiled code reports it as a SystemError): reported by main as the stop it is
         traceback.print_exc()
         click.echo("skelid: internal error: the traceback above is a bug in skelid, not a problem with "
                    "your input; please report it with the command you ran", err=True)

@@ -23,6 +23,15 @@ is read, its number of frames is estimated from its size and the length of
 its first lines (:func:`estimate_frames`), so that a file too long to fit is
 refused before it is parsed.
 
+A job of several trials is estimated over all of them before any is read
+(:func:`trial_frames` for each file's frames): the joint fit of several trials
+(:func:`trials_cost`) fits their frames together, plus :data:`TRIAL_SECONDS` per
+trial and a refit per model alternative; ``skelid batch`` (:func:`batch_cost`)
+fits the trials one by one, ``n_workers`` at a time, plus the start of its
+cluster. Estimates can be wrong (an ill-conditioned fit iterates longer), so
+the command line also stops a job that runs past ``--max-time``
+(:mod:`skelid._stop`).
+
 Examples
 --------
 >>> parse_size("1.5G") == int(1.5 * 2**30)
@@ -61,6 +70,11 @@ SMC_PASSES = 31
 DEFAULT_PARTICLES = 200
 #: a grid larger than this is refused whatever the memory limit (its size does not fit an index)
 MAX_GRID_POINTS = 1e9
+#: seconds per trial besides its frames (reading, checks, the typed result), and to start a batch's cluster
+TRIAL_SECONDS = 0.5
+BATCH_START_SECONDS = 5.0
+#: bytes of a C3D file per marker and frame at least (four 16-bit words), for a header that gives no frames
+C3D_BYTES_PER_MARKER = 8
 
 
 class ResourceError(SkelidError):
@@ -266,3 +280,83 @@ def check_grid(model, method: str) -> None:
         if not K <= MAX_GRID_POINTS:
             raise ResourceError(f"the {method} grid of model {model.name!r} would have {K:.3g} points",
                                 "use a coarser grid_step (or narrower prior bounds) in the model file")
+
+
+def _c3d_header_frames(head: bytes) -> int | None:
+    """Frames a C3D header declares (``last - first + 1``; either byte order), or None."""
+    import struct
+
+    if len(head) < 12 or head[1] != 0x50:
+        return None
+    for order in "<>":
+        first, last = struct.unpack(order + "2H", head[6:10])
+        if last >= first >= 1:
+            return last - first + 1
+    return None
+
+
+def trial_frames(path, n_markers: int) -> int:
+    """Frames of a trial file, estimated before it is read.
+
+    A text file: :func:`estimate_frames`. A binary (C3D) file: the frames its header declares, or,
+    where the header cannot tell (more than 65535 frames), the most its size can hold
+    (:data:`C3D_BYTES_PER_MARKER` per marker and frame). 1 for a file that cannot be read (its
+    reader says why).
+    """
+    guess = estimate_frames(path)
+    if guess is not None:
+        return guess
+    try:
+        size = Path(path).stat().st_size
+        with open(path, "rb") as fh:
+            head = fh.read(512)
+    except OSError:
+        return 1
+    declared = _c3d_header_frames(head)
+    return declared if declared is not None else max(size // (C3D_BYTES_PER_MARKER * max(n_markers, 1)), 1)
+
+
+def _reading(paths) -> Cost:
+    """Reading ``paths`` one after the other: the time adds up, the memory is the largest file's."""
+    costs = [read_cost(p) for p in paths]
+    if not costs:
+        return Cost(0.0, 0.0, "", "")
+    big = max(costs, key=lambda c: c.memory)
+    return Cost(big.memory, sum(c.seconds for c in costs), big.driver, big.setting)
+
+
+def trials_cost(models, paths) -> Cost:
+    """Estimated memory and time of the joint ``marker`` fit of the trials ``paths`` (several trials of
+    one body), fitted once under each model of ``models`` (the model, then its alternatives).
+
+    All trials are held and fitted together: the fit of their frames summed (:func:`fit_cost`), plus
+    :data:`TRIAL_SECONDS` per trial; each alternative repeats the fit.
+    """
+    models = list(models)
+    n = len(paths)
+    frames = sum(trial_frames(p, len(models[0].markers)) for p in paths)
+    fits = [fit_cost(m, "marker", frames) for m in models]
+    worst = max(fits, key=lambda c: c.memory)
+    seconds = sum(c.seconds for c in fits) + n * TRIAL_SECONDS * len(models)
+    what = f"{n} trials, {frames} frames in all" + (f", under {len(models)} models" if len(models) > 1 else "")
+    fix = "fewer trials (or fewer --alternative models)" if len(models) > 1 else "fewer trials"
+    return _reading(paths) + Cost(worst.memory, seconds, what, fix)
+
+
+def batch_cost(model, method: str, paths, n_workers: int, n_particles: int = DEFAULT_PARTICLES) -> Cost:
+    """Estimated memory and time of ``skelid batch``: each trial fitted on its own, ``n_workers`` at once.
+
+    The time is the trials' (:func:`read_cost`, :func:`fit_cost`, :data:`TRIAL_SECONDS` each) shared
+    among the workers, plus :data:`BATCH_START_SECONDS`; the memory, ``n_workers`` times the largest
+    trial's.
+    """
+    n_workers = max(int(n_workers), 1)
+    costs = [read_cost(p) + fit_cost(model, method, trial_frames(p, len(model.markers)), n_particles=n_particles)
+             for p in paths]
+    seconds = sum(c.seconds + TRIAL_SECONDS for c in costs) / n_workers + BATCH_START_SECONDS
+    memory = max((c.memory for c in costs), default=0.0) * n_workers
+    on = f"{n_workers} worker{'s' if n_workers > 1 else ''}"
+    return Cost(memory, seconds, f"the largest trial on each of {on}", "fewer --workers",
+                f"{len(paths)} trials on {on}",
+                "fewer trials per run (a narrower pattern; a re-run skips the trials already in the table), or "
+                "more --workers")

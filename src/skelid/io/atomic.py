@@ -5,6 +5,12 @@ no file, never a half-written one. :func:`atomic_dir` does the same for an
 output folder: everything is written into a hidden temporary sibling folder
 and moved in only when the whole output is complete.
 
+Ctrl-C, ``SIGTERM`` and the end of a time limit raise an exception on their way
+out (:mod:`skelid._stop`): the temporary file or folder is removed, and an
+output is never moved into place once a stop was asked for, even one that
+a library dropped; the renames that move a finished folder in are never cut
+in two (a stop during them takes effect once the folder is complete).
+
 A run killed outright (``SIGKILL``, a power cut) cannot clean up after itself:
 it may leave a hidden ``.NAME.*.part`` file or folder beside the target, but
 never a partial file under the target's own name. Folders left that way are
@@ -35,6 +41,7 @@ import stat
 import tempfile
 from pathlib import Path
 
+from skelid import _stop
 from skelid.errors import SkelidError
 
 #: errno values that mean "you cannot write here", not "skelid has a bug"
@@ -172,6 +179,7 @@ def atomic_write(path, mode: str = "w", encoding: str | None = "utf-8", newline:
             mode_bits = 0o666 & ~_umask()
         os.chmod(tmp, mode_bits)
         check_target(path)  # nothing but a regular file has appeared there meanwhile
+        _stop.check()  # never in place once a stop was asked for
         os.replace(tmp, path)
     except BaseException as exc:
         with contextlib.suppress(OSError):
@@ -263,7 +271,9 @@ def atomic_dir(path, protect=(), overwrite: bool = False):
         try:
             os.chmod(tmp, 0o777 & ~_umask())
             yield tmp
-            _commit(tmp, path, {Path(p).resolve() for p in protect}, overwrite)
+            with _stop.deferred():  # the renames are never cut in two: a stop during them waits for them
+                _stop.check()  # never moved in once a stop was asked for
+                _commit(tmp, path, {Path(p).resolve() for p in protect}, overwrite)
         except BaseException as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             if isinstance(exc, OSError):

@@ -30,6 +30,9 @@ and have no descendant that does are left out (``keep='markers'``). Files are
 decoded in any encoding OpenSim reads (:mod:`skelid.io._xml`); the joint frames
 of a file older than version 30505 are rounded as OpenSim rounds them.
 
+A model or MarkerSet file of more than :data:`MAX_MARKERS` markers is refused
+in one line before its markers are read.
+
 Anything else that changes where a marker is (a coordinate coupled to another
 joint's coordinate by a ``CoordinateCouplerConstraint``, an unknown joint or
 function) is refused in one line naming the element, its type and why.
@@ -67,6 +70,11 @@ from skelid.model.description import (
 from skelid.model.functions import CoordinateFunction
 
 M_TO_MM = 1000.0
+#: the most markers read from one model or MarkerSet file; more are refused before any is read. Marker
+#: protocols have tens to a few hundred; the model's checks of unique names compare every marker
+#: with every other, so the time grows with the square of the count (2000 markers: 0.1 s to read, 2 s
+#: with an offset parameter per marker; 160000: minutes to read, hours with offsets)
+MAX_MARKERS = 2000
 UNIT_WORDS = {"meters": 1.0, "meter": 1.0, "m": 1.0}
 JOINT_TAGS = ("CustomJoint", "PinJoint", "SliderJoint", "UniversalJoint", "BallJoint", "GimbalJoint",
               "FreeJoint", "PlanarJoint", "WeldJoint", "EllipsoidJoint", "ScapulothoracicJoint")
@@ -495,9 +503,15 @@ class _Reader:
         return v
 
     # markers ---------------------------------------------------------------
-    def _read_markers(self, ms):
+    def _read_markers(self, ms, source: str | None = None):
         if ms is None:
             return
+        n = sum(1 for _ in ms.iter("Marker"))
+        if n > MAX_MARKERS:  # refused before any is read (see MAX_MARKERS)
+            raise ModelError(f"{source or self.source} has {n} markers, more than the {MAX_MARKERS} skelid "
+                             "reads from one model",
+                             "keep the markers of your protocol (a MarkerSet file of them, given with "
+                             "--marker-set FILE)")
         for mk in ms.iter("Marker"):
             name = mk.get("name")
             ref = _text(mk, "socket_parent_frame") or _text(mk, "body")
@@ -569,7 +583,7 @@ def read_osim(path, marker_set=None, keep: str = "markers", name: str | None = N
         if ms is None:
             raise FormatError(f"{marker_set}: no <MarkerSet> element", "give an OpenSim MarkerSet file")
         rd.markers = []
-        rd._read_markers(ms)
+        rd._read_markers(ms, str(marker_set))
     if not rd.markers:
         raise ModelError(f"{path} has no markers" + (f" and {found_by}" if marker_set is None and found_by else ""),
                          "give the model's MarkerSet file with --marker-set FILE (or add a MarkerSet to the model)")

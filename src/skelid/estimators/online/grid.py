@@ -187,6 +187,7 @@ class MarkerGridFilter:
         if cached is not None and cached[0] is self.model and cached[1] is self.axes:
             return cached[2]
         axes = self._axes()
+        self._check_size(axes)
         mesh = np.meshgrid(*axes, indexing="ij")
         pts = np.stack([m.ravel() for m in mesh], axis=-1)
         log_prior = self.model.log_prior(pts)
@@ -197,6 +198,19 @@ class MarkerGridFilter:
 
     def _points(self):
         return self._grid()[:2]
+
+    def _check_size(self, axes) -> None:
+        """Refuse in one line a grid whose points' pose Jacobians would not fit the memory limit
+        (:mod:`skelid.resources`: ``SKELID_MAX_MEMORY``, 4 GiB by default), before anything is allocated."""
+        from skelid import resources
+
+        m = self.model
+        n_points = float(np.prod([float(a.size) for a in axes]))
+        per_point = len(m.markers) * m.dim * (m.n_pose + m.n_params) * 8 * resources.TEMP_FACTOR + (m.n_pose + 16) * 8
+        limits = resources.Limits.from_settings()
+        cost = resources.Cost(n_points * per_point, 0.0, f"a grid of {n_points:.3g} points",
+                              "a coarser grid_step in the model file (or a smaller axes setting)")
+        resources.check(cost, resources.Limits(limits.memory, float("inf")), what=f"the {self.name} fit")
 
     def _floor(self) -> float:
         """:func:`noise_floor` of the model (computed once per model)."""
