@@ -23,6 +23,7 @@ first_fit   the first case-A fit in a fresh process after installation (cold num
 live        skelid.live.Session.push latencies: case A (grid and Gaussian forms) and the 10-marker 3-D arm
             (benchmarks/arm10.toml, with and without the motion model), >= 10^4 frames
 advice      simulated live sessions: a user who follows Session.advice() against a fixed calibration motion
+osim        the OpenSim route on subject01 (fit, report, ik) beside OpenSim's ScaleTool + IK, and six Subject4 trials
 """
 
 from __future__ import annotations
@@ -70,6 +71,10 @@ TARGETS = {  # key: (limit, "<=" or ">=", what)
     "live_p50_ms_case_a": (0.2, "<="),
     "live_p99_ms_arm3d": (2.0, "<="),
     "advice_frames_saved_fraction": (0.3, ">="),
+    "osim_fit_ratio_to_scaletool_ik": (1.5, "<="),
+    "osim_six_trials_cpu_s": (15.0, "<="),
+    "osim_report_s": (10.0, "<="),
+    "ik_frames_per_s": (1000.0, ">="),
 }
 
 
@@ -610,9 +615,61 @@ def section_advice(args) -> dict:
                                  np.percentile(1.0 - follow / fixed, [25, 50, 75]).tolist()}}
 
 
+def _cli_cpu(argv) -> tuple[float, float]:
+    """``skelid ARGV`` in this process (after its import): CPU and wall seconds; it must succeed."""
+    from skelid.cli import main as skelid_main
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    rc = skelid_main(list(map(str, argv)))
+    if rc:
+        raise SystemExit(f"skelid {' '.join(map(str, argv))} failed with exit status {rc}")
+    return time.process_time() - c0, time.perf_counter() - t0
+
+
+def section_osim(args) -> dict:
+    """The README's OpenSim route on subject01 (fit, report, ik) with OpenSim's ScaleTool + IK in the same run,
+    and the six trials of addbio-subject4 fitted together."""
+    _quiet()
+    s01, s04 = SHARED / "opensim-subject01", SHARED / "addbio-subject4"
+    if not (s01 / "subject01_walk1.trc").exists():
+        return {"osim_note": f"{s01} is absent: the OpenSim section was not run"}
+    from opensim_peer import S04_TRIALS, _ik, run_scaletool
+
+    from skelid.io import read_markers
+
+    out: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        walk = s01 / "subject01_walk1.trc"
+        peer = run_scaletool(tmp)
+        ik = _ik(peer["model"], walk, tmp / "ik_opensim")
+        peer_cpu = peer["time"]["cpu_s"] + ik["cpu_s"]
+        fit_cpu, fit_wall = _cli_cpu(["fit", s01 / "gait2354_simbody.osim", s01 / "subject01_static.trc", walk,
+                                      "--out", tmp / "s01", "--quiet"])
+        rep_cpu, rep_wall = _cli_cpu(["report", tmp / "s01", "--quiet"])
+        n_walk = read_markers(walk).n_frames
+        ik_cpu, ik_wall = _cli_cpu(["ik", tmp / "s01", walk, "--out", tmp / "ik", "--quiet"])
+        out |= {"osim_fit_cpu_s": fit_cpu, "osim_fit_wall_s": fit_wall,
+                "osim_peer_scaletool_ik_cpu_s": peer_cpu,
+                "osim_fit_ratio_to_scaletool_ik": fit_cpu / max(peer_cpu, 1e-9),
+                "osim_report_s": rep_wall, "osim_report_cpu_s": rep_cpu,
+                "ik_frames_per_s": n_walk / max(ik_cpu, 1e-9), "ik_frames": n_walk, "ik_wall_s": ik_wall,
+                "osim_note": ("skelid fit gait2354_simbody.osim subject01_static.trc subject01_walk1.trc (every "
+                              "frame, intervals included), then skelid report and skelid ik (100 draws) on its "
+                              "folder, each in this process after the package's import; OpenSim's ScaleTool "
+                              "(subject01_Setup_Scale.xml) + IK of the walk in the same run")}
+        if (s04 / "Models" / "unscaled_generic.osim").exists():
+            trials = [s04 / "MarkerData" / f"{n}.trc" for n in S04_TRIALS]
+            cpu, wall = _cli_cpu(["fit", s04 / "Models" / "unscaled_generic.osim", *trials, "--out", tmp / "s04",
+                                  "--quiet"])
+            out |= {"osim_six_trials_cpu_s": cpu, "osim_six_trials_wall_s": wall}
+    out["osim_load"] = list(os.getloadavg())
+    return out
+
+
 SECTIONS = {"online": section_online, "fit": section_fit, "peer": section_peer, "lower_limb": section_lower_limb,
             "rss": section_rss, "batch": section_batch, "scaling": section_scaling, "first_fit": section_first_fit,
-            "live": section_live, "advice": section_advice}
+            "live": section_live, "advice": section_advice, "osim": section_osim}
 CHILD_SECTIONS = {"online_numpy": section_online_numpy, "rss_child": section_rss_child,
                   "first_fit_child": section_first_fit_child, "first_fit_wait": section_first_fit_wait}
 
