@@ -649,14 +649,17 @@ def section_osim(args) -> dict:
         rep_cpu, rep_wall = _cli_cpu(["report", tmp / "s01", "--quiet"])
         n_walk = read_markers(walk).n_frames
         ik_cpu, ik_wall = _cli_cpu(["ik", tmp / "s01", walk, "--out", tmp / "ik", "--quiet"])
+        ik0_cpu, _ = _cli_cpu(["ik", tmp / "s01", walk, "--draws", "0", "--out", tmp / "ik0", "--quiet"])
         out |= {"osim_fit_cpu_s": fit_cpu, "osim_fit_wall_s": fit_wall,
                 "osim_peer_scaletool_ik_cpu_s": peer_cpu,
                 "osim_fit_ratio_to_scaletool_ik": fit_cpu / max(peer_cpu, 1e-9),
                 "osim_report_s": rep_wall, "osim_report_cpu_s": rep_cpu,
-                "ik_frames_per_s": n_walk / max(ik_cpu, 1e-9), "ik_frames": n_walk, "ik_wall_s": ik_wall,
+                "ik_frames_per_s": n_walk / max(ik_cpu, 1e-9), "ik_frames": n_walk,
+                "ik_first_order_frames_per_s": n_walk / max(ik0_cpu, 1e-9), "ik_wall_s": ik_wall,
                 "osim_note": ("skelid fit gait2354_simbody.osim subject01_static.trc subject01_walk1.trc (every "
-                              "frame, intervals included), then skelid report and skelid ik (100 draws) on its "
-                              "folder, each in this process after the package's import; OpenSim's ScaleTool "
+                              "frame, intervals included), then skelid report and skelid ik (100 draws, and "
+                              "--draws 0: the geometry's first-order effect) on its folder, each in this process after "
+                              "the package's import; OpenSim's ScaleTool "
                               "(subject01_Setup_Scale.xml) + IK of the walk in the same run")}
         if (s04 / "Models" / "unscaled_generic.osim").exists():
             trials = [s04 / "MarkerData" / f"{n}.trc" for n in S04_TRIALS]
@@ -731,7 +734,9 @@ def write_markdown(res: dict, path: Path) -> None:
             "least_squares_cpu_s", "skelid_peer_fit_cpu_s", "ratio_vs_least_squares", "ratio_vs_least_squares_wall",
             "skelid_rmse", "least_squares_rmse", "lower_limb_fit_s", "lower_limb_fit_cpu_s",
             "peak_rss_mb_1e5_frames", "batch_32_wall_s", "batch_32_serial_s", "marker_scaling_ratio_1e4_over_1e3",
-            "first_fit_extra_s", "live_p50_ms_case_a", "live_p99_ms_arm3d", "advice_frames_saved_fraction"]
+            "first_fit_extra_s", "live_p50_ms_case_a", "live_p99_ms_arm3d", "advice_frames_saved_fraction",
+            "osim_fit_cpu_s", "osim_peer_scaletool_ik_cpu_s", "osim_fit_ratio_to_scaletool_ik", "osim_six_trials_cpu_s",
+            "osim_report_s", "ik_frames_per_s", "ik_first_order_frames_per_s"]
     for k in keys:
         if k not in res:
             lines.append(f"| {k} | (not measured) | | |")
