@@ -52,6 +52,12 @@ def source(path: Path, doc=None, what: str = "") -> str:
             if p and "command" in p else (f"written {legacy}, " if isinstance(legacy, str) else "written ")
             + "before results files recorded their provenance"
             + ("; `python benchmarks/run_all.py --full` remakes it" if path.parent == RESULTS else ""))
+    runs = doc.get("section_runs") if isinstance(doc, dict) else None
+    if isinstance(runs, dict) and len(runs) > 1:  # a file whose sections are run one at a time (speed.json)
+        made = "its sections run separately: " + "; ".join(
+            f"{name} " + (f"commit {r['commit'][:10]}, {r['date']}" if r.get("commit") else
+                          f"{r.get('date', '?')}, before sections recorded their commit")
+            for name, r in runs.items()) + "; `python benchmarks/speed.py --only SECTION` remakes one"
     return f"<sub>From [`{rel(path)}`](/{rel(path)}){what}: {made}.</sub>\n"
 
 

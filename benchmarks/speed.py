@@ -51,7 +51,7 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import results_dir, write_json  # noqa: E402
+from _common import git_commit, results_dir, write_json  # noqa: E402
 
 RESULTS = results_dir()
 SHARED = ROOT.parent / "shared" / "data"
@@ -895,7 +895,7 @@ def main(argv=None):
         res.update(SECTIONS[name](args))
         runs[name] = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
                       "loadavg_after": list(os.getloadavg()), "date": time.strftime("%Y-%m-%d %H:%M"),
-                      "command": res["command"]}
+                      "command": res["command"], "commit": git_commit()}
         print(f"[speed] {name} done in {time.perf_counter() - t0:.0f} s", flush=True)
         write_json(json_path, res, indent=2)
     res["load_after"] = round(os.getloadavg()[0], 2)
