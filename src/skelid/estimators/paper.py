@@ -310,7 +310,10 @@ class PaperFilter:
         theta = self.model.theta_center
         q, _ = initial_pose(self.model, theta, frame, make_rng(self.rng))
         J = joint_positions(self.model, theta, q)[self.system.joints]
-        return np.concatenate([J.ravel(), theta])
+        # rounded to a millionth of the model's size: the compiled and numpy pose fits agree to far less, and
+        # the Newton iteration of a noisy first frame can go either way on a difference of rounding
+        step = 1e-6 * self.system.scale
+        return np.concatenate([np.round(J.ravel() / step) * step, theta])
 
     def _accept(self, x, converged) -> bool:
         pr = self.model.parameters[0].prior
