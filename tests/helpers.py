@@ -1,4 +1,7 @@
-"""Models built in Python for tests."""
+"""Models built in Python for tests, and the shared ways tests run skelid and its scripts."""
+
+import importlib.util
+from pathlib import Path
 
 import numpy as np
 
@@ -134,3 +137,12 @@ def leg_walk_poses(n_frames: int, n_pose: int, rate: float = 60.0) -> np.ndarray
     q[:, 9] = -0.9 + 0.8 * np.sin(2 * np.pi * 1.3 * t)
     q[:, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)
     return q
+
+
+def load_script(path, name: str | None = None):
+    """A script of the repository (a benchmark, an example) imported as a module, without running its main."""
+    path = Path(path)
+    spec = importlib.util.spec_from_file_location(name or path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

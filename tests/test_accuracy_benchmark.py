@@ -1,18 +1,16 @@
 """The accuracy study's control-variate estimates of bias and RMSE (benchmarks/accuracy.py) against closed forms."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
+
+from tests.helpers import load_script
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 
 
 def _accuracy():
-    spec = importlib.util.spec_from_file_location("accuracy_study", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(_PATH, "accuracy_study")
 
 
 def test_an_error_that_is_its_linear_term_plus_a_constant_gives_the_exact_bias_and_rmse():

@@ -120,12 +120,10 @@ class _Now:
 
 
 def test_exactly_once_keyed_by_content_method_and_settings(tmp_path, monkeypatch):
-    import distributed
-
     from skelid import batch
 
     monkeypatch.setattr(batch, "_client", lambda workers, scheduler: (_Now(), None))
-    monkeypatch.setattr(distributed, "as_completed", lambda futures: iter(futures))
+    monkeypatch.setattr(batch, "_finished", lambda client, futures: iter(futures))
     trials = tmp_path / "trials"
     trials.mkdir()
     for k in range(2):
@@ -147,13 +145,11 @@ def test_exactly_once_keyed_by_content_method_and_settings(tmp_path, monkeypatch
 
 
 def test_results_folders_go_through_the_serializer(tmp_path, monkeypatch, capsys):
-    import distributed
-
     from skelid import batch
     from skelid.io.results import read_run
 
     monkeypatch.setattr(batch, "_client", lambda workers, scheduler: (_Now(), None))
-    monkeypatch.setattr(distributed, "as_completed", lambda futures: iter(futures))
+    monkeypatch.setattr(batch, "_finished", lambda client, futures: iter(futures))
     write_trc(tmp_path / "t0.trc", simulate(builtin_model("case-a"), sigma=5.0, n_frames=30,
                                             rng=np.random.default_rng(0)).data)
     (tmp_path / "bad.trc").write_text("not a trc file\n")
@@ -173,6 +169,41 @@ def test_results_folders_go_through_the_serializer(tmp_path, monkeypatch, capsys
     assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(tmp_path / "r2.csv"),
                  "--results", str(tmp_path / "afile")]) == 2
     assert not (tmp_path / "r2.csv").exists()
+
+
+def test_a_cluster_that_does_not_start_is_one_line(tmp_path, capsys, monkeypatch):
+    import distributed
+
+    def dies(*args, **kwargs):  # what LocalCluster raises when a worker is killed while it starts
+        raise RuntimeError("Nanny failed to start.")
+
+    monkeypatch.setattr(distributed, "LocalCluster", dies)
+    write_trc(tmp_path / "t0.trc", simulate(builtin_model("case-a"), sigma=5.0, n_frames=30,
+                                            rng=np.random.default_rng(0)).data)
+    out = tmp_path / "r.csv"
+    assert main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "did not start: Nanny failed to start" in err[0] and "run the command again" in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.dask  # a scheduler in this process, with no worker
+def test_a_batch_left_with_no_worker_stops_in_one_line_instead_of_waiting_forever(tmp_path, capsys, monkeypatch):
+    from distributed import LocalCluster
+
+    from skelid import batch
+
+    monkeypatch.setattr(batch, "NO_WORKER_WAIT", 1.0)
+    monkeypatch.setattr(batch, "_POLL_S", 0.2)
+    write_trc(tmp_path / "t0.trc", simulate(builtin_model("case-a"), sigma=5.0, n_frames=30,
+                                            rng=np.random.default_rng(0)).data)
+    out = tmp_path / "r.csv"
+    with LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+        code = main(["batch", "case-a", str(tmp_path / "*.trc"), "--out", str(out), "--quiet",
+                     "--scheduler", cluster.scheduler_address])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "no Dask worker has been connected for 1 s; 1 trial(s)" in err[0], err
+    assert not out.exists()  # nothing finished, nothing written
 
 
 def test_parameter_names_whose_columns_collide_are_one_line():

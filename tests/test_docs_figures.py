@@ -1,6 +1,5 @@
 """The figures README.md and docs/*.md quote are the results files' (benchmarks/render_docs.py)."""
 
-import importlib.util
 import json
 import re
 from pathlib import Path
@@ -10,15 +9,13 @@ from click.testing import CliRunner
 
 from skelid import resources
 from skelid.cli import cli
+from tests.helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _render_docs():
-    spec = importlib.util.spec_from_file_location("render_docs", ROOT / "benchmarks" / "render_docs.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(ROOT / "benchmarks" / "render_docs.py")
 
 
 def _blocks(text, rd):

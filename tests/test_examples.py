@@ -9,6 +9,7 @@ from skelid.data import MarkerData
 from skelid.model import load_model
 from skelid.workflows import check_units, data_overview
 from tests.conftest import EXAMPLES
+from tests.helpers import load_script
 
 TENNIS = "kineticstoolkit-tennis/kinematics_tennis_serve_nan.c3d"
 
@@ -42,17 +43,13 @@ def test_tennis_arm_model_fits_the_recording(tennis):
 
 def test_pig_model_is_built_from_the_static_trial_and_fits_both_recordings(shared_data):
     """examples/pig_lower_limb.toml is what examples/build_pig.py writes, and its markers are in both trials."""
-    import importlib.util
-
     from skelid.io import read_c3d
 
     def read(trial):  # in this process: the files are known to be sound, and the test must stay fast
         return read_c3d(shared_data / "ktk-gait-pig" / f"{trial}.c3d", isolate=False)
 
     static = read("static")
-    spec = importlib.util.spec_from_file_location("build_pig", EXAMPLES / "build_pig.py")
-    build_pig = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(build_pig)
+    build_pig = load_script(EXAMPLES / "build_pig.py")
     assert build_pig.build(static) == (EXAMPLES / "pig_lower_limb.toml").read_text()
     model = load_model(EXAMPLES / "pig_lower_limb.toml")
     for data in (static, read("gait")):

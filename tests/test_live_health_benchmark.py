@@ -1,7 +1,6 @@
 """The live health study (benchmarks/live_health.py): its faults touch only their frames, and it reads the names
 the session's health text gives (so that a change of wording cannot turn "named right" into "none named")."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -10,16 +9,14 @@ import pytest
 from skelid.live import Session
 from skelid.model import load_model
 from skelid.simulate import builtin_model, simulate
+from tests.helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def study():
-    spec = importlib.util.spec_from_file_location("live_health_study", ROOT / "benchmarks" / "live_health.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(ROOT / "benchmarks" / "live_health.py", "live_health_study")
 
 
 @pytest.mark.parametrize("fault", ["swap", "dropout", "frozen", "knocked marker", "units cm"])

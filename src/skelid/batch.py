@@ -88,6 +88,10 @@ PARAM_SUFFIXES = tuple(PARAM_FIELDS)
 PARAM_STRING_SUFFIXES = ("_status",)
 #: rewrite the table at most this often while trials finish (seconds)
 WRITE_INTERVAL = 2.0
+#: Seconds a batch waits with no Dask worker connected before it stops (the rows so far kept).
+NO_WORKER_WAIT = 120.0
+#: Seconds between two looks at the cluster while no trial finishes.
+_POLL_S = 1.0
 #: run in each worker process of the local cluster: Ctrl-C in a terminal reaches every process of the
 #: command, and the batch itself stops the workers (a worker would print its own traceback)
 WORKER_IGNORES_SIGINT = "import signal; signal.signal(signal.SIGINT, signal.SIG_IGN)"
@@ -317,7 +321,8 @@ def read_table(out: Path, cols) -> list[dict]:
         if fmt == "parquet":
             import pyarrow.parquet as pq
 
-            table = pq.read_table(out)
+            with open(out, "rb") as fh:  # one open file: a rewrite that lands meanwhile cannot mix two tables
+                table = pq.read_table(fh)
             names, rows = table.column_names, table.to_pylist()
         else:
             with open(out, newline="", encoding="utf-8") as fh:
@@ -419,8 +424,13 @@ def _client(workers: int | None, scheduler: str | None):
             raise SkelidError(f"cannot reach the Dask scheduler at {scheduler}: {_one_line(exc)}",
                               "check the address (e.g. tcp://host:8786) and that the scheduler runs") from None
     n = workers or max(1, os.cpu_count() or 1)
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR, preload=[WORKER_IGNORES_SIGINT])
+    try:
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=logging.ERROR, preload=[WORKER_IGNORES_SIGINT])
+    except (RuntimeError, OSError, TimeoutError) as exc:  # a worker that died or could not start meanwhile
+        raise SkelidError(f"the local Dask cluster of {n} worker(s) did not start: {_one_line(exc)}",
+                          "run the command again (trials already in the table are skipped); if it keeps "
+                          "failing, give fewer --workers or free some memory") from None
     return Client(cluster), cluster
 
 
@@ -485,8 +495,8 @@ def run_batch(model_path, pattern: str, out, method: str = "marker", sigma: floa
             _check_batch_cost(model, method, todo, limits, sum(client.nthreads().values()))
         futures = [client.submit(fit_trial, f, model, method, sigma, seed, limits, ident[f], results_dir, command,
                                  osim, key=f"skelid-fit-{i}-{f}", pure=False) for i, f in enumerate(todo)]
-        _collect(futures, {fut.key: f for fut, f in zip(futures, todo, strict=True)}, ident, rows, cols, out,
-                 summary, progress)
+        _collect(client, futures, {fut.key: f for fut, f in zip(futures, todo, strict=True)}, ident, rows, cols,
+                 out, summary, progress)
     finally:
         with _stop.deferred():  # closed whole, even when a second signal comes
             if client is not None:
@@ -524,13 +534,40 @@ def _checked_batch(model_path, out: Path, method: str, sigma, limits, results_di
     return model, results_dir
 
 
-def _collect(futures, path_of: dict, ident: dict, rows: dict, cols, out: Path, summary: dict, progress: bool):
+def _finished(client, futures):
+    """The futures in the order they finish; a :class:`SkelidError` once no worker has been connected for
+    :data:`NO_WORKER_WAIT` s (all of them died, or a scheduler's workers went away), instead of waiting forever."""
+    from distributed import wait
+
+    pending, alone = list(futures), None
+    while pending:
+        try:
+            done, left = wait(pending, timeout=_POLL_S, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            done, left = (), pending
+        if done:
+            alone = None
+            yield from done
+            pending = list(left)
+            continue
+        if client.nthreads():
+            alone = None
+        elif alone is None:
+            alone = time.monotonic()
+        elif time.monotonic() - alone > NO_WORKER_WAIT:
+            raise SkelidError(f"no Dask worker has been connected for {NO_WORKER_WAIT:g} s; {len(pending)} "
+                              f"trial(s) not fitted (the rows so far are in the table)",
+                              "start workers (or leave out --scheduler for a local cluster), then run the "
+                              "same command again: the trials already in the table are skipped")
+
+
+def _collect(client, futures, path_of: dict, ident: dict, rows: dict, cols, out: Path, summary: dict,
+             progress: bool):
     """Each finished trial's row into ``rows`` and the table, written every :data:`WRITE_INTERVAL` s.
 
     A worker that died or a task that could not run gives its trial an error row. Interrupted,
-    what finished is written, so that a re-run resumes from there.
+    or left with no worker, what finished is written, so that a re-run resumes from there.
     """
-    from distributed import as_completed
     from tqdm import tqdm
 
     bar = tqdm(total=len(futures), desc="batch", unit="trial", file=sys.stderr, mininterval=0.25,
@@ -538,7 +575,7 @@ def _collect(futures, path_of: dict, ident: dict, rows: dict, cols, out: Path, s
     last, unsaved = time.monotonic(), False
     try:
         with bar:
-            for fut in as_completed(futures):
+            for fut in _finished(client, futures):
                 try:
                     row = fut.result()
                 except Exception as exc:  # the worker died or the task could not run
