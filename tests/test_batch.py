@@ -245,3 +245,31 @@ def test_an_osim_models_trial_that_lacks_some_markers_is_fitted_with_those_it_ha
     assert row["scale_thigh"] == pytest.approx(1.1, abs=1e-3)
     strict = fit_trial(str(tmp_path / "miss.trc"), model)
     assert "thigh2" in strict["error"]
+
+
+@pytest.mark.dask
+def test_a_batch_beside_another_cluster_prints_nothing_under_quiet(tmp_path):
+    """With port 8787 taken (another Dask cluster running), the local cluster's health endpoint moves to another
+    port without a warning on stderr: under --quiet a batch prints nothing, so a stop's one line stays one line."""
+    pytest.importorskip("distributed", reason="the [dask] extra (dask[distributed]) is not installed")
+    import socket
+    import subprocess
+
+    model = builtin_model("case-a")
+    for k in range(2):
+        write_trc(tmp_path / f"t{k}.trc", simulate(model, sigma=5.0, n_frames=100, rng=np.random.default_rng(k)).data)
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("", 8787))
+        except OSError:
+            pass  # already taken by another cluster: the case under test
+        else:
+            s.listen()
+        cli = "import sys; from skelid.cli import main; sys.exit(main())"
+        p = subprocess.run([sys.executable, "-c", cli, "batch", "case-a", str(tmp_path / "*.trc"), "--out",
+                            str(tmp_path / "rows.csv"), "--workers", "1", "--quiet"], capture_output=True,
+                           text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr == ""
+    assert len(read_table(tmp_path / "rows.csv", columns(model))) == 2

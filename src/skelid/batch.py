@@ -425,8 +425,12 @@ def _client(workers: int | None, scheduler: str | None):
                               "check the address (e.g. tcp://host:8786) and that the scheduler runs") from None
     n = workers or max(1, os.cpu_count() or 1)
     try:
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.ERROR, preload=[WORKER_IGNORES_SIGINT])
+        with warnings.catch_warnings():
+            # the scheduler's health endpoint takes another port when 8787 is taken (another cluster running):
+            # nothing to tell the user, and it would break the one-line report of a stop
+            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR, preload=[WORKER_IGNORES_SIGINT])
     except (RuntimeError, OSError, TimeoutError) as exc:  # a worker that died or could not start meanwhile
         raise SkelidError(f"the local Dask cluster of {n} worker(s) did not start: {_one_line(exc)}",
                           "run the command again (trials already in the table are skipped); if it keeps "
