@@ -297,6 +297,40 @@ def opensim_lengths(model, coord_names) -> dict:
     return {k: float(np.linalg.norm(p(a) - p(b)) * 1000.0) for k, (a, b) in LENGTHS.items()}
 
 
+def opensim_points(model) -> dict:
+    """Each joint centre in its parent body's frame and each marker in its own body's frame (mm), zero pose.
+
+    Quantities that mean the same whatever a fit's parametrisation (one factor per body or one per
+    axis, offsets measured from differently scaled nominal places): where the body's joints and
+    markers are.
+    """
+    state = model.initSystem()
+    cs = model.getCoordinateSet()
+    for i in range(cs.getSize()):
+        cs.get(i).setValue(state, 0.0, False)
+    model.realizePosition(state)
+
+    def frame(b):
+        T = b.getTransformInGround(state)
+        return (np.array([[T.R().get(i, j) for j in range(3)] for i in range(3)]),
+                np.array([T.p().get(i) for i in range(3)]))
+    out = {}
+    js = model.getJointSet()
+    for i in range(js.getSize()):
+        par, ch = js.get(i).getParentFrame().findBaseFrame(), js.get(i).getChildFrame().findBaseFrame()
+        if par.getName() == "ground":
+            continue
+        (Rp, pp), (_, pc) = frame(par), frame(ch)
+        out[f"joint {ch.getName()} in {par.getName()}"] = Rp.T @ (pc - pp) * 1000.0
+    ms = model.getMarkerSet()
+    for i in range(ms.getSize()):
+        m = ms.get(i)
+        R, p = frame(m.getParentFrame().findBaseFrame())
+        x = m.getLocationInGround(state)
+        out[f"marker {m.getName()}"] = R.T @ (np.array([x.get(k) for k in range(3)]) - p) * 1000.0
+    return out
+
+
 # ----------------------------------------------------------------------------- skelid
 def skelid_lengths(fit) -> tuple[dict, dict]:
     """Lengths (mm) at the zero pose from a fit and their sd (delta method over the scale covariance)."""
@@ -321,6 +355,40 @@ def skelid_lengths(fit) -> tuple[dict, dict]:
     sd = np.sqrt(np.clip(np.einsum("lp,pq,lq->l", G, cov, G), 0, None))
     names = list(LENGTHS)
     return dict(zip(names, L0, strict=True)), dict(zip(names, sd, strict=True))
+
+
+def skelid_points(model, theta) -> dict:
+    """:func:`opensim_points` of a skelid model at ``theta``: (3,) arrays in the model's units (mm)."""
+    from skelid.model.kinematics import forward_kinematics
+
+    kin = forward_kinematics(model, np.asarray(theta, float), np.zeros(model.n_pose))
+    R, p = kin.R_world_seg, kin.p_world_seg
+    out = {}
+    for i, s in enumerate(model.segments):
+        j = model.parent_index[i]
+        if j >= 0:
+            out[f"joint {s.name} in {model.segments[j].name}"] = R[j].T @ (p[i] - p[j])
+    for k, m in enumerate(model.marker_names):
+        i = model.marker_segment[k]
+        out[f"marker {m}"] = R[i].T @ (kin.markers[k] - p[i])
+    return out
+
+
+def skelid_point_estimates(fit) -> dict:
+    """Every :func:`skelid_points` quantity with its 3 x 3 covariance (delta method over the fit's covariance)."""
+    model, theta = fit.model, np.asarray(fit.theta, float)
+    cov = np.asarray(fit.joint.cov if getattr(fit, "joint", None) is not None else
+                     np.diag([fit.result[p.name]["sd"] ** 2 for p in model.parameters]), float)
+    x0 = skelid_points(model, theta)
+    keys = list(x0)
+    G = np.zeros((len(keys), 3, theta.size))
+    for k in range(theta.size):  # the points are linear in theta (the geometry map): one-sided steps are exact
+        th = theta.copy()
+        th[k] += 1e-3
+        x1 = skelid_points(model, th)
+        G[:, :, k] = [(x1[q] - x0[q]) / 1e-3 for q in keys]
+    C = np.einsum("qip,pr,qjr->qij", G, cov, G)
+    return {q: {"est": x0[q], "cov": C[n]} for n, q in enumerate(keys)}
 
 
 def scale_covariance(fit, ks) -> np.ndarray:
@@ -378,6 +446,7 @@ def skelid_fit(trials, fit: str) -> dict:
     L, sd = skelid_lengths(fit)
     for n in L:
         out["q"][f"length {n}"] = {"est": L[n], "sd": sd[n], "crlb": float("nan")}
+    out["points"] = skelid_point_estimates(fit)
     return out
 
 
@@ -464,6 +533,7 @@ def run_draw(args) -> dict:
     if any(d == "walk+walk2" for d in designs):
         clean["walk2"] = (marker_trajectories(model, mo["names"], mo["walk2"])[1], mo["walk2"])
     lengths = opensim_lengths(model, mo["names"])
+    points = opensim_points(model)
     noisy = add_noise(rng, noise, model, mo["names"], clean, mo["static"])
     walk, static = noisy["walk"], noisy["static"]
     out = {"seed": seed, "truth_kind": truth_kind, "noise": noise, "fits": {}}
@@ -480,6 +550,7 @@ def run_draw(args) -> dict:
                 out["fits"][key] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
                 continue
             r["truth"] = {k: tv[k] for k in r["q"] if k in tv}
+            r["truth_points"] = {k: points[k] for k in r["points"] if k in points}
             out["fits"][key] = r
     if peer and "static+walk" in designs:
         try:
@@ -530,6 +601,7 @@ def summarise(draws: list[dict]) -> dict:
                         cls = "data-determined" if e["identified"] else "prior-dominated"
                         c.setdefault("classes", {}).setdefault(f"{kind}, {cls}", []).append(
                             (e["est"] - r["truth"][q]) / e["sd"])
+            _score_points(c, r)
         if "scaletool" in d and "error" in d["scaletool"]:
             key = f"{d['truth_kind']}/scaletool/static+walk/{d['noise']}"
             c = cells.setdefault(key, {"n": 0, "failed": 0, "errors": [], "rows": {}, "cpu": []})
@@ -565,12 +637,72 @@ def summarise(draws: list[dict]) -> dict:
         out[key]["classes"] = {k: {"n": len(z), "coverage95": float(np.mean(np.abs(z) <= Z95)),
                                    "rms_z": float(np.sqrt(np.mean(np.square(z))))}
                                for k, z in sorted(c.get("classes", {}).items())}
+        out[key] |= _points_summary(c)
         if "sigma" in c:
             sig = [s for s in c["sigma"] if s is not None]
             out[key] |= {"sigma_mean": float(np.mean(sig)) if sig else None,
                          "share_warned": c["warned"] / max(c["n"], 1),
                          "share_artefact_named": c["artefact"] / max(c["n"], 1),
                          "share_artefact_term": c["art_term"] / max(c["n"], 1)}
+    return out
+
+
+#: chi^2_3 95 % point: a 3-D point's region (its 95 % ellipsoid) covers the truth where d^2 is at most this
+CHI2_3_95 = 7.814728
+#: an error this small (mm) counts as none: a coordinate no parameter moves is exact in the fit and the truth
+EXACT_MM = 1e-6
+
+
+def _point_scores(err, cov) -> tuple[np.ndarray, float]:
+    """Per axis ``|error| / sd`` (0 where both are nil, inf where the sd is nil and the error is not) and the
+    squared Mahalanobis distance (inf where the error leaves the covariance's range)."""
+    err, cov = np.asarray(err, float), np.asarray(cov, float)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    z = np.where(np.abs(err) <= EXACT_MM, 0.0, np.abs(err) / np.maximum(sd, 1e-300))
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    e = V.T @ err
+    live = w > 1e-12 * max(float(w.max()), 1e-300)
+    if np.any(np.abs(e[~live]) > EXACT_MM):
+        return z, float("inf")
+    return z, float(np.sum(e[live] ** 2 / w[live]))
+
+
+def _score_points(c: dict, r: dict) -> None:
+    """Add a fit's joint centres and markers (body frames) to its cell's tallies."""
+    truth = r.get("truth_points") or {}
+    for q, e in (r.get("points") or {}).items():
+        if q not in truth:
+            continue
+        err = np.asarray(e["est"], float) - np.asarray(truth[q], float)
+        z, d2 = _point_scores(err, e["cov"])
+        kind = "joint centres (parent body frame)" if q.startswith("joint") else "markers (own body frame)"
+        t = c.setdefault("points", {}).setdefault(kind, {"z": [], "d2": [], "err": []})
+        t["z"] += list(z)
+        t["d2"].append(d2)
+        t["err"] += list(err)
+        if q.startswith("joint"):
+            j = c.setdefault("joints", {}).setdefault(q[len("joint "):], {"err": [], "sd": [], "z": [], "d2": []})
+            j["err"].append(float(np.linalg.norm(err)))
+            j["sd"].append(float(np.sqrt(max(np.trace(np.asarray(e["cov"], float)), 0.0) / 3.0)))
+            j["z"] += list(z)
+            j["d2"].append(d2)
+
+
+def _points_summary(c: dict) -> dict:
+    """Per kind and per joint: coverage per axis and of the 3-D region, rms z, RMSE."""
+    def cover(t):
+        z, d2 = np.asarray(t["z"], float), np.asarray(t["d2"], float)
+        finite = z[np.isfinite(z)]
+        return {"coverage95_axes": float(np.mean(z <= Z95)), "rms_z": float(np.sqrt(np.mean(np.square(finite)))),
+                "share_nil_sd": float(np.mean(~np.isfinite(z))),
+                "region_coverage95": float(np.mean(d2 <= CHI2_3_95)), "median_d2_over_3": float(np.median(d2) / 3.0)}
+    out = {}
+    if c.get("points"):
+        out["points"] = {k: {"n": len(t["d2"]), "rmse_mm": float(np.sqrt(np.mean(np.square(t["err"]))))} | cover(t)
+                         for k, t in sorted(c["points"].items())}
+    if c.get("joints"):
+        out["joints"] = {k: {"n": len(t["d2"]), "rmse_3d_mm": float(np.sqrt(np.mean(np.square(t["err"])))),
+                             "mean_sd_mm": float(np.mean(t["sd"]))} | cover(t) for k, t in sorted(c["joints"].items())}
     return out
 
 
@@ -589,7 +721,12 @@ def markdown(res: dict) -> str:
              "drawn from the fit's own priors (log-normal sd 0.15, normal 10 mm), where a right posterior "
              "covers 95 % of every quantity, also of those the data leave to the prior. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
              "exact structure; `axes+pm`: the same with `noise='per_marker'`. Marker offsets are pooled over "
-             "every marker and axis (per-offset rows in the JSON). \"Artefact term added\": the fit found a "
+             "every marker and axis (per-offset rows in the JSON). Body-frame rows: each joint centre in its parent "
+             "body's frame and each marker in its own body's frame at the zero pose (mm), the same quantities "
+             "whatever the fit's parametrisation (a one-factor fit's offsets and factor are not the per-axis "
+             "truth's); their sd by the delta method over the fit's covariance; region coverage: the 95 % "
+             "ellipsoid (chi2_3) covers the truth (a coordinate the fit holds exact, with a nil sd, and the truth "
+             "elsewhere is a miss). \"Artefact term added\": the fit found a "
              "pose-dependent artefact in its residuals (F test) and added its effect to the intervals; "
              "\"named\": it also warned. Pooled rows: every (parameter, draw) pair, data-determined where the "
              f"fit's bound is at most {IDENTIFIED_SHARE} of the prior's sd, else prior-dominated; rms z is the root "
@@ -635,12 +772,31 @@ def markdown(res: dict) -> str:
                          f"{_f(m['bias_over_crlb'])} | {_f(m['rmse'], 3)} | {_f(m['rmse_over_crlb'])} | "
                          f"{_f(m['rmse_over_sd'])} | {_f(m['coverage95'])} (min {_f(lo)}) | {_f(m['sd_ratio'])} |")
         lines.append("")
+        lines += _points_markdown(c)
         if c.get("classes"):
             lines += ["| pooled over parameters and draws | n | coverage 95 % | rms z (1 = right) |",
                       "|---|---|---|---|"]
             lines += [f"| {k} | {v['n']} | {_f(v['coverage95'])} | {_f(v['rms_z'])} |" for k, v in c["classes"].items()]
             lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _points_markdown(c: dict) -> list[str]:
+    """The body-frame tables: joint centres one by one, then joint centres and markers pooled."""
+    lines = []
+    if c.get("joints"):
+        lines += ["| joint centre in its parent body | RMSE 3-D (mm) | mean sd per axis (mm) | coverage per axis "
+                  "| region coverage (chi2_3) | median d2/3 |", "|---|---|---|---|---|---|"]
+        lines += [f"| {k} | {_f(v['rmse_3d_mm'], 1)} | {_f(v['mean_sd_mm'], 1)} | {_f(v['coverage95_axes'])} | "
+                  f"{_f(v['region_coverage95'])} | {_f(v['median_d2_over_3'])} |" for k, v in c["joints"].items()]
+        lines.append("")
+    if c.get("points"):
+        lines += ["| pooled over points and draws | points | RMSE per axis (mm) | coverage per axis | rms z | "
+                  "region coverage (chi2_3) |", "|---|---|---|---|---|---|"]
+        lines += [f"| {k} | {v['n']} | {_f(v['rmse_mm'], 1)} | {_f(v['coverage95_axes'])} | {_f(v['rms_z'])} | "
+                  f"{_f(v['region_coverage95'])} |" for k, v in c["points"].items()]
+        lines.append("")
+    return lines
 
 
 def _f(v, digits: int = 2) -> str:
