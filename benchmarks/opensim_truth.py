@@ -39,13 +39,16 @@ the walk and the IK of ``walk_free_01.trc``, 73 frames, another walk of the
 same subject, as two trials of one fit). skelid fits the generic model with
 :func:`skelid.scaling.fit_osim` (``scale="bodies"``, the default: the user's
 case), and, where the truth is per axis, also with ``scale="axes"`` (the
-exact structure). Reported per cell for every scale factor, segment length
-(hip-knee, knee-ankle per side at the zero pose, joint centre to joint centre)
-and marker offset: bias, bias/CRLB (skelid's Cramér-Rao sd where it reports
-one, else its sd), RMSE/mean reported sd, RMSE/CRLB, coverage of the 95 %
-interval, mean reported sd / actual sd, draws, failures. A one-factor fit of a
-per-axis truth is compared with the mean of the three true factors (its
-lengths are the quantities that matter there).
+exact structure), and with ``scale="linked"`` (three factors per body, their logs
+correlated a priori). Reported per cell for every scale factor, segment length
+(hip-knee, knee-ankle per side at the zero pose, joint centre to joint centre),
+marker offset, and every joint centre in its parent body's frame and marker in its
+own body's frame (the same quantities whatever the fit's parametrisation): bias,
+bias/CRLB (skelid's Cramér-Rao sd where it reports one, else its sd), RMSE/mean
+reported sd, RMSE/CRLB, coverage of the 95 % interval, mean reported sd / actual
+sd, draws, failures. A one-factor fit of a per-axis truth is compared with the
+mean of the three true factors; that is no quantity such a fit estimates, and the
+body-frame rows are the ones that compare its answer with the truth.
 
 Peer in the same draw: OpenSim's ScaleTool (measurement-based scaling with the
 marker pairs of ``subject01_Setup_Scale.xml``, then its MarkerPlacer) on the
@@ -94,7 +97,7 @@ LENGTHS = {"thigh_r (hip-knee)": ("femur_r", "tibia_r"), "thigh_l (hip-knee)": (
            "shank_r (knee-ankle)": ("tibia_r", "talus_r"), "shank_l (knee-ankle)": ("tibia_l", "talus_l")}
 NOISES = (0.0, 2.0, 5.0, 10.0)
 # truth, fit, design
-CONFIGS = (("bodies", "bodies"), ("axes", "bodies"), ("axes", "axes"))
+CONFIGS = (("bodies", "bodies"), ("axes", "bodies"), ("axes", "axes"), ("axes", "linked"), ("bodies", "linked"))
 DESIGNS = ("static+walk", "walk", "walk+walk2")
 Z95 = 1.959964
 #: a parameter is data-determined in a draw where its bound is at most this share of its prior's sd
@@ -719,8 +722,10 @@ def markdown(res: dict) -> str:
              " Truth `bodies`: one factor per body; `axes`: one per "
              "axis (both uniform in [0.85, 1.15], offsets 1-20 mm long); `prior`: per axis, factors and offsets "
              "drawn from the fit's own priors (log-normal sd 0.15, normal 10 mm), where a right posterior "
-             "covers 95 % of every quantity, also of those the data leave to the prior. Fit `bodies`: `fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
-             "exact structure; `axes+pm`: the same with `noise='per_marker'`. Marker offsets are pooled over "
+             "covers 95 % of every quantity, also of those the data leave to the prior. Fit `bodies`: "
+             "`fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
+             "exact structure; `linked`: three factors per body whose logs are correlated 0.8 a priori; "
+             "`axes+pm`: the same as `axes` with `noise='per_marker'`. Marker offsets are pooled over "
              "every marker and axis (per-offset rows in the JSON). Body-frame rows: each joint centre in its parent "
              "body's frame and each marker in its own body's frame at the zero pose (mm), the same quantities "
              "whatever the fit's parametrisation (a one-factor fit's offsets and factor are not the per-axis "
@@ -730,7 +735,8 @@ def markdown(res: dict) -> str:
              "pose-dependent artefact in its residuals (F test) and added its effect to the intervals; "
              "\"named\": it also warned. Pooled rows: every (parameter, draw) pair, data-determined where the "
              f"fit's bound is at most {IDENTIFIED_SHARE} of the prior's sd, else prior-dominated; rms z is the root "
-             "mean square of error / reported sd (1 where the sd is right, below 1 where it is wide). ScaleTool rows: OpenSim's measurement-based scaling on the same static "
+             "mean square of error / reported sd (1 where the sd is right, below 1 where it is wide). "
+             "ScaleTool rows: OpenSim's measurement-based scaling on the same static "
              "trial (error of each "
              "axis' factor against the truth's).", ""]
     for key, c in res["cells"].items():

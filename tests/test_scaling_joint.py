@@ -329,3 +329,71 @@ def test_data_simulated_from_the_fit_spread_as_its_interval_says_where_the_fit_i
     for kind, r in entry["pooled_sd_ratio"].items():
         assert 0.8 < r < 1.25, (kind, r)
     assert np.mean(widen > 1.0) < 0.3
+
+
+# ----------------------------------------------------------------------------- linked axis factors
+def test_linked_axis_factors_have_a_correlated_log_normal_prior_whose_gradient_is_its_costs(leg):  # noqa: F811
+    from skelid.io.osim import AXIS_CORRELATION
+    from skelid.scaling import _prior_cost, _prior_terms, prior_sd
+
+    base, info = read_osim(leg)
+    linked = osim_parameters(base, info, "linked", "offsets")
+    axes = osim_parameters(base, info, "axes", "offsets")
+    assert linked.parameter_names == axes.parameter_names
+    groups = {p.prior.group for p in linked.parameters if p.kind == "scale"}
+    assert groups == {"scale_pelvis", "scale_thigh", "scale_shank"}
+    rng = np.random.default_rng(4)
+    theta = np.where([p.kind == "scale" for p in linked.parameters],
+                     np.exp(rng.normal(0.0, 0.1, linked.n_params)), rng.normal(0.0, 5.0, linked.n_params))
+    g, H = _prior_terms(linked, theta)
+    fd = np.array([(_prior_cost(linked, theta + e) - _prior_cost(linked, theta - e)) / 2e-7
+                   for e in np.eye(linked.n_params) * 1e-7])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6)
+    # the curvature of one body's block: diag(1/theta) Sigma^-1 diag(1/theta)
+    k = [i for i, p in enumerate(linked.parameters) if p.prior.group == "scale_thigh"]
+    sd = linked.parameters[k[0]].prior.sd
+    sigma = sd**2 * ((1 - AXIS_CORRELATION) * np.eye(3) + AXIS_CORRELATION * np.ones((3, 3)))
+    np.testing.assert_allclose(H[np.ix_(k, k)], np.linalg.inv(sigma) / np.outer(theta[k], theta[k]), rtol=1e-10)
+    # each factor's marginal prior is the one factor per axis's; with no correlation, the same terms as 'axes'
+    np.testing.assert_allclose(prior_sd(_prior_terms(linked, np.where(np.isin(np.arange(theta.size), k), 1.0,
+                                                                      theta))[1])[k], sd, rtol=1e-10)
+    free = replace(linked, parameters=tuple(replace(p, prior=replace(p.prior, correlation=0.0))
+                                            for p in linked.parameters))
+    g0, H0 = _prior_terms(free, theta)
+    ga, ha = _prior_terms(axes, theta)
+    np.testing.assert_allclose(g0, ga, rtol=1e-12)
+    np.testing.assert_allclose(H0, np.diag(ha), rtol=1e-12)
+
+
+def test_a_prior_precision_matrix_gives_the_posterior_of_its_vector_where_it_is_diagonal():
+    from skelid.scaling import _posterior_solver
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(20, 6))
+    info = A.T @ A
+    info[:, 5] = info[5, :] = 0.0  # one direction the data leave to the prior
+    h = rng.uniform(0.5, 3.0, 6)
+    sv, cv, ev, shv = _posterior_solver(info, h)
+    sm, cm, em, shm = _posterior_solver(info, np.diag(h))
+    b = rng.normal(size=6)
+    np.testing.assert_allclose(cm, cv, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sm(b), sv(b), rtol=1e-10)
+    assert em == pytest.approx(ev, rel=1e-10)
+    np.testing.assert_allclose(shm, shv, atol=1e-10)
+    # a correlated prior: the covariance is (info + Lambda)^-1
+    L = rng.normal(size=(6, 6))
+    lam = L @ L.T + 6 * np.eye(6)
+    _, c2, _, _ = _posterior_solver(info, lam)
+    np.testing.assert_allclose(c2, np.linalg.inv(info + lam), rtol=1e-9)
+
+
+def test_linked_factors_stay_near_the_bodys_common_factor_where_the_data_say_nothing_of_an_axis(leg):  # noqa: F811
+    """The leg's thigh seen in a plane: its out-of-plane factor is left to the prior. Per axis the prior pulls
+    it towards its median 1 (1.15 here); linked, it stays nearer the thigh's other factors (1.2; 1.19 here)."""
+    truth = {"pelvis": 1.0, "thigh": 1.2, "shank": 1.0}
+    trials = _trials(leg, truth)
+    fits = {m: fit_osim(leg, trials, scale=m) for m in ("axes", "linked")}
+    th = {m: {p.name: v for p, v in zip(f.model.parameters, f.theta, strict=True)} for m, f in fits.items()}
+    lin = [th["linked"][f"scale_thigh_{a}"] for a in "xyz"]
+    ax = [th["axes"][f"scale_thigh_{a}"] for a in "xyz"]
+    assert np.ptp(np.log(lin)) < np.ptp(np.log(ax))

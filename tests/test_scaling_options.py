@@ -155,6 +155,8 @@ def check_seed(d, base):
 def check_scale(d, base):
     t = _run(d, ["--scale", "axes"])["table"]
     assert set(t["scales"]["thigh"]) == {"x", "y", "z"} and set(base["table"]["scales"]["thigh"]) == {"xyz"}
+    linked = _run(d, ["--scale", "linked"])["table"]
+    assert set(linked["scales"]["thigh"]) == {"x", "y", "z"} and linked["scales"] != t["scales"]
 
 
 def check_markers(d, base):

@@ -184,7 +184,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     marker_set : path, optional
         A MarkerSet file for models without markers (default: the one
         :func:`skelid.io.osim.find_marker_set` finds next to the model).
-    scale : {'bodies', 'axes', 'none'}
+    scale : {'bodies', 'axes', 'linked', 'none'}
         See :func:`skelid.io.osim.osim_parameters`.
     markers : {'offsets', 'none'}
         Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
@@ -382,8 +382,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
     jo = replace(jo, theta=np.clip(jo.theta - bias, lo, hi))
-    prior_sd = 1.0 / np.sqrt(np.maximum(_prior_terms(model, jo.theta)[1], 1e-300))
-    widen = np.maximum(np.minimum(np.maximum(widen, boot), prior_sd / np.maximum(bound, 1e-300)), 1.0)
+    psd = prior_sd(_prior_terms(model, jo.theta)[1])
+    widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)
     jo = replace(jo, cov=base * np.outer(widen, widen) + art.cov + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
     ratio = _artefact_ratio(art, bound)
@@ -814,10 +814,14 @@ class JointOffsets:
 
 
 def _prior_terms(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
-    """Gradient and (Gauss-Newton) curvature of the negative log prior: ``(P,)``, ``(P,)``.
+    """Gradient and (Gauss-Newton) curvature of the negative log prior: ``(P,)``, and ``(P,)`` or ``(P, P)``.
 
     Normal priors: ``(theta - mu)^2 / (2 sd^2)``; log-normal ones: ``(log theta - log m)^2 / (2 sd^2)``
-    (the MAP in log space); uniform ones: nothing.
+    (the MAP in log space); uniform ones: nothing. Log-normal priors that share a group
+    (:class:`skelid.model.description.Prior`) are jointly normal in their logs ``u``:
+    ``(u - log m)^T Sigma^-1 (u - log m) / 2`` with ``Sigma = sd^2 ((1 - rho) I + rho 1 1^T)``; the
+    curvature is then the matrix ``D Sigma^-1 D``, ``D = diag(1 / theta)`` on the group's block
+    (a model without groups keeps the vector of the diagonal).
     """
     g = np.zeros(model.n_params)
     h = np.zeros(model.n_params)
@@ -829,18 +833,68 @@ def _prior_terms(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
             t = max(float(theta[k]), 1e-12)
             g[k] = (np.log(t) - np.log(p.prior.mean)) / (p.prior.sd**2 * t)
             h[k] = 1.0 / (p.prior.sd * t) ** 2
-    return g, h
+    groups = _prior_groups(model)
+    if not groups:
+        return g, h
+    H = np.diag(h)
+    for idx, u, inv in _group_terms(model, theta, groups):
+        t = np.maximum(np.asarray(theta, float)[idx], 1e-12)
+        g[idx] = (inv @ u) / t
+        H[np.ix_(idx, idx)] = inv / np.outer(t, t)
+    return g, H
+
+
+def _prior_groups(model: Model) -> list[np.ndarray]:
+    """The index sets of the parameters whose log-normal priors share a group (two or more each)."""
+    by: dict = {}
+    for k, p in enumerate(model.parameters):
+        if p.prior.kind == "lognormal" and p.prior.group:
+            by.setdefault(p.prior.group, []).append(k)
+    return [np.array(v) for v in by.values() if len(v) > 1]
+
+
+def _group_terms(model: Model, theta, groups):
+    """Per group: its indices, the logs' departures from the medians ``u`` and ``Sigma^-1``."""
+    for idx in groups:
+        pr = [model.parameters[k].prior for k in idx]
+        sd, rho = pr[0].sd, pr[0].correlation
+        n = idx.size
+        sigma = sd**2 * ((1.0 - rho) * np.eye(n) + rho * np.ones((n, n)))
+        u = np.log(np.maximum(np.asarray(theta, float)[idx], 1e-12)) - np.log([q.mean for q in pr])
+        yield idx, u, np.linalg.inv(sigma)
 
 
 def _prior_cost(model: Model, theta) -> float:
     """The negative log prior whose gradient and curvature :func:`_prior_terms` gives (constants dropped)."""
+    groups = _prior_groups(model)
+    grouped = set(np.concatenate(groups).tolist()) if groups else set()
     c = 0.0
     for k, p in enumerate(model.parameters):
         if p.prior.kind == "normal":
             c += 0.5 * ((theta[k] - p.prior.mean) / p.prior.sd) ** 2
-        elif p.prior.kind == "lognormal":
+        elif p.prior.kind == "lognormal" and k not in grouped:
             c += 0.5 * ((np.log(max(float(theta[k]), 1e-12)) - np.log(p.prior.mean)) / p.prior.sd) ** 2
+    for _, u, inv in _group_terms(model, theta, groups):
+        c += 0.5 * float(u @ inv @ u)
     return c
+
+
+def prior_matrix(prior_precision) -> np.ndarray:
+    """A prior precision as a ``(P, P)`` matrix (the diagonal of a vector)."""
+    h = np.asarray(prior_precision, float)
+    return np.diag(h) if h.ndim == 1 else h
+
+
+def prior_sd(prior_precision) -> np.ndarray:
+    """Each parameter's marginal prior sd from a prior precision (vector or matrix)."""
+    h = np.asarray(prior_precision, float)
+    if h.ndim == 1:
+        return 1.0 / np.sqrt(np.maximum(h, 1e-300))
+    sd = 1.0 / np.sqrt(np.maximum(np.diag(h), 1e-300))
+    coupled = np.flatnonzero(np.abs(h - np.diag(np.diag(h))).sum(axis=1) > 0)  # the groups' blocks
+    if coupled.size:
+        sd[coupled] = np.sqrt(np.clip(np.diag(np.linalg.inv(h[np.ix_(coupled, coupled)])), 0.0, None))
+    return sd
 
 
 def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None = None,
@@ -928,7 +982,7 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     cov_noise, marker_sd = None, None
     if sigma is None:
         J = sum(t[4] / s_k**4 for t, s_k in zip(final, sig, strict=True))
-        cov_noise = cov @ (J + np.diag(hp)) @ cov
+        cov_noise = cov @ (J + prior_matrix(hp)) @ cov
         cov_noise = 0.5 * (cov_noise + cov_noise.T)
         marker_sd = np.sqrt(np.array([t[5] for t in final]))
     return JointOffsets(theta, cov, [t[0] for t in final], sig, dof, edf, n_done, converged, prior_only, info,
@@ -944,8 +998,8 @@ def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_ite
     """
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
-    prior_sd = np.array([p.prior.sd for p in model.parameters])
-    tiny = JOINT_STEP_SD * np.where(np.isfinite(prior_sd), prior_sd, 1.0)
+    sd0 = np.array([p.prior.sd for p in model.parameters])
+    tiny = JOINT_STEP_SD * np.where(np.isfinite(sd0), sd0, 1.0)
     n_obs, n_pose, floor = counts
     for it in range(1, n_iter + 1):
         rss = np.array([t[3] for t in now])
@@ -1034,12 +1088,11 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
             score = score + g / jo.sigma[k] ** 2
         steps[b] = solve(score)
     # the steps' variance under a linear fit: the data's part of the interval, without the prior's
-    var = np.clip(np.diag(cov) - np.einsum("ip,p,ip->i", jo.cov, hp, jo.cov), 1e-300, None)
+    var = np.clip(np.diag(cov) - np.einsum("ip,pq,iq->i", jo.cov, prior_matrix(hp), jo.cov), 1e-300, None)
     bias = steps.mean(axis=0)
     ratio = steps.var(axis=0, ddof=1) / var
     widen = np.where(ratio > chi2.ppf(0.9, B - 1) / (B - 1), np.sqrt(ratio), 1.0)
-    prior_sd = 1.0 / np.sqrt(np.maximum(hp, 1e-300))
-    determined = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None)) <= AXES_IDENTIFIED * prior_sd
+    determined = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None)) <= AXES_IDENTIFIED * prior_sd(hp)
     kinds = np.array([p.kind for p in model.parameters])
     pooled = {}
     for kind in np.unique(kinds):
@@ -1201,7 +1254,8 @@ def _bounded_step(info, prior_precision, score, theta, lo, hi) -> np.ndarray:
     for _ in range(P + 1):
         free = ~held
         sub = np.ix_(free, free)
-        solve = _posterior_solver(info[sub], prior_precision[free])[0]
+        pp = prior_precision[free] if np.ndim(prior_precision) == 1 else prior_precision[sub]
+        solve = _posterior_solver(info[sub], pp)[0]
         step[:] = 0.0
         step[free] = solve(score[free])
         press = free & (((theta <= lo) & (step < 0)) | ((theta >= hi) & (step > 0)))
@@ -1236,7 +1290,14 @@ def _posterior(model: Model, info, prior_precision, rel_tol: float = 1e-10):
 
 
 def _posterior_solver(info, prior_precision, rel_tol: float = 1e-10):
-    """:func:`_posterior` without the model: ``(solve, cov, edf, share of each parameter in the null directions)``."""
+    """:func:`_posterior` without the model: ``(solve, cov, edf, share of each parameter in the null directions)``.
+
+    A prior precision given as a matrix ``Lambda`` (correlated priors) is whitened by its Cholesky factor
+    ``Lambda = L L^T`` instead of the prior sd; the share of parameter ``i`` is then the part of its prior
+    variance that lies in the null directions.
+    """
+    if np.ndim(prior_precision) == 2:
+        return _posterior_solver_full(info, np.asarray(prior_precision, float), rel_tol)
     d = 1.0 / np.sqrt(np.maximum(prior_precision, 1e-300))
     M = info * np.outer(d, d)
     w, V = np.linalg.eigh(0.5 * (M + M.T))
@@ -1248,6 +1309,28 @@ def _posterior_solver(info, prior_precision, rel_tol: float = 1e-10):
     def solve(b):
         return d * (V @ (inv * (V.T @ (d * b))))
     return solve, 0.5 * (cov + cov.T), float(np.sum(w * inv)), (V[:, null] ** 2).sum(axis=1)
+
+
+def _posterior_solver_full(info, prior_precision, rel_tol: float = 1e-10):
+    """:func:`_posterior_solver` for a prior precision matrix."""
+    from scipy.linalg import solve_triangular
+
+    P = prior_precision.shape[0]
+    L = np.linalg.cholesky(0.5 * (prior_precision + prior_precision.T))
+    Li = solve_triangular(L, np.eye(P), lower=True)  # whitened coordinates z = L^T theta
+    M = Li @ info @ Li.T
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    null = w <= rel_tol * max(w.max(initial=0.0), 1e-300)
+    w = np.where(null, 0.0, w)
+    inv = 1.0 / (w + 1.0)
+    W = Li.T @ V  # the posterior's directions in the parameters
+    cov = (W * inv) @ W.T
+
+    def solve(b):
+        return W @ (inv * (W.T @ b))
+    prior_var = np.einsum("ij,ij->i", W, W)  # W W^T = Lambda^-1
+    share = (W[:, null] ** 2).sum(axis=1) / np.maximum(prior_var, 1e-300)
+    return solve, 0.5 * (cov + cov.T), float(np.sum(w * inv)), share
 
 
 def _joint_refinement(model: Model, theta, trials, sigma, seed, weights=None) -> JointOffsets:

@@ -818,9 +818,11 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
 
     Parameters
     ----------
-    scale : {'bodies', 'axes', 'none'}
+    scale : {'bodies', 'axes', 'linked', 'none'}
         One log-normal scale factor per body that carries markers (median 1,
-        ``scale_sd_log``), three per axis, or none.
+        ``scale_sd_log``), three per axis, three per axis whose logs are correlated
+        (:data:`AXIS_CORRELATION`: a body's proportions lean towards one common
+        factor without being held to it), or none.
     markers : {'offsets', 'none'}
         A normal ``marker_offset`` (mean 0, ``offset_sd`` mm) per axis of every
         marker not marked ``fixed`` in the model, or none.
@@ -832,8 +834,8 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
     -------
     Model
     """
-    if scale not in ("bodies", "axes", "none"):
-        raise ModelError(f"unknown scale setting {scale!r}", "use bodies, axes or none")
+    if scale not in SCALE_MODES:
+        raise ModelError(f"unknown scale setting {scale!r}", "use bodies, axes, linked or none")
     if markers not in ("offsets", "none"):
         raise ModelError(f"unknown marker setting {markers!r}", "use offsets or none")
     present = set(model.marker_names if marker_names is None else marker_names)
@@ -851,7 +853,7 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
 
 
 def _scale_parameters(bodies, scale: str, info: OsimInfo, sd_log: float) -> list[Parameter]:
-    """One log-normal factor per body (``scale='bodies'``), three (``'axes'``) or none."""
+    """One log-normal factor per body (``scale='bodies'``), three (``'axes'``, ``'linked'``) or none."""
     if scale == "none":
         return []
     lo, hi = math.exp(-5 * sd_log), math.exp(5 * sd_log)
@@ -865,8 +867,18 @@ def _scale_parameters(bodies, scale: str, info: OsimInfo, sd_log: float) -> list
         if scale == "bodies":
             params.append(Parameter(f"scale_{s}", "scale", s, None, prior, (hi - lo) / 200))
         else:
-            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, prior, (hi - lo) / 200) for i, a in enumerate("xyz")]
+            pa = prior if scale == "axes" else replace(prior, group=f"scale_{s}", correlation=AXIS_CORRELATION)
+            params += [Parameter(f"scale_{s}_{a}", "scale", s, i, pa, (hi - lo) / 200) for i, a in enumerate("xyz")]
     return params
+
+
+#: the scale settings of :func:`osim_parameters`
+SCALE_MODES = ("bodies", "axes", "linked", "none")
+#: ``scale='linked'``: the correlation of the logs of a body's three axis factors. With the factors'
+#: log-sd of 0.15, each axis departs from the body's common factor by a log-sd of
+#: ``0.15 sqrt((1 - rho) 2/3)``, about 0.055 (5.5 %), and two axes differ by ``0.15 sqrt(2 (1 - rho))``, about 0.095:
+#: a body's proportions held near one factor where the data say nothing of them, free where they do
+AXIS_CORRELATION = 0.8
 
 
 def keep_markers(model: Model, names) -> Model:

@@ -114,6 +114,11 @@ class Prior:
     ``uniform(lower, upper)``, ``normal(mean, sd)`` or ``lognormal(median, sd_log)``.
     ``lower``/``upper`` always bound the search (grid) interval; for normal and
     log-normal priors they default to five standard deviations either side.
+
+    ``group``/``correlation``: log-normal priors of equal ``sd_log`` that share a
+    ``group`` name are jointly normal in their logs with this correlation (a body's
+    three axis factors that lean towards one common factor; the OpenSim joint fit reads
+    it, :func:`skelid.scaling.prior_terms`); each one's marginal is the prior above.
     """
 
     kind: str
@@ -121,6 +126,8 @@ class Prior:
     upper: float
     mean: float = math.nan
     sd: float = math.nan
+    group: str = ""
+    correlation: float = 0.0
 
     def log_pdf(self, x):
         """Log density (up to a constant) at ``x``; ``-inf`` outside the bounds."""
