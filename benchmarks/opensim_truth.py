@@ -414,7 +414,7 @@ def scale_covariance(fit, ks) -> np.ndarray:
 def skelid_fit(trials, fit: str) -> dict:
     """``fit``: the scale mode, with ``+pm`` for per-marker noise (``noise='per_marker'``)."""
     from skelid.data import MarkerData
-    from skelid.scaling import _prior_terms, fit_osim
+    from skelid.scaling import _prior_terms, fit_osim, prior_sd
 
     scale, _, extra = fit.partition("+")
     noise = "per_marker" if extra == "pm" else "pooled"
@@ -432,7 +432,7 @@ def skelid_fit(trials, fit: str) -> dict:
     out = {"cpu_s": cpu, "sigma": fit.result.get("sigma"), "warnings": list(fit.warnings), "q": {},
            "joint_fit": fit.result.get("joint_fit"), "artefact": fit.result.get("artefact")}
     en = [p.name for p in est.model.parameters] if hasattr(est, "model") else []
-    prior_sd = 1.0 / np.sqrt(np.maximum(_prior_terms(fit.model, fit.theta)[1], 1e-300))
+    psd = prior_sd(_prior_terms(fit.model, fit.theta)[1])
     for k, p in enumerate(fit.model.parameters):
         e = fit.result[p.name]
         if e.get("crlb_sd") is not None:  # the joint fit's bound (its Laplace sd before any widening)
@@ -445,7 +445,7 @@ def skelid_fit(trials, fit: str) -> dict:
             key = f"offset {p.target} {'xyz'[p.axis]}"
         # data-determined: the bound at most IDENTIFIED_SHARE of the prior's sd (the data, not the prior, decide)
         out["q"][key] = {"est": float(fit.theta[k]), "sd": float(e["sd"]), "crlb": cr,
-                         "identified": bool(np.isfinite(cr) and cr <= IDENTIFIED_SHARE * prior_sd[k])}
+                         "identified": bool(np.isfinite(cr) and cr <= IDENTIFIED_SHARE * psd[k])}
     L, sd = skelid_lengths(fit)
     for n in L:
         out["q"][f"length {n}"] = {"est": L[n], "sd": sd[n], "crlb": float("nan")}
