@@ -127,7 +127,7 @@ def test_an_osim_result_folder_holds_poses_residuals_and_draws_with_scales_as_ra
     df = to_dataframe(out)
     scales = df[df["name"].str.startswith("scale_")]
     assert set(scales["unit"]) == {"1"} and scales["crlb_sd"].notna().all()
-    k = list(df["name"]).index("scale_thigh")
+    k = list(df["name"]).index("scale_thigh_y")
     assert draws[:, k].std() == pytest.approx(float(df["sd"].iloc[k]), rel=0.15)
     offsets = df[df["name"].str.startswith("offset_")]
     assert set(offsets["unit"]) == {"mm"}

@@ -41,17 +41,17 @@ def test_three_trials_give_each_trials_scales_the_spread_the_test_the_bound_and_
     assert tr["n_trials"] == 3 and [r["trial"] for r in tr["per_trial"]] == ["static.trc", "walk1.trc", "walk2.trc"]
     for r in tr["per_trial"]:
         assert set(r["scales"]) == set(MARKERS) and r["frames_used"] > 0 and _finite(r["sigma_mm"])
-        for e in r["scales"].values():
-            e = e["xyz"]
-            assert all(_finite(e[k]) for k in ("value", "sd", "sd_with_between_trial"))
-            assert e["ci95"][0] < e["value"] < e["ci95"][1]
-    assert all(_finite(v["xyz"]) and v["xyz"] >= 0 for v in tr["between_trial_sd"].values())
+        for axes in r["scales"].values():
+            for e in axes.values():
+                assert all(_finite(e[k]) for k in ("value", "sd", "sd_with_between_trial"))
+                assert e["ci95"][0] < e["value"] < e["ci95"][1]
+    assert all(_finite(s) and s >= 0 for v in tr["between_trial_sd"].values() for s in v.values())
     c = tr["consistency"]
-    assert c["tested"] and c["dof"] == (3 - 1) * 3 and 0.0 <= c["p_value"] <= 1.0 and _finite(c["statistic"])
-    for body, e in table["scales"].items():
-        e = e["xyz"]
-        assert _finite(e["crlb_sd"]) and 0 < e["crlb_sd"] <= e["sd"], body
-        assert _finite(e["sd_between_trials"]) and _finite(e["sd_within_trials"])
+    assert c["tested"] and c["dof"] == (3 - 1) * 9 and 0.0 <= c["p_value"] <= 1.0 and _finite(c["statistic"])
+    for body, axes in table["scales"].items():
+        for e in axes.values():
+            assert _finite(e["crlb_sd"]) and 0 < e["crlb_sd"] <= e["sd"], body
+            assert _finite(e["sd_between_trials"]) and _finite(e["sd_within_trials"])
     noise = table["sigma_mm"]
     lo, hi = noise["ci95"]
     assert lo < noise["value"] < hi and hi - lo > 1e-6 * noise["value"]
@@ -83,9 +83,10 @@ def test_the_cli_writes_the_trials_into_result_json(leg_trials, tmp_path):
         files.append(str(tmp_path / t.source))
     assert main(["fit", str(d / "leg.osim"), *files, "--out", str(tmp_path / "fit"), "--quiet"]) == 0
     r = read_run(tmp_path / "fit").results["marker"]
-    assert len(r.diagnostics["trials"]) == 2 and r.diagnostics["consistency"]["dof"] == 3
-    assert set(r.diagnostics["heterogeneity"]) == {"scale_pelvis", "scale_thigh", "scale_shank"}
-    assert all(_finite(r.parameters[f"scale_{b}"].crlb_sd) for b in MARKERS)
+    names = {f"scale_{b}_{a}" for b in MARKERS for a in "xyz"}  # three factors per body (the default)
+    assert len(r.diagnostics["trials"]) == 2 and r.diagnostics["consistency"]["dof"] == 9
+    assert set(r.diagnostics["heterogeneity"]) == names
+    assert all(_finite(r.parameters[n].crlb_sd) for n in names)
     assert r.noise.interval is not None and r.noise.interval[0] < r.noise.sigma < r.noise.interval[1]
 
 
@@ -140,7 +141,7 @@ def test_a_scale_fit_that_does_not_converge_is_tried_once_more_with_more_iterati
 
     monkeypatch.setattr(sc, "_fit_scales_once", once)
     fit = fit_osim(d / "leg.osim", trials[:2], markers="none")
-    assert calls[1]["n_iter"] == sc.RETRY_ITER_FACTOR * 100 and np.isfinite(fit.result["scale_thigh"]["sd"])
+    assert calls[1]["n_iter"] == sc.RETRY_ITER_FACTOR * 100 and np.isfinite(fit.result["scale_thigh_y"]["sd"])
     assert "on_nonconvergence" not in calls[0] and calls[1]["on_nonconvergence"] == "warn"
 
 

@@ -249,10 +249,10 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table, no warnings: only errors (the warnings are "
               "kept in --out's result.json and in --json).")
-@click.option("--scale", "scale_kind", type=click.Choice(["bodies", "axes", "linked", "none"]), default="bodies",
-              show_default=True, help="OpenSim models: one scale factor per body with markers, three per axis, "
-              "three per axis that lean towards one factor per body (linked: their logs correlated 0.8 a priori), "
-              "or none.")
+@click.option("--scale", "scale_kind", type=click.Choice(["linked", "bodies", "axes", "none"]), default="linked",
+              show_default=True, help="OpenSim models: three scale factors per body with markers that lean towards "
+              "one common factor (linked: their logs correlated 0.8 a priori), one factor per body, three "
+              "independent ones, or none.")
 @click.option("--markers", "marker_kind", type=click.Choice(["offsets", "none"]), default="offsets",
               show_default=True, help="OpenSim models: fit an offset of every free marker, or none.")
 @click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")

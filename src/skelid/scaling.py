@@ -169,7 +169,7 @@ def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -
     return MarkerData(data.positions[idx], data.names, data.rate, data.units, data.source, data.meta)
 
 
-def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers: str = "offsets",
+def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
              static_frames: int | None = STATIC_FRAMES, movement_frames: int | None = MOVEMENT_FRAMES,
              joined: bool = False, joint: bool = True, cutoff: float | None = None,
@@ -184,8 +184,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "bodies", markers:
     marker_set : path, optional
         A MarkerSet file for models without markers (default: the one
         :func:`skelid.io.osim.find_marker_set` finds next to the model).
-    scale : {'bodies', 'axes', 'linked', 'none'}
-        See :func:`skelid.io.osim.osim_parameters`.
+    scale : {'linked', 'bodies', 'axes', 'none'}
+        See :func:`skelid.io.osim.osim_parameters`. The default, three factors per body whose logs
+        are correlated a priori, is the one whose intervals cover where the truth is scaled per axis
+        (one factor per body holds every joint centre on the ray of its generic place, and the
+        data, whose markers may move, cannot say it is off: ``benchmarks/opensim_truth.py``).
     markers : {'offsets', 'none'}
         Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
     static_frames : int or None
