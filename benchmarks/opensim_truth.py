@@ -677,6 +677,8 @@ def _score_points(c: dict, r: dict) -> None:
         if q not in truth:
             continue
         err = np.asarray(e["est"], float) - np.asarray(truth[q], float)
+        if np.trace(np.asarray(e["cov"], float)) <= EXACT_MM**2 and np.all(np.abs(err) <= EXACT_MM):
+            continue  # no parameter moves it (a joint of a body the fit does not scale): nothing estimated
         z, d2 = _point_scores(err, e["cov"])
         kind = "joint centres (parent body frame)" if q.startswith("joint") else "markers (own body frame)"
         t = c.setdefault("points", {}).setdefault(kind, {"z": [], "d2": [], "err": []})
