@@ -151,6 +151,15 @@ def _pooled_text(cell: dict, kind: str, cls: str = "data-determined") -> str:
     return "—" if not v else f"{v['coverage95']:.2f} (rms z {v['rms_z']:.2f})"
 
 
+def _points_text(cell: dict, kind: str) -> str:
+    """A cell's body-frame points of ``kind`` pooled: coverage per axis / of the 3-D region."""
+    v = (cell.get("points") or {}).get(kind)
+    return "—" if not v else f"{v['coverage95_axes']:.2f} / {v['region_coverage95']:.2f}"
+
+
+JOINTS_KIND, MARKERS_KIND = "joint centres (parent body frame)", "markers (own body frame)"
+
+
 def opensim_truth() -> str:
     """Coverage on models whose true scales are known (benchmarks/opensim_truth.py), once it has run."""
     path = RESULTS / "opensim_truth.json"
@@ -161,9 +170,10 @@ def opensim_truth() -> str:
     doc = load(path)
     cells = doc["cells"]
     lines = ["| cell (truth/fit/design/noise) | draws | coverage 95 %: scales, median (min) | lengths | offsets "
-             "| pooled, data-determined: scales | offsets | RMSE/sd, scales (median) | length RMSE (mm): skelid "
+             "| pooled, data-determined: scales | offsets | joint centres in body frames: per axis / region "
+             "| markers: per axis / region | RMSE/sd, scales (median) | length RMSE (mm): skelid "
              "| ScaleTool | artefact found / named | CPU s per fit |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for key, c in cells.items():
         truth, fit, design, noise = key.split("/")
         if fit == "scaletool" or not c["rows"]:
@@ -176,12 +186,16 @@ def opensim_truth() -> str:
         med = _median_text
         lines.append(f"| {key} | {c['n']}" + (f" ({c['failed']} failed)" if c["failed"] else "")
                      + f" | {med(sc)} ({min(sc):.2f}) | {med(ln)} | {med(of)} | {_pooled_text(c, 'scales')} | "
-                     f"{_pooled_text(c, 'offsets')} | {med(rs)} | "
+                     f"{_pooled_text(c, 'offsets')} | {_points_text(c, JOINTS_KIND)} | "
+                     f"{_points_text(c, MARKERS_KIND)} | {med(rs)} | "
                      f"{sum(lr) / len(lr):.1f} | " + (f"{sum(pr) / len(pr):.1f}" if pr else "—")
                      + f" | {_share_text(c, 'share_artefact_term')} / {_share_text(c, 'share_artefact_named')}"
                      + f" | {c['cpu_s_per_fit']:.0f} |")
     note = (f"{doc['draws_done']} of {doc['draws_planned']} planned draws done; geometry drawn per draw. "
-            "Lengths: hip-knee and knee-ankle per side; RMSE averaged over the four. Per quantity: "
+            "Lengths: hip-knee and knee-ankle per side; RMSE averaged over the four. Body frames: every joint "
+            "centre in its parent body's frame and every marker in its own, at the zero pose, pooled over them "
+            "and the draws: the coverage of each coordinate's interval, and of the 3-D 95 % region (chi-square, "
+            "3 degrees of freedom); '—' where the results predate them. Per quantity: "
             "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md).")
     out = "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, doc)
     exact, prior = RESULTS / "opensim_truth_exact.json", RESULTS / "opensim_truth_prior.json"
@@ -215,7 +229,10 @@ def opensim_truth_prior(path: Path) -> str:
 #: the README's lines: what each sums up, and its cells (several: one line, the coverage of each named)
 SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 5 mm",
                   (("", "axes/axes/static+walk/5"),)),
-                 ("the default (one factor per body) on per-axis truth, static + walk, i.i.d. 5 mm",
+                 ("the default (three linked factors per body), static + walk, i.i.d. 5 mm",
+                  (("per-axis truth", "axes/linked/static+walk/5"), ("one factor per body in truth",
+                                                                      "bodies/linked/static+walk/5"))),
+                 ("one factor per body (`--scale bodies`) on per-axis truth, static + walk, i.i.d. 5 mm",
                   (("", "axes/bodies/static+walk/5"),)),
                  ("per-marker noise 1-10 mm, static + walk",
                   (("pooled noise", "axes/axes/static+walk/pm"),
@@ -243,8 +260,11 @@ def opensim_truth_summary() -> str:
             lr = _truth_values(c["rows"], "length", "rmse")
             truth, _, design, noise = key.split("/")
             pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
+            jc = (c.get("points") or {}).get(JOINTS_KIND)
             shown.append((f"{label}: " if label else "") + f"cover {min(ln):.2f}-{max(ln):.2f}, RMSE "
                          f"{sum(lr) / len(lr):.1f} mm" + (f" (ScaleTool {sum(pr) / len(pr):.1f} mm)" if pr else "")
+                         + (f"; joint centres in their parent body cover {jc['coverage95_axes']:.2f} per axis, "
+                            f"{jc['region_coverage95']:.2f} as 3-D regions" if jc else "")
                          + f", {c['n']} draws")
         if shown:
             lines.append(f"- {what}, hip-knee and knee-ankle intervals: " + "; ".join(shown))

@@ -55,7 +55,8 @@ class Bench:
 B = Bench
 
 #: the OpenSim-truth cells of the committed table (README and docs/opensim.md quote them)
-OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/axes/walk/5", "axes/bodies/static+walk/5",
+OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/axes/walk/5", "axes/linked/static+walk/5",
+                       "bodies/linked/static+walk/5", "axes/bodies/static+walk/5",
                        "bodies/bodies/static+walk/5", "axes/axes/static+walk/pm", "axes/axes+pm/static+walk/pm",
                        "axes/axes/static+walk/sta", "axes/axes/walk/sta", "axes/axes/walk+walk2/sta")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
@@ -139,7 +140,8 @@ BENCHMARKS: tuple[Bench, ...] = (
       ("--reps", "2", "--no-peer", "--cells", "prior/axes/walk/5", "--out", "{results}/opensim_truth_prior"),
       ("opensim_truth_prior.json", "opensim_truth_prior.md"), needs_data=True),
     B("opensim_truth_exact", "opensim_truth.py",
-      ("--reps", "4", "--jobs", "2", "--cells", "axes/axes/static+walk/0", "axes/bodies/static+walk/0",
+      ("--reps", "4", "--jobs", "2", "--cells", "axes/axes/static+walk/0", "axes/linked/static+walk/0",
+       "axes/bodies/static+walk/0",
        "axes/axes/walk/0", "--out", "{results}/opensim_truth_exact"),
       ("--reps", "1", "--no-peer", "--cells", "axes/axes/walk/0", "--out", "{results}/opensim_truth_exact"),
       ("opensim_truth_exact.json", "opensim_truth_exact.md"), needs_data=True),

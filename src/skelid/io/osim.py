@@ -877,7 +877,10 @@ SCALE_MODES = ("bodies", "axes", "linked", "none")
 #: ``scale='linked'``: the correlation of the logs of a body's three axis factors. With the factors'
 #: log-sd of 0.15, each axis departs from the body's common factor by a log-sd of
 #: ``0.15 sqrt((1 - rho) 2/3)``, about 0.055 (5.5 %), and two axes differ by ``0.15 sqrt(2 (1 - rho))``, about 0.095:
-#: a body's proportions held near one factor where the data say nothing of them, free where they do
+#: a body's proportions held near one factor where the data say nothing of them, free where they do.
+#: Of the order of real bodies: AddBiomechanics' per-axis scales of ``addbio-subject4`` (its
+#: ``optimized_scale_and_markers.osim`` over ``unscaled_generic.osim``) depart from their body's mean
+#: log by 0.044 rms, this prior's by 0.055
 AXIS_CORRELATION = 0.8
 
 
