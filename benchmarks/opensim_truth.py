@@ -37,10 +37,10 @@ Designs: ``static+walk`` (the static trial first, as the command line takes
 it), ``walk`` (one dynamic trial alone) and ``walk+walk2`` (two dynamic trials:
 the walk and the IK of ``walk_free_01.trc``, 73 frames, another walk of the
 same subject, as two trials of one fit). skelid fits the generic model with
-:func:`skelid.scaling.fit_osim` (``scale="bodies"``, the default: the user's
-case), and, where the truth is per axis, also with ``scale="axes"`` (the
-exact structure), and with ``scale="linked"`` (three factors per body, their logs
-correlated a priori). Reported per cell for every scale factor, segment length
+:func:`skelid.scaling.fit_osim` with ``scale="linked"`` (the default, the
+user's case: three factors per body, their logs correlated a priori), with
+``scale="bodies"`` (one factor per body), and, where the truth is per axis,
+with ``scale="axes"`` (the exact structure). Reported per cell for every scale factor, segment length
 (hip-knee, knee-ankle per side at the zero pose, joint centre to joint centre),
 marker offset, and every joint centre in its parent body's frame and marker in its
 own body's frame (the same quantities whatever the fit's parametrisation): bias,
@@ -724,9 +724,10 @@ def markdown(res: dict) -> str:
              " Truth `bodies`: one factor per body; `axes`: one per "
              "axis (both uniform in [0.85, 1.15], offsets 1-20 mm long); `prior`: per axis, factors and offsets "
              "drawn from the fit's own priors (log-normal sd 0.15, normal 10 mm), where a right posterior "
-             "covers 95 % of every quantity, also of those the data leave to the prior. Fit `bodies`: "
-             "`fit_osim(scale='bodies')` (the default) on the generic model; `axes`: the "
-             "exact structure; `linked`: three factors per body whose logs are correlated 0.8 a priori; "
+             "covers 95 % of every quantity, also of those the data leave to the prior. Fit on the generic "
+             "model: `linked`, `fit_osim(scale='linked')` (the default), three factors per body whose logs are "
+             "correlated 0.8 a priori; `bodies`: one factor per body; `axes`: three independent ones, the "
+             "exact structure; "
              "`axes+pm`: the same as `axes` with `noise='per_marker'`. Marker offsets are pooled over "
              "every marker and axis (per-offset rows in the JSON). Body-frame rows: each joint centre in its parent "
              "body's frame and each marker in its own body's frame at the zero pose (mm), the same quantities "
