@@ -59,7 +59,7 @@ from _common import provenance, results_dir, write_json  # noqa: E402
 
 OUT = results_dir()
 JOINED = False  # --joined: trials as one recording with gaps, one marker fit
-SCALE = "bodies"  # --scale: skelid's scale setting (the command line's default)
+SCALE = None  # --scale: skelid's scale setting (None: fit_osim's default, the command line's)
 
 
 
@@ -130,6 +130,11 @@ def _ik(model, trc, out) -> dict:
     return r | clock.dict()
 
 
+def _scale() -> dict:
+    """``fit_osim``'s scale argument: the one ``--scale`` named, else none (its default)."""
+    return {} if SCALE is None else {"scale": SCALE}
+
+
 def subject01(tmp: Path, quick: bool) -> dict:
     static = read_markers(S01 / "subject01_static.trc")
     walk = read_markers(S01 / "subject01_walk1.trc")
@@ -137,7 +142,7 @@ def subject01(tmp: Path, quick: bool) -> dict:
     peer = run_scaletool(tmp)
     ik_os = _ik(peer["model"], S01 / "subject01_walk1.trc", tmp / "ik01_opensim")
     with Clock() as clock:  # as the command line does it: the marker set found beside the model
-        fit = fit_osim(S01 / "gait2354_simbody.osim", trials, scale=SCALE, markers="offsets", joined=JOINED)
+        fit = fit_osim(S01 / "gait2354_simbody.osim", trials, markers="offsets", joined=JOINED, **_scale())
     paths = write_outputs(fit, tmp / "skelid01")
     table = scaling_table(fit)
     rows = [{"body": label, "skelid": e["value"], "skelid_ci95": e["ci95"], "opensim": _axis(peer["scales"], body, ax)}
@@ -226,7 +231,7 @@ def subject4(tmp: Path, quick: bool) -> dict:
     trials = {n: read_markers(S04 / "MarkerData" / f"{n}.trc") for n in S04_TRIALS}
     use = [trials[n] for n in fit_names]
     with Clock() as clock:
-        fit = fit_osim(S04 / "Models" / "unscaled_generic.osim", use, scale=SCALE, markers="offsets",
+        fit = fit_osim(S04 / "Models" / "unscaled_generic.osim", use, markers="offsets", **_scale(),
                        joined=JOINED)
     print(json.dumps({"subject4_skelid_fit": clock.dict()}), flush=True)
     paths = write_outputs(fit, tmp / "skelid04")
@@ -364,7 +369,7 @@ def main(argv=None):
     ap.add_argument("--joined", action="store_true", help="fit the trials as one recording with gaps")
     ap.add_argument("--subject4", choices=("full", "peers"), default="full",
                     help="peers: no skelid fit of subject4, only the peers' lengths and IK")
-    ap.add_argument("--scale", choices=("bodies", "axes", "linked"), default="bodies",
+    ap.add_argument("--scale", choices=("linked", "bodies", "axes"), default=None,
                     help="skelid's scale setting (default: the command line's)")
     args = ap.parse_args(argv)
     global JOINED, SCALE
@@ -378,7 +383,8 @@ def main(argv=None):
 
     # the commit and load the run starts from (a run of many minutes must not name a later commit)
     res = {"provenance": provenance(None if argv is None else ["benchmarks/opensim_peer.py", *argv]),
-           "reduced": bool(args.quick), "trials": "joined" if args.joined else "multi-trial", "scale": SCALE,
+           "reduced": bool(args.quick), "trials": "joined" if args.joined else "multi-trial",
+           "scale": SCALE or "default",
            "import_cpu_s": round(time.process_time() - c0, 2)}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

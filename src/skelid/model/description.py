@@ -118,7 +118,7 @@ class Prior:
     ``group``/``correlation``: log-normal priors of equal ``sd_log`` that share a
     ``group`` name are jointly normal in their logs with this correlation (a body's
     three axis factors that lean towards one common factor; the OpenSim joint fit reads
-    it, :func:`skelid.scaling.prior_terms`); each one's marginal is the prior above.
+    it, :func:`skelid.scaling._prior_terms`); each one's marginal is the prior above.
     """
 
     kind: str
