@@ -55,8 +55,10 @@ class Bench:
 B = Bench
 
 #: the OpenSim-truth cells of the committed table (README and docs/opensim.md quote them)
-OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/axes/walk/5", "axes/linked/static+walk/5",
-                       "bodies/linked/static+walk/5", "axes/bodies/static+walk/5",
+#: the default fit (three linked factors per body) beside one factor per body, on both kinds of truth
+OPENSIM_DEFAULT_CELLS = ("axes/linked/static+walk/5", "bodies/linked/static+walk/5", "axes/bodies/static+walk/5",
+                         "bodies/bodies/static+walk/5")
+OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/axes/walk/5", "axes/bodies/static+walk/5",
                        "bodies/bodies/static+walk/5", "axes/axes/static+walk/pm", "axes/axes+pm/static+walk/pm",
                        "axes/axes/static+walk/sta", "axes/axes/walk/sta", "axes/axes/walk+walk2/sta")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
@@ -134,6 +136,11 @@ BENCHMARKS: tuple[Bench, ...] = (
     B("opensim_truth", "opensim_truth.py",
       ("--reps", "24", "--jobs", "2", "--cells", *OPENSIM_TRUTH_CELLS), ("--quick",),
       ("opensim_truth.json", "opensim_truth.md"), needs_data=True),
+    B("opensim_truth_default", "opensim_truth.py",
+      ("--reps", "24", "--jobs", "2", "--cells", *OPENSIM_DEFAULT_CELLS, "--out", "{results}/opensim_truth_default"),
+      ("--reps", "1", "--no-peer", "--cells", "axes/linked/static+walk/5", "--out",
+       "{results}/opensim_truth_default"),
+      ("opensim_truth_default.json", "opensim_truth_default.md"), needs_data=True),
     B("opensim_truth_prior", "opensim_truth.py",
       ("--reps", "100", "--jobs", "2", "--no-peer", "--cells", "prior/axes/static+walk/5", "prior/axes/walk/5",
        "--out", "{results}/opensim_truth_prior"),
