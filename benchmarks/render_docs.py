@@ -160,6 +160,19 @@ def _points_text(cell: dict, kind: str) -> str:
 JOINTS_KIND, MARKERS_KIND = "joint centres (parent body frame)", "markers (own body frame)"
 
 
+def _truth_cells() -> tuple[dict, str]:
+    """The OpenSim-truth cells of the main table and of the default fit's file (its cells taking precedence),
+    and the source lines of both."""
+    cells, sources = {}, []
+    for name in ("opensim_truth.json", "opensim_truth_default.json"):
+        path = RESULTS / name
+        if path.exists():
+            doc = load(path)
+            cells.update(doc["cells"])
+            sources.append(source(path, doc))
+    return cells, "\n".join(sources)
+
+
 def opensim_truth() -> str:
     """Coverage on models whose true scales are known (benchmarks/opensim_truth.py), once it has run."""
     path = RESULTS / "opensim_truth.json"
@@ -168,7 +181,7 @@ def opensim_truth() -> str:
                 "scale) writes `benchmarks/results/opensim_truth.json`; `python benchmarks/run_all.py --full` then "
                 "`python benchmarks/render_docs.py` put its coverage here.\n")
     doc = load(path)
-    cells = doc["cells"]
+    cells, sources = _truth_cells()
     lines = ["| cell (truth/fit/design/noise) | draws | coverage 95 %: scales, median (min) | lengths | offsets "
              "| pooled, data-determined: scales | offsets | joint centres in body frames: per axis / region "
              "| markers: per axis / region | RMSE/sd, scales (median) | length RMSE (mm): skelid "
@@ -196,8 +209,10 @@ def opensim_truth() -> str:
             "centre in its parent body's frame and every marker in its own, at the zero pose, pooled over them "
             "and the draws: the coverage of each coordinate's interval, and of the 3-D 95 % region (chi-square, "
             "3 degrees of freedom); '—' where the results predate them. Per quantity: "
-            "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md).")
-    out = "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, doc)
+            "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md) and, for the default "
+            "fit beside one factor per body, "
+            "[`benchmarks/results/opensim_truth_default.md`](/benchmarks/results/opensim_truth_default.md).")
+    out = "\n".join(lines) + "\n\n" + note + "\n\n" + sources
     exact, prior = RESULTS / "opensim_truth_exact.json", RESULTS / "opensim_truth_prior.json"
     out += ("\n" + opensim_truth_prior(prior) if prior.exists() else "")
     return out + ("\n" + opensim_truth_exact(exact) if exact.exists() else "")
@@ -247,8 +262,7 @@ def opensim_truth_summary() -> str:
     path = RESULTS / "opensim_truth.json"
     if not path.exists():
         return opensim_truth()
-    doc = load(path)
-    cells = doc["cells"]
+    cells, sources = _truth_cells()
     lines = []
     for what, parts in SUMMARY_CELLS:
         shown = []
@@ -281,7 +295,7 @@ def opensim_truth_summary() -> str:
                          f"{min(v['rms_z'] for v in cls):.2f}-{max(v['rms_z'] for v in cls):.2f}, {n} draws")
             tail = "\n" + source(prior, pd)
     return ("\n".join(lines) + "\n\nEvery cell, scale and offset: "
-            "[docs/opensim.md](docs/opensim.md#coverage-on-opensim-truth).\n\n" + source(path, doc) + tail)
+            "[docs/opensim.md](docs/opensim.md#coverage-on-opensim-truth).\n\n" + sources + tail)
 
 
 def opensim_truth_exact(path: Path) -> str:
