@@ -1302,16 +1302,21 @@ def _posterior_solver(info, prior_precision, rel_tol: float = 1e-10):
     if np.ndim(prior_precision) == 2:
         return _posterior_solver_full(info, np.asarray(prior_precision, float), rel_tol)
     d = 1.0 / np.sqrt(np.maximum(prior_precision, 1e-300))
-    M = info * np.outer(d, d)
-    w, V = np.linalg.eigh(0.5 * (M + M.T))
-    null = w <= rel_tol * max(w.max(initial=0.0), 1e-300)
-    w = np.where(null, 0.0, w)
-    inv = 1.0 / (w + 1.0)
+    w, V, null, inv = _whitened_eigen(info * np.outer(d, d), rel_tol)
     cov = (V * inv) @ V.T * np.outer(d, d)
 
     def solve(b):
         return d * (V @ (inv * (V.T @ (d * b))))
     return solve, 0.5 * (cov + cov.T), float(np.sum(w * inv)), (V[:, null] ** 2).sum(axis=1)
+
+
+def _whitened_eigen(M, rel_tol: float):
+    """The data information in prior-whitened coordinates, ``M = V diag(w) V^T``: ``(w, V, null, 1 / (w + 1))``,
+    ``w`` set to 0 in the directions below ``rel_tol`` times the largest (rounding only)."""
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    null = w <= rel_tol * max(w.max(initial=0.0), 1e-300)
+    w = np.where(null, 0.0, w)
+    return w, V, null, 1.0 / (w + 1.0)
 
 
 def _posterior_solver_full(info, prior_precision, rel_tol: float = 1e-10):
@@ -1321,11 +1326,7 @@ def _posterior_solver_full(info, prior_precision, rel_tol: float = 1e-10):
     P = prior_precision.shape[0]
     L = np.linalg.cholesky(0.5 * (prior_precision + prior_precision.T))
     Li = solve_triangular(L, np.eye(P), lower=True)  # whitened coordinates z = L^T theta
-    M = Li @ info @ Li.T
-    w, V = np.linalg.eigh(0.5 * (M + M.T))
-    null = w <= rel_tol * max(w.max(initial=0.0), 1e-300)
-    w = np.where(null, 0.0, w)
-    inv = 1.0 / (w + 1.0)
+    w, V, null, inv = _whitened_eigen(Li @ info @ Li.T, rel_tol)
     W = Li.T @ V  # the posterior's directions in the parameters
     cov = (W * inv) @ W.T
 
