@@ -308,6 +308,28 @@ def test_each_markers_noise_level_is_read_from_the_residuals_and_carried_into_th
     assert np.max(np.abs(laplace_sd / want_sd - 1.0)) > 0.1  # one level is wrong here
 
 
+def test_a_trial_evaluated_for_its_cost_and_completed_gives_the_full_terms(leg):  # noqa: F811
+    """The joint fit's backtracking evaluates its trial steps for their cost only and completes the one
+    it takes: the poses, sums and RSS are those of the full evaluation."""
+    from skelid.estimators.fit.joint import weighted_terms
+    from skelid.estimators.fit.pose import workspace
+    from skelid.scaling import JOINT_POSE_ITER, _summed_terms, _trial_cost, _trial_terms
+
+    model, walk, _ = _noisy_walk(leg, [2.0], n_frames=60)
+    ws = workspace(model)
+    theta = model.theta_nominal * 1.02
+    q0 = _joint_refinement(model, model.theta_nominal.copy(), [walk], None, 0).poses[0]
+    full = _trial_terms(model, theta, walk.positions, q0, ws, None, JOINT_POSE_ITER)
+    cheap = _trial_cost(model, theta, walk.positions, q0, ws, None, JOINT_POSE_ITER)
+    assert cheap[1] is None and cheap[2] is None
+    np.testing.assert_allclose(cheap[0], full[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cheap[3], full[3], rtol=1e-10)
+    done = _summed_terms(cheap[0], *weighted_terms(model, theta, cheap[0], walk.positions, None, ws))
+    for a, b in zip(done, full, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    assert full[3] > 0 and np.abs(full[2]).max() > 0
+
+
 def test_with_one_noise_level_the_sandwich_is_the_laplace_interval(leg):  # noqa: F811
     model, walk, _ = _noisy_walk(leg, [2.0])
     jo = _joint_refinement(model, model.theta_nominal.copy(), [walk], None, 0)

@@ -946,6 +946,7 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     -------
     JointOffsets
     """
+    from skelid.estimators.fit.joint import weighted_terms
     from skelid.estimators.fit.pose import workspace
 
     ws = workspace(model)
@@ -961,14 +962,19 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     floor = SIGMA_FLOOR * float(np.abs(model.nominal_geometry).max())
     dof = np.maximum(n_obs - n_pose - model.n_params, 1.0)
 
-    def terms(th, qs, pose_iter=JOINT_POSE_ITER):  # each trial's poses at ``th``, its information, score, RSS
-        return [_trial_terms(model, th, y, q, ws, weights, pose_iter) for y, q in zip(ys, qs, strict=True)]
+    def terms(th, qs, cost_only=False):  # each trial's poses at ``th``, its information, score, RSS
+        one = _trial_cost if cost_only else _trial_terms
+        return [one(model, th, y, q, ws, weights, JOINT_POSE_ITER) for y, q in zip(ys, qs, strict=True)]
+
+    def complete(th, tt):  # the information and score of trials evaluated for their cost only
+        return [t if t[1] is not None else _summed_terms(t[0], *weighted_terms(model, th, t[0], y, None, ws))
+                for y, t in zip(ys, tt, strict=True)]
 
     def penalised(th, tt, w):  # the penalised cost at noise weights ``w``
         return 0.5 * float(w @ np.array([t[3] for t in tt])) + _prior_cost(model, th)
 
-    theta, now, dof, n_done, converged = _iterate(model, terms, penalised, theta, terms(theta, poses), dof,
-                                                  None if sigma is None else sig, (n_obs, n_pose, floor), n_iter)
+    theta, now, dof, n_done, converged = _iterate(model, (terms, complete), penalised, theta, terms(theta, poses),
+                                                  dof, None if sigma is None else sig, (n_obs, n_pose, floor), n_iter)
     # the covariance at the final theta, every pose fitted to convergence; with the noise estimated,
     # each marker's own level too (a sandwich): the fit weighs every marker alike, and where their levels
     # differ its Laplace interval is wrong (1-10 mm per marker on OpenSim-generated walks: 0.5-0.8 of
@@ -995,10 +1001,15 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
 def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_iter: int):
     """The joint fit's Gauss-Newton iterations: ``(theta, terms, dof, iterations, converged)``.
 
-    ``terms(theta, poses)`` gives each trial's ``(poses, S, K^T r, RSS)``, ``penalised(theta, terms,
-    w)`` the penalised cost at noise weights ``w``; ``sig`` the known noise sd per trial or None
-    (estimated each iteration), ``counts`` ``(n_obs, n_pose, floor)``.
+    ``terms = (evaluate, complete)``: ``evaluate(theta, poses)`` gives each trial's ``(poses, S,
+    K^T r, RSS)``, ``evaluate(theta, poses, cost_only=True)`` the poses and RSS only (None for the
+    sums), which ``complete(theta, terms)`` fills in; ``penalised(theta, terms, w)`` the penalised
+    cost at noise weights ``w``; ``sig`` the known noise sd per trial or None (estimated each
+    iteration), ``counts`` ``(n_obs, n_pose, floor)``. The steps tried while backtracking are
+    evaluated for their cost only (the poses and RSS; most are turned down), the one taken
+    is completed.
     """
+    evaluate, complete = terms
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
     sd0 = np.array([p.prior.sd for p in model.parameters])
@@ -1018,8 +1029,10 @@ def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_ite
         dof = np.maximum(n_obs - n_pose - edf * n_obs / n_obs.sum(), 1.0)
         cost = penalised(theta, now, w)
         poses = [t[0] for t in now]
-        theta, now, step, new_cost = _backtrack(theta, step, lo, hi, cost, lambda th, q=poses: terms(th, q),
+        theta, now, step, new_cost = _backtrack(theta, step, lo, hi, cost,
+                                                lambda th, q=poses: evaluate(th, q, cost_only=True),
                                                 lambda th, tt, w=w: penalised(th, tt, w))
+        now = complete(theta, now)
         if np.all(np.abs(step) <= tiny) or 0.0 <= cost - new_cost <= JOINT_TOL * max(abs(cost), 1e-300):
             return theta, now, dof, it, True
     return theta, now, dof, n_iter, False
@@ -1123,9 +1136,13 @@ def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) 
     (mm) also ``sum_t K_perp^T diag(s^2) K_perp`` with each marker's noise variance
     ``s_m^2`` (:func:`marker_noise_variances`, at least ``floor^2``) and those variances ``(M,)``.
     """
+    return _summed_terms(*_posed_terms(model, theta, y, q, ws, weights, pose_iter), y=y, floor=floor)
+
+
+def _summed_terms(q, r, Jq, Jt, y=None, floor=None) -> tuple:
+    """:func:`_trial_terms` from the fitted poses, their residuals and both Jacobians."""
     from skelid.estimators.fit.likelihood import projected_theta_jacobian
 
-    q, r, Jq, Jt = _posed_terms(model, theta, y, q, ws, weights, pose_iter)
     Kp = projected_theta_jacobian(Jq, Jt)
     out = (q, summed_gram(Kp), summed_product(Kp, r), float(np.sum(r**2)))
     if floor is None:
@@ -1134,15 +1151,30 @@ def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) 
     return out + (summed_gram(Kp, w=np.repeat(var, r.shape[1] // var.size)), var)
 
 
+def _trial_cost(model: Model, theta, y, q, ws, weights, pose_iter) -> tuple:
+    """:func:`_trial_terms` without the sums where they are not needed: ``(poses, None, None, RSS)``.
+
+    The backtracking of the joint fit asks only whether a step lowers the cost; the Jacobians
+    of ``theta`` and their projection cost more than the poses. With marker weights the weighted
+    pose steps need the pose Jacobian, and everything is computed.
+    """
+    from skelid.estimators.fit.joint import _residuals
+    from skelid.estimators.fit.pose import fit_pose
+
+    if weights is not None:
+        return _trial_terms(model, theta, y, q, ws, weights, pose_iter)
+    q = fit_pose(model, theta, y, q, n_iter=pose_iter, ws=ws)[0]
+    return q, None, None, float(np.sum(_residuals(model, theta, q, y, None, ws) ** 2))
+
+
 def _backtrack(theta, step, lo, hi, cost, terms, penalised):
     """The joint fit's step, halved until the penalised cost falls: ``(theta, terms, step, cost)``.
 
-    The full Gauss-Newton step overshoots where poses, offsets and scales trade (a body's few
-    markers, each offset free). Where no shorter step lowers the cost at these noise levels
-    either, the full one is taken and the noise levels follow it (a trial that fits exactly, a
-    static one whose markers were placed on it, weighs a million times the others; at its weights
-    every step away from it costs, and only the full step, with the levels re-estimated after it,
-    leads on to the optimum).
+    The full Gauss-Newton step overshoots where poses, offsets and scales trade (a body's few markers, each offset free).
+    Where no shorter step lowers the cost at these noise levels either, the full one is taken
+    and the noise levels follow it (a trial that fits exactly, a static one whose markers were
+    placed on it, weighs a million times the others; at its weights every step away from it
+    costs, and only the full step, with the levels re-estimated after it, leads on to the optimum).
     """
     full = None
     for _ in range(JOINT_HALVINGS):
