@@ -249,12 +249,12 @@ SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 
                                                                       "bodies/linked/static+walk/5"))),
                  ("one factor per body (`--scale bodies`) on per-axis truth, static + walk, i.i.d. 5 mm",
                   (("", "axes/bodies/static+walk/5"),)),
-                 ("per-marker noise 1-10 mm, static + walk",
-                  (("pooled noise", "axes/axes/static+walk/pm"),
-                   ("`--noise per-marker`", "axes/axes+pm/static+walk/pm"))),
-                 ("soft-tissue artefact 5-15 mm rms",
-                  (("static + walk", "axes/axes/static+walk/sta"), ("one walk", "axes/axes/walk/sta"),
-                   ("two walks", "axes/axes/walk+walk2/sta"))))
+                 ("the default, per-marker noise 1-10 mm, static + walk",
+                  (("pooled noise", "axes/linked/static+walk/pm"),
+                   ("`--noise per-marker`", "axes/linked+pm/static+walk/pm"))),
+                 ("the default, soft-tissue artefact 5-15 mm rms",
+                  (("static + walk", "axes/linked/static+walk/sta"), ("one walk", "axes/linked/walk/sta"),
+                   ("two walks", "axes/linked/walk+walk2/sta"))))
 
 
 def opensim_truth_summary() -> str:

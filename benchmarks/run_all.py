@@ -58,9 +58,11 @@ B = Bench
 #: the default fit (three linked factors per body) beside one factor per body, on both kinds of truth
 OPENSIM_DEFAULT_CELLS = ("axes/linked/static+walk/5", "bodies/linked/static+walk/5", "axes/bodies/static+walk/5",
                          "bodies/bodies/static+walk/5")
-OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/axes/walk/5", "axes/bodies/static+walk/5",
-                       "bodies/bodies/static+walk/5", "axes/axes/static+walk/pm", "axes/axes+pm/static+walk/pm",
-                       "axes/axes/static+walk/sta", "axes/axes/walk/sta", "axes/axes/walk+walk2/sta")
+#: the exact structure (one factor per axis) for reference, then the default fit (linked) in the other designs
+#: and noise kinds; the default beside one factor per body on i.i.d. noise is OPENSIM_DEFAULT_CELLS
+OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/linked/static+walk/pm",
+                       "axes/linked+pm/static+walk/pm", "axes/linked/static+walk/sta", "axes/linked/walk/sta",
+                       "axes/linked/walk+walk2/sta")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
 #: real_calibration's cached fits). The demo waits for the compiled kernel: the seed method's frame
 #: count can differ by a frame or two between the compiled and the numpy path, and a fresh install's
