@@ -529,3 +529,33 @@ def test_coordinates_beyond_the_fit_range_are_refused_in_one_line():
     with pytest.raises(DataError, match="beyond the 1e\\+07 mm"):  # an array as well
         MarkerGridFilter(CASE_A, rate=100.0).fit(np.asarray(far.positions))
     PaperFilter(CASE_A).fit(TRIAL.data.replace(positions=TRIAL.data.positions + 9e6))  # inside: fitted
+
+
+@pytest.mark.parametrize("trials", [None, 3, [None], [TRIAL.data, "x"], [TRIAL.data, np.zeros((4, 3, 3))], [TRIAL], [],
+                                    "no_such.trc"])
+def test_osim_fit_trials_are_marker_data_or_files_or_refused(trials, tmp_path):
+    """The OpenSim fit takes MarkerData or paths of marker files; anything else is one line, before any work."""
+    from skelid.scaling import fit_osim
+
+    kind, _ = outcome(fit_osim, tmp_path / "never_read.osim", trials)
+    assert kind == "refused"
+
+
+def test_osim_fit_reads_marker_files_as_the_readers_do(tmp_path):
+    from skelid.io import write_trc
+    from skelid.scaling import checked_trials
+
+    path = tmp_path / "trial.trc"
+    data = MarkerData(np.random.default_rng(1).normal(size=(5, 3, 3)) * 100, ("A", "B", "C"), 100.0, "mm")
+    write_trc(path, data)
+    got = checked_trials([path, str(path), data])
+    assert [type(t) for t in got] == [MarkerData] * 3
+    np.testing.assert_allclose(got[0].positions, read_markers(path).positions)
+    np.testing.assert_allclose(got[1].positions, got[0].positions)
+
+
+def test_osim_fit_refuses_an_unknown_marker_mode(tmp_path):
+    from skelid.scaling import fit_osim
+
+    with pytest.raises(SettingError, match="marker mode"):
+        fit_osim(tmp_path / "never_read.osim", [TRIAL.data], markers="offset")

@@ -65,7 +65,7 @@ import numpy as np
 
 from skelid._linalg import frame_gram, summed_gram, summed_product
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import DataError, SkelidWarning
+from skelid.errors import DataError, SettingError, SkelidWarning
 from skelid.estimators.checks.pose_artefact import pose_artefact
 from skelid.estimators.checks.trial_placement import trial_placement
 from skelid.io.osim import (
@@ -179,8 +179,9 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
     Parameters
     ----------
     osim_path : path
-    trials : sequence of MarkerData
-        A static trial first, then movement trials of one subject.
+    trials : sequence of MarkerData or paths
+        A static trial first, then movement trials of one subject (paths are read with
+        :func:`skelid.io.read_markers`).
     marker_set : path, optional
         A MarkerSet file for models without markers (default: the one
         :func:`skelid.io.osim.find_marker_set` finds next to the model).
@@ -221,9 +222,9 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
     -------
     ScalingFit
     """
-    trials = list(trials)
-    if not trials:
-        raise DataError("no trial given", "give at least one marker file")
+    trials = checked_trials(trials)
+    if markers not in ("offsets", "none"):
+        raise SettingError(f"markers={markers!r} is not a marker mode", "use 'offsets' or 'none'")
     full, info = read_osim(osim_path, marker_set)
     given = trials
     trials, multi, data = _prepared_trials(trials, method, static_frames, movement_frames, joined)
@@ -254,6 +255,36 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
                        parts[0].units, source, {"trial_frames_used": frames})
     return ScalingFit(model, info, str(osim_path), info.marker_set, shown, est, res, time.perf_counter() - t0,
                       dropped, warns, theta, joint_fit, tuple(_select(t, model.marker_names) for t in given))
+
+
+def checked_trials(trials) -> list[MarkerData]:
+    """The trials of a fit as :class:`~skelid.data.MarkerData`: marker files are read, anything else refused.
+
+    Raises
+    ------
+    SettingError
+        Where ``trials`` is not a sequence of :class:`~skelid.data.MarkerData` or paths, or is empty.
+    """
+    from skelid.io import read_markers
+
+    if isinstance(trials, (str, Path, MarkerData)):
+        trials = [trials]
+    try:
+        trials = list(trials)
+    except TypeError:
+        raise SettingError(f"trials must be a list of marker files or MarkerData, not {type(trials).__name__}",
+                           "give a list such as [read_markers('static.trc'), read_markers('walk.trc')]") from None
+    if not trials:
+        raise DataError("no trial given", "give at least one marker file")
+    out = []
+    for k, t in enumerate(trials):
+        if isinstance(t, (str, Path)):
+            t = read_markers(t)
+        elif not isinstance(t, MarkerData):
+            raise SettingError(f"trial {k + 1} is a {type(t).__name__}, not a marker file or MarkerData",
+                               "give paths of marker files or what skelid.io.read_markers returns")
+        out.append(t)
+    return out
 
 
 def _prepared_trials(trials, method, static_frames, movement_frames, joined):
@@ -1170,11 +1201,12 @@ def _trial_cost(model: Model, theta, y, q, ws, weights, pose_iter) -> tuple:
 def _backtrack(theta, step, lo, hi, cost, terms, penalised):
     """The joint fit's step, halved until the penalised cost falls: ``(theta, terms, step, cost)``.
 
-    The full Gauss-Newton step overshoots where poses, offsets and scales trade (a body's few markers, each offset free).
-    Where no shorter step lowers the cost at these noise levels either, the full one is taken
-    and the noise levels follow it (a trial that fits exactly, a static one whose markers were
-    placed on it, weighs a million times the others; at its weights every step away from it
-    costs, and only the full step, with the levels re-estimated after it, leads on to the optimum).
+    The full Gauss-Newton step overshoots where poses, offsets and scales trade (a body's few
+    markers, each offset free). Where no shorter step lowers the cost at these noise levels
+    either, the full one is taken and the noise levels follow it (a trial that fits exactly, a
+    static one whose markers were placed on it, weighs a million times the others; at its weights
+    every step away from it costs, and only the full step, with the levels re-estimated after it,
+    leads on to the optimum).
     """
     full = None
     for _ in range(JOINT_HALVINGS):
