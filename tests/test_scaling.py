@@ -325,3 +325,21 @@ def test_a_lone_trial_is_not_thinned_as_a_static_one(leg):
     trials = _trials(leg, {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}, frames=(8, 40))
     fit = fit_osim(leg, trials[1:], scale="bodies", markers="none")
     assert fit.data.meta["trial_frames_used"] == [40]
+
+
+def test_an_offset_the_data_pull_past_its_bound_is_held_there_and_named(leg):
+    """A marker 90 mm from its model place along one axis (the offsets' bound is 50 mm): the joint fit
+    holds that offset on its bound, marks it so in the result and names it and its body's scale in one
+    warning; a fit of markers within their bounds says nothing of bounds."""
+    from skelid.scaling import _on_bounds
+
+    truth = {"pelvis": 1.0, "thigh": 1.05, "shank": 1.0}
+    far = _trials(leg, truth, {"thigh1": (90.0, 0.0, 0.0)})
+    fit = fit_osim(leg, far[1:], scale="bodies", markers="offsets")
+    assert fit.result["offset_thigh1_x"].get("on_bound") == "upper"
+    said = [w for w in fit.warnings if "on their prior's bound" in w]
+    assert len(said) == 1 and "offset_thigh1_x (upper)" in said[0] and "scale_thigh" in said[0]
+    near = _trials(leg, truth, {"thigh1": (9.0, 0.0, 0.0)})
+    fit = fit_osim(leg, near[1:], scale="bodies", markers="offsets")
+    assert not _on_bounds(fit.model, fit.theta)
+    assert not any("prior's bound" in w for w in fit.warnings)

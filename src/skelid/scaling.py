@@ -415,11 +415,12 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
+    held = _on_bounds(model, jo.theta)  # the fit's own optimum, before the correction moves it off a bound
     jo = replace(jo, theta=np.clip(jo.theta - bias, lo, hi))
     psd = prior_sd(_prior_terms(model, jo.theta)[1])
     widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)
     jo = replace(jo, cov=base * np.outer(widen, widen) + art.cov + placed.cov)
-    out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights)
+    out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
     ratio = _artefact_ratio(art, bound)
     out["artefact"] = _artefact_entry(art, ratio)
     if out["artefact"]["warn"]:
@@ -1533,7 +1534,8 @@ def deflated_widening(jo: JointOffsets, prior_precision, ratios) -> np.ndarray:
     return out
 
 
-def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma=None, weights=None) -> dict:
+def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma=None, weights=None,
+                  held: dict | None = None) -> dict:
     """The result dict with every parameter, the noise and the lengths from the joint fit.
 
     ``res``: the result of the scale fit with every marker where the joint fit put it (its
@@ -1541,7 +1543,8 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma
     carried to the scale factors). ``bound``: the sd of the Laplace posterior before any widening,
     ``sqrt(diag (S / sigma^2 + Lambda)^-1)``, the Bayesian (van Trees) information bound of the
     priors and the data at the fitted noise level, given as ``crlb_sd``. ``weights``: the per-marker
-    relative weights the joint fit used (``noise='per_marker'``).
+    relative weights the joint fit used (``noise='per_marker'``). ``held``: the parameters the fit held on
+    a bound (:func:`_on_bounds`; default: those on one at ``jo.theta``), marked ``on_bound`` and named in a warning.
     """
     from skelid.model.kinematics import joint_distances
 
@@ -1557,6 +1560,11 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma
         own = res.get(p.name) or {}
         out[p.name].update({key: float(own[key]) for key in ("sd_within_trials", "sd_between_trials")
                             if own.get(key) is not None})
+    held = _on_bounds(model, jo.theta) if held is None else held
+    for name, side in held.items():
+        out[name]["on_bound"] = side
+    if held:
+        out["warnings"] = list(out.get("warnings", [])) + [_bounds_warning(model, jo.theta, held)]
     if jo.prior_only:
         out["warnings"] = list(out.get("warnings", [])) + [
             f"the data do not determine {', '.join(jo.prior_only)}: every marker of the body may move, so its "
@@ -1582,6 +1590,43 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma
         out["warnings"] = list(out.get("warnings", [])) + [
             f"the joint fit of scales and marker offsets did not converge in {jo.n_iter} iterations"]
     return out
+
+
+#: a parameter within this share of its prior's sd of a bound is on it
+ON_BOUND_SD = 1e-6
+
+
+def _on_bounds(model: Model, theta) -> dict[str, str]:
+    """The parameters whose fitted value sits on their prior's bound: name -> 'lower' or 'upper'."""
+    out = {}
+    for p, v in zip(model.parameters, np.asarray(theta, float), strict=True):
+        tol = ON_BOUND_SD * (p.prior.sd if np.isfinite(p.prior.sd) else p.prior.upper - p.prior.lower)
+        if v <= p.prior.lower + tol:
+            out[p.name] = "lower"
+        elif v >= p.prior.upper - tol:
+            out[p.name] = "upper"
+    return out
+
+
+def _bounds_warning(model: Model, theta, held: dict[str, str]) -> str:
+    """One line naming the parameters held on a bound and, per body, the scale factors they trade with."""
+    by_name = {p.name: p for p in model.parameters}
+    segment = {m.name: m.segment for m in model.markers}
+    bodies = []
+    for name in held:
+        p = by_name[name]
+        body = segment.get(p.target) if p.kind == "marker_offset" else p.target
+        if body not in bodies:
+            bodies.append(body)
+    scales = [f"{p.name} {v:.3g}" for p, v in zip(model.parameters, theta, strict=True)
+              if p.kind == "scale" and p.target in bodies]
+    shown = ", ".join(f"{n} ({held[n]})" for n in list(held)[:8]) + (f" and {len(held) - 8} more" if len(held) > 8
+                                                                     else "")
+    return (f"the joint fit holds {shown} on their prior's bound: the data pull them farther than the model lets "
+            f"them go, and the estimates of {', '.join(bodies)} beside them"
+            + (f" ({', '.join(scales)})" if scales else "") + " are answers to a constrained fit, their intervals "
+            "conditional on that bound; check those markers' labels and places in the static trial, or hold the "
+            "body's proportions with --scale bodies")
 
 
 #: family-wise level of the score test of one scale factor per body against one per axis (split over the bodies)
