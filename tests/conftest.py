@@ -37,6 +37,7 @@ def pytest_sessionstart(session):
     for planar in (True, False):  # compile both drivers on the side while the first tests run
         _lm_kernel.warm(planar, wait=False)
         _fk_kernel.warm(planar, wait=False)
+    _lm_kernel.warm("custom", wait=False)  # the pose fit of models with custom joints
     _fk_kernel.warm("band", wait=False)
     _live_kernel.warm(wait=False)  # and the live session's frame step
 

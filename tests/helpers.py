@@ -47,6 +47,71 @@ def tree_3d():
     })
 
 
+def custom_leg():
+    """A 3-D leg of custom joints as OpenSim writes them: a root whose translations come after its rotations
+    in the coordinate order but move first, a hip of three plain rotations, a knee that turns by its
+    angle and slides by two splines of it (scaled by the thigh's length), an ankle turned by a cubic of
+    its angle and set off by a constant translation, then a constant rotation."""
+    ident = {"type": "linear", "coefficients": [1.0, 0.0]}
+
+    def motion(kind, axis, coordinate=None, function=ident):
+        return {"kind": kind, "axis": axis, "function": function} | ({"coordinate": coordinate} if coordinate
+                                                                     else {})
+
+    c = 0.5 ** 0.5
+    return model_from_dict({
+        "model": {"name": "custom_leg", "dim": 3, "units": "mm"},
+        "segments": [
+            {"name": "pelvis", "parent": "ground",
+             "joint": {"type": "custom", "name": "root", "coordinates": ["tilt", "list", "rot", "tx", "ty", "tz"],
+                       "motions": [motion("translation", [1, 0, 0], "tx"), motion("translation", [0, 1, 0], "ty"),
+                                   motion("translation", [0, 0, 1], "tz"), motion("rotation", [0, 0, 1], "tilt"),
+                                   motion("rotation", [1, 0, 0], "list"), motion("rotation", [0, 1, 0], "rot")]}},
+            {"name": "thigh", "parent": "pelvis",
+             "joint": {"type": "custom", "name": "hip", "position": [-70, -66, 83],
+                       "coordinates": ["flex", "add", "int"],
+                       "motions": [motion("rotation", [0, 0, 1], "flex"), motion("rotation", [1, 0, 0], "add"),
+                                   motion("rotation", [0, 1, 0], "int")]}},
+            {"name": "shank", "parent": "thigh",
+             "joint": {"type": "custom", "name": "knee", "position": [0, -400, 0], "coordinates": ["knee"],
+                       "motions": [
+                           motion("translation", [1, 0, 0], "knee", {"type": "spline", "end": "fmm",
+                                  "x": [-2.09, -1.22, -0.52, -0.35, 0.0, 0.17],
+                                  "y": [-3.2, 1.8, 4.1, 4.1, -0.8, -5.2]}),
+                           motion("translation", [0, 1, 0], "knee", {"type": "spline",
+                                  "x": [-2.09, -1.05, 0.0, 0.17], "y": [-422.0, -406.0, -396.0, -395.0]}),
+                           motion("rotation", [0, 0, 1], "knee")]}},
+            {"name": "foot", "parent": "shank",
+             "joint": {"type": "custom", "name": "ankle", "position": [0, 0, 0], "coordinates": ["ankle"],
+                       "orientation": [[c, -c, 0], [c, c, 0], [0, 0, 1]],
+                       "motions": [motion("translation", [0, 1, 0], None,
+                                          {"type": "constant", "coefficients": [-20.0]}),
+                                   motion("rotation", [-0.105, -0.174, 0.979], "ankle",
+                                          {"type": "polynomial", "coefficients": [0.05, 0.0, 0.9, 0.01]})]}},
+        ],
+        "markers": [
+            {"name": "p1", "segment": "pelvis", "position": [50, 0, 100]},
+            {"name": "p2", "segment": "pelvis", "position": [50, 0, -100]},
+            {"name": "p3", "segment": "pelvis", "position": [-80, 30, 0]},
+            {"name": "t1", "segment": "thigh", "position": [40, -150, 20]},
+            {"name": "t2", "segment": "thigh", "position": [-30, -250, 40]},
+            {"name": "t3", "segment": "thigh", "position": [10, -350, -45]},
+            {"name": "s1", "segment": "shank", "position": [30, -100, 25]},
+            {"name": "s2", "segment": "shank", "position": [-20, -300, 30]},
+            {"name": "s3", "segment": "shank", "position": [5, -200, -40]},
+            {"name": "f1", "segment": "foot", "position": [120, -40, 0]},
+            {"name": "f2", "segment": "foot", "position": [-40, -50, 30]},
+            {"name": "f3", "segment": "foot", "position": [60, -60, -35]},
+        ],
+        "parameters": [
+            {"name": "scale_thigh", "kind": "scale", "segment": "thigh",
+             "prior": {"type": "lognormal", "median": 1.0, "sd_log": 0.1}},
+            {"name": "s3_z", "kind": "marker_position", "marker": "s3", "axis": "z",
+             "prior": {"type": "normal", "mean": -40, "sd": 10}},
+        ],
+    })
+
+
 def tree_3d_functional():
     """The 3-D test tree with vector, joint-centre and hinge-axis parameters."""
     d = tree_3d().to_dict()

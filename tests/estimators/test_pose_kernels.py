@@ -16,13 +16,13 @@ from skelid.estimators.online.grid import MarkerGridFilter
 from skelid.model import load_model, model_from_dict
 from skelid.model.kinematics import forward_kinematics, pose_jacobian
 from skelid.simulate import builtin_model, simulate
-from tests.helpers import tree_3d, tree_3d_functional
+from tests.helpers import custom_leg, tree_3d, tree_3d_functional
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 needs_numba = pytest.mark.skipif(not _lm_kernel.AVAILABLE, reason="the compiled kernel is turned off (SKELID_NUMBA=0)")
 MODELS = {"case-a": lambda: builtin_model("case-a"), "case-b": lambda: builtin_model("case-b"),
           "tree3d": tree_3d, "tree3d_functional": tree_3d_functional,
-          "lower_limb": lambda: load_model(EXAMPLES / "lower_limb.toml")}
+          "lower_limb": lambda: load_model(EXAMPLES / "lower_limb.toml"), "custom_leg": custom_leg}
 PATHS = ["numpy", pytest.param("compiled", marks=needs_numba)]
 
 
@@ -75,7 +75,8 @@ def _problem(name, n=12):
     model = MODELS[name]()
     trial = simulate(model, sigma=2.0, n_frames=20, rng=np.random.default_rng(5))
     rng = np.random.default_rng(6)
-    scale = np.array([2.0 if p.kind == "axis_direction" else 5.0 for p in model.parameters])
+    scale = np.array([2.0 if p.kind == "axis_direction" else 0.05 if p.kind == "scale" else 5.0
+                      for p in model.parameters])
     theta = model.theta_nominal + rng.normal(0, 1, size=(n, model.n_params)) * scale
     y = trial.data.positions[..., : model.dim]
     q0 = trial.pose[7] + rng.normal(0, 0.05, size=(n, model.n_pose))
@@ -106,7 +107,7 @@ def test_fit_equals_the_reference_iteration(name, path, monkeypatch):
 
 
 @pytest.mark.parametrize("path", PATHS)
-@pytest.mark.parametrize("name", ["case-b", "lower_limb"])
+@pytest.mark.parametrize("name", ["case-b", "lower_limb", "custom_leg"])
 def test_many_frames_with_damping_and_a_lost_element(name, path, monkeypatch):
     """Batch over frames with one theta; an element starting from NaN stays put without disturbing the rest."""
     model = MODELS[name]()
@@ -268,9 +269,10 @@ def test_compiling_processes_take_turns(tmp_path):
 
 
 @needs_numba
-@pytest.mark.parametrize("planar", [True, False])
+@pytest.mark.parametrize("planar", [True, False, "custom"])
 def test_the_cache_check_uses_the_signature_of_real_calls(planar):
-    model = builtin_model("case-a") if planar else tree_3d()
+    model = builtin_model("case-a") if planar is True else custom_leg() if planar == "custom" else tree_3d()
+    assert _lm_kernel.driver_key(_lm_kernel_plan(model)) == planar
     trial = simulate(model, sigma=1.0, n_frames=2, rng=np.random.default_rng(1))
     y = trial.data.positions[..., : model.dim]
     fit_pose_logdet(model, model.theta_center, y, trial.pose)
@@ -279,3 +281,26 @@ def test_the_cache_check_uses_the_signature_of_real_calls(planar):
     sig = tuple(numba.typeof(a) for a in _lm_kernel._example_args(planar))
     assert sig in _lm_kernel._driver(planar).signatures
     assert _lm_kernel._cached(planar)
+
+
+def _lm_kernel_plan(model):
+    from skelid.model.kinematics import kinematics_plan
+
+    return kinematics_plan(model)
+
+
+@needs_numba
+def test_custom_joints_take_the_compiled_path_and_carried_translations_do_not():
+    """Custom joints (functions of coordinates, constant motions and rotations) are in the compiled kernel's
+    tables; a translation carried by the joint's rotations is left to the numpy path."""
+    from skelid.model.kinematics import kinematics_plan
+
+    plan = kinematics_plan(custom_leg())
+    tables = _lm_kernel.plan_arrays(plan)
+    assert tables is not None and len(tables) == 12
+    ctab = tables[-1]
+    assert ctab[10].tolist() == [False] * 6 + [False] * 3 + [True, False]  # the knee slides: a velocity term
+    rows = list(plan.custom)
+    t, a, k, f, sl, K, K2, _ = rows[3][0]
+    rows[3] = ((t, a, k, f, sl, K, K2, (np.ones(3), 0)),) + rows[3][1:]
+    assert _lm_kernel.plan_arrays(plan._replace(custom=tuple(rows))) is None

@@ -51,7 +51,8 @@ def plan_arrays(plan) -> tuple | None:
     """
     S, Q, D = plan.n_segments, plan.n_pose, plan.dim
     order = [k for ks in plan.segment_dofs for k in ks]
-    if order != list(range(Q)) or plan.has_custom:  # custom (coupled) joints: numpy path
+    custom = custom_arrays(plan) if plan.has_custom else None
+    if order != list(range(Q)) or (plan.has_custom and custom is None):
         return None
     dof_start = np.zeros(S + 1, dtype=np.int64)
     dof_start[1:] = np.cumsum([len(ks) for ks in plan.segment_dofs])
@@ -64,10 +65,103 @@ def plan_arrays(plan) -> tuple | None:
         earlier = [j for j in plan.segment_dofs[plan.dof_segment[k]] if j < k]
         if plan.dof_is_t[k] and plan.parent[plan.dof_segment[k]] < 0 and all(plan.dof_is_t[j] for j in earlier):
             nz[k, :D] = axis[k, :D] != 0.0
-    return (parent, dof_start, plan.dof_is_t.astype(np.bool_), axis,
-            np.ascontiguousarray(plan.dof_skew), np.ascontiguousarray(plan.dof_skew2),
-            plan.marker_segment.astype(np.int64), np.ascontiguousarray(plan.moves), nz,
-            plan.dof_tilt.astype(np.int64), bool(plan.planar))
+    if custom is not None:  # a coupled coordinate's column has every component
+        for i in range(S):
+            if plan.custom[i] is not None:
+                nz[list(plan.segment_dofs[i]), :] = True
+    out = (parent, dof_start, plan.dof_is_t.astype(np.bool_), axis,
+           np.ascontiguousarray(plan.dof_skew), np.ascontiguousarray(plan.dof_skew2),
+           plan.marker_segment.astype(np.int64), np.ascontiguousarray(plan.moves), nz,
+           plan.dof_tilt.astype(np.int64), bool(plan.planar))
+    return out if custom is None else out + (custom,)
+
+
+def driver_key(plan):
+    """Which compiled driver fits a model of this plan: ``True`` planar, ``False`` spatial, ``"custom"``
+    spatial with custom (coupled) joints."""
+    return "custom" if plan.has_custom else bool(plan.planar)
+
+
+def _function_tables(funs) -> tuple:
+    """Flat tables of coordinate functions: ``(kind, scale, start, values, piece start, base, coef)``.
+
+    Kind 0: a spline, its knots in ``values[start[f]:start[f + 1]]`` and its pieces (one more
+    than the knots: the end tangents included; see ``CoordinateFunction._pieces``) at rows
+    ``piece_start[f]...`` of ``base`` and ``coef (n, 4)`` (power form ``c0 + c1 b + c2 b^2 + c3 b^3``,
+    ``b = q - base``). Kind 1: a polynomial, its coefficients (highest power first) in ``values``
+    (a constant and a linear function are polynomials).
+    """
+    kind, scale, start, values, pstart, base, coef = [], [], [0], [], [0], [], []
+    for f in funs:
+        scale.append(f.scale)
+        if f.kind == "spline":
+            x, b, c = f._pieces
+            kind.append(0)
+            values += list(x)
+            base += list(b)
+            coef += [list(r) for r in np.asarray(c).T]
+        else:
+            kind.append(1)
+            values += list(f.coefficients)
+        start.append(len(values))
+        pstart.append(len(base))
+    return (np.array(kind, np.int64), np.array(scale, float), np.array(start, np.int64), np.array(values, float),
+            np.array(pstart, np.int64), np.array(base, float), np.array(coef, float).reshape(-1, 4))
+
+
+def custom_arrays(plan) -> tuple | None:
+    """The tables of a model's custom joints for the compiled kernel, or None where it cannot follow them.
+
+    Per motion row (segment ``i``'s rows ``start[i]:start[i + 1]``, translations first, as
+    :func:`skelid.model.kinematics._forward_general` applies them): whether it translates, its
+    axis, its pose coordinate (-1: none), its function (-1: the coordinate itself, else a row of
+    :func:`_function_tables`), its scale factor's slot in ``g`` (-1: none) and the cross-product
+    matrix of its axis and its square; per segment the constant rotation after the motions; per
+    pose coordinate whether its column has a velocity term (a function's derivative). Carried
+    translations and tilted hinges are left to the numpy path (None).
+    """
+    S, Q = plan.n_segments, plan.n_pose
+    if plan.dim != 3 or plan.n_tilts:
+        return None
+    is_t, axis, coord, fun, slot, skew, skew2, funs = [], [], [], [], [], [], [], []
+    start = [0]
+    orient = np.zeros((S, 3, 3))
+    has_orient = np.zeros(S, np.bool_)
+    has_vel = np.zeros(Q, np.bool_)
+    for i in range(S):
+        for t, a, k, f, sl, K, K2, carried in plan.custom[i] or ():
+            if carried is not None:
+                return None
+            plain = k >= 0 and f.is_identity
+            is_t.append(bool(t))
+            axis.append(np.asarray(a, float))
+            coord.append(k)
+            fun.append(-1 if plain else len(funs))
+            funs += [] if plain else [f]
+            slot.append(sl)
+            skew.append(K)
+            skew2.append(K2)
+            if k >= 0 and not plain:
+                has_vel[k] = has_vel[k] or bool(t)
+        start.append(len(is_t))
+        if plan.orientation[i] is not None:
+            orient[i] = plan.orientation[i]
+            has_orient[i] = True
+    n = len(is_t)
+    rows = (np.array(start, np.int64), np.array(is_t, np.bool_).reshape(n), np.array(axis, float).reshape(n, 3),
+            np.array(coord, np.int64).reshape(n), np.array(fun, np.int64).reshape(n),
+            np.array(slot, np.int64).reshape(n), np.array(skew, float).reshape(n, 3, 3),
+            np.array(skew2, float).reshape(n, 3, 3), orient, has_orient, has_vel)
+    return rows + _function_tables(funs) + ((S + plan.n_markers) * 3,)
+
+
+def no_custom(S: int, Q: int) -> tuple:
+    """The custom-joint tables of a model without custom joints (the drivers' common argument)."""
+    i, f = np.int64, float
+    return (np.zeros(S + 1, i), np.zeros(0, np.bool_), np.zeros((0, 3)), np.zeros(0, i), np.zeros(0, i),
+            np.zeros(0, i), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)), np.zeros((S, 3, 3)), np.zeros(S, np.bool_),
+            np.zeros(Q, np.bool_), np.zeros(0, i), np.zeros(0, f), np.zeros(1, i), np.zeros(0, f), np.zeros(1, i),
+            np.zeros(0, f), np.zeros((0, 4)), 0)
 
 
 if AVAILABLE:  # pragma: no branch
@@ -164,17 +258,121 @@ if AVAILABLE:  # pragma: no branch
                 x[m, 1, b] = p[s, 1, b] + (sn[s, b] * rx + cs[s, b] * ry)
 
     @_inline
+    def _function(f, v, kind, scale, start, values, pstart, base, coef):
+        """``(f(v), f'(v))`` of function ``f`` of :func:`_function_tables`."""
+        if kind[f] == 1:  # a polynomial, highest power first (Horner)
+            val, der = 0.0, 0.0
+            for j in range(start[f], start[f + 1]):
+                der = der * v + val
+                val = val * v + values[j]
+            return scale[f] * val, scale[f] * der
+        n = pstart[f]  # the piece: one past the last knot at or below v (its left tangent below the first)
+        for j in range(start[f], start[f + 1]):
+            if values[j] <= v:
+                n += 1
+            else:
+                break
+        h = v - base[n]
+        c1, c2, c3 = coef[n, 1], coef[n, 2], coef[n, 3]
+        return (scale[f] * (coef[n, 0] + h * (c1 + h * (c2 + h * c3))),
+                scale[f] * (c1 + h * (2.0 * c2 + 3.0 * h * c3)))
+
+    @_inline
+    def _custom_motions(i, g, pose, Ri, E, p, w, pivot, vel, cs, sn, tmp, ctab):
+        """Segment ``i``'s custom joint (:func:`custom_arrays`): its frame ``Ri`` (in: the parent's) and
+        origin ``p[i]`` (in: the joint's place), the axes, pivots and velocity terms of its coordinates.
+
+        Translations along the parent's axes by the coordinate or by ``c f(q)`` (``c`` the parent's
+        scale factor, from ``g``), then rotations by the coordinate or ``f(q)`` about axes carried by
+        the earlier ones, then the constant rotation; as :func:`skelid.model.kinematics._custom_joint`.
+        """
+        (start, c_is_t, c_axis, c_k, c_fun, c_slot, c_skew, c_skew2, orient, has_orient, _hv,
+         f_kind, f_scale, f_start, f_values, f_pstart, f_base, f_coef, fbase) = ctab
+        B = pose.shape[1]
+        for r in range(start[i], start[i + 1]):
+            k = c_k[r]
+            if k >= 0:
+                for a in range(3):
+                    for b in range(B):
+                        w[k, a, b] = 0.0
+                        vel[k, a, b] = 0.0
+        for r in range(start[i], start[i + 1]):
+            if not c_is_t[r]:
+                continue
+            k, f, sl = c_k[r], c_fun[r], c_slot[r]
+            a0, a1, a2 = c_axis[r, 0], c_axis[r, 1], c_axis[r, 2]
+            for b in range(B):
+                if f >= 0:
+                    val, der = _function(f, pose[k, b] if k >= 0 else 0.0, f_kind, f_scale, f_start, f_values,
+                                         f_pstart, f_base, f_coef)
+                    c = g[fbase + sl, b] if sl >= 0 else 1.0
+                for a in range(3):
+                    wa = Ri[a, 0, b] * a0 + Ri[a, 1, b] * a1 + Ri[a, 2, b] * a2
+                    if f < 0:
+                        w[k, a, b] = wa
+                        p[i, a, b] += wa * pose[k, b]
+                    else:
+                        p[i, a, b] += wa * (c * val)
+                        if k >= 0:
+                            vel[k, a, b] += wa * (c * der)
+        for r in range(start[i], start[i + 1]):
+            k = c_k[r]
+            if k >= 0 and not (c_is_t[r] and c_fun[r] < 0):
+                for a in range(3):
+                    for b in range(B):
+                        pivot[k, a, b] = p[i, a, b]
+        for r in range(start[i], start[i + 1]):
+            if c_is_t[r]:
+                continue
+            k, f = c_k[r], c_fun[r]
+            a0, a1, a2 = c_axis[r, 0], c_axis[r, 1], c_axis[r, 2]
+            for b in range(B):
+                if f < 0:
+                    tmp[0, b], tmp[1, b] = pose[k, b], 1.0
+                else:
+                    tmp[0, b], tmp[1, b] = _function(f, pose[k, b] if k >= 0 else 0.0, f_kind, f_scale, f_start,
+                                                     f_values, f_pstart, f_base, f_coef)
+                if k >= 0:
+                    for a in range(3):
+                        w[k, a, b] += (Ri[a, 0, b] * a0 + Ri[a, 1, b] * a1 + Ri[a, 2, b] * a2) * tmp[1, b]
+            _sincos(tmp, 0, cs, sn, 0, B)
+            for a in range(3):
+                for c in range(3):
+                    k0, k1, k2 = (1.0 if a == c else 0.0), c_skew[r, a, c], c_skew2[r, a, c]
+                    for b in range(B):
+                        E[a, c, b] = k0 + sn[0, b] * k1 + (1.0 - cs[0, b]) * k2
+            _times(Ri, E, B)
+        if has_orient[i]:
+            for a in range(3):
+                for c in range(3):
+                    for b in range(B):
+                        E[a, c, b] = orient[i, a, c]
+            _times(Ri, E, B)
+
+    @_inline
+    def _times(Ri, E, B):
+        """``Ri = Ri E`` per element."""
+        for a in range(3):
+            for b in range(B):
+                r0, r1, r2 = Ri[a, 0, b], Ri[a, 1, b], Ri[a, 2, b]
+                Ri[a, 0, b] = r0 * E[0, 0, b] + r1 * E[1, 0, b] + r2 * E[2, 0, b]
+                Ri[a, 1, b] = r0 * E[0, 1, b] + r1 * E[1, 1, b] + r2 * E[2, 1, b]
+                Ri[a, 2, b] = r0 * E[0, 2, b] + r1 * E[1, 2, b] + r2 * E[2, 2, b]
+
+    @_inline
     def _kinematics_spatial(g, pose, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E,
-                            ang, cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2):
+                            ang, cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2, vel, tmp, ctab):
         """Forward kinematics of the batch at ``pose (Q, B)`` by products of elementary rotations.
 
         Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
         helpers would slow this hot path down.
 
         Row ``S`` of ``R`` and ``p`` holds the ground (identity, origin 0). A
-        rotation with ``tilt[k] = j >= 0`` turns about ``t_axis[j, :, b]``.
+        rotation with ``tilt[k] = j >= 0`` turns about ``t_axis[j, :, b]``. A segment with a
+        custom joint (rows in ``ctab``, :func:`custom_arrays`) moves by :func:`_custom_motions`.
         """
         B = pose.shape[1]
+        c_start = ctab[0]
         for i in range(S):
             par = parent[i]
             for a in range(D):
@@ -187,7 +385,10 @@ if AVAILABLE:  # pragma: no branch
                     for c in range(D):
                         acc += Ri[a, c, b] * g[i * D + c, b]
                     p[i, a, b] = p[par, a, b] + acc
-            for k in range(dof_start[i], dof_start[i + 1]):
+            custom = c_start[i] < c_start[i + 1]
+            if custom:
+                _custom_motions(i, g, pose, Ri, E, p, w, pivot, vel, cs, sn, tmp, ctab)
+            for k in range(dof_start[i], dof_start[i] if custom else dof_start[i + 1]):
                 j = tilt[k]
                 if j >= 0:
                     for a in range(D):
@@ -264,7 +465,7 @@ if AVAILABLE:  # pragma: no branch
                     cost[b] += v * v
 
     @_inline
-    def _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr):
+    def _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr, vel, has_vel):
         """``J^T J`` and ``J^T r`` written where ``ok`` (missing markers give zero rows).
 
         Its one long, flat body is deliberate: numba compiles it for speed, and splitting it into
@@ -272,7 +473,8 @@ if AVAILABLE:  # pragma: no branch
 
         ``nz[k, a]`` is False where component ``a`` of column ``k`` is zero whatever
         the pose (a translation of the root along a coordinate axis): those rows
-        are skipped.
+        are skipped. Where ``has_vel[k]``, column ``k`` gains ``vel[k]`` (a custom joint's
+        translations by functions of the coordinate).
         """
         B = x.shape[2]
         for m in range(M):
@@ -296,6 +498,10 @@ if AVAILABLE:  # pragma: no branch
                         J[m * D, k, b] = (w[k, 1, b] * v2 - w[k, 2, b] * v1) * mask[m, b]
                         J[m * D + 1, k, b] = (w[k, 2, b] * v0 - w[k, 0, b] * v2) * mask[m, b]
                         J[m * D + 2, k, b] = (w[k, 0, b] * v1 - w[k, 1, b] * v0) * mask[m, b]
+                if has_vel[k]:
+                    for a in range(D):
+                        for b in range(B):
+                            J[m * D + a, k, b] += vel[k, a, b] * mask[m, b]
         for i in range(Q):
             for j in range(i - 1, Q):  # j = i - 1 stands for J^T r
                 first = True
@@ -586,10 +792,11 @@ if AVAILABLE:  # pragma: no branch
         Q, B = q.shape
         (cost, cost_new, lam, ok, bad, JtJ, Jtr, L, dinv, step, qn, R, Ri, E, ang, cs, sn, p, w, pivot, x, r,
          J, acc, ux, uy, A1, r1, s1, ridge, nf, chk) = _workspace(Q, B, S, M, D, damping, False)
+        vel, has_vel = np.zeros((0, 3, 1)), np.zeros(Q, dtype=np.bool_)
         _kinematics_planar(g, q, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang, cs,
                            sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
         _residual(y0, mask, x, D, M, r, cost)
-        _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr)
+        _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr, vel, has_vel)
         for it in range(n_iter):
             _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf, chk)
             _kinematics_planar(g, qn, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang,
@@ -597,35 +804,60 @@ if AVAILABLE:  # pragma: no branch
             _residual(y0, mask, x, D, M, r, cost_new)
             done, any_ok = _accept(cost, cost_new, lam, ok, q, qn, tol)
             if any_ok and (want_logdet or not (done or it == n_iter - 1)):
-                _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr)
+                _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr, vel, has_vel)
             if done:
                 break
         return cost, _logdets(JtJ, want_logdet, Q, L, dinv, bad, lam, acc, A1, ridge)
 
+    @_inline
+    def _empty_custom(S, Q):
+        """:func:`no_custom` in compiled code."""
+        i = np.int64
+        return (np.zeros(S + 1, i), np.zeros(0, np.bool_), np.zeros((0, 3)), np.zeros(0, i), np.zeros(0, i),
+                np.zeros(0, i), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)), np.zeros((S, 3, 3)),
+                np.zeros(S, np.bool_), np.zeros(Q, np.bool_), np.zeros(0, i), np.zeros(0), np.zeros(1, i),
+                np.zeros(0), np.zeros(1, i), np.zeros(0), np.zeros((0, 4)), 0)
+
     @_jit
     def _lm_spatial(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t, axis,
                     skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2):
+        return _lm_general(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t,
+                           axis, skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2,
+                           _empty_custom(S, q.shape[0]))
+
+    @_jit
+    def _lm_custom(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t, axis,
+                   skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2, ctab):
+        return _lm_general(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t,
+                           axis, skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2, ctab)
+
+    @_inline
+    def _lm_general(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t, axis,
+                    skew, skew2, ms, moves, nz, tilt, t_axis, t_skew, t_skew2, ctab):
+        """The spatial driver, custom joints included (``ctab``: :func:`custom_arrays`)."""
         Q, B = q.shape
         (cost, cost_new, lam, ok, bad, JtJ, Jtr, L, dinv, step, qn, R, Ri, E, ang, cs, sn, p, w, pivot, x, r,
          J, acc, ux, uy, A1, r1, s1, ridge, nf, chk) = _workspace(Q, B, S, M, D, damping, True)
+        has_vel = ctab[10]
+        vel, tmp = np.zeros((Q, 3, B)), np.empty((2, B))
         _kinematics_spatial(g, q, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang, cs,
-                            sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
+                            sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2, vel, tmp, ctab)
         _residual(y0, mask, x, D, M, r, cost)
-        _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr)
+        _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr, vel, has_vel)
         for it in range(n_iter):
             _trial(JtJ, Jtr, lam, q, Q, L, dinv, bad, A1, r1, s1, step, qn, ridge, nf, chk)
             _kinematics_spatial(g, qn, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang,
-                                cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2)
+                                cs, sn, p, w, pivot, x, ux, uy, tilt, t_axis, t_skew, t_skew2, vel, tmp, ctab)
             _residual(y0, mask, x, D, M, r, cost_new)
             done, any_ok = _accept(cost, cost_new, lam, ok, q, qn, tol)
             if any_ok and (want_logdet or not (done or it == n_iter - 1)):
-                _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr)
+                _normal(x, r, mask, ok, D, M, Q, is_t, w, pivot, moves, nz, J, acc, JtJ, Jtr, vel, has_vel)
             if done:
                 break
         return cost, _logdets(JtJ, want_logdet, Q, L, dinv, bad, lam, acc, A1, ridge)
 
     def lm_fit(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, tilts, parent, dof_start, is_t,
-               axis, skew, skew2, ms, moves, nz, tilt, planar):
+               axis, skew, skew2, ms, moves, nz, tilt, planar, ctab=None):
         """Levenberg-Marquardt over a batch, in place on ``q (Q, B)``.
 
         Parameters
@@ -643,9 +875,10 @@ if AVAILABLE:  # pragma: no branch
         tilts : tuple of (T, 3, B), (T, 3, 3, B), (T, 3, 3, B) float
             Axis, cross-product matrix and its square of each tilted hinge, per
             element (``T = 0`` when the model has none).
-        tilt, planar
+        tilt, planar, ctab
             From :func:`plan_arrays`: the slot of each pose coordinate's tilted
-            axis (-1: fixed axis) and whether to use the planar kinematics.
+            axis (-1: fixed axis), whether to use the planar kinematics, and the
+            custom joints' tables (:func:`custom_arrays`; None: the model has none).
 
         Returns
         -------
@@ -654,9 +887,11 @@ if AVAILABLE:  # pragma: no branch
         logdet : (B,) float
             ``log det J^T J`` there (``-inf`` if not positive; zeros unless ``want_logdet``).
         """
-        run = _lm_planar if planar else _lm_spatial
-        return run(g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t, axis,
-                   skew, skew2, ms, moves, nz, tilt, *tilts)
+        args = (g, y0, mask, q, n_iter, tol, damping, want_logdet, D, S, M, parent, dof_start, is_t, axis,
+                skew, skew2, ms, moves, nz, tilt, *tilts)
+        if ctab is not None:
+            return _lm_custom(*args, ctab)
+        return (_lm_planar if planar else _lm_spatial)(*args)
 
 
 def no_tilts(B: int) -> tuple:
@@ -665,20 +900,24 @@ def no_tilts(B: int) -> tuple:
 
 
 # ------------------------------------------------------------------ which path, and warming the cache
-def _example_args(planar: bool) -> tuple:
-    """Arguments with the types of every real call of a driver (their values are never used)."""
+def _example_args(planar) -> tuple:
+    """Arguments with the types of every real call of a driver (their values are never used); ``planar``:
+    the driver's key (:func:`driver_key`)."""
     f, i, b = np.zeros, np.int64, np.bool_
-    return (f((2, 1)), f((1, 2, 1)), f((1, 1)), f((1, 1)), 1, 1e-10, 1e-3, True, 2, 1, 1,
+    args = (f((2, 1)), f((1, 2, 1)), f((1, 1)), f((1, 1)), 1, 1e-10, 1e-3, True, 2, 1, 1,
             np.zeros(2, i), np.zeros(2, i), np.zeros(1, b), f((1, 3)), f((1, 3, 3)), f((1, 3, 3)),
             np.zeros(1, i), f((1, 1)), np.zeros((1, 3), b), np.zeros(1, i),
             f((0, 3, 1)), f((0, 3, 3, 1)), f((0, 3, 3, 1)))
+    return args + (no_custom(1, 1),) if planar == "custom" else args
 
 
-def _driver(planar: bool):
+def _driver(planar):
+    if planar == "custom":
+        return _lm_custom
     return _lm_planar if planar else _lm_spatial
 
 
-def _cached(planar: bool) -> bool:
+def _cached(planar) -> bool:
     """Whether numba's disk cache holds the driver for this machine and this source.
 
     True where that cache's index cannot be read in this numba version (the driver is then
@@ -687,13 +926,14 @@ def _cached(planar: bool) -> bool:
     return in_disk_cache(_driver(planar), tuple(numba.typeof(a) for a in _example_args(planar)))
 
 
-def compiled(planar: bool) -> bool:
+def compiled(planar) -> bool:
     """Whether the driver is already compiled (or loaded) in this process."""
     return AVAILABLE and bool(_driver(planar).signatures)
 
 
-def ready(planar: bool) -> bool:
-    """Whether the compiled driver can run now without compiling in this process.
+def ready(planar) -> bool:
+    """Whether the compiled driver can run now without compiling in this process (``planar``: the
+    driver's key, :func:`driver_key`).
 
     False without numba (or with ``SKELID_NUMBA=0``). True once the driver is
     loaded or when numba's cache holds it; with ``SKELID_NUMBA=wait`` always
@@ -702,16 +942,16 @@ def ready(planar: bool) -> bool:
     while the driver is not cached the cache is looked at again at most every
     half second, so calling this per frame costs nothing (:class:`skelid._numba.Gate`).
     """
-    return AVAILABLE and _gate.ready(bool(planar))
+    return AVAILABLE and _gate.ready(planar if planar == "custom" else bool(planar))
 
 
-def warm(planar: bool, wait: bool = True, timeout: float = 600.0) -> bool:
+def warm(planar, wait: bool = True, timeout: float = 600.0) -> bool:
     """Compile the driver into numba's disk cache in a separate process.
 
     Parameters
     ----------
-    planar : bool
-        Which driver.
+    planar : bool or "custom"
+        Which driver (:func:`driver_key`).
     wait : bool
         Wait for the process to finish (at most ``timeout`` seconds).
 

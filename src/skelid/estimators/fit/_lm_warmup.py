@@ -16,16 +16,27 @@ from skelid.estimators.fit.pose import fit_pose_logdet
 from skelid.model import model_from_dict
 
 
-def compile_here(planar: bool) -> None:
+def compile_here(planar) -> None:
     """Compile the driver into the cache in this process, unless another process has (one at a time)."""
-    with compile_lock("planar" if planar else "spatial"):
+    with compile_lock("custom" if planar == "custom" else "planar" if planar else "spatial"):
         if not _cached(planar):
             fit_tiny_model(planar)
 
 
-def fit_tiny_model(planar: bool) -> None:
+#: the custom driver's tiny model: a joint that turns by its coordinate and slides by a spline of it
+_CUSTOM = {"type": "custom", "name": "j", "coordinates": ["c"],
+           "motions": [{"kind": "translation", "axis": [1, 0, 0], "coordinate": "c",
+                        "function": {"type": "spline", "x": [-1.0, 0.0, 1.0, 2.0], "y": [0.0, 0.1, 0.3, 0.2]}},
+                       {"kind": "rotation", "axis": [0, 0, 1], "coordinate": "c",
+                        "function": {"type": "linear", "coefficients": [1.0, 0.0]}}]}
+
+
+def fit_tiny_model(planar) -> None:
     """Compile (or load) the driver in this process by fitting a tiny model through the public path."""
+    custom = planar == "custom"
+    planar = planar is True
     joint = {"type": "revolute", "name": "j"} if planar else {"type": "hinge", "name": "j", "axis": [0, 0, 1]}
+    joint = _CUSTOM if custom else joint
     root = {"type": "free", "name": "root"}
     d = {"model": {"name": "warm", "dim": 2 if planar else 3, "units": "m"},
          "segments": [{"name": "a", "parent": "ground", "joint": root},
@@ -39,5 +50,5 @@ def fit_tiny_model(planar: bool) -> None:
     D = model.dim
     y = np.random.default_rng(0).normal(size=(2, len(model.markers), D))
     fit_pose_logdet(model, model.theta_center, y, np.zeros((2, model.n_pose)), n_iter=2)
-    if not compiled(planar):  # pragma: no cover - the model did not reach the kernel
+    if not compiled("custom" if custom else planar):  # pragma: no cover - the model did not reach the kernel
         raise RuntimeError("the warm-up fit did not use the compiled kernel")

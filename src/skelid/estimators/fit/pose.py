@@ -62,7 +62,7 @@ def workspace(model: Model) -> Workspace:
     reports which one it took (``Workspace.path``).
     """
     ws = Workspace(model)
-    ws.compiled = _lm_kernel.ready(bool(ws.plan.planar))
+    ws.compiled = _lm_kernel.ready(_lm_kernel.driver_key(ws.plan))
     return ws
 
 
