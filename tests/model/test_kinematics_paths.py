@@ -20,7 +20,7 @@ from skelid.model.kinematics import (
     tilt_tables,
 )
 from skelid.simulate import builtin_model
-from tests.helpers import tree_3d, tree_3d_functional
+from tests.helpers import custom_leg, tree_3d, tree_3d_functional
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 MODELS = {"case-a": lambda: builtin_model("case-a"), "case-b": lambda: builtin_model("case-b"),
@@ -151,7 +151,8 @@ def test_plan_lives_in_the_workspace_never_in_the_model():
         kinematics_plan(builtin_model("case-b"), ws)
 
 
-ALL_MODELS = {**{p.stem: (lambda p=p: load_model(p)) for p in sorted(EXAMPLES.glob("*.toml"))}, **MODELS}
+ALL_MODELS = {**{p.stem: (lambda p=p: load_model(p)) for p in sorted(EXAMPLES.glob("*.toml"))}, **MODELS,
+              "custom_leg": custom_leg}
 
 
 @pytest.mark.skipif(not _fk_kernel.AVAILABLE, reason="the compiled kinematics are turned off (SKELID_NUMBA=0)")

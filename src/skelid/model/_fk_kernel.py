@@ -34,16 +34,22 @@ import math
 import numpy as np
 
 from skelid._numba import AVAILABLE, MODE, Gate, compile_in_background, compile_lock, in_disk_cache, numba  # noqa: F401
+from skelid.model.custom_tables import custom_arrays, no_custom
 from skelid.model.tilts import tilt_arrays, tilted_axes_from
+
+if AVAILABLE:  # pragma: no branch
+    from skelid.model.custom_tables import function_value
 
 
 def plan_tables(plan) -> tuple | None:
     """The model tables the drivers read, or None where they cannot represent the model.
 
-    They represent 3-D models without custom joints or scaled coupled translations,
-    and planar models (:attr:`KinematicsPlan.planar`).
+    They represent 3-D models, custom joints included (:func:`~skelid.model.custom_tables.custom_arrays`;
+    not those with carried translations), and planar models (:attr:`KinematicsPlan.planar`).
     """
-    if not plan.planar and (plan.dim != 3 or plan.has_custom or plan.n_coupled):
+    custom = custom_arrays(plan) if plan.has_custom else None
+    if not plan.planar and (plan.dim != 3 or (plan.has_custom and custom is None)
+                            or (plan.n_coupled and not plan.has_custom)):
         return None
     S, Q = plan.n_segments, plan.n_pose
     seg_dofs = np.full((S, max([len(ks) for ks in plan.segment_dofs] + [1])), -1, dtype=np.int64)
@@ -58,7 +64,10 @@ def plan_tables(plan) -> tuple | None:
             np.ascontiguousarray(plan.moves), plan.used_joints.astype(np.int64),
             np.ascontiguousarray(plan.A_joint, float), np.ascontiguousarray(plan.ancestor_markers),
             plan.used_markers.astype(np.int64), np.ascontiguousarray(plan.A_marker, float), Q,
-            plan.dof_segment.astype(np.int64))
+            plan.dof_segment.astype(np.int64), no_custom(S, Q) if custom is None else custom,
+            np.ascontiguousarray(plan.coupled_moves, float).reshape(plan.n_coupled, plan.n_markers),
+            np.ascontiguousarray(plan.A[(S + plan.n_markers) * plan.dim:], float).reshape(plan.n_coupled,
+                                                                                       plan.n_params))
 
 
 def tilt_tables(model) -> tuple | None:
@@ -72,15 +81,88 @@ if AVAILABLE:  # pragma: no branch
     _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
     @_jit
+    def _custom_segment(i, b, gb, g, pose, Ri, p, w, piv, vel, shift, E, tmp, ctab):
+        """Segment ``i``'s custom joint for element ``b``: its frame ``Ri`` (in: the parent's), origin
+        ``p[i]`` (in: the joint's place), its coordinates' axes ``w``, pivots, velocity terms ``vel``
+        and the shift ``f(q) R_p a`` of each scaled coupled translation (``shift``), as
+        :func:`skelid.model.kinematics._custom_joint` computes them."""
+        (start, c_is_t, c_axis, c_k, c_fun, c_slot, c_skew, c_skew2, orient, has_orient, _hv,
+         f_kind, f_scale, f_start, f_values, f_pstart, f_base, f_coef, fbase) = ctab
+        for r in range(start[i], start[i + 1]):
+            k = c_k[r]
+            if k >= 0:
+                for a in range(3):
+                    w[k, a] = 0.0
+                    vel[k, a] = 0.0
+        for r in range(start[i], start[i + 1]):
+            if not c_is_t[r]:
+                continue
+            k, f, sl = c_k[r], c_fun[r], c_slot[r]
+            val, der, c = 0.0, 0.0, 1.0
+            if f >= 0:
+                val, der = function_value(f, pose[b, k] if k >= 0 else 0.0, f_kind, f_scale, f_start, f_values,
+                                          f_pstart, f_base, f_coef)
+                if sl >= 0:
+                    c = g[gb, fbase + sl]
+            for a in range(3):
+                wa = Ri[a, 0] * c_axis[r, 0] + Ri[a, 1] * c_axis[r, 1] + Ri[a, 2] * c_axis[r, 2]
+                if f < 0:
+                    w[k, a] = wa
+                    p[i, a] += wa * pose[b, k]
+                    continue
+                p[i, a] += wa * (c * val)
+                if k >= 0:
+                    vel[k, a] += wa * (c * der)
+                if sl >= 0:
+                    shift[sl, a] = wa * val
+        for r in range(start[i], start[i + 1]):
+            k = c_k[r]
+            if k >= 0 and not (c_is_t[r] and c_fun[r] < 0):
+                for a in range(3):
+                    piv[k, a] = p[i, a]
+        for r in range(start[i], start[i + 1]):
+            if c_is_t[r]:
+                continue
+            k, f = c_k[r], c_fun[r]
+            if f < 0:
+                ang, der = pose[b, k], 1.0
+            else:
+                ang, der = function_value(f, pose[b, k] if k >= 0 else 0.0, f_kind, f_scale, f_start, f_values,
+                                          f_pstart, f_base, f_coef)
+            if k >= 0:
+                for a in range(3):
+                    w[k, a] += (Ri[a, 0] * c_axis[r, 0] + Ri[a, 1] * c_axis[r, 1] + Ri[a, 2] * c_axis[r, 2]) * der
+            sk, ck = np.sin(ang), np.cos(ang)
+            for a in range(3):
+                for c in range(3):
+                    E[a, c] = ((1.0 if a == c else 0.0) + sk * c_skew[r, a, c]) + (1.0 - ck) * c_skew2[r, a, c]
+            for a in range(3):
+                for c in range(3):
+                    tmp[a, c] = Ri[a, 0] * E[0, c] + Ri[a, 1] * E[1, c] + Ri[a, 2] * E[2, c]
+            for a in range(3):
+                for c in range(3):
+                    Ri[a, c] = tmp[a, c]
+        if has_orient[i]:
+            for a in range(3):
+                for c in range(3):
+                    tmp[a, c] = Ri[a, 0] * orient[i, 0, c] + Ri[a, 1] * orient[i, 1, c] + Ri[a, 2] * orient[i, 2, c]
+            for a in range(3):
+                for c in range(3):
+                    Ri[a, c] = tmp[a, c]
+
+    @_jit
     def _kinematics(g, pose, t_axis, t_daxis, tilt_slots, want_jac, parent, seg_dofs, n_dofs, is_t,
                     dof_axis, skew, skew2, dof_tilt, ms, moves, used_j, A_joint, anc, used_m, A_marker,
-                    x, Jq, oq, Jt, ot):
+                    x, Jq, oq, Jt, ot, ctab, cmoves, Bc):
         """Markers ``x (B, M, 3)`` and, with ``want_jac``, ``dx/dq`` in ``Jq[..., oq:oq + Q]`` and ``dx/dtheta``
         in ``Jt[..., ot:ot + P]`` (``Jq`` and ``Jt`` may be one array).
 
         ``g (Bg, G)``, ``t_axis (Bg, T, 3)`` and ``t_daxis (Bg, T, 2, 3)`` have ``Bg`` = 1 or ``B``
         rows (one shared by every element, or one each); ``pose (B, Q)``; ``tilt_slots (T, 3)``
-        the pose coordinate and the two parameters (-1: none) of each tilted hinge.
+        the pose coordinate and the two parameters (-1: none) of each tilted hinge. Custom joints
+        (``ctab``, :func:`~skelid.model.custom_tables.custom_arrays`) move their segment by
+        :func:`_custom_segment`; ``cmoves (C, M)`` and ``Bc (C, P)``: which markers each scaled coupled
+        translation moves and its factor's row of the geometry map.
 
         Kept as one flat loop nest on purpose: numba compiles it to tight loops over small fixed-size arrays,
         and splitting it into functions would cost calls and temporaries per segment and frame.
@@ -103,6 +185,10 @@ if AVAILABLE:  # pragma: no branch
         Kt2 = np.empty((3, 3))
         dw = np.empty((2, 3))
         Cum = np.empty((S, 3, P))
+        c_start, has_vel = ctab[0], ctab[10]
+        C = cmoves.shape[0]
+        vel = np.zeros((Q, 3))
+        shift = np.zeros((C, 3))
         jmap = np.full(S, -1, dtype=np.int64)  # segment -> its row of A_joint, -1 if theta does not move it
         for jj in range(used_j.shape[0]):
             jmap[used_j[jj]] = jj
@@ -123,7 +209,11 @@ if AVAILABLE:  # pragma: no branch
                     for c in range(3):
                         acc += Ri[a, c] * g[gb, 3 * i + c]
                     p[i, a] = (0.0 if par < 0 else p[par, a]) + acc
-                for n in range(n_dofs[i]):
+                n_std = n_dofs[i]
+                if c_start[i] < c_start[i + 1]:
+                    _custom_segment(i, b, gb, g, pose, Ri, p, w, piv, vel, shift, E, tmp, ctab)
+                    n_std = 0
+                for n in range(n_std):
                     k = seg_dofs[i, n]
                     qk = pose[b, k]
                     j = dof_tilt[k]
@@ -208,6 +298,9 @@ if AVAILABLE:  # pragma: no branch
                         Jq[b, m, 0, oq + k] = (w[k, 1] * r2 - w[k, 2] * r1) * mv
                         Jq[b, m, 1, oq + k] = (w[k, 2] * r0 - w[k, 0] * r2) * mv
                         Jq[b, m, 2, oq + k] = (w[k, 0] * r1 - w[k, 1] * r0) * mv
+                    if has_vel[k]:
+                        for a in range(3):
+                            Jq[b, m, a, oq + k] += vel[k, a] * mv
             # sum of R_wp A_j over the joints at and above each segment (parents come first, so this
             # adds the joints in the order of the numpy path's sum over the ancestors)
             for i in range(S):
@@ -232,6 +325,15 @@ if AVAILABLE:  # pragma: no branch
                     for c in range(P):
                         Jt[b, m, a, ot + c] += (R[s, a, 0] * A_marker[mm, 0, c] + R[s, a, 1] * A_marker[mm, 1, c]
                                            + R[s, a, 2] * A_marker[mm, 2, c])
+            for cc in range(C):  # d x / d c = f(q) R_p a for the markers a scaled coupled translation moves
+                for m in range(M):
+                    mv = cmoves[cc, m]
+                    if mv == 0.0:
+                        continue
+                    for a in range(3):
+                        sa = shift[cc, a] * mv
+                        for c in range(P):
+                            Jt[b, m, a, ot + c] += sa * Bc[cc, c]
             for j in range(nT):
                 k = tilt_slots[j, 0]
                 for u in range(2):
@@ -476,7 +578,8 @@ def kinematics(model, plan, tables, tilts, g, pose, theta, want_jac: bool = True
     qq = _rows(pose, batch, (Q,))
     if qq.shape[0] != B:
         qq = np.broadcast_to(qq, (B, Q)).copy()
-    parent, seg_dofs, n_dofs, is_t, axis, skew, skew2, tilt, ms, moves, uj, Aj, anc, um, Am, _, dof_seg = tables
+    parent, seg_dofs, n_dofs, is_t, axis, skew, skew2, tilt, ms, moves, uj, Aj, anc, um, Am, _, dof_seg, ctab, \
+        cmoves, Bc = tables
     x = np.empty((B, M, D))
     if not want_jac:
         Jq = Jt = np.empty((1, M, D, P + Q))
@@ -498,7 +601,7 @@ def kinematics(model, plan, tables, tilts, g, pose, theta, want_jac: bool = True
         else:
             t_axis, t_daxis, slots = _NO_TILT
         _kinematics(gg, qq, t_axis, t_daxis, slots, bool(want_jac), parent, seg_dofs, n_dofs, is_t, axis, skew,
-                    skew2, tilt, ms, moves, uj, Aj, anc, um, Am, x, Jq, oq, Jt, ot)
+                    skew2, tilt, ms, moves, uj, Aj, anc, um, Am, x, Jq, oq, Jt, ot, ctab, cmoves, Bc)
     x = x.reshape(batch + (M, D))
     if not want_jac:
         return x, None, None
@@ -527,7 +630,7 @@ def _example_args(planar) -> tuple:
             np.full(1, -1, i), np.zeros((1, 1), i), np.ones(1, i), np.zeros(1, np.bool_), f((1, 3)),
             f((1, 3, 3)), f((1, 3, 3)), np.full(1, -1, i), np.zeros(1, i), f((1, 1)), np.zeros(0, i),
             f((0, 3, 1)), f((0, 1)), np.zeros(0, i), f((0, 3, 1)), f((1, 1, 3)), f((1, 1, 3, 1)), 0,
-            f((1, 1, 3, 1)), 0)
+            f((1, 1, 3, 1)), 0, no_custom(1, 1), f((0, 1)), f((0, 1)))
 
 
 def _driver(planar):
