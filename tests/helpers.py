@@ -51,7 +51,7 @@ def custom_leg():
     """A 3-D leg of custom joints as OpenSim writes them: a root whose translations come after its rotations
     in the coordinate order but move first, a hip of three plain rotations, a knee that turns by its
     angle and slides by two splines of it (scaled by the thigh's length), an ankle turned by a cubic of
-    its angle and set off by a constant translation, then a constant rotation."""
+    its angle and set off by a constant translation, then a constant rotation, and toes welded on at an angle."""
     ident = {"type": "linear", "coefficients": [1.0, 0.0]}
 
     def motion(kind, axis, coordinate=None, function=ident):
@@ -88,6 +88,9 @@ def custom_leg():
                                           {"type": "constant", "coefficients": [-20.0]}),
                                    motion("rotation", [-0.105, -0.174, 0.979], "ankle",
                                           {"type": "polynomial", "coefficients": [0.05, 0.0, 0.9, 0.01]})]}},
+            {"name": "toes", "parent": "foot",
+             "joint": {"type": "custom", "name": "mtp", "position": [150, -20, 0], "coordinates": [], "motions": [],
+                       "orientation": [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]}},
         ],
         "markers": [
             {"name": "p1", "segment": "pelvis", "position": [50, 0, 100]},
@@ -102,6 +105,7 @@ def custom_leg():
             {"name": "f1", "segment": "foot", "position": [120, -40, 0]},
             {"name": "f2", "segment": "foot", "position": [-40, -50, 30]},
             {"name": "f3", "segment": "foot", "position": [60, -60, -35]},
+            {"name": "toe", "segment": "toes", "position": [40, -10, 15]},
         ],
         "parameters": [
             {"name": "scale_thigh", "kind": "scale", "segment": "thigh",

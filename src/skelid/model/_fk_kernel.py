@@ -185,7 +185,7 @@ if AVAILABLE:  # pragma: no branch
         Kt2 = np.empty((3, 3))
         dw = np.empty((2, 3))
         Cum = np.empty((S, 3, P))
-        c_start, has_vel = ctab[0], ctab[10]
+        c_start, has_orient, has_vel = ctab[0], ctab[9], ctab[10]
         C = cmoves.shape[0]
         vel = np.zeros((Q, 3))
         shift = np.zeros((C, 3))
@@ -210,7 +210,7 @@ if AVAILABLE:  # pragma: no branch
                         acc += Ri[a, c] * g[gb, 3 * i + c]
                     p[i, a] = (0.0 if par < 0 else p[par, a]) + acc
                 n_std = n_dofs[i]
-                if c_start[i] < c_start[i + 1]:
+                if c_start[i] < c_start[i + 1] or has_orient[i]:  # a custom joint (a weld: its rotation only)
                     _custom_segment(i, b, gb, g, pose, Ri, p, w, piv, vel, shift, E, tmp, ctab)
                     n_std = 0
                 for n in range(n_std):

@@ -274,7 +274,7 @@ if AVAILABLE:  # pragma: no branch
         custom joint (rows in ``ctab``, :func:`custom_arrays`) moves by :func:`_custom_motions`.
         """
         B = pose.shape[1]
-        c_start = ctab[0]
+        c_start, has_orient = ctab[0], ctab[9]
         for i in range(S):
             par = parent[i]
             for a in range(D):
@@ -287,7 +287,7 @@ if AVAILABLE:  # pragma: no branch
                     for c in range(D):
                         acc += Ri[a, c, b] * g[i * D + c, b]
                     p[i, a, b] = p[par, a, b] + acc
-            custom = c_start[i] < c_start[i + 1]
+            custom = c_start[i] < c_start[i + 1] or has_orient[i]  # a custom joint (a weld: its rotation only)
             if custom:
                 _custom_motions(i, g, pose, Ri, E, p, w, pivot, vel, cs, sn, tmp, ctab)
             for k in range(dof_start[i], dof_start[i] if custom else dof_start[i + 1]):
