@@ -1560,11 +1560,7 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma
         own = res.get(p.name) or {}
         out[p.name].update({key: float(own[key]) for key in ("sd_within_trials", "sd_between_trials")
                             if own.get(key) is not None})
-    held = _on_bounds(model, jo.theta) if held is None else held
-    for name, side in held.items():
-        out[name]["on_bound"] = side
-    if held:
-        out["warnings"] = list(out.get("warnings", [])) + [_bounds_warning(model, jo.theta, held)]
+    _mark_bounds(out, model, jo.theta, _on_bounds(model, jo.theta) if held is None else held)
     if jo.prior_only:
         out["warnings"] = list(out.get("warnings", [])) + [
             f"the data do not determine {', '.join(jo.prior_only)}: every marker of the body may move, so its "
@@ -1606,6 +1602,14 @@ def _on_bounds(model: Model, theta) -> dict[str, str]:
         elif v >= p.prior.upper - tol:
             out[p.name] = "upper"
     return out
+
+
+def _mark_bounds(out: dict, model: Model, theta, held: dict[str, str]) -> None:
+    """Each parameter held on a bound marked ``on_bound`` in the result ``out``, and one warning naming them."""
+    for name, side in held.items():
+        out[name]["on_bound"] = side
+    if held:
+        out["warnings"] = list(out.get("warnings", [])) + [_bounds_warning(model, theta, held)]
 
 
 def _bounds_warning(model: Model, theta, held: dict[str, str]) -> str:

@@ -85,7 +85,10 @@ if AVAILABLE:  # pragma: no branch
         """Segment ``i``'s custom joint for element ``b``: its frame ``Ri`` (in: the parent's), origin
         ``p[i]`` (in: the joint's place), its coordinates' axes ``w``, pivots, velocity terms ``vel``
         and the shift ``f(q) R_p a`` of each scaled coupled translation (``shift``), as
-        :func:`skelid.model.kinematics._custom_joint` computes them."""
+        :func:`skelid.model.kinematics._custom_joint` computes them.
+
+        Kept as one flat loop nest on purpose, for the compiled speed (as :func:`_kinematics`).
+        """
         (start, c_is_t, c_axis, c_k, c_fun, c_slot, c_skew, c_skew2, orient, has_orient, _hv,
          f_kind, f_scale, f_start, f_values, f_pstart, f_base, f_coef, fbase) = ctab
         for r in range(start[i], start[i + 1]):

@@ -63,21 +63,26 @@ def plan_arrays(plan) -> tuple | None:
     axis = np.zeros((Q, 3))
     axis[:, :D] = plan.dof_axis
     parent = np.array([S if i < 0 else i for i in plan.parent], dtype=np.int64)  # row S: the ground
-    # column k, component a can be non-zero; a translation of the root moves along a fixed axis
-    nz = np.ones((Q, 3), dtype=np.bool_)
-    for k in range(Q):
-        earlier = [j for j in plan.segment_dofs[plan.dof_segment[k]] if j < k]
-        if plan.dof_is_t[k] and plan.parent[plan.dof_segment[k]] < 0 and all(plan.dof_is_t[j] for j in earlier):
-            nz[k, :D] = axis[k, :D] != 0.0
-    if custom is not None:  # a coupled coordinate's column has every component
-        for i in range(S):
-            if plan.custom[i] is not None:
-                nz[list(plan.segment_dofs[i]), :] = True
+    nz = _nonzero_components(plan, axis)
     out = (parent, dof_start, plan.dof_is_t.astype(np.bool_), axis,
            np.ascontiguousarray(plan.dof_skew), np.ascontiguousarray(plan.dof_skew2),
            plan.marker_segment.astype(np.int64), np.ascontiguousarray(plan.moves), nz,
            plan.dof_tilt.astype(np.int64), bool(plan.planar))
     return out if custom is None else out + (custom,)
+
+
+def _nonzero_components(plan, axis) -> np.ndarray:
+    """``(Q, 3)`` bool: component ``a`` of column ``k`` can be non-zero. A translation of the root before
+    its rotations moves along a fixed axis; a custom joint's coordinates may move along any."""
+    Q, D = plan.n_pose, plan.dim
+    nz = np.ones((Q, 3), dtype=np.bool_)
+    for k in range(Q):
+        seg = plan.dof_segment[k]
+        earlier = [j for j in plan.segment_dofs[seg] if j < k]
+        custom = bool(plan.custom) and plan.custom[seg] is not None
+        if plan.dof_is_t[k] and plan.parent[seg] < 0 and all(plan.dof_is_t[j] for j in earlier) and not custom:
+            nz[k, :D] = axis[k, :D] != 0.0
+    return nz
 
 
 def driver_key(plan):
@@ -187,6 +192,7 @@ if AVAILABLE:  # pragma: no branch
         Translations along the parent's axes by the coordinate or by ``c f(q)`` (``c`` the parent's
         scale factor, from ``g``), then rotations by the coordinate or ``f(q)`` about axes carried by
         the earlier ones, then the constant rotation; as :func:`skelid.model.kinematics._custom_joint`.
+        Kept as one flat loop nest on purpose, for the compiled speed (as :func:`_kinematics_spatial`).
         """
         (start, c_is_t, c_axis, c_k, c_fun, c_slot, c_skew, c_skew2, orient, has_orient, _hv,
          f_kind, f_scale, f_start, f_values, f_pstart, f_base, f_coef, fbase) = ctab
