@@ -337,6 +337,14 @@ def test_an_offset_the_data_pull_past_its_bound_is_held_there_and_named(leg):
     far = _trials(leg, truth, {"thigh1": (90.0, 0.0, 0.0)})
     fit = fit_osim(leg, far[1:], scale="bodies", markers="offsets")
     assert fit.result["offset_thigh1_x"].get("on_bound") == "upper"
+    assert fit.result["offset_thigh1_x"]["ci95"][1] <= 50.0  # nothing beyond the bound, the interval included
+    from skelid.io.legacy import run_from_scaling
+    from skelid.scaling import scaling_table
+
+    run = run_from_scaling(fit, scaling_table(fit))
+    held = run.results["marker"].parameters["offset_thigh1_x"]
+    assert held.status == "on-bound" and held.extra["bound"] == "upper"
+    assert run.results["marker"].parameters["offset_thigh1_y"].status == "identified"
     said = [w for w in fit.warnings if "on their prior's bound" in w]
     assert len(said) == 1 and "offset_thigh1_x (upper)" in said[0] and "scale_thigh" in said[0]
     near = _trials(leg, truth, {"thigh1": (9.0, 0.0, 0.0)})

@@ -1554,6 +1554,7 @@ def _joint_result(model: Model, jo: JointOffsets, res: dict, widen, bound, sigma
         v, half = float(jo.theta[k]), 1.959964 * float(sd[k])
         # a scale factor's interval in log space, where its prior is normal: never below zero
         ci = ([v * np.exp(-half / v), v * np.exp(half / v)] if p.kind == "scale" and v > 0 else [v - half, v + half])
+        ci = [max(ci[0], p.prior.lower), min(ci[1], p.prior.upper)]  # the posterior has no mass beyond the bounds
         out[p.name] = {"map": v, "mean": v, "sd": float(sd[k]), "ci95": [float(c) for c in ci],
                        "crlb_sd": float(bound[k]), "widened_by_checks": float(widen[k]),
                        "method": "scales and offsets fitted together (Laplace interval)"}

@@ -111,17 +111,20 @@ def _parameters(m: Mapping, units: str, kinds: Mapping, status: Mapping, crlb) -
     """The method's parameter estimates, in the order of its dict.
 
     An axis direction is in degrees, a scale factor a ratio (unit ``1``), every other parameter in ``units``;
-    a parameter
+    a parameter held on its prior's bound (``on_bound``: ``lower`` or ``upper``) is ``on-bound``, with
+    ``extra["bound"]`` naming which; one
     without an identifiability row is ``identified`` with ``extra["status_given"] = False``.
     """
     entries = [(k, v) for k, v in m.items() if _is_estimate(k, v)]
     params = {}
     for i, (name, v) in enumerate(entries):
+        held = v.get("on_bound")
+        given = name in status or held is not None
         params[name] = ParameterEstimate(
             name, {"axis_direction": "deg", "scale": "1"}.get(kinds.get(name), units), _float(v["map"]),
             _float(v.get("mean", v["map"])), _float(v.get("sd")), _pair(v["ci95"]),
-            _crlb_of(v, i, crlb), status.get(name, "identified"),
-            {} if name in status else {"status_given": False})
+            _crlb_of(v, i, crlb), "on-bound" if held else status.get(name, "identified"),
+            {"bound": held} if held else {} if given else {"status_given": False})
     return params
 
 
