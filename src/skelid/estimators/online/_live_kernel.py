@@ -72,6 +72,7 @@ def tables(ws) -> tuple | None:
 
 if AVAILABLE:  # pragma: no branch
     from skelid.estimators.fit._lm_kernel import (
+        _empty_custom,
         _kinematics_planar,
         _kinematics_spatial,
         _lm_planar,
@@ -106,7 +107,8 @@ if AVAILABLE:  # pragma: no branch
                                sn, p, w, pivot, xk, ux, uy, tilt, t_axis, t_skew, t_skew2)
         else:
             _kinematics_spatial(g, q, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, R, Ri, E, ang,
-                                cs, sn, p, w, pivot, xk, ux, uy, tilt, t_axis, t_skew, t_skew2)
+                                cs, sn, p, w, pivot, xk, ux, uy, tilt, t_axis, t_skew, t_skew2, np.zeros((Q, 3, 1)),
+                                np.empty((2, 1)), _empty_custom(S, Q))
         for m in range(M):
             for a in range(D):
                 x[m, a] = xk[m, a, 0]
