@@ -399,7 +399,9 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
                                       st.method, st.sigma, st.seed, st.settings, checks_only=True)
         res3 = _without_carried_warnings(res3, est)
         # the soft-tissue artefact the residuals show: the part of it that mimics the geometry is added
-        art = pose_artefact(model, jo.theta, ys, jo.poses, jo.sigma, jo.cov, weights)
+        # (its slopes are estimated with the geometry where it is present: the slide from the model's zero pose)
+        art = pose_artefact(model, jo.theta, ys, jo.poses, jo.sigma, jo.cov, weights,
+                            reference=np.zeros(jo.poses[0].shape[1]))
         # markers that sit elsewhere on the body in each trial (the slide's mean follows the trial's mean pose)
         offsets = np.array([p.kind == "marker_offset" for p in model.parameters])
         placed = trial_placement(jo.info_trials, jo.score_trials, jo.cov, offsets)
@@ -416,15 +418,19 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
     held = _on_bounds(model, jo.theta)  # the fit's own optimum, before the correction moves it off a bound
-    jo = replace(jo, theta=np.clip(jo.theta - bias, lo, hi))
+    slide = _slide_fit(model, jo, art)
+    if slide is not None:  # the slide estimated with the geometry: its step, and its covariance for the noise's
+        base = slide.cov * (1.0 + boot_entry["variance_added_by_correction"])
+        bound = _sd(slide.cov)  # the bound of the model with the slide (white noise and slopes)
+    jo = replace(jo, theta=np.clip(jo.theta - bias + (0.0 if slide is None else slide.shift), lo, hi))
     psd = prior_sd(_prior_terms(model, jo.theta)[1])
     widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)
-    jo = replace(jo, cov=base * np.outer(widen, widen) + art.cov + placed.cov)
+    jo = replace(jo, cov=base * np.outer(widen, widen) + (art.cov if slide is None else 0.0) + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
-    ratio = _artefact_ratio(art, bound)
-    out["artefact"] = _artefact_entry(art, ratio)
+    ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
+    out["artefact"] = _artefact_entry(art, ratio, slide)
     if out["artefact"]["warn"]:
-        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio)]
+        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide)]
     out["bootstrap"] = boot_entry
     out["trial_placement"] = _placement_entry(placed, bound)
     if out["trial_placement"]["warn"]:
@@ -441,24 +447,58 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
 ARTEFACT_EFFECT = 0.5
 
 
+def _sd(cov) -> np.ndarray:
+    return np.maximum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), 1e-300)
+
+
+def _slide_fit(model: Model, jo, art):
+    """The joint fit with the artefact's slopes estimated beside the geometry (None where none is present)."""
+    from skelid.estimators.checks.pose_artefact import joint_slide
+
+    if art.slide is None or not jo.info_trials:
+        return None
+    s2 = np.asarray(jo.sigma, float) ** 2  # each trial's information and score back to unit noise
+    info = sum(s * info_k for s, info_k in zip(s2, jo.info_trials, strict=True))
+    score = sum(s * g for s, g in zip(s2, jo.score_trials, strict=True))
+    grad, curv = _prior_terms(model, jo.theta)
+    return joint_slide(art.slide, info, score, grad, curv, float(np.sum(jo.dof)), art.rms)
+
+
 def _artefact_ratio(art, bound) -> np.ndarray:
     """Per parameter, the sd the artefact's term adds over the sd the residuals alone give."""
     return np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
 
 
-def _artefact_entry(art, ratio) -> dict:
-    """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact."""
-    return {"present": bool(art.present), "p_value": float(art.p_value), "rms": float(art.rms),
-            "slope_sd_shared": float(art.tau_shared), "slope_sd_own": float(art.tau_own),
-            "sigma_white": list(art.sigma_white), "largest_sd_ratio": float(ratio.max(initial=0.0)),
-            "warn": bool(art.present and ratio.max(initial=0.0) >= ARTEFACT_EFFECT),
-            "method": "residuals against a marker slide linear in the joint angles (skelid.estimators.checks."
-                      "pose_artefact)"}
+def _artefact_entry(art, ratio, slide=None) -> dict:
+    """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact.
+
+    With ``slide`` (its slopes estimated with the geometry) the sizes are the joint fit's and
+    ``largest_sd_ratio`` is the largest step it took, in the step's sd; else the sd the
+    artefact's term adds over the residuals' own.
+    """
+    k = 1.0 if slide is None else slide.scale
+    entry = {"present": bool(art.present), "p_value": float(art.p_value),
+             "rms": float(art.rms if slide is None else slide.rms),
+             "slope_sd_shared": float(k * art.tau_shared), "slope_sd_own": float(k * art.tau_own),
+             "sigma_white": list(art.sigma_white) if slide is None else [slide.sigma_white] * len(art.sigma_white),
+             "largest_sd_ratio": float(ratio.max(initial=0.0)),
+             "estimated_with_geometry": slide is not None,
+             "warn": bool(art.present and ratio.max(initial=0.0) >= ARTEFACT_EFFECT),
+             "method": "residuals against a marker slide linear in the joint angles (skelid.estimators.checks."
+                       "pose_artefact)"}
+    if slide is not None:
+        entry["method"] += "; its slopes estimated with the geometry (joint_slide)"
+    return entry
 
 
-def _artefact_warning(model: Model, art, ratio) -> str:
+def _artefact_warning(model: Model, art, ratio, slide=None) -> str:
     """One line naming the artefact the residuals show and what it does to the intervals."""
     k = int(np.argmax(ratio))
+    if slide is not None:
+        return (f"the residuals follow the pose: a soft-tissue artefact of about {slide.rms:.2g} {model.units} rms "
+                f"per marker coordinate (F test p = {art.p_value:.1e}), its slopes estimated with the geometry "
+                f"and integrated out of the intervals; it moved {model.parameter_names[k]} by {ratio[k]:.1f} sd "
+                f"(white noise left: {slide.sigma_white:.2g} {model.units})")
     return (f"the residuals follow the pose: a soft-tissue artefact of about {art.rms:.2g} {model.units} rms per "
             f"marker coordinate (F test p = {art.p_value:.1e}); the part of it that looks like a change of the "
             f"geometry is in the intervals (the largest effect: {model.parameter_names[k]}, "
