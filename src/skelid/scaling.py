@@ -461,7 +461,7 @@ def _slide_fit(model: Model, jo, art):
     info = sum(s * info_k for s, info_k in zip(s2, jo.info_trials, strict=True))
     score = sum(s * g for s, g in zip(s2, jo.score_trials, strict=True))
     grad, curv = _prior_terms(model, jo.theta)
-    return joint_slide(art.slide, info, score, grad, curv, float(np.sum(jo.dof)), art.rms)
+    return joint_slide(art.slide, info, score, grad, curv, float(np.sum(jo.dof)))
 
 
 def _artefact_ratio(art, bound) -> np.ndarray:
@@ -476,10 +476,10 @@ def _artefact_entry(art, ratio, slide=None) -> dict:
     ``largest_sd_ratio`` is the largest step it took, in the step's sd; else the sd the
     artefact's term adds over the residuals' own.
     """
-    k = 1.0 if slide is None else slide.scale
     entry = {"present": bool(art.present), "p_value": float(art.p_value),
              "rms": float(art.rms if slide is None else slide.rms),
-             "slope_sd_shared": float(k * art.tau_shared), "slope_sd_own": float(k * art.tau_own),
+             "slope_sd_shared": float(art.tau_shared if slide is None else slide.tau_shared),
+             "slope_sd_own": float(art.tau_own if slide is None else slide.tau_own),
              "sigma_white": list(art.sigma_white) if slide is None else [slide.sigma_white] * len(art.sigma_white),
              "largest_sd_ratio": float(ratio.max(initial=0.0)),
              "estimated_with_geometry": slide is not None,
