@@ -79,3 +79,5 @@ def test_the_slide_follows_every_direction_the_poses_take_and_none_they_never_ta
     assert B.shape == (4, 3)  # even a direction of 1e-4 of the motion is kept; the locked one is not
     np.testing.assert_allclose(B.T @ B, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(B[3], 0.0, atol=1e-12)
+    assert slide_basis([dq], max_directions=2).shape == (4, 2)  # the bound on the slopes keeps the main ones
+    np.testing.assert_allclose(np.abs(slide_basis([dq], max_directions=1)[:, 0]), [1, 0, 0, 0], atol=0.05)

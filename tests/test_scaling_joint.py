@@ -419,3 +419,35 @@ def test_linked_factors_stay_near_the_bodys_common_factor_where_the_data_say_not
     lin = [th["linked"][f"scale_thigh_{a}"] for a in "xyz"]
     ax = [th["axes"][f"scale_thigh_{a}"] for a in "xyz"]
     assert np.ptp(np.log(lin)) < np.ptp(np.log(ax))
+
+
+def test_a_slide_that_follows_the_pose_is_estimated_with_the_geometry_and_named(leg):  # noqa: F811
+    """Markers that slide on their bodies linearly with the joint angles (15 mm per radian shared by a
+    body's markers, 5 mm each marker's own, 1 mm white noise): the joint fit finds the slide, estimates
+    its slopes with the geometry (their sizes near the truth's), and names it; its white noise is near the
+    1 mm left, not the fit's noise level (6 mm here)."""
+    from skelid.data import MarkerData
+    from skelid.estimators.checks.pose_artefact import artefact_coordinates
+    from skelid.estimators.fit.pose import workspace
+    from skelid.model.kinematics import forward_kinematics, marker_positions
+    from tests.helpers import leg_walk_poses
+
+    base, info = read_osim(leg)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    truth = model.theta_nominal.copy()
+    q = leg_walk_poses(400, model.n_pose)
+    rng = np.random.default_rng(11)
+    coords = artefact_coordinates(model)
+    mseg = np.asarray(model.marker_segment)
+    V = rng.normal(0.0, 15.0, (len(model.segments), 3, coords.size))[mseg]
+    V = V + rng.normal(0.0, 5.0, V.shape)
+    R = forward_kinematics(model, truth, q, workspace(model)).R_world_seg[:, mseg]
+    slide = np.einsum("tmja,mac,tc->tmj", R, V, q[:, coords])
+    x = marker_positions(model, truth, q) + slide + rng.normal(0.0, 1.0, slide.shape)
+    fit = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
+    art = fit.result["artefact"]
+    assert art["present"] and art["estimated_with_geometry"]
+    # the white level the slide leaves (the linearisation at the fit leaves some of the slide in it)
+    assert 0.7 < art["sigma_white"][0] < 2.0 and art["sigma_white"][0] < 0.5 * fit.result["sigma"]["value"]
+    assert 7.5 < art["slope_sd_shared"] < 30.0 and art["slope_sd_own"] < art["slope_sd_shared"]
+    assert any("its slopes estimated with the geometry" in w for w in fit.warnings)

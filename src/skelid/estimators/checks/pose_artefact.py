@@ -156,7 +156,7 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     joint = reference is not None
     if joint:
         qref = np.asarray(reference, float)[coords]
-        basis = slide_basis([np.asarray(q, float)[:, coords] - qref for q in poses])
+        basis = slide_basis([np.asarray(q, float)[:, coords] - qref for q in poses], MAX_SLIDE_SLOPES // (3 * M))
         nc = basis.shape[1]
         A_own = np.zeros((3 * M, 3 * M, nc, nc))
         b_own = np.zeros((M, 3, nc))
@@ -254,9 +254,13 @@ class SlideTerms:
 #: (6 of 18 joint rotations) left hip-knee intervals covering 0.42-0.50 of two walks' draws, all of
 #: them 0.75-0.92 (12 draws each)
 SLIDE_POSE_SHARE = 1.0 - 1e-9
+#: at most this many slopes per marker set (3 per marker and direction), so that the joint estimate's
+#: time and memory stay bounded (its matrices are this size squared: 39 MB each; gait2354's 39 markers keep
+#: all 18 directions; a model of 49 markers and 28 joint rotations its 14 main directions)
+MAX_SLIDE_SLOPES = 2200
 
 
-def slide_basis(dqs) -> np.ndarray:
+def slide_basis(dqs, max_directions: int | None = None) -> np.ndarray:
     """``(C, k)``: the main directions of the poses' distances ``dqs`` (each ``(F, C)``) from the reference."""
     D = np.concatenate([np.asarray(d, float) for d in dqs])
     w, V = np.linalg.eigh(D.T @ D)
@@ -264,8 +268,8 @@ def slide_basis(dqs) -> np.ndarray:
     total = float(w.sum())
     if total <= 0:
         return V[:, :1]
-    k = int(np.searchsorted(np.cumsum(w) / total, SLIDE_POSE_SHARE) + 1)
-    return V[:, :min(k, len(w))]
+    k = min(int(np.searchsorted(np.cumsum(w) / total, SLIDE_POSE_SHARE) + 1), len(w))
+    return V[:, :k if max_directions is None else max(1, min(k, max_directions))]
 
 
 @dataclass(frozen=True)
