@@ -329,7 +329,8 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     c = np.where(mu > 1e-9 * max(mu.max(initial=0.0), 1e-300), c, 0.0)
     Ep = U.T @ E
     N = max(float(dof), 1.0)
-    rss = max(float(sl.rss), 1e-300)
+    # the residuals' sum of squares with the geometry profiled out too (trials weighted alike here)
+    rss = max(float(sl.rss) - float(score_raw @ Ii @ score_raw), 1e-300)
     floor = 1e-6 * rss / N  # the slopes' variances searched from this (model units per radian, squared)
 
     n = float(mu.size)
