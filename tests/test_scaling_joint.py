@@ -424,8 +424,8 @@ def test_linked_factors_stay_near_the_bodys_common_factor_where_the_data_say_not
 def test_a_slide_that_follows_the_pose_is_estimated_with_the_geometry_and_named(leg):  # noqa: F811
     """Markers that slide on their bodies linearly with the joint angles (15 mm per radian shared by a
     body's markers, 5 mm each marker's own, 1 mm white noise): the joint fit finds the slide, estimates
-    its slopes with the geometry (their sizes near the truth's), and names it; its white noise is near the
-    1 mm left, not the fit's noise level (6 mm here)."""
+    its slopes with the geometry (their sizes near the truth's: three bodies tell the shared one roughly),
+    and names it; its white noise is the 1 mm left, not the fit's noise level (6 mm here)."""
     from skelid.data import MarkerData
     from skelid.estimators.checks.pose_artefact import artefact_coordinates
     from skelid.estimators.fit.pose import workspace
@@ -447,7 +447,6 @@ def test_a_slide_that_follows_the_pose_is_estimated_with_the_geometry_and_named(
     fit = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
     art = fit.result["artefact"]
     assert art["present"] and art["estimated_with_geometry"]
-    # the white level the slide leaves (the linearisation at the fit leaves some of the slide in it)
-    assert 0.7 < art["sigma_white"][0] < 2.0 and art["sigma_white"][0] < 0.5 * fit.result["sigma"]["value"]
+    assert 0.8 < art["sigma_white"][0] < 1.3 and art["sigma_white"][0] < 0.5 * fit.result["sigma"]["value"]
     assert 7.5 < art["slope_sd_shared"] < 30.0 and art["slope_sd_own"] < art["slope_sd_shared"]
     assert any("its slopes estimated with the geometry" in w for w in fit.warnings)
