@@ -67,7 +67,8 @@ white level and the two slope sizes maximise the marginal likelihood of the
 residuals, and the geometry takes the step and the covariance of the joint
 posterior with the slopes integrated out. What the trials' spread of poses tells apart from the geometry is
 removed rather than only added to the intervals (on OpenSim-generated walks
-with a 5-15 mm artefact, hip-knee errors fell from 32 to 12 mm rms).
+with a 5-15 mm artefact, hip-knee and knee-ankle errors fell from 32-37 to
+13-16 mm rms, ``benchmarks/results/opensim_truth.md``).
 """
 
 from __future__ import annotations
@@ -184,13 +185,12 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
             G += (np.tensordot(dq, B, axes=(0, 0)).transpose(1, 2, 3, 0).reshape(M, P, -1)
                   / float(sigma[k]) ** 2)
             if joint:
-                sk = 1.0  # raw units: one white level for every trial, estimated with the slide
+                # raw units (not over each trial's sigma): one white level for every trial, estimated with the slide
                 dr = (qb[:, coords] - qref) @ basis  # the pose's distance in its main directions
-                Rs = s.reshape(T, M, 3)[..., None] * R / sk  # (T, M, 3 j, 3 a)
-                Jw = Jq / sk
-                Q = Jw.shape[-1]
-                N = np.einsum("tmjq,tmja->tqma", Jw.reshape(T, M, 3, Q), Rs).reshape(T, Q, 3 * M)
-                Hq = frame_gram(Jw)
+                Rs = s.reshape(T, M, 3)[..., None] * R  # (T, M, 3 j, 3 a)
+                Q = Jq.shape[-1]
+                N = np.einsum("tmjq,tmja->tqma", Jq.reshape(T, M, 3, Q), Rs).reshape(T, Q, 3 * M)
+                Hq = frame_gram(Jq)
                 tr = np.einsum("tqq->t", Hq) / max(Q, 1)
                 Hq = Hq + 1e-12 * np.maximum(tr, 1e-300)[:, None, None] * np.eye(Q)
                 X = -np.matmul(N.swapaxes(1, 2), np.linalg.solve(Hq, N))  # (T, 3M, 3M)
@@ -199,8 +199,8 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
                     X[:, 3 * m:3 * m + 3, 3 * m:3 * m + 3] += Y[:, m]
                 DD = (dr[:, :, None] * dr[:, None, :]).reshape(T, nc * nc)
                 A_own += (X.reshape(T, -1).T @ DD).reshape(3 * M, 3 * M, nc, nc)
-                b_own += np.einsum("tmja,tmj,tc->mac", Rs, r.reshape(T, M, 3) / sk, dr)
-                G_ref += np.tensordot(dr, B, axes=(0, 0)).transpose(1, 2, 3, 0) / sk**2
+                b_own += np.einsum("tmja,tmj,tc->mac", Rs, r.reshape(T, M, 3), dr)
+                G_ref += np.tensordot(dr, B, axes=(0, 0)).transpose(1, 2, 3, 0)
                 rss_raw += float(np.sum(r**2))
     x, g, z = np.concatenate(rows), np.concatenate(groups), np.concatenate(z)
     # the test: one white level per marker and trial (noise that differs between markers is not an artefact)
