@@ -423,6 +423,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
         base = slide.cov * (1.0 + boot_entry["variance_added_by_correction"])
         bound = _sd(slide.cov)  # the bound of the model with the slide (white noise and slopes)
     jo = replace(jo, theta=np.clip(jo.theta - bias + (0.0 if slide is None else slide.shift), lo, hi))
+    if slide is not None:  # the poses at the geometry the slide's estimate moved to
+        jo = replace(jo, poses=_poses_at(model, jo.theta, ys, jo.poses))
     psd = prior_sd(_prior_terms(model, jo.theta)[1])
     widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)
     jo = replace(jo, cov=base * np.outer(widen, widen) + (art.cov if slide is None else 0.0) + placed.cov)
@@ -449,6 +451,14 @@ ARTEFACT_EFFECT = 0.5
 
 def _sd(cov) -> np.ndarray:
     return np.maximum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), 1e-300)
+
+
+def _poses_at(model: Model, theta, ys, poses) -> list:
+    """Each trial's poses refitted at ``theta`` from ``poses``."""
+    from skelid.estimators.fit.pose import fit_pose, workspace
+
+    ws = workspace(model)
+    return [fit_pose(model, theta, y, q, ws=ws)[0] for y, q in zip(ys, poses, strict=True)]
 
 
 def _slide_fit(model: Model, jo, art):

@@ -154,15 +154,13 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     bodies = [np.flatnonzero(mseg == b) for b in np.unique(mseg)]
     G = np.zeros((M, P, 3 * coords.size))
     rows, groups, z = [], [], []
-    joint = reference is not None
+    joint = reference is not None and _slide_directions(model, ys) > 0
     if joint:
         qref = np.asarray(reference, float)[coords]
-        basis = slide_basis([np.asarray(q, float)[:, coords] - qref for q in poses], MAX_SLIDE_SLOPES // (3 * M))
+        basis = slide_basis([np.asarray(q, float)[:, coords] - qref for q in poses], _slide_directions(model, ys))
         nc = basis.shape[1]
-        A_own = np.zeros((3 * M, 3 * M, nc, nc))
-        b_own = np.zeros((M, 3, nc))
-        G_ref = np.zeros((M, P, 3, nc))
-        rss_raw = 0.0
+        acc = {"A": np.zeros((3 * M, 3 * M, nc, nc)), "b": np.zeros((M, 3, nc)), "G": np.zeros((M, P, 3, nc)),
+               "rss": 0.0}
     for k, (y, q) in enumerate(zip(ys, poses, strict=True)):
         y, q = np.asarray(y, float), np.asarray(q, float)
         for a in range(0, len(q), BLOCK_FRAMES):
@@ -184,37 +182,10 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
             B = np.einsum("tmjp,tmj,tmja->tmpa", Kp, s.reshape(T, M, 3), R)  # (T, M, P, 3)
             G += (np.tensordot(dq, B, axes=(0, 0)).transpose(1, 2, 3, 0).reshape(M, P, -1)
                   / float(sigma[k]) ** 2)
-            if joint:
-                # raw units (not over each trial's sigma): one white level for every trial, estimated with the slide
-                dr = (qb[:, coords] - qref) @ basis  # the pose's distance in its main directions
-                Rs = s.reshape(T, M, 3)[..., None] * R  # (T, M, 3 j, 3 a)
-                Q = Jq.shape[-1]
-                N = np.einsum("tmjq,tmja->tqma", Jq.reshape(T, M, 3, Q), Rs).reshape(T, Q, 3 * M)
-                Hq = frame_gram(Jq)
-                tr = np.einsum("tqq->t", Hq) / max(Q, 1)
-                Hq = Hq + 1e-12 * np.maximum(tr, 1e-300)[:, None, None] * np.eye(Q)
-                X = -np.matmul(N.swapaxes(1, 2), np.linalg.solve(Hq, N))  # (T, 3M, 3M)
-                Y = np.einsum("tmja,tmjb->tmab", Rs, Rs)
-                for m in range(M):
-                    X[:, 3 * m:3 * m + 3, 3 * m:3 * m + 3] += Y[:, m]
-                DD = (dr[:, :, None] * dr[:, None, :]).reshape(T, nc * nc)
-                A_own += (X.reshape(T, -1).T @ DD).reshape(3 * M, 3 * M, nc, nc)
-                b_own += np.einsum("tmja,tmj,tc->mac", Rs, r.reshape(T, M, 3), dr)
-                G_ref += np.tensordot(dr, B, axes=(0, 0)).transpose(1, 2, 3, 0)
-                rss_raw += float(np.sum(r**2))
+            if joint:  # raw units (not over each trial's sigma): one white level for every trial
+                _add_slide_sums(acc, Jq, s.reshape(T, M, 3), R, r, B, (qb[:, coords] - qref) @ basis)
     x, g, z = np.concatenate(rows), np.concatenate(groups), np.concatenate(z)
-    # the test: one white level per marker and trial (noise that differs between markers is not an artefact)
-    p_value, tau_s2, tau_o2, white = _moment_fit(x, g, z, K, M)
-    # the size: the larger of that and the fit with one white level per trial, which also counts the
-    # slide's mean square (the per-marker levels absorb it and size the slide from its variation in
-    # time alone: 15-40 % smaller on simulated walks)
-    _, ts2, to2, w2 = _moment_fit(x, g // M, z, K, 1)
-    if ts2 + to2 > tau_s2 + tau_o2:
-        tau_s2, tau_o2, white = ts2, to2, w2
-    if K > 1:  # one white level per marker for every trial (one camera system): a trial's slide is its excess
-        _, ts3, to3, _ = _moment_fit(x, g % M, z, 1, M)
-        if ts3 + to3 > tau_s2 + tau_o2:
-            tau_s2, tau_o2 = ts3, to3
+    p_value, tau_s2, tau_o2, white = _moment_sizes(x, g, z, K, M)
     n_rms = np.mean(np.concatenate([np.sum((np.asarray(q, float)[:, coords] - qbar) ** 2, axis=1) for q in poses]))
     rms = float(np.sqrt((tau_s2 + tau_o2) * n_rms))
     size = float(np.abs(model.nominal_geometry).max())
@@ -229,9 +200,44 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     cov = hinv @ C @ hinv
     slide = None
     if joint:
-        slide = SlideTerms(A_own, b_own, G_ref, tuple(bodies), float(tau_s2), float(tau_o2), rss_raw, float(n_rms))
+        slide = SlideTerms(acc["A"], acc["b"], acc["G"], tuple(bodies), float(tau_s2), float(tau_o2), acc["rss"],
+                           float(n_rms))
     return PoseArtefact(True, p_value, float(np.sqrt(tau_s2)), float(np.sqrt(tau_o2)), rms, white,
                         0.5 * (cov + cov.T), 0.5 * (C + C.T), slide)
+
+
+def _add_slide_sums(acc: dict, Jq, s, R, r, B, dr) -> None:
+    """Add a block of frames to the slide's sums: ``Z^T S P S Z``, ``Z^T S r``, ``K^T S Z`` and ``r^T r``.
+
+    ``Jq`` (T, 3M, Q) and ``r`` (T, 3M) row-weighted, ``s`` (T, M, 3) the row weights, ``R`` (T, M, 3, 3)
+    each marker's body rotation, ``B`` (T, M, P, 3) ``K^T S R``, ``dr`` (T, C) the pose's distance from the
+    reference in the slide's directions.
+    """
+    T, M = s.shape[:2]
+    Q = Jq.shape[-1]
+    Rs = s[..., None] * R  # (T, M, 3 j, 3 a)
+    N = np.einsum("tmjq,tmja->tqma", Jq.reshape(T, M, 3, Q), Rs).reshape(T, Q, 3 * M)
+    Hq = frame_gram(Jq)
+    tr = np.einsum("tqq->t", Hq) / max(Q, 1)
+    Hq = Hq + 1e-12 * np.maximum(tr, 1e-300)[:, None, None] * np.eye(Q)
+    X = -np.matmul(N.swapaxes(1, 2), np.linalg.solve(Hq, N))  # (T, 3M, 3M): off each frame's pose
+    Y = np.einsum("tmja,tmjb->tmab", Rs, Rs)
+    for m in range(M):
+        X[:, 3 * m:3 * m + 3, 3 * m:3 * m + 3] += Y[:, m]
+    C = dr.shape[1]
+    DD = (dr[:, :, None] * dr[:, None, :]).reshape(T, C * C)
+    acc["A"] += (X.reshape(T, -1).T @ DD).reshape(3 * M, 3 * M, C, C)
+    acc["b"] += np.einsum("tmja,tmj,tc->mac", Rs, r.reshape(T, M, 3), dr)
+    acc["G"] += np.tensordot(dr, B, axes=(0, 0)).transpose(1, 2, 3, 0)
+    acc["rss"] += float(np.sum(r**2))
+
+
+def _slide_directions(model: Model, ys) -> int:
+    """How many pose directions the slide's slopes may follow: :data:`MAX_SLIDE_SLOPES` and the data's rows."""
+    M, Q = len(model.markers), len(model.dofs)
+    rows = sum(float(np.clip(3 * np.isfinite(np.asarray(y, float)).all(axis=-1).sum(axis=-1) - Q, 0, None).sum())
+               for y in ys)
+    return int(min(MAX_SLIDE_SLOPES, rows / SLIDE_ROWS_PER_SLOPE) // (3 * M))
 
 
 @dataclass(frozen=True)
@@ -258,6 +264,10 @@ SLIDE_POSE_SHARE = 1.0 - 1e-9
 #: time and memory stay bounded (its matrices are this size squared: 39 MB each; gait2354's 39 markers keep
 #: all 18 directions; a model of 49 markers and 28 joint rotations its 14 main directions)
 MAX_SLIDE_SLOPES = 2200
+#: ... and at most one per this many residual rows the poses leave (a few frames cannot size thousands of
+#: slopes: a 16-frame clip of subject01 gave a model OpenSim's IK tracked at 182 mm); a marker set that keeps
+#: no direction under both bounds has its slide's effect only added to the intervals
+SLIDE_ROWS_PER_SLOPE = 5
 
 
 def slide_basis(dqs, max_directions: int | None = None) -> np.ndarray:
@@ -381,6 +391,23 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     cov = np.linalg.inv(H) + HB @ np.linalg.solve(S, HB.T)
     return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(ts2)),
                     float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)))
+
+
+def _moment_sizes(x, g, z, K, M):
+    """The F test's p-value, the slide's two variances and the white levels from the moment fits."""
+    # the test: one white level per marker and trial (noise that differs between markers is not an artefact)
+    p_value, tau_s2, tau_o2, white = _moment_fit(x, g, z, K, M)
+    # the size: the larger of that and the fit with one white level per trial, which also counts the
+    # slide's mean square (the per-marker levels absorb it and size the slide from its variation in
+    # time alone: 15-40 % smaller on simulated walks)
+    _, ts2, to2, w2 = _moment_fit(x, g // M, z, K, 1)
+    if ts2 + to2 > tau_s2 + tau_o2:
+        tau_s2, tau_o2, white = ts2, to2, w2
+    if K > 1:  # one white level per marker for every trial (one camera system): a trial's slide is its excess
+        _, ts3, to3, _ = _moment_fit(x, g % M, z, 1, M)
+        if ts3 + to3 > tau_s2 + tau_o2:
+            tau_s2, tau_o2 = ts3, to3
+    return p_value, tau_s2, tau_o2, white
 
 
 def _moment_fit(x, g, z, K, M):
