@@ -419,11 +419,10 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     hi = np.array([p.prior.upper for p in model.parameters])
     held = _on_bounds(model, jo.theta)  # the fit's own optimum, before the correction moves it off a bound
     slide = _slide_fit(model, jo, art)
-    if slide is not None:  # the slide estimated with the geometry: its step, and its covariance for the noise's
-        base = slide.cov * (1.0 + boot_entry["variance_added_by_correction"])
-        bound = _sd(slide.cov)  # the bound of the model with the slide (white noise and slopes)
     jo = replace(jo, theta=np.clip(jo.theta - bias + (0.0 if slide is None else slide.shift), lo, hi))
-    if slide is not None:  # the poses at the geometry the slide's estimate moved to
+    if slide is not None:  # the slide estimated with the geometry: its covariance for the noise's, its bound,
+        base = slide.cov * (1.0 + boot_entry["variance_added_by_correction"])  # and the poses where it moved
+        bound = _sd(slide.cov)
         jo = replace(jo, poses=_poses_at(model, jo.theta, ys, jo.poses))
     psd = prior_sd(_prior_terms(model, jo.theta)[1])
     widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)

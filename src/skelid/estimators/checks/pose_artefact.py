@@ -154,10 +154,11 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     bodies = [np.flatnonzero(mseg == b) for b in np.unique(mseg)]
     G = np.zeros((M, P, 3 * coords.size))
     rows, groups, z = [], [], []
-    joint = reference is not None and _slide_directions(model, ys) > 0
+    n_dir = 0 if reference is None else _slide_directions(model, ys)
+    joint = n_dir > 0
     if joint:
         qref = np.asarray(reference, float)[coords]
-        basis = slide_basis([np.asarray(q, float)[:, coords] - qref for q in poses], _slide_directions(model, ys))
+        basis = slide_basis([np.asarray(q, float)[:, coords] - qref for q in poses], n_dir)
         nc = basis.shape[1]
         acc = {"A": np.zeros((3 * M, 3 * M, nc, nc)), "b": np.zeros((M, 3, nc)), "G": np.zeros((M, P, 3, nc)),
                "rss": 0.0}
