@@ -31,7 +31,11 @@ with ``gait2354_Scale_MarkerSet.xml``):
    W'_m / 2`` with ``W_b`` shared by the markers of body ``b`` and ``W'_m`` its
    own (normal draws), scaled so that the body's markers move by an rms
    (over the walk, per coordinate) drawn uniform in [5, 15] mm per body; zero
-   at the standing pose; plus 1 mm i.i.d. noise.
+   at the standing pose; plus 1 mm i.i.d. noise. A marker that slides has no
+   one place on its body: the truth of its offset and of its place in its
+   body is where the artefact puts it at the model's zero pose, the pose in
+   which skelid defines the offsets (the standing pose is not in every design,
+   and between the two poses the artefact moves a marker by about its rms).
 
 Designs: ``static+walk`` (the static trial first, as the command line takes
 it), ``walk`` (one dynamic trial alone) and ``walk+walk2`` (two dynamic trials:
@@ -185,15 +189,16 @@ def noise_token(n) -> str:
         return n
 
 
-def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> dict:
-    """``trials``: name -> (positions (F, M, 3) mm, coordinates (F, C)); the noisy positions by name."""
+def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> tuple[dict, np.ndarray | None]:
+    """``trials``: name -> (positions (F, M, 3) mm, coordinates (F, C)); the noisy positions by name, and
+    for ``sta`` where the artefact puts each marker at the model's zero pose ((M, 3) mm, ground frame)."""
     ms = model.getMarkerSet()
     M = ms.getSize()
     if token == "pm":
         sd = rng.uniform(*PER_MARKER_SD_MM, M)[None, :, None]
-        return {k: y + rng.normal(size=y.shape) * sd for k, (y, _) in trials.items()}
+        return {k: y + rng.normal(size=y.shape) * sd for k, (y, _) in trials.items()}, None
     if token != "sta":
-        return {k: y + rng.normal(0.0, float(token), y.shape) for k, (y, _) in trials.items()}
+        return {k: y + rng.normal(0.0, float(token), y.shape) for k, (y, _) in trials.items()}, None
     cs = model.getCoordinateSet()
     rot = np.array([cs.get(n).getMotionType() == 1 for n in coord_names])
     bodies = [ms.get(i).getParentFrameName().split("/")[-1] for i in range(M)]
@@ -209,7 +214,8 @@ def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> di
         rms = float(np.sqrt(np.mean(walk[:, idx] ** 2)))
         if rms > 0:
             W[idx] *= rng.uniform(*STA_RMS_MM) / rms
-    return {k: y + artefact(q) + rng.normal(0.0, STA_NOISE_MM, y.shape) for k, (y, q) in trials.items()}
+    noisy = {k: y + artefact(q) + rng.normal(0.0, STA_NOISE_MM, y.shape) for k, (y, q) in trials.items()}
+    return noisy, artefact(np.zeros((1, len(coord_names))))[0]
 
 
 def fit_priors() -> tuple[float, float]:
@@ -300,12 +306,12 @@ def opensim_lengths(model, coord_names) -> dict:
     return {k: float(np.linalg.norm(p(a) - p(b)) * 1000.0) for k, (a, b) in LENGTHS.items()}
 
 
-def opensim_points(model) -> dict:
+def opensim_points(model, moved=None) -> dict:
     """Each joint centre in its parent body's frame and each marker in its own body's frame (mm), zero pose.
 
     Quantities that mean the same whatever a fit's parametrisation (one factor per body or one per
     axis, offsets measured from differently scaled nominal places): where the body's joints and
-    markers are.
+    markers are. ``moved``: (M, 3) mm added to the markers in the ground frame (the artefact there).
     """
     state = model.initSystem()
     cs = model.getCoordinateSet()
@@ -329,8 +335,9 @@ def opensim_points(model) -> dict:
     for i in range(ms.getSize()):
         m = ms.get(i)
         R, p = frame(m.getParentFrame().findBaseFrame())
-        x = m.getLocationInGround(state)
-        out[f"marker {m.getName()}"] = R.T @ (np.array([x.get(k) for k in range(3)]) - p) * 1000.0
+        x = np.array([m.getLocationInGround(state).get(k) for k in range(3)])
+        x = x if moved is None else x + moved[i] / 1000.0
+        out[f"marker {m.getName()}"] = R.T @ (x - p) * 1000.0
     return out
 
 
@@ -536,8 +543,12 @@ def run_draw(args) -> dict:
     if any(d == "walk+walk2" for d in designs):
         clean["walk2"] = (marker_trajectories(model, mo["names"], mo["walk2"])[1], mo["walk2"])
     lengths = opensim_lengths(model, mo["names"])
-    points = opensim_points(model)
-    noisy = add_noise(rng, noise, model, mo["names"], clean, mo["static"])
+    noisy, moved = add_noise(rng, noise, model, mo["names"], clean, mo["static"])
+    points = opensim_points(model, moved)
+    if moved is not None:  # a sliding marker's place on its body is where the artefact puts it at the zero pose
+        nominal = opensim_points(model)
+        truth = {**truth, "offsets": {m: d + points[f"marker {m}"] - nominal[f"marker {m}"]
+                                      for m, d in truth["offsets"].items()}}
     walk, static = noisy["walk"], noisy["static"]
     out = {"seed": seed, "truth_kind": truth_kind, "noise": noise, "fits": {}}
     for design in designs:
@@ -720,7 +731,8 @@ def markdown(res: dict) -> str:
              f"{p['cores']} cores, load "
              f"{p['load_average']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
              "Cell = truth / fit / design / noise (a number: i.i.d. sd in mm; `pm`: per-marker sd 1-10 mm; "
-             "`sta`: soft-tissue artefact 5-15 mm rms per body plus 1 mm, never told to the estimator)."
+             "`sta`: soft-tissue artefact 5-15 mm rms per body plus 1 mm, never told to the estimator; a "
+             "sliding marker's true offset and place are where the artefact puts it at the zero pose)."
              " Truth `bodies`: one factor per body; `axes`: one per "
              "axis (both uniform in [0.85, 1.15], offsets 1-20 mm long); `prior`: per axis, factors and offsets "
              "drawn from the fit's own priors (log-normal sd 0.15, normal 10 mm), where a right posterior "

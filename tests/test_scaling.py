@@ -327,6 +327,25 @@ def test_a_lone_trial_is_not_thinned_as_a_static_one(leg):
     assert fit.data.meta["trial_frames_used"] == [40]
 
 
+def test_a_first_trial_that_moves_is_a_movement_trial_and_a_standing_one_a_static_one(leg):
+    """Two walks: the first is not thinned to a static trial's frames, and the result says why; a
+    standing first trial is, with its small motion beside the threshold."""
+    from skelid.scaling import MOVEMENT_FRAMES, STATIC_FRAMES, STILL_MM, marker_motion
+
+    static, move = _trials(leg, {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}, frames=(60, 160))
+    assert marker_motion(static) < 0.1 < STILL_MM < marker_motion(move)
+    first, second = (MarkerData(move.positions[s], move.names, 60.0, "mm", "sim") for s in (slice(0, 120),
+                                                                                              slice(120, None)))
+    fit = fit_osim(leg, [first, second], scale="bodies", markers="none")
+    assert fit.data.meta["trial_frames_used"] == [60, 40] and 60 > STATIC_FRAMES and 60 <= MOVEMENT_FRAMES
+    assert fit.result["first_trial"]["static"] is False
+    assert fit.result["first_trial"]["marker_motion_mm"] > STILL_MM
+    fit = fit_osim(leg, [static, second], scale="bodies", markers="none")
+    assert fit.data.meta["trial_frames_used"] == [STATIC_FRAMES, 40]
+    assert fit.result["first_trial"] == {"static": True, "marker_motion_mm": pytest.approx(0.01, abs=0.01),
+                                         "still_below_mm": STILL_MM}
+
+
 def test_an_offset_the_data_pull_past_its_bound_is_held_there_and_named(leg):
     """A marker 90 mm from its model place along one axis (the offsets' bound is 50 mm): the joint fit
     holds that offset on its bound, marks it so in the result and names it and its body's scale in one

@@ -145,6 +145,23 @@ class ScalingFit:
 
 STATIC_FRAMES = 20
 MOVEMENT_FRAMES = 80
+#: the first of several trials is a static one where its markers move less than this about the
+#: markers' centre (mm rms per coordinate, the 90th percentile over the markers): standing trials of
+#: the shared recordings move 1.4-7.5 mm, their walks, squats, sit-to-stands and jumps 80-210 mm
+STILL_MM = 30.0
+
+
+def marker_motion(data: MarkerData) -> float:
+    """How far a trial's markers move (mm): the 90th percentile over the markers of each one's rms
+    displacement per coordinate about its mean place, measured from the markers' centre in each frame
+    (a subject who walks or sways as a whole still stands). NaN where no marker is seen twice."""
+    p = data.positions * unit_scale(data.units, "mm")
+    with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)  # markers never seen
+        c = p - np.nanmean(p, axis=1, keepdims=True)
+        rms = np.sqrt(np.nanmean((c - np.nanmean(c, axis=0, keepdims=True)) ** 2, axis=(0, 2)))
+    seen = (np.isfinite(p).all(axis=-1).sum(axis=0) > 1) & np.isfinite(rms)
+    return float(np.percentile(rms[seen], 90)) if seen.any() else float("nan")
 
 
 def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -> MarkerData:
@@ -193,9 +210,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
     markers : {'offsets', 'none'}
         Place the free markers on the first trial after the scale fit (see :func:`place_markers`).
     static_frames : int or None
-        The first trial, when movement trials follow it and it has more frames,
+        The first trial, when movement trials follow it, its markers stand still
+        (:func:`marker_motion` below :data:`STILL_MM`) and it has more frames,
         contributes every ``k``-th frame, at most this many, to steps 1 and 2 (a
-        static trial repeats one pose). A lone trial is a movement trial. None: all.
+        static trial repeats one pose). A lone trial, or a first one that moves, is
+        a movement trial. None: all.
         The joint fit of scales and offsets uses every frame.
     movement_frames : int or None
         Each movement trial, when it has more frames, contributes every ``k``-th
@@ -227,7 +246,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
         raise SettingError(f"markers={markers!r} is not a marker mode", "use 'offsets' or 'none'")
     full, info = read_osim(osim_path, marker_set)
     given = trials
-    trials, multi, data = _prepared_trials(trials, method, static_frames, movement_frames, joined)
+    trials, multi, data, first = _prepared_trials(trials, method, static_frames, movement_frames, joined)
     present = _present_markers(full, trials, data, multi, osim_path)
     original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
@@ -249,6 +268,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
             stage = _ScaleStage(original, info, present, trials, data, multi, method, sigma, seed, settings)
             model, theta, est, res, joint_fit = _joint_stage(stage, model, theta, given, scale, res)
     warns = _fit_warnings(osim_path, info, notes, res, dropped, multi)
+    res = {**res, "first_trial": first}
     frames = [int(t.positions.shape[0]) for t in trials]
     source = " + ".join(t.source or f"trial {k + 1}" for k, t in enumerate(trials))
     shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
@@ -288,14 +308,20 @@ def checked_trials(trials) -> list[MarkerData]:
 
 
 def _prepared_trials(trials, method, static_frames, movement_frames, joined):
-    """The trials thinned for steps 1 and 2, whether they are fitted as several trials, and the joined recording.
+    """The trials thinned for steps 1 and 2, whether they are fitted as several trials, the joined recording
+    and the result's ``first_trial`` entry (whether it was taken as a static trial, and why).
 
-    The first trial is a static one only when movement trials follow it; a lone trial is a movement trial.
+    The first trial is a static one only when movement trials follow it and its markers stand still
+    (:func:`marker_motion` below :data:`STILL_MM`); a lone trial is a movement trial, and so is a
+    first trial that moves.
     """
-    first = static_frames if len(trials) > 1 else movement_frames
+    motion = marker_motion(trials[0])
+    static = len(trials) > 1 and motion < STILL_MM
+    first = static_frames if static else movement_frames
     trials = [thin_trial(trials[0], first)] + [thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
     multi = len(trials) > 1 and method == "marker" and not joined
-    return trials, multi, (join_trials(trials) if not multi else None)
+    entry = {"static": bool(static), "marker_motion_mm": round(motion, 2), "still_below_mm": STILL_MM}
+    return trials, multi, (join_trials(trials) if not multi else None), entry
 
 
 def _present_markers(full: Model, trials, data, multi: bool, osim_path) -> list[str]:
@@ -1907,6 +1933,7 @@ def scaling_table(fit: ScalingFit) -> dict:
         "model_sensitivity": res.get("model_sensitivity"),
         "settings": _settings_json(fit.estimator),
         "frames_used": res.get("frames_used"),
+        "first_trial": res.get("first_trial"),
         "seconds": round(fit.seconds, 3),
         "markers_left_out": list(fit.dropped_markers),
         "warnings": list(fit.warnings),

@@ -320,7 +320,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     dof : float
         The residuals' degrees of freedom.
     """
-    from scipy.linalg import cho_factor, cho_solve
+    from scipy.linalg import blas, cho_factor, cho_solve, solve_triangular
     from scipy.optimize import minimize
 
     M, P, _, C = sl.G.shape
@@ -346,16 +346,19 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
 
     n = float(mu.size)
 
+    EpF = np.asfortranarray(Ep)
+
     def nll(x):  # -2 log marginal likelihood in (log sigma_w^2, log tau_s^2, log tau_o^2), and its gradient
         s2, ts2, to2 = np.exp(x)
         d = s2 + to2 * mu
         w, cd = mu / d, c / d
-        F = (Ep * w[:, None]).T @ Ep
+        F = np.triu(blas.dsyrk(1.0, EpF * np.sqrt(w)[:, None], trans=1))  # Ep^T diag(w) Ep, one triangle
+        F = F + np.triu(F, 1).T
         g = Ep.T @ cd
-        L = cho_factor(np.eye(F.shape[0]) + ts2 * F)
-        h = cho_solve(L, g)
-        EB = cho_solve(L, Ep.T).T  # Ep Bm^-1
-        q = np.einsum("ij,ij->i", EB, Ep)  # diag(Ep Bm^-1 Ep^T)
+        L = cho_factor(np.eye(F.shape[0]) + ts2 * F, check_finite=False)
+        h = cho_solve(L, g, check_finite=False)
+        X = solve_triangular(L[0], Ep.T, trans="T", lower=L[1], check_finite=False)
+        q = np.einsum("ij,ij->j", X, X)  # diag(Ep Bm^-1 Ep^T)
         e = Ep @ h
         white = rss - to2 * np.sum(c * cd)
         f = (N * x[0] + np.sum(np.log1p(to2 * mu / s2)) + 2.0 * np.sum(np.log(np.diag(L[0])))
@@ -367,7 +370,10 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
         d_ts2 = np.sum(q * w) - g @ h + ts2 * h @ F @ h
         return f, np.array([s2 * d_s2, ts2 * d_ts2, to2 * d_to2])
 
-    start = np.log([rss / N, max(sl.tau_s2, floor), max(sl.tau_o2, floor)])
+    # the moment fit's total, split evenly: a size started at its floor has no gradient there (53 evaluations
+    # on a simulated walk against 14 from the even split, to the same optimum)
+    half = 0.5 * (sl.tau_s2 + sl.tau_o2)
+    start = np.log([rss / N, max(half, floor), max(half, floor)])
     bounds = [(np.log(rss / N) - 30.0, np.log(rss / N) + 5.0)] + [(np.log(floor), np.log(floor) + 40.0)] * 2
     x = minimize(nll, np.clip(start, [b[0] for b in bounds], [b[1] for b in bounds]), method="L-BFGS-B",
                  jac=True, bounds=bounds).x
@@ -388,8 +394,9 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     S = Oi + A / s2 - (Gf / s2).T @ HB
     S = 0.5 * (S + S.T)
     Hg = np.linalg.solve(H, score_raw / s2 - prior_grad)  # the geometry's own step at this noise level
-    u = np.linalg.solve(S, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg)
-    cov = np.linalg.inv(H) + HB @ np.linalg.solve(S, HB.T)
+    Sc = cho_factor(S, check_finite=False)  # the slopes' posterior precision, once for both solves
+    u = cho_solve(Sc, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg, check_finite=False)
+    cov = np.linalg.inv(H) + HB @ cho_solve(Sc, HB.T, check_finite=False)
     return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(ts2)),
                     float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)))
 
