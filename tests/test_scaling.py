@@ -346,6 +346,20 @@ def test_a_first_trial_that_moves_is_a_movement_trial_and_a_standing_one_a_stati
                                          "still_below_mm": STILL_MM}
 
 
+@pytest.mark.parametrize("name, still", [
+    ("opensim-subject01/subject01_static.trc", True), ("addbio-subject4/MarkerData/static1.trc", True),
+    ("ktk-gait-pig/static.c3d", True), ("opensim-subject01/subject01_walk1.trc", False),
+    ("addbio-subject4/MarkerData/squats1.trc", False), ("addbio-subject4/MarkerData/STS1.trc", False),
+    ("addbio-subject4/MarkerData/DJ1.trc", False), ("opensim-gaps/walking2.c3d", False)])
+def test_the_shared_standing_trials_stand_still_and_their_movements_move(shared_data, name, still):
+    """What the threshold between a static and a movement trial stands on: less than 10 mm against more than 80."""
+    from skelid.io import read_markers
+    from skelid.scaling import STILL_MM, marker_motion
+
+    motion = marker_motion(read_markers(shared_data / name))
+    assert (motion < 10.0 < STILL_MM) if still else (motion > 80.0 > STILL_MM)
+
+
 def test_an_offset_the_data_pull_past_its_bound_is_held_there_and_named(leg):
     """A marker 90 mm from its model place along one axis (the offsets' bound is 50 mm): the joint fit
     holds that offset on its bound, marks it so in the result and names it and its body's scale in one

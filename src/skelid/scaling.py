@@ -147,7 +147,7 @@ STATIC_FRAMES = 20
 MOVEMENT_FRAMES = 80
 #: the first of several trials is a static one where its markers move less than this about the
 #: markers' centre (mm rms per coordinate, the 90th percentile over the markers): standing trials of
-#: the shared recordings move 1.4-7.5 mm, their walks, squats, sit-to-stands and jumps 80-210 mm
+#: the shared recordings move less than 10 mm, their walks, squats, sit-to-stands and jumps more than 80 mm
 STILL_MM = 30.0
 
 
