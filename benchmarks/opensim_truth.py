@@ -913,7 +913,7 @@ def rescore(path: Path) -> None:
 
     For results written before a quantity was scored: the fits are not rerun; each fit's
     ``truth`` is recomputed by :func:`draw_truth` and :func:`true_values` (the lengths, which
-    OpenSim's kinematics gave, are kept).
+    OpenSim's kinematics gave, and under the artefact the offsets, which its draw moved, are kept).
     """
     import json
 
@@ -927,6 +927,8 @@ def rescore(path: Path) -> None:
                 continue
             lengths = {q[len("length "):]: v for q, v in r["truth"].items() if q.startswith("length ")}
             tv = true_values(truth, lengths, key.split("/")[1].partition("+")[0])
+            if d["noise"] == "sta":  # a sliding marker's offset depends on the artefact's draw: kept as recorded
+                tv.update({k: v for k, v in r["truth"].items() if k.startswith("offset ")})
             r["truth"] = {k: tv[k] for k in r["q"] if k in tv}
     res["cells"] = summarise(res["draws"])
     res["rescored"] = "true values recomputed from each draw's seed by --rescore"
