@@ -327,7 +327,7 @@ def test_a_lone_trial_is_not_thinned_as_a_static_one(leg):
     assert fit.data.meta["trial_frames_used"] == [40]
 
 
-def test_a_first_trial_that_moves_is_a_movement_trial_and_a_standing_one_a_static_one(leg):
+def test_a_first_trial_that_moves_is_a_movement_trial_and_a_standing_one_a_static_one(leg, tmp_path):
     """Two walks: the first is not thinned to a static trial's frames, and the result says why; a
     standing first trial is, with its small motion beside the threshold."""
     from skelid.scaling import MOVEMENT_FRAMES, STATIC_FRAMES, STILL_MM, marker_motion
@@ -340,6 +340,9 @@ def test_a_first_trial_that_moves_is_a_movement_trial_and_a_standing_one_a_stati
     assert fit.data.meta["trial_frames_used"] == [60, 40] and 60 > STATIC_FRAMES and 60 <= MOVEMENT_FRAMES
     assert fit.result["first_trial"]["static"] is False
     assert fit.result["first_trial"]["marker_motion_mm"] > STILL_MM
+    paths = write_outputs(fit, tmp_path / "out")
+    assert json.loads(paths["json"].read_text())["first_trial"]["static"] is False
+    assert "| sim | movement (markers move " in paths["report"].read_text()
     fit = fit_osim(leg, [static, second], scale="bodies", markers="none")
     assert fit.data.meta["trial_frames_used"] == [STATIC_FRAMES, 40]
     assert fit.result["first_trial"] == {"static": True, "marker_motion_mm": pytest.approx(0.01, abs=0.01),

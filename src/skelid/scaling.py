@@ -2056,10 +2056,14 @@ def _head_markdown(fit: ScalingFit, table: dict) -> list[str]:
     frames = fit.data.meta.get("trial_frames_used", [])
     sig = (res.get("sigma") or {}).get("per_trial") if isinstance(res.get("sigma"), dict) else None
     if frames:
-        lines += ["| trial | frames used | marker noise sd (mm) |", "|---|---|---|"]
+        first = res.get("first_trial") or {}
+        lines += ["| trial | taken as | frames used | marker noise sd (mm) |", "|---|---|---|---|"]
         for k, (src, n) in enumerate(zip(fit.data.source.split(" + "), frames, strict=False)):
             s = f"{sig[k]:.1f}" if sig and k < len(sig) and sig[k] is not None else "-"
-            lines.append(f"| {Path(src).name} | {n} | {s} |")
+            role = "static" if k == 0 and first.get("static") else "movement"
+            if k == 0 and first.get("marker_motion_mm") is not None:  # why: how far its markers move
+                role += f" (markers move {first['marker_motion_mm']:.3g} mm)"
+            lines.append(f"| {Path(src).name} | {role} | {n} | {s} |")
         lines.append("")
     noise = table.get("sigma_mm") or {}
     if isinstance(noise, dict) and noise.get("value") is not None:
