@@ -334,6 +334,7 @@ def test_a_first_trial_that_moves_is_a_movement_trial_and_a_standing_one_a_stati
 
     static, move = _trials(leg, {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}, frames=(60, 160))
     assert marker_motion(static) < 0.1 < STILL_MM < marker_motion(move)
+    assert np.isnan(marker_motion(MarkerData(static.positions[:1], static.names, 60.0, "mm", "one frame")))
     first, second = (MarkerData(move.positions[s], move.names, 60.0, "mm", "sim") for s in (slice(0, 120),
                                                                                               slice(120, None)))
     fit = fit_osim(leg, [first, second], scale="bodies", markers="none")

@@ -320,7 +320,8 @@ def _prepared_trials(trials, method, static_frames, movement_frames, joined):
     first = static_frames if static else movement_frames
     trials = [thin_trial(trials[0], first)] + [thin_trial(t, None if joined else movement_frames) for t in trials[1:]]
     multi = len(trials) > 1 and method == "marker" and not joined
-    entry = {"static": bool(static), "marker_motion_mm": round(motion, 2), "still_below_mm": STILL_MM}
+    entry = {"static": bool(static), "marker_motion_mm": round(motion, 2) if np.isfinite(motion) else None,
+             "still_below_mm": STILL_MM}
     return trials, multi, (join_trials(trials) if not multi else None), entry
 
 

@@ -372,7 +372,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
 
     # started from the moment fit's sizes and from their total split evenly; the better optimum is kept.
     # A size started at its floor has no gradient there: on subject01 the moment fit's start (its shared
-    # size 0) ends at a shared sd of 0.07 and -2 log L 610 above the even split's optimum, which a
+    # size 0) ends at a shared sd of 0.005 and -2 log L 610 above the even split's optimum, which a
     # 49-start grid confirms; on a simulated walk it takes 53 evaluations to the even split's 14.
     half = 0.5 * (sl.tau_s2 + sl.tau_o2)
     bounds = [(np.log(rss / N) - 30.0, np.log(rss / N) + 5.0)] + [(np.log(floor), np.log(floor) + 40.0)] * 2
