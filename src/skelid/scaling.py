@@ -246,7 +246,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
         raise SettingError(f"markers={markers!r} is not a marker mode", "use 'offsets' or 'none'")
     full, info = read_osim(osim_path, marker_set)
     given = trials
-    trials, multi, data, first = _prepared_trials(trials, method, static_frames, movement_frames, joined)
+    trials, multi, data, first_trial = _prepared_trials(trials, method, static_frames, movement_frames, joined)
     present = _present_markers(full, trials, data, multi, osim_path)
     original = keep_markers(full, present)
     dropped = tuple(n for n in full.marker_names if n not in present)
@@ -268,7 +268,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
             stage = _ScaleStage(original, info, present, trials, data, multi, method, sigma, seed, settings)
             model, theta, est, res, joint_fit = _joint_stage(stage, model, theta, given, scale, res)
     warns = _fit_warnings(osim_path, info, notes, res, dropped, multi)
-    res = {**res, "first_trial": first}
+    res = {**res, "first_trial": first_trial}
     frames = [int(t.positions.shape[0]) for t in trials]
     source = " + ".join(t.source or f"trial {k + 1}" for k, t in enumerate(trials))
     shown = MarkerData(np.concatenate([p.positions for p in parts]), model.marker_names, parts[0].rate,
