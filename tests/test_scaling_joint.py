@@ -450,3 +450,16 @@ def test_a_slide_that_follows_the_pose_is_estimated_with_the_geometry_and_named(
     assert 0.8 < art["sigma_white"][0] < 1.3 and art["sigma_white"][0] < 0.5 * fit.result["sigma"]["value"]
     assert 7.5 < art["slope_sd_shared"] < 30.0 and art["slope_sd_own"] < art["slope_sd_shared"]
     assert any("its slopes estimated with the geometry" in w for w in fit.warnings)
+    # where each marker sits on average over the trial (the slide at the mean pose, from its offset's place):
+    # what the written model holds, near the truth's (rms about 10 mm here)
+    from skelid.io.osim import marker_locations
+    from skelid.scaling import scaling_table
+
+    got = np.array([art["mean_place_mm"][n] for n in model.marker_names])
+    at_mean = np.einsum("mac,c->ma", V, q[:, coords].mean(axis=0))
+    assert np.corrcoef(got.ravel(), at_mean.ravel())[0, 1] > 0.8
+    assert np.sqrt(np.mean((got - at_mean) ** 2)) < 0.6 * np.sqrt(np.mean(at_mean**2))
+    written = scaling_table(fit)["marker_locations_m"]
+    at_zero = marker_locations(fit.model, fit.info, fit.theta)
+    for i, n in enumerate(model.marker_names):
+        np.testing.assert_allclose(np.asarray(written[n]) - at_zero[n], got[i] / 1000.0, atol=1e-12)

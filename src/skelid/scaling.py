@@ -457,6 +457,9 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
     ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
     out["artefact"] = _artefact_entry(art, ratio, slide)
+    if slide is not None:  # where each marker sits on average over the trials: the place the written model takes
+        mean = np.einsum("mac,c->ma", slide.slopes, art.slide.mean_dr)
+        out["artefact"]["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(model.marker_names)}
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide)]
     out["bootstrap"] = boot_entry
@@ -1915,7 +1918,7 @@ def scaling_table(fit: ScalingFit) -> dict:
             scales.setdefault(p.target, {})[key] = entry
         elif p.kind == "marker_offset":
             offsets.setdefault(p.target, {})["xyz"[p.axis]] = entry
-    locs = marker_locations(fit.model, fit.info, fit.theta)
+    locs = marker_locations(fit.model, fit.info, fit.theta, _mean_places(fit))
     return {
         "source_model": fit.source,
         "marker_set": fit.marker_set,
@@ -1939,6 +1942,16 @@ def scaling_table(fit: ScalingFit) -> dict:
         "markers_left_out": list(fit.dropped_markers),
         "warnings": list(fit.warnings),
     }
+
+
+def _mean_places(fit: ScalingFit) -> dict | None:
+    """Where the slide puts each marker on average over the trials (mm, body frame), from its offset's place.
+
+    The offsets are the markers' places at the model's zero pose; a marker that slides sits elsewhere
+    while the subject moves, and inverse kinematics holds it at one place: the written model puts it
+    at its mean place over the trials. None where no slide was estimated.
+    """
+    return (fit.result.get("artefact") or {}).get("mean_place_mm")
 
 
 def _scale_key(p) -> tuple[str, str]:
@@ -2022,7 +2035,8 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"osim": out_dir / f"{name}.osim", "scale_set": out_dir / f"{name}_scale_set.xml",
              "json": out_dir / f"{name}_scaling.json", "report": out_dir / f"{name}_report.md"}
-    write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set)
+    write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set,
+                      moved=_mean_places(fit))
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
     table = scaling_table(fit)
     paths["json"].write_text(json.dumps(_finite_or_none(table), indent=1, allow_nan=False) + "\n")

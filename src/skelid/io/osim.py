@@ -924,8 +924,9 @@ def body_scales(model: Model, theta) -> dict[str, np.ndarray]:
     return out
 
 
-def marker_locations(model: Model, info: OsimInfo, theta) -> dict[str, np.ndarray]:
-    """Each marker's location in its body frame (metres) after scaling and offsets."""
+def marker_locations(model: Model, info: OsimInfo, theta, moved=None) -> dict[str, np.ndarray]:
+    """Each marker's location in its body frame (metres) after scaling and offsets (and ``moved``: a
+    marker's further displacement in its body frame, mm, by name)."""
     from skelid.model.kinematics import geometry
 
     g = geometry(model, np.asarray(theta, float))
@@ -935,7 +936,7 @@ def marker_locations(model: Model, info: OsimInfo, theta) -> dict[str, np.ndarra
     out = {}
     for i, m in enumerate(model.markers):
         p_bm = info.child_offset[m.segment][1] * scales.get(m.segment, np.ones(3))
-        out[m.name] = p_bm + r[i]
+        out[m.name] = p_bm + r[i] + np.asarray((moved or {}).get(m.name, np.zeros(3)), float) / M_TO_MM
     return out
 
 
@@ -967,14 +968,16 @@ def _scale_function_el(fel_parent, factor: float):
             return
 
 
-def write_scaled_osim(src, out, model: Model, info: OsimInfo, theta, marker_set=None, name=None) -> None:
+def write_scaled_osim(src, out, model: Model, info: OsimInfo, theta, marker_set=None, name=None,
+                      moved=None) -> None:
     """Write ``src`` scaled by the fitted ``theta`` to ``out``, every other element untouched.
 
     Joint frames on a body are scaled by its factors, coupled translations of
     a ``CustomJoint`` by its parent's factor along the axis, the ellipsoid of an
     ``EllipsoidJoint`` or ``ScapulothoracicJoint`` by its parent's factors,
     markers moved to their fitted locations (scale and offset). Markers read
-    from a separate ``marker_set`` file are added to the model's MarkerSet.
+    from a separate ``marker_set`` file are added to the model's MarkerSet; ``moved`` as for
+    :func:`marker_locations`.
     """
     tree = _parse(src)
     m_el = tree.getroot().find("Model")
@@ -986,7 +989,7 @@ def write_scaled_osim(src, out, model: Model, info: OsimInfo, theta, marker_set=
         _scale_joint_motion(el, scales.get(parent), scales.get(child))
     ms = _merged_marker_set(m_el, marker_set)
     if ms is not None:
-        _place_markers(ms, marker_locations(model, info, theta), scales)
+        _place_markers(ms, marker_locations(model, info, theta, moved), scales)
     tree.write(out, encoding="UTF-8", xml_declaration=True)
 
 

@@ -202,7 +202,7 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     slide = None
     if joint:
         slide = SlideTerms(acc["A"], acc["b"], acc["G"], tuple(bodies), float(tau_s2), float(tau_o2), acc["rss"],
-                           float(n_rms))
+                           float(n_rms), (qbar - qref) @ basis)
     return PoseArtefact(True, p_value, float(np.sqrt(tau_s2)), float(np.sqrt(tau_o2)), rms, white,
                         0.5 * (cov + cov.T), 0.5 * (C + C.T), slide)
 
@@ -253,6 +253,7 @@ class SlideTerms:
     tau_o2: float
     rss: float
     pose_spread: float = 1.0  # mean squared distance of the pose from the trials' mean (rad^2): the rms's scale
+    mean_dr: np.ndarray | None = None  # (C,) the trials' mean pose from the reference, in the slide's directions
 
 
 #: the slide follows the pose in the directions that hold this share of its squared distance from the
@@ -293,6 +294,7 @@ class SlideFit:
     tau_shared: float  # sd of the slopes a body's markers share (model units per radian)
     tau_own: float  # ... of each marker's own
     rms: float  # the slide's root-mean-square displacement per marker coordinate at those sizes
+    slopes: np.ndarray | None = None  # (M, 3, C) each marker's slopes, their posterior mean
 
 
 def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof) -> SlideFit:
@@ -401,7 +403,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     u = cho_solve(Sc, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg, check_finite=False)
     cov = np.linalg.inv(H) + HB @ cho_solve(Sc, HB.T, check_finite=False)
     return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(ts2)),
-                    float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)))
+                    float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)), u.reshape(M, 3, C))
 
 
 def _moment_sizes(x, g, z, K, M):
