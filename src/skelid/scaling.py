@@ -456,10 +456,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     jo = replace(jo, cov=base * np.outer(widen, widen) + (art.cov if slide is None else 0.0) + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
     ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
-    out["artefact"] = _artefact_entry(art, ratio, slide)
-    if slide is not None:  # where each marker sits on average over the trials: the place the written model takes
-        mean = np.einsum("mac,c->ma", slide.slopes, art.slide.mean_dr)
-        out["artefact"]["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(model.marker_names)}
+    out["artefact"] = _artefact_entry(art, ratio, slide, model.marker_names)
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide)]
     out["bootstrap"] = boot_entry
@@ -508,12 +505,14 @@ def _artefact_ratio(art, bound) -> np.ndarray:
     return np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
 
 
-def _artefact_entry(art, ratio, slide=None) -> dict:
+def _artefact_entry(art, ratio, slide=None, names=()) -> dict:
     """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact.
 
-    With ``slide`` (its slopes estimated with the geometry) the sizes are the joint fit's and
-    ``largest_sd_ratio`` is the largest step it took, in the step's sd; else the sd the
-    artefact's term adds over the residuals' own.
+    With ``slide`` (its slopes estimated with the geometry) the sizes are the joint fit's,
+    ``largest_sd_ratio`` is the largest step it took, in the step's sd, and ``mean_place_mm``
+    where each marker (``names``) sits on average over the trials from its offset's place (the
+    slide at the trials' mean pose, body frame: the place the written model takes); else the sd
+    the artefact's term adds over the residuals' own.
     """
     entry = {"present": bool(art.present), "p_value": float(art.p_value),
              "rms": float(art.rms if slide is None else slide.rms),
@@ -527,6 +526,8 @@ def _artefact_entry(art, ratio, slide=None) -> dict:
                        "pose_artefact)"}
     if slide is not None:
         entry["method"] += "; its slopes estimated with the geometry (joint_slide)"
+        mean = np.einsum("mac,c->ma", slide.slopes, art.slide.mean_dr)
+        entry["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(names)}
     return entry
 
 
