@@ -81,3 +81,16 @@ def test_the_slide_follows_every_direction_the_poses_take_and_none_they_never_ta
     np.testing.assert_allclose(B[3], 0.0, atol=1e-12)
     assert slide_basis([dq], max_directions=2).shape == (4, 2)  # the bound on the slopes keeps the main ones
     np.testing.assert_allclose(np.abs(slide_basis([dq], max_directions=1)[:, 0]), [1, 0, 0, 0], atol=0.05)
+
+
+def test_sizes_given_are_taken_and_give_the_fit_those_sizes_found():
+    terms, K, r, *_, dof = _mixed_problem(7, T=150, bodies=3, per_body=2, C=2, P=3)
+    args = (terms, K.T @ K, K.T @ r, np.zeros(K.shape[1]), np.full(K.shape[1], 1e-6), dof)
+    found = joint_slide(*args)
+    sizes = (found.sigma_white**2, found.tau_shared**2, found.tau_own**2)
+    again = joint_slide(*args, sizes=sizes)
+    np.testing.assert_allclose(again.shift, found.shift, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(again.cov, found.cov, rtol=1e-10)
+    other = joint_slide(*args, sizes=(sizes[0], 4.0 * sizes[1], 4.0 * sizes[2]))
+    assert other.tau_shared == pytest.approx(2.0 * found.tau_shared)
+    assert np.trace(other.cov) > np.trace(found.cov)  # larger slopes a priori: the geometry less known

@@ -445,7 +445,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     lo = np.array([p.prior.lower for p in model.parameters])
     hi = np.array([p.prior.upper for p in model.parameters])
     held = _on_bounds(model, jo.theta)  # the fit's own optimum, before the correction moves it off a bound
-    slide = _slide_fit(model, jo, art)
+    slide, art, steps, settled = _slide_converged(model, jo, art, ys, weights)
     jo = replace(jo, theta=np.clip(jo.theta - bias + (0.0 if slide is None else slide.shift), lo, hi))
     if slide is not None:  # the slide estimated with the geometry: its covariance for the noise's, its bound,
         base = slide.cov * (1.0 + boot_entry["variance_added_by_correction"])  # and the poses where it moved
@@ -456,7 +456,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     jo = replace(jo, cov=base * np.outer(widen, widen) + (art.cov if slide is None else 0.0) + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
     ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
-    out["artefact"] = _artefact_entry(art, ratio, slide, model.marker_names)
+    out["artefact"] = _artefact_entry(art, ratio, slide, model.marker_names, (steps, settled))
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide)]
     out["bootstrap"] = boot_entry
@@ -500,12 +500,78 @@ def _slide_fit(model: Model, jo, art):
     return joint_slide(art.slide, info, score, grad, curv, float(np.sum(jo.dof)))
 
 
+#: Gauss-Newton steps of the geometry with the slide's slopes (:func:`_slide_converged`) at most, and the
+#: step (in sd) below which they stop
+SLIDE_STEPS = 12
+SLIDE_STEP_SD = 0.05
+#: ... and a step is taken only if at most this share of the one before (the steps settle geometrically)
+SLIDE_CONTRACTION = 0.7
+
+
+def _slide_converged(model: Model, jo, art, ys, weights):
+    """:func:`_slide_fit` iterated towards the joint optimum of the geometry, the slopes and the poses.
+
+    Each step fits the poses to the markers less the slide the last step estimated, then takes the
+    joint estimate's step from there. A single step from the fit that ignores the slide leaves the
+    poses to absorb the slide's rigid part (on OpenSim-generated walks the second step still moved
+    the geometry by 4-8 sd). The slide's sizes are those of the first step until the steps fall
+    below :data:`SLIDE_STEP_SD`, then estimated once more where the fit has arrived. The poses are
+    fitted with the slide held where the last step put it, which converges only where the slide
+    turns with the pose much less than the markers do: a step not at most :data:`SLIDE_CONTRACTION`
+    of the one before is not taken, and the fit stays where it was (on subject01's walk, whose
+    slopes come out near 100 mm per radian, the steps stay at 7-19 sd and the slide grows without end).
+
+    Returns ``(SlideFit, artefact, steps, settled)``: the fit's ``shift`` is from ``jo.theta``, its
+    covariance that of the last linearisation; ``artefact`` is ``art`` with that step's slide terms
+    (the directions its slopes are in); ``settled`` whether the steps fell below :data:`SLIDE_STEP_SD`.
+    """
+    from skelid.estimators.checks.pose_artefact import joint_slide, slide_displacement
+    from skelid.estimators.fit.joint import row_weights
+    from skelid.estimators.fit.pose import workspace
+
+    slide = _slide_fit(model, jo, art)
+    if slide is None:
+        return None, art, 0, False
+    lo = np.array([p.prior.lower for p in model.parameters])
+    hi = np.array([p.prior.upper for p in model.parameters])
+    theta, poses, sl, ws = np.clip(jo.theta + slide.shift, lo, hi), jo.poses, art.slide, workspace(model)
+    sizes, phase, steps = (slide.sigma_white**2, slide.tau_shared**2, slide.tau_own**2), 0, 1
+    last = float(np.max(np.abs(slide.shift) / _sd(slide.cov)))
+    while steps < SLIDE_STEPS:
+        moved = slide_displacement(model, theta, poses, sl, slide.slopes)
+        info, score, new_poses = 0.0, 0.0, []
+        for y, q, d in zip(ys, poses, moved, strict=True):
+            q, r, Jq, Jt = _posed_terms(model, theta, y - d, q, ws, weights)
+            sw = row_weights(weights, y)
+            seen = np.repeat(np.isfinite(y).all(axis=-1), 3, axis=1)  # the slide back on the residuals seen
+            terms = _summed_terms(q, r + d.reshape(len(d), -1) * seen * (1.0 if sw is None else sw), Jq, Jt)
+            info, score = info + terms[1], score + terms[2]
+            new_poses.append(q)
+        a = pose_artefact(model, theta, ys, new_poses, jo.sigma, jo.cov, weights, reference=np.zeros(q.shape[1]))
+        if a.slide is None:
+            break
+        grad, curv = _prior_terms(model, theta)
+        nxt = joint_slide(a.slide, info, score, grad, curv, float(np.sum(jo.dof)), None if phase == 1 else sizes)
+        size = float(np.max(np.abs(nxt.shift) / _sd(nxt.cov)))
+        if size > SLIDE_CONTRACTION * last and size >= SLIDE_STEP_SD:  # not settling: stay, with this point's cov
+            return replace(nxt, shift=theta - jo.theta, slopes=slide.slopes), replace(art, slide=sl), steps, False
+        steps += 1
+        theta, poses, sl, slide, last = np.clip(theta + nxt.shift, lo, hi), new_poses, a.slide, nxt, size
+        if phase == 1:  # the sizes estimated where the fit has arrived: kept from here
+            sizes, phase = (slide.sigma_white**2, slide.tau_shared**2, slide.tau_own**2), 2
+        if size < SLIDE_STEP_SD:
+            if phase == 2:
+                return replace(slide, shift=theta - jo.theta), replace(art, slide=sl), steps, True
+            phase, last = 1, np.inf
+    return replace(slide, shift=theta - jo.theta), replace(art, slide=sl), steps, False
+
+
 def _artefact_ratio(art, bound) -> np.ndarray:
     """Per parameter, the sd the artefact's term adds over the sd the residuals alone give."""
     return np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
 
 
-def _artefact_entry(art, ratio, slide=None, names=()) -> dict:
+def _artefact_entry(art, ratio, slide=None, names=(), steps=(0, False)) -> dict:
     """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact.
 
     With ``slide`` (its slopes estimated with the geometry) the sizes are the joint fit's,
@@ -525,7 +591,8 @@ def _artefact_entry(art, ratio, slide=None, names=()) -> dict:
              "method": "residuals against a marker slide linear in the joint angles (skelid.estimators.checks."
                        "pose_artefact)"}
     if slide is not None:
-        entry["method"] += "; its slopes estimated with the geometry (joint_slide)"
+        entry["method"] += "; its slopes estimated with the geometry (joint_slide), iterated to the optimum"
+        entry["steps"], entry["settled"] = int(steps[0]), bool(steps[1])
         mean = np.einsum("mac,c->ma", slide.slopes, art.slide.mean_dr)
         entry["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(names)}
     return entry

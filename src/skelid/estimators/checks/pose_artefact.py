@@ -65,8 +65,9 @@ reference pose (the marker offsets are then where the markers sit at that
 pose, not at the trials' mean one), one white level for every trial; the
 white level and the two slope sizes maximise the marginal likelihood of the
 residuals, and the geometry takes the step and the covariance of the joint
-posterior with the slopes integrated out. What the trials' spread of poses tells apart from the geometry is
-removed rather than only added to the intervals (on OpenSim-generated walks
+posterior with the slopes integrated out (:func:`skelid.scaling._slide_converged` repeats the step,
+the poses fitted to the markers less the slide, to the joint optimum). What the trials' spread of poses
+tells apart from the geometry is removed rather than only added to the intervals (on OpenSim-generated walks
 with a 5-15 mm artefact, hip-knee and knee-ankle errors fell from 32-37 to
 13-16 mm rms, ``benchmarks/results/opensim_truth.md``).
 """
@@ -202,7 +203,7 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     slide = None
     if joint:
         slide = SlideTerms(acc["A"], acc["b"], acc["G"], tuple(bodies), float(tau_s2), float(tau_o2), acc["rss"],
-                           float(n_rms), (qbar - qref) @ basis)
+                           float(n_rms), (qbar - qref) @ basis, coords, qref, basis)
     return PoseArtefact(True, p_value, float(np.sqrt(tau_s2)), float(np.sqrt(tau_o2)), rms, white,
                         0.5 * (cov + cov.T), 0.5 * (C + C.T), slide)
 
@@ -222,6 +223,8 @@ def _add_slide_sums(acc: dict, Jq, s, R, r, B, dr) -> None:
     tr = np.einsum("tqq->t", Hq) / max(Q, 1)
     Hq = Hq + 1e-12 * np.maximum(tr, 1e-300)[:, None, None] * np.eye(Q)
     X = -np.matmul(N.swapaxes(1, 2), np.linalg.solve(Hq, N))  # (T, 3M, 3M): off each frame's pose
+    # the residuals off each frame's pose too (poses fitted to the data less a slide leave some on it)
+    r = r - np.einsum("tiq,tq->ti", Jq, np.linalg.solve(Hq, np.einsum("tiq,ti->tq", Jq, r)[..., None])[..., 0])
     Y = np.einsum("tmja,tmjb->tmab", Rs, Rs)
     for m in range(M):
         X[:, 3 * m:3 * m + 3, 3 * m:3 * m + 3] += Y[:, m]
@@ -254,6 +257,33 @@ class SlideTerms:
     rss: float
     pose_spread: float = 1.0  # mean squared distance of the pose from the trials' mean (rad^2): the rms's scale
     mean_dr: np.ndarray | None = None  # (C,) the trials' mean pose from the reference, in the slide's directions
+    coords: np.ndarray | None = None  # the pose coordinates the slide follows (:func:`artefact_coordinates`)
+    reference: np.ndarray | None = None  # (len(coords),) their reference values
+    basis: np.ndarray | None = None  # (len(coords), C) the slide's directions (:func:`slide_basis`)
+
+
+def slide_displacement(model: Model, theta, poses, sl: SlideTerms, slopes) -> list:
+    """Each trial's slide ``(F, M, 3)`` (model units, ground frame) at ``poses`` with ``slopes`` ``(M, 3, C)``.
+
+    Marker ``m`` moves by ``R_b(t) W_m dr(t)``, ``dr`` the pose's distance from the reference in the
+    slide's directions: what the joint estimate (:func:`joint_slide`) takes the residuals to hold.
+    """
+    from skelid.estimators.fit.pose import workspace
+    from skelid.model.kinematics import forward_kinematics
+
+    ws = workspace(model)
+    mseg = np.asarray(model.marker_segment)
+    out = []
+    for q in poses:
+        q = np.asarray(q, float)
+        d = np.empty((len(q), len(mseg), 3))
+        for a in range(0, len(q), BLOCK_FRAMES):
+            qb = q[a:a + BLOCK_FRAMES]
+            R = forward_kinematics(model, theta, qb, ws).R_world_seg[:, mseg]  # (T, M, 3, 3)
+            body = np.einsum("mac,tc->tma", slopes, (qb[:, sl.coords] - sl.reference) @ sl.basis)
+            d[a:a + BLOCK_FRAMES] = np.einsum("tmja,tma->tmj", R, body)
+        out.append(d)
+    return out
 
 
 #: the slide follows the pose in the directions that hold this share of its squared distance from the
@@ -297,7 +327,7 @@ class SlideFit:
     slopes: np.ndarray | None = None  # (M, 3, C) each marker's slopes, their posterior mean
 
 
-def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof) -> SlideFit:
+def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof, sizes=None) -> SlideFit:
     """The fit's geometry and covariance with the slide's slopes as random effects (a linear mixed model).
 
     Linearised at the fit, with the poses profiled out, the residuals are
@@ -321,14 +351,46 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
         Gradient and curvature of the negative log prior at the fit.
     dof : float
         The residuals' degrees of freedom.
+    sizes : (3,) float, optional
+        ``(sigma_w^2, tau_s^2, tau_o^2)`` to take instead of estimating them (the steps after the first of
+        an iterated fit, whose residuals differ little).
     """
-    from scipy.linalg import blas, cho_factor, cho_solve, solve_triangular
-    from scipy.optimize import minimize
+    from scipy.linalg import cho_factor, cho_solve
 
     M, P, _, C = sl.G.shape
     n_own = M * 3 * C
     A = sl.A.reshape(M, 3, M, 3, C, C).transpose(0, 1, 4, 2, 3, 5).reshape(n_own, n_own)
     Gf = sl.G.reshape(M, P, 3 * C).transpose(1, 0, 2).reshape(P, n_own)
+    s2, ts2, to2 = _slide_sizes(sl, info_raw, score_raw, dof, Gf, A, n_own) if sizes is None else sizes
+    # the joint posterior of the geometry and each marker's slopes W_m = V_b + V'_m, whose prior
+    # covariance is to2 I + ts2 (1 1^T (x) I) within a body (its inverse in closed form)
+    Oi = np.eye(n_own) / to2
+    k = np.arange(3 * C)
+    for idx in sl.bodies:
+        share = ts2 / (to2 * (to2 + len(idx) * ts2))
+        for m in idx:
+            for m2 in idx:
+                Oi[m * 3 * C + k, m2 * 3 * C + k] -= share
+    lam = np.asarray(prior_curv, float)
+    lam = lam if lam.ndim == 2 else np.diag(lam)
+    H = info_raw / s2 + lam
+    HB = np.linalg.solve(H, Gf / s2)
+    S = Oi + A / s2 - (Gf / s2).T @ HB
+    S = 0.5 * (S + S.T)
+    Hg = np.linalg.solve(H, score_raw / s2 - prior_grad)  # the geometry's own step at this noise level
+    Sc = cho_factor(S, check_finite=False)  # the slopes' posterior precision, once for both solves
+    u = cho_solve(Sc, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg, check_finite=False)
+    cov = np.linalg.inv(H) + HB @ cho_solve(Sc, HB.T, check_finite=False)
+    return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(ts2)),
+                    float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)), u.reshape(M, 3, C))
+
+
+def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own) -> tuple:
+    """The white level and the two slope sizes ``(sigma_w^2, tau_s^2, tau_o^2)`` of :func:`joint_slide`."""
+    from scipy.linalg import blas, cho_factor, cho_solve, solve_triangular
+    from scipy.optimize import minimize
+
+    C = sl.G.shape[-1]
     E = np.zeros((n_own, len(sl.bodies) * 3 * C))  # a body's shared slopes: the sum of its markers' columns
     for j, idx in enumerate(sl.bodies):
         for m in idx:
@@ -382,28 +444,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     fits = [minimize(nll, np.clip(np.log([rss / N, max(a, floor), max(b, floor)]), lo, hi), method="L-BFGS-B",
                      jac=True, bounds=bounds) for a, b in dict.fromkeys([(half, half), (sl.tau_s2, sl.tau_o2)])]
     x = min(fits, key=lambda r: r.fun).x
-    s2, ts2, to2 = (float(v) for v in np.exp(x))
-    # the joint posterior of the geometry and each marker's slopes W_m = V_b + V'_m, whose prior
-    # covariance is to2 I + ts2 (1 1^T (x) I) within a body (its inverse in closed form)
-    Oi = np.eye(n_own) / to2
-    k = np.arange(3 * C)
-    for idx in sl.bodies:
-        share = ts2 / (to2 * (to2 + len(idx) * ts2))
-        for m in idx:
-            for m2 in idx:
-                Oi[m * 3 * C + k, m2 * 3 * C + k] -= share
-    lam = np.asarray(prior_curv, float)
-    lam = lam if lam.ndim == 2 else np.diag(lam)
-    H = info_raw / s2 + lam
-    HB = np.linalg.solve(H, Gf / s2)
-    S = Oi + A / s2 - (Gf / s2).T @ HB
-    S = 0.5 * (S + S.T)
-    Hg = np.linalg.solve(H, score_raw / s2 - prior_grad)  # the geometry's own step at this noise level
-    Sc = cho_factor(S, check_finite=False)  # the slopes' posterior precision, once for both solves
-    u = cho_solve(Sc, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg, check_finite=False)
-    cov = np.linalg.inv(H) + HB @ cho_solve(Sc, HB.T, check_finite=False)
-    return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(ts2)),
-                    float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)), u.reshape(M, 3, C))
+    return tuple(float(v) for v in np.exp(x))
 
 
 def _moment_sizes(x, g, z, K, M):
