@@ -26,12 +26,17 @@ with ``gait2354_Scale_MarkerSet.xml``):
    by the cell's last field: a number (``0``, ``2``, ``5``, ``10``): i.i.d.
    normal noise of that sd (mm) per coordinate; ``pm``: i.i.d. per marker,
    each marker's sd drawn uniform in [1, 10] mm; ``sta``: simulated
-   soft-tissue artefact, never told to the estimator: each marker moves by
-   ``W_m (q(t) - q_static)`` (the rotational coordinates, rad), ``W_m = W_b +
-   W'_m / 2`` with ``W_b`` shared by the markers of body ``b`` and ``W'_m`` its
-   own (normal draws), scaled so that the body's markers move by an rms
-   (over the walk, per coordinate) drawn uniform in [5, 15] mm per body; zero
-   at the standing pose; plus 1 mm i.i.d. noise. A marker that slides has no
+   soft-tissue artefact, never told to the estimator: each marker moves on
+   its body, in the body's frame, by ``W_m (q(t) - q_static)`` (the
+   rotational coordinates, rad; the segment-embedded, joint-angle-driven
+   model of the artefact literature), ``W_m = W_b + W'_m / 2`` with ``W_b``
+   shared by the markers of body ``b`` and ``W'_m`` its own (normal draws),
+   scaled so that the body's markers move by an rms (over the walk, per
+   coordinate) drawn uniform in [5, 15] mm per body; zero at the standing
+   pose; plus 1 mm i.i.d. noise. ``stalab``: the same draws added in the
+   laboratory's frame instead (a slide that does not turn with its body:
+   a form skelid's slide, which lives in the body's frame, does not hold;
+   the check of what such a misfit costs). A marker that slides has no
    one place on its body: the truth of its offset and of its place in its
    body is where the artefact puts it at the model's zero pose, the pose in
    which skelid defines the offsets (the standing pose is not in every design,
@@ -175,6 +180,8 @@ def motions() -> dict:
 
 
 STA_RMS_MM = (5.0, 15.0)
+#: the artefact's kinds: in each body's frame, in the laboratory's
+STA = ("sta", "stalab")
 STA_NOISE_MM = 1.0
 PER_MARKER_SD_MM = (1.0, 10.0)
 
@@ -184,20 +191,20 @@ def noise_token(n) -> str:
     try:
         return f"{float(n):g}"
     except ValueError:
-        if n not in ("pm", "sta"):
-            raise SystemExit(f"unknown noise {n!r}: a number (mm), 'pm' or 'sta'") from None
+        if n not in ("pm", *STA):
+            raise SystemExit(f"unknown noise {n!r}: a number (mm), 'pm', 'sta' or 'stalab'") from None
         return n
 
 
 def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> tuple[dict, np.ndarray | None]:
     """``trials``: name -> (positions (F, M, 3) mm, coordinates (F, C)); the noisy positions by name, and
-    for ``sta`` where the artefact puts each marker at the model's zero pose ((M, 3) mm, ground frame)."""
+    for an artefact where it puts each marker at the model's zero pose ((M, 3) mm, ground frame)."""
     ms = model.getMarkerSet()
     M = ms.getSize()
     if token == "pm":
         sd = rng.uniform(*PER_MARKER_SD_MM, M)[None, :, None]
         return {k: y + rng.normal(size=y.shape) * sd for k, (y, _) in trials.items()}, None
-    if token != "sta":
+    if token not in STA:
         return {k: y + rng.normal(0.0, float(token), y.shape) for k, (y, _) in trials.items()}, None
     cs = model.getCoordinateSet()
     rot = np.array([cs.get(n).getMotionType() == 1 for n in coord_names])
@@ -206,9 +213,10 @@ def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> tu
     W = np.stack([shared[b] + 0.5 * rng.normal(size=(3, rot.sum())) for b in bodies])  # (M, 3, C)
     ref = static_q[0, rot]
 
-    def artefact(q):
-        return np.einsum("mjc,tc->tmj", W, q[:, rot] - ref)
-    walk = artefact(trials["walk"][1])
+    def artefact(q):  # (T, M, 3) ground frame: turned with each marker's body for ``sta``
+        d = np.einsum("mjc,tc->tmj", W, q[:, rot] - ref)
+        return d if token == "stalab" else np.einsum("tmij,tmj->tmi", marker_rotations(model, coord_names, q), d)
+    walk = np.einsum("mjc,tc->tmj", W, trials["walk"][1][:, rot] - ref)  # a rotation keeps the rms
     for b in sorted(set(bodies)):  # each body's markers move by their drawn rms over the walk
         idx = [i for i, x in enumerate(bodies) if x == b]
         rms = float(np.sqrt(np.mean(walk[:, idx] ** 2)))
@@ -216,6 +224,24 @@ def add_noise(rng, token: str, model, coord_names, trials: dict, static_q) -> tu
             W[idx] *= rng.uniform(*STA_RMS_MM) / rms
     noisy = {k: y + artefact(q) + rng.normal(0.0, STA_NOISE_MM, y.shape) for k, (y, q) in trials.items()}
     return noisy, artefact(np.zeros((1, len(coord_names))))[0]
+
+
+def marker_rotations(model, coord_names, q) -> np.ndarray:
+    """``(F, M, 3, 3)``: the rotation of each marker's body in the ground frame at the coordinates ``q``."""
+    state = model.initSystem()
+    cs = model.getCoordinateSet()
+    coords = [cs.get(n) for n in coord_names]
+    ms = model.getMarkerSet()
+    frames = [ms.get(i).getParentFrame() for i in range(ms.getSize())]
+    out = np.empty((len(q), len(frames), 3, 3))
+    for t, row in enumerate(q):
+        for c, v in zip(coords, row, strict=True):
+            c.setValue(state, float(v), False)
+        model.realizePosition(state)
+        for j, f in enumerate(frames):
+            R = f.getTransformInGround(state).R()
+            out[t, j] = [[R.get(i, k) for k in range(3)] for i in range(3)]
+    return out
 
 
 def fit_priors() -> tuple[float, float]:
@@ -731,8 +757,10 @@ def markdown(res: dict) -> str:
              f"{p['cores']} cores, load "
              f"{p['load_average']} at the start; `{p['command']}`; {res['wall_s']:.0f} s wall.", "",
              "Cell = truth / fit / design / noise (a number: i.i.d. sd in mm; `pm`: per-marker sd 1-10 mm; "
-             "`sta`: soft-tissue artefact 5-15 mm rms per body plus 1 mm, never told to the estimator; a "
-             "sliding marker's true offset and place are where the artefact puts it at the zero pose)."
+             "`sta`: soft-tissue artefact 5-15 mm rms per body plus 1 mm, never told to the estimator, linear in "
+             "the joint angles in each body's frame; `stalab`: the same in the laboratory's frame, a form "
+             "skelid's slide does not hold; a sliding marker's true offset and place are where the artefact "
+             "puts it at the zero pose)."
              " Truth `bodies`: one factor per body; `axes`: one per "
              "axis (both uniform in [0.85, 1.15], offsets 1-20 mm long); `prior`: per axis, factors and offsets "
              "drawn from the fit's own priors (log-normal sd 0.15, normal 10 mm), where a right posterior "
@@ -850,7 +878,7 @@ def parse_cells(cells) -> list[tuple]:
 
 
 def default_cells(quick: bool) -> list[tuple]:
-    noises = ("0", "5") if quick else tuple(noise_token(n) for n in NOISES) + ("pm", "sta")
+    noises = ("0", "5") if quick else tuple(noise_token(n) for n in NOISES) + ("pm", *STA)
     designs = DESIGNS[:2] if quick else DESIGNS
     return [(t, f, d, n) for t, f in CONFIGS for d in designs for n in noises]
 
@@ -927,7 +955,7 @@ def rescore(path: Path) -> None:
                 continue
             lengths = {q[len("length "):]: v for q, v in r["truth"].items() if q.startswith("length ")}
             tv = true_values(truth, lengths, key.split("/")[1].partition("+")[0])
-            if d["noise"] == "sta":  # a sliding marker's offset depends on the artefact's draw: kept as recorded
+            if d["noise"] in STA:  # a sliding marker's offset depends on the artefact's draw: kept as recorded
                 tv.update({k: v for k, v in r["truth"].items() if k.startswith("offset ")})
             r["truth"] = {k: tv[k] for k in r["q"] if k in tv}
     res["cells"] = summarise(res["draws"])

@@ -254,7 +254,9 @@ SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 
                    ("`--noise per-marker`", "axes/linked+pm/static+walk/pm"))),
                  ("the default, soft-tissue artefact 5-15 mm rms",
                   (("static + walk", "axes/linked/static+walk/sta"), ("one walk", "axes/linked/walk/sta"),
-                   ("two walks", "axes/linked/walk+walk2/sta"))))
+                   ("two walks", "axes/linked/walk+walk2/sta"),
+                   ("two walks, the slide in the laboratory's frame (a form skelid does not model)",
+                    "axes/linked/walk+walk2/stalab"))))
 
 
 def opensim_truth_summary() -> str:

@@ -62,7 +62,7 @@ OPENSIM_DEFAULT_CELLS = ("axes/linked/static+walk/5", "bodies/linked/static+walk
 #: and noise kinds; the default beside one factor per body on i.i.d. noise is OPENSIM_DEFAULT_CELLS
 OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/linked/static+walk/pm",
                        "axes/linked+pm/static+walk/pm", "axes/linked/static+walk/sta", "axes/linked/walk/sta",
-                       "axes/linked/walk+walk2/sta")
+                       "axes/linked/walk+walk2/sta", "axes/linked/walk+walk2/stalab")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
 #: real_calibration's cached fits). The demo waits for the compiled kernel: the seed method's frame
 #: count can differ by a frame or two between the compiled and the numpy path, and a fresh install's
