@@ -458,6 +458,8 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
         monkeypatch.setattr(scaling, "SLIDE_STEPS", steps)
         fit = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
         assert fit.result["artefact"]["steps"] == (1 if steps == 1 else pytest.approx(8, abs=4))
+        assert (steps == 1) != fit.result["artefact"]["settled"]
+        assert (steps == 1) == any("did not settle" in w for w in fit.warnings)
         names = fit.model.parameter_names  # a body the data contradict gains a factor per axis (truth 1)
         true = dict(zip(model.parameter_names, truth, strict=True))
         sd = np.array([fit.result[n]["sd"] for n in names])
@@ -501,6 +503,7 @@ def test_a_step_that_does_not_settle_is_not_taken_and_says_so(leg, monkeypatch):
     monkeypatch.setattr(scaling, "SLIDE_CONTRACTION", 0.0)  # no step is small enough: the first one stays
     held = fit_osim(leg, data, scale="bodies")
     assert held.result["artefact"]["steps"] == 1 and held.result["artefact"]["settled"] is False
+    assert any("did not settle and was kept after 1 step" in w for w in held.warnings)
     np.testing.assert_allclose(held.theta, one.theta, rtol=1e-12, atol=1e-12)
 
 

@@ -458,7 +458,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
     out["artefact"] = _artefact_entry(art, ratio, slide, model.marker_names, (steps, settled))
     if out["artefact"]["warn"]:
-        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide)]
+        out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide,
+                                                                             out["artefact"])]
     out["bootstrap"] = boot_entry
     out["trial_placement"] = _placement_entry(placed, bound)
     if out["trial_placement"]["warn"]:
@@ -598,14 +599,17 @@ def _artefact_entry(art, ratio, slide=None, names=(), steps=(0, False)) -> dict:
     return entry
 
 
-def _artefact_warning(model: Model, art, ratio, slide=None) -> str:
+def _artefact_warning(model: Model, art, ratio, slide=None, entry=None) -> str:
     """One line naming the artefact the residuals show and what it does to the intervals."""
     k = int(np.argmax(ratio))
     if slide is not None:
+        held = "" if (entry or {}).get("settled", True) else (
+            f"; its estimate did not settle and was kept after {entry['steps']} step(s): the slide turns with the "
+            "pose nearly as much as the markers do, more than a linear slide holds")
         return (f"the residuals follow the pose: a soft-tissue artefact of about {slide.rms:.2g} {model.units} rms "
                 f"per marker coordinate (F test p = {art.p_value:.1e}), its slopes estimated with the geometry "
                 f"and integrated out of the intervals; it moved {model.parameter_names[k]} by {ratio[k]:.1f} sd "
-                f"(white noise left: {slide.sigma_white:.2g} {model.units})")
+                f"(white noise left: {slide.sigma_white:.2g} {model.units}){held}")
     return (f"the residuals follow the pose: a soft-tissue artefact of about {art.rms:.2g} {model.units} rms per "
             f"marker coordinate (F test p = {art.p_value:.1e}); the part of it that looks like a change of the "
             f"geometry is in the intervals (the largest effect: {model.parameter_names[k]}, "
