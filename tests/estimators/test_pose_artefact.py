@@ -9,7 +9,7 @@ from skelid.data import MarkerData
 from skelid.estimators.checks.pose_artefact import artefact_coordinates, pose_artefact
 from skelid.io.osim import osim_parameters, read_osim
 from skelid.model.kinematics import forward_kinematics, marker_positions
-from skelid.scaling import fit_osim
+from skelid.scaling import fit_osim, fit_scales_and_offsets
 from tests.helpers import leg_walk_poses
 from tests.test_scaling import MODEL, marker_xml
 
@@ -113,8 +113,9 @@ def test_a_still_trial_without_the_slide_sizes_the_walks_slide_from_its_excess(l
     x_still = marker_positions(model, theta, still)
     static = MarkerData(x_still + rng.normal(0.0, 0.5, x_still.shape), model.marker_names, 60.0, "mm", "static")
     fit = fit_osim(path, [static, walk])
-    jo, m = fit.joint, fit.model
-    ys = [t.positions for t in fit.trials]
+    m, ys = fit.model, [t.positions for t in fit.trials]
+    # where the sizes are read: the joint fit that knows of no slide (the result's geometry has it taken out)
+    jo = fit_scales_and_offsets(m, ys, fit.joint.theta, fit.joint.poses)
     both = pa.pose_artefact(m, jo.theta, ys, jo.poses, jo.sigma, jo.cov)
     assert both.present
     n = np.mean(np.concatenate([np.sum((p[:, c] - np.concatenate(jo.poses)[:, c].mean(axis=0)) ** 2, axis=1)
