@@ -534,3 +534,31 @@ def test_a_slide_that_follows_the_pose_is_estimated_with_the_geometry_and_named(
     at_zero = marker_locations(fit.model, fit.info, fit.theta)
     for i, n in enumerate(model.marker_names):
         np.testing.assert_allclose(np.asarray(written[n]) - at_zero[n], got[i] / 1000.0, atol=1e-12)
+
+
+def test_joint_angles_hold_a_sliding_marker_where_the_written_model_does(leg, tmp_path):  # noqa: F811
+    """Where the markers slide, skelid's angles and the written .osim put each marker at its mean place over
+    the trials, not at its zero-pose place (which the walk's markers are far from)."""
+    from dataclasses import replace as dc_replace
+
+    from skelid.angles import fitted_geometry, joint_angles, read_geometry, write_geometry
+    from skelid.data import MarkerData
+    from skelid.io.osim import marker_locations
+    from skelid.scaling import mean_places, scaling_table
+
+    model, _, _, _, x = _sliding_walk(leg, 11)
+    walk = MarkerData(x, model.marker_names, 60.0, "mm", "walk")
+    fit = fit_osim(leg, [walk], scale="bodies")
+    geom = fitted_geometry(fit)
+    assert geom.places == "mean over the trials" and mean_places(fit)
+    held = marker_locations(geom.model, fit.info, geom.theta)
+    written = scaling_table(fit)["marker_locations_m"]
+    for n in model.marker_names:
+        np.testing.assert_allclose(held[n], written[n], atol=1e-12)
+    zero = dc_replace(geom, model=fit.model, theta=np.asarray(fit.theta, float), places="zero pose")
+    at_mean, at_zero = joint_angles(geom, walk, n_draws=0), joint_angles(zero, walk, n_draws=0)
+    assert at_mean.sigma < 0.8 * at_zero.sigma  # the markers' residual after the pose fit
+    write_geometry(geom, tmp_path)
+    back = read_geometry(tmp_path)
+    assert back.places == "mean over the trials"
+    np.testing.assert_allclose(back.theta, geom.theta)

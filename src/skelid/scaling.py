@@ -1990,7 +1990,7 @@ def scaling_table(fit: ScalingFit) -> dict:
             scales.setdefault(p.target, {})[key] = entry
         elif p.kind == "marker_offset":
             offsets.setdefault(p.target, {})["xyz"[p.axis]] = entry
-    locs = marker_locations(fit.model, fit.info, fit.theta, _mean_places(fit))
+    locs = marker_locations(fit.model, fit.info, fit.theta, mean_places(fit))
     return {
         "source_model": fit.source,
         "marker_set": fit.marker_set,
@@ -2016,7 +2016,7 @@ def scaling_table(fit: ScalingFit) -> dict:
     }
 
 
-def _mean_places(fit: ScalingFit) -> dict | None:
+def mean_places(fit: ScalingFit) -> dict | None:
     """Where the slide puts each marker on average over the trials (mm, body frame), from its offset's place.
 
     The offsets are the markers' places at the model's zero pose; a marker that slides sits elsewhere
@@ -2024,6 +2024,30 @@ def _mean_places(fit: ScalingFit) -> dict | None:
     at its mean place over the trials. None where no slide was estimated.
     """
     return (fit.result.get("artefact") or {}).get("mean_place_mm")
+
+
+def offsets_moved(model: Model, theta, moved: dict) -> tuple[Model, np.ndarray]:
+    """``(model, theta)`` with each marker of ``moved`` (name -> (3,) mm, body frame) moved by that much.
+
+    Its offsets take the move and their priors move with them (:func:`_centred_offsets`); an axis
+    without an offset moves the marker's nominal place (unscaled, as the scales apply to it).
+    """
+    theta = np.array(theta, float)
+    done = set()
+    for k, p in enumerate(model.parameters):
+        if p.kind == "marker_offset" and p.target in moved:
+            theta[k] += float(moved[p.target][p.axis])
+            done.add((p.target, p.axis))
+    model = _centred_offsets(model, {m: np.asarray(v, float) for m, v in moved.items()
+                                     if any((m, a) in done for a in range(3))})
+    scales = body_scales(model, theta)
+    markers = []
+    for m in model.markers:
+        rest = np.array([0.0 if (m.name, a) in done else float(moved.get(m.name, (0.0,) * 3)[a]) for a in range(3)])
+        if np.any(rest):
+            m = replace(m, position=tuple(np.asarray(m.position, float) + rest / scales.get(m.segment, np.ones(3))))
+        markers.append(m)
+    return replace(model, markers=tuple(markers)), theta
 
 
 def _scale_key(p) -> tuple[str, str]:
@@ -2108,7 +2132,7 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
     paths = {"osim": out_dir / f"{name}.osim", "scale_set": out_dir / f"{name}_scale_set.xml",
              "json": out_dir / f"{name}_scaling.json", "report": out_dir / f"{name}_report.md"}
     write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set,
-                      moved=_mean_places(fit))
+                      moved=mean_places(fit))
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
     table = scaling_table(fit)
     paths["json"].write_text(json.dumps(_finite_or_none(table), indent=1, allow_nan=False) + "\n")
