@@ -7,10 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from skelid.io.osim import osim_parameters, read_osim
+from skelid.io.osim import centred_offset_priors, osim_parameters, read_osim
 from skelid.scaling import (
     _bounded_step,
-    _centred_offsets,
     _joint_refinement,
     fit_osim,
     fit_scales_and_offsets,
@@ -71,7 +70,7 @@ def test_the_one_factor_test_holds_at_a_fit_short_of_its_optimum(leg):  # noqa: 
 def test_a_free_markers_offset_prior_is_centred_on_its_placement(leg):  # noqa: F811
     base, info = read_osim(leg)
     model = osim_parameters(base, info, "bodies", "offsets")
-    centred = _centred_offsets(model, {"thigh1": np.array([70.0, -20.0, 0.0])})
+    centred = centred_offset_priors(model, {"thigh1": np.array([70.0, -20.0, 0.0])})
     for p, q in zip(model.parameters, centred.parameters, strict=True):
         if p.target == "thigh1":
             shift = [70.0, -20.0, 0.0][p.axis]

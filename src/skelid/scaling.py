@@ -71,6 +71,7 @@ from skelid.estimators.checks.trial_placement import trial_placement
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
+    centred_offset_priors,
     keep_markers,
     marker_locations,
     osim_parameters,
@@ -361,7 +362,7 @@ def _placed_offsets(model, theta, pose, static, original, info, scale, present, 
                 r0 = np.asarray(original.markers[original.marker_names.index(m.name)].position)
                 centre[m.name] = s_body.get(m.segment, np.ones(3)) * (np.asarray(m.position) - r0)
                 offsets[i] += centre[m.name]
-    model = _centred_offsets(osim_parameters(original, info, scale, "offsets", present), centre)
+    model = centred_offset_priors(osim_parameters(original, info, scale, "offsets", present), centre)
     theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
     for k, p in enumerate(model.parameters):
         if p.kind == "marker_offset":
@@ -373,19 +374,6 @@ def _placed_offsets(model, theta, pose, static, original, info, scale, present, 
                                                                float(offsets[i, p.axis] + half)],
                            "n_eff": float(n_eff[i]), "method": "placed on the static trial"}
     return model, theta
-
-
-def _centred_offsets(model: Model, centre: dict) -> Model:
-    """``model`` with the offset priors of the markers in ``centre`` (name -> (3,) mm) centred there."""
-    if not centre:
-        return model
-    params = []
-    for p in model.parameters:
-        if p.kind == "marker_offset" and p.target in centre:
-            c, pr = float(centre[p.target][p.axis]), p.prior
-            p = replace(p, prior=replace(pr, lower=pr.lower + c, upper=pr.upper + c, mean=pr.mean + c))
-        params.append(p)
-    return replace(model, parameters=tuple(params))
 
 
 @dataclass(frozen=True)
@@ -2024,30 +2012,6 @@ def mean_places(fit: ScalingFit) -> dict | None:
     at its mean place over the trials. None where no slide was estimated.
     """
     return (fit.result.get("artefact") or {}).get("mean_place_mm")
-
-
-def offsets_moved(model: Model, theta, moved: dict) -> tuple[Model, np.ndarray]:
-    """``(model, theta)`` with each marker of ``moved`` (name -> (3,) mm, body frame) moved by that much.
-
-    Its offsets take the move and their priors move with them (:func:`_centred_offsets`); an axis
-    without an offset moves the marker's nominal place (unscaled, as the scales apply to it).
-    """
-    theta = np.array(theta, float)
-    done = set()
-    for k, p in enumerate(model.parameters):
-        if p.kind == "marker_offset" and p.target in moved:
-            theta[k] += float(moved[p.target][p.axis])
-            done.add((p.target, p.axis))
-    model = _centred_offsets(model, {m: np.asarray(v, float) for m, v in moved.items()
-                                     if any((m, a) in done for a in range(3))})
-    scales = body_scales(model, theta)
-    markers = []
-    for m in model.markers:
-        rest = np.array([0.0 if (m.name, a) in done else float(moved.get(m.name, (0.0,) * 3)[a]) for a in range(3)])
-        if np.any(rest):
-            m = replace(m, position=tuple(np.asarray(m.position, float) + rest / scales.get(m.segment, np.ones(3))))
-        markers.append(m)
-    return replace(model, markers=tuple(markers)), theta
 
 
 def _scale_key(p) -> tuple[str, str]:

@@ -940,6 +940,43 @@ def marker_locations(model: Model, info: OsimInfo, theta, moved=None) -> dict[st
     return out
 
 
+def centred_offset_priors(model: Model, centre: dict) -> Model:
+    """``model`` with the offset priors of the markers in ``centre`` (name -> (3,) mm) centred there."""
+    if not centre:
+        return model
+    params = []
+    for p in model.parameters:
+        if p.kind == "marker_offset" and p.target in centre:
+            c, pr = float(centre[p.target][p.axis]), p.prior
+            p = replace(p, prior=replace(pr, lower=pr.lower + c, upper=pr.upper + c, mean=pr.mean + c))
+        params.append(p)
+    return replace(model, parameters=tuple(params))
+
+
+def offsets_moved(model: Model, theta, moved: dict) -> tuple[Model, np.ndarray]:
+    """``(model, theta)`` with each marker of ``moved`` (name -> (3,) mm, body frame) moved by that much.
+
+    Its offsets take the move and their priors move with them (:func:`centred_offset_priors`); an axis
+    without an offset moves the marker's nominal place (unscaled, as the scales apply to it).
+    """
+    theta = np.array(theta, float)
+    done = set()
+    for k, p in enumerate(model.parameters):
+        if p.kind == "marker_offset" and p.target in moved:
+            theta[k] += float(moved[p.target][p.axis])
+            done.add((p.target, p.axis))
+    model = centred_offset_priors(model, {m: np.asarray(v, float) for m, v in moved.items()
+                                     if any((m, a) in done for a in range(3))})
+    scales = body_scales(model, theta)
+    markers = []
+    for m in model.markers:
+        rest = np.array([0.0 if (m.name, a) in done else float(moved.get(m.name, (0.0,) * 3)[a]) for a in range(3)])
+        if np.any(rest):
+            m = replace(m, position=tuple(np.asarray(m.position, float) + rest / scales.get(m.segment, np.ones(3))))
+        markers.append(m)
+    return replace(model, markers=tuple(markers)), theta
+
+
 def _fmt(v) -> str:
     return " ".join(repr(float(x)) for x in v)
 
