@@ -252,7 +252,7 @@ SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 
                  ("the default, per-marker noise 1-10 mm, static + walk",
                   (("pooled noise", "axes/linked/static+walk/pm"),
                    ("`--noise per-marker`", "axes/linked+pm/static+walk/pm"))),
-                 ("the default, soft-tissue artefact 5-15 mm rms",
+                 ("the default, soft-tissue artefact 5-15 mm rms, linear in the joint angles in each body's frame",
                   (("static + walk", "axes/linked/static+walk/sta"), ("one walk", "axes/linked/walk/sta"),
                    ("two walks", "axes/linked/walk+walk2/sta"),
                    ("two walks, the slide in the laboratory's frame (a form skelid does not model)",
