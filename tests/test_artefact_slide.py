@@ -7,13 +7,15 @@ from skelid.estimators.checks.pose_artefact import SlideTerms, joint_slide
 
 
 def _mixed_problem(seed, T=300, bodies=6, per_body=3, C=3, P=4, sigma=1.0, tau_s=3.0, tau_o=1.5):
-    """Residuals of a linear fit whose markers slide linearly with the pose (no pose to profile)."""
+    """Residuals of a linear fit whose markers slide linearly with the pose (no pose to profile); ``tau_s``
+    one shared size for every body or one per body."""
     rng = np.random.default_rng(seed)
     M = bodies * per_body
     body = np.repeat(np.arange(bodies), per_body)
     dq = rng.normal(0.0, 0.5, (T, C))
     K = rng.normal(size=(T, M, 3, P))
-    V = rng.normal(0.0, tau_s, (bodies, 3, C))[body] + rng.normal(0.0, tau_o, (M, 3, C))  # (M, 3, C)
+    tau_s = np.broadcast_to(np.asarray(tau_s, float), (bodies,))[:, None, None]
+    V = (rng.normal(0.0, 1.0, (bodies, 3, C)) * tau_s)[body] + rng.normal(0.0, tau_o, (M, 3, C))  # (M, 3, C)
     y = np.einsum("mac,tc->tma", V, dq) + rng.normal(0.0, sigma, (T, M, 3))
     Kf = K.reshape(T * M * 3, P)
     theta = np.linalg.lstsq(Kf, y.reshape(-1), rcond=None)[0]  # the fit that knows of no slide
@@ -36,7 +38,8 @@ def test_the_joint_slide_is_the_mixed_models_posterior_at_the_sizes_it_finds():
     lam = np.full(K.shape[1], 1e-6)
     fit = joint_slide(terms, K.T @ K, K.T @ r, np.zeros(K.shape[1]), lam, dof)
     s2 = fit.sigma_white**2
-    cov_v = np.concatenate([np.full(Z_body.shape[1], fit.tau_shared**2), np.full(Z_own.shape[1], fit.tau_own**2)])
+    shared = np.repeat(fit.tau_bodies**2, Z_body.shape[1] // len(fit.tau_bodies))  # each body's own size
+    cov_v = np.concatenate([shared, np.full(Z_own.shape[1], fit.tau_own**2)])
     Z = np.concatenate([Z_body, Z_own], axis=1)
     Sigma = s2 * np.eye(len(r)) + (Z * cov_v) @ Z.T
     Si = np.linalg.inv(Sigma)
@@ -55,6 +58,18 @@ def test_the_marginal_likelihood_finds_the_white_level_and_both_slope_sizes(seed
     assert fit.tau_shared == pytest.approx(3.0, rel=0.3)
     assert fit.tau_own == pytest.approx(1.5, rel=0.15)
     assert fit.rms == pytest.approx(np.sqrt((fit.tau_shared**2 + fit.tau_own**2) * 0.25))
+
+
+def test_each_body_slides_by_its_own_amount():
+    # bodies whose skin slides 0.5 to 8 per radian: each body's shared size is found, not one for all
+    tau = np.array([0.5, 1.0, 2.0, 4.0, 8.0, 8.0])
+    terms, K, r, *_, dof = _mixed_problem(8, T=300, per_body=4, tau_s=tau, tau_o=0.5)
+    fit = joint_slide(terms, K.T @ K, K.T @ r, np.zeros(K.shape[1]), np.full(K.shape[1], 1e-6), dof)
+    np.testing.assert_allclose(np.log(fit.tau_bodies), np.log(tau), atol=0.7)
+    assert fit.tau_own == pytest.approx(0.5, rel=0.15)
+    one = joint_slide(terms, K.T @ K, K.T @ r, np.zeros(K.shape[1]), np.full(K.shape[1], 1e-6), dof,
+                      sizes=(fit.sigma_white**2, fit.tau_shared**2, fit.tau_own**2))  # one size for every body
+    np.testing.assert_allclose(one.tau_bodies, fit.tau_shared)
 
 
 def test_a_slide_the_geometry_cannot_see_leaves_the_estimate_and_narrows_nothing_it_should_not():
@@ -87,10 +102,11 @@ def test_sizes_given_are_taken_and_give_the_fit_those_sizes_found():
     terms, K, r, *_, dof = _mixed_problem(7, T=150, bodies=3, per_body=2, C=2, P=3)
     args = (terms, K.T @ K, K.T @ r, np.zeros(K.shape[1]), np.full(K.shape[1], 1e-6), dof)
     found = joint_slide(*args)
-    sizes = (found.sigma_white**2, found.tau_shared**2, found.tau_own**2)
+    sizes = found.sizes
     again = joint_slide(*args, sizes=sizes)
     np.testing.assert_allclose(again.shift, found.shift, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(again.cov, found.cov, rtol=1e-10)
     other = joint_slide(*args, sizes=(sizes[0], 4.0 * sizes[1], 4.0 * sizes[2]))
     assert other.tau_shared == pytest.approx(2.0 * found.tau_shared)
+    np.testing.assert_allclose(other.tau_bodies, 2.0 * found.tau_bodies)
     assert np.trace(other.cov) > np.trace(found.cov)  # larger slopes a priori: the geometry less known

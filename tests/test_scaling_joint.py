@@ -476,6 +476,33 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
     np.testing.assert_allclose(held.theta, one_step_theta, rtol=1e-12, atol=1e-12)
 
 
+def test_data_simulated_after_the_slide_carry_the_white_noise_it_leaves_and_start_where_it_arrived(leg, monkeypatch):  # noqa: F811
+    """The bootstrap check of a fit with a slide simulates the white noise the slide leaves (not the slide
+    taken for noise), and its steps use the information at the slide's geometry and poses: with the
+    information of the fit before the slide, a pelvis scale's "bias" reached 157 sd on an OpenSim walk."""
+    import skelid.scaling as scaling
+    from skelid.data import MarkerData
+    from skelid.estimators.fit.pose import workspace
+
+    model, _, _, _, x = _sliding_walk(leg, 12)
+    seen = {}
+    check = scaling.bootstrap_check
+
+    def spy(model, jo, ys, cov, *args, **kwargs):
+        seen.update(model=model, jo=jo, ys=ys, cov=cov)
+        return check(model, jo, ys, cov, *args, **kwargs)
+
+    monkeypatch.setattr(scaling, "bootstrap_check", spy)
+    fit = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
+    jo, m = seen["jo"], seen["model"]
+    white = fit.result["artefact"]["sigma_white"][0]
+    np.testing.assert_allclose(jo.sigma, white)
+    assert white < 2.0  # the 1 mm white noise, not the slide's 15-20 mm per radian
+    fresh = scaling._trial_terms(m, jo.theta, seen["ys"][0], jo.poses[0], workspace(m), None, scaling.POSE_ITER)
+    np.testing.assert_allclose(jo.info_trials[0], fresh[1] / white**2, rtol=1e-6, atol=1e-9 * np.abs(fresh[1]).max())
+    assert abs(fit.result["bootstrap"]["largest_bias_sd"]) < 3.0
+
+
 def test_the_slide_displaced_at_the_poses_is_each_markers_slopes_turned_with_its_body(leg):  # noqa: F811
     from skelid.estimators.checks.pose_artefact import SlideTerms, artefact_coordinates, slide_displacement
     from skelid.estimators.fit.pose import workspace

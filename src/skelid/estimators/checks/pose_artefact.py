@@ -115,7 +115,8 @@ def artefact_coordinates(model: Model) -> np.ndarray:
                     dtype=int)
 
 
-def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, reference=None) -> PoseArtefact:
+def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, reference=None,
+                  tested: bool = True) -> PoseArtefact:
     """Estimate the pose-dependent artefact of a fit and the covariance it adds.
 
     Parameters
@@ -133,6 +134,12 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
         The fit's posterior covariance (before any widening).
     weights : (M,) float, optional
         Relative marker weights the fit used.
+    reference : (Q,) float, optional
+        The pose the slide is measured from; None: no slide terms.
+    tested : bool
+        False: the artefact taken as present whatever its test says (a fit that has already found it
+        and moved the poses to the markers less its slide, whose residuals no longer show it as the
+        test expects).
 
     Returns
     -------
@@ -191,7 +198,7 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
     n_rms = np.mean(np.concatenate([np.sum((np.asarray(q, float)[:, coords] - qbar) ** 2, axis=1) for q in poses]))
     rms = float(np.sqrt((tau_s2 + tau_o2) * n_rms))
     size = float(np.abs(model.nominal_geometry).max())
-    if p_value >= LEVEL or rms < MIN_RMS * size:
+    if tested and (p_value >= LEVEL or rms < MIN_RMS * size):
         return PoseArtefact(False, p_value, float(np.sqrt(tau_s2)), float(np.sqrt(tau_o2)), rms, white,
                             np.zeros((P, P)))
     C = tau_o2 * np.einsum("mpc,mqc->pq", G, G)
@@ -321,10 +328,16 @@ class SlideFit:
     shift: np.ndarray  # (P,) the step from the fit's geometry
     cov: np.ndarray  # (P, P) the geometry's covariance, the slopes integrated out
     sigma_white: float  # the white noise level left (model units)
-    tau_shared: float  # sd of the slopes a body's markers share (model units per radian)
+    tau_shared: float  # sd of the slopes a body's markers share (model units per radian), rms over the markers
     tau_own: float  # ... of each marker's own
     rms: float  # the slide's root-mean-square displacement per marker coordinate at those sizes
     slopes: np.ndarray | None = None  # (M, 3, C) each marker's slopes, their posterior mean
+    tau_bodies: np.ndarray | None = None  # (B,) each body's shared sd, in the order of ``SlideTerms.bodies``
+
+    @property
+    def sizes(self) -> tuple:
+        """``(sigma_w^2, tau_s^2 (B,), tau_o^2)``: what :func:`joint_slide` takes as ``sizes``."""
+        return self.sigma_white**2, np.asarray(self.tau_bodies, float) ** 2, self.tau_own**2
 
 
 def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof, sizes=None) -> SlideFit:
@@ -351,9 +364,9 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
         Gradient and curvature of the negative log prior at the fit.
     dof : float
         The residuals' degrees of freedom.
-    sizes : (3,) float, optional
+    sizes : tuple, optional
         ``(sigma_w^2, tau_s^2, tau_o^2)`` to take instead of estimating them (the steps after the first of
-        an iterated fit, whose residuals differ little).
+        an iterated fit, whose residuals differ little); ``tau_s^2`` one per body or one for all.
     """
     from scipy.linalg import cho_factor, cho_solve
 
@@ -362,12 +375,13 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     A = sl.A.reshape(M, 3, M, 3, C, C).transpose(0, 1, 4, 2, 3, 5).reshape(n_own, n_own)
     Gf = sl.G.reshape(M, P, 3 * C).transpose(1, 0, 2).reshape(P, n_own)
     s2, ts2, to2 = _slide_sizes(sl, info_raw, score_raw, dof, Gf, A, n_own) if sizes is None else sizes
+    ts2 = np.broadcast_to(np.asarray(ts2, float), (len(sl.bodies),))
     # the joint posterior of the geometry and each marker's slopes W_m = V_b + V'_m, whose prior
     # covariance is to2 I + ts2 (1 1^T (x) I) within a body (its inverse in closed form)
     Oi = np.eye(n_own) / to2
     k = np.arange(3 * C)
-    for idx in sl.bodies:
-        share = ts2 / (to2 * (to2 + len(idx) * ts2))
+    for idx, t in zip(sl.bodies, ts2, strict=True):
+        share = t / (to2 * (to2 + len(idx) * t))
         for m in idx:
             for m2 in idx:
                 Oi[m * 3 * C + k, m2 * 3 * C + k] -= share
@@ -381,17 +395,27 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     Sc = cho_factor(S, check_finite=False)  # the slopes' posterior precision, once for both solves
     u = cho_solve(Sc, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg, check_finite=False)
     cov = np.linalg.inv(H) + HB @ cho_solve(Sc, HB.T, check_finite=False)
-    return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(ts2)),
-                    float(np.sqrt(to2)), float(np.sqrt((ts2 + to2) * sl.pose_spread)), u.reshape(M, 3, C))
+    shared = float(np.sum([len(idx) * t for idx, t in zip(sl.bodies, ts2, strict=True)])
+                   / max(sum(len(idx) for idx in sl.bodies), 1))  # per marker, over the markers of the bodies
+    return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(shared)),
+                    float(np.sqrt(to2)), float(np.sqrt((shared + to2) * sl.pose_spread)), u.reshape(M, 3, C),
+                    np.sqrt(ts2))
 
 
 def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own) -> tuple:
-    """The white level and the two slope sizes ``(sigma_w^2, tau_s^2, tau_o^2)`` of :func:`joint_slide`."""
+    """The white level, each body's shared slope size and the own one: ``(sigma_w^2, tau_s^2 (B,), tau_o^2)``
+    of :func:`joint_slide`.
+
+    Each body's markers share slopes of their own size: bodies slide by different amounts (skin over a
+    thigh more than over a shank), and one shared size for all of them shrinks the slopes of the bodies
+    that slide most too far, leaving their slide to the geometry.
+    """
     from scipy.linalg import blas, cho_factor, cho_solve, solve_triangular
     from scipy.optimize import minimize
 
     C = sl.G.shape[-1]
-    E = np.zeros((n_own, len(sl.bodies) * 3 * C))  # a body's shared slopes: the sum of its markers' columns
+    B = len(sl.bodies)
+    E = np.zeros((n_own, B * 3 * C))  # a body's shared slopes: the sum of its markers' columns
     for j, idx in enumerate(sl.bodies):
         for m in idx:
             E[m * 3 * C:(m + 1) * 3 * C, j * 3 * C:(j + 1) * 3 * C] = np.eye(3 * C)
@@ -407,44 +431,49 @@ def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own) -> tupl
     # the residuals' sum of squares with the geometry profiled out too (trials weighted alike here)
     rss = max(float(sl.rss) - float(score_raw @ Ii @ score_raw), 1e-300)
     floor = 1e-6 * rss / N  # the slopes' variances searched from this (model units per radian, squared)
-
     n = float(mu.size)
-
     EpF = np.asfortranarray(Ep)
+    cols = np.repeat(np.arange(B), 3 * C)  # each shared column's body
 
-    def nll(x):  # -2 log marginal likelihood in (log sigma_w^2, log tau_s^2, log tau_o^2), and its gradient
-        s2, ts2, to2 = np.exp(x)
+    def nll(x):  # -2 log marginal likelihood in (log sigma_w^2, log tau_o^2, log tau_s^2 of each body), gradient
+        s2, to2, ts2 = np.exp(x[0]), np.exp(x[1]), np.exp(x[2:])
         d = s2 + to2 * mu
         w, cd = mu / d, c / d
         F = np.triu(blas.dsyrk(1.0, EpF * np.sqrt(w)[:, None], trans=1))  # Ep^T diag(w) Ep, one triangle
         F = F + np.triu(F, 1).T
         g = Ep.T @ cd
-        L = cho_factor(np.eye(F.shape[0]) + ts2 * F, check_finite=False)
-        h = cho_solve(L, g, check_finite=False)
-        X = solve_triangular(L[0], Ep.T, trans="T", lower=L[1], check_finite=False)
-        q = np.einsum("ij,ij->j", X, X)  # diag(Ep Bm^-1 Ep^T)
+        s = np.sqrt(ts2)[cols]
+        L = cho_factor(np.eye(F.shape[0]) + s[:, None] * F * s[None, :], check_finite=False)
+        h = s * cho_solve(L, s * g, check_finite=False)  # (T^-1 + F)^-1 g: the shared slopes' posterior mean
+        X = solve_triangular(L[0], s[:, None] * Ep.T, trans="T", lower=L[1], check_finite=False)
+        q = np.einsum("ij,ij->j", X, X)  # diag(Ep (T^-1 + F)^-1 Ep^T)
+        Y = solve_triangular(L[0], s[:, None] * F, trans="T", lower=L[1], check_finite=False)
+        k_diag = np.diag(F) - np.einsum("ij,ij->j", Y, Y)  # diag((F^-1 + T)^-1): log det's slope in T
+        p = g - F @ h
         e = Ep @ h
         white = rss - to2 * np.sum(c * cd)
         f = (N * x[0] + np.sum(np.log1p(to2 * mu / s2)) + 2.0 * np.sum(np.log(np.diag(L[0])))
-             + white / s2 - ts2 * g @ h)
+             + white / s2 - g @ h)
         # through each d_i = s2 + to2 mu_i: the determinants, the white part and the shared part
-        dd = 1.0 / d - ts2 * q * mu / d**2 + to2 * c**2 / (d**2 * s2) + ts2 * (2.0 * e * c - ts2 * e**2 * mu) / d**2
+        dd = 1.0 / d - q * mu / d**2 + to2 * c**2 / (d**2 * s2) + (2.0 * e * c - e**2 * mu) / d**2
         d_s2 = (N - n) / s2 + dd.sum() - white / s2**2
         d_to2 = dd @ mu - np.sum(c * cd) / s2
-        d_ts2 = np.sum(q * w) - g @ h + ts2 * h @ F @ h
-        return f, np.array([s2 * d_s2, ts2 * d_ts2, to2 * d_to2])
+        d_ts2 = np.bincount(cols, k_diag - p**2, B)
+        return f, np.concatenate([[s2 * d_s2, to2 * d_to2], ts2 * d_ts2])
 
     # started from the moment fit's sizes and from their total split evenly; the better optimum is kept.
     # A size started at its floor has no gradient there: on subject01 the moment fit's start (its shared
     # size 0) ends at a shared sd of 0.005 and -2 log L 610 above the even split's optimum, which a
     # 49-start grid confirms; on a simulated walk it takes 53 evaluations to the even split's 14.
     half = 0.5 * (sl.tau_s2 + sl.tau_o2)
-    bounds = [(np.log(rss / N) - 30.0, np.log(rss / N) + 5.0)] + [(np.log(floor), np.log(floor) + 40.0)] * 2
+    bounds = ([(np.log(rss / N) - 30.0, np.log(rss / N) + 5.0)]
+              + [(np.log(floor), np.log(floor) + 40.0)] * (1 + B))
     lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
-    fits = [minimize(nll, np.clip(np.log([rss / N, max(a, floor), max(b, floor)]), lo, hi), method="L-BFGS-B",
-                     jac=True, bounds=bounds) for a, b in dict.fromkeys([(half, half), (sl.tau_s2, sl.tau_o2)])]
-    x = min(fits, key=lambda r: r.fun).x
-    return tuple(float(v) for v in np.exp(x))
+    fits = [minimize(nll, np.clip(np.log([rss / N, max(o, floor)] + [max(a, floor)] * B), lo, hi),
+                     method="L-BFGS-B", jac=True, bounds=bounds)
+            for a, o in dict.fromkeys([(half, half), (sl.tau_s2, sl.tau_o2)])]
+    x = np.exp(min(fits, key=lambda r: r.fun).x)
+    return float(x[0]), x[2:], float(x[1])
 
 
 def _moment_sizes(x, g, z, K, M):
