@@ -501,6 +501,10 @@ def test_data_simulated_after_the_slide_carry_the_white_noise_it_leaves_and_star
     fresh = scaling._trial_terms(m, jo.theta, seen["ys"][0], jo.poses[0], workspace(m), None, scaling.POSE_ITER)
     np.testing.assert_allclose(jo.info_trials[0], fresh[1] / white**2, rtol=1e-6, atol=1e-9 * np.abs(fresh[1]).max())
     assert abs(fit.result["bootstrap"]["largest_bias_sd"]) < 3.0
+    # each body's own slide: the walk's bodies share slopes of sd 15 mm per radian
+    by_body = fit.result["artefact"]["by_body"]
+    assert set(by_body) == {m.segments[s].name for s in set(m.marker_segment)}
+    assert all(5.0 < b["slope_sd_shared"] < 45.0 and b["rms"] > 0.0 for b in by_body.values())
 
 
 def test_the_slide_displaced_at_the_poses_is_each_markers_slopes_turned_with_its_body(leg):  # noqa: F811

@@ -442,7 +442,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     jo = replace(jo, cov=base * np.outer(widen, widen) + (art.cov if slide is None else 0.0) + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
     ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
-    out["artefact"] = _artefact_entry(art, ratio, slide, model.marker_names, (steps, settled))
+    out["artefact"] = _artefact_entry(art, ratio, slide, model, (steps, settled))
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide,
                                                                              out["artefact"])]
@@ -589,14 +589,15 @@ def _artefact_ratio(art, bound) -> np.ndarray:
     return np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
 
 
-def _artefact_entry(art, ratio, slide=None, names=(), steps=(0, False)) -> dict:
+def _artefact_entry(art, ratio, slide=None, model: Model | None = None, steps=(0, False)) -> dict:
     """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact.
 
     With ``slide`` (its slopes estimated with the geometry) the sizes are the joint fit's,
-    ``largest_sd_ratio`` is the largest step it took, in the step's sd, and ``mean_place_mm``
-    where each marker (``names``) sits on average over the trials from its offset's place (the
-    slide at the trials' mean pose, body frame: the place the written model takes); else the sd
-    the artefact's term adds over the residuals' own.
+    ``largest_sd_ratio`` is the largest step it took, in the step's sd, ``mean_place_mm``
+    where each of the ``model``'s markers sits on average over the trials from its offset's place
+    (the slide at the trials' mean pose, body frame: the place the written model takes), and
+    ``by_body`` each body's shared slope sd and the rms its markers slide by over the trials'
+    poses; else the sd the artefact's term adds over the residuals' own.
     """
     entry = {"present": bool(art.present), "p_value": float(art.p_value),
              "rms": float(art.rms if slide is None else slide.rms),
@@ -612,7 +613,11 @@ def _artefact_entry(art, ratio, slide=None, names=(), steps=(0, False)) -> dict:
         entry["method"] += "; its slopes estimated with the geometry (joint_slide), iterated to the optimum"
         entry["steps"], entry["settled"] = int(steps[0]), bool(steps[1])
         mean = np.einsum("mac,c->ma", slide.slopes, art.slide.mean_dr)
-        entry["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(names)}
+        entry["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(model.marker_names)}
+        entry["by_body"] = {
+            model.segments[model.marker_segment[idx[0]]].name: {
+                "slope_sd_shared": float(t), "rms": float(np.sqrt((t**2 + slide.tau_own**2) * art.slide.pose_spread))}
+            for idx, t in zip(art.slide.bodies, slide.tau_bodies, strict=True)}
     return entry
 
 
