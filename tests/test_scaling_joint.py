@@ -505,6 +505,9 @@ def test_data_simulated_after_the_slide_carry_the_white_noise_it_leaves_and_star
     by_body = fit.result["artefact"]["by_body"]
     assert set(by_body) == {m.segments[s].name for s in set(m.marker_segment)}
     assert all(5.0 < b["slope_sd_shared"] < 45.0 and b["rms"] > 0.0 for b in by_body.values())
+    text = scaling.report_markdown(fit)  # the report lists the bodies, the one that slides most first
+    first = max(by_body, key=lambda b: by_body[b]["rms"])
+    assert f"| {first} | {by_body[first]['slope_sd_shared']:.1f} |" in text.split("each body's markers")[1].split("\n")[4]
 
 
 def test_the_slide_displaced_at_the_poses_is_each_markers_slopes_turned_with_its_body(leg):  # noqa: F811

@@ -2151,7 +2151,8 @@ def report_markdown(fit: ScalingFit, table: dict | None = None, files: dict | No
     """
     table = scaling_table(fit) if table is None else table
     lines = _head_markdown(fit, table) + _trials_markdown(table.get("trials"))
-    for section in (_scales_markdown, _lengths_markdown, _offsets_markdown, _sensitivity_markdown, _tail_markdown):
+    for section in (_scales_markdown, _lengths_markdown, _offsets_markdown, _slide_markdown, _sensitivity_markdown,
+                    _tail_markdown):
         lines += section(fit, table, files)
     return "\n".join(lines)
 
@@ -2213,6 +2214,18 @@ def _offsets_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
         v = [e[a]["value"] if a in e else 0.0 for a in "xyz"]
         sd = max(e[a]["sd"] for a in e)
         lines.append(f"| {m} | {v[0]:.1f} | {v[1]:.1f} | {v[2]:.1f} | {sd:.1f} |")
+    return lines + [""]
+
+
+def _slide_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
+    """Each body's soft-tissue slide, where it was estimated with the geometry (largest first)."""
+    by_body = (fit.result.get("artefact") or {}).get("by_body")
+    if not by_body:
+        return []
+    lines = ["## Soft-tissue slide of each body's markers", "",
+             "| body | shared slope sd (mm per radian) | rms over the trials' poses (mm) |", "|---|---|---|"]
+    for b, e in sorted(by_body.items(), key=lambda kv: -kv[1]["rms"]):
+        lines.append(f"| {b} | {e['slope_sd_shared']:.1f} | {e['rms']:.1f} |")
     return lines + [""]
 
 
