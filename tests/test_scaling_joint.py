@@ -452,7 +452,14 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
     from skelid.data import MarkerData
 
     model, truth, _, _, x = _sliding_walk(leg, 12)
-    errors = {}
+    errors, seen = {}, {}
+    check = scaling.bootstrap_check
+
+    def spy(model, jo, ys, cov, *args, **kwargs):  # what the bias check of the iterated fit starts from
+        seen.update(model=model, jo=jo, ys=ys)
+        return check(model, jo, ys, cov, *args, **kwargs)
+
+    monkeypatch.setattr(scaling, "bootstrap_check", spy)
     for steps in (1, scaling.SLIDE_STEPS):
         monkeypatch.setattr(scaling, "SLIDE_STEPS", steps)
         fit = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
@@ -468,6 +475,7 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
     one, done = errors[1][0], errors[scaling.SLIDE_STEPS][0]
     assert np.sqrt(np.mean(done**2)) < 0.5 * np.sqrt(np.mean(one**2))
     assert np.sqrt(np.mean((done / errors[scaling.SLIDE_STEPS][1]) ** 2)) < 1.0
+    _check_after_the_slide(scaling, fit, seen)
     # a step that does not settle (here: none may) is not taken, and the warning says so
     monkeypatch.setattr(scaling, "SLIDE_CONTRACTION", 0.0)
     held = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
@@ -476,24 +484,13 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
     np.testing.assert_allclose(held.theta, one_step_theta, rtol=1e-12, atol=1e-12)
 
 
-def test_data_simulated_after_the_slide_carry_the_white_noise_it_leaves_and_start_where_it_arrived(leg, monkeypatch):  # noqa: F811
-    """The bootstrap check of a fit with a slide simulates the white noise the slide leaves (not the slide
-    taken for noise), and its steps use the information at the slide's geometry and poses: with the
-    information of the fit before the slide, a pelvis scale's "bias" reached 157 sd on an OpenSim walk."""
-    import skelid.scaling as scaling
-    from skelid.data import MarkerData
+def _check_after_the_slide(scaling, fit, seen):
+    """The bias check of a fit with a slide simulates the white noise the slide leaves (not the slide taken
+    for noise), and its steps use the information at the slide's geometry and poses (with the information
+    of the fit before the slide, a pelvis scale's "bias" reached 157 sd on an OpenSim walk); the result and
+    the report give each body's slide (the leg's bodies share slopes of sd 15 mm per radian)."""
     from skelid.estimators.fit.pose import workspace
 
-    model, _, _, _, x = _sliding_walk(leg, 12)
-    seen = {}
-    check = scaling.bootstrap_check
-
-    def spy(model, jo, ys, cov, *args, **kwargs):
-        seen.update(model=model, jo=jo, ys=ys, cov=cov)
-        return check(model, jo, ys, cov, *args, **kwargs)
-
-    monkeypatch.setattr(scaling, "bootstrap_check", spy)
-    fit = fit_osim(leg, [MarkerData(x, model.marker_names, 60.0, "mm", "walk")], scale="bodies")
     jo, m = seen["jo"], seen["model"]
     white = fit.result["artefact"]["sigma_white"][0]
     np.testing.assert_allclose(jo.sigma, white)
@@ -501,13 +498,13 @@ def test_data_simulated_after_the_slide_carry_the_white_noise_it_leaves_and_star
     fresh = scaling._trial_terms(m, jo.theta, seen["ys"][0], jo.poses[0], workspace(m), None, scaling.POSE_ITER)
     np.testing.assert_allclose(jo.info_trials[0], fresh[1] / white**2, rtol=1e-6, atol=1e-9 * np.abs(fresh[1]).max())
     assert abs(fit.result["bootstrap"]["largest_bias_sd"]) < 3.0
-    # each body's own slide: the walk's bodies share slopes of sd 15 mm per radian
     by_body = fit.result["artefact"]["by_body"]
     assert set(by_body) == {m.segments[s].name for s in set(m.marker_segment)}
     assert all(5.0 < b["slope_sd_shared"] < 45.0 and b["rms"] > 0.0 for b in by_body.values())
     text = scaling.report_markdown(fit)  # the report lists the bodies, the one that slides most first
     first = max(by_body, key=lambda b: by_body[b]["rms"])
-    assert f"| {first} | {by_body[first]['slope_sd_shared']:.1f} |" in text.split("each body's markers")[1].split("\n")[4]
+    rows = text.split("each body's markers")[1].split("\n")
+    assert f"| {first} | {by_body[first]['slope_sd_shared']:.1f} |" in rows[4]
 
 
 def test_the_slide_displaced_at_the_poses_is_each_markers_slopes_turned_with_its_body(leg):  # noqa: F811
