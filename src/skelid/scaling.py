@@ -466,14 +466,6 @@ def _sd(cov) -> np.ndarray:
     return np.maximum(np.sqrt(np.clip(np.diag(cov), 0.0, None)), 1e-300)
 
 
-def _poses_at(model: Model, theta, ys, poses) -> list:
-    """Each trial's poses refitted at ``theta`` from ``poses``."""
-    from skelid.estimators.fit.pose import fit_pose, workspace
-
-    ws = workspace(model)
-    return [fit_pose(model, theta, y, q, ws=ws)[0] for y, q in zip(ys, poses, strict=True)]
-
-
 def _slide_fit(model: Model, jo, art):
     """The joint fit with the artefact's slopes estimated beside the geometry (None where none is present)."""
     from skelid.estimators.checks.pose_artefact import joint_slide
@@ -561,18 +553,19 @@ def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
     Returns ``(jo, checked, base, slide, artefact, steps, settled)``: ``jo`` at the slide's geometry with
     its poses there; ``base`` the interval before any widening (the slide's covariance, else the fit's
     with each marker's own noise level); ``checked`` what data simulated from the fit
-    (:func:`bootstrap_check`) start from: with a slide, ``jo`` with that covariance and the white
-    noise level the slide leaves for every trial and marker, so that the simulated data carry the
-    noise that is left, not the slide taken for noise (a pelvis scale's "bias" at the slide-blind
-    fit's marker levels reached 6 sd on an OpenSim-generated walk, and moved it away from the truth).
+    (:func:`bootstrap_check`) start from: with a slide, ``jo`` with the white noise level the slide
+    leaves for every trial and marker and the information and Laplace covariance at that level there,
+    so that the simulated data carry the noise that is left, not the slide taken for noise (a pelvis
+    scale's "bias" at the slide-blind fit's marker levels reached 6 sd on an OpenSim-generated walk,
+    and moved it 7 sd from the truth; with the information of the fit before the slide, 157 sd).
     """
     slide, art, steps, settled = _slide_converged(model, jo, art, ys, weights)
     if slide is None:
         return jo, jo, (jo.cov if jo.cov_noise is None else jo.cov_noise), None, art, steps, settled
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
     from skelid.estimators.fit.pose import workspace
 
+    lo = np.array([p.prior.lower for p in model.parameters])
+    hi = np.array([p.prior.upper for p in model.parameters])
     theta, ws = np.clip(jo.theta + slide.shift, lo, hi), workspace(model)
     there = [_trial_terms(model, theta, y, q, ws, weights, POSE_ITER) for y, q in zip(ys, jo.poses, strict=True)]
     jo = replace(jo, theta=theta, poses=[t[0] for t in there])
