@@ -532,7 +532,8 @@ def _slide_converged(model: Model, jo, art, ys, weights):
         if a.slide is None:
             break
         grad, curv = _prior_terms(model, theta)
-        nxt = joint_slide(a.slide, info, score, grad, curv, float(np.sum(jo.dof)), None if phase == 1 else sizes)
+        nxt = joint_slide(a.slide, info, score, grad, curv, float(np.sum(jo.dof)), None if phase == 1 else sizes,
+                          start=sizes)
         size = float(np.max(np.abs(nxt.shift) / _sd(nxt.cov)))
         if size > SLIDE_CONTRACTION * last and size >= SLIDE_STEP_SD:  # not settling: stay, with this point's cov
             return replace(nxt, shift=theta - jo.theta, slopes=slide.slopes), replace(art, slide=sl), steps, False

@@ -340,7 +340,8 @@ class SlideFit:
         return self.sigma_white**2, np.asarray(self.tau_bodies, float) ** 2, self.tau_own**2
 
 
-def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof, sizes=None) -> SlideFit:
+def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof, sizes=None,
+                start=None) -> SlideFit:
     """The fit's geometry and covariance with the slide's slopes as random effects (a linear mixed model).
 
     Linearised at the fit, with the poses profiled out, the residuals are
@@ -367,6 +368,10 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     sizes : tuple, optional
         ``(sigma_w^2, tau_s^2, tau_o^2)`` to take instead of estimating them (the steps after the first of
         an iterated fit, whose residuals differ little); ``tau_s^2`` one per body or one for all.
+    start : tuple, optional
+        Sizes of the same form to start their search from as well (those an iterated fit has so far:
+        the moment fit of residuals whose slide has been taken out may find none, and a search started
+        only from none stays there).
     """
     from scipy.linalg import cho_factor, cho_solve
 
@@ -374,7 +379,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     n_own = M * 3 * C
     A = sl.A.reshape(M, 3, M, 3, C, C).transpose(0, 1, 4, 2, 3, 5).reshape(n_own, n_own)
     Gf = sl.G.reshape(M, P, 3 * C).transpose(1, 0, 2).reshape(P, n_own)
-    s2, ts2, to2 = _slide_sizes(sl, info_raw, score_raw, dof, Gf, A, n_own) if sizes is None else sizes
+    s2, ts2, to2 = _slide_sizes(sl, info_raw, score_raw, dof, Gf, A, n_own, start) if sizes is None else sizes
     ts2 = np.broadcast_to(np.asarray(ts2, float), (len(sl.bodies),))
     # the joint posterior of the geometry and each marker's slopes W_m = V_b + V'_m, whose prior
     # covariance is to2 I + ts2 (1 1^T (x) I) within a body (its inverse in closed form)
@@ -402,7 +407,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
                     np.sqrt(ts2))
 
 
-def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own) -> tuple:
+def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own, start=None) -> tuple:
     """The white level, each body's shared slope size and the own one: ``(sigma_w^2, tau_s^2 (B,), tau_o^2)``
     of :func:`joint_slide`.
 
@@ -469,9 +474,12 @@ def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own) -> tupl
     bounds = ([(np.log(rss / N) - 30.0, np.log(rss / N) + 5.0)]
               + [(np.log(floor), np.log(floor) + 40.0)] * (1 + B))
     lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
-    fits = [minimize(nll, np.clip(np.log([rss / N, max(o, floor)] + [max(a, floor)] * B), lo, hi),
-                     method="L-BFGS-B", jac=True, bounds=bounds)
-            for a, o in dict.fromkeys([(half, half), (sl.tau_s2, sl.tau_o2)])]
+    x0 = [np.log([rss / N, max(o, floor)] + [max(a, floor)] * B) for a, o in dict.fromkeys([(half, half),
+                                                                                           (sl.tau_s2, sl.tau_o2)])]
+    if start is not None:  # and from the sizes given (each body's own)
+        ts = np.broadcast_to(np.asarray(start[1], float), (B,))
+        x0.append(np.log(np.maximum(np.concatenate([[start[0], start[2]], ts]), floor)))
+    fits = [minimize(nll, np.clip(x, lo, hi), method="L-BFGS-B", jac=True, bounds=bounds) for x in x0]
     x = np.exp(min(fits, key=lambda r: r.fun).x)
     return float(x[0]), x[2:], float(x[1])
 
