@@ -151,10 +151,10 @@ def fitted_geometry(fit) -> FittedGeometry:
     a mean place is known better than the zero-pose place it is carried from, so the geometry's
     part of an angle's sd errs wide there.
     """
-    from skelid.io.osim import offsets_moved, osim_coordinates
+    from skelid.io.osim import mean_places, offsets_moved, osim_coordinates
 
     model, theta = fit.model, np.asarray(fit.theta, float)
-    places = (fit.result.get("artefact") or {}).get("mean_place_mm")  # skelid.scaling.mean_places
+    places = mean_places(fit)
     if places:
         model, theta = offsets_moved(model, theta, places)
     widening = None

@@ -74,6 +74,7 @@ from skelid.io.osim import (
     centred_offset_priors,
     keep_markers,
     marker_locations,
+    mean_places,
     osim_parameters,
     read_osim,
     write_scale_set,
@@ -434,8 +435,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     bias, boot, boot_entry = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
                                              st.sigma if slide is None else None, weights, st.seed)
     base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
+    lo, hi = _prior_bounds(model)
     jo = replace(jo, theta=np.clip(jo.theta - bias, lo, hi))
     psd = prior_sd(_prior_terms(model, jo.theta)[1])
     widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)
@@ -460,6 +460,11 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
 #: the artefact's term is named in a warning where it widens some sd by at least this share of the bound
 #: (an estimate it could move by half an sd, as for the misfit test)
 ARTEFACT_EFFECT = 0.5
+
+
+def _prior_bounds(model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """``(lower, upper)``: each parameter's prior bounds."""
+    return (np.array([p.prior.lower for p in model.parameters]), np.array([p.prior.upper for p in model.parameters]))
 
 
 def _sd(cov) -> np.ndarray:
@@ -512,8 +517,7 @@ def _slide_converged(model: Model, jo, art, ys, weights):
     slide = _slide_fit(model, jo, art)
     if slide is None:
         return None, art, 0, False
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
+    lo, hi = _prior_bounds(model)
     theta, poses, sl, ws = np.clip(jo.theta + slide.shift, lo, hi), jo.poses, art.slide, workspace(model)
     sizes, phase, steps = slide.sizes, 0, 1
     last = float(np.max(np.abs(slide.shift) / _sd(slide.cov)))
@@ -565,8 +569,7 @@ def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
         return jo, jo, (jo.cov if jo.cov_noise is None else jo.cov_noise), None, art, steps, settled
     from skelid.estimators.fit.pose import workspace
 
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
+    lo, hi = _prior_bounds(model)
     theta, ws = np.clip(jo.theta + slide.shift, lo, hi), workspace(model)
     there = [_trial_terms(model, theta, y, q, ws, weights, POSE_ITER) for y, q in zip(ys, jo.poses, strict=True)]
     jo = replace(jo, theta=theta, poses=[t[0] for t in there])
@@ -580,7 +583,7 @@ def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
 
 def _artefact_ratio(art, bound) -> np.ndarray:
     """Per parameter, the sd the artefact's term adds over the sd the residuals alone give."""
-    return np.sqrt(np.clip(np.diag(art.cov), 0.0, None)) / np.maximum(bound, 1e-300)
+    return _sd(art.cov) / np.maximum(bound, 1e-300)
 
 
 def _artefact_entry(art, ratio, slide=None, model: Model | None = None, steps=(0, False)) -> dict:
@@ -1149,8 +1152,7 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
     from skelid.estimators.fit.pose import workspace
 
     ws = workspace(model)
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
+    lo, hi = _prior_bounds(model)
     theta = np.clip(np.asarray(theta0, float), lo, hi)
     poses = [np.asarray(q, float).copy() for q in poses0]
     ys = [np.asarray(y, float) for y in ys]
@@ -1209,8 +1211,7 @@ def _iterate(model: Model, terms, penalised, theta, now, dof, sig, counts, n_ite
     is completed.
     """
     evaluate, complete = terms
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
+    lo, hi = _prior_bounds(model)
     sd0 = np.array([p.prior.sd for p in model.parameters])
     tiny = JOINT_STEP_SD * np.where(np.isfinite(sd0), sd0, 1.0)
     n_obs, n_pose, floor = counts
@@ -2030,16 +2031,6 @@ def scaling_table(fit: ScalingFit) -> dict:
         "markers_left_out": list(fit.dropped_markers),
         "warnings": list(fit.warnings),
     }
-
-
-def mean_places(fit: ScalingFit) -> dict | None:
-    """Where the slide puts each marker on average over the trials (mm, body frame), from its offset's place.
-
-    The offsets are the markers' places at the model's zero pose; a marker that slides sits elsewhere
-    while the subject moves, and inverse kinematics holds it at one place: the written model puts it
-    at its mean place over the trials. None where no slide was estimated.
-    """
-    return (fit.result.get("artefact") or {}).get("mean_place_mm")
 
 
 def _scale_key(p) -> tuple[str, str]:

@@ -953,6 +953,17 @@ def centred_offset_priors(model: Model, centre: dict) -> Model:
     return replace(model, parameters=tuple(params))
 
 
+def mean_places(fit) -> dict | None:
+    """Where the slide puts each marker on average over the trials (mm, body frame), from its offset's place.
+
+    The offsets are the markers' places at the model's zero pose; a marker that slides sits elsewhere
+    while the subject moves, and inverse kinematics holds it at one place: the written model puts it
+    at its mean place over the trials. None where no slide was estimated. ``fit``: a
+    :class:`skelid.scaling.ScalingFit` (or anything with its ``result``).
+    """
+    return (fit.result.get("artefact") or {}).get("mean_place_mm")
+
+
 def offsets_moved(model: Model, theta, moved: dict) -> tuple[Model, np.ndarray]:
     """``(model, theta)`` with each marker of ``moved`` (name -> (3,) mm, body frame) moved by that much.
 
