@@ -78,7 +78,7 @@ def test_the_linear_response_is_the_refits_derivative_in_the_noise(smooth):
 
 def test_the_control_variate_keeps_the_bootstraps_mean_and_shrinks_its_error():
     model = builtin_model("case-a")
-    trial = simulate(model, sigma=15.0, n_frames=400, rng=np.random.default_rng(4))  # banded: above DENSE_MAX
+    trial = simulate(model, sigma=15.0, n_frames=400, rng=np.random.default_rng(4))
     y = trial.data.positions
     fit = joint_fit(model, y, trial.theta, trial.pose, rate=100.0, cutoff=6.0, step_tol=1e-3)
     B = 12

@@ -115,17 +115,15 @@ def _dense_from_banded(ab):
     return A + np.triu(A, 1).T
 
 
-DENSE_MAX = 1500  # below this many unknowns dense LAPACK beats the banded routines
-
-
 def _banded_solver(Hqq, R, R_band=None):
-    """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky."""
-    from scipy.linalg import cho_factor, cho_solve, cho_solve_banded, cholesky_banded
+    """A function ``rhs -> (blockdiag(Hqq) + R)^{-1} rhs`` by banded Cholesky.
+
+    Banded LAPACK beats the dense factor of the same matrix at every size and band measured (9 to 3,000
+    unknowns, bands of 2 to half the size: 2 to 50 times quicker, the dense copy included).
+    """
+    from scipy.linalg import cho_solve_banded, cholesky_banded
 
     ab = _banded_system(Hqq, R, R_band=R_band)
-    if ab.shape[1] <= DENSE_MAX:
-        cf = cho_factor(_dense_from_banded(ab), lower=False, check_finite=False)
-        return lambda rhs: cho_solve(cf, rhs, check_finite=False)
     cb = cholesky_banded(ab, lower=False, check_finite=False)
     return lambda rhs: cho_solve_banded((cb, False), rhs, check_finite=False)
 
