@@ -29,7 +29,9 @@ The fit goes in three steps:
    warnings, and where they widen its interval the joint interval is widened by
    each trial's information in it deflated by that trial's ratio (:func:`check_ratios`,
    :func:`deflated_widening`; the markers' placement term excepted, which the offsets already
-   carry), never beyond the prior's sd; with several trials, the spread of the markers' placement
+   carry), never beyond the prior's sd, and not where a soft-tissue slide is estimated with the
+   geometry and its steps settled (the misfit those checks widen for is then the slide, whose
+   covariance the joint interval already holds); with several trials, the spread of the markers' placement
    from trial to trial is added (:mod:`skelid.estimators.checks.trial_placement`). With one factor per body
    (``scale='bodies'``), a score test per body against one factor per axis
    (:func:`one_factor_test`, Bonferroni over the bodies at 1 %) picks one factor
@@ -432,6 +434,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     jo, checked, base, slide, art, steps, settled = _with_slide(model, jo, art, ys, weights)
     if slide is not None:
         bound = _sd(slide.cov)
+    if settled:  # the slide the scale fit's checks widen for is in the slide's covariance already
+        widen[:] = 1.0
     bias, boot, boot_entry = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
                                              st.sigma if slide is None else None, weights, st.seed)
     base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
