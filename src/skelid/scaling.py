@@ -425,7 +425,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
         placed = trial_placement(jo.info_trials, jo.score_trials, jo.cov, offsets)
     bound = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None))
     widen = np.ones(model.n_params)
-    widen[:m3.n_params] = deflated_widening(jo, _prior_terms(model, jo.theta)[1], check_ratios(est, m3))
+    before = jo  # the fit the checks' ratios deflate, before the slide moves it
     # never wider than the prior: the data cannot leave a parameter less known than before them (a static
     # trial's checks' ratio, 70 on subject01 and 10^6 on an exactly fitted one, asked for far more)
     # the interval with each marker's own noise level (the sandwich), widened by the checks and by the
@@ -434,8 +434,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     jo, checked, base, slide, art, steps, settled = _with_slide(model, jo, art, ys, weights)
     if slide is not None:
         bound = _sd(slide.cov)
-    if settled:  # the slide the scale fit's checks widen for is in the slide's covariance already
-        widen[:] = 1.0
+    if not settled:  # settled, the slide the scale fit's checks widen for is in the slide's covariance already
+        widen[:m3.n_params] = deflated_widening(before, _prior_terms(model, before.theta)[1], check_ratios(est, m3))
     bias, boot, boot_entry = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
                                              st.sigma if slide is None else None, weights, st.seed)
     base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
