@@ -398,7 +398,10 @@ def test_a_point_beyond_a_bound_is_put_on_it_and_says_so():
 
     (m, mean), ci, status = in_support(Prior, (708.0, 708.0), (400.0, 1000.0), "poor")
     assert (m, mean, ci, status) == (300.0, 300.0, (300.0, 300.0), "on-bound")
-    assert in_support(Prior, (250.0, 251.0), (190.0, 310.0), "identified") == ((250.0, 251.0), (190.0, 310.0),
+    # a point inside stays; the interval never leaves the support (the posterior has no mass outside)
+    assert in_support(Prior, (250.0, 251.0), (190.0, 310.0), "identified") == ((250.0, 251.0), (200.0, 300.0),
+                                                                              "identified")
+    assert in_support(Prior, (250.0, 251.0), (210.0, 290.0), "identified") == ((250.0, 251.0), (210.0, 290.0),
                                                                               "identified")
     assert in_support(Prior, (200.0, 200.0), (200.0, 210.0), "identified")[2] == "on-bound"
     assert in_support(Prior, (100.0, 100.0), (90.0, 110.0), "unidentified")[2] == "unidentified"

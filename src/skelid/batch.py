@@ -22,8 +22,8 @@ column                    meaning
 ``<param>_sd``            its posterior standard deviation
 ``<param>_ci_low/high``   its 95 % interval
 ``<param>_crlb_sd``       its Cramér-Rao bound, or null where the method computes none
-``<param>_status``        ``identified``, ``poor``, ``unidentified`` or ``prior``, or null where
-                          the method gives none
+``<param>_status``        ``identified``, ``placement``, ``poor``, ``unidentified``, ``prior`` or
+                          ``on-bound``, or null where the method gives none
 ``sigma``                 marker noise (estimated, or as given)
 ``seconds``               time to read and fit the trial
 ``error``                 one line saying why the trial failed, or null

@@ -86,7 +86,7 @@ td.w { text-align: left; font-size: .9em; max-width: 32em; }
 td.w ul, ul.w { margin: 0; padding-left: 1.1em; }
 tr.fit td { background: #fff0f0; }
 .status-poor, .status-unidentified { color: #8a4b00; font-weight: 600; }
-.status-prior { color: #777; }
+.status-prior, .status-placement { color: #777; }
 .viewer { width: 100%; min-height: 620px; border: 1px solid #eee; }
 nav ol { columns: 2; }
 """
@@ -533,6 +533,9 @@ def per_trial_html(r, units: str) -> str:
                    "joint interval")
         out.append(f"<p>Consistency of the trials with the joint estimate: χ² = {_fmt(_num(c['statistic']))} on "
                    f"{_fmt(_num(c.get('dof')))} degrees of freedom, p = {_fmt(p, 2)} ({verdict}).</p>")
+    elif isinstance(c, Mapping):
+        out.append("<p>Consistency of the trials with the joint estimate: not tested (fewer than one degree of "
+                   "freedom: one trial informs the parameters).</p>")
     return "\n".join(out)
 
 

@@ -45,7 +45,7 @@ import numpy as np
 from skelid.errors import SettingError  # a ValueError too
 
 #: the statuses a parameter can have
-STATUSES = ("identified", "poor", "unidentified", "prior", "on-bound")
+STATUSES = ("identified", "placement", "poor", "unidentified", "prior", "on-bound")
 
 
 @dataclass(frozen=True)
@@ -63,8 +63,11 @@ class ParameterEstimate:
         Central 95 % interval.
     crlb_sd : float or None
         Cramér-Rao bound on the standard deviation, where the estimator computes one.
-    status : {'identified', 'poor', 'unidentified', 'prior', 'on-bound'}
-        ``prior``: the data add nothing and the value is the prior's. ``on-bound``: the fit's
+    status : {'identified', 'placement', 'poor', 'unidentified', 'prior', 'on-bound'}
+        ``placement``: the value follows from the markers' nominal placement on their segments
+        rather than from motion (one still pose would give as much precision; a segment length
+        between markers, a joint centre from a standing trial), so it is only as good as that
+        placement. ``prior``: the data add nothing and the value is the prior's. ``on-bound``: the fit's
         optimum sits on (or beyond) a bound of the prior's support; the point reported is on
         the bound, never outside it (the unbounded value is in ``extra['beyond_bound']``).
     extra : mapping

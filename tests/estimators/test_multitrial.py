@@ -12,6 +12,7 @@ from skelid.estimators.multitrial import (
     MultiTrialEstimator,
     consistency_test,
     dersimonian_laird,
+    joint_status,
     mixture_half_width,
     pairwise_z,
     paule_mandel,
@@ -322,3 +323,69 @@ def test_a_single_parameter_trial_on_its_bound_is_set_aside_not_fatal():
         warnings.simplefilter("ignore")
         with pytest.raises(IdentifiabilityError, match="every trial sits on a bound"):
             MultiTrialEstimator(model, **kw).fit([datas[2], datas[2]])
+
+
+def _with_status(est, statuses):
+    est.identifiability_ = dict(est.identifiability_, table=[dict(r, status=s) for r, s in
+                                                          zip(est.identifiability_["table"], statuses, strict=True)])
+    return est
+
+
+@pytest.mark.parametrize("between", ["dl", "prior"])
+def test_a_trial_that_leaves_a_parameter_unidentified_contributes_nothing_to_it(between):
+    model = two_link()
+    datas = [_data(model, 25, 60 + k, sigma=1.0).data for k in range(3)]
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
+        # the third trial leaves elbow_y poorly identified, 40 mm off
+        ests[2].theta_profile_ = ests[2].theta_profile_ + np.array([0.0, 40.0])
+        _with_status(ests[2], ["identified", "poor"])
+        m = MultiTrialEstimator(model, between_trial=between, **kw).combine(ests, [d.rate for d in datas])
+    assert m.trial_informs_.tolist() == [[True, True], [True, True], [True, False]]
+    # its between-trial variance is the two other trials' own
+    if between == "dl":
+        tau2, _, df = dersimonian_laird(m.trial_theta_[:2, 1:], np.einsum("kpp->kp", m.trial_cov_)[:2, 1:])
+        assert m.tau2_[1] == pytest.approx(tau2[0]) and m.heterogeneity_["elbow_y"]["dof"] == df == 1
+    assert m.heterogeneity_["elbow_y"]["trials"] == 2 and m.heterogeneity_["elbow_x"]["trials"] == 3
+    # the combination is the limit of an infinite variance on the trial's elbow_y (marginalised out)
+    C = m.trial_cov_.copy()
+    C[2, 1, 1] += 1e12
+    th, cov, _ = random_effects(m.trial_theta_, C, m.tau2_)
+    np.testing.assert_allclose(m.cov_unscaled_, cov, rtol=1e-6)
+    np.testing.assert_allclose(m.theta_data_, th, rtol=1e-6, atol=1e-6)
+    assert abs(m.theta_data_[1] - np.mean(m.trial_theta_[:2, 1])) < 5.0  # not dragged 40 / 3 mm
+    # tested on the parameters each trial informs: 2 + 2 + 1 observations of 2 parameters
+    assert m.consistency_["dof"] == 3
+    res = m.result()
+    assert res.parameters["elbow_y"].status == "identified"
+    rows = res.diagnostics["trials"]
+    assert rows[2]["parameters"]["elbow_y"]["contributes"] is False
+    assert rows[2]["parameters"]["elbow_y"]["status"] == "poor"
+
+
+def test_a_parameter_no_trial_identifies_keeps_their_status_and_the_prior_support():
+    model = two_link()
+    datas = [_data(model, 25, 70 + k, sigma=1.0).data for k in range(2)]
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests = [_with_status(MarkerEstimator(model, **kw).fit(d), ["identified", "poor"]) for d in datas]
+        for e in ests:  # as wide as a poorly identified parameter's: far beyond its +-60 mm prior
+            e.cov_data_ = e.cov_data_ + np.diag([0.0, 80.0**2])
+        m = MultiTrialEstimator(model, between_trial="dl", **kw).combine(ests, [d.rate for d in datas])
+    assert m.trial_informs_.all()
+    p = m.result().parameters["elbow_y"]
+    assert p.status == "poor"
+    assert -60.0 <= p.interval[0] < p.interval[1] <= 60.0 and p.interval == (-60.0, 60.0)
+
+
+def test_joint_status_and_in_support_closed_forms():
+    from skelid.estimators.base import in_support
+    from skelid.model.description import Prior
+
+    assert joint_status([["poor", "unidentified"], ["identified", "poor"]]) == ["identified", "poor"]
+    pr = Prior("uniform", 0.0, 10.0)
+    assert in_support(pr, (4.0, 4.0), (-3.0, 11.0), "poor") == ((4.0, 4.0), (0.0, 10.0), "poor")
+    assert in_support(pr, (12.0, 12.0), (11.0, 13.0), "identified") == ((10.0, 10.0), (10.0, 10.0), "on-bound")

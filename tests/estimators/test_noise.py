@@ -3,7 +3,14 @@ import pytest
 import scipy.sparse as sp
 
 from skelid.errors import ModelError
-from skelid.estimators.checks.noise import group_sigma, marker_groups, row_leverage
+from skelid.estimators.checks.noise import (
+    INSTRUMENT_FLOOR_MM,
+    effective_dof,
+    group_sigma,
+    marker_groups,
+    row_leverage,
+    squeeze_variances,
+)
 from skelid.estimators.fit.joint import joint_fit, smoothing_penalty, weighted_terms
 from skelid.estimators.fit.likelihood import pose_information
 from skelid.estimators.marker import MarkerEstimator
@@ -131,3 +138,67 @@ def test_one_group_is_the_pooled_fit():
 
 def test_sparse_import_is_used():  # keep the scipy.sparse import honest for the penalty helpers
     assert sp.issparse(smoothing_penalty(two_link(), np.ones((10, 3, 3)) * np.eye(3), 100.0, 6.0))
+
+
+def test_squeezed_variances_recover_the_prior_they_were_drawn_from():
+    # fixed-seed simulation: 1/sigma_g^2 from a scaled inverse chi-square prior (d0 = 10, s0^2 = 2),
+    # each s2_g from sigma_g^2 chi^2_4 / 4; the moments recover the prior, and the posterior means
+    # are closer to the true variances than the raw ones
+    rng = np.random.default_rng(3)
+    G, d = 4000, np.full(4000, 4.0)
+    true = 10.0 * 2.0 / rng.chisquare(10.0, G)
+    s2 = true * rng.chisquare(4.0, G) / 4.0
+    post, pdof, d0, s0 = squeeze_variances(s2, d)
+    assert d0 == pytest.approx(10.0, rel=0.2)
+    assert s0 == pytest.approx(2.0, rel=0.1)
+    np.testing.assert_allclose(pdof, d0 + 4.0)
+    assert np.mean((np.log(post) - np.log(true)) ** 2) < 0.6 * np.mean((np.log(s2) - np.log(true)) ** 2)
+
+
+def test_squeeze_keeps_clearly_different_levels_and_needs_three_groups():
+    s2 = np.array([1.0, 100.0, 10000.0])
+    post, _, d0, _ = squeeze_variances(s2, np.full(3, 5000.0))
+    assert d0 < 10.0  # the groups differ far beyond their sampling error: little pooling
+    np.testing.assert_allclose(post, s2, rtol=0.01)
+    post2, _, d02, _ = squeeze_variances(s2[:2], np.full(2, 5.0))
+    assert d02 == 0.0 and np.array_equal(post2, s2[:2])
+
+
+def test_effective_dof_of_a_correlated_series():
+    # the variance of a variance estimate from an AR(1) series of n values is about
+    # 2 sigma^4 (1 + rho^2) / (n (1 - rho^2)); simulated: the ratio of the two matches
+    rng = np.random.default_rng(1)
+    rho, n, reps = 0.8, 400, 3000
+    e = rng.normal(size=(reps, n)) * np.sqrt(1 - rho**2)
+    x = np.empty_like(e)
+    x[:, 0] = rng.normal(size=reps)
+    for t in range(1, n):
+        x[:, t] = rho * x[:, t - 1] + e[:, t]
+    v = (x**2).mean(axis=1)
+    dof_sim = 2.0 / v.var()
+    assert effective_dof(n, rho) == pytest.approx(dof_sim, rel=0.1)
+
+
+def test_a_quiet_marker_cannot_collapse_below_the_instrument_floor():
+    # one forearm marker at 0.03 mm among markers at 0.3 mm: its level stays at the floor (0.1 mm)
+    sig = np.array([0.3, 0.3, 0.3, 0.03, 0.3, 0.3])
+    model, trial, data = _trial(sig, n_frames=200, seed=4)
+    per = MarkerEstimator(model, cutoff=None, outlier_threshold=None, noise="per_marker").fit(data)
+    assert np.all(per.marker_sigma_ >= INSTRUMENT_FLOOR_MM * (1 - 1e-9))
+    assert per.marker_sigma_[3] == pytest.approx(INSTRUMENT_FLOOR_MM, rel=1e-9)
+    # two groups (no pooling across fewer than three): the floor alone holds it
+    two = MarkerEstimator(model, cutoff=None, outlier_threshold=None, noise="per_marker",
+                          marker_groups={"rest": ["u0", "u1", "u2", "f1", "f2"]}).fit(data)
+    assert two.marker_sigma_[3] == pytest.approx(INSTRUMENT_FLOOR_MM, rel=1e-9)
+    # a whole trial quieter than the floor (simulated) keeps its own level
+    quiet, _, qdata = _trial([0.01] * 6, n_frames=200, seed=4)
+    q = MarkerEstimator(quiet, cutoff=None, outlier_threshold=None, noise="per_marker").fit(qdata)
+    np.testing.assert_allclose(q.marker_sigma_, 0.01, rtol=0.15)
+
+
+def test_per_marker_weights_never_change_the_joint_ranges():
+    sig = np.array([1.0, 1.0, 1.0, 0.2, 1.0, 8.0])
+    model, trial, data = _trial(sig, n_frames=150, seed=6)
+    pooled = MarkerEstimator(model, cutoff=None, outlier_threshold=None).fit(data)
+    per = MarkerEstimator(model, cutoff=None, outlier_threshold=None, noise="per_marker").fit(data)
+    assert per.identifiability_["joint_range_deg"] == pooled.identifiability_["joint_range_deg"]

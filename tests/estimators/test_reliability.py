@@ -101,6 +101,13 @@ def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
                            rng=np.random.default_rng(0)).fit(data)
     assert np.allclose(est.cov_data_ - bare.cov_data_, 25.0 * place["cov_per_unit"], rtol=1e-6, atol=1e-12)
     assert np.all(est.posterior_.sd > bare.posterior_.sd)
+    # the joints stood still: the values are the placement's, not identified by motion
+    assert {p.status for p in bare.result().parameters.values()} == {"placement"}
+    assert {p.status for p in est.result().parameters.values()} <= {"placement", "poor"}
+    moving = simulate(model, n_frames=120, sigma=0.5, rng=np.random.default_rng(4))
+    moved = MarkerEstimator(model, cutoff=None, jackknife=False, rng=np.random.default_rng(0)).fit(moving.data)
+    assert not moved.placement_["static"]
+    assert all(r["status"] != "placement" for r in moved.identifiability_["table"])
 
 
 def test_near_a_singular_pose_the_fit_reaches_the_minimum_a_start_at_the_truth_reaches():

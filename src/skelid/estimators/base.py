@@ -345,8 +345,9 @@ def in_support(prior, points, interval, status: str) -> tuple[tuple[float, ...],
     """Points (MAP, mean) and interval of one parameter held inside its prior's support ``[lower, upper]``.
 
     A point on or beyond a bound gets the status ``'on-bound'`` (unless the parameter is
-    unidentified) and is put on the bound; when one is moved, the interval is cut to the
-    support as well. A point inside leaves everything as it is.
+    unidentified) and is put on the bound. The interval is always cut to the support: the
+    prior gives no probability outside it, so neither does the posterior (a poorly identified
+    length's normal interval would otherwise reach negative lengths).
     """
     lo, hi = float(prior.lower), float(prior.upper)
     tol = ON_BOUND_RTOL * (hi - lo)
@@ -356,7 +357,7 @@ def in_support(prior, points, interval, status: str) -> tuple[tuple[float, ...],
         status = "on-bound"
     if moved:
         points = tuple(min(max(x, lo), hi) for x in points)
-        interval = (min(max(interval[0], lo), hi), min(max(interval[1], lo), hi))
+    interval = (min(max(interval[0], lo), hi), min(max(interval[1], lo), hi))
     return points, interval, status
 
 

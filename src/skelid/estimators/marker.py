@@ -111,6 +111,7 @@ from skelid.estimators.uncertainty.singular import (
     second_order_covariance,
 )
 from skelid.model.description import Model
+from skelid.model.kinds import PARAMETER_TARGET
 from skelid.model.kinematics import Workspace, joint_distances, marker_positions
 from skelid.result import FitResult, NoiseEstimate, Warning
 
@@ -516,9 +517,15 @@ def noise_stage(model: Model, fit: JointFit, sigma: float | None) -> Noise:
 
 
 def identify_stage(model: Model, st: Start, sc: Screen, fr: Frames, fit: JointFit, noise: Noise,
-                   on_bound: str) -> tuple[dict, np.ndarray]:
-    """Identifiability table, and the parameters whose profile estimate sits on a prior bound."""
-    ident = identifiability(model, fit.info, noise.sigma, y=sc.y, pose=fit.pose, used=fr.used)
+                   on_bound: str, motion_pose=None) -> tuple[dict, np.ndarray]:
+    """Identifiability table, and the parameters whose profile estimate sits on a prior bound.
+
+    The joints' ranges of motion come from ``motion_pose`` (the unweighted fit's poses) where
+    given: per-marker weights, which let the poses follow a few markers closely, never widen a
+    range (nor change which joints count as still).
+    """
+    pose = fit.pose if motion_pose is None else motion_pose
+    ident = identifiability(model, fit.info, noise.sigma, y=sc.y, pose=pose, used=fr.used)
     if ident["null"]:
         raise IdentifiabilityError(
             f"the data cannot identify {null_message(model, ident['null'])} (no information "
@@ -863,19 +870,30 @@ def misfit_stage(est: MarkerEstimator, st: Start, sc: Screen, wt: Weights, res: 
     return Misfit(joints, Estimate((lo + hi) / 2, cov * np.outer(scale, scale)))
 
 
-def summary_stage(model: Model, ident: dict, est: Estimate) -> Summary:
-    """The final identifiability rows (the final interval also decides 'poor'), still joints, lengths."""
+def summary_stage(model: Model, ident: dict, est: Estimate, placement: dict | None = None) -> Summary:
+    """The final identifiability rows, still joints, lengths.
+
+    The final interval also decides 'poor'. A parameter informed by the markers' nominal
+    placement rather than by motion (:func:`placement_stage`) in a trial whose joints all stood
+    still, or whose own joint stood still, has the status 'placement': its value is the one
+    the placement implies, not one the motion found.
+    """
     sd = np.sqrt(np.clip(np.diag(est.cov), 0.0, None))
+    pl = placement or {}
+    ranges = ident.get("joint_range_deg", {})
+    still_joints = {j for j, r in ranges.items() if max(r) < STILL_JOINT_DEG}
     table = []
     for k, row in enumerate(ident["table"]):
         p = model.parameters[k]
         row = dict(row, sd=float(sd[k]))
         if row["status"] == "identified" and sd[k] > POOR_FRACTION * (p.prior.upper - p.prior.lower):
             row["status"] = "poor"
+        still = pl.get("static") or (PARAMETER_TARGET.get(p.kind, "joint") == "joint" and p.target in still_joints)
+        if row["status"] == "identified" and still and pl["parameters"][p.name]["informed_by_placement"]:
+            row["status"] = "placement"
         table.append(row)
     functional = {p.target for p in model.parameters if p.kind in ("joint_centre", "axis_direction")}
-    still = [j for j, r in ident.get("joint_range_deg", {}).items()
-             if j in functional and max(r) < STILL_JOINT_DEG]
+    still = [j for j, r in ranges.items() if j in functional and max(r) < STILL_JOINT_DEG]
     return Summary(table, still, derived_lengths(model, est.theta, est.cov))
 
 
@@ -1083,7 +1101,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     fit = wt.fit
     fr = frames_stage(model, sc, fit)
     noise = noise_stage(model, fit, est.sigma)
-    ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound)
+    ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound, mo.fit.pose)
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     bias = profile_stage(est, sc, wt, fr.used, noise, bias)
@@ -1093,7 +1111,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     estimate = mis.estimate if mis is not None else estimate
     estimate, beyond = support_stage(st, estimate)
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned | np.isfinite(beyond), res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate), ws.path, mis, beyond, origin)
+                     summary_stage(model, ident, estimate, cov.placement), ws.path, mis, beyond, origin)
 
 
 def support_stage(st: Start, estimate: Estimate) -> tuple[Estimate, np.ndarray]:

@@ -25,6 +25,15 @@ artefact was stated). One trial gives back that trial's fit.
 joint one: ``X^2 = sum_k (theta_k - theta)^T C_k^{-1} (theta_k - theta)``, a
 chi-square with ``(K - 1) P`` degrees of freedom when the trials agree.
 
+**A trial that leaves a parameter unidentified** (its own status ``poor``,
+``unidentified`` or ``on-bound``: an elbow centre from a trial whose elbow
+never moved) contributes nothing to that parameter: it is marginalised out of
+that trial's estimate (the trial's weight is the inverse of its covariance
+restricted to the parameters it identifies), it enters neither that
+parameter's between-trial variance nor the consistency test, and the joint
+status is the best of the trials' own (a parameter no trial identifies keeps
+the trials' status, and its interval stays inside its prior's support).
+
 **Between-trial excess variance.** Skin moves differently in different
 movements; the part of it that mimics a geometry change shifts each trial's
 estimate by a random amount ``u_k ~ N(0, Omega)``. ``Omega = diag(tau_p^2)`` is
@@ -443,18 +452,20 @@ def t_factor(dof) -> np.ndarray:
 
 
 def satterthwaite_dof(total, between, df) -> np.ndarray:
-    """Effective degrees of freedom of a variance ``total`` of which ``between`` is estimated with ``df``.
+    """Effective degrees of freedom of a variance ``total`` of which ``between`` is estimated with ``df``
+    (a scalar, or one per entry).
 
     ``nu = df * total^2 / between^2`` (infinite where ``between`` is 0).
     """
     total, between = np.broadcast_arrays(np.asarray(total, float), np.asarray(between, float))
+    df = np.broadcast_to(np.asarray(df, float), total.shape)
     out = np.full(total.shape, np.inf)
     pos = between > 0
-    out[pos] = df * (total[pos] / between[pos]) ** 2
+    out[pos] = df[pos] * (total[pos] / between[pos]) ** 2
     return out
 
 
-def random_effects(estimates, covs, tau2):
+def random_effects(estimates, covs, tau2, informs=None):
     """Random-effects combination of the trials and the ``t`` widening of its interval.
 
     Parameters
@@ -464,6 +475,10 @@ def random_effects(estimates, covs, tau2):
         Within-trial covariances ``C_k``.
     tau2 : (P,) float
         Between-trial variances.
+    informs : (K, P) bool, optional
+        Which trial contributes to which parameter (default: every one to every one). A trial
+        that does not contribute to a parameter is marginalised over it: its weight is the
+        inverse of ``C_k + Omega`` restricted to the parameters it informs, zero elsewhere.
 
     Returns
     -------
@@ -472,7 +487,8 @@ def random_effects(estimates, covs, tau2):
     cov : (P, P) float
         ``(sum W_k)^{-1}``.
     dof : (P,) float
-        Satterthwaite degrees of freedom of each variance (see the module notes).
+        Satterthwaite degrees of freedom of each variance (see the module notes), with
+        ``K_p - 1`` for the ``K_p`` trials that inform parameter ``p``.
 
     Examples
     --------
@@ -483,14 +499,67 @@ def random_effects(estimates, covs, tau2):
     y = np.asarray(estimates, float)
     C = np.asarray(covs, float)
     tau2 = np.asarray(tau2, float)
-    K = y.shape[0]
-    W = np.linalg.inv(C + np.diag(tau2))
+    K, P = y.shape
+    m = np.ones((K, P), bool) if informs is None else np.asarray(informs, bool)
+    W = np.zeros((K, P, P))
+    for k in range(K):
+        i = np.flatnonzero(m[k])
+        if i.size:
+            W[k][np.ix_(i, i)] = np.linalg.inv((C[k] + np.diag(tau2))[np.ix_(i, i)])
     cov = np.linalg.inv(W.sum(axis=0))
     theta = cov @ np.einsum("kpq,kq->p", W, y)
-    w = 1.0 / (np.einsum("kpp->kp", C) + tau2)  # per-parameter weights for the degrees of freedom
+    w = np.where(m, 1.0 / (np.einsum("kpp->kp", C) + tau2), 0.0)  # per-parameter weights for the dof
     total = 1.0 / w.sum(axis=0)
     between = tau2 * (w**2).sum(axis=0) / w.sum(axis=0) ** 2
-    return theta, cov, satterthwaite_dof(total, between, K - 1)
+    return theta, cov, satterthwaite_dof(total, between, np.maximum(m.sum(axis=0) - 1, 1))
+
+
+def trial_informs(statuses) -> np.ndarray:
+    """``(K, P)`` bool: which trial contributes to which parameter.
+
+    A trial contributes to a parameter its own fit identifies (status ``'identified'``, or
+    ``'placement'``: a standing trial's scale factors follow from the markers' placement, with
+    the placement's uncertainty in their interval); one that leaves it poorly identified,
+    unidentified or on a bound contributes nothing to it (its estimate there is its prior's, or
+    noise). Where no trial identifies a parameter every trial contributes, and the joint status
+    says so.
+
+    Parameters
+    ----------
+    statuses : (K, P) sequence of str
+
+    Examples
+    --------
+    >>> trial_informs([["identified", "poor"], ["placement", "identified"]]).tolist()
+    [[True, False], [True, True]]
+    >>> trial_informs([["poor"], ["unidentified"]]).tolist()
+    [[True], [True]]
+    """
+    m = np.array([[s in ("identified", "placement") for s in row] for row in statuses], bool)
+    m[:, ~m.any(axis=0)] = True
+    return m
+
+
+def joint_status(statuses) -> list[str]:
+    """Each parameter's status over several trials: the best of the trials' own
+    (``identified`` > ``placement`` > ``poor`` > ``unidentified`` > ``on-bound``)."""
+    order = ("identified", "placement", "poor", "unidentified", "unidentifiable", "on-bound", "prior")
+    rank = {s: k for k, s in enumerate(order)}
+    cols = list(zip(*statuses, strict=True))
+    return [min(c, key=lambda s: rank.get(s, len(order))) for c in cols]
+
+
+def per_parameter(between, estimates, variances, informs):
+    """A between-trial variance estimator (:data:`BETWEEN_TRIAL`) run for each parameter over the
+    trials that inform it: ``tau2, q, df``, each ``(P,)``."""
+    y = np.atleast_2d(np.asarray(estimates, float))
+    v = np.atleast_2d(np.asarray(variances, float))
+    m = np.asarray(informs, bool)
+    tau2, q, df = np.zeros(y.shape[1]), np.zeros(y.shape[1]), np.zeros(y.shape[1], int)
+    for p in range(y.shape[1]):
+        t, qq, d = between(y[m[:, p], p:p + 1], v[m[:, p], p:p + 1])
+        tau2[p], q[p], df[p] = t[0], qq[0], d
+    return tau2, q, df
 
 
 def _check_some_trial_moves(model: Model, trials, rate) -> None:
@@ -508,6 +577,12 @@ def _check_some_trial_moves(model: Model, trials, rate) -> None:
             return  # the trial's own fit says what is wrong with it
     if first is not None:
         raise first
+
+
+def _trial_status(est) -> list[str]:
+    """A fitted trial's own status of each parameter (its identifiability table, final interval)."""
+    rows = {r["parameter"]: r["status"] for r in est.identifiability_.get("table", [])}
+    return [rows.get(n, "identified") for n in est.model.parameter_names]
 
 
 def _trial_label(data, k: int) -> str:
@@ -578,6 +653,14 @@ class MultiTrialEstimator:
         Their covariances.
     trial_sd_ : (K, P) float
         Each trial's own sd with the between-trial variance and its ``t`` factor.
+    trial_status_ : (K, P) str
+        Each trial's own status of each parameter (``identified``, ``poor``, ...).
+    trial_informs_ : (K, P) bool
+        Which trial contributes to which parameter (:func:`trial_informs`): a trial that leaves a
+        parameter unidentified or poorly identified adds nothing to it, neither to the estimate nor
+        to its between-trial variance or the consistency test.
+    status_ : dict
+        Each parameter's status over the trials (:func:`joint_status`).
     tau2_ : (P,) float
         Between-trial variance of each parameter (its posterior mean with ``'prior'``).
     tau_prior_scale_ : (P,) float
@@ -697,6 +780,7 @@ class MultiTrialEstimator:
         self.trial_labels_ = list(labels) if labels is not None else [f"trial {k + 1}" for k in range(len(ests))]
         self.trial_theta_ = np.array([e.theta_profile_ - e.bias_ for e in ests])
         self.trial_cov_ = np.array([e.cov_data_ for e in ests])
+        self.trial_status_ = np.array([_trial_status(e) for e in ests], dtype=object)
         self._within(ests)
         fit = self._combine(lambda: self._stacked_fit(ests, [float(r) for r in rates]))
         self._publish(fit, ests)
@@ -742,15 +826,13 @@ class MultiTrialEstimator:
         fit = None
         P = self.model.n_params
         var = np.einsum("kpp->kp", self.trial_cov_)
-        # a trial whose own fit ended on a prior bound has no Gaussian approximation to combine (e.g. a
-        # standing trial and functional joint centres): it is set aside from the combination of the
-        # trials' own estimates, unless no trial is left
-        pinned = np.array([bool(np.any(getattr(getattr(e, "fit_", None), "pinned", False))) for e in self.trials_])
-        keep = ~pinned if (pinned.any() and not pinned.all()) else np.ones(len(pinned), bool)
-        self.trials_set_aside_ = [lab for lab, k in zip(self.trial_labels_, keep, strict=True) if not k]
+        keep = self._kept()
         theta_k, cov_k, K = self.trial_theta_[keep], self.trial_cov_[keep], int(keep.sum())
+        # a trial that leaves a parameter unidentified contributes nothing to it
+        self.trial_informs_ = np.ones_like(self.trial_theta_, bool)
+        self.trial_informs_[keep] = informs = trial_informs(self.trial_status_[keep])
         method = self.between_trial if self.between_trial in BETWEEN_TRIAL else "dl"
-        tau2, q, df = BETWEEN_TRIAL[method](theta_k, var[keep])
+        tau2, q, df = per_parameter(BETWEEN_TRIAL[method], theta_k, var[keep], informs)
         if self.between_trial == "none":
             tau2 = np.zeros(P)
         prior = self.between_trial == "prior" and K > 1
@@ -758,20 +840,22 @@ class MultiTrialEstimator:
         if prior:
             # half-normal prior on each tau: the joint interval and each trial's own hold 95 % of the
             # posterior (a normal mixture over tau); centre: the random-effects combination at E[tau^2]
-            grid, weight, mean, cvar = tau_posterior(theta_k, var[keep], self.tau_prior_scale_)
+            cols = [tau_posterior(theta_k[informs[:, p], p:p + 1], var[keep][informs[:, p], p:p + 1],
+                                  self.tau_prior_scale_[p:p + 1]) for p in range(P)]
+            grid, weight, mean, cvar = (np.concatenate(a, axis=1) for a in zip(*cols, strict=True))
             tau2 = (weight * grid**2).sum(axis=0)
         self.tau2_ = tau2
         if prior:
-            theta, cov, _ = random_effects(theta_k, cov_k, tau2)
+            theta, cov, _ = random_effects(theta_k, cov_k, tau2, informs)
             dof = np.full(P, np.inf)
             f = mixture_half_width(weight, mean, cvar, theta) / (Z95 * np.sqrt(np.diag(cov)))
             trial_sd = mixture_half_width(weight[:, None, :], 0.0, var[None] + grid[:, None, :] ** 2,
                                           np.zeros(var.shape)) / Z95
-        elif np.any(tau2 > 0) or not keep.all():
+        elif np.any(tau2 > 0) or not keep.all() or not informs.all():
             # trials differ beyond their own noise: each trial's estimate is the geometry plus its own
             # random shift, so they are combined with the weights (C_k + Omega)^{-1} (a trial with a
             # tiny within-trial variance no longer decides alone)
-            theta, cov, dof = random_effects(theta_k, cov_k, tau2)
+            theta, cov, dof = random_effects(theta_k, cov_k, tau2, informs)
         else:
             fit = stacked()
             theta, cov, dof = fit.theta - self.bias_, self.cov_within_, np.full(P, np.inf)
@@ -785,17 +869,40 @@ class MultiTrialEstimator:
             self.trial_dof_ = np.full(var.shape, np.inf)
             self.trial_sd_ = trial_sd
         else:
-            self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), max(K - 1, 1))
+            self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), np.maximum(df, 1))
             self.trial_sd_ = np.sqrt(np.clip(trial_var, 0.0, None)) * t_factor(self.trial_dof_)
-        self.consistency_ = consistency_test(theta_k, cov_k, theta)
+        self._checks(theta_k, cov_k, informs, theta, q, df, dof, f)
+        self.theta_data_, self.cov_data_ = theta, cov
+        self.status_ = dict(zip(self.model.parameter_names, joint_status(self.trial_status_[keep]), strict=True))
+        return fit
+
+    def _kept(self) -> np.ndarray:
+        """(K,) bool: the trials combined.
+
+        A trial whose own fit ended on a prior bound has no Gaussian approximation to combine (e.g. a
+        standing trial and functional joint centres): it is set aside from the combination of the
+        trials' own estimates, unless no trial is left.
+        """
+        pinned = np.array([bool(np.any(getattr(getattr(e, "fit_", None), "pinned", False))) for e in self.trials_])
+        keep = ~pinned if (pinned.any() and not pinned.all()) else np.ones(len(pinned), bool)
+        self.trials_set_aside_ = [lab for lab, k in zip(self.trial_labels_, keep, strict=True) if not k]
+        return keep
+
+    def _checks(self, theta_k, cov_k, informs, theta, q, df, dof, f) -> None:
+        """The consistency test and the heterogeneity table of the trials combined.
+
+        The test sees each trial only where it contributes: a parameter it leaves unidentified is
+        left out of its deviation and covariance.
+        """
+        mask2 = informs[:, :, None] & informs[:, None, :]
+        self.consistency_ = consistency_test(np.where(informs, theta_k, theta), np.where(mask2, cov_k, 0.0), theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             i2 = np.where(q > 0, np.maximum(0.0, (q - df) / q), 0.0)
-        self.heterogeneity_ = {n: {"q": float(q[k]), "dof": int(df), "i2": float(i2[k]),
-                                   "tau": float(np.sqrt(tau2[k])), "t_dof": float(dof[k]),
+        self.heterogeneity_ = {n: {"q": float(q[k]), "dof": int(df[k]), "i2": float(i2[k]),
+                                   "trials": int(informs[:, k].sum()),
+                                   "tau": float(np.sqrt(self.tau2_[k])), "t_dof": float(dof[k]),
                                    "t_factor": float(f[k])}
                                for k, n in enumerate(self.model.parameter_names)}
-        self.theta_data_, self.cov_data_ = theta, cov
-        return fit
 
     def _tau_prior_scale(self, ests) -> np.ndarray:
         """Half-normal scale of each parameter's between-trial sd: what the prior artefact does to one trial.
@@ -870,6 +977,8 @@ class MultiTrialEstimator:
             for p, n in enumerate(self.model.parameter_names):
                 m, s = float(self.trial_theta_[k, p]), float(self.trial_sd_[k, p])
                 params[n] = {"mean": m, "sd": float(sd[p]), "sd_with_between_trial": s,
+                             "status": str(self.trial_status_[k, p]),
+                             "contributes": bool(self.trial_informs_[k, p]),
                              "interval": [m - Z95 * s, m + Z95 * s],
                              "t_dof": float(self.trial_dof_[k, p]) if np.isfinite(self.trial_dof_[k, p]) else None}
             ms = e.marker_sigma_
@@ -925,7 +1034,7 @@ class MultiTrialEstimator:
                                                                           self.tau_prior_scale_, strict=True)}},
             "converged": self.converged_, "stacked_fit_iterations": self.n_iter_}
         return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=noise, skipped=skipped,
-                            diagnostics=diagnostics, derived=self.lengths_, status={},
+                            diagnostics=diagnostics, derived=self.lengths_, status=self.status_,
                             arrays={"pose": self.pose_, "trial_theta": self.trial_theta_,
                                     "trial_cov": self.trial_cov_, "trial_sd": self.trial_sd_,
                                     "trial_frames": np.array([len(e.frames_used_) for e in self.trials_])})

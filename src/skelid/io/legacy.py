@@ -40,7 +40,7 @@ from skelid.result import FitResult, FitRun, FrameCounts, NoiseEstimate, Paramet
 
 _STATUS = {"identified": "identified", "well identified": "identified", "ok": "identified",
            "poor": "poor", "poorly identified": "poor", "unidentified": "unidentified",
-           "not identified": "unidentified", "prior": "prior"}
+           "not identified": "unidentified", "prior": "prior", "placement": "placement"}
 #: keys of a method's dict that are not parameters
 _RESERVED = ("sigma", "lengths", "identifiability", "counting", "joint_range_deg", "warnings", "frames_used",
              "frames_dropped", "seconds")
