@@ -19,6 +19,7 @@ from skelid.estimators.multitrial import (
     random_effects,
     random_effects_prior,
     satterthwaite_dof,
+    shared_covariance,
     t_factor,
     tau_posterior,
 )
@@ -389,3 +390,42 @@ def test_joint_status_and_in_support_closed_forms():
     pr = Prior("uniform", 0.0, 10.0)
     assert in_support(pr, (4.0, 4.0), (-3.0, 11.0), "poor") == ((4.0, 4.0), (0.0, 10.0), "poor")
     assert in_support(pr, (12.0, 12.0), (11.0, 13.0), "identified") == ((10.0, 10.0), (10.0, 10.0), "on-bound")
+
+
+def test_shared_covariance_closed_forms():
+    W = np.array([np.eye(2), 3.0 * np.eye(2)])
+    norm = np.linalg.inv(W.sum(axis=0))
+    Sh = np.array([np.diag([4.0, 1.0]), np.diag([4.0, 9.0])])
+    m = np.ones((2, 2), bool)
+    cov, r = shared_covariance(W, norm, Sh, np.zeros(2), m)
+    # one error u: 0.25 * 2 u + 0.75 * 2 u on the first, 0.25 * 1 u + 0.75 * 3 u on the second
+    np.testing.assert_allclose(cov, np.diag([4.0, 2.5**2]))
+    np.testing.assert_allclose(r, 1.0)
+    # a between-trial variance as large as the mean shared variance: none of it recurs
+    cov, r = shared_covariance(W, norm, Sh, np.array([4.0, 2.5]), m)
+    np.testing.assert_allclose(r, [0.0, np.sqrt(0.5)])
+    np.testing.assert_allclose(cov, np.diag([0.0, 0.5 * 2.5**2]))
+
+
+def test_the_shared_part_of_each_trial_is_carried_once_and_left_out_of_comparisons():
+    model = two_link()
+    datas = [_data(model, 25, 83 + k, sigma=1.0).data for k in range(3)]
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
+        plain = MultiTrialEstimator(model, between_trial="none", **kw).combine(ests, [d.rate for d in datas])
+        for e in ests:  # a placement error of sd 3 mm on elbow_x that every trial shares
+            e.cov_shared_ = np.diag([9.0, 0.0])
+            e.cov_data_ = e.cov_data_ + e.cov_shared_
+        m = MultiTrialEstimator(model, between_trial="none", **kw).combine(ests, [d.rate for d in datas])
+    # the own parts combine as before; the shared one is added once, not divided by three
+    np.testing.assert_allclose(m.cov_, plain.cov_ + np.diag([9.0, 0.0]), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(m.trial_sd_, plain.trial_sd_)  # comparisons: it cancels
+    assert m.consistency_["statistic"] == pytest.approx(plain.consistency_["statistic"])
+    rows = m.result().diagnostics["trials"]
+    assert rows[0]["parameters"]["elbow_x"]["sd_shared"] == pytest.approx(3.0)
+    lo, hi = rows[0]["parameters"]["elbow_x"]["interval"]
+    s = rows[0]["parameters"]["elbow_x"]["sd_with_between_trial"]
+    assert (hi - lo) / 2 == pytest.approx(1.959964 * np.hypot(s, 3.0), rel=1e-6)
+    assert m.result().parameters["elbow_x"].extra["sd_shared_by_trials"] == pytest.approx(3.0)

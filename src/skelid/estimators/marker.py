@@ -341,6 +341,9 @@ class Covariance(NamedTuple):
     jackknife: dict  # leave-one-marker-out summary (jackknife.jackknife_stage)
     placement: dict  # where the information comes from, and the placement term added
     information: np.ndarray | None = None  # (P, P) efficient information of crlb_sd (several trials add it up)
+    # (P, P) the part of ``data`` from the markers' disagreement (jackknife) and their placement: errors of
+    # the marker set on the body, which every trial recorded with it shares
+    shared: np.ndarray | None = None
 
 
 class Estimate(NamedTuple):
@@ -715,11 +718,13 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
         cov = cov + artefact
     # one marker's artefact that moves the estimate shows when that marker is left out
     jack = {"available": False, "folded": False}
+    own = cov
     if est.jackknife:
         cov, jack, _ = jackknife_stage(model, y_used, fit, noise.sigma, cov, fold_in=not est.artefact_rms,
                                        rng=rng, weights=w)
     cov, place = placement_stage(est, y_used, fit, used, w, ident or {}, cov)
-    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place, info_eff)
+    return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place, info_eff,
+                      cov - own)
 
 
 def converge_stage(model: Model, st: Start, sc: Screen, mo: Motion, wt: Weights, s: MarkerEstimator,
@@ -1220,6 +1225,10 @@ class MarkerEstimator:
     cov_data_ : (P, P) float
         The data's covariance used (``cov_plain_``, or the Newey-West one when
         ``widened_``), before any normal prior is combined with it.
+    cov_shared_ : (P, P) float
+        The part of ``cov_data_`` that the marker jackknife and the placement uncertainty added:
+        errors of the markers' placement on the body, which another trial recorded with the same
+        markers shares (several trials combine it once, not as independent noise).
     widened_ : bool
         Whether the Newey-West covariance was used.
     cov_ : (P, P) float
@@ -1334,6 +1343,7 @@ class MarkerEstimator:
                         for j, v in f.residuals.misfit.items()}
         self.bias_fallback_ = f.bias.fallback
         self.cov_data_ = f.cov.data + f.bias.cov  # with the bootstrap's spread when it stood in
+        self.cov_shared_ = f.cov.shared
         self.theta_, self.cov_ = f.estimate
         self.pose_ = fit.pose
         self.y_ = np.where(used[:, None, None], f.screen.y + origin, np.nan)

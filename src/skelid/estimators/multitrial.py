@@ -34,6 +34,17 @@ parameter's between-trial variance nor the consistency test, and the joint
 status is the best of the trials' own (a parameter no trial identifies keeps
 the trials' status, and its interval stays inside its prior's support).
 
+**Errors every trial shares.** Trials of one body recorded with one marker set
+share the error of that marker set: a marker's placement on its segment, the
+disagreement between markers that the marker jackknife measures. Each trial's
+covariance is split into its own part and that shared part (``cov_shared_`` of
+its fit). The between-trial variance, the random-effects weights, the
+consistency test and the sd a trial is compared with use the own parts (the
+shared part cancels in a difference of two trials); the joint estimate carries
+the shared part once, not divided by the number of trials
+(:func:`shared_covariance`), scaled down where the trials' own spread shows that
+it does not recur.
+
 **Between-trial excess variance.** Skin moves differently in different
 movements; the part of it that mimics a geometry change shifts each trial's
 estimate by a random amount ``u_k ~ N(0, Omega)``. ``Omega = diag(tau_p^2)`` is
@@ -501,17 +512,79 @@ def random_effects(estimates, covs, tau2, informs=None):
     tau2 = np.asarray(tau2, float)
     K, P = y.shape
     m = np.ones((K, P), bool) if informs is None else np.asarray(informs, bool)
-    W = np.zeros((K, P, P))
-    for k in range(K):
-        i = np.flatnonzero(m[k])
-        if i.size:
-            W[k][np.ix_(i, i)] = np.linalg.inv((C[k] + np.diag(tau2))[np.ix_(i, i)])
+    W = random_effects_weights(C, tau2, m)
     cov = np.linalg.inv(W.sum(axis=0))
     theta = cov @ np.einsum("kpq,kq->p", W, y)
     w = np.where(m, 1.0 / (np.einsum("kpp->kp", C) + tau2), 0.0)  # per-parameter weights for the dof
     total = 1.0 / w.sum(axis=0)
     between = tau2 * (w**2).sum(axis=0) / w.sum(axis=0) ** 2
     return theta, cov, satterthwaite_dof(total, between, np.maximum(m.sum(axis=0) - 1, 1))
+
+
+def random_effects_weights(covs, tau2, informs) -> np.ndarray:
+    """``(K, P, P)``: each trial's weight ``(C_k + diag tau2)^{-1}`` restricted to the parameters it informs."""
+    C = np.asarray(covs, float)
+    m = np.asarray(informs, bool)
+    W = np.zeros(C.shape)
+    for k in range(C.shape[0]):
+        i = np.flatnonzero(m[k])
+        if i.size:
+            W[k][np.ix_(i, i)] = np.linalg.inv((C[k] + np.diag(tau2))[np.ix_(i, i)])
+    return W
+
+
+def shared_covariance(weights, norm, shared, tau2, informs) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance of a combination of trials from errors that every trial shares.
+
+    The trials were recorded with one marker set on one body, so the error that a marker's
+    placement (or its disagreement with the others) causes recurs in each: trial ``k``'s
+    shared error is ``L_k u`` with one ``u ~ N(0, I)`` for all (``L_k`` the symmetric square
+    root of its shared covariance). The combination ``norm sum_k W_k theta_k`` then carries
+    ``G u`` with ``G = norm sum_k W_k L_k``: nothing of it averages out over the trials.
+
+    How much really recurs is measured by the trials themselves: a between-trial variance
+    ``tau_p^2`` as large as the shared variance ``s_p^2`` (mean over the trials that inform
+    ``p``) says the shared part differs from trial to trial and is already in ``tau``. Row
+    ``p`` of ``G`` is therefore scaled by ``sqrt(max(0, 1 - tau_p^2 / s_p^2))``.
+
+    Parameters
+    ----------
+    weights : (K, P, P) float
+    norm : (P, P) float
+        ``(sum_k W_k)^{-1}``.
+    shared : (K, P, P) float
+        Each trial's shared covariance.
+    tau2 : (P,) float
+    informs : (K, P) bool
+
+    Returns
+    -------
+    cov : (P, P) float
+    recurring : (P,) float
+        The scale of each row (1: every trial shares the error, 0: none of it recurs).
+
+    Examples
+    --------
+    Two trials with the same shared variance 4 and no between-trial spread: the combination keeps
+    all of it (an average of two copies of one error is that error):
+
+    >>> W = np.ones((2, 1, 1))
+    >>> cov, r = shared_covariance(W, np.array([[0.5]]), np.full((2, 1, 1), 4.0), np.zeros(1), np.ones((2, 1), bool))
+    >>> float(cov[0, 0]), float(r[0])
+    (4.0, 1.0)
+    """
+    from skelid.estimators.uncertainty.jackknife import _sqrt
+
+    Sh = np.asarray(shared, float)
+    m = np.asarray(informs, bool)
+    G = np.asarray(norm, float) @ sum(W @ _sqrt(S) for W, S in zip(weights, Sh, strict=True))
+    v = np.einsum("kpp->kp", Sh)
+    n = np.maximum(m.sum(axis=0), 1)
+    mean_v = np.where(m, v, 0.0).sum(axis=0) / n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        recurring = np.where(mean_v > 0, np.sqrt(np.clip(1.0 - np.asarray(tau2, float) / mean_v, 0.0, 1.0)), 0.0)
+    G = recurring[:, None] * G
+    return G @ G.T, recurring
 
 
 def trial_informs(statuses) -> np.ndarray:
@@ -652,7 +725,16 @@ class MultiTrialEstimator:
     trial_cov_ : (K, P, P) float
         Their covariances.
     trial_sd_ : (K, P) float
-        Each trial's own sd with the between-trial variance and its ``t`` factor.
+        Each trial's own sd with the between-trial variance and its ``t`` factor, without the part
+        that every trial shares (it cancels between trials): what another trial's estimate, or
+        the joint one, is compared with.
+    trial_shared_ : (K, P, P) float
+        Each trial's shared covariance (``cov_shared_`` of its fit: the marker jackknife's and
+        the placement's terms).
+    cov_shared_ : (P, P) float
+        The part of ``cov_`` from errors every trial shares (:func:`shared_covariance`).
+    shared_recurring_ : (P,) float
+        How much of each parameter's shared error the trials' agreement says recurs (1: all).
     trial_status_ : (K, P) str
         Each trial's own status of each parameter (``identified``, ``poor``, ...).
     trial_informs_ : (K, P) bool
@@ -780,6 +862,9 @@ class MultiTrialEstimator:
         self.trial_labels_ = list(labels) if labels is not None else [f"trial {k + 1}" for k in range(len(ests))]
         self.trial_theta_ = np.array([e.theta_profile_ - e.bias_ for e in ests])
         self.trial_cov_ = np.array([e.cov_data_ for e in ests])
+        zero = np.zeros((self.model.n_params, self.model.n_params))
+        self.trial_shared_ = np.array([zero if getattr(e, "cov_shared_", None) is None else e.cov_shared_
+                                       for e in ests])
         self.trial_status_ = np.array([_trial_status(e) for e in ests], dtype=object)
         self._within(ests)
         fit = self._combine(lambda: self._stacked_fit(ests, [float(r) for r in rates]))
@@ -791,8 +876,11 @@ class MultiTrialEstimator:
         S = np.array([np.linalg.inv(e.cov_plain_) for e in ests])  # (K, P, P) information
         A_inv = np.linalg.inv(S.sum(axis=0))
         self.bias_ = A_inv @ np.einsum("kpq,kq->p", S, np.array([e.bias_ for e in ests]))
-        sandwich = np.einsum("kpq,kqr,krs->ps", S, self.trial_cov_, S)
-        self.cov_within_ = A_inv @ sandwich @ A_inv
+        own = self.trial_cov_ - self.trial_shared_
+        sandwich = np.einsum("kpq,kqr,krs->ps", S, own, S)
+        shared, _ = shared_covariance(S, A_inv, self.trial_shared_, np.zeros(len(A_inv)), np.ones(own.shape[:2], bool))
+        self._shared_within = shared
+        self.cov_within_ = A_inv @ sandwich @ A_inv + shared
 
     def _stacked_fit(self, ests, rates):
         """All trials' frames at once with one geometry (block-diagonal motion model, per-trial weights)."""
@@ -825,9 +913,11 @@ class MultiTrialEstimator:
         """
         fit = None
         P = self.model.n_params
-        var = np.einsum("kpp->kp", self.trial_cov_)
+        # each trial's own errors: its shared part (the marker set's placement) cancels between trials
+        own = self.trial_cov_ - self.trial_shared_
+        var = np.einsum("kpp->kp", own)
         keep = self._kept()
-        theta_k, cov_k, K = self.trial_theta_[keep], self.trial_cov_[keep], int(keep.sum())
+        theta_k, cov_k, K = self.trial_theta_[keep], own[keep], int(keep.sum())
         # a trial that leaves a parameter unidentified contributes nothing to it
         self.trial_informs_ = np.ones_like(self.trial_theta_, bool)
         self.trial_informs_[keep] = informs = trial_informs(self.trial_status_[keep])
@@ -862,8 +952,14 @@ class MultiTrialEstimator:
         if not prior:
             f = t_factor(dof)
         self.dof_ = dof
-        self.cov_unscaled_ = cov
-        cov = cov * np.outer(f, f)
+        if fit is None:  # the combination's part of the errors every trial shares, added once
+            shared, self.shared_recurring_ = shared_covariance(
+                random_effects_weights(cov_k, tau2, informs), cov, self.trial_shared_[keep], tau2, informs)
+        else:  # the stacked fit's cov_within_ holds it already
+            shared, self.shared_recurring_ = np.zeros((P, P)), np.ones(P)
+        self.cov_unscaled_ = cov + shared
+        self.cov_shared_ = shared if fit is None else self._shared_within
+        cov = cov * np.outer(f, f) + shared
         trial_var = var + tau2
         if prior:
             self.trial_dof_ = np.full(var.shape, np.inf)
@@ -974,12 +1070,14 @@ class MultiTrialEstimator:
         for k, e in enumerate(self.trials_):
             sd = np.sqrt(np.clip(np.diag(self.trial_cov_[k]), 0.0, None))
             params = {}
+            sh = np.sqrt(np.clip(np.diag(self.trial_shared_[k]), 0.0, None)) * self.shared_recurring_
             for p, n in enumerate(self.model.parameter_names):
                 m, s = float(self.trial_theta_[k, p]), float(self.trial_sd_[k, p])
-                params[n] = {"mean": m, "sd": float(sd[p]), "sd_with_between_trial": s,
+                h = float(np.hypot(s, sh[p]))  # for the truth: the shared part as well
+                params[n] = {"mean": m, "sd": float(sd[p]), "sd_with_between_trial": s, "sd_shared": float(sh[p]),
                              "status": str(self.trial_status_[k, p]),
                              "contributes": bool(self.trial_informs_[k, p]),
-                             "interval": [m - Z95 * s, m + Z95 * s],
+                             "interval": [m - Z95 * h, m + Z95 * h],
                              "t_dof": float(self.trial_dof_[k, p]) if np.isfinite(self.trial_dof_[k, p]) else None}
             ms = e.marker_sigma_
             rows.append({
@@ -1003,8 +1101,11 @@ class MultiTrialEstimator:
         check_fitted(self)
         model = self.model
         sd_within = np.sqrt(np.clip(np.diag(self.cov_within_), 0.0, None))
+        sd_shared = np.sqrt(np.clip(np.diag(self.cov_shared_), 0.0, None))
         extra = {n: {"bias_removed": float(self.bias_[k]), "sd_within_trials": float(sd_within[k]),
                      "sd_between_trials": float(np.sqrt(self.tau2_[k])),
+                     "sd_shared_by_trials": float(sd_shared[k]),
+                     "shared_recurring": float(self.shared_recurring_[k]),
                      "t_dof": float(self.dof_[k]) if np.isfinite(self.dof_[k]) else None}
                  for k, n in enumerate(model.parameter_names)}
         per = {}
