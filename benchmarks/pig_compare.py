@@ -346,8 +346,9 @@ def markdown(res: dict) -> str:
           "malleolar centre. A third foot marker off the line would remove "
           "it; Plug-in Gait's lower-body set has none.", ""]
     sec, la = res["seconds"], res["load_average"]
-    L += [f"Consistency of the two trials' estimates with the joint one: chi2 {c['statistic']:.1f} on "
-          f"{c['dof']} dof, p = {c['p_value']:.2g}.", "",
+    verdict = (f"chi2 {c['statistic']:.1f} on {c['dof']} dof, p = {c['p_value']:.2g}" if c.get("p_value") is not None
+               else "not tested (fewer than one degree of freedom: one trial decides)")
+    L += [f"Consistency of the two trials' estimates with the joint one: {verdict}.", "",
           f"Trial fits {sec['fit_cpu']} CPU s (cached fits keep the CPU seconds of the run that made them); "
           f"this run {sec['this_run_cpu']} CPU s, {sec['this_run_wall']} s wall; load average "
           f"{la['start'][0]:.1f} at start, {la['end'][0]:.1f} at end on {la['cores']} cores (shared machine). "

@@ -9,7 +9,10 @@ of ``z`` is about 1.
 * ``before``: each trial fitted alone with today's defaults (one pooled noise
   level, the trial's own interval).
 * ``after``: each trial's own estimate from the multi-trial fit (per-marker
-  noise levels as weights) with the interval the estimator reports by default:
+  noise levels as weights) with the sd the estimator reports for comparing a
+  trial with another (its own variance without the part every trial shares, the
+  marker set's placement and the markers' disagreement, which cancels in a
+  difference; plus the between-trial spread), by default:
   each parameter's between-trial sd ``tau`` integrated out under a half-normal
   prior scaled by a documented 10 mm skin-marker artefact (see
   :mod:`skelid.estimators.multitrial`). Because the posterior of ``tau`` comes
@@ -171,6 +174,16 @@ def leave_pair_out_z(est: np.ndarray, var: np.ndarray, method: str = "dl", t: bo
     return out
 
 
+def trial_status(multi, names) -> dict:
+    """Each trial's own status of each parameter and whether it contributes to the joint estimate."""
+    status = getattr(multi, "trial_status_", None)
+    informs = getattr(multi, "trial_informs_", None)
+    if status is None or informs is None:
+        return {}
+    return {t: {n: {"status": str(status[k, p]), "contributes": bool(informs[k, p])} for p, n in enumerate(names)}
+            for k, t in enumerate(multi.trial_labels_)}
+
+
 def fit_trial(model, data: MarkerData, mode: str, cache: Path | None, tag: str):
     """A fitted MarkerEstimator (cached), its wall and CPU seconds."""
     # the key leaves out the multi-trial combination: a single-trial fit does not run it
@@ -240,8 +253,11 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
                                                           e.fit_info_.penalty, 1.0, e.frames_used_))
                               for e in after])
     theta_a = multi.trial_theta_
-    var_a = np.einsum("kpp->kp", multi.trial_cov_)
+    # each trial's own variance: the part every trial shares (the marker set's placement, the markers'
+    # disagreement) cancels in a difference of two trials
+    var_a = np.einsum("kpp->kp", multi.trial_cov_ - getattr(multi, "trial_shared_", 0.0))
     sd_within = np.sqrt(var_a)
+    shared_a = np.einsum("kpp->kp", getattr(multi, "trial_shared_", np.zeros_like(multi.trial_cov_)))
     K = len(TRIALS)
     z = {
         "before": pairwise_z(theta_b, sd_b),
@@ -277,6 +293,7 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
             "frames": int(datas[k].n_frames), "stride": strides[k], "rate_hz": datas[k].rate,
             "before": {n: {"mean": float(theta_b[k, p]), "sd": float(sd_b[k, p])} for p, n in enumerate(names)},
             "after": {n: {"mean": float(theta_a[k, p]), "sd_within": float(sd_within[k, p]),
+                          "sd_shared": float(np.sqrt(max(shared_a[k, p], 0.0))),
                           "sd": float(multi_prior.trial_sd_[k, p]), "sd_dl": float(multi.trial_sd_[k, p]),
                           "t_dof_dl": float(multi.trial_dof_[k, p])}
                       for p, n in enumerate(names)},
@@ -292,6 +309,11 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
             "timing": timing[t],
         }
     summ = {k: z_summary(v) for k, v in z.items()}
+    # pairs of trials of one activity (walking1, walking2): what repeat trials of one movement say
+    act = [t.rstrip("0123456789").lower() for t in TRIALS]
+    i, j = np.triu_indices(K, 1)
+    same = np.array([act[a] == act[b] for a, b in zip(i, j, strict=True)])
+    summ_same = {k: z_summary(v[same]) for k, v in z.items()} if same.any() else {}
     sb, sa, slpo = summ["before"], summ["after_prior"], summ["after_leave_pair_out_prior"]
     sdl, sdl_lpo = summ["after"], summ["after_leave_pair_out"]
     return {
@@ -317,6 +339,9 @@ def run(max_frames: int | None, cache: Path | None) -> dict:
         "honest_band": {"before": honest_band(sd_b, sb["sd_z"]),
                         "after": honest_band(multi_prior.trial_sd_, sa["sd_z"])},
         "z_by_parameter": {n: {k: z_summary(v[:, p]) for k, v in z.items()} for p, n in enumerate(names)},
+        "z_within_activity": summ_same,
+        "within_activity_pairs": [f"{TRIALS[a]}-{TRIALS[b]}" for a, b, s_ in zip(i, j, same, strict=True) if s_],
+        "trial_status": trial_status(multi_prior, names),
         "tau_mm": {n: float(np.sqrt(multi.tau2_[p])) for p, n in enumerate(names)},
         "tau_mm_pm": {n: float(np.sqrt(multi_pm.tau2_[p])) for p, n in enumerate(names)},
         "tau_mm_prior": {n: float(np.sqrt(multi_prior.tau2_[p])) for p, n in enumerate(names)},
@@ -350,7 +375,8 @@ def markdown(res: dict) -> str:
           "", "| intervals | fraction of pairs with abs(z) <= 1.96 | sd of z | rms z |", "|---|---|---|---|"]
     labels = {"before": "before: each trial alone, today's single-trial defaults (pooled noise, marker jackknife, "
                         "placement sd for static-informed parameters)",
-              "per_marker_weights_no_between_trial": "per-marker noise, no between-trial term",
+              "per_marker_weights_no_between_trial": "per-marker noise, each trial's own variance (without the part "
+                                                     "all trials share), no between-trial term",
               "after_normal": "per-marker noise + DL tau^2 (in-sample), normal quantile",
               "after": "per-marker noise + DL tau^2 (in-sample), t quantile (Satterthwaite)",
               "after_pm": "after with Paule-Mandel tau^2 (in-sample), t quantile",
@@ -366,6 +392,20 @@ def markdown(res: dict) -> str:
             continue
         s = res["z"][k]
         L.append(f"| {lab} | {s['fraction_consistent']:.2f} | {s['sd_z']:.2f} | {s['rms_z']:.2f} |")
+    if res.get("z_within_activity"):
+        w = res["z_within_activity"]
+        L += ["", "Within one activity (" + ", ".join(res["within_activity_pairs"]) + "; "
+              f"{w['before']['n_pairs']} pair x parameter values): rms z before "
+              f"{w['before']['rms_z']:.2f}, per-marker noise without a between-trial term "
+              f"{w['per_marker_weights_no_between_trial']['rms_z']:.2f}, after (reported) "
+              f"{w['after_prior']['rms_z']:.2f}; fraction within 1.96: {w['before']['fraction_consistent']:.2f}, "
+              f"{w['per_marker_weights_no_between_trial']['fraction_consistent']:.2f}, "
+              f"{w['after_prior']['fraction_consistent']:.2f}."]
+    if res.get("trial_status"):
+        off = [f"{t} ({', '.join(n for n, v in row.items() if not v['contributes'])})"
+               for t, row in res["trial_status"].items() if not all(v["contributes"] for v in row.values())]
+        L += ["", "Trials that leave a parameter unidentified by motion (status 'placement', 'poor', ...) and "
+              "contribute nothing to it in the joint estimate: " + ("; ".join(off) if off else "none") + "."]
     L += ["", "Targets: fraction >= 0.90, sd of z 0.8-1.3.", ""]
     if "honest_band" in res:
         hb = res["honest_band"]
@@ -411,8 +451,9 @@ def markdown(res: dict) -> str:
                  f"{a['fraction_consistent']:.2f}, {a['sd_z']:.2f} | {lpo['fraction_consistent']:.2f}, "
                  f"{lpo['sd_z']:.2f} |")
     c = res["consistency_test"]
-    L += ["", f"Chi-square consistency of the per-trial estimates against the joint one: "
-          f"{c['statistic']:.1f} on {c['dof']} degrees of freedom, p = {c['p_value']:.2g}.", "",
+    verdict = (f"{c['statistic']:.1f} on {c['dof']} degrees of freedom, p = {c['p_value']:.2g}"
+               if c.get("p_value") is not None else "not tested (fewer than one degree of freedom)")
+    L += ["", f"Chi-square consistency of the per-trial estimates against the joint one: {verdict}.", "",
           "## Per trial (mm): before (pooled noise) mean ± sd; after mean ± sd (the between-trial prior's "
           "posterior included)", "",
           "| trial | frames (stride) | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]

@@ -31,7 +31,13 @@ multi-trial combination sets that trial aside. The single-trial cells count
 such a fit as refused, as a user fitting that trial alone would see it.
 
 For every cell: coverage of the 95 % interval of each parameter, bias, rmse
-and median interval width. Target: coverage >= 0.90 in the several-trial cells.
+and median interval width; for a model with joint centres, the coverage of each
+centre's 95 % region (the chi-square ellipsoid of the reported covariance).
+Target: coverage >= 0.90 in the several-trial cells.
+
+``--placement-sd`` misplaces each subject's markers on their segments (one draw
+per subject, shared by all its trials, unknown to the fit: the nominal model is
+fitted), the error that repeat trials cannot average away.
 
     nice -n 10 python benchmarks/soft_tissue.py --reps 100 --jobs 2
 
@@ -62,7 +68,7 @@ from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import results_dir, rewrite_markdown, write_results  # noqa: E402
+from _common import provenance, results_dir, rewrite_markdown, write_results  # noqa: E402
 
 RESULTS = results_dir()
 Z = 1.959963984540054
@@ -73,9 +79,21 @@ CELLS = (("dl", "multi", {}), ("pm", "multi-pm", {}), ("prior", "multi-prior", {
          ("prior", "multi-prior-20mm", {"prior_artefact_rms": 20.0}))
 
 
+def misplaced(model, sd: float, rng):
+    """``model`` with every marker moved on its segment by ``N(0, sd^2)`` per coordinate: the subject's own
+    placement, which every trial of the subject shares and the fit (with the nominal model) does not know."""
+    from dataclasses import replace
+
+    if sd <= 0:
+        return model
+    moved = tuple(replace(m, position=tuple(float(v) for v in np.asarray(m.position) + rng.normal(0.0, sd, model.dim)))
+                  for m in model.markers)
+    return replace(model, markers=moved)
+
+
 def one_subject(args):
     """``n_trials`` trials of one simulated subject; every cell's estimate and sd for each parameter."""
-    case, sigma, amplitude, n_frames, rep, n_trials = args
+    case, sigma, amplitude, n_frames, rep, n_trials, placement_sd = args
     warnings.simplefilter("ignore")
     from skelid.errors import SkelidError
     from skelid.estimators.multitrial import MultiTrialEstimator
@@ -85,8 +103,9 @@ def one_subject(args):
     rng = np.random.default_rng([7, int(sigma), int(amplitude), rep])
     theta = model.theta_center + rng.uniform(-0.25, 0.25, model.n_params) * (
         np.array([p.prior.upper - p.prior.lower for p in model.parameters]))
+    body = misplaced(model, placement_sd, np.random.default_rng([11, rep]))
     c0 = time.process_time()
-    trials = [simulate(model, theta=theta, n_frames=n_frames, sigma=sigma, noise="sta",
+    trials = [simulate(body, theta=theta, n_frames=n_frames, sigma=sigma, noise="sta",
                        sta_amplitude=amplitude, rng=rng) for _ in range(n_trials)]
     fits = []
     for t in trials:
@@ -99,9 +118,11 @@ def one_subject(args):
     # fitted alone, a single-parameter fit that ends on a prior bound refuses: the user gets no interval
     f0 = None if fits[0] is None or (model.n_params == 1 and fits[0].fit_.pinned.any()) else fits[0]
     out["cells"]["single/default"] = refused if f0 is None else {"est": f0.theta_.tolist(),
-                                                                  "sd": f0.posterior_.sd.tolist()}
+                                                                  "sd": f0.posterior_.sd.tolist(),
+                                                                  "cov": f0.cov_.tolist()}
     out["cells"]["single/white"] = refused if f0 is None else {"est": f0.theta_.tolist(),
-                                                                "sd": np.sqrt(np.diag(f0.cov_plain_)).tolist()}
+                                                                "sd": np.sqrt(np.diag(f0.cov_plain_)).tolist(),
+                                                                "cov": f0.cov_plain_.tolist()}
     out["jackknife_available"] = None if f0 is None else bool(f0.jackknife_.get("available"))
     out["jackknife_folded"] = None if f0 is None else bool(f0.jackknife_.get("folded"))
     rates = [t.data.rate for t in trials]
@@ -112,9 +133,43 @@ def one_subject(args):
                 continue
             m = MultiTrialEstimator(model, between_trial=method, **kw).combine(fits[:K], rates[:K])
             out["cells"][f"{tag}/{K}"] = {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(),
+                                          "cov": m.cov_.tolist(),
                                           "tau": np.sqrt(m.tau2_).tolist(),
                                           "set_aside": len(m.trials_set_aside_)}
     out["cpu_s"] = time.process_time() - c0
+    return out
+
+
+def centre_groups(model) -> dict[str, list[int]]:
+    """The parameters of each joint centre estimated in more than one axis: ``{joint: [indices]}``."""
+    groups: dict[str, list[int]] = {}
+    for k, p in enumerate(model.parameters):
+        if p.kind == "joint_centre":
+            groups.setdefault(p.target, []).append(k)
+    return {j: idx for j, idx in groups.items() if len(idx) > 1}
+
+
+def region_coverage(results: list[dict], cell: str, groups: dict[str, list[int]]) -> dict:
+    """Each centre's 95 % region (chi-square with one dof per axis on the reported covariance) over the fits.
+
+    Returns ``{joint: {"coverage95", "median_d2", "reps", "dof"}}``: the share of fits whose error's
+    squared Mahalanobis distance lies within the chi-square 95 % point, and that distance's median
+    (the chi-square median when the covariance is right).
+    """
+    from scipy.stats import chi2
+
+    fitted = [r for r in results if r["cells"][cell]["est"] is not None and "cov" in r["cells"][cell]]
+    out = {}
+    for j, idx in groups.items():
+        d2 = []
+        for r in fitted:
+            e = (np.asarray(r["cells"][cell]["est"]) - np.asarray(r["truth"]))[idx]
+            C = np.asarray(r["cells"][cell]["cov"])[np.ix_(idx, idx)]
+            d2.append(float(e @ np.linalg.pinv(C, hermitian=True) @ e))
+        d2 = np.array(d2)
+        out[j] = {"coverage95": float(np.mean(d2 <= chi2.ppf(0.95, len(idx)))) if d2.size else None,
+                  "median_d2": float(np.median(d2)) if d2.size else None,
+                  "chi2_median": float(chi2.ppf(0.5, len(idx))), "dof": len(idx), "reps": int(d2.size)}
     return out
 
 
@@ -163,13 +218,26 @@ def markdown(res: dict) -> str:
               f"{res['frames']} frames per trial.", ""]
     L += [f"{res['case']}, sigma {res['sigma']} mm, artefact amplitude {res['amplitude']} mm, "
           f"{res['frames']} frames per trial, {res.get('trials', N_TRIALS)} trials per subject, "
-          f"{res['reps']} subjects.", "",
+          f"{res['reps']} subjects" + (f"; each subject's markers misplaced on their segments by "
+                                       f"{res['placement_sd']:g} mm sd per coordinate (shared by its trials, "
+                                       "unknown to the fit)" if res.get("placement_sd") else "") + ".", "",
           "| cell | parameter | coverage 95 % (refused fits as misses) | refused | bias | rmse | median width |",
           "|---|---|---|---|---|---|---|"]
     for cell, rows in res["cells"].items():
         for n, r in rows.items():
             L.append(f"| {cell} | {n} | {r['coverage95']:.2f} ({r['coverage95_refused_as_miss']:.2f}) | "
                      f"{r['refused']} | {r['bias']:+.2f} | {r['rmse']:.2f} | {r['median_width']:.2f} |")
+    if res.get("regions"):
+        L += ["", "Joint centres as 3-D regions: the share of fits whose error lies inside the 95 % ellipsoid of "
+              "the reported covariance (chi-square, one degree of freedom per axis), and the median squared "
+              "Mahalanobis distance against the chi-square median (larger: the covariance is too narrow in some "
+              "direction).", "", "| cell | centre | region coverage 95 % | median d^2 (chi-square median) | fits |",
+              "|---|---|---|---|---|"]
+        for cell, rows in res["regions"].items():
+            for j, r in rows.items():
+                cov = "n/a" if r["coverage95"] is None else f"{r['coverage95']:.2f}"
+                med = "n/a" if r["median_d2"] is None else f"{r['median_d2']:.2f}"
+                L.append(f"| {cell} | {j} | {cov} | {med} ({r['chi2_median']:.2f}) | {r['reps']} |")
     t = res["timing"]
     c = res["cells"]
     n0 = res["parameters"][0]
@@ -211,6 +279,10 @@ def markdown(res: dict) -> str:
           f"CPU {t['cpu_s_total']:.0f} s over the subjects, wall {t['wall_s']:.0f} s with {t['jobs']} processes; "
           f"load average {t['load_start'][0]:.2f} at start, {t['load_end'][0]:.2f} at end "
           f"on {t['cores']} cores.", ""]
+    if res.get("provenance"):
+        pv = res["provenance"]
+        L += [f"Commit {pv['commit'][:10]}{' (uncommitted changes)' if pv.get('dirty') else ''}, {pv['date']}; "
+              f"command `{pv.get('command', '')}`.", ""]
     return "\n".join(L)
 
 
@@ -227,6 +299,8 @@ def main(argv=None) -> None:
     ap.add_argument("--amplitude", type=float, default=10.0)
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--reps", type=int, default=100)
+    ap.add_argument("--placement-sd", type=float, default=0.0,
+                    help="sd (mm) of each marker's misplacement on its segment, one per subject, shared by its trials")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", default=str(RESULTS / "soft_tissue"))
     ap.add_argument("--markdown-only", action="store_true", help="rewrite the .md from the .json and stop")
@@ -239,20 +313,25 @@ def main(argv=None) -> None:
 
     names = list(resolve_model(args.case).parameter_names)
     load0, t0 = os.getloadavg(), time.perf_counter()
-    jobs = [(args.case, args.sigma, args.amplitude, args.frames, r, args.trials) for r in range(args.reps)]
+    jobs = [(args.case, args.sigma, args.amplitude, args.frames, r, args.trials, args.placement_sd)
+            for r in range(args.reps)]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             results = list(ex.map(one_subject, jobs))
     else:
         results = [one_subject(j) for j in jobs]
+    groups = centre_groups(resolve_model(args.case))
     res = {"benchmark": "soft_tissue", "case": args.case, "sigma": args.sigma, "amplitude": args.amplitude,
            "frames": args.frames, "reps": args.reps, "reduced": args.reps < 100, "parameters": names,
+           "placement_sd": args.placement_sd,
            "trials": args.trials, "cells": summarise(results, names),
+           "regions": {cell: region_coverage(results, cell, groups) for cell in results[0]["cells"]} if groups else {},
            "jackknife_available_fraction": _fraction(results, "jackknife_available"),
            "jackknife_folded_fraction": _fraction(results, "jackknife_folded"),
            "timing": {"cpu_s_total": float(sum(r["cpu_s"] for r in results)),
                       "wall_s": time.perf_counter() - t0, "jobs": args.jobs, "load_start": list(load0),
-                      "load_end": list(os.getloadavg()), "cores": os.cpu_count()}}
+                      "load_end": list(os.getloadavg()), "cores": os.cpu_count()},
+           "provenance": provenance()}
     out = Path(args.out)
     write_results(out, res, markdown)
 
