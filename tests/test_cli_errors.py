@@ -5,6 +5,7 @@ written; a bug in skelid gives exit status 1 and its traceback."""
 import dataclasses
 import json
 import os
+import re
 import shlex
 import tempfile
 
@@ -58,6 +59,13 @@ def files(tmp_path_factory):
     f["rate0_result"].mkdir()
     write_run(f["rate0_result"], FitRun(arrays={"markers": trial.data.positions, "rate": np.array(0.0),
                                                 "marker_names": np.array(trial.data.names), "units": np.array("mm")}))
+    case_a = (EXAMPLES / "case_a.toml").read_text()
+    f["rigid_model"] = d / "rigid.toml"  # every joint fixed: one rigid body
+    f["rigid_model"].write_text(re.sub(r'type = "revolute", position = \[([^\]]*)\], range = \[[^\]]*\]',
+                                       r'type = "fixed", position = [\1]', case_a))
+    f["other_markers"] = d / "other_markers.toml"  # another model of the body, one marker renamed
+    f["other_markers"].write_text(case_a.replace('name = "case_a"', 'name = "case_a_other"')
+                                  .replace('name = "C" ', 'name = "C2"'))
     return {k: str(v) for k, v in f.items()}
 
 
@@ -95,6 +103,9 @@ BAD = {
     "report of a result whose markers have no names": ("report {nameless_result} --out {out}.html",
                                                        "markers[0]: has no key 'name'"),
     "report of arrays.npz with a rate of 0": ("report {rate0_result} --out {out}.html", "rate] is 0 Hz"),
+    "a model none of whose joints moves": ("fit {rigid_model} {good} --out {out}", "has no joint that moves"),
+    "an alternative model with other markers": ("fit {case_a} {good} --alternative {other_markers} --out {out}",
+                                                "uses other markers than 'case_a' (lacks C; adds C2)"),
     "the same data file twice": ("fit {case_a} {good} {good} --out {out}", "is given twice"),
     "the same data file twice under two names": ("fit {case_a} {good} {good_link} --out {out}", "is given twice"),
     "a copy of a data file beside it": ("fit {case_a} {good} {good_copy} --out {out}",

@@ -63,6 +63,24 @@ def check_surplus(model, where: str = "the data") -> None:
             "add markers to the model (at least one coordinate more than the pose has)")
 
 
+def check_moving_joint(model) -> None:
+    """Refuse joint parameters (lengths, centres, axes) in a model none of whose joints can move.
+
+    With every joint below a free root fixed, the model is one rigid body: a length or a joint
+    centre between its segments is set by the markers' nominal positions alone, which no motion
+    can check, so an interval from it would only restate the placement.
+    """
+    from skelid.model.kinds import PARAMETER_TARGET
+
+    moving = [d for d in model.dofs if model.segments[d.segment].joint.type != "free"]
+    joint_params = [p.name for p in model.parameters if PARAMETER_TARGET.get(p.kind, "joint") == "joint"]
+    if joint_params and not moving:
+        raise ModelError(
+            f"model {model.name!r} has no joint that moves (every joint below its root is fixed), so "
+            f"parameter(s) {', '.join(joint_params)} follow from the markers' nominal positions alone, not from motion",
+            "give the joints the motion they have (revolute, universal, ball, ...) or remove these parameters")
+
+
 def check_frames(model, y: np.ndarray, method: str, where: str = "the data") -> None:
     need = MIN_FRAMES.get(method, DEFAULT_MIN_FRAMES)
     n = int(usable_frames(model, y).sum())
@@ -93,6 +111,7 @@ def check_data(model, y: np.ndarray, methods, where: str = "the data", motion: b
     ``motion=False`` leaves out :func:`check_motion`: a still trial among several (a static trial
     beside movement trials) is checked for motion with the others.
     """
+    check_moving_joint(model)
     check_surplus(model, where)
     for m in methods:
         check_frames(model, y, m, where)

@@ -161,6 +161,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
 
     model = load_model(model_path)
     others = [load_model(p) for p in alternatives]
+    check_alternatives(model, others)
     for p in data_paths:
         workflows.check_input_file(p, "data file")
     check_distinct_files(data_paths)
@@ -180,12 +181,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
     if others:
         with workflows.collect_warnings():
             fits = {model.name: quantities(model, est)}
-            seen = {model.name}
             for m in others:
-                if m.name in seen:
-                    raise DataError(f"model alternatives need distinct names; {m.name!r} is used twice",
-                                    "give each model file its own [model] name")
-                seen.add(m.name)
                 # the same random stream as the main fit, so that the spread holds no Monte-Carlo noise
                 fits[m.name] = quantities(m, fit_trials(m, datas, **{**settings, "rng": np.random.default_rng(seed)}))
         sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
@@ -199,6 +195,28 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
         with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
             write_run(tmp, run)
     return run
+
+
+def check_alternatives(model: Model, others) -> None:
+    """Alternatives of one body: distinct names and the main model's markers (one line otherwise).
+
+    Models fitted to different markers see different data: their estimates and fits cannot be
+    set side by side as views of one recording.
+    """
+    seen = {model.name}
+    for m in others:
+        if m.name in seen:
+            raise DataError(f"model alternatives need distinct names; {m.name!r} is used twice",
+                            "give each model file its own [model] name")
+        seen.add(m.name)
+        missing = [n for n in model.marker_names if n not in m.marker_names]
+        extra = [n for n in m.marker_names if n not in model.marker_names]
+        if missing or extra:
+            what = "; ".join(x for x in (f"lacks {', '.join(missing)}" if missing else "",
+                                         f"adds {', '.join(extra)}" if extra else "") if x)
+            raise DataError(f"alternative model {m.name!r} uses other markers than {model.name!r} ({what}), so the "
+                            "two would be fitted to different data", "give every alternative model the main "
+                            "model's markers (the same names; their positions on the segments may differ)")
 
 
 def trials_result(model: Model, est, data_paths, frames_total: int) -> FitResult:
