@@ -17,6 +17,10 @@ Cells (from the same four fits per subject):
   (:class:`~skelid.estimators.multitrial.MultiTrialEstimator`: DerSimonian-Laird
   between-trial variance, ``t`` quantile with Satterthwaite's degrees of freedom);
 * ``multi-pm/K``: the same with Paule-Mandel's between-trial variance;
+* ``single/placement-stated`` and ``multi-prior-placement-stated/K`` (with
+  ``--placement-sd``): the same trials fitted with the misplacement's size
+  stated (``placement_sd``), so that its effect on every parameter is in the
+  interval;
 * ``multi-prior/K`` (the default): the between-trial sd integrated out under a half-normal
   prior whose scale is what a 10 mm root-mean-square skin-marker artefact would
   add to one trial's estimate (``between_trial='prior'``); ``multi-prior-5mm``
@@ -136,6 +140,25 @@ def one_subject(args):
                                           "cov": m.cov_.tolist(),
                                           "tau": np.sqrt(m.tau2_).tolist(),
                                           "set_aside": len(m.trials_set_aside_)}
+    if placement_sd > 0:  # the same trials with the misplacement's size stated (placement_sd)
+        placed = []
+        for t in trials:
+            try:
+                placed.append(MultiTrialEstimator(model, placement_sd=placement_sd).fit_trial(t.data))
+            except SkelidError:
+                placed.append(None)
+        p0 = placed[0]
+        out["cells"]["single/placement-stated"] = refused if p0 is None else {
+            "est": p0.theta_.tolist(), "sd": p0.posterior_.sd.tolist(), "cov": p0.cov_.tolist()}
+        if n_trials > 1:
+            cell = f"multi-prior-placement-stated/{n_trials}"
+            if any(f is None for f in placed):
+                out["cells"][cell] = refused
+            else:
+                m = MultiTrialEstimator(model, between_trial="prior").combine(placed, rates)
+                out["cells"][cell] = {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(),
+                                      "cov": m.cov_.tolist(), "tau": np.sqrt(m.tau2_).tolist(),
+                                      "set_aside": len(m.trials_set_aside_)}
     out["cpu_s"] = time.process_time() - c0
     return out
 

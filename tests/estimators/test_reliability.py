@@ -110,6 +110,24 @@ def test_a_static_trial_flags_placement_and_carries_its_uncertainty():
     assert all(r["status"] != "placement" for r in moved.identifiability_["table"])
 
 
+def test_a_stated_placement_sd_widens_a_functional_centre_too():
+    # a joint centre found from motion (nothing flagged as placement-informed) still moves with a
+    # misplaced marker: a stated placement sd adds its effect on every parameter (closed form)
+    from tests.estimators.test_noise import two_link
+
+    model = two_link()
+    trial = simulate(model, n_frames=120, sigma=0.5, rng=np.random.default_rng(4))
+    kw = {"cutoff": None, "jackknife": False, "rng": np.random.default_rng(0)}
+    moved = MarkerEstimator(model, **kw).fit(trial.data)
+    assert not any(v["informed_by_placement"] for v in moved.placement_["parameters"].values())
+    stated = MarkerEstimator(model, placement_sd=2.0, **kw).fit(trial.data)
+    f = moved.fit_info_
+    place = placement_information(model, moved.y_, f.theta, f.pose, moved.frames_used_, f.penalty)
+    assert np.all(np.diag(place["cov_per_unit"]) > 0)
+    assert np.allclose(stated.cov_data_ - moved.cov_data_, 4.0 * place["cov_per_unit"], rtol=1e-6, atol=1e-12)
+    assert np.allclose(stated.cov_shared_, 4.0 * place["cov_per_unit"], rtol=1e-6, atol=1e-12)
+
+
 def test_near_a_singular_pose_the_fit_reaches_the_minimum_a_start_at_the_truth_reaches():
     # an elbow kept near the folded pose: per-frame fits jump between pose branches, and a motion-model
     # fit started from them sticks in a local minimum unless a stiffer motion model is fitted first

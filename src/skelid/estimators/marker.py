@@ -789,9 +789,11 @@ def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident:
     """Flag parameters informed by the nominal marker placement; add its uncertainty to ``cov``.
 
     See :func:`skelid.estimators.checks.misfit.placement_information`. The placement's standard
-    deviation is ``placement_sd`` when stated; otherwise ``DEFAULT_PLACEMENT_SD_MM`` for a trial
-    whose joints all moved less than ``STILL_JOINT_DEG`` (a static trial), and none for a trial
-    with motion (the flag is then reported without a warning).
+    deviation is ``placement_sd`` when stated, and its effect on every parameter is added (a
+    functional joint centre moves with a misplaced marker as well: the fit cannot tell the
+    misplacement from the centre); otherwise ``DEFAULT_PLACEMENT_SD_MM`` for a trial whose joints
+    all moved less than ``STILL_JOINT_DEG`` (a static trial) where a parameter is informed by the
+    placement, and none for a trial with motion (the flag is then reported without a warning).
     """
     model = est.model
     place = placement_information(model, y_used, fit.theta, fit.pose, used, fit.penalty, w)
@@ -803,7 +805,8 @@ def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident:
         sd = float(est.placement_sd)
     else:
         sd = DEFAULT_PLACEMENT_SD_MM * unit_scale("mm", model.units) if static else 0.0
-    added = sd**2 * place["cov_per_unit"] if flagged.any() else np.zeros_like(cov)
+    stated = est.placement_sd is not None
+    added = sd**2 * place["cov_per_unit"] if (flagged.any() or stated) else np.zeros_like(cov)
     out = {"placement_sd": sd, "static": static, "min_share": float(share[flagged].min()) if flagged.any() else 0.0,
            "parameters": {n: {"share_from_still_pose": round(float(share[k]), 3),
                               "informed_by_placement": bool(flagged[k]),
@@ -1179,8 +1182,9 @@ class MarkerEstimator:
         reported when ``artefact_rms`` is stated).
     placement_sd : float, optional
         Standard deviation (model units, per coordinate) of each marker's placement on its
-        segment; it widens the interval of parameters informed by the placement rather than
-        by motion (:func:`skelid.estimators.checks.misfit.placement_information`). None: 5 mm for a
+        segment; its effect on every parameter (to first order: what a misplaced marker does to
+        the estimate, :func:`skelid.estimators.checks.misfit.placement_information`) is added to
+        the interval, and it is shared by every trial recorded with these markers. None: 5 mm for a
         static trial, none otherwise.
     theta0 : (P,) float, optional
         Starting geometry (default: the prior centre).
