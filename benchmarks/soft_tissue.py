@@ -113,14 +113,17 @@ def one_subject(args):
                        sta_amplitude=amplitude, rng=rng) for _ in range(n_trials)]
     fits = []
     for t in trials:
-        try:  # as the multi-trial fit makes them: a fit ending on a prior bound warns instead of refusing
-            fits.append(MultiTrialEstimator(model).fit_trial(t.data))
+        try:  # as the multi-trial fit makes them: a fit ending on a prior bound, or not converging, warns
+            fits.append(MultiTrialEstimator(model).fit_trial(t.data, alone=False))
         except SkelidError:
             fits.append(None)
     out = {"truth": theta.tolist(), "cells": {}}
     refused = {"est": None, "sd": None}
-    # fitted alone, a single-parameter fit that ends on a prior bound refuses: the user gets no interval
-    f0 = None if fits[0] is None or (model.n_params == 1 and fits[0].fit_.pinned.any()) else fits[0]
+    # fitted alone, a single-parameter fit that ends on a prior bound, or a fit that does not converge,
+    # refuses: the user gets no interval
+    f0 = None if fits[0] is None or (model.n_params == 1 and fits[0].fit_.pinned.any()) or not \
+        fits[0].fit_info_.converged else fits[0]
+    out["not_converged"] = sum(1 for f in fits if f is not None and not f.fit_info_.converged)
     out["cells"]["single/default"] = refused if f0 is None else {"est": f0.theta_.tolist(),
                                                                   "sd": f0.posterior_.sd.tolist(),
                                                                   "cov": f0.cov_.tolist()}
@@ -132,10 +135,13 @@ def one_subject(args):
     rates = [t.data.rate for t in trials]
     for K in range(2, n_trials + 1):
         for method, tag, kw in CELLS:
-            if any(f is None for f in fits[:K]):
+            try:
+                if any(f is None for f in fits[:K]):
+                    raise SkelidError("a trial refused", "")
+                m = MultiTrialEstimator(model, between_trial=method, **kw).combine(fits[:K], rates[:K])
+            except SkelidError:  # no trial's fit converged
                 out["cells"][f"{tag}/{K}"] = refused
                 continue
-            m = MultiTrialEstimator(model, between_trial=method, **kw).combine(fits[:K], rates[:K])
             out["cells"][f"{tag}/{K}"] = {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(),
                                           "cov": m.cov_.tolist(),
                                           "tau": np.sqrt(m.tau2_).tolist(),
@@ -144,18 +150,23 @@ def one_subject(args):
         placed = []
         for t in trials:
             try:
-                placed.append(MultiTrialEstimator(model, placement_sd=placement_sd).fit_trial(t.data))
+                placed.append(MultiTrialEstimator(model, placement_sd=placement_sd).fit_trial(t.data, alone=False))
             except SkelidError:
                 placed.append(None)
-        p0 = placed[0]
+        p0 = placed[0] if placed[0] is not None and placed[0].fit_info_.converged else None
         out["cells"]["single/placement-stated"] = refused if p0 is None else {
             "est": p0.theta_.tolist(), "sd": p0.posterior_.sd.tolist(), "cov": p0.cov_.tolist()}
         if n_trials > 1:
             cell = f"multi-prior-placement-stated/{n_trials}"
-            if any(f is None for f in placed):
+            try:
+                if any(f is None for f in placed):
+                    raise SkelidError("a trial refused", "")
+                m = MultiTrialEstimator(model, between_trial="prior").combine(placed, rates)
+            except SkelidError:
+                m = None
+            if m is None:
                 out["cells"][cell] = refused
             else:
-                m = MultiTrialEstimator(model, between_trial="prior").combine(placed, rates)
                 out["cells"][cell] = {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(),
                                       "cov": m.cov_.tolist(), "tau": np.sqrt(m.tau2_).tolist(),
                                       "set_aside": len(m.trials_set_aside_)}
@@ -289,6 +300,10 @@ def markdown(res: dict) -> str:
             "wide enough to hold it; with many more it would narrow towards the biased value.",
         ]
 
+    if res.get("trial_fits"):
+        L += ["", f"Trial fits that did not converge: {res['trial_fits_not_converged']} of {res['trial_fits']} "
+              "(fitted alone they refuse, counted as refused in the single cells; among several trials they "
+              "are set aside and the others decide)."]
     L += ["", "Target: coverage >= 0.90 in the multi cells without stating the artefact.", "",
           "Reading:", "",
           f"* 'refused' (single cells): subjects whose first trial's fit gave no interval (it refused with one "
@@ -351,6 +366,8 @@ def main(argv=None) -> None:
            "regions": {cell: region_coverage(results, cell, groups) for cell in results[0]["cells"]} if groups else {},
            "jackknife_available_fraction": _fraction(results, "jackknife_available"),
            "jackknife_folded_fraction": _fraction(results, "jackknife_folded"),
+           "trial_fits_not_converged": int(sum(r.get("not_converged", 0) for r in results)),
+           "trial_fits": args.reps * args.trials,
            "timing": {"cpu_s_total": float(sum(r["cpu_s"] for r in results)),
                       "wall_s": time.perf_counter() - t0, "jobs": args.jobs, "load_start": list(load0),
                       "load_end": list(os.getloadavg()), "cores": os.cpu_count()},

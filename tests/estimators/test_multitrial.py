@@ -6,6 +6,7 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2, t
 
 from skelid.data import MarkerData
+from skelid.errors import ConvergenceError
 from skelid.estimators.fit.joint import joint_fit, weighted_terms
 from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.multitrial import (
@@ -429,3 +430,30 @@ def test_the_shared_part_of_each_trial_is_carried_once_and_left_out_of_compariso
     s = rows[0]["parameters"]["elbow_x"]["sd_with_between_trial"]
     assert (hi - lo) / 2 == pytest.approx(1.959964 * np.hypot(s, 3.0), rel=1e-6)
     assert m.result().parameters["elbow_x"].extra["sd_shared_by_trials"] == pytest.approx(3.0)
+
+
+def test_a_trial_whose_fit_did_not_converge_is_set_aside_and_all_of_them_refuse():
+    model = two_link()
+    datas = [_data(model, 25, 60 + k, sigma=1.0).data for k in range(3)]
+    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
+        ests[1].fit_info_ = ests[1].fit_info_._replace(converged=False)
+        m = MultiTrialEstimator(model, between_trial="dl", **kw).combine(ests, [d.rate for d in datas],
+                                                                           ["a", "b", "c"])
+        both = MultiTrialEstimator(model, between_trial="dl", **kw).combine([ests[0], ests[2]],
+                                                                              [d.rate for d in datas[::2]])
+    assert m.trials_set_aside_ == ["b"] and m.trials_not_converged_ == ["b"] and m.converged_
+    assert any("did not converge" in w.message for w in m.warnings_)
+    np.testing.assert_allclose(m.theta_data_, both.theta_data_, rtol=1e-9, atol=1e-9)
+    # an estimator that keeps unconverged fits ('warn') keeps the trial
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        w = MultiTrialEstimator(model, between_trial="dl", on_nonconvergence="warn", **kw).combine(
+            ests, [d.rate for d in datas])
+    assert w.trials_set_aside_ == []
+    for e in ests:
+        e.fit_info_ = e.fit_info_._replace(converged=False)
+    with pytest.raises(ConvergenceError, match="no trial's joint fit converged"):
+        MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas])

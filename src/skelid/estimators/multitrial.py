@@ -117,7 +117,7 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 
 from skelid.data import MarkerData
-from skelid.errors import DataError, IdentifiabilityError, SkelidError
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, SkelidError
 from skelid.estimators.base import (
     Setting,
     check_fitted,
@@ -749,8 +749,10 @@ class MultiTrialEstimator:
         Half-normal prior scale of each between-trial sd (0 unless ``'prior'``).
     trials_set_aside_ : list of str
         Trials left out of the combination because their own fit ended on a
-        prior bound (their own estimates are still reported); empty when none
-        was, or when every trial was.
+        prior bound, or did not converge (their own estimates are still
+        reported); empty when none was, or when every trial ended on a bound.
+    trials_not_converged_ : list of str
+        The trials set aside because their own fit did not converge.
     consistency_ : dict
         :func:`consistency_test` of the trials against the joint estimate (``tested`` False,
         ``p_value`` None below one degree of freedom).
@@ -827,11 +829,16 @@ class MultiTrialEstimator:
 
         As :meth:`MarkerEstimator.fit <skelid.estimators.marker.MarkerEstimator.fit>` with this
         estimator's settings, except that a fit ending on a bound of the prior warns instead of
-        refusing (a single-parameter model refuses there when fitted alone): :meth:`combine` sets
-        such a trial aside and the other trials decide.
+        refusing (a single-parameter model refuses there when fitted alone), and, among several
+        trials, a fit that does not converge keeps its estimate with the ``not-converged``
+        warning instead of refusing: :meth:`combine` sets such a trial aside and the other
+        trials decide.
         """
         check_settings(self)
-        est = MarkerEstimator(self.model, **self._trial_settings())
+        settings = self._trial_settings()
+        if not alone:
+            settings["on_nonconvergence"] = "warn"
+        est = MarkerEstimator(self.model, **settings)
         check_settings(est)
         y, rate = marker_array(self.model, data, est.rate, self.name, motion=alone)
         f = run_marker_fit(est, y, rate, make_rng(est.rng), on_bound="warn")
@@ -980,8 +987,17 @@ class MultiTrialEstimator:
         trials' own estimates, unless no trial is left.
         """
         pinned = np.array([bool(np.any(getattr(getattr(e, "fit_", None), "pinned", False))) for e in self.trials_])
-        keep = ~pinned if (pinned.any() and not pinned.all()) else np.ones(len(pinned), bool)
+        # a fit that did not converge has no interval to give (unless this estimator keeps such fits)
+        stuck = np.array([self.on_nonconvergence == "error" and not bool(getattr(e.fit_info_, "converged", True))
+                          for e in self.trials_])
+        if stuck.all():
+            raise ConvergenceError("no trial's joint fit converged, so no interval can be given",
+                                   "raise n_iter, or check the model's starting geometry and the data")
+        out = pinned | stuck
+        keep = ~out if (out.any() and not out.all()) else ~stuck
         self.trials_set_aside_ = [lab for lab, k in zip(self.trial_labels_, keep, strict=True) if not k]
+        self.trials_not_converged_ = [lab for lab, k in zip(self.trial_labels_, stuck, strict=True) if k]
+        self._keep = keep
         return keep
 
     def _checks(self, theta_k, cov_k, informs, theta, q, df, dof, f) -> None:
@@ -1021,7 +1037,8 @@ class MultiTrialEstimator:
         model = self.model
         theta, cov = _combine_normal_priors(model, self.theta_data_, self.cov_data_)
         self.fit_info_ = fit
-        self.converged_ = bool(fit.converged) if fit is not None else all(e.fit_info_.converged for e in ests)
+        self.converged_ = bool(fit.converged) if fit is not None else all(
+            e.fit_info_.converged for e, k in zip(ests, self._keep, strict=True) if k)
         self.n_iter_ = int(fit.n_iter) if fit is not None else 0
         self.theta_, self.cov_ = theta, cov
         self.posterior_ = GaussianPosterior(model.parameter_names, theta, cov)
@@ -1050,10 +1067,15 @@ class MultiTrialEstimator:
         if fit is not None and not fit.converged:
             new.append(Warning("not-converged", "the joint fit of all trials stopped before converging; "
                                "the estimate may be off"))
-        if self.trials_set_aside_:
-            new.append(Warning("trials-set-aside", f"{', '.join(self.trials_set_aside_)}: the fit ended on a "
+        bound = [t for t in self.trials_set_aside_ if t not in self.trials_not_converged_]
+        if bound:
+            new.append(Warning("trials-set-aside", f"{', '.join(bound)}: the fit ended on a "
                                "bound of the prior (the trial cannot locate these parameters), so the joint "
                                "estimate combines the other trials only"))
+        if self.trials_not_converged_:
+            new.append(Warning("trials-set-aside", f"{', '.join(self.trials_not_converged_)}: the trial's own "
+                               "fit did not converge (no interval of its own), so the joint estimate combines the "
+                               "other trials only"))
         c = self.consistency_
         if c["tested"] and c["p_value"] < 0.01:
             how = ("was added to the interval" if self.between_trial != "none" else "is not in the interval")
