@@ -121,3 +121,31 @@ def test_joint_fit_stops_where_a_fit_run_to_the_cost_rounding_stops(cutoff):
                       rate=rate, cutoff=cutoff)
     sd = np.sqrt(np.diag(np.linalg.inv(fit.info)) * fit.rss / (fit.n_obs - fit.pose_dof - model.n_params))
     assert np.all(np.abs(tight.theta - fit.theta) <= 1e-6 * sd)
+
+
+def test_an_optimum_beyond_a_bound_is_reached_on_the_bound_as_a_bounded_solver_finds_it():
+    # the elbow centre's x lies 20 mm beyond its upper bound: the fit holds it on the bound and
+    # solves for the rest (poses included) as a generic bounded least-squares solver does
+    from scipy.optimize import least_squares
+
+    from skelid.estimators.fit.joint import weighted_terms
+    from tests.estimators.test_noise import two_link
+
+    model = two_link()
+    trial = simulate(model, sigma=1.0, n_frames=30, rng=np.random.default_rng(5))
+    truth = trial.theta
+    lo, hi = truth - np.array([40.0, 40.0]), truth + np.array([-20.0, 40.0])
+    start = np.array([hi[0] - 5.0, truth[1]])
+    y = trial.data.positions
+    fit = joint_fit(model, y, start, trial.pose, bounds=(lo, hi), tol=1e-14, n_iter=200)
+    P, T, Q = model.n_params, len(y), model.n_pose
+
+    def resid(x):
+        return weighted_terms(model, x[:P], x[P:].reshape(T, Q), y, None)[0].ravel()
+
+    big = np.full(T * Q, np.inf)
+    ref = least_squares(resid, np.concatenate([start, trial.pose.ravel()]), xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                        bounds=(np.concatenate([lo, -big]), np.concatenate([hi, big])))
+    assert fit.converged and fit.theta[0] == pytest.approx(hi[0])
+    np.testing.assert_allclose(fit.theta, ref.x[:P], atol=1e-5)
+    np.testing.assert_allclose(fit.pose.ravel(), ref.x[P:], atol=1e-5)

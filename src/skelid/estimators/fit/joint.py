@@ -282,17 +282,30 @@ def _normal_blocks(r, Jq, Jt):
     return Hqq, Hqt, Htt, gq, gt
 
 
-def _reduce_to_theta(Hqt, Htt, gt, G, u, lam):
-    """Schur complement in theta given ``G = A^{-1} H_{q theta}`` and ``u = A^{-1} g_q``."""
+def _reduce_to_theta(Hqt, Htt, gt, G, u, lam, active=None):
+    """Schur complement in theta given ``G = A^{-1} H_{q theta}`` and ``u = A^{-1} g_q``.
+
+    ``active(dtheta)``, where given, names the parameters held where they are (a bound the step
+    would cross outward): the step is then solved for the others alone, and the poses' step
+    follows the parameters' actual one (a clipped step with the poses' unclipped response is no
+    descent direction, and the fit would crawl along the bound).
+    """
     P = Htt.shape[0]
     dt_ = np.diag(Htt)
     Hqt2 = Hqt.reshape(-1, P).T  # (P, T*Q): the frame sums as matrix products (BLAS)
     S = Htt + lam * np.diag(dt_) + 1e-12 * max(dt_.mean(), 1e-300) * np.eye(P) - Hqt2 @ G.reshape(-1, P)
-    dtheta = np.linalg.solve(S, gt - Hqt2 @ u.ravel())
+    rhs = gt - Hqt2 @ u.ravel()
+    dtheta = np.linalg.solve(S, rhs)
+    held = None if active is None else active(dtheta)
+    if held is not None and held.any():
+        free = ~held
+        dtheta = np.zeros(P)
+        if free.any():
+            dtheta[free] = np.linalg.solve(S[np.ix_(free, free)], rhs[free])
     return dtheta, u - G @ dtheta, S
 
 
-def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
+def _schur_step(Hqq, Hqt, Htt, gq, gt, lam, active=None):
     Q, P = Hqq.shape[-1], Htt.shape[0]
     dq_ = np.einsum("tii->ti", Hqq)
     # ridge relative to the frame's own scale, or to the trial's for a frame with no rows
@@ -300,7 +313,7 @@ def _schur_step(Hqq, Hqt, Htt, gq, gt, lam):
     A = Hqq + (lam * dq_)[..., None] * np.eye(Q) + 1e-12 * scale[:, None, None] * np.eye(Q)
     sol = np.linalg.solve(A, np.concatenate([Hqt, gq[..., None]], axis=-1))
     G, u = sol[..., :P], sol[..., P]
-    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
+    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam, active)
 
 
 UNDERSMOOTH = 2.0
@@ -404,7 +417,7 @@ def block_penalty(model: Model, Hqq, blocks):
     return sp.block_diag(parts, format="csc")
 
 
-def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band=None):
+def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band=None, active=None):
     """Like :func:`_schur_step` with the pose blocks coupled by the penalty ``R``."""
     T, Q = gq.shape
     P = Htt.shape[0]
@@ -414,7 +427,7 @@ def _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, lam, R, q, R_band=None):
     sol = solve(np.concatenate([Hqt, rhs_q[..., None]], axis=-1).reshape(T * Q, P + 1))
     sol = sol.reshape(T, Q, P + 1)
     G, u = sol[..., :P], sol[..., P]
-    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam)
+    return _reduce_to_theta(Hqt, Htt, gt, G, u, lam, active)
 
 
 def _continuous_poses(model: Model, q, use):
@@ -639,11 +652,19 @@ def _damped_step(pb: _LMProblem, s: _LMState, Hqq, Hqt, Htt, gq, gt):
     Raises ``numpy.linalg.LinAlgError``, ``RuntimeError`` or ``ValueError`` where the damped system
     cannot be solved.
     """
+    active = None
+    if pb.bounds is not None:
+        lo, hi = pb.bounds
+        tol = 1e-9 * np.maximum(np.asarray(hi, float) - np.asarray(lo, float), 1e-300)
+        at_lo, at_hi = s.theta <= lo + tol, s.theta >= hi - tol
+
+        def active(dt):  # a parameter on a bound that the step would push beyond it stays there
+            return (at_lo & (dt < 0)) | (at_hi & (dt > 0))
     if pb.R is None:
-        dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, s.lam)
+        dtheta, dq, S = _schur_step(Hqq, Hqt, Htt, gq, gt, s.lam, active)
         slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)))
     else:
-        dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, s.lam, pb.R, s.q, pb.R_band)
+        dtheta, dq, S = _schur_step_smooth(Hqq, Hqt, Htt, gq, gt, s.lam, pb.R, s.q, pb.R_band, active)
         slope = -2.0 * (float(gt @ dtheta) + float(np.sum(gq * dq)) - float(s.q.ravel() @ (pb.R @ dq.ravel())))
     return dtheta, dq, S, slope
 
