@@ -327,6 +327,19 @@ def test_a_single_parameter_trial_on_its_bound_is_set_aside_not_fatal():
             MultiTrialEstimator(model, **kw).fit([datas[2], datas[2]])
 
 
+KW = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+
+
+def _fitted(seed0: int, n: int):
+    """``n`` simulated two-link trials (25 frames, seeds ``seed0 + k``), each fitted alone."""
+    model = two_link()
+    datas = [_data(model, 25, seed0 + k, sigma=1.0).data for k in range(n)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ests = [MarkerEstimator(model, **KW).fit(d) for d in datas]
+    return model, datas, ests
+
+
 def _with_status(est, statuses):
     est.identifiability_ = dict(est.identifiability_, table=[dict(r, status=s) for r, s in
                                                           zip(est.identifiability_["table"], statuses, strict=True)])
@@ -335,16 +348,13 @@ def _with_status(est, statuses):
 
 @pytest.mark.parametrize("between", ["dl", "prior"])
 def test_a_trial_that_leaves_a_parameter_unidentified_contributes_nothing_to_it(between):
-    model = two_link()
-    datas = [_data(model, 25, 60 + k, sigma=1.0).data for k in range(3)]
-    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    model, datas, ests = _fitted(60, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
         # the third trial leaves elbow_y poorly identified, 40 mm off
         ests[2].theta_profile_ = ests[2].theta_profile_ + np.array([0.0, 40.0])
         _with_status(ests[2], ["identified", "poor"])
-        m = MultiTrialEstimator(model, between_trial=between, **kw).combine(ests, [d.rate for d in datas])
+        m = MultiTrialEstimator(model, between_trial=between, **KW).combine(ests, [d.rate for d in datas])
     assert m.trial_informs_.tolist() == [[True, True], [True, True], [True, False]]
     # its between-trial variance is the two other trials' own
     if between == "dl":
@@ -368,15 +378,14 @@ def test_a_trial_that_leaves_a_parameter_unidentified_contributes_nothing_to_it(
 
 
 def test_a_parameter_no_trial_identifies_keeps_their_status_and_the_prior_support():
-    model = two_link()
-    datas = [_data(model, 25, 70 + k, sigma=1.0).data for k in range(2)]
-    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    model, datas, ests = _fitted(70, 2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ests = [_with_status(MarkerEstimator(model, **kw).fit(d), ["identified", "poor"]) for d in datas]
-        for e in ests:  # as wide as a poorly identified parameter's: far beyond its +-60 mm prior
+        for e in ests:
+            _with_status(e, ["identified", "poor"])
+            # as wide as a poorly identified parameter's: far beyond its +-60 mm prior
             e.cov_data_ = e.cov_data_ + np.diag([0.0, 80.0**2])
-        m = MultiTrialEstimator(model, between_trial="dl", **kw).combine(ests, [d.rate for d in datas])
+        m = MultiTrialEstimator(model, between_trial="dl", **KW).combine(ests, [d.rate for d in datas])
     assert m.trial_informs_.all()
     p = m.result().parameters["elbow_y"]
     assert p.status == "poor"
@@ -409,17 +418,14 @@ def test_shared_covariance_closed_forms():
 
 
 def test_the_shared_part_of_each_trial_is_carried_once_and_left_out_of_comparisons():
-    model = two_link()
-    datas = [_data(model, 25, 83 + k, sigma=1.0).data for k in range(3)]
-    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    model, datas, ests = _fitted(83, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
-        plain = MultiTrialEstimator(model, between_trial="none", **kw).combine(ests, [d.rate for d in datas])
+        plain = MultiTrialEstimator(model, between_trial="none", **KW).combine(ests, [d.rate for d in datas])
         for e in ests:  # a placement error of sd 3 mm on elbow_x that every trial shares
             e.cov_shared_ = np.diag([9.0, 0.0])
             e.cov_data_ = e.cov_data_ + e.cov_shared_
-        m = MultiTrialEstimator(model, between_trial="none", **kw).combine(ests, [d.rate for d in datas])
+        m = MultiTrialEstimator(model, between_trial="none", **KW).combine(ests, [d.rate for d in datas])
     # the own parts combine as before; the shared one is added once, not divided by three
     np.testing.assert_allclose(m.cov_, plain.cov_ + np.diag([9.0, 0.0]), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(m.trial_sd_, plain.trial_sd_)  # comparisons: it cancels
@@ -433,12 +439,10 @@ def test_the_shared_part_of_each_trial_is_carried_once_and_left_out_of_compariso
 
 
 def test_a_trial_whose_fit_did_not_converge_is_set_aside_and_all_of_them_refuse():
-    model = two_link()
-    datas = [_data(model, 25, 60 + k, sigma=1.0).data for k in range(3)]
-    kw = {"outlier_threshold": None, "jackknife": False, "cutoff": None}
+    model, datas, ests = _fitted(60, 3)
+    kw = KW
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ests = [MarkerEstimator(model, **kw).fit(d) for d in datas]
         ests[1].fit_info_ = ests[1].fit_info_._replace(converged=False)
         m = MultiTrialEstimator(model, between_trial="dl", **kw).combine(ests, [d.rate for d in datas],
                                                                            ["a", "b", "c"])
