@@ -51,3 +51,10 @@ def frame_gram(A, B=None) -> np.ndarray:
     """``(T, P, Q)``: ``sum_k A[t,k,p] B[t,k,q]`` per frame (``einsum("tkp,tkq->tpq")``); ``B = A`` if None."""
     A = np.asarray(A, dtype=float)
     return np.matmul(A.swapaxes(-1, -2), A if B is None else np.asarray(B, dtype=float))
+
+
+def psd_sqrt(S) -> np.ndarray:
+    """Symmetric square root of a (nearly) symmetric positive semi-definite matrix (negative
+    eigenvalues from rounding are taken as 0)."""
+    w, V = np.linalg.eigh(0.5 * (S + np.swapaxes(S, -1, -2)))
+    return (V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ np.swapaxes(V, -1, -2)

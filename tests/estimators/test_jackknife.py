@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from skelid._linalg import psd_sqrt
 from skelid.data import MarkerData
 from skelid.estimators.fit.joint import joint_fit
 from skelid.estimators.marker import MarkerEstimator
@@ -62,7 +63,7 @@ def test_cr2_transform_equals_bell_mccaffrey_on_a_linear_regression():
     S = Xs.T @ Xs
     beta = np.linalg.solve(S, Xs.T @ ys)
     e = (ys - Xs @ beta).reshape(G, n)
-    S_isqrt, S_sqrt = jackknife._inv_sqrt(S), jackknife._sqrt(S)
+    S_isqrt, S_sqrt = jackknife._inv_sqrt(S), psd_sqrt(S)
     for m in range(G):
         keep = np.arange(G) != m
         Xk, yk = X[keep].reshape(-1, P), y[keep].ravel()
@@ -82,7 +83,7 @@ def test_cr2_is_unbiased_under_white_noise_and_the_plain_jackknife_is_not():
     Xs = X.reshape(-1, P)
     S = Xs.T @ Xs
     M_res = np.eye(G * n) - Xs @ np.linalg.solve(S, Xs.T)  # residual maker: e = M_res u
-    S_isqrt, S_sqrt = jackknife._inv_sqrt(S), jackknife._sqrt(S)
+    S_isqrt, S_sqrt = jackknife._inv_sqrt(S), psd_sqrt(S)
     E_cr2, E_cr3 = np.zeros((P, P)), np.zeros((P, P))
     for m in range(G):
         rows = slice(m * n, (m + 1) * n)

@@ -116,6 +116,7 @@ from scipy.optimize import brentq
 from scipy.stats import chi2
 from scipy.stats import t as student_t
 
+from skelid._linalg import psd_sqrt
 from skelid.data import MarkerData
 from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, SkelidError
 from skelid.estimators.base import (
@@ -573,11 +574,9 @@ def shared_covariance(weights, norm, shared, tau2, informs) -> tuple[np.ndarray,
     >>> float(cov[0, 0]), float(r[0])
     (4.0, 1.0)
     """
-    from skelid.estimators.uncertainty.jackknife import _sqrt
-
     Sh = np.asarray(shared, float)
     m = np.asarray(informs, bool)
-    G = np.asarray(norm, float) @ sum(W @ _sqrt(S) for W, S in zip(weights, Sh, strict=True))
+    G = np.asarray(norm, float) @ np.einsum("kpq,kqr->pr", weights, psd_sqrt(Sh))
     v = np.einsum("kpp->kp", Sh)
     n = np.maximum(m.sum(axis=0), 1)
     mean_v = np.where(m, v, 0.0).sum(axis=0) / n

@@ -100,6 +100,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.stats import chi2
 
+from skelid._linalg import psd_sqrt
 from skelid.estimators.fit.joint import _banded_solver, joint_fit, penalty_band, row_weights
 from skelid.estimators.fit.likelihood import frame_terms, pose_information
 from skelid.model.description import Model
@@ -286,7 +287,7 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     R_band = None if R is None else penalty_band(R, model.n_pose)
     A, S, _ = _influence(r, Jq, Jt, pose, R, R_band)
     S_isqrt = _inv_sqrt(S)
-    S_sqrt = _sqrt(S)
+    S_sqrt = psd_sqrt(S)
     rng = np.random.default_rng(0) if rng is None else rng
     seed = int(rng.integers(2**32))
     chunks = [(c, min(_CHUNK, N_NULL - c)) for c in range(0, N_NULL, _CHUNK)]
@@ -402,7 +403,7 @@ def cr2_transform(kept_info, S_isqrt, S_sqrt) -> np.ndarray:
         ``X_m`` and residuals ``e_m``, the delete-cluster shift is ``-(S - X_m^T X_m)^{-1} X_m^T e_m``
         and this map turns it into ``-S^{-1} X_m^T (I - H_mm)^{-1/2} e_m`` (Bell and McCaffrey).
     """
-    return S_isqrt @ _sqrt(kept_info) @ S_sqrt
+    return S_isqrt @ psd_sqrt(kept_info) @ S_sqrt
 
 
 def _cr2_cov(c) -> np.ndarray:
@@ -460,10 +461,6 @@ def _inv_sqrt(S):
     return (V / np.sqrt(np.maximum(w, 1e-300 * max(w.max(), 1e-300)))) @ V.T
 
 
-def _sqrt(S):
-    """Symmetric square root of a (nearly) symmetric positive semi-definite matrix."""
-    w, V = np.linalg.eigh(0.5 * (S + S.T))
-    return (V * np.sqrt(np.clip(w, 0.0, None))) @ V.T
 
 
 def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=None, weights=None):
