@@ -523,12 +523,15 @@ def identify_stage(model: Model, st: Start, sc: Screen, fr: Frames, fit: JointFi
                    on_bound: str, motion_pose=None) -> tuple[dict, np.ndarray]:
     """Identifiability table, and the parameters whose profile estimate sits on a prior bound.
 
-    The joints' ranges of motion come from ``motion_pose`` (the unweighted fit's poses) where
-    given: per-marker weights, which let the poses follow a few markers closely, never widen a
-    range (nor change which joints count as still).
+    With ``motion_pose`` (the unweighted fit's poses, given for a per-marker weighted fit) each
+    joint's range of motion is the smaller of the two fits': weights that let the poses follow a
+    few markers closely never widen a range (nor change which joints count as still).
     """
-    pose = fit.pose if motion_pose is None else motion_pose
-    ident = identifiability(model, fit.info, noise.sigma, y=sc.y, pose=pose, used=fr.used)
+    ident = identifiability(model, fit.info, noise.sigma, y=sc.y, pose=fit.pose, used=fr.used)
+    if motion_pose is not None and "joint_range_deg" in ident:
+        plain = joint_motion(model, motion_pose, fr.used)
+        ident["joint_range_deg"] = {j: [min(a, b) for a, b in zip(r, plain.get(j, r), strict=True)]
+                                    for j, r in ident["joint_range_deg"].items()}
     if ident["null"]:
         raise IdentifiabilityError(
             f"the data cannot identify {null_message(model, ident['null'])} (no information "
@@ -1109,7 +1112,8 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     fit = wt.fit
     fr = frames_stage(model, sc, fit)
     noise = noise_stage(model, fit, est.sigma)
-    ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound, mo.fit.pose)
+    ident, pinned = identify_stage(model, st, sc, fr, fit, noise, on_bound,
+                                   None if wt.weights is None else mo.fit.pose)
     res = residual_stage(model, sc.y, fit, fr.used, noise.sigma, wt.weights)
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     bias = profile_stage(est, sc, wt, fr.used, noise, bias)
