@@ -95,12 +95,51 @@ def misplaced(model, sd: float, rng):
     return replace(model, markers=moved)
 
 
+REFUSED = {"est": None, "sd": None}
+
+
+def fit_trials(model, trials, **settings) -> list:
+    """Each trial fitted as the multi-trial fit makes it (a fit ending on a prior bound, or not
+    converging, warns); None where it refuses."""
+    from skelid.errors import SkelidError
+    from skelid.estimators.multitrial import MultiTrialEstimator
+
+    out = []
+    for t in trials:
+        try:
+            out.append(MultiTrialEstimator(model, **settings).fit_trial(t.data, alone=False))
+        except SkelidError:
+            out.append(None)
+    return out
+
+
+def alone(model, fit):
+    """The trial's fit as a user fitting it alone gets it: None where that fit refuses (a
+    single-parameter fit ending on a prior bound, or a fit that does not converge)."""
+    if fit is None or (model.n_params == 1 and fit.fit_.pinned.any()) or not fit.fit_info_.converged:
+        return None
+    return fit
+
+
+def combined(model, fits, rates, **settings) -> dict:
+    """One multi-trial cell: the combination of ``fits`` (REFUSED where a trial refused or none converged)."""
+    from skelid.errors import SkelidError
+    from skelid.estimators.multitrial import MultiTrialEstimator
+
+    if any(f is None for f in fits):
+        return REFUSED
+    try:
+        m = MultiTrialEstimator(model, **settings).combine(fits, rates)
+    except SkelidError:  # no trial's fit converged
+        return REFUSED
+    return {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(), "cov": m.cov_.tolist(),
+            "tau": np.sqrt(m.tau2_).tolist(), "set_aside": len(m.trials_set_aside_)}
+
+
 def one_subject(args):
     """``n_trials`` trials of one simulated subject; every cell's estimate and sd for each parameter."""
     case, sigma, amplitude, n_frames, rep, n_trials, placement_sd = args
     warnings.simplefilter("ignore")
-    from skelid.errors import SkelidError
-    from skelid.estimators.multitrial import MultiTrialEstimator
     from skelid.simulate import resolve_model, simulate
 
     model = resolve_model(case)
@@ -111,23 +150,14 @@ def one_subject(args):
     c0 = time.process_time()
     trials = [simulate(body, theta=theta, n_frames=n_frames, sigma=sigma, noise="sta",
                        sta_amplitude=amplitude, rng=rng) for _ in range(n_trials)]
-    fits = []
-    for t in trials:
-        try:  # as the multi-trial fit makes them: a fit ending on a prior bound, or not converging, warns
-            fits.append(MultiTrialEstimator(model).fit_trial(t.data, alone=False))
-        except SkelidError:
-            fits.append(None)
+    fits = fit_trials(model, trials)
     out = {"truth": theta.tolist(), "cells": {}}
-    refused = {"est": None, "sd": None}
-    # fitted alone, a single-parameter fit that ends on a prior bound, or a fit that does not converge,
-    # refuses: the user gets no interval
-    f0 = None if fits[0] is None or (model.n_params == 1 and fits[0].fit_.pinned.any()) or not \
-        fits[0].fit_info_.converged else fits[0]
+    f0 = alone(model, fits[0])
     out["not_converged"] = sum(1 for f in fits if f is not None and not f.fit_info_.converged)
-    out["cells"]["single/default"] = refused if f0 is None else {"est": f0.theta_.tolist(),
+    out["cells"]["single/default"] = REFUSED if f0 is None else {"est": f0.theta_.tolist(),
                                                                   "sd": f0.posterior_.sd.tolist(),
                                                                   "cov": f0.cov_.tolist()}
-    out["cells"]["single/white"] = refused if f0 is None else {"est": f0.theta_.tolist(),
+    out["cells"]["single/white"] = REFUSED if f0 is None else {"est": f0.theta_.tolist(),
                                                                 "sd": np.sqrt(np.diag(f0.cov_plain_)).tolist(),
                                                                 "cov": f0.cov_plain_.tolist()}
     out["jackknife_available"] = None if f0 is None else bool(f0.jackknife_.get("available"))
@@ -135,41 +165,15 @@ def one_subject(args):
     rates = [t.data.rate for t in trials]
     for K in range(2, n_trials + 1):
         for method, tag, kw in CELLS:
-            try:
-                if any(f is None for f in fits[:K]):
-                    raise SkelidError("a trial refused", "")
-                m = MultiTrialEstimator(model, between_trial=method, **kw).combine(fits[:K], rates[:K])
-            except SkelidError:  # no trial's fit converged
-                out["cells"][f"{tag}/{K}"] = refused
-                continue
-            out["cells"][f"{tag}/{K}"] = {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(),
-                                          "cov": m.cov_.tolist(),
-                                          "tau": np.sqrt(m.tau2_).tolist(),
-                                          "set_aside": len(m.trials_set_aside_)}
+            out["cells"][f"{tag}/{K}"] = combined(model, fits[:K], rates[:K], between_trial=method, **kw)
     if placement_sd > 0:  # the same trials with the misplacement's size stated (placement_sd)
-        placed = []
-        for t in trials:
-            try:
-                placed.append(MultiTrialEstimator(model, placement_sd=placement_sd).fit_trial(t.data, alone=False))
-            except SkelidError:
-                placed.append(None)
-        p0 = placed[0] if placed[0] is not None and placed[0].fit_info_.converged else None
-        out["cells"]["single/placement-stated"] = refused if p0 is None else {
+        placed = fit_trials(model, trials, placement_sd=placement_sd)
+        p0 = alone(model, placed[0])
+        out["cells"]["single/placement-stated"] = REFUSED if p0 is None else {
             "est": p0.theta_.tolist(), "sd": p0.posterior_.sd.tolist(), "cov": p0.cov_.tolist()}
         if n_trials > 1:
-            cell = f"multi-prior-placement-stated/{n_trials}"
-            try:
-                if any(f is None for f in placed):
-                    raise SkelidError("a trial refused", "")
-                m = MultiTrialEstimator(model, between_trial="prior").combine(placed, rates)
-            except SkelidError:
-                m = None
-            if m is None:
-                out["cells"][cell] = refused
-            else:
-                out["cells"][cell] = {"est": m.theta_.tolist(), "sd": m.posterior_.sd.tolist(),
-                                      "cov": m.cov_.tolist(), "tau": np.sqrt(m.tau2_).tolist(),
-                                      "set_aside": len(m.trials_set_aside_)}
+            out["cells"][f"multi-prior-placement-stated/{n_trials}"] = combined(model, placed, rates,
+                                                                                 between_trial="prior")
     out["cpu_s"] = time.process_time() - c0
     return out
 

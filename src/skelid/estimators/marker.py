@@ -900,7 +900,8 @@ def summary_stage(model: Model, ident: dict, est: Estimate, placement: dict | No
         if row["status"] == "identified" and sd[k] > POOR_FRACTION * (p.prior.upper - p.prior.lower):
             row["status"] = "poor"
         still = pl.get("static") or (PARAMETER_TARGET.get(p.kind, "joint") == "joint" and p.target in still_joints)
-        if row["status"] == "identified" and still and pl["parameters"][p.name]["informed_by_placement"]:
+        placed = pl.get("parameters", {}).get(p.name, {}).get("informed_by_placement", False)
+        if row["status"] == "identified" and still and placed:
             row["status"] = "placement"
         table.append(row)
     functional = {p.target for p in model.parameters if p.kind in ("joint_centre", "axis_direction")}

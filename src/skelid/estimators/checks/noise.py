@@ -140,11 +140,11 @@ def marker_rss(model: Model, y, fit: JointFit) -> tuple[np.ndarray, np.ndarray, 
     r = y - marker_positions(model, fit.theta, fit.pose)
     ok = np.isfinite(r).all(axis=-1)
     r0 = np.where(ok[..., None], r, 0.0)
-    rss = r0**2
+    rss = (r0**2).sum(axis=(0, 2))
     lag = (r0[1:] * r0[:-1]).sum(axis=(0, 2))
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where(rss.sum(axis=(0, 2)) > 0, lag / rss.sum(axis=(0, 2)), 0.0)
-    return rss.sum(axis=(0, 2)), ok.sum(axis=0) * float(model.dim), np.clip(rho, -1.0, 1.0)
+        rho = np.where(rss > 0, lag / rss, 0.0)
+    return rss, ok.sum(axis=0) * float(model.dim), np.clip(rho, -1.0, 1.0)
 
 
 def effective_dof(dof, rho) -> np.ndarray:
