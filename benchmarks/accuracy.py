@@ -9,9 +9,12 @@ frames. Methods:
 * ``laplace`` grid filter with the Laplace-marginal likelihood (poses integrated out);
 * ``final``   the default ``marker`` estimator (motion model, noise level estimated);
 * cells ``straight`` and ``folded`` (``--noises straight folded``): i.i.d. noise with
-  every revolute joint kept within 0-25 or 150-172 degrees, near the poses where
-  the markers across a joint line up (the second-order bias expansion is least
-  accurate there);
+  every revolute joint kept near the poses where the markers across a joint line up
+  (the second-order bias expansion is least accurate there), on a geometry drawn for
+  each trial (:func:`drawn_model`: the upper arm's length, every marker's place, the
+  true L2 in 210-290 mm, each joint's own range of motion near 0 or 180 degrees;
+  ``POSTURE_DRAWS``), so that no rule can be fitted to one geometry (``--truths`` is
+  ignored; the rows' ``truth`` is 0);
 * cell ``coupled`` (``--noises coupled``): a thigh and shank whose knee is a coupled
   (``custom``) joint whose centre slides with flexion (by ``MOVING_CENTRE`` (q^2/2, q/2) mm,
   q the flexion in radians, 0-90 degrees), fitted with a hinge whose centre (x, y) is
@@ -38,7 +41,7 @@ average when it ended; the file its provenance (:func:`_common.provenance`). ``-
 fits in this process and one worker.
 
     python benchmarks/accuracy.py --reps 100 --jobs 2
-    python benchmarks/accuracy.py --noises folded straight --truths 250 --methods final --reps 20
+    python benchmarks/accuracy.py --noises folded straight --methods final --reps 20
     python benchmarks/accuracy.py --cases case-a --sigmas 1 5 --noises coupled --methods final --reps 20
     python benchmarks/accuracy.py --frames-study --reps 20
 """
@@ -66,8 +69,15 @@ CASES = ("case-a", "case-b")
 SIGMAS = (5.0, 15.0)
 TRUTHS = (210.0, 250.0, 290.0)
 NOISES = ("iid", "sta")
+#: where the drawn geometry's joints move: each revolute joint's own range, centred at a draw from
+#: ``centre`` with a half-width drawn from ``half`` (degrees); straight = 0, folded = 180
+POSTURE_DRAWS = {"straight": {"centre": (0.0, 20.0), "half": (5.0, 12.5)},
+                 "folded": {"centre": (146.0, 166.0), "half": (5.0, 12.0)}}
+#: the drawn L2's range (mm), inside the prior's 200-300 mm
+DRAWN_L2 = (210.0, 290.0)
 #: i.i.d. noise with every revolute joint kept near a singular pose (markers across it nearly in line)
-POSTURES = {"straight": (0.0, 25.0), "folded": (150.0, 172.0)}  # degrees
+POSTURES = tuple(POSTURE_DRAWS)
+
 METHODS = ("paper", "profile", "laplace", "final")
 Z95 = 1.959964
 CHUNK = 20  # trials between two writes of a cell's rows
@@ -94,14 +104,15 @@ def one_trial(args):
     if noise == "coupled":
         trial = coupled_knee_trial(model, n_frames, sigma, np.random.default_rng(seed))
     elif noise in POSTURES:
-        trial = singular_trial(model, truth, n_frames, sigma, POSTURES[noise], np.random.default_rng(seed))
+        trial = singular_trial(case, n_frames, sigma, noise, np.random.default_rng(seed))
+        model = trial.model
     else:
         trial = simulate(model, theta=[truth], n_frames=n_frames, sigma=sigma, noise=noise,
                          sta_amplitude=10.0, rng=np.random.default_rng(seed))
     _, Jq, Jt = frame_terms(model, trial.theta, trial.pose, trial.clean)
     bounds = crlb_sd(efficient_information(Jq, Jt, sigma))
     bound = float(bounds[0])
-    out = {"crlb": bound, "crlb_all": bounds.tolist()}
+    out = {"crlb": bound, "crlb_all": bounds.tolist(), "truth_all": [float(v) for v in trial.theta]}
     if noise == "iid" or noise in POSTURES:  # Gaussian noise: the exact linear term is a control variate
         out["linear_all"] = linear_term(model, trial).tolist()
         out["linear"] = out["linear_all"][0]
@@ -227,11 +238,50 @@ def coupled_knee_trial(model, n_frames, sigma, rng):
                  np.zeros(model.n_params), pose, clean)
 
 
-def singular_trial(model, truth, n_frames, sigma, degrees, rng):
-    """A trial whose revolute joints stay within ``degrees`` (near the straight or folded pose)."""
-    from skelid.simulate import simulate_posture
+def drawn_model(case: str, rng):
+    """Case A or B with its geometry drawn: the upper arm's length, and every marker's place.
 
-    return simulate_posture(model, [truth], n_frames, sigma, degrees, rng)
+    Upper arm 250-350 mm; each marker at 30-70 % of its element's length (the hand's at 50-110 mm) and
+    10-40 mm off its long axis, on opposite sides across each joint as in the built-in models (so that
+    the markers across a joint line up near its singular poses), the whole arm mirrored at random. The
+    forearm's nominal length stays at the built-in model's (the truth is drawn apart: ``DRAWN_L2``)."""
+    import tomllib
+    from importlib import resources
+
+    from skelid.model.description import model_from_dict
+    from skelid.simulate import BUILTIN_MODELS
+
+    spec = tomllib.loads((resources.files("skelid") / "models" / BUILTIN_MODELS[case]).read_text())
+    upper = rng.uniform(250.0, 350.0)
+    spec["segments"][1]["joint"]["position"] = [upper, 0.0]
+    along = {"upper_arm": upper, "forearm": 250.0, "hand": 160.0}
+    side = rng.choice([-1.0, 1.0])
+    for m in spec["markers"]:
+        sign = side * np.sign(m["position"][1])  # the built-in model's side, mirrored as a whole
+        m["position"] = [rng.uniform(0.3, 0.7) * along[m["segment"]], sign * rng.uniform(10.0, 40.0)]
+    return model_from_dict(spec, f"{case} (drawn geometry)")
+
+
+def singular_trial(case, n_frames, sigma, posture, rng):
+    """A trial of a drawn geometry (:func:`drawn_model`, ``DRAWN_L2``) whose revolute joints each move
+    through their own drawn range near the straight or folded pose (``POSTURE_DRAWS``)."""
+    from skelid.data import MarkerData
+    from skelid.model.kinematics import marker_positions
+    from skelid.simulate import Trial, simulate_motion
+
+    model = drawn_model(case, rng)
+    theta = np.array([rng.uniform(*DRAWN_L2)])
+    pose = simulate_motion(model, n_frames, 100.0, rng)
+    draw = POSTURE_DRAWS[posture]
+    for k, d in enumerate(model.dofs):
+        if d.kind == "R" and model.segments[d.segment].joint.type in ("revolute", "hinge"):
+            centre, half = rng.uniform(*draw["centre"]), rng.uniform(*draw["half"])
+            u = (pose[:, k] - pose[:, k].min()) / max(float(np.ptp(pose[:, k])), 1e-12)
+            pose[:, k] = np.radians(centre + half * (2.0 * u - 1.0))
+    clean = marker_positions(model, theta, pose)
+    noisy = clean + rng.normal(0.0, sigma, size=clean.shape)
+    return Trial(model, MarkerData(noisy, model.marker_names, 100.0, model.units, source="simulated"),
+                 theta, pose, clean)
 
 
 def controlled(err, lin, var_lin: float):
@@ -291,15 +341,19 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
                             if "est" in t[m] else t[m] for m in methods})
                  for t in trials]
         rows += summarise(case, sigma, truth, noise, [dict(a, crlb=a.get("crlb_all", [a["crlb"]] * n_par)[k],
+                                                          truth_all=[a.get("truth_all", [truth] * n_par)[k]],
                                                           **({"linear": a["linear_all"][k]} if "linear_all" in a
                                                              else {}))
                                                      for a in alias], [f"{m}:{k}" for m in methods], False)
     bound = float(np.sqrt(np.mean([t["crlb"] ** 2 for t in trials])))
     for name in methods:
         ok = [t[name] for t in trials if "est" in t[name]]
-        err = np.array([o["est"] for o in ok]) - truth
+        # the truth a cell's label names, or the one drawn for each trial (drawn geometry: label 0)
+        true = np.array([t.get("truth_all", [truth])[0] if truth == 0.0 else truth for t in trials
+                         if "est" in t[name]])
+        err = np.array([o["est"] for o in ok]) - true
         n = len(err)
-        cover = np.mean([o["lo"] <= truth <= o["hi"] for o in ok]) if n else float("nan")
+        cover = np.mean([o["lo"] <= v <= o["hi"] for o, v in zip(ok, true, strict=True)]) if n else float("nan")
         rmse = float(np.sqrt(np.mean(err**2))) if n else float("nan")
         half = np.array([(o["hi"] - o["lo"]) / 2 for o in ok])
         row = {
@@ -321,10 +375,11 @@ def summarise(case, sigma, truth, noise, trials, methods, split=True):
             row.update(bias_cv=b, bias_cv_se=b_se, rmse_cv=rmse_cv, rmse_cv_over_crlb=rmse_cv / bound,
                        rmse_cv_se=rmse_se, linear_mean=float(np.mean(lin)))
             row["coverage95_cv"], row["coverage95_cv_se"] = controlled_coverage(
-                [o["lo"] <= truth <= o["hi"] for o in ok], lin, [t["crlb"] for t in trials if "est" in t[name]])
+                [o["lo"] <= v <= o["hi"] for o, v in zip(ok, true, strict=True)], lin,
+                [t["crlb"] for t in trials if "est" in t[name]])
         if n and "bias_method" in ok[0]:
             if "profile" in ok[0]:  # first parameter only
-                row["profile_bias"] = float(np.mean([o["profile"] for o in ok]) - truth)
+                row["profile_bias"] = float(np.mean([o["profile"] for o in ok] - true))
                 row["bias_removed"] = float(np.mean([o["bias"] for o in ok]))
             methods_used = [o["bias_method"] for o in ok]
             row["bias_methods"] = {m: methods_used.count(m) for m in sorted(set(methods_used))}
@@ -492,7 +547,9 @@ def _write(rows, folder: Path):
                  "refit settles on one branch, and the sd taken at the interval's ends along the profile where "
                  "that is larger, `folded6b` = `folded6` and, when its refit is not kept, the earlier one-joint rule "
                  "(tried, not kept: one refit kept in 100 trials, no figure moved beyond noise, one more refit "
-                 "on the speed trial). ")
+                 "on the speed trial), `drawn-before` = the near-singular cells on a geometry drawn for each trial "
+                 "(as every later run of them), fitted by the code before the fit searched other starting "
+                 "geometries. ")
                  + "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}
@@ -624,8 +681,9 @@ def main():
     ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--sigmas", nargs="*", type=float, default=list(SIGMAS))
     ap.add_argument("--noises", nargs="*", default=list(NOISES), choices=NOISES + tuple(POSTURES) + ("coupled",),
-                    help="'straight' and 'folded': i.i.d. noise near a singular pose; 'coupled': markers "
-                    "of a knee whose centre slides with flexion, fitted with a hinge (the truths are ignored)")
+                    help="'straight' and 'folded': i.i.d. noise near a singular pose, geometry drawn per trial; "
+                    "'coupled': markers of a knee whose centre slides with flexion, fitted with a hinge (for "
+                    "these three the truths are ignored)")
     ap.add_argument("--truths", nargs="*", type=float, default=list(TRUTHS))
     ap.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS + EXTRA_METHODS)
     ap.add_argument("--fresh", action="store_true", help="ignore results already written")
@@ -654,7 +712,7 @@ def main():
     for case in a.cases:
         for sigma in a.sigmas:
             for noise in a.noises:
-                for truth in ([0.0] if noise == "coupled" else a.truths):
+                for truth in ([0.0] if noise == "coupled" or noise in POSTURES else a.truths):
                     todo = tuple(m for m in a.methods if (a.tag, case, sigma, truth, noise, m) not in done)
                     if not todo:
                         continue

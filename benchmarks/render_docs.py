@@ -458,9 +458,12 @@ def accuracy_singular() -> str:
     """Case A near the straight and folded poses: coverage, bias and RMSE of the default estimator."""
     rows, path, doc, note = accuracy_rows(lambda r: r["noise"] in ("straight", "folded") and r["method"] == "final",
                                           "folded6")
-    lines = ["| pose | σ | L2 | trials | coverage | bias ÷ CRLB | RMSE ÷ CRLB |", "|---|---|---|---|---|---|---|"]
+    lines = ["| pose | case | σ | L2 | trials | coverage | abs(z) > 3 | bias ÷ CRLB | RMSE ÷ CRLB |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["noise"], r["case"], r["sigma"], r["truth"])):
-        lines.append(f"| {r['noise']} | {r['sigma']:g} | {r['truth']:g} | {r['reps']} | {r['coverage95']:.2f} | "
+        lines.append(f"| {r['noise']} | {r['case'][-1].upper()} | {r['sigma']:g} | "
+                     f"{'drawn' if r['truth'] == 0 else format(r['truth'], 'g')} | {r['reps']} | "
+                     f"{r['coverage95']:.2f} | {r.get('z_gt3', float('nan')):.2f} | "
                      f"{r['bias'] / r['crlb']:.2f} | {r['rmse_over_crlb']:.2f} |")
     return "\n".join(lines) + "\n\n" + source(path, doc, note)
 

@@ -15,6 +15,7 @@ from skelid.estimators.multitrial import (
     dersimonian_laird,
     joint_status,
     mixture_half_width,
+    own_variance_floor,
     pairwise_z,
     paule_mandel,
     random_effects,
@@ -461,3 +462,17 @@ def test_a_trial_whose_fit_did_not_converge_is_set_aside_and_all_of_them_refuse(
         e.fit_info_ = e.fit_info_._replace(converged=False)
     with pytest.raises(ConvergenceError, match="no trial's joint fit converged"):
         MultiTrialEstimator(model, **kw).combine(ests, [d.rate for d in datas])
+
+
+def test_a_trial_fitted_exactly_weighs_as_one_known_to_a_part_in_a_billion_not_infinitely():
+    # own variances of nil (an exact trial: all of its covariance is the shared placement's)
+    theta = np.array([[1.0569526, 250.0], [1.05677553, 251.0]])
+    var = np.array([[0.0, 0.0], [3.6e-7, 4.0]])
+    floored = own_variance_floor(theta, var)
+    np.testing.assert_allclose(floored[0], [(1e-9 * 1.0569526) ** 2, (1e-9 * 251.0) ** 2], rtol=1e-12)
+    np.testing.assert_array_equal(floored[1], var[1])  # a trial with its own noise keeps its variance
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tau2, q, df = dersimonian_laird(theta, floored)
+    assert np.all(np.isfinite(tau2)) and np.all(np.isfinite(q)) and df == 1
+    np.testing.assert_array_equal(own_variance_floor(np.zeros((2, 1)), np.zeros((2, 1))), 1e-150)

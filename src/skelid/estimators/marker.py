@@ -44,7 +44,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from skelid.data import MarkerData, unit_scale
-from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError, SettingError
+from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError, SettingError, SkelidError
 from skelid.estimators.base import (
     RATE,
     RNG,
@@ -139,6 +139,11 @@ N_BOOT = 3
 # when the Jacobians change at the rounding level, so a tighter rule only buys iterations
 FIT_STEP_TOL = 1e-4
 RACE_ITER = 10  # iterations each start of the motion-model fit gets before the better one is continued
+N_STARTS = 9  # starting geometries under 'auto' where a joint has two pose branches: the centre and 8 more
+SEARCH_MARGIN = 0.05  # those starts keep this share of each prior interval from either bound
+SEARCH_DISTINCT = 0.01  # screening fits that end closer than this share of the prior's width are one
+MODE_RATIO = 0.05  # another minimum whose likelihood is at least this share of the best's is held in the interval
+MODE_SD = 2.0  # ... where it lies more than this many sd from the estimate
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
 POOR_FRACTION = 0.25
 Z95 = 1.959964  # two-sided 95 % normal quantile
@@ -284,6 +289,7 @@ class Screen(NamedTuple):
     fit: JointFit
     fixed: np.ndarray  # (T,) bool
     outliers: np.ndarray  # (T, M) bool
+    others: tuple = ()  # other starting geometries and their tracked poses (:func:`other_starts`)
 
 
 class Motion(NamedTuple):
@@ -291,6 +297,15 @@ class Motion(NamedTuple):
 
     fit: JointFit
     cutoff: float | np.ndarray | None  # Hz, per pose coordinate under 'auto'
+    #: each settled fit of the race from other starting geometries: (theta (P,), penalised cost)
+    minima: tuple = ()
+
+
+class Modes(NamedTuple):
+    """Other minima whose likelihood is close to the estimate's, and what holding them adds."""
+
+    cov: np.ndarray  # (P, P) added to the covariance
+    kept: tuple  # ({"theta": [...], "ratio": r}, ...) each minimum held, with its likelihood ratio
 
 
 class Weights(NamedTuple):
@@ -386,6 +401,7 @@ class MarkerFit(NamedTuple):
     misfit: Misfit | None = None  # model misfit: refits and widening (misfit_stage)
     beyond: np.ndarray | None = None  # (P,) the unbounded estimate where support_stage put it on a bound, else NaN
     origin: np.ndarray | None = None  # (D,) where the stages put the origin: their data and poses are less it
+    modes: Modes | None = None  # other minima that fit almost as well (modes_stage)
 
 
 # ================================================================================ stages
@@ -427,6 +443,57 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | 
     return Start(y, float(rate), theta0, pose0, bounds, fixed)
 
 
+def search_starts(model: Model, n: int) -> np.ndarray:
+    """``n`` starting geometries spread over the prior's bounds, ``(n, P)``.
+
+    A Latin hypercube with each stratum's centre (deterministic: the same starts for every fit of the
+    model), over the central ``1 - 2 SEARCH_MARGIN`` of each parameter's interval.
+    """
+    from scipy.stats import qmc
+
+    lo = np.array([p.prior.lower for p in model.parameters])
+    hi = np.array([p.prior.upper for p in model.parameters])
+    u = qmc.LatinHypercube(d=model.n_params, scramble=False, seed=0).random(n)
+    return lo + (hi - lo) * (SEARCH_MARGIN + (1.0 - 2.0 * SEARCH_MARGIN) * u)
+
+
+def other_starts(model: Model, st: Start, s: MarkerEstimator, y, fixed, first: JointFit,
+                 ws: Workspace | None = None) -> tuple[tuple[np.ndarray, np.ndarray, JointFit], ...]:
+    """Screening fits from other starting geometries, for the motion-model fit to race against the first.
+
+    The joint fit is a local descent, and on some geometries (markers across a joint nearly in line
+    over a whole trial: each pose has two branches there) its cost has more than one minimum; from the
+    prior's centre it can settle tens of sd from the truth with an interval that looks sharp. With
+    neither ``theta0`` nor ``pose0`` given, ``n - 1`` geometries spread over the prior's bounds
+    (``n = n_starts``; under ``'auto'``, ``N_STARTS`` where some joint's pose has two branches
+    (:func:`skelid.estimators.uncertainty.singular.branch_joints`), else none)
+    (:func:`search_starts`) each get poses tracked for them (from a generator of their own, so the
+    fit's random numbers are unchanged) and a screening fit. Where that fit ends elsewhere than
+    ``first`` and the others (by more than ``SEARCH_DISTINCT`` of the prior's width in some parameter),
+    the start (geometry and tracked poses, which keep to one branch) and its screening fit are returned.
+    Without the motion model a wrong branch in each frame can fit the markers better than the right
+    geometry does, so the screening fits' residuals do not decide: the motion-model fit's penalised
+    cost does, from the start and from the screening fit as the first start's (:func:`motion_stage`).
+    """
+    n = (N_STARTS if branch_joints(model) else 1) if s.n_starts == "auto" else s.n_starts
+    if n <= 1 or s.theta0 is not None or s.pose0 is not None:
+        return ()
+    width = np.maximum(st.bounds[1] - st.bounds[0], 1e-300)
+    stride = max(1, int(st.rate // 25))
+    found, out = [first.theta], []
+    for k, theta in enumerate(search_starts(model, n - 1)):
+        try:
+            pose, _ = track_poses(model, theta, y, np.random.default_rng(k), stride=stride, ws=ws)
+            fit = joint_fit(model, y, theta, pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed,
+                            tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws, summary=False)
+        except SkelidError:  # a start the markers cannot be tracked from
+            continue
+        if all(np.any(np.abs(fit.theta - t) > SEARCH_DISTINCT * width) for t in found):
+            found.append(fit.theta)
+            out.append((theta, pose, fit))
+    return tuple(out)
+
+
 def screen_stage(model: Model, st: Start, s: MarkerEstimator, ws: Workspace | None = None) -> Screen:
     """Fit without motion model (a smoother would spread a glitch over its neighbours); leave out glitches."""
     y, fixed = st.y, st.fixed
@@ -442,11 +509,12 @@ def screen_stage(model: Model, st: Start, s: MarkerEstimator, ws: Workspace | No
             fixed = pose_fixed(Jq0)
             fit = joint_fit(model, y, fit.theta, fit.pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed,
                             tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws)
-    return Screen(y, fit, fixed, out)
+    return Screen(y, fit, fixed, out, other_starts(model, st, s, y, fixed, fit, ws))
 
 
 def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Workspace | None = None) -> Motion:
-    """The joint fit with the motion model, from the tracked poses and from the screening fit."""
+    """The joint fit with the motion model, from the tracked poses and from the screening fit (and from
+    other starting geometries, :func:`_race`): the one with the lowest penalised cost."""
     rate = st.rate
     cutoff = s.cutoff or None  # 0: no motion model
     if isinstance(cutoff, int | float) and cutoff >= rate / 2:
@@ -454,27 +522,85 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
     if isinstance(cutoff, str):  # "auto": per-coordinate cutoffs from the motion, at least 6 Hz
         cutoff = np.maximum(choose_cutoffs(model, sc.fit.pose, sc.fit.frames_used, rate),
                             min(MIN_AUTO_CUTOFF, rate / 2))
-    if cutoff is None:
-        return Motion(sc.fit, None)
+    if cutoff is None:  # the screening fit is the fit: the start whose fit has the smallest residuals
+        fits = [joint_fit(model, sc.y, f.theta, f.pose, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                          tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws) for _, _, f in sc.others]
+        return Motion(min(fits, key=lambda f: f.rss) if fits and min(f.rss for f in fits) < sc.fit.rss
+                      else sc.fit, None)
     if len(sc.y) < MOTION_MIN_FRAMES:
         raise DataError(f"{len(sc.y)} frame(s): the motion model (cutoff) smooths second differences of the poses "
                         f"and needs at least {MOTION_MIN_FRAMES} frames", "give a longer trial, or cutoff=None")
-    # the motion model makes pose branches stick: both starts race for RACE_ITER iterations, and the one
-    # with the lower penalised cost is continued (with its own penalty, so the cost it minimises stays).
-    # Near a singular pose the per-frame fits jump between branches, so the second start is a fit whose
-    # motion model is STIFFER times stiffer (graduated smoothing): it carries one smooth trajectory through
-    stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
-                      frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER, ws=ws, summary=False)
-    fits = [joint_fit(model, sc.y, th, qq, n_iter=min(RACE_ITER, s.n_iter), bounds=st.bounds, frames=sc.fixed,
-                      rate=rate, cutoff=cutoff, ws=ws, summary=False)
-            for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
+    fits = _race(model, st, sc, s, cutoff, ws)
     best = min(fits, key=_penalised_cost)
+    minima = tuple((f.theta, _penalised_cost(f)) for f in fits if f.converged) if sc.others else ()
     more = s.n_iter - RACE_ITER if not best.converged else 0  # 0: only the information at the estimate
     fit = joint_fit(model, sc.y, best.theta, best.pose, n_iter=max(more, 0), bounds=st.bounds, frames=sc.fixed,
                     penalty=best.penalty, step_tol=FIT_STEP_TOL, ws=ws)
     if not more:
         fit = fit._replace(converged=best.converged, n_iter=best.n_iter)
-    return Motion(fit, cutoff)
+    return Motion(fit, cutoff, minima)
+
+
+def modes_stage(model: Model, mo: Motion, fit: JointFit, sigma: float, cov) -> Modes:
+    """Other minima of the penalised cost that fit almost as well, held inside the interval.
+
+    The race of :func:`motion_stage` settles each start in a minimum. Where one lies more than
+    ``MODE_SD`` sd (of ``cov``) from the estimate in some parameter and its likelihood ratio to the best,
+    ``exp(-(C_k - C_min) / (2 sigma^2))``, is at least ``MODE_RATIO``, the data do not rule that geometry
+    out: a Gaussian interval about the estimate cannot hold two modes, so the variance along the line
+    to that minimum is raised until the interval reaches beyond it by its own half-width (the
+    estimate's sd along that line standing in for the other minimum's).
+    """
+    extra = np.zeros((model.n_params, model.n_params))
+    if not mo.minima:
+        return Modes(extra, ())
+    lowest = min(c for _, c in mo.minima)
+    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    kept = []
+    for theta, c in mo.minima:
+        d = np.asarray(theta, float) - fit.theta
+        ratio = float(np.exp(-(c - lowest) / (2.0 * sigma**2)))
+        if ratio < MODE_RATIO or not np.any(np.abs(d) > MODE_SD * sd):
+            continue
+        u = d / np.linalg.norm(d)
+        s_u = float(np.sqrt(max(u @ cov @ u, 0.0)))
+        need = (np.linalg.norm(d) + Z95 * s_u) / Z95
+        extra = extra + (need**2 - s_u**2) * np.outer(u, u)
+        kept.append({"theta": [float(v) for v in theta], "ratio": ratio})
+    return Modes(extra, tuple(kept))
+
+
+def _race(model: Model, st: Start, sc: Screen, s: MarkerEstimator, cutoff, ws: Workspace | None) -> list:
+    """The motion-model fits from every start, each far enough along to compare their penalised costs.
+
+    The motion model makes pose branches stick: the starts race for RACE_ITER iterations, and the one
+    with the lowest penalised cost is continued (with its own penalty, so the cost it minimises stays).
+    Near a singular pose the per-frame fits jump between branches, so the second start is a fit whose
+    motion model is STIFFER times stiffer (graduated smoothing): it carries one smooth trajectory through.
+    The other starting geometries (:func:`other_starts`) race too, from their tracked poses and from
+    their screening fits' graduated start, each run to the end (another basin is only known once its
+    fit has settled), and then the first two are also settled, so that every cost compared is a minimum's.
+    """
+    rate = st.rate
+
+    def stiff(f):
+        return joint_fit(model, sc.y, f.theta, f.pose, n_iter=min(s.n_iter, STIFF_ITER), bounds=st.bounds,
+                         frames=sc.fixed, rate=rate, cutoff=np.asarray(cutoff, float) / STIFFER, ws=ws, summary=False)
+
+    first = stiff(sc.fit)
+    fits = [joint_fit(model, sc.y, th, qq, n_iter=min(RACE_ITER, s.n_iter), bounds=st.bounds, frames=sc.fixed,
+                      rate=rate, cutoff=cutoff, ws=ws, summary=False)
+            for th, qq in ((st.theta0, st.pose0), (first.theta, first.pose))]
+    for th, qq, screened in sc.others:
+        g = stiff(screened)
+        fits += [joint_fit(model, sc.y, a, b, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed, rate=rate,
+                           cutoff=cutoff, ws=ws, summary=False, step_tol=FIT_STEP_TOL)
+                 for a, b in ((th, qq), (g.theta, g.pose))]
+    if sc.others:
+        fits[:2] = [f if f.converged else joint_fit(model, sc.y, f.theta, f.pose, n_iter=max(s.n_iter - RACE_ITER, 0),
+                                                    bounds=st.bounds, frames=sc.fixed, penalty=f.penalty, ws=ws,
+                                                    summary=False, step_tol=FIT_STEP_TOL) for f in fits[:2]]
+    return fits
 
 
 def _penalised_cost(f: JointFit) -> float:
@@ -920,8 +1046,19 @@ def derived_lengths(model: Model, theta, cov) -> dict:
 def marker_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
     """The warnings a marker fit deserves, decided from its values (one small check per concern)."""
     checks = (_data_warnings, _bound_warnings, _identification_warnings, _residual_warnings, _bias_warnings,
-              _jackknife_warnings, _placement_warnings, _motion_warnings)
+              _jackknife_warnings, _placement_warnings, _motion_warnings, _mode_warnings)
     return [w for check in checks for w in check(model, s, f)]
+
+
+def _mode_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
+    """Another minimum of the cost fits almost as well: the interval holds it."""
+    if f.modes is None or not f.modes.kept:
+        return []
+    m = max(f.modes.kept, key=lambda k: k["ratio"])
+    at = ", ".join(f"{n} = {v:.4g}" for n, v in zip(model.parameter_names, m["theta"], strict=True))
+    return [Warning("other-minimum", f"another geometry fits the markers almost as well ({at}; likelihood ratio "
+                    f"{m['ratio']:.2g}, {len(f.modes.kept)} such minimum(s)): the data allow both, so the interval "
+                    "was widened to hold it; more frames or a marker that breaks the symmetry would decide")]
 
 
 def _data_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:
@@ -1119,12 +1256,13 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     bias = profile_stage(est, sc, wt, fr.used, noise, bias)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
-    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov))
+    modes = modes_stage(model, mo, fit, noise.sigma, cov.data + bias.cov)
+    estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov + modes.cov))
     mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
     estimate = mis.estimate if mis is not None else estimate
     estimate, beyond = support_stage(st, estimate)
     return MarkerFit(st, sc, mo, wt, fr, noise, ident, pinned | np.isfinite(beyond), res, bias, cov, estimate,
-                     summary_stage(model, ident, estimate, cov.placement), ws.path, mis, beyond, origin)
+                     summary_stage(model, ident, estimate, cov.placement), ws.path, mis, beyond, origin, modes)
 
 
 def support_stage(st: Start, estimate: Estimate) -> tuple[Estimate, np.ndarray]:
@@ -1192,9 +1330,18 @@ class MarkerEstimator:
         the interval, and it is shared by every trial recorded with these markers. None: 5 mm for a
         static trial, none otherwise.
     theta0 : (P,) float, optional
-        Starting geometry (default: the prior centre).
+        Starting geometry (default: the prior centre, and more spread over the prior's bounds, see
+        ``n_starts``).
     pose0 : (T, Q) float, optional
         Starting poses (default: tracked at the starting geometry).
+    n_starts : int or 'auto'
+        Starting geometries tried when neither ``theta0`` nor ``pose0`` is given: the prior centre
+        and ``n_starts - 1`` more spread over the prior's bounds; the motion-model fit from each
+        races, and the lowest penalised cost wins; another minimum that fits almost as well widens
+        the interval (:func:`other_starts`, :func:`modes_stage`). 1: the prior centre only.
+        'auto' (default): ``N_STARTS`` where some joint's pose has two mirror-image branches (a
+        one-axis joint between two segments with one marker each, whose cost has several minima
+        near its straight and folded poses), else 1.
     on_nonconvergence : {'error', 'warn'}
         A joint fit that still moves after its continuations raises
         :class:`~skelid.errors.ConvergenceError` (no interval), or, with ``'warn'``, keeps its
@@ -1281,6 +1428,8 @@ class MarkerEstimator:
         Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
         Setting("theta0", array_or_none, "None or finite starting values, one per parameter"),
         Setting("pose0", array_or_none, "None or finite starting poses (frames, pose coordinates)"),
+        Setting("n_starts", lambda v: (isinstance(v, str) and v == "auto") or count(v),
+                "'auto' or " + counted("starting geometries")),
         Setting("on_nonconvergence", one_of("error", "warn"), "'error' or 'warn'"),
     )
 
@@ -1289,7 +1438,8 @@ class MarkerEstimator:
                  rng: np.random.Generator | int | None = None, n_iter: int = 100, rate: float | None = None,
                  outlier_threshold: float | None = 8.0, artefact_rms: float | None = None,
                  noise: str = "pooled", marker_groups: dict | None = None, theta0=None, pose0=None,
-                 jackknife: bool = True, placement_sd: float | None = None, on_nonconvergence: str = "error"):
+                 jackknife: bool = True, placement_sd: float | None = None, on_nonconvergence: str = "error",
+                 n_starts: int | str = "auto"):
         self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
@@ -1308,6 +1458,7 @@ class MarkerEstimator:
         self.theta0 = theta0
         self.pose0 = pose0
         self.on_nonconvergence = on_nonconvergence
+        self.n_starts = n_starts
 
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerEstimator:
         """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""

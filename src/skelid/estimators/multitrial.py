@@ -177,6 +177,9 @@ def dersimonian_laird(estimates, variances):
     return tau2, q, K - 1
 
 
+#: a trial's own sd is taken as at least this fraction of its estimate's size (an exact fit's is nil) ...
+EXACT_RELATIVE = 1e-9
+EXACT_FLOOR = 1e-150  # ... and its own variance as at least this (its weight's square stays finite)
 #: eigenvalues of a trial's covariance below this fraction of its largest are left out of the test
 CONSISTENCY_RCOND = 1e-12
 
@@ -621,6 +624,17 @@ def joint_status(statuses) -> list[str]:
     return [min(c, key=lambda s: rank.get(s, len(order))) for c in cols]
 
 
+def own_variance_floor(estimates, variances) -> np.ndarray:
+    """Each trial's own variance ``(K, P)``, at least ``EXACT_RELATIVE`` of its parameter's size squared.
+
+    A trial fitted exactly (no noise: all of its covariance is the shared placement's) has a nil own
+    variance; it weighs as a trial known to that precision, not infinitely (a division by zero)."""
+    y = np.atleast_2d(np.asarray(estimates, float))
+    v = np.atleast_2d(np.asarray(variances, float))
+    size = np.abs(y).max(axis=0, initial=0.0)
+    return np.maximum(v, np.maximum((EXACT_RELATIVE * size) ** 2, EXACT_FLOOR))
+
+
 def per_parameter(between, estimates, variances, informs):
     """A between-trial variance estimator (:data:`BETWEEN_TRIAL`) run for each parameter over the
     trials that inform it: ``tau2, q, df``, each ``(P,)``."""
@@ -921,7 +935,7 @@ class MultiTrialEstimator:
         P = self.model.n_params
         # each trial's own errors: its shared part (the marker set's placement) cancels between trials
         own = self.trial_cov_ - self.trial_shared_
-        var = np.einsum("kpp->kp", own)
+        var = own_variance_floor(self.trial_theta_, np.einsum("kpp->kp", own))
         keep = self._kept()
         theta_k, cov_k, K = self.trial_theta_[keep], own[keep], int(keep.sum())
         # a trial that leaves a parameter unidentified contributes nothing to it

@@ -136,7 +136,14 @@ from skelid.estimators.base import (
 )
 from skelid.estimators.fit.joint import _banded, _banded_solver
 from skelid.estimators.fit.likelihood import frame_terms, pose_information
-from skelid.estimators.marker import N_BOOT, POOR_FRACTION, MarkerEstimator, _unit, marker_warnings, run_marker_fit
+from skelid.estimators.marker import (
+    N_BOOT,
+    POOR_FRACTION,
+    MarkerEstimator,
+    _unit,
+    marker_warnings,
+    run_marker_fit,
+)
 from skelid.estimators.uncertainty.posterior import SamplePosterior, weighted_quantiles
 from skelid.estimators.uncertainty.smc import kish_ess, tempered_smc
 from skelid.model.description import Model
@@ -560,7 +567,7 @@ class SamplerEstimator:
     Parameters
     ----------
     model : Model
-    sigma, cutoff, bias_correction, n_boot, robust, rng, n_iter, rate, outlier_threshold, theta0, pose0
+    sigma, cutoff, bias_correction, n_boot, robust, rng, n_iter, rate, outlier_threshold, theta0, pose0, n_starts
         As for :class:`~skelid.estimators.marker.MarkerEstimator`; ``rng`` also
         drives the sampler.
     n_particles : int
@@ -623,7 +630,8 @@ class SamplerEstimator:
                  outlier_threshold: float | None = 8.0, theta0=None, pose0=None, n_particles: int = 200,
                  n_moves: int = 3, ess_fraction: float = 0.5, inner_iter: int = 8,
                  artefact_rms: float | None = None, noise: str = "pooled", marker_groups: dict | None = None,
-                 jackknife: bool = True, placement_sd: float | None = None, on_nonconvergence: str = "error"):
+                 jackknife: bool = True, placement_sd: float | None = None, on_nonconvergence: str = "error",
+                 n_starts: int | str = "auto"):
         self.model = check_model(model, type(self).__name__)
         self.sigma = sigma
         self.cutoff = cutoff
@@ -646,6 +654,7 @@ class SamplerEstimator:
         self.jackknife = jackknife
         self.placement_sd = placement_sd
         self.on_nonconvergence = on_nonconvergence
+        self.n_starts = n_starts
 
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
