@@ -174,6 +174,30 @@ def test_artefact_option_widens_the_interval(tmp_path, capsys):
         assert err.count("\n") == 1 and "--artefact-rms" in err
 
 
+def test_placement_option_widens_the_interval_of_one_trial_and_of_several(tmp_path, capsys):
+    trcs = [tmp_path / "a.trc", tmp_path / "b.trc"]
+    for k, trc in enumerate(trcs):
+        assert main(["simulate", "case-b", "--sigma", "2", "--frames", "80", "--seed", str(k), "--out",
+                     str(trc)]) == 0
+    capsys.readouterr()
+    for files in ([trcs[0]], trcs):
+        widths = []
+        for sd in (None, "0", "5"):
+            argv = ["fit", str(EXAMPLES / "case_b.toml"), *map(str, files), "--json"]
+            assert main(argv + ([] if sd is None else ["--placement-sd", sd])) == 0
+            lo, hi = json.loads(capsys.readouterr().out)["results"]["marker"]["parameters"]["L2"]["interval"]
+            widths.append(hi - lo)
+        assert widths[1] == pytest.approx(widths[0])  # moving trials: none by default, as 0
+        assert widths[2] > 2.0 * widths[0]
+    for bad in ("-1", "nan"):
+        assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trcs[0]), "--placement-sd", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--placement-sd" in err
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), str(trcs[0]), "--placement-sd", "5", "--method", "paper"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--placement-sd" in err
+
+
 def test_artefact_option_works_with_the_sampler_and_is_refused_where_it_cannot_act(tmp_path, capsys):
     trc = tmp_path / "b.trc"
     assert main(["simulate", "case-b", "--sigma", "2", "--frames", "80", "--out", str(trc)]) == 0

@@ -183,6 +183,10 @@ def check_overwrite(d, base):
     assert not (d / "taken" / "old.txt").exists() and (d / "taken" / "scaled.osim").exists()
 
 
+def check_placement_sd(d, base):
+    _refused(_run(d, ["--placement-sd", "5"]), "--placement-sd")  # the offsets are fitted instead
+
+
 def check_max_memory(d, base):
     _refused(_run(d, ["--max-memory", "1K"]), "--max-memory")
 
@@ -209,6 +213,7 @@ def check_ik_draws(d, base):
 
 CASES = {"--method": check_method, "--sigma": check_sigma, "--json": check_json, "--quiet": check_quiet,
          "--out": check_out, "--cutoff": check_cutoff, "--artefact-rms": check_artefact_rms,
+         "--placement-sd": check_placement_sd,
          "--noise": check_noise, "--alternative": check_alternative, "--seed": check_seed, "--scale": check_scale,
          "--markers": check_markers, "--marker-set": check_marker_set, "--overwrite": check_overwrite,
          "--max-memory": check_max_memory, "--max-time": check_max_time, "--ik": check_ik,

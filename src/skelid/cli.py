@@ -240,6 +240,11 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="Soft-tissue artefact of the marker method: root-mean-square displacement of a marker "
                    "coordinate against its bone (model units); its effect on the estimate widens the "
                    "interval (default: none).")
+@click.option("--placement-sd", type=float, default=None,
+              help="Marker method: sd of each marker's placement on its segment (model units, per coordinate); "
+                   "its effect on every parameter widens the interval, shared by all trials (default: 5 mm for "
+                   "a static trial, none otherwise; 0: none). OpenSim models estimate each marker's offset "
+                   "instead.")
 @click.option("--noise", type=click.Choice(["pooled", "per-marker"]), default="pooled", show_default=True,
               help="Marker method: one noise level for all markers, or each marker its own (estimated, "
                    "used as weights).")
@@ -264,8 +269,9 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               help="With --ik: draws of the geometry (default 100; 0: its first-order effect).")
 @_limit_options
 @click.pass_context
-def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, noise, alternatives, as_json,
-        out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, with_ik, ik_draws, max_memory, max_time):
+def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, placement_sd, noise, alternatives,
+        as_json, out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, with_ik, ik_draws, max_memory,
+        max_time):
     """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
 
     Several files are trials of one body: one geometry is fitted to all of them, with each
@@ -284,6 +290,9 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
             raise click.UsageError("--ik-draws is for --ik; add --ik or leave it out")
         if with_ik and out_dir is None:
             raise click.UsageError("--ik writes the angles into the --out folder; give --out DIR")
+        if placement_sd is not None:
+            raise click.UsageError("--placement-sd is for .toml models: an OpenSim fit estimates each marker's "
+                                   "offset on its body (its placement) with the geometry; leave it out")
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
                   alternatives=alternatives, limits=(max_memory, max_time),
@@ -294,6 +303,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
+    _finite("--placement-sd", placement_sd)
     if len(data_paths) > 1 or alternatives or noise != "pooled":
         from skelid.sensitivity import run_fit_trials
 
@@ -301,12 +311,12 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         run = run_fit_trials(model_path, data_paths, method_names, sigma=sigma, seed=seed,
                                 out_dir=out_dir, command=_command(ctx), cutoff=cutoff,
                                 artefact_rms=artefact_rms, noise=noise.replace("-", "_"),
-                                alternatives=alternatives, overwrite=overwrite)
+                                alternatives=alternatives, overwrite=overwrite, placement_sd=placement_sd)
     else:
         run = workflows.run_fit(model_path, data_paths[0], method_names, sigma=sigma, seed=seed,
                                    out_dir=out_dir, command=_command(ctx), progress=not quiet,
                                    cutoff=cutoff, artefact_rms=artefact_rms, limits=_limits(max_memory, max_time),
-                                   overwrite=overwrite)
+                                   overwrite=overwrite, placement_sd=placement_sd)
     from skelid.io.results import run_to_dict
 
     _echo_warnings((w.message for w in run.warnings), quiet, out_dir)

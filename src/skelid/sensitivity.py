@@ -129,7 +129,7 @@ def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings
 def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None = None, seed: int = 0,
                    out_dir=None, command=None, cutoff: float | None = None,
                    artefact_rms: float | None = None, noise: str = "pooled", alternatives=(),
-                   overwrite: bool = False) -> FitRun:
+                   overwrite: bool = False, placement_sd: float | None = None) -> FitRun:
     """``skelid fit`` with several trials, per-marker noise or model alternatives (marker method only).
 
     Returns
@@ -166,9 +166,10 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
         workflows.check_input_file(p, "data file")
     check_distinct_files(data_paths)
     # bad settings fail before any reading
-    workflows.make_estimator("marker", model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
+    workflows.make_estimator("marker", model, sigma, cutoff=cutoff, artefact_rms=artefact_rms,
+                             placement_sd=placement_sd)
     settings = {"sigma": sigma, "rng": np.random.default_rng(seed), "noise": noise,
-                "artefact_rms": artefact_rms or None}
+                "artefact_rms": artefact_rms or None, "placement_sd": placement_sd}
     if cutoff is not None:
         settings["cutoff"] = cutoff or None
     with workflows.collect_warnings() as read_warnings:

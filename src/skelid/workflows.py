@@ -56,8 +56,9 @@ def methods() -> dict:
 
 
 def check_options(model: Model, sigma: float | None = None, cutoff: float | None = None,
-                  artefact_rms: float | None = None) -> None:
-    """Refuse an unusable ``--sigma``, ``--cutoff`` or ``--artefact-rms`` for ``model`` in one line."""
+                  artefact_rms: float | None = None, placement_sd: float | None = None) -> None:
+    """Refuse an unusable ``--sigma``, ``--cutoff``, ``--artefact-rms`` or ``--placement-sd`` for ``model``
+    in one line."""
     if sigma is not None:
         size = float(np.abs(model.nominal_geometry).max())
         if not (math.isfinite(sigma) and sigma > 0):
@@ -74,6 +75,10 @@ def check_options(model: Model, sigma: float | None = None, cutoff: float | None
     if cutoff is not None and not (math.isfinite(cutoff) and cutoff >= 0):
         raise SkelidError(f"--cutoff must be a frequency >= 0 Hz, got {cutoff}",
                           "use 0 for no motion model, or e.g. --cutoff 6")
+    if placement_sd is not None and not (math.isfinite(placement_sd) and placement_sd >= 0):
+        raise SkelidError(f"--placement-sd must be a distance >= 0 {model.units}, got {placement_sd}",
+                          f"give the sd of each marker's placement on its segment in {model.units}, e.g. "
+                          f"{5 * unit_scale('mm', model.units):g}, or 0 for none")
 
 
 def fit_options(sigma: float | None = None, cutoff: float | None = None, artefact_rms: float | None = None,
@@ -103,15 +108,18 @@ def fit_options(sigma: float | None = None, cutoff: float | None = None, artefac
 
 def make_estimator(name: str, model: Model, sigma: float | None = None,
                    rng: np.random.Generator | None = None, cutoff: float | None = None,
-                   artefact_rms: float | None = None):
+                   artefact_rms: float | None = None, placement_sd: float | None = None):
     """Estimator ``name`` with the command-line options it declares; a bad option is one line."""
     registry.estimator_class(name)
-    check_options(model, sigma, cutoff, artefact_rms)
-    if artefact_rms and "artefact_rms" not in registry.cli_settings(name).values():
-        raise SkelidError(f"--artefact-rms is not available with --method {name}: its posterior does not come "
-                          "from the joint fit the artefact term is computed from",
-                          "use --method marker or marker-smc with --artefact-rms")
-    options = {"sigma": sigma, "artefact_rms": artefact_rms or None, "cutoff": cutoff or None}
+    check_options(model, sigma, cutoff, artefact_rms, placement_sd)
+    for option, value in (("artefact_rms", artefact_rms), ("placement_sd", placement_sd)):
+        if value and option not in registry.cli_settings(name).values():
+            flag = "--" + option.replace("_", "-")
+            raise SkelidError(f"{flag} is not available with --method {name}: its posterior does not come "
+                              f"from the joint fit the {option.split('_')[0]} term is computed from",
+                              f"use --method marker or marker-smc with {flag}")
+    options = {"sigma": sigma, "artefact_rms": artefact_rms or None, "cutoff": cutoff or None,
+               "placement_sd": placement_sd}
     no_motion = {"cutoff": None} if cutoff == 0 and "cutoff" in registry.cli_settings(name) else {}
     return registry.make_estimator(name, model, options, rng=rng, **no_motion)
 
@@ -157,7 +165,8 @@ def method_result(model: Model, est, seconds: float | None = None) -> FitResult:
 
 def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None = None,
              seed: int = 0, progress: bool = False, cutoff: float | None = None,
-             artefact_rms: float | None = None) -> tuple[dict[str, FitResult], dict]:
+             artefact_rms: float | None = None, placement_sd: float | None = None
+             ) -> tuple[dict[str, FitResult], dict]:
     """Fit ``model`` to ``data`` with each method.
 
     Returns
@@ -168,7 +177,7 @@ def fit_file(model: Model, data: MarkerData, method_names, sigma: float | None =
         The fitted estimators by name (for figures).
     """
     estimators = {name: make_estimator(name, model, sigma=sigma, rng=np.random.default_rng(seed),
-                                       cutoff=cutoff, artefact_rms=artefact_rms)
+                                       cutoff=cutoff, artefact_rms=artefact_rms, placement_sd=placement_sd)
                   for name in method_names}  # unknown methods fail before any work
     n_frames = data.n_frames
     results, fitted = {}, {}
@@ -193,7 +202,8 @@ def run_arrays(model: Model, data: MarkerData) -> dict[str, np.ndarray]:
 
 def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, seed: int = 0,
             out_dir=None, command=None, progress: bool = False, cutoff: float | None = None,
-            artefact_rms: float | None = None, limits=None, overwrite: bool = False) -> FitRun:
+            artefact_rms: float | None = None, limits=None, overwrite: bool = False,
+            placement_sd: float | None = None) -> FitRun:
     """Everything ``skelid fit`` does: check, read, fit, warn, write ``out_dir``.
 
     An existing ``out_dir`` is refused unless ``overwrite``, which replaces it whole.
@@ -220,7 +230,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
     names = list(method_names) or [registry.DEFAULT_METHOD]
     for n in names:
         # an unknown method or a bad setting fails before reading
-        make_estimator(n, model, sigma, cutoff=cutoff, artefact_rms=artefact_rms)
+        make_estimator(n, model, sigma, cutoff=cutoff, artefact_rms=artefact_rms, placement_sd=placement_sd)
         check_cost(model, n, 1, limits)  # a grid too large for any data
     resources.check(resources.read_cost(data_path), limits, f"reading {data_path}")
     n_guess = resources.estimate_frames(data_path)
@@ -237,7 +247,7 @@ def run_fit(model_path, data_path, method_names=(), sigma: float | None = None, 
                          f"and {resources.format_size(max(c.memory for c in cost))} of memory\n")
     overview = data_overview(data, model)
     results, fitted = fit_file(model, data, names, sigma=sigma, seed=seed, progress=progress,
-                               cutoff=cutoff, artefact_rms=artefact_rms)
+                               cutoff=cutoff, artefact_rms=artefact_rms, placement_sd=placement_sd)
     warns = [*(Warning("reading", w) for w in read_warnings),
              *(Warning("marker-gaps", w) for w in overview_warnings(overview)),
              *(w for r in results.values() for w in r.warnings)]
