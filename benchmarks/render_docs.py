@@ -161,16 +161,24 @@ JOINTS_KIND, MARKERS_KIND = "joint centres (parent body frame)", "markers (own b
 
 
 def _truth_cells() -> tuple[dict, str]:
-    """The OpenSim-truth cells of the main table and of the default fit's file (its cells taking precedence),
-    and the source lines of both."""
+    """The OpenSim-truth cells of the main table, of the default fit's file and of the 100-draw runs (each
+    later file's cells taking precedence), and the source lines of each."""
     cells, sources = {}, []
-    for name in ("opensim_truth.json", "opensim_truth_default.json"):
+    for name in ("opensim_truth.json", "opensim_truth_default.json", "opensim_truth_iid100.json"):
         path = RESULTS / name
         if path.exists():
             doc = load(path)
-            cells.update(doc["cells"])
+            # each cell beside the peer (ScaleTool) of its own draws, from its own file
+            cells.update({k: dict(c, peers=doc["cells"]) for k, c in doc["cells"].items()})
             sources.append(source(path, doc))
     return cells, "\n".join(sources)
+
+
+def _peer_rmse(cells: dict, key: str) -> list:
+    """ScaleTool's length RMSE on the draws of cell ``key`` (the same file's peer cell), per length."""
+    truth, _, design, noise = key.split("/")
+    peers = cells[key].get("peers", cells)
+    return _truth_values(peers.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
 
 
 def opensim_truth() -> str:
@@ -195,7 +203,7 @@ def opensim_truth() -> str:
         sc, ln, of = (_truth_values(rows, p, "coverage95") for p in ("scale", "length", "offset"))
         rs = _truth_values(rows, "scale", "rmse_over_sd")
         lr = _truth_values(rows, "length", "rmse")
-        pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
+        pr = _peer_rmse(cells, key)
         med = _median_text
         lines.append(f"| {key} | {c['n']}" + (f" ({c['failed']} failed)" if c["failed"] else "")
                      + f" | {med(sc)} ({min(sc):.2f}) | {med(ln)} | {med(of)} | {_pooled_text(c, 'scales')} | "
@@ -274,8 +282,7 @@ def opensim_truth_summary() -> str:
                 continue
             ln = _truth_values(c["rows"], "length", "coverage95")
             lr = _truth_values(c["rows"], "length", "rmse")
-            truth, _, design, noise = key.split("/")
-            pr = _truth_values(cells.get(f"{truth}/scaletool/{design}/{noise}", {}).get("rows", {}), "length", "rmse")
+            pr = _peer_rmse(cells, key)
             jc = (c.get("points") or {}).get(JOINTS_KIND)
             shown.append((f"{label}: " if label else "") + f"cover {min(ln):.2f}-{max(ln):.2f}, RMSE "
                          f"{sum(lr) / len(lr):.1f} mm" + (f" (ScaleTool {sum(pr) / len(pr):.1f} mm)" if pr else "")

@@ -63,6 +63,8 @@ OPENSIM_DEFAULT_CELLS = ("axes/linked/static+walk/5", "bodies/linked/static+walk
 OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/linked/static+walk/pm",
                        "axes/linked+pm/static+walk/pm", "axes/linked/static+walk/sta", "axes/linked/walk/sta",
                        "axes/linked/walk+walk2/sta", "axes/linked/walk+walk2/stalab")
+#: the i.i.d. and per-marker cells of OPENSIM_TRUTH_CELLS again at 100 draws (the exact structure and the default)
+OPENSIM_100_CELLS = ("axes/axes/static+walk/5", "axes/linked/static+walk/pm")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
 #: real_calibration's cached fits). The demo waits for the compiled kernel: the seed method's frame
 #: count can differ by a frame or two between the compiled and the numpy path, and a fresh install's
@@ -143,6 +145,10 @@ BENCHMARKS: tuple[Bench, ...] = (
       ("--reps", "1", "--no-peer", "--cells", "axes/linked/static+walk/5", "--out",
        "{results}/opensim_truth_default"),
       ("opensim_truth_default.json", "opensim_truth_default.md"), needs_data=True),
+    B("opensim_truth_iid100", "opensim_truth.py",
+      ("--reps", "100", "--jobs", "2", "--cells", *OPENSIM_100_CELLS, "--out", "{results}/opensim_truth_iid100"),
+      ("--reps", "1", "--no-peer", "--cells", OPENSIM_100_CELLS[0], "--out", "{results}/opensim_truth_iid100"),
+      ("opensim_truth_iid100.json", "opensim_truth_iid100.md"), needs_data=True),
     B("opensim_truth_prior", "opensim_truth.py",
       ("--reps", "100", "--jobs", "2", "--no-peer", "--cells", "prior/axes/static+walk/5", "prior/axes/walk/5",
        "--out", "{results}/opensim_truth_prior"),
