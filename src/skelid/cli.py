@@ -286,13 +286,7 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _quiet_warnings(ctx)
     check_distinct_files(data_paths)
     if str(model_path).lower().endswith(".osim"):
-        if ik_draws is not None and not with_ik:
-            raise click.UsageError("--ik-draws is for --ik; add --ik or leave it out")
-        if with_ik and out_dir is None:
-            raise click.UsageError("--ik writes the angles into the --out folder; give --out DIR")
-        if placement_sd is not None:
-            raise click.UsageError("--placement-sd is for .toml models: an OpenSim fit estimates each marker's "
-                                   "offset on its body (its placement) with the geometry; leave it out")
+        _check_osim_options(with_ik, ik_draws, out_dir, placement_sd)
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
                   alternatives=alternatives, limits=(max_memory, max_time),
@@ -331,6 +325,17 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")
+
+
+def _check_osim_options(with_ik, ik_draws, out_dir, placement_sd) -> None:
+    """The options an ``.osim`` fit reads differently from a ``.toml`` one, refused in one line where unusable."""
+    if ik_draws is not None and not with_ik:
+        raise click.UsageError("--ik-draws is for --ik; add --ik or leave it out")
+    if with_ik and out_dir is None:
+        raise click.UsageError("--ik writes the angles into the --out folder; give --out DIR")
+    if placement_sd is not None:
+        raise click.UsageError("--placement-sd is for .toml models: an OpenSim fit estimates each marker's "
+                               "offset on its body (its placement) with the geometry; leave it out")
 
 
 def _check_trials_cost(model_path, data_paths, alternatives, method_names, limits) -> None:
