@@ -141,8 +141,7 @@ FIT_STEP_TOL = 1e-4
 RACE_ITER = 10  # iterations each start of the motion-model fit gets before the better one is continued
 N_STARTS = 9  # starting geometries under 'auto' where a joint has two pose branches: the centre and 8 more
 SEARCH_MARGIN = 0.05  # those starts keep this share of each prior interval from either bound
-SEARCH_DISTINCT = 2.0  # screening fits that end closer than this many of the first one's sd are one basin
-SEARCH_FRAMES = 100  # frames (evenly spread) of the basin test of each other start
+SEARCH_DISTINCT = 0.01  # screening fits that end closer than this share of the prior's width are one
 MODE_RATIO = 0.05  # another minimum whose likelihood is at least this share of the best's is held in the interval
 MODE_SD = 2.0  # ... where it lies more than this many sd from the estimate
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
@@ -470,8 +469,7 @@ def other_starts(model: Model, st: Start, s: MarkerEstimator, y, fixed, first: J
     (:func:`skelid.estimators.uncertainty.singular.branch_joints`), else none)
     (:func:`search_starts`) each get poses tracked for them (from a generator of their own, so the
     fit's random numbers are unchanged) and a screening fit. Where that fit ends elsewhere than
-    ``first`` and the others (by more than ``SEARCH_DISTINCT`` sd of ``first``, or a thousandth of the
-    prior's width, in some parameter: within that the screening fits' own noise moves them),
+    ``first`` and the others (by more than ``SEARCH_DISTINCT`` of the prior's width in some parameter),
     the start (geometry and tracked poses, which keep to one branch) and its screening fit are returned.
     Without the motion model a wrong branch in each frame can fit the markers better than the right
     geometry does, so the screening fits' residuals do not decide: the motion-model fit's penalised
@@ -480,39 +478,20 @@ def other_starts(model: Model, st: Start, s: MarkerEstimator, y, fixed, first: J
     n = (N_STARTS if branch_joints(model) else 1) if s.n_starts == "auto" else s.n_starts
     if n <= 1 or s.theta0 is not None or s.pose0 is not None:
         return ()
-    # the basin test on evenly spread frames (its noise threshold grown to their number), then the
-    # screening fit on every frame for the starts whose basin is new
-    sub = np.flatnonzero(fixed)
-    sub = sub[np.linspace(0, len(sub) - 1, min(len(sub), SEARCH_FRAMES)).round().astype(int)]
-    near = _screen_noise(model, first, st.bounds) * np.sqrt(max(fixed.sum(), 1) / max(len(sub), 1))
+    width = np.maximum(st.bounds[1] - st.bounds[0], 1e-300)
     stride = max(1, int(st.rate // 25))
     found, out = [first.theta], []
     for k, theta in enumerate(search_starts(model, n - 1)):
         try:
             pose, _ = track_poses(model, theta, y, np.random.default_rng(k), stride=stride, ws=ws)
-            part = joint_fit(model, y[sub], theta, pose[sub], n_iter=s.n_iter, bounds=st.bounds, tol=SCREEN_TOL,
-                             step_tol=SCREEN_STEP_TOL, ws=ws, summary=False)
-            if not all(np.any(np.abs(part.theta - t) > near) for t in found):
-                continue
             fit = joint_fit(model, y, theta, pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed,
                             tol=SCREEN_TOL, step_tol=SCREEN_STEP_TOL, ws=ws, summary=False)
         except SkelidError:  # a start the markers cannot be tracked from
             continue
-        found.append(part.theta)
-        out.append((theta, pose, fit))
+        if all(np.any(np.abs(fit.theta - t) > SEARCH_DISTINCT * width) for t in found):
+            found.append(fit.theta)
+            out.append((theta, pose, fit))
     return tuple(out)
-
-
-def _screen_noise(model: Model, fit: JointFit, bounds) -> np.ndarray:
-    """How far apart two screening fits may end and still be one basin: ``(P,)``, ``SEARCH_DISTINCT`` sd of
-    ``fit`` (its residual variance times its inverse information), at least a thousandth of the prior's width."""
-    width = np.maximum(bounds[1] - bounds[0], 1e-300)
-    dof = max(fit.n_obs - fit.pose_dof - model.n_params, 1.0)
-    try:
-        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(fit.info)), 0.0, None) * fit.rss / dof)
-    except (np.linalg.LinAlgError, TypeError, ValueError):
-        sd = np.zeros(model.n_params)
-    return np.maximum(SEARCH_DISTINCT * np.where(np.isfinite(sd), sd, 0.0), 1e-3 * width)
 
 
 def screen_stage(model: Model, st: Start, s: MarkerEstimator, ws: Workspace | None = None) -> Screen:
@@ -1446,8 +1425,7 @@ class MarkerEstimator:
         Setting("noise", one_of("pooled", "per_marker"), "'pooled' or 'per_marker'", cli="noise"),
         Setting("marker_groups", lambda v: v is None or isinstance(v, dict), "None or {group: [marker names]}"),
         Setting("jackknife", lambda v: isinstance(v, bool), "True or False"),
-        Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None",
-                cli="placement_sd"),
+        Setting("placement_sd", non_negative_or_none, "a distance >= 0 in model units, or None"),
         Setting("theta0", array_or_none, "None or finite starting values, one per parameter"),
         Setting("pose0", array_or_none, "None or finite starting poses (frames, pose coordinates)"),
         Setting("n_starts", lambda v: (isinstance(v, str) and v == "auto") or count(v),
