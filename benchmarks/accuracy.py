@@ -394,9 +394,9 @@ def folder_for(tag: str) -> Path:
     return results_dir() if tag == DEFAULT_TAG else experiments_dir()
 
 
-def write(rows, folder: Path):
+def write(rows, folder: Path, prov: dict | None = None):
     """Merge ``rows`` into ``folder``/accuracy.json (cells other runs wrote meanwhile are kept) and rewrite
-    accuracy.md there.
+    accuracy.md there; ``prov``: the provenance to keep (a rewrite of the tables, ``--report``), else this run's.
 
     Runs of different cells may write at once: the read-merge-write holds an exclusive lock."""
     import fcntl
@@ -404,7 +404,7 @@ def write(rows, folder: Path):
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / ".accuracy.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        _write(rows, folder)
+        _write(rows, folder, prov)
 
 
 #: later versions compared with tag ``deconvolved``, and what changed
@@ -498,7 +498,7 @@ def _write_later(fh, rows):
         fh.write("\n")
 
 
-def _write(rows, folder: Path):
+def _write(rows, folder: Path, prov: dict | None = None):
     order = {m: k for k, m in enumerate(METHODS + EXTRA_METHODS)}
     tags = {"previous": 0, "before": 1, "after": 2, "after100": 3, "main-general": 4, "deconvolved": 5,
             "selfconsistent": 6, "stiffer": 7, "branch": 8, "spread": 9, "stretch": 10, "control": 11,
@@ -515,7 +515,7 @@ def _write(rows, folder: Path):
         rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"],
                                            r["truth"], order.get(r["method"], 99)))
     with atomic_write(path) as fh:
-        json.dump(with_provenance(rows), fh, indent=1)
+        json.dump(with_provenance({"provenance": prov, "rows": rows} if prov else rows), fh, indent=1)
     head = ("| case | sigma | truth | noise | method | reps | bias | bias_se | sd | rmse | crlb | "
             "rmse/crlb | coverage95 | abs(z)>3 | profile bias | removed | fallback | s/fit |")
     with atomic_write(folder / "accuracy.md") as fh:
@@ -549,7 +549,8 @@ def _write(rows, folder: Path):
                  "(tried, not kept: one refit kept in 100 trials, no figure moved beyond noise, one more refit "
                  "on the speed trial), `drawn-before` = the near-singular cells on a geometry drawn for each trial "
                  "(as every later run of them), fitted by the code before the fit searched other starting "
-                 "geometries. ")
+                 "geometries; `before-search` and `search-iid` = case A's i.i.d. cells fitted by the code before "
+                 "and after that search. ")
                  + "A row with fewer trials than its cell asks for is a reduced run (a busy shared machine): "
                  "see its `reps`.\n\n")
         pairs = {}
@@ -695,8 +696,9 @@ def main():
     a = ap.parse_args()
     if a.report:
         for folder in (results_dir(), experiments_dir()):
-            if (folder / "accuracy.json").exists():
-                write(rows_of(json.loads((folder / "accuracy.json").read_text())), folder)
+            if (folder / "accuracy.json").exists():  # the tables rewritten, the file's provenance kept
+                doc = json.loads((folder / "accuracy.json").read_text())
+                write(rows_of(doc), folder, doc.get("provenance") if isinstance(doc, dict) else None)
         return
     if a.frames_study:
         frames_study(a.reps, a.jobs)
