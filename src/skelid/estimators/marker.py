@@ -465,10 +465,10 @@ def other_starts(model: Model, st: Start, s: MarkerEstimator, y, fixed, first: J
     over a whole trial: each pose has two branches there) its cost has more than one minimum; from the
     prior's centre it can settle tens of sd from the truth with an interval that looks sharp. With
     neither ``theta0`` nor ``pose0`` given, ``n - 1`` geometries spread over the prior's bounds
-    (``n = n_starts``; under ``'auto'``, ``N_STARTS`` where some joint's pose has two branches
-    (:func:`skelid.estimators.uncertainty.singular.branch_joints`), else none)
-    (:func:`search_starts`) each get poses tracked for them (from a generator of their own, so the
-    fit's random numbers are unchanged) and a screening fit. Where that fit ends elsewhere than
+    (:func:`search_starts`; ``n = n_starts``, under ``'auto'`` ``N_STARTS`` where some joint's pose has
+    two branches, :func:`skelid.estimators.uncertainty.singular.branch_joints`, else 1) each get poses
+    tracked for them (from a generator of their own, so the fit's random numbers are unchanged) and a
+    screening fit. Where that fit ends elsewhere than
     ``first`` and the others (by more than ``SEARCH_DISTINCT`` of the prior's width in some parameter),
     the start (geometry and tracked poses, which keep to one branch) and its screening fit are returned.
     Without the motion model a wrong branch in each frame can fit the markers better than the right
