@@ -514,8 +514,9 @@ def _write(rows, folder: Path, prov: dict | None = None):
         rows = rows + [r for r in rows_of(json.loads(path.read_text())) if key(r) not in mine]
         rows = sorted(rows, key=lambda r: (tags.get(r.get("tag"), 9), r["case"], r["noise"], r["sigma"],
                                            r["truth"], order.get(r["method"], 99)))
-    with atomic_write(path) as fh:
-        json.dump(with_provenance({"provenance": prov, "rows": rows} if prov else rows), fh, indent=1)
+    with atomic_write(path) as fh:  # experiments: many runs, each row naming its own commit and tag
+        json.dump(rows if folder == experiments_dir() else
+                  with_provenance({"provenance": prov, "rows": rows} if prov else rows), fh, indent=1)
     head = ("| case | sigma | truth | noise | method | reps | bias | bias_se | sd | rmse | crlb | "
             "rmse/crlb | coverage95 | abs(z)>3 | profile bias | removed | fallback | s/fit |")
     with atomic_write(folder / "accuracy.md") as fh:
