@@ -164,7 +164,8 @@ def _truth_cells() -> tuple[dict, str]:
     """The OpenSim-truth cells of the main table, of the default fit's file and of the 100-draw runs (each
     later file's cells taking precedence), and the source lines of each."""
     cells, sources = {}, []
-    for name in ("opensim_truth.json", "opensim_truth_default.json", "opensim_truth_iid100.json"):
+    for name in ("opensim_truth.json", "opensim_truth_default.json", "opensim_truth_iid100.json",
+                 "opensim_truth_sta100.json"):
         path = RESULTS / name
         if path.exists():
             doc = load(path)
