@@ -35,9 +35,9 @@ def test_the_search_leaves_a_minimum_the_prior_centre_falls_into():
 
 def test_starts_spread_over_the_prior_box_and_are_the_same_for_every_fit():
     trial = _folded_trial(38)
-    a = M.search_starts(trial.model, 4)
-    np.testing.assert_array_equal(a, M.search_starts(trial.model, 4))
     lo, hi = trial.model.parameters[0].prior.lower, trial.model.parameters[0].prior.upper
+    a = M.search_starts(([lo], [hi]), 4)
+    np.testing.assert_array_equal(a, M.search_starts(([lo], [hi]), 4))
     assert a.shape == (4, 1) and np.all((a > lo) & (a < hi))
     # one start in each quarter of the interval: a Latin hypercube's strata
     np.testing.assert_array_equal(np.sort(np.floor((a[:, 0] - lo) / (hi - lo) * 4)), [0, 1, 2, 3])

@@ -443,17 +443,16 @@ def start_stage(model: Model, y, rate, s: MarkerEstimator, rng, ws: Workspace | 
     return Start(y, float(rate), theta0, pose0, bounds, fixed)
 
 
-def search_starts(model: Model, n: int) -> np.ndarray:
-    """``n`` starting geometries spread over the prior's bounds, ``(n, P)``.
+def search_starts(bounds, n: int) -> np.ndarray:
+    """``n`` starting geometries spread over the prior's ``bounds`` (``(lower (P,), upper (P,))``), ``(n, P)``.
 
     A Latin hypercube with each stratum's centre (deterministic: the same starts for every fit of the
     model), over the central ``1 - 2 SEARCH_MARGIN`` of each parameter's interval.
     """
     from scipy.stats import qmc
 
-    lo = np.array([p.prior.lower for p in model.parameters])
-    hi = np.array([p.prior.upper for p in model.parameters])
-    u = qmc.LatinHypercube(d=model.n_params, scramble=False, seed=0).random(n)
+    lo, hi = (np.asarray(b, float) for b in bounds)
+    u = qmc.LatinHypercube(d=len(lo), scramble=False, seed=0).random(n)
     return lo + (hi - lo) * (SEARCH_MARGIN + (1.0 - 2.0 * SEARCH_MARGIN) * u)
 
 
@@ -481,7 +480,7 @@ def other_starts(model: Model, st: Start, s: MarkerEstimator, y, fixed, first: J
     width = np.maximum(st.bounds[1] - st.bounds[0], 1e-300)
     stride = max(1, int(st.rate // 25))
     found, out = [first.theta], []
-    for k, theta in enumerate(search_starts(model, n - 1)):
+    for k, theta in enumerate(search_starts(st.bounds, n - 1)):
         try:
             pose, _ = track_poses(model, theta, y, np.random.default_rng(k), stride=stride, ws=ws)
             fit = joint_fit(model, y, theta, pose, n_iter=s.n_iter, bounds=st.bounds, frames=fixed,
