@@ -143,7 +143,7 @@ def test_replay_to_live_to_udp_and_lsl(trial, trc, tmp_path, capsys):
     from skelid.io import read_markers
 
     markers, estimates = _name("markers"), _name("estimates")
-    n = 240  # two passes of the file (0.6 s at 400 Hz): time for the LSL receiver to connect
+    n = 800  # several passes of the file (2 s at 400 Hz): time for the LSL receiver to connect on a busy machine
     udp, lsl = [], []
     port, t_udp = _udp_receiver(n, udp)
     t_lsl = _lsl_receiver(estimates, 5, lsl)
@@ -159,7 +159,8 @@ def test_replay_to_live_to_udp_and_lsl(trial, trc, tmp_path, capsys):
     assert all(m["schema"] == SCHEMA and m["stamp"] is not None for m in lines)
     # the same estimate as a session fed the file directly (the stream carries float32)
     direct = Session(builtin_model("case-a"), labels=trial.data.names, units="mm", rate=400.0)
-    for f in np.concatenate([trial.data.positions] * 2)[:n].astype(np.float32):
+    passes = -(-n // len(trial.data.positions))
+    for f in np.concatenate([trial.data.positions] * passes)[:n].astype(np.float32):
         est = direct.push(f)
     assert lines[-1]["parameters"][0]["mean"] == pytest.approx(est.parameters["L2"].mean, rel=1e-9)
     assert lines[-1]["healthy"] and lines[-1]["health"] == "ok"
