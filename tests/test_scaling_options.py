@@ -211,13 +211,64 @@ def check_ik_draws(d, base):
     _refused(_run(d, ["--ik-draws", "3"]), "--ik-draws")
 
 
+def scale_setup(d, static="static.trc", model="leg.osim") -> str:
+    """An OpenSim Scale setup for the leg: each body scaled, on all three axes, by its markers 0 and 1."""
+    from skelid.io import read_markers
+
+    t = read_markers(d / static).time
+    meas = "".join(f'<Measurement name="{b}"><apply>true</apply><MarkerPairSet><objects><MarkerPair>'
+                   f'<markers>{b}0 {b}1</markers></MarkerPair></objects></MarkerPairSet><BodyScaleSet><objects>'
+                   f'<BodyScale name="{b}"><axes>X Y Z</axes></BodyScale></objects></BodyScaleSet></Measurement>'
+                   for b in TRUTH)
+    return (f'<?xml version="1.0" encoding="UTF-8" ?><OpenSimDocument Version="40000"><ScaleTool name="leg">'
+            f'<mass>70</mass><GenericModelMaker><model_file>{model}</model_file></GenericModelMaker><ModelScaler>'
+            f'<apply>true</apply><scaling_order>measurements</scaling_order><MeasurementSet><objects>{meas}'
+            f'</objects></MeasurementSet><marker_file>{static}</marker_file><time_range>{t[0]} {t[-1]}</time_range>'
+            '<preserve_mass_distribution>false</preserve_mass_distribution></ModelScaler>'
+            '<MarkerPlacer><apply>false</apply></MarkerPlacer></ScaleTool></OpenSimDocument>')
+
+
+def check_scaletool(d, base):
+    pytest.importorskip("opensim")
+    setup = d / "leg_Setup_Scale.xml"
+    # OpenSim loads only bodies with a mass and a knee whose three rotation axes are independent; neither
+    # changes the geometry skelid fits
+    massive = MODEL.format(markers=marker_xml()).replace(
+        '<TransformAxis name="translation1">', '<TransformAxis name="rotation2"><axis>1 0 0</axis></TransformAxis>'
+        '<TransformAxis name="rotation3"><axis>0 1 0</axis></TransformAxis><TransformAxis name="translation1">')
+    for b in TRUTH:
+        massive = massive.replace(f'<Body name="{b}"/>', f'<Body name="{b}"><mass>5</mass><mass_center>0 0 0'
+                                  '</mass_center><inertia>0.1 0.1 0.1 0 0 0</inertia></Body>')
+    (d / "leg_mass.osim").write_text(massive)
+    setup.write_text(scale_setup(d, model="leg_mass.osim"))
+    before = sorted(p.name for p in d.iterdir())
+    r = _run(d, ["--scaletool", str(setup)])
+    assert r["rc"] == 0, r["err"]
+    peer = r["table"]["scaletool"]
+    # its marker pairs on noise-free markers: every factor is the true one, on all three axes
+    for body, v in TRUTH.items():
+        assert peer["scales"][body] == pytest.approx([v] * 3, abs=2e-3)
+    assert peer["n_compared"] == sum(len(a) for a in base["table"]["scales"].values())
+    thigh = [row for row in peer["compared"] if row["body"] == "thigh"]
+    assert all(row["inside"] for row in thigh) and peer["inside"] >= len(thigh)
+    assert _numbers({k: v for k, v in r["table"].items() if k != "scaletool"}) == _numbers(base["table"])
+    assert json.loads((r["dir"] / "scaled_scaling.json").read_text())["scaletool"]["n_compared"] == \
+        peer["n_compared"]
+    assert "ScaleTool |" in (r["dir"] / "scaled_report.md").read_text()
+    assert main(["report", str(r["dir"]), "--quiet"]) == 0
+    html = next(r["dir"].glob("*.html")).read_text()
+    assert "OpenSim ScaleTool" in html and f"{peer['inside']} of {peer['n_compared']} of its factors" in html
+    assert set(p.name for p in d.iterdir()) - set(before) <= {r["dir"].name}  # nothing beside the setup
+    _refused(_run(d, ["--scaletool", str(d / "none.xml")]), "none.xml")
+
+
 CASES = {"--method": check_method, "--sigma": check_sigma, "--json": check_json, "--quiet": check_quiet,
          "--out": check_out, "--cutoff": check_cutoff, "--artefact-rms": check_artefact_rms,
          "--placement-sd": check_placement_sd,
          "--noise": check_noise, "--alternative": check_alternative, "--seed": check_seed, "--scale": check_scale,
          "--markers": check_markers, "--marker-set": check_marker_set, "--overwrite": check_overwrite,
          "--max-memory": check_max_memory, "--max-time": check_max_time, "--ik": check_ik,
-         "--ik-draws": check_ik_draws}
+         "--ik-draws": check_ik_draws, "--scaletool": check_scaletool}
 
 
 def test_every_fit_option_has_a_case():
@@ -229,3 +280,44 @@ def test_every_fit_option_has_a_case():
 def test_an_osim_fit_honours_or_refuses_the_option(case, option):
     d, base = case
     CASES[option](d, base)
+
+
+@pytest.mark.parametrize("setup, says", [
+    ("not xml <", "not readable XML"),
+    ('<OpenSimDocument Version="40000"><IKTool/></OpenSimDocument>', "holds no <ScaleTool>"),
+    ("missing-static", "does not exist"),
+    ("scaler-off", "ModelScaler off"),
+])
+def test_a_scale_setup_scaletool_cannot_run_is_refused_in_one_line(case, setup, says):
+    pytest.importorskip("opensim")
+    d, _ = case
+    path = d / "bad_Setup_Scale.xml"
+    if setup == "missing-static":
+        setup = scale_setup(d).replace("<marker_file>static.trc", "<marker_file>nowhere.trc")
+    elif setup == "scaler-off":
+        setup = scale_setup(d).replace("<ModelScaler><apply>true", "<ModelScaler><apply>false")
+    path.write_text(setup)
+    try:
+        r = _run(d, ["--scaletool", str(path)])
+        _refused(r, path.name)
+        assert says in r["err"]
+    finally:
+        path.unlink()
+
+
+def test_scaletool_without_opensim_or_for_a_toml_model_is_refused(case, monkeypatch, tmp_path):
+    import sys
+
+    from skelid.errors import SettingError
+    from skelid.scaletool import run_scaletool
+
+    d, _ = case
+    path = d / "leg_Setup_Scale.xml"
+    path.write_text(scale_setup(d))
+    monkeypatch.setitem(sys.modules, "opensim", None)  # as where the package is not installed
+    with pytest.raises(SettingError, match="opensim package is not installed"):
+        run_scaletool(path)
+    _refused(_run(d, ["--scaletool", str(path)]), "opensim")
+    monkeypatch.undo()
+    toml = _run(d, ["--scaletool", str(path)], model="case-a")
+    _refused(toml, "--scaletool")

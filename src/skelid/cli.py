@@ -267,11 +267,14 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
               "sd (as 'skelid ik' writes them), in --out/ik.")
 @click.option("--ik-draws", type=click.IntRange(min=0), default=None, metavar="N",
               help="With --ik: draws of the geometry (default 100; 0: its first-order effect).")
+@click.option("--scaletool", "scaletool_setup", default=None, metavar="SETUP.xml",
+              help="OpenSim models: also run OpenSim's ScaleTool on this Scale setup (as written; needs the opensim "
+                   "package) and put its factor of every body and axis beside skelid's interval.")
 @_limit_options
 @click.pass_context
 def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, placement_sd, noise, alternatives,
-        as_json, out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, with_ik, ik_draws, max_memory,
-        max_time):
+        as_json, out_dir, seed, quiet, scale_kind, marker_kind, marker_set, overwrite, with_ik, ik_draws,
+        scaletool_setup, max_memory, max_time):
     """Fit MODEL_PATH (a .toml or OpenSim .osim model, or case-a/case-b) to the markers in DATA_PATHS.
 
     Several files are trials of one body: one geometry is fitted to all of them, with each
@@ -290,10 +293,11 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind,
                   marker_set, as_json, quiet, overwrite, cutoff=cutoff, artefact_rms=artefact_rms, noise=noise,
                   alternatives=alternatives, limits=(max_memory, max_time),
-                  ik_draws=(N_DRAWS_DEFAULT if ik_draws is None else ik_draws) if with_ik else None)
+                  ik_draws=(N_DRAWS_DEFAULT if ik_draws is None else ik_draws) if with_ik else None,
+                  scaletool_setup=scaletool_setup)
         return
-    if with_ik or ik_draws is not None:
-        raise click.UsageError("--ik gives the joint angles of an OpenSim model; fit an .osim model to use it")
+    if with_ik or ik_draws is not None or scaletool_setup is not None:
+        raise click.UsageError("--ik and --scaletool are for OpenSim models; fit an .osim model to use them")
     _finite("--sigma", sigma)
     _finite("--cutoff", cutoff)
     _finite("--artefact-rms", artefact_rms)
@@ -361,7 +365,7 @@ def _check_trials_cost(model_path, data_paths, alternatives, method_names, limit
 
 def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, scale_kind, marker_kind, marker_set,
               as_json, quiet, overwrite=False, cutoff=None, artefact_rms=None, noise="pooled", alternatives=(),
-              limits=(None, None), ik_draws=None):
+              limits=(None, None), ik_draws=None, scaletool_setup=None):
     """``skelid fit MODEL.osim TRIAL...``: scale factors and marker offsets, written back for OpenSim.
 
     Every option of ``fit`` reaches the fit (the estimator's options as for a ``.toml`` model) or is
@@ -372,6 +376,7 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     from skelid.io.atomic import atomic_dir
     from skelid.io.legacy import run_from_scaling
     from skelid.io.results import write_run
+    from skelid.scaletool import run_scaletool, scaletool_entry
 
     _check_osim_fit(model_path, data_paths, method_names, sigma, out_dir, marker_set, overwrite, cutoff,
                     artefact_rms, alternatives)
@@ -380,6 +385,8 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
         from skelid.angles import check_trial_names
 
         stems = check_trial_names(data_paths)
+    # ScaleTool first: it takes a fraction of a second, and a setup it cannot run stops before the fit
+    peer = None if scaletool_setup is None else run_scaletool(scaletool_setup)
     trials = [read_markers(p) for p in data_paths]
     options = dict(marker_set=marker_set, scale=scale_kind, markers=marker_kind,
                    method=method_names[0] if method_names else "marker", seed=seed, sigma=sigma, cutoff=cutoff,
@@ -388,10 +395,12 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     if alternatives:
         fit_ = scaling.with_alternatives(fit_, alternatives, trials, **options)
     table = scaling.scaling_table(fit_)
+    if peer is not None:
+        table["scaletool"] = scaletool_entry(table, peer)
     _echo_warnings(table["warnings"], quiet, out_dir)
     if out_dir is not None:
         with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
-            paths = scaling.write_outputs(fit_, tmp)
+            paths = scaling.write_outputs(fit_, tmp, table=table)
             if ik_draws is not None:
                 from skelid import angles
 
@@ -432,11 +441,14 @@ def _check_osim_fit(model_path, data_paths, method_names, sigma, out_dir, marker
 
 
 def _echo_scaling(table: dict, out_dir, ik: bool) -> None:
-    """The scale factors with their intervals, and what was written where."""
+    """The scale factors with their intervals (ScaleTool's beside them where it ran), and what was written where."""
+    peer = {(r["body"], r["axis"]): r for r in (table.get("scaletool") or {}).get("compared", [])}
     for body, s in table["scales"].items():
         for ax, e in s.items():
             lo, hi = e["ci95"]
-            click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]")
+            r = peer.get((body, ax))
+            beside = "" if r is None else f"  ScaleTool {r['scaletool']:.4f}{'' if r['inside'] else ' (outside)'}"
+            click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]{beside}")
     click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
     if out_dir:
         click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")

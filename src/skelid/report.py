@@ -751,14 +751,13 @@ def _opensim(b: _Builder, run, units: str):
     b.add(f"<p><b>{_e(Path(str(sc.get('source_model', ''))).name)}</b> scaled to {len(trials)} trial(s): "
           f"{_e(', '.join(trials))}. The scaled model, its ScaleSet and the scaling table are beside this "
           "report.</p>")
-    rows = []
-    for body, axes in (sc.get("scales") or {}).items():
-        for ax, e in axes.items():
-            rows.append((_e(body), "one factor" if ax == "xyz" else ax, _fmt(e.get("value")),
-                         _interval(e.get("ci95")), _fmt(e.get("crlb_sd"))))
+    peer = sc.get("scaletool") if isinstance(sc.get("scaletool"), dict) else None
+    rows = _scale_rows(sc.get("scales") or {}, peer)
     b.add("<h3>Scale factors (ratios to the generic model)</h3>")
-    b.add(_folded_table(["body", "axis", "factor", "95 % interval", "Cramér–Rao sd"], rows, "scale factors")
-          if rows else _na("scale factors"))
+    if peer is not None:
+        b.add(_scaletool_line(peer))
+    head = ["body", "axis", "factor", "95 % interval"] + (["OpenSim ScaleTool"] if peer is not None else [])
+    b.add(_folded_table(head + ["Cramér–Rao sd"], rows, "scale factors") if rows else _na("scale factors"))
     lengths = sc.get("lengths_mm") or {}
     if lengths:
         b.add(f"<h3>Lengths between joint centres [{_e(units)}]</h3>")
@@ -772,6 +771,33 @@ def _opensim(b: _Builder, run, units: str):
             f"<li>{_e(headline(w, 160))}" + (f"<details><summary>detail</summary>{_e(w)}</details>"
                                               if headline(w, 160) != " ".join(w.split()) else "") + "</li>"
             for w in warns) + "</ul>")
+
+
+def _scale_rows(scales: Mapping, peer: dict | None) -> list[tuple]:
+    """One row per body and axis: the factor, its interval, ScaleTool's factor where it ran, the CRLB."""
+    beside = {(r.get("body"), r.get("axis")): r for r in (peer or {}).get("compared") or [] if isinstance(r, dict)}
+    rows = []
+    for body, axes in scales.items():
+        for ax, e in axes.items():
+            r = beside.get((body, ax))
+            st = [] if peer is None else ["–" if r is None else
+                                          _fmt(r.get("scaletool")) + ("" if r.get("inside") else " (outside)")]
+            rows.append((_e(body), "one factor" if ax == "xyz" else ax, _fmt(e.get("value")),
+                         _interval(e.get("ci95")), *st, _fmt(e.get("crlb_sd"))))
+    return rows
+
+
+def _scaletool_line(peer: dict) -> str:
+    """Which ScaleTool run stands beside the factors, and how many of its factors skelid's intervals hold."""
+    rng = peer.get("time_range") or []
+    when = f" at {_fmt(rng[0], 3)}–{_fmt(rng[1], 3)} s" if len(rng) == 2 else ""
+    return (f"<p>OpenSim's ScaleTool {_e(peer.get('opensim_version', ''))} on the setup "
+            f"<code>{_e(Path(str(peer.get('setup', ''))).name)}</code> (static trial "
+            f"<code>{_e(Path(str(peer.get('static_trial', ''))).name)}</code>{when}; measurements: "
+            f"{_e(', '.join(map(str, peer.get('measurements') or [])) or 'none')}): "
+            f"{_e(peer.get('inside', 0))} of {_e(peer.get('n_compared', 0))} of its factors lie inside skelid's "
+            "95 % interval. A factor outside is one the markers contradict (or one its measurements set for "
+            "another body).</p>")
 
 
 def _marker_residuals(run, fixed: set, units: str) -> str:

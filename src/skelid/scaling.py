@@ -2111,9 +2111,12 @@ def _settings_json(est) -> dict:
                                    if k not in ("theta0", "pose0", "rng")}}
 
 
-def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, Path]:
+def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled", table: dict | None = None) -> dict[str, Path]:
     """Write ``<name>.osim``, ``<name>_scale_set.xml``, ``<name>_scaling.json``, ``<name>_report.md`` and
-    ``<name>_geometry.json`` (the fitted model and its covariance, for :mod:`skelid.angles`)."""
+    ``<name>_geometry.json`` (the fitted model and its covariance, for :mod:`skelid.angles`).
+
+    ``table``: the fit's :func:`scaling_table` with what was added to it (ScaleTool's factors); default the
+    fit's own."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"osim": out_dir / f"{name}.osim", "scale_set": out_dir / f"{name}_scale_set.xml",
@@ -2121,7 +2124,7 @@ def write_outputs(fit: ScalingFit, out_dir, name: str = "scaled") -> dict[str, P
     write_scaled_osim(fit.source, paths["osim"], fit.model, fit.info, fit.theta, fit.marker_set,
                       moved=mean_places(fit))
     write_scale_set(paths["scale_set"], fit.model, fit.theta)
-    table = scaling_table(fit)
+    table = scaling_table(fit) if table is None else table
     paths["json"].write_text(json.dumps(_finite_or_none(table), indent=1, allow_nan=False) + "\n")
     paths["report"].write_text(report_markdown(fit, table, {k: v.name for k, v in paths.items()}))
     from skelid.angles import fitted_geometry, write_geometry  # what 'skelid ik' needs from the fit
@@ -2175,11 +2178,22 @@ def _head_markdown(fit: ScalingFit, table: dict) -> list[str]:
 def _scales_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
     if not table["scales"]:
         return []
-    lines = ["## Body scale factors", "", "| body | axis | scale | 95 % interval |", "|---|---|---|---|"]
+    peer = table.get("scaletool")
+    beside = {(r["body"], r["axis"]): r for r in (peer or {}).get("compared", [])}
+    lines = ["## Body scale factors", ""]
+    if peer:
+        lines += [f"OpenSim's ScaleTool on `{Path(peer['setup']).name}` (static trial "
+                  f"`{Path(peer['static_trial']).name}`): {peer['inside']} of its {peer['n_compared']} factors "
+                  "inside skelid's 95 % interval.", ""]
+    lines += ["| body | axis | scale | 95 % interval |" + (" ScaleTool |" if peer else ""),
+              "|---|---|---|---|" + ("---|" if peer else "")]
     for body, axes in table["scales"].items():
         for ax, e in axes.items():
             lo, hi = e["ci95"]
-            lines.append(f"| {body} | {ax} | {e['value']:.4f} | [{lo:.4f}, {hi:.4f}] |")
+            r = beside.get((body, ax))
+            st = "" if not peer else (" - |" if r is None else
+                                      f" {r['scaletool']:.4f}{'' if r['inside'] else ' (outside)'} |")
+            lines.append(f"| {body} | {ax} | {e['value']:.4f} | [{lo:.4f}, {hi:.4f}] |{st}")
     return lines + [""]
 
 
