@@ -521,17 +521,24 @@ class Model:
         """Distances between joint centres that depend on the parameters.
 
         ``(name, segment index)``: the distance from the segment's parent's
-        origin to the segment's joint centre, ``|o_s(theta)|``, named
-        ``"<parent joint>-<joint>"``. A joint whose only parameter is its own
-        ``length`` is left out (that parameter is the distance).
+        origin to the segment's joint centre at the zero pose, named
+        ``"<parent joint>-<joint>"``: ``|o_s(theta)|``, or, for a ``custom``
+        joint whose centre slides with a coordinate by a translation that scales
+        with the parent (an OpenSim knee), where that translation puts it at the
+        zero pose. A joint whose only parameter is its own ``length`` is left
+        out (that parameter is the distance).
         """
         D = self.dim
         _, A = self.geometry_map
+        sliding = self.sliding_joint_parameters
         out = []
         for s, seg in enumerate(self.segments):
             if seg.parent is None:
                 continue
             cols = np.flatnonzero(np.abs(A[s * D:(s + 1) * D]).sum(axis=0))
+            if s in sliding:
+                out.append((f"{self.segments[self.parent_index[s]].joint.name}-{seg.joint.name}", s))
+                continue
             if cols.size == 0:
                 continue
             if cols.size == 1 and self.parameters[cols[0]].kind == "length":
@@ -539,6 +546,23 @@ class Model:
             parent_joint = self.segments[self.parent_index[s]].joint.name
             out.append((f"{parent_joint}-{seg.joint.name}", s))
         return tuple(out)
+
+    @cached_property
+    def sliding_joint_parameters(self) -> dict[int, np.ndarray]:
+        """Segments whose joint centre slides with a coordinate by a translation that scales with a
+        parameter: ``{segment index: the parameters (indices) that can move that centre at the zero pose}``
+        (those of its offset from the parent, its translations' factors and any parameter of the joint)."""
+        D = self.dim
+        _, A = self.geometry_map
+        out: dict[int, set] = {}
+        for s, _m, b, _base in self.coupled_translations:
+            if np.any(b):
+                out.setdefault(s, set()).update(np.flatnonzero(b).tolist())
+        for s, cols in out.items():
+            name = self.segments[s].joint.name
+            cols.update(np.flatnonzero(np.abs(A[s * D:(s + 1) * D]).sum(axis=0)).tolist())
+            cols.update(k for k, p in enumerate(self.parameters) if p.target == name)
+        return {s: np.array(sorted(c), dtype=int) for s, c in out.items()}
 
     @property
     def theta_nominal(self) -> np.ndarray:

@@ -613,7 +613,8 @@ def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     lengths : (..., K) float
-        ``|o_s(theta)|`` for each entry of :attr:`Model.derived_lengths`.
+        ``|o_s(theta)|`` for each entry of :attr:`Model.derived_lengths` (at the zero pose, through the
+        forward kinematics, for a joint centre that slides with a coordinate).
     grad : (..., K, P) float
         ``d lengths / d theta``.
     """
@@ -627,7 +628,33 @@ def joint_distances(model: Model, theta) -> tuple[np.ndarray, np.ndarray]:
     o = g_base[rows] + np.einsum("kdp,...p->...kd", A[rows], theta)
     n = np.linalg.norm(o, axis=-1)
     grad = np.einsum("...kd,kdp->...kp", o / np.maximum(n, 1e-300)[..., None], A[rows])
+    for k, s in enumerate(segs):
+        cols = model.sliding_joint_parameters.get(s)
+        if cols is not None:
+            n[..., k], grad[..., k, :] = _sliding_distance(model, theta, s, cols)
     return n, grad
+
+
+#: relative step of the central differences of :func:`_sliding_distance` (of each parameter's prior sd, or 1)
+SLIDING_STEP = 1e-6
+
+
+def _sliding_distance(model: Model, theta, s: int, cols) -> tuple[np.ndarray, np.ndarray]:
+    """Distance ``(...)`` from segment ``s``'s parent's origin to its joint centre at the zero pose, whose
+    translations follow functions of the coordinates, and its gradient ``(..., P)`` (central differences in
+    the parameters ``cols`` that can move it; the rest leave it)."""
+    P = model.n_params
+    sd = np.array([p.prior.sd for p in model.parameters], float)
+    h = SLIDING_STEP * np.where(np.isfinite(sd) & (sd > 0), sd, 1.0)[cols]
+    steps = np.zeros((1 + 2 * len(cols), P))
+    steps[1 + np.arange(len(cols)), cols] = h
+    steps[1 + len(cols) + np.arange(len(cols)), cols] = -h
+    th = theta[..., None, :] + steps  # (..., 1 + 2c, P)
+    p = forward_kinematics(model, th, np.zeros(th.shape[:-1] + (model.n_pose,))).p_world_seg
+    d = np.linalg.norm(p[..., s, :] - p[..., model.parent_index[s], :], axis=-1)  # (..., 1 + 2c)
+    grad = np.zeros(theta.shape[:-1] + (P,))
+    grad[..., cols] = (d[..., 1:1 + len(cols)] - d[..., 1 + len(cols):]) / (2.0 * h)
+    return d[..., 0], grad
 
 
 def marker_positions(model: Model, theta, pose, ws: Workspace | None = None) -> np.ndarray:
