@@ -444,8 +444,9 @@ def scale_covariance(fit, ks) -> np.ndarray:
     return np.diag(sd**2)
 
 
-def skelid_fit(trials, fit: str) -> dict:
-    """``fit``: the scale mode, with ``+pm`` for per-marker noise (``noise='per_marker'``)."""
+def skelid_fit(trials, fit: str, angles=None) -> dict:
+    """``fit``: the scale mode, with ``+pm`` for per-marker noise (``noise='per_marker'``); ``angles``:
+    ``(draws, coordinate names, {trial: true coordinates (F, C)})`` to score skelid's joint angles, or None."""
     from skelid.data import MarkerData
     from skelid.scaling import _prior_terms, fit_osim, prior_sd
 
@@ -483,7 +484,46 @@ def skelid_fit(trials, fit: str) -> dict:
     for n in L:
         out["q"][f"length {n}"] = {"est": L[n], "sd": sd[n], "crlb": float("nan")}
     out["points"] = skelid_point_estimates(fit)
+    if angles is not None:
+        out["angles"] = angle_scores(fit, trials, *angles)
     return out
+
+
+def angle_scores(fit, trials, n_draws: int, coord_names, true_q: dict) -> dict:
+    """skelid's joint angles (``skelid ik``: the fit's geometry posterior carried into every coordinate,
+    ``n_draws`` draws or its first-order effect at 0) of each movement trial against the coordinates that
+    made its markers: per coordinate, the share of frames whose 95 % interval holds the truth, rms z, RMSE
+    (deg or mm) and the share of the variance that comes from the geometry, averaged over the trials."""
+    from skelid.angles import fitted_geometry, joint_angles
+    from skelid.data import MarkerData
+
+    geom = fitted_geometry(fit)
+    per: dict = {}
+    units: dict = {}
+    for src, names, y in trials:
+        if src not in true_q:
+            continue
+        ja = joint_angles(geom, MarkerData(y, tuple(names), RATE, "mm", src), n_draws, np.random.default_rng(0))
+        for c, name in enumerate(ja.names):
+            if ja.status[c] != "fitted" or name not in coord_names:
+                continue
+            err = ja.value[:, c] - true_q[src][:, coord_names.index(name)]
+            unit = 180.0 / np.pi if ja.rotational[c] else 1000.0
+            if ja.rotational[c]:
+                err = (err + np.pi) % (2.0 * np.pi) - np.pi
+            sd = ja.sd[:, c]
+            ok = np.isfinite(err) & np.isfinite(sd) & (sd > 0)
+            if not ok.any():
+                continue
+            z = err[ok] / sd[ok]
+            units[name] = "deg" if ja.rotational[c] else "mm"
+            e = per.setdefault(name, {"cover": [], "rms_z": [], "rmse": [], "mean_sd": [], "geometry_share": []})
+            e["cover"].append(float(np.mean(np.abs(z) <= Z95)))
+            e["rms_z"].append(float(np.sqrt(np.mean(z**2))))
+            e["rmse"].append(float(np.sqrt(np.mean(err[ok] ** 2)) * unit))
+            e["mean_sd"].append(float(np.mean(sd[ok]) * unit))
+            e["geometry_share"].append(float(np.mean(ja.sd_geometry[ok, c] ** 2) / np.mean(sd[ok] ** 2)))
+    return {n: {k: float(np.mean(v)) for k, v in e.items()} | {"unit": units[n]} for n, e in per.items()}
 
 
 def true_values(truth: dict, lengths: dict, fit_scale: str) -> dict:
@@ -555,7 +595,7 @@ def scaletool(names, static: np.ndarray, work: Path, coord_names) -> dict:
 
 # ----------------------------------------------------------------------------- one draw
 def run_draw(args) -> dict:
-    truth_kind, noise, seed, designs, fits, peer, work = args
+    truth_kind, noise, seed, designs, fits, peer, work, n_angle_draws = args
     mo = motions()
     rng = np.random.default_rng(seed)
     generic = generic_model()
@@ -585,7 +625,8 @@ def run_draw(args) -> dict:
             key = f"{truth_kind}/{fs}/{design}/{noise}"
             tv = true_values(truth, lengths, fs.partition("+")[0])
             try:
-                r = skelid_fit(trials, fs)
+                r = skelid_fit(trials, fs, None if n_angle_draws is None else
+                               (n_angle_draws, mo["names"], {"walk": mo["walk"], "walk2": mo["walk2"]}))
             except Exception as exc:  # a failed fit is counted in its cell, with its message
                 out["fits"][key] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
                 continue
@@ -642,6 +683,8 @@ def summarise(draws: list[dict]) -> dict:
                         c.setdefault("classes", {}).setdefault(f"{kind}, {cls}", []).append(
                             (e["est"] - r["truth"][q]) / e["sd"])
             _score_points(c, r)
+            for name, a in (r.get("angles") or {}).items():
+                c.setdefault("angles", {}).setdefault(name, []).append(a)
         if "scaletool" in d and "error" in d["scaletool"]:
             key = f"{d['truth_kind']}/scaletool/static+walk/{d['noise']}"
             c = cells.setdefault(key, {"n": 0, "failed": 0, "errors": [], "rows": {}, "cpu": []})
@@ -678,6 +721,14 @@ def summarise(draws: list[dict]) -> dict:
                                    "rms_z": float(np.sqrt(np.mean(np.square(z))))}
                                for k, z in sorted(c.get("classes", {}).items())}
         out[key] |= _points_summary(c)
+        if c.get("angles"):
+            out[key]["angles"] = {n: {"draws": len(v), "unit": v[0]["unit"],
+                                      "coverage95": float(np.mean([a["cover"] for a in v])),
+                                      "rms_z": float(np.sqrt(np.mean([a["rms_z"] ** 2 for a in v]))),
+                                      "rmse": float(np.sqrt(np.mean([a["rmse"] ** 2 for a in v]))),
+                                      "mean_sd": float(np.mean([a["mean_sd"] for a in v])),
+                                      "geometry_share": float(np.mean([a["geometry_share"] for a in v]))}
+                                  for n, v in c["angles"].items()}
         if "sigma" in c:
             sig = [s for s in c["sigma"] if s is not None]
             out[key] |= {"sigma_mean": float(np.mean(sig)) if sig else None,
@@ -821,13 +872,26 @@ def markdown(res: dict) -> str:
                          f"{_f(m['bias_over_crlb'])} | {_f(m['rmse'], 3)} | {_f(m['rmse_over_crlb'])} | "
                          f"{_f(m['rmse_over_sd'])} | {_f(m['coverage95'])} (min {_f(lo)}) | {_f(m['sd_ratio'])} |")
         lines.append("")
-        lines += _points_markdown(c)
+        lines += _points_markdown(c) + _angles_markdown(c)
         if c.get("classes"):
             lines += ["| pooled over parameters and draws | n | coverage 95 % | rms z (1 = right) |",
                       "|---|---|---|---|"]
             lines += [f"| {k} | {v['n']} | {_f(v['coverage95'])} | {_f(v['rms_z'])} |" for k, v in c["classes"].items()]
             lines.append("")
     return "\n".join(lines) + "\n"
+
+
+def _angles_markdown(c: dict) -> list[str]:
+    """Joint angles of the walks against the coordinates that made them (``--angles``)."""
+    a = c.get("angles")
+    if not a:
+        return []
+    lines = ["| joint angle (walk frames, `skelid ik`) | unit | coverage 95 % | rms z | RMSE | mean sd "
+             "| geometry's share of the variance |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {n} | {v['unit']} | {_f(v['coverage95'])} | {_f(v['rms_z'])} | {_f(v['rmse'])} | "
+              f"{_f(v['mean_sd'])} | {_f(v['geometry_share'])} |" for n, v in a.items()]
+    cov = [v["coverage95"] for v in a.values()]
+    return lines + [f"| all {len(cov)} coordinates | | {_f(min(cov))}-{_f(max(cov))} | | | | |", ""]
 
 
 def _points_markdown(c: dict) -> list[str]:
@@ -892,6 +956,9 @@ def main(argv=None):
     ap.add_argument("--no-peer", action="store_true", help="skip OpenSim's ScaleTool")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--seed", type=int, default=20261202)
+    ap.add_argument("--angles", type=int, default=None, metavar="DRAWS",
+                    help="also score skelid's joint angles of each walk against the true coordinates, with this "
+                         "many draws of the geometry (0: its first-order effect)")
     ap.add_argument("--rescore", action="store_true",
                     help="recompute the true values of the results at --out from each draw's seed; no fit is run")
     args = ap.parse_args(argv)
@@ -914,7 +981,8 @@ def main(argv=None):
         for r in range(reps):
             for gi, ((t, n), g) in enumerate(sorted(groups.items())):
                 seed = args.seed + 1000 * r + gi
-                tasks.append((t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer, work))
+                tasks.append((t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer, work,
+                              args.angles))
         keep = {f"{t}/{f}/{d}/{n}" for t, f, d, n in cells}
         draws = []
 

@@ -165,7 +165,7 @@ def _truth_cells() -> tuple[dict, str]:
     later file's cells taking precedence), and the source lines of each."""
     cells, sources = {}, []
     for name in ("opensim_truth.json", "opensim_truth_default.json", "opensim_truth_iid100.json",
-                 "opensim_truth_sta100.json"):
+                 "opensim_truth_sta100.json", "opensim_truth_sta1walk100.json", "opensim_truth_angles100.json"):
         path = RESULTS / name
         if path.exists():
             doc = load(path)
@@ -268,6 +268,16 @@ SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 
                     "axes/linked/walk+walk2/stalab"))))
 
 
+def _angles_text(c: dict) -> str:
+    """The walk's joint angles (``skelid ik``) against the true coordinates, where the cell scored them."""
+    a = c.get("angles") or {}
+    if not a:
+        return ""
+    cov = sorted(v["coverage95"] for v in a.values())
+    return (f"; the walk's {len(cov)} joint angles (`skelid ik`) cover {cov[0]:.2f}-{cov[-1]:.2f} per coordinate "
+            f"(median {cov[len(cov) // 2]:.2f})")
+
+
 def opensim_truth_summary() -> str:
     """The README's lines: per summed-up design, the lengths' coverage and RMSE beside the ScaleTool's."""
     path = RESULTS / "opensim_truth.json"
@@ -289,7 +299,7 @@ def opensim_truth_summary() -> str:
                          f"{sum(lr) / len(lr):.1f} mm" + (f" (ScaleTool {sum(pr) / len(pr):.1f} mm)" if pr else "")
                          + (f"; joint centres in their parent body cover {jc['coverage95_axes']:.2f} per axis, "
                             f"{jc['region_coverage95']:.2f} as 3-D regions" if jc else "")
-                         + f", {c['n']} draws")
+                         + _angles_text(c) + f", {c['n']} draws")
         if shown:
             lines.append(f"- {what}, hip-knee and knee-ankle intervals: " + "; ".join(shown))
     prior = RESULTS / "opensim_truth_prior.json"

@@ -64,7 +64,8 @@ OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/li
                        "axes/linked+pm/static+walk/pm", "axes/linked/static+walk/sta", "axes/linked/walk/sta",
                        "axes/linked/walk+walk2/sta", "axes/linked/walk+walk2/stalab")
 #: the i.i.d. and per-marker cells of OPENSIM_TRUTH_CELLS again at 100 draws (the exact structure and the default);
-#: opensim_truth_sta100 does the same for the two walks under a skin artefact
+#: opensim_truth_sta100 and opensim_truth_sta1walk100 do the same for the skin-artefact cells; opensim_truth_angles100
+#: the default i.i.d. cell with the joint angles of its walk scored
 OPENSIM_100_CELLS = ("axes/axes/static+walk/5", "axes/linked/static+walk/pm")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
 #: real_calibration's cached fits). The demo waits for the compiled kernel: the seed method's frame
@@ -155,6 +156,18 @@ BENCHMARKS: tuple[Bench, ...] = (
        "{results}/opensim_truth_sta100"),
       ("--reps", "1", "--no-peer", "--cells", "axes/linked/walk/sta", "--out", "{results}/opensim_truth_sta100"),
       ("opensim_truth_sta100.json", "opensim_truth_sta100.md"), needs_data=True),
+    B("opensim_truth_sta1walk100", "opensim_truth.py",
+      ("--reps", "100", "--jobs", "2", "--cells", "axes/linked/static+walk/sta", "axes/linked/walk/sta", "--out",
+       "{results}/opensim_truth_sta1walk100"),
+      ("--reps", "1", "--no-peer", "--cells", "axes/linked/walk/sta", "--out",
+       "{results}/opensim_truth_sta1walk100"),
+      ("opensim_truth_sta1walk100.json", "opensim_truth_sta1walk100.md"), needs_data=True),
+    B("opensim_truth_angles100", "opensim_truth.py",
+      ("--reps", "100", "--jobs", "2", "--angles", "0", "--cells", "axes/linked/static+walk/5", "--out",
+       "{results}/opensim_truth_angles100"),
+      ("--reps", "1", "--no-peer", "--angles", "0", "--cells", "axes/linked/static+walk/5", "--out",
+       "{results}/opensim_truth_angles100"),
+      ("opensim_truth_angles100.json", "opensim_truth_angles100.md"), needs_data=True),
     B("opensim_truth_prior", "opensim_truth.py",
       ("--reps", "100", "--jobs", "2", "--no-peer", "--cells", "prior/axes/static+walk/5", "prior/axes/walk/5",
        "--out", "{results}/opensim_truth_prior"),
