@@ -139,6 +139,8 @@ BENCHMARKS: tuple[Bench, ...] = (
       ("--out", "{results}/pig_compare", "--cache", "{scratch}/pig-compare"), ("pig_compare.json", "pig_compare.md"),
       needs_data=True),
     B("opensim_peer", "opensim_peer.py", (), ("--quick",), ("opensim_peer.json", "opensim_peer.md"), needs_data=True),
+    B("report_figure", "report_figure.py", (), ("--figure", "{results}/opensim_report.png"), ("opensim_report.json",),
+      needs_data=True),
     B("opensim_truth", "opensim_truth.py",
       ("--reps", "24", "--jobs", "2", "--cells", *OPENSIM_TRUTH_CELLS), ("--quick",),
       ("opensim_truth.json", "opensim_truth.md"), needs_data=True),
