@@ -397,6 +397,10 @@ def _fit_osim(ctx, model_path, data_paths, method_names, sigma, out_dir, seed, s
     table = scaling.scaling_table(fit_)
     if peer is not None:
         table["scaletool"] = scaletool_entry(table, peer)
+        if Path(peer["generic_model"]).resolve() != Path(model_path).resolve():
+            table["warnings"] = [*table["warnings"], (
+                f"the ScaleTool setup scales {Path(peer['generic_model']).name}, not the model fitted "
+                f"({Path(model_path).name}): their factors are compared body by body and axis by axis")]
     _echo_warnings(table["warnings"], quiet, out_dir)
     if out_dir is not None:
         with atomic_dir(out_dir, protect=[model_path, *data_paths, *alternatives], overwrite=overwrite) as tmp:
