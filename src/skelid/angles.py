@@ -458,8 +458,9 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
         Hinv_diag[sl] = np.einsum("tqq->tq", Hinv)
         if model.n_params:
             # first order: dq/dtheta = -(Jq^T Jq)^-1 Jq^T J_theta
-            G = -np.einsum("tqr,tkr,tkp->tqp", Hinv, Jq, Jt)
-            var_lin[sl] = np.einsum("tqp,pr,tqr->tq", G, geom.cov, G)
+            # as matrix products (BLAS): einsum's own loops took 70 % of a 150-frame gait2354 trial's time
+            G = -(Hinv @ (np.swapaxes(Jq, -1, -2) @ Jt))
+            var_lin[sl] = np.sum((G @ geom.cov) * G, axis=-1)
     n_obs = np.isfinite(y).all(axis=-1).sum(axis=-1) * 3
     dof = float(np.sum(n_obs[fixed] - Q))
     if dof >= 1:
