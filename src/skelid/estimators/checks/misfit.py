@@ -415,12 +415,12 @@ def pattern_shift(G, r, Jq, Hinv, At, S_pinv, Atr) -> tuple[np.ndarray, np.ndarr
         ``M^T (Z^T Z - Z_A S^+ Z_A^T) M`` with ``M = (Z^T Z)^+ Z_A S^+``.
     """
     GJ = np.swapaxes(G, -1, -2) @ Jq  # (T, c, Q)
-    ZZ = np.einsum("tkc,tkd->cd", G, G) - np.einsum("tcq,tqs,tds->cd", GJ, Hinv, GJ)
-    ZA = np.einsum("tkc,tkp->cp", G, At)
+    ZZ = summed_gram(G) - summed_gram(np.swapaxes(GJ @ Hinv, -1, -2), np.swapaxes(GJ, -1, -2))
+    ZA = summed_gram(G, At)
     w, V = np.linalg.eigh(0.5 * (ZZ + ZZ.T))
     keep = w > 1e-9 * max(w.max(), 1e-300)
     ZZ_pinv = (V[:, keep] / w[keep]) @ V[:, keep].T
-    c = ZZ_pinv @ (np.einsum("tkc,tk->c", G, r) - ZA @ (S_pinv @ Atr))
+    c = ZZ_pinv @ (summed_product(G, r) - ZA @ (S_pinv @ Atr))
     M = ZZ_pinv @ ZA @ S_pinv  # (c, P)
     noise = np.einsum("cp,cd,dp->p", M, ZZ - ZA @ S_pinv @ ZA.T, M)
     return S_pinv @ (ZA.T @ c), np.clip(noise, 0.0, None)

@@ -188,7 +188,7 @@ def pose_artefact(model: Model, theta, ys, poses, sigma, hinv, weights=None, ref
             z.append(np.sum(r.reshape(T, M, 3) ** 2, axis=-1)[present])
             Kp = projected_theta_jacobian(Jq, Jt).reshape(T, M, 3, P)
             R = forward_kinematics(model, theta, qb, ws).R_world_seg[:, mseg]  # (T, M, 3, 3)
-            B = np.einsum("tmjp,tmj,tmja->tmpa", Kp, s.reshape(T, M, 3), R)  # (T, M, P, 3)
+            B = np.swapaxes(Kp * s.reshape(T, M, 3, 1), -1, -2) @ R  # (T, M, P, 3): K^T S R per frame, marker
             G += (np.tensordot(dq, B, axes=(0, 0)).transpose(1, 2, 3, 0).reshape(M, P, -1)
                   / float(sigma[k]) ** 2)
             if joint:  # raw units (not over each trial's sigma): one white level for every trial
@@ -225,7 +225,7 @@ def _add_slide_sums(acc: dict, Jq, s, R, r, B, dr) -> None:
     T, M = s.shape[:2]
     Q = Jq.shape[-1]
     Rs = s[..., None] * R  # (T, M, 3 j, 3 a)
-    N = np.einsum("tmjq,tmja->tqma", Jq.reshape(T, M, 3, Q), Rs).reshape(T, Q, 3 * M)
+    N = (np.swapaxes(Jq.reshape(T, M, 3, Q), -1, -2) @ Rs).transpose(0, 2, 1, 3).reshape(T, Q, 3 * M)
     Hq = frame_gram(Jq)
     tr = np.einsum("tqq->t", Hq) / max(Q, 1)
     Hq = Hq + 1e-12 * np.maximum(tr, 1e-300)[:, None, None] * np.eye(Q)
@@ -238,7 +238,7 @@ def _add_slide_sums(acc: dict, Jq, s, R, r, B, dr) -> None:
     C = dr.shape[1]
     DD = (dr[:, :, None] * dr[:, None, :]).reshape(T, C * C)
     acc["A"] += (X.reshape(T, -1).T @ DD).reshape(3 * M, 3 * M, C, C)
-    acc["b"] += np.einsum("tmja,tmj,tc->mac", Rs, r.reshape(T, M, 3), dr)
+    acc["b"] += np.tensordot(np.sum(Rs * r.reshape(T, M, 3, 1), axis=2), dr, axes=(0, 0))  # (M, 3, C)
     acc["G"] += np.tensordot(dr, B, axes=(0, 0)).transpose(1, 2, 3, 0)
     acc["rss"] += float(np.sum(r**2))
 
@@ -561,8 +561,9 @@ def _moment_rows(Jq, s, g2, bodies, M) -> np.ndarray:
     on = (s > 0).astype(float)
     p = (on * (1.0 - Eii)).reshape(T, M, 3).sum(-1)
     D = g2[:, None] * s**2
-    F = np.einsum("tj,tjq,tjr->tqr", D, Jq, Jq)
-    own = D * (1.0 - 2.0 * Eii) + np.einsum("tiq,tqr,tir->ti", JH, F, JH)
+    # the three-operand sums as matrix products (BLAS): einsum's own loops were most of this function's time
+    F = np.swapaxes(Jq * D[..., None], -1, -2) @ Jq
+    own = D * (1.0 - 2.0 * Eii) + np.sum((JH @ F) * JH, axis=-1)
     co = (on * own).reshape(T, M, 3).sum(-1)
     cs = np.zeros((T, M))
     for idx in bodies:
@@ -570,6 +571,6 @@ def _moment_rows(Jq, s, g2, bodies, M) -> np.ndarray:
         for m in idx:
             for a in range(3):
                 U[:, 3 * m + a, a] = s[:, 3 * m + a]
-        PU = U - JH @ np.einsum("tiq,tia->tqa", Jq, U)
+        PU = U - JH @ (np.swapaxes(Jq, -1, -2) @ U)
         cs += g2[:, None] * (on[..., None] * PU**2).reshape(T, M, 3, 3).sum(axis=(2, 3))
     return np.stack([p, cs, co], axis=-1)
