@@ -314,8 +314,10 @@ def opensim_truth_summary() -> str:
                          f"{min(v['coverage95'] for v in cls):.2f}-{max(v['coverage95'] for v in cls):.2f}, rms z "
                          f"{min(v['rms_z'] for v in cls):.2f}-{max(v['rms_z'] for v in cls):.2f}, {n} draws")
             tail = "\n" + source(prior, pd)
+    # the files' lines one under the other in one paragraph: the README stays a few screens long
+    files = "<br>".join(line.strip() for line in (sources + tail).splitlines() if line.strip())
     return ("\n".join(lines) + "\n\nEvery cell, scale and offset: "
-            "[docs/opensim.md](docs/opensim.md#coverage-on-opensim-truth).\n\n" + sources + tail)
+            "[docs/opensim.md](docs/opensim.md#coverage-on-opensim-truth).\n\n" + files + "\n")
 
 
 def opensim_truth_exact(path: Path) -> str:
