@@ -221,7 +221,7 @@ def opensim_truth() -> str:
             "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md) and, for the default "
             "fit beside one factor per body, "
             "[`benchmarks/results/opensim_truth_default.md`](/benchmarks/results/opensim_truth_default.md).")
-    out = "\n".join(lines) + "\n\n" + note + "\n\n" + sources
+    out = "\n".join(lines) + "\n\n" + note + "\n\n" + _angles_table(cells) + sources
     exact, prior = RESULTS / "opensim_truth_exact.json", RESULTS / "opensim_truth_prior.json"
     out += ("\n" + opensim_truth_prior(prior) if prior.exists() else "")
     return out + ("\n" + opensim_truth_exact(exact) if exact.exists() else "")
@@ -266,6 +266,27 @@ SUMMARY_CELLS = (("the exact model (one factor per axis), static + walk, i.i.d. 
                    ("two walks", "axes/linked/walk+walk2/sta"),
                    ("two walks, the slide in the laboratory's frame (a form skelid does not model)",
                     "axes/linked/walk+walk2/stalab"))))
+
+
+def _angles_table(cells: dict) -> str:
+    """Per coordinate, the coverage of the walk's joint angles (``skelid ik``) in the cells that scored them."""
+    scored = {k: c["angles"] for k, c in cells.items() if c.get("angles")}
+    if not scored:
+        return ""
+    keys = list(scored)
+    names = list(next(iter(scored.values())))
+    lines = ["| joint angle of the walk (`skelid ik`, first order) | unit | "
+             + " | ".join(f"{k}: coverage 95 % (rms z)" for k in keys) + " | geometry's share of the variance |",
+             "|---|---|" + "---|" * len(keys) + "---|"]
+    for n in names:
+        cols = [f"{scored[k][n]['coverage95']:.2f} ({scored[k][n]['rms_z']:.2f})" if n in scored[k] else "—"
+                for k in keys]
+        lines.append(f"| {n} | {scored[keys[0]][n]['unit']} | " + " | ".join(cols)
+                     + f" | {scored[keys[0]][n]['geometry_share']:.2f} |")
+    return ("\n".join(lines) + "\n\nEach walk frame's angle against the coordinate that made its markers, its "
+            "95 % interval from the pose's own noise and the fit's geometry posterior (the first-order effect, "
+            "checked against draws in the table of the section on joint angles below); coverage averaged over "
+            "the frames and the draws; the geometry's share from the first cell.\n\n")
 
 
 def _angles_text(c: dict) -> str:
