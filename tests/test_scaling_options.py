@@ -287,7 +287,7 @@ def test_an_osim_fit_honours_or_refuses_the_option(case, option):
 
 
 @pytest.mark.parametrize("setup, says", [
-    ("not xml <", "not readable XML"),
+    ("not xml <", "malformed XML"),
     ('<OpenSimDocument Version="40000"><IKTool/></OpenSimDocument>', "holds no <ScaleTool>"),
     ("missing-static", "does not exist"),
     ("scaler-off", "ModelScaler off"),

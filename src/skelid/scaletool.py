@@ -24,7 +24,6 @@ import os
 import sys
 import tempfile
 import time
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from skelid.errors import DataError, SettingError
@@ -51,17 +50,16 @@ def check_setup(setup) -> Path:
     SettingError
         Where ``opensim`` is not installed.
     DataError
-        Where the file is missing, not XML, holds no ``<ScaleTool>``, or names a model or static trial
-        that does not exist (paths relative to the setup's folder, as ScaleTool reads them).
+        Where the file is missing, holds no ``<ScaleTool>``, or names a model or static trial that does
+        not exist (paths relative to the setup's folder, as ScaleTool reads them).
+    FormatError
+        Where it is not well-formed XML.
     """
     from skelid.io._common import check_regular_file
+    from skelid.io._xml import read_xml
 
     path = check_regular_file(setup, "Scale setup file", DataError)
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(f"Scale setup file {path} is not readable XML ({exc})",
-                        "give the setup file OpenSim's ScaleTool reads (e.g. subject01_Setup_Scale.xml)") from None
+    root = read_xml(path, "Scale setup file").getroot()  # any encoding OpenSim reads; one line where malformed
     tool = root if root.tag == "ScaleTool" else root.find("ScaleTool")
     if tool is None:
         raise DataError(f"{path} holds no <ScaleTool>: it is not an OpenSim Scale setup",
