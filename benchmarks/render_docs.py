@@ -165,7 +165,8 @@ def _truth_cells() -> tuple[dict, str]:
     later file's cells taking precedence), and the source lines of each."""
     cells, sources = {}, []
     for name in ("opensim_truth.json", "opensim_truth_default.json", "opensim_truth_iid100.json",
-                 "opensim_truth_sta100.json", "opensim_truth_sta1walk100.json", "opensim_truth_angles100.json"):
+                 "opensim_truth_sta100.json", "opensim_truth_sta1walk100.json", "opensim_truth_angles100.json",
+                 "opensim_truth_pm100.json"):
         path = RESULTS / name
         if path.exists():
             doc = load(path)
