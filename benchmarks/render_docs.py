@@ -166,7 +166,7 @@ def _truth_cells() -> tuple[dict, str]:
     cells, sources = {}, []
     for name in ("opensim_truth.json", "opensim_truth_default.json", "opensim_truth_iid100.json",
                  "opensim_truth_sta100.json", "opensim_truth_sta1walk100.json", "opensim_truth_angles100.json",
-                 "opensim_truth_pm100.json", "opensim_truth_stalab100.json"):
+                 "opensim_truth_pm100.json", "opensim_truth_stalab100.json", "opensim_truth_bodies100.json"):
         path = RESULTS / name
         if path.exists():
             doc = load(path)

@@ -66,7 +66,8 @@ OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/li
 #: the i.i.d. and per-marker cells of OPENSIM_TRUTH_CELLS again at 100 draws (the exact structure and the default);
 #: opensim_truth_sta100 and opensim_truth_sta1walk100 do the same for the skin-artefact cells; opensim_truth_angles100
 #: the default i.i.d. cells with the joint angles of their walk scored; opensim_truth_pm100 `--noise per-marker`;
-#: opensim_truth_stalab100 the slide in the laboratory's frame
+#: opensim_truth_stalab100 the slide in the laboratory's frame; opensim_truth_bodies100 the other
+#: OPENSIM_DEFAULT_CELLS
 OPENSIM_100_CELLS = ("axes/axes/static+walk/5", "axes/linked/static+walk/pm")
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
 #: real_calibration's cached fits). The demo waits for the compiled kernel: the seed method's frame
@@ -184,6 +185,11 @@ BENCHMARKS: tuple[Bench, ...] = (
       ("--reps", "1", "--no-peer", "--cells", "axes/linked/walk+walk2/stalab", "--out",
        "{results}/opensim_truth_stalab100"),
       ("opensim_truth_stalab100.json", "opensim_truth_stalab100.md"), needs_data=True),
+    B("opensim_truth_bodies100", "opensim_truth.py",
+      ("--reps", "100", "--jobs", "2", "--cells", *OPENSIM_DEFAULT_CELLS[1:], "--out",
+       "{results}/opensim_truth_bodies100"),
+      ("--reps", "1", "--no-peer", "--cells", OPENSIM_DEFAULT_CELLS[1], "--out", "{results}/opensim_truth_bodies100"),
+      ("opensim_truth_bodies100.json", "opensim_truth_bodies100.md"), needs_data=True),
     B("opensim_truth_prior", "opensim_truth.py",
       ("--reps", "100", "--jobs", "2", "--no-peer", "--cells", "prior/axes/static+walk/5", "prior/axes/walk/5",
        "--out", "{results}/opensim_truth_prior"),
