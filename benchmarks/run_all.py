@@ -69,6 +69,16 @@ OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/li
 #: opensim_truth_stalab100 the slide in the laboratory's frame; opensim_truth_bodies100 the other
 #: OPENSIM_DEFAULT_CELLS
 OPENSIM_100_CELLS = ("axes/axes/static+walk/5", "axes/linked/static+walk/pm")
+
+
+def truth100(name: str, cells: tuple, extra: tuple = ()) -> Bench:
+    """An OpenSim-truth run of ``cells`` at 100 draws into ``{results}/NAME``; reduced: one draw of the first cell."""
+    out = ("--out", f"{{results}}/{name}")
+    return B(name, "opensim_truth.py", ("--reps", "100", "--jobs", "2", *extra, "--cells", *cells, *out),
+             ("--reps", "1", "--no-peer", *extra, "--cells", cells[0], *out), (f"{name}.json", f"{name}.md"),
+             needs_data=True)
+
+
 #: one line per benchmark; dependent entries after what they read (jackknife_linearisation reads
 #: real_calibration's cached fits). The demo waits for the compiled kernel: the seed method's frame
 #: count can differ by a frame or two between the compiled and the numpy path, and a fresh install's
@@ -151,45 +161,17 @@ BENCHMARKS: tuple[Bench, ...] = (
       ("--reps", "1", "--no-peer", "--cells", "axes/linked/static+walk/5", "--out",
        "{results}/opensim_truth_default"),
       ("opensim_truth_default.json", "opensim_truth_default.md"), needs_data=True),
-    B("opensim_truth_iid100", "opensim_truth.py",
-      ("--reps", "100", "--jobs", "2", "--cells", *OPENSIM_100_CELLS, "--out", "{results}/opensim_truth_iid100"),
-      ("--reps", "1", "--no-peer", "--cells", OPENSIM_100_CELLS[0], "--out", "{results}/opensim_truth_iid100"),
-      ("opensim_truth_iid100.json", "opensim_truth_iid100.md"), needs_data=True),
+    truth100("opensim_truth_iid100", OPENSIM_100_CELLS),
     B("opensim_truth_sta100", "opensim_truth.py",
       ("--reps", "100", "--jobs", "2", "--cells", "axes/linked/walk+walk2/sta", "--out",
        "{results}/opensim_truth_sta100"),
       ("--reps", "1", "--no-peer", "--cells", "axes/linked/walk/sta", "--out", "{results}/opensim_truth_sta100"),
       ("opensim_truth_sta100.json", "opensim_truth_sta100.md"), needs_data=True),
-    B("opensim_truth_sta1walk100", "opensim_truth.py",
-      ("--reps", "100", "--jobs", "2", "--cells", "axes/linked/static+walk/sta", "axes/linked/walk/sta", "--out",
-       "{results}/opensim_truth_sta1walk100"),
-      ("--reps", "1", "--no-peer", "--cells", "axes/linked/walk/sta", "--out",
-       "{results}/opensim_truth_sta1walk100"),
-      ("opensim_truth_sta1walk100.json", "opensim_truth_sta1walk100.md"), needs_data=True),
-    B("opensim_truth_angles100", "opensim_truth.py",
-      ("--reps", "100", "--jobs", "2", "--angles", "0", "--cells", "axes/linked/static+walk/5", "axes/linked/walk/5",
-       "--out",
-       "{results}/opensim_truth_angles100"),
-      ("--reps", "1", "--no-peer", "--angles", "0", "--cells", "axes/linked/static+walk/5", "--out",
-       "{results}/opensim_truth_angles100"),
-      ("opensim_truth_angles100.json", "opensim_truth_angles100.md"), needs_data=True),
-    B("opensim_truth_pm100", "opensim_truth.py",
-      ("--reps", "100", "--jobs", "2", "--cells", "axes/linked+pm/static+walk/pm", "--out",
-       "{results}/opensim_truth_pm100"),
-      ("--reps", "1", "--no-peer", "--cells", "axes/linked+pm/static+walk/pm", "--out",
-       "{results}/opensim_truth_pm100"),
-      ("opensim_truth_pm100.json", "opensim_truth_pm100.md"), needs_data=True),
-    B("opensim_truth_stalab100", "opensim_truth.py",
-      ("--reps", "100", "--jobs", "2", "--cells", "axes/linked/walk+walk2/stalab", "--out",
-       "{results}/opensim_truth_stalab100"),
-      ("--reps", "1", "--no-peer", "--cells", "axes/linked/walk+walk2/stalab", "--out",
-       "{results}/opensim_truth_stalab100"),
-      ("opensim_truth_stalab100.json", "opensim_truth_stalab100.md"), needs_data=True),
-    B("opensim_truth_bodies100", "opensim_truth.py",
-      ("--reps", "100", "--jobs", "2", "--cells", *OPENSIM_DEFAULT_CELLS[1:], "--out",
-       "{results}/opensim_truth_bodies100"),
-      ("--reps", "1", "--no-peer", "--cells", OPENSIM_DEFAULT_CELLS[1], "--out", "{results}/opensim_truth_bodies100"),
-      ("opensim_truth_bodies100.json", "opensim_truth_bodies100.md"), needs_data=True),
+    truth100("opensim_truth_sta1walk100", ("axes/linked/static+walk/sta", "axes/linked/walk/sta")),
+    truth100("opensim_truth_angles100", ("axes/linked/static+walk/5", "axes/linked/walk/5"), ("--angles", "0")),
+    truth100("opensim_truth_pm100", ("axes/linked+pm/static+walk/pm",)),
+    truth100("opensim_truth_stalab100", ("axes/linked/walk+walk2/stalab",)),
+    truth100("opensim_truth_bodies100", OPENSIM_DEFAULT_CELLS[1:]),
     B("opensim_truth_prior", "opensim_truth.py",
       ("--reps", "100", "--jobs", "2", "--no-peer", "--cells", "prior/axes/static+walk/5", "prior/axes/walk/5",
        "--out", "{results}/opensim_truth_prior"),
