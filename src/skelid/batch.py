@@ -429,8 +429,11 @@ def _client(workers: int | None, scheduler: str | None):
             # the scheduler's health endpoint takes another port when 8787 is taken (another cluster running):
             # nothing to tell the user, and it would break the one-line report of a stop
             warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+            # the workers' own logs silenced up to CRITICAL: a fit's failure comes back as its row's error, and
+            # at shutdown a worker whose heartbeat races the scheduler's close logs an ERROR with a traceback
+            # that no one can act on (it broke --quiet's silence now and then)
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.ERROR, preload=[WORKER_IGNORES_SIGINT])
+                                   silence_logs=logging.CRITICAL, preload=[WORKER_IGNORES_SIGINT])
     except (RuntimeError, OSError, TimeoutError) as exc:  # a worker that died or could not start meanwhile
         raise SkelidError(f"the local Dask cluster of {n} worker(s) did not start: {_one_line(exc)}",
                           "run the command again (trials already in the table are skipped); if it keeps "
