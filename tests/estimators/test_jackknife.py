@@ -186,3 +186,44 @@ def test_a_direction_no_replicate_moves_is_left_alone_by_the_fold():
     folded, lam = jackknife.fold(V, jk)
     np.testing.assert_allclose(np.diag(folded), [0.25 + 2.0, 1.0, 1.0 / 9.0], atol=1e-12)
     assert lam.shape == (3,)
+
+
+def _wrist_with_x(model, x):
+    """The wrist model with the centre's x fixed at ``x`` (only y and z estimated), or, with ``x`` None, all
+    three with the prior's upper bound at the fit's x."""
+    from skelid.model import model_from_dict
+
+    d = {"model": {"name": "wrist", "dim": 3, "units": "mm"},
+         "segments": [{"name": "forearm", "parent": "ground",
+                       "joint": {"name": "root", "type": "free", "position": [0.0, 0.0, 0.0]}},
+                      {"name": "hand", "parent": "forearm",
+                       "joint": {"name": "wrist", "type": "spherical", "position": [250.0 + x[0], 0.0, 0.0]}}],
+         # a joint centre moved by the parameter keeps the child's markers where they were
+         "markers": [{"name": m.name, "segment": m.segment,
+                      "position": list(np.asarray(m.position) - [x[0] * (m.segment == "hand"), 0.0, 0.0])}
+                     for m in model.markers],
+         "parameters": [{"name": "wrist", "kind": "joint_centre", "joint": "wrist", "axes": x[1],
+                         "prior": {"type": "uniform", "lower": -40.0, "upper": x[2]}}]}
+    return model_from_dict(d)
+
+
+def test_a_parameter_on_its_bound_is_held_and_the_others_replicated_as_without_it():
+    """A parameter whose estimate sits on its prior's bound: no replicate moves it, no marker loses its
+    replicate to a refit that ends there, and the others' replicates are those of the model without it."""
+    model, y, q, _ = _wrist_trial(0)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    x = float(fit.theta[0])
+    assert x > max(fit.theta[1:])  # the upper bound at x holds x and no other
+    on_bound = _wrist_with_x(model, (0.0, ["x", "y", "z"], x))
+    assert jackknife.held_on_bound(on_bound, fit.theta).tolist() == [True, False, False]
+    jk = marker_jackknife(on_bound, y, fit.theta, fit.pose, fit.penalty)
+    assert jk.available and jk.replicate.all() and "refit failed" not in jk.status
+    assert np.all(jk.shifts[:, 0] == 0) and np.all(jk.cov[0] == 0) and np.all(jk.null_mean[:, 0] == 0)
+    without = _wrist_with_x(model, (x, ["y", "z"], 40.0))
+    ref = marker_jackknife(without, y, fit.theta[1:], fit.pose, fit.penalty)
+    np.testing.assert_allclose(jk.shifts[:, 1:], ref.shifts, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(jk.cov[1:, 1:], ref.cov, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(jk.null_mean[1:, 1:], ref.null_mean, rtol=1e-8, atol=1e-12)
+    cov = np.diag([1.0, 2.0, 3.0])
+    folded, _ = jackknife.fold(cov, jk)
+    assert folded[0, 0] == 1.0 and np.all(folded[0, 1:] == 0)

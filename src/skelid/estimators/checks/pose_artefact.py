@@ -415,8 +415,15 @@ def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own, start=N
     thigh more than over a shank), and one shared size for all of them shrinks the slopes of the bodies
     that slide most too far, leaving their slide to the geometry.
     """
+    nll, bounds, x0 = _size_likelihood(sl, info_raw, score_raw, dof, Gf, A, n_own, start)
+    x = np.exp(_size_search(nll, bounds, x0))
+    return float(x[0]), x[2:], float(x[1])
+
+
+def _size_likelihood(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own, start=None):
+    """``(nll, bounds, starts)`` of :func:`_slide_sizes`' search: ``nll(x) -> (-2 log L, gradient)`` in
+    ``x = (log sigma_w^2, log tau_o^2, log tau_s^2 of each body)``, its box and its starting points."""
     from scipy.linalg import blas, cho_factor, cho_solve, solve_triangular
-    from scipy.optimize import minimize
 
     C = sl.G.shape[-1]
     B = len(sl.bodies)
@@ -479,9 +486,15 @@ def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own, start=N
     if start is not None:  # and from the sizes given (each body's own)
         ts = np.broadcast_to(np.asarray(start[1], float), (B,))
         x0.append(np.log(np.maximum(np.concatenate([[start[0], start[2]], ts]), floor)))
-    fits = [minimize(nll, np.clip(x, lo, hi), method="L-BFGS-B", jac=True, bounds=bounds) for x in x0]
-    x = np.exp(min(fits, key=lambda r: r.fun).x)
-    return float(x[0]), x[2:], float(x[1])
+    return nll, bounds, [np.clip(x, lo, hi) for x in x0]
+
+
+def _size_search(nll, bounds, x0) -> np.ndarray:
+    """The log sizes at the lowest optimum reached from the starts ``x0``."""
+    from scipy.optimize import minimize
+
+    fits = [minimize(nll, x, method="L-BFGS-B", jac=True, bounds=bounds) for x in x0]
+    return min(fits, key=lambda r: r.fun).x
 
 
 def _moment_sizes(x, g, z, K, M):

@@ -113,9 +113,9 @@ def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12):
     tr = np.einsum("...ii->...", H) / max(Q, 1)
     # a frame without rows (skipped) gets the mean scale, so that its projection is 0, not NaN
     scale = np.maximum(tr, max(float(np.mean(tr)) if tr.size else 0.0, 1e-300))
-    G = np.linalg.solve(H + ridge * scale[..., None, None] * np.eye(Q),
-                        np.matmul(np.swapaxes(J_pose, -1, -2), J_theta))
-    return J_theta - J_pose @ G
+    # J_pose (H + ridge)^-1 first: (m, Q) times (Q, P) is cheaper than a solve with P right-hand sides
+    W = J_pose @ np.linalg.inv(H + ridge * scale[..., None, None] * np.eye(Q))
+    return J_theta - W @ np.matmul(np.swapaxes(J_pose, -1, -2), J_theta)
 
 
 def efficient_information(J_pose, J_theta, sigma: float = 1.0) -> np.ndarray:

@@ -64,6 +64,13 @@ not converge or ends on a prior bound leaves that marker without a replicate (as
 essential one), and a warning names it. On a well-identified trial the ratios are
 within a few per cent of 1 and nothing is refitted.
 
+**A parameter held on its prior's bound.** Where the fit's estimate of a parameter sits on a
+bound of its prior (a scale the trial does not inform, held at its limit), the replicates are those
+of the other parameters with it held there: no replicate moves it (its shift is 0), and a refit
+fails only when it takes another parameter to a bound. Left free, the one-step replicate would
+cross the bound and fail its cost check, and every refit, ending where the fit did, would count
+as one that found no estimate: no jackknife, after the cost of a refit per marker.
+
 **A marker the model cannot do without.** When deleting a marker leaves a
 parameter (nearly) without information (``S_(-m)`` has a direction with less
 than ``ESSENTIAL`` of the full information), that marker has no jackknife
@@ -194,14 +201,15 @@ def _influence(r, Jq, Jt, pose, R, R_band=None, step=False):
     return A, Jt.reshape(-1, P).T @ A2, score
 
 
-def _cost_ratio(model, y, theta, pose, R, sw, m, dtheta, score, pose_step) -> float:
+def _cost_ratio(model, y, theta, pose, R, sw, m, dtheta, score, pose_step, free=None) -> float:
     """Actual over predicted decrease of the cost (marker ``m`` deleted) along the Gauss-Newton step.
 
     The step is the joint one, ``(dq, dtheta)``: ``dtheta`` the one-step replicate and
     ``dq = dq0 - G dtheta`` the poses' response, so the cost at its end is one evaluation of the
     markers' positions. Its quadratic model predicts the decrease ``g^T s = b^T dq0 + score^T dtheta``
     (``g`` the gradient, ``s`` the step, ``b`` the poses' gradient); a ratio near 1 shows the
-    linearisation holding over the replicate's shift.
+    linearisation holding over the replicate's shift. ``free``: the parameters ``dtheta`` moves
+    (``(P,) bool``; the others held), all by default.
     """
     dq0, G, b = pose_step
     T = dq0.shape[0]
@@ -221,21 +229,35 @@ def _cost_ratio(model, y, theta, pose, R, sw, m, dtheta, score, pose_step) -> fl
             c += float(q.ravel() @ (R @ q.ravel()))
         return c
 
-    return (cost(theta, pose) - cost(theta + dtheta, pose + dq0 - G @ dtheta)) / pred
+    moved = np.array(theta, float)
+    moved[slice(None) if free is None else free] += dtheta
+    return (cost(theta, pose) - cost(moved, pose + dq0 - G @ dtheta)) / pred
 
 
-def _refit(model, y, theta, pose, R, weights, m, ws=None):
+def held_on_bound(model: Model, theta) -> np.ndarray:
+    """``(P,) bool``: the parameters whose estimate sits on a bound of its prior (within 1e-6 of its width)."""
+    lower, upper, span = _prior_box(model)
+    return (theta - lower <= 1e-6 * span) | (upper - theta <= 1e-6 * span)
+
+
+def _prior_box(model: Model):
+    lower = np.array([p.prior.lower for p in model.parameters], float)
+    upper = np.array([p.prior.upper for p in model.parameters], float)
+    return lower, upper, np.where(np.isfinite(upper - lower), upper - lower, 1.0)
+
+
+def _refit(model, y, theta, pose, R, weights, m, ws=None, held=None):
     """The literal replicate ``theta_(-m) - theta`` (warm start), or None when it does not hold.
 
     The refit starts from the full fit's estimate and poses, keeps its motion-model penalty, and
     holds when it converges within ``REFIT_ITER`` iterations and ends off the prior bounds (a refit
-    that wanders to a bound has found no estimate without the marker). ``ws``: the model's workspace.
+    that wanders to a bound has found no estimate without the marker); the parameters ``held``
+    (``(P,) bool``) already sat on a bound in the fit and may stay there. ``ws``: the model's workspace.
     """
-    lower = np.array([p.prior.lower for p in model.parameters], float)
-    upper = np.array([p.prior.upper for p in model.parameters], float)
+    lower, upper, span = _prior_box(model)
+    held = np.zeros(len(theta), bool) if held is None else held
     ym = np.array(y, float)
     ym[:, m] = np.nan
-    span = np.where(np.isfinite(upper - lower), upper - lower, 1.0)
     th, q = theta, pose
     # in stretches of REFIT_CHUNK iterations, so that a refit that has reached a bound stops there
     for k in range(0, REFIT_ITER, REFIT_CHUNK):
@@ -243,7 +265,7 @@ def _refit(model, y, theta, pose, R, weights, m, ws=None):
                       weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
         if not np.all(np.isfinite(f.theta)):
             return None
-        on_bound = np.any((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span))
+        on_bound = np.any(((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span)) & ~held)
         if on_bound:
             return None
         if f.converged:
@@ -276,13 +298,49 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
     Returns
     -------
     Jackknife
+        Parameters held on a prior bound (:func:`held_on_bound`) have no shift and no spread.
     """
     y = np.asarray(y, float)
+    held = held_on_bound(model, theta)
+    if held.all():
+        M, P = y.shape[1], model.n_params
+        return Jackknife(np.full((M, P), np.nan), np.zeros(M, bool), None, status=("held",) * M)
+    jk = _free_jackknife(model, y, theta, pose, R, sigma, rng, weights, held)
+    return jk if not held.any() else _with_held(jk, ~held)
+
+
+def _with_held(jk: Jackknife, free) -> Jackknife:
+    """A jackknife of the free parameters given for all of them: zero where held (no replicate moves them)."""
+    P, f = len(free), np.flatnonzero(free)
+
+    def last(a):  # (..., n) -> (..., P)
+        out = np.zeros(a.shape[:-1] + (P,))
+        out[..., f] = a
+        return out
+
+    def square(a):  # (..., n, n) -> (..., P, P)
+        if a is None:
+            return None
+        out = np.zeros(a.shape[:-2] + (P, P))
+        out[..., f[:, None], f] = a
+        return out
+
+    shifts, corrected, transform = last(jk.shifts), last(jk.corrected), square(jk.transform)
+    for a in (shifts, corrected, transform):
+        a[~jk.replicate] = np.nan
+    return jk._replace(shifts=shifts, cov=square(jk.cov), null_mean=square(jk.null_mean), corrected=corrected,
+                       transform=transform, factor=None if jk.factor is None else last(jk.factor.T).T)
+
+
+def _free_jackknife(model, y, theta, pose, R, sigma, rng, weights, held) -> Jackknife:
+    """:func:`marker_jackknife` with the parameters ``held`` fixed: its arrays over the others only."""
     T, M, D = y.shape
-    P = model.n_params
+    free = ~held
+    P = int(free.sum())
     # the kinematics once: deleting marker m only zeroes its D rows of every frame (as frame_terms
     # does for a missing marker), so each deletion reuses the full fit's residuals and Jacobians
     r, Jq, Jt = _terms(model, y, theta, pose, R, weights)
+    Jt = Jt[..., free]
     sw = row_weights(weights, y)
     R_band = None if R is None else penalty_band(R, model.n_pose)
     A, S, _ = _influence(r, Jq, Jt, pose, R, R_band)
@@ -336,15 +394,16 @@ def marker_jackknife(model: Model, y, theta, pose, R=None, sigma: float = 1.0,
         # a shift within the noise's reach lies where the fit's own linearisation holds; a longer one
         # is kept when the cost falls along it as predicted
         if d @ S_m @ d > long_step:
-            ratio[m] = _cost_ratio(model, y, theta, pose, R, sw, m, d, score_m, step)
+            ratio[m] = _cost_ratio(model, y, theta, pose, R, sw, m, d, score_m, step, free)
         if np.isfinite(ratio[m]) and not LINEAR_RATIO <= ratio[m] <= 1.0 / LINEAR_RATIO \
                 or d @ S_m @ d > long_step and not np.isfinite(ratio[m]):
             if ws is None:
                 ws = Workspace(model)
-            d = _refit(model, y, theta, pose, R, weights, m, ws)
+            d = _refit(model, y, theta, pose, R, weights, m, ws, held)
             status[m] = "refit failed" if d is None else "refitted"
             if d is None:
                 continue
+            d = d[free]
         shifts[m] = d
         # CR2: the shift scaled down where the deletion loses information (see the module notes)
         T_m = transform[m] = cr2_transform(kept_info, S_isqrt, S_sqrt)
