@@ -39,6 +39,9 @@ def arm():
     ({"outlier_sd": float("nan")}, SettingError, "outlier_sd must be finite"),
     ({"sigma": "1"}, DataError, "sigma must be a number"),
     ({"n_iter": 1.5}, SettingError, "n_iter must be a whole number"),
+    ({"n_iter": -3}, SettingError, "n_iter must be a whole number >= 0"),
+    ({"labels": "ABC"}, DataError, "labels must be a sequence"),
+    ({"labels": ("A", "B", "C", "A")}, DataError, r"labels name marker 'A' 2 times \(rows 1, 4"),
 ])
 def test_settings_a_session_cannot_use_are_one_line_errors(settings, error, words):
     with pytest.raises(error, match=words) as info:
@@ -557,3 +560,20 @@ def test_a_knocked_marker_case_a_cannot_place_is_reported_but_not_named(method):
     assert len(late) > 40
     assert not [e.health for e in late if _NAMED.search(e.health)]
     assert any("no one marker can be blamed" in e.health for e in late) and not any(e.rejected for e in late)
+
+
+@pytest.mark.parametrize("method", ["gaussian", "grid"])
+def test_coordinates_beyond_what_a_fit_accepts_are_not_used_and_said(method):
+    """A frame shifted by 1e11 mm (a unit or an origin gone wrong): the health line says so and the estimate
+    stays as it was, as the offline fit refuses such data."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=40, sigma=3.0, rng=np.random.default_rng(0))
+    s = Session(model, labels=model.marker_names, method=method)
+    for f in trial.data.positions[:30]:
+        before = s.push(f)
+    for f in trial.data.positions[30:]:
+        after = s.push(f + 1e11)
+        assert "beyond the 1e+07 mm (10000 m) a session accepts" in after.health
+        assert "frame not used" in after.health
+    np.testing.assert_array_equal(after.theta, before.theta)
+    assert s.push(trial.data.positions[0]).health == "ok"  # back in range: used again

@@ -1,10 +1,11 @@
 """Memory and time estimated before allocation; refused beyond the limits with one line."""
 
+import numpy as np
 import pytest
 
 from skelid import resources
 from skelid.errors import SkelidError
-from skelid.simulate import builtin_model
+from skelid.simulate import builtin_model, simulate
 from tests.helpers import run_cli
 
 
@@ -79,3 +80,35 @@ def test_parse_size_refuses(text):
 def test_estimate_frames(trial):
     n = resources.estimate_frames(trial)
     assert 50 <= n <= 70
+
+
+def test_the_time_limit_covers_every_trial_of_a_fit_and_of_a_batch(tmp_path):
+    """Twelve trials cost twelve times one in the estimate behind --max-time: a limit one trial fits in
+    refuses the twelve, for a several-trial fit and for a batch alike, in one line and with nothing written."""
+    from skelid.io.trc import write_trc
+
+    model = builtin_model("case-a")
+    paths = []
+    for k in range(12):
+        p = tmp_path / "trials" / f"t{k:02d}.trc"
+        p.parent.mkdir(exist_ok=True)
+        write_trc(p, simulate(model, n_frames=300, sigma=2.0, rng=np.random.default_rng(k)).data)
+        paths.append(p)
+    one, twelve = resources.trials_cost([model], paths[:1]).seconds, resources.trials_cost([model], paths).seconds
+    assert twelve > 10 * one
+    limit = f"{(one * twelve) ** 0.5:.3f}s"  # between the two
+    r = run_cli(["fit", "case-a", *paths, "--max-time", limit, "--out", tmp_path / "fit"], memory_mb=None)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "would take roughly" in r.stderr and "12 trials" in r.stderr and "--max-time" in r.stderr
+    assert not (tmp_path / "fit").exists()
+    batch_one = resources.batch_cost(model, "marker", paths[:1], 1).seconds
+    batch_all = resources.batch_cost(model, "marker", paths, 1).seconds
+    assert batch_all > batch_one + 10 * (batch_one - resources.BATCH_START_SECONDS)
+    limit = f"{(batch_one + batch_all) / 2:.3f}s"
+    r = run_cli(["batch", "case-a", str(tmp_path / "trials" / "*.trc"), "--out", tmp_path / "b.csv",
+                 "--workers", "1", "--max-time", limit], memory_mb=None)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "12 trials" in r.stderr and "--max-time" in r.stderr
+    assert not (tmp_path / "b.csv").exists()
+    r = run_cli(["fit", "case-a", paths[0], "--max-time", limit, "--out", tmp_path / "fit1"], memory_mb=None)
+    assert r.returncode == 0, r.stderr  # one trial fits within it

@@ -118,7 +118,7 @@ def _time_limited(f):
         from skelid.resources import ENV_TIME, ResourceError, format_seconds
 
         limits = _limits(kwargs.get("max_memory"), kwargs.get("max_time"))
-        left = ("the trials that finished are in the table" if name == "batch"
+        left = ("the trials that finished before it are in the table, if any did" if name == "batch"
                 else "nothing half-written was left")
         fix = ("run the same command again to fit the rest (the trials in the table are skipped), or raise "
                f"the limit with --max-time or {ENV_TIME}" if name == "batch" else

@@ -187,7 +187,7 @@ from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
 from skelid._linalg import frame_gram
-from skelid.data import unit_scale
+from skelid.data import MAX_FIT_COORDINATE_MM, unit_scale
 from skelid.errors import DataError, ModelError, SettingError
 from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothing_penalty
@@ -1049,6 +1049,7 @@ class Session:
         self._size = _model_size(model)
         self._marker_cap = self._D * ratio_limit(_FRAME_P, self._D)  # one marker's r^2 / sigma^2 at 1 - _FRAME_P
         self._coincide = max(_COINCIDE * self._size, math.sqrt(self._sigma_floor))
+        self._max_coordinate = MAX_FIT_COORDINATE_MM / unit_scale(model.units, "mm")
         self._tracks = MarkerTracks(self._M, self._D, self._sigma_floor)  # each marker's path: swapped labels
         self._claim = None  # the evidence on the tracks' present claim of a swap (see _labels_fit)
         self._window = MisfitWindow(self._M, self._D, model.n_pose, self._sigma_floor)  # a lasting misfit
@@ -1086,6 +1087,12 @@ class Session:
         # a subject prefix ("Derrick:RSHO") is tolerated where the bare name is unique, as MarkerData.select does
         order = np.array([self._index.get(n, self._index.get(b, -1) if b in unique else -1)
                           for n, b in zip(labels, bare, strict=True)], dtype=int)
+        for i in np.unique(order[order >= 0]):  # two rows for one marker: the later would overwrite the earlier
+            rows = np.flatnonzero(order == i)
+            if rows.size > 1:
+                raise DataError(f"labels name marker {self.model.marker_names[i]!r} {rows.size} times (rows "
+                                f"{', '.join(str(r + 1) for r in rows)}: {', '.join(repr(labels[r]) for r in rows)})",
+                                "give each array row its own marker's name, once")
         if not (order >= 0).any():
             raise DataError(f"none of the labels matches a marker of {self.model.name!r}",
                             f"name the stream's markers as the model does: {', '.join(self.model.marker_names)}")
@@ -1248,6 +1255,11 @@ class Session:
         last, self._last_y = self._last_y, y
         if not present.any():
             return None  # every marker missing: the usual path says so
+        reach = float(np.abs(y[present]).max())
+        if reach > self._max_coordinate:  # as a fit refuses them (skelid.data.MAX_FIT_COORDINATE_MM)
+            return (f"marker coordinates reach {reach:.3g} {self.model.units}, beyond the {self._max_coordinate:g} "
+                    f"{self.model.units} ({MAX_FIT_COORDINATE_MM / 1e3:g} m) a session accepts (a unit or an "
+                    "origin gone wrong?); frame not used")
         if last is not None and np.array_equal(last, y, equal_nan=True):
             self._n_repeat += 1
             return (f"frame repeats the last one exactly ({self._n_repeat + 1} in a row: a frozen stream?); "

@@ -274,3 +274,23 @@ def test_decoding_keeps_utf8_and_reads_stray_bytes_as_cp1252():
     with pytest.raises(FormatError) as exc:
         decode_xml(b'<?xml version="1.0" encoding="klingon-8"?><a/>', "x.osim")
     assert "klingon-8" in exc.value.one_line() and "fix:" in exc.value.one_line()
+
+
+def test_a_model_of_more_markers_than_skelid_reads_is_refused_before_reading_them(tmp_path):
+    """2000 markers read; one more is refused in one line naming the count, before any marker is parsed
+    (a model of 160 000 markers costs its XML's parse, about a second)."""
+    from skelid.io.osim import MAX_MARKERS
+
+    def model_with(n):
+        many = "".join(f'<Marker name="x{k}"><socket_parent_frame>/bodyset/a</socket_parent_frame>'
+                       f'<location>0 0 {k * 1e-5}</location></Marker>' for k in range(n))
+        return _write(tmp_path, text=OSIM_HEAD.format(units="meters", joint="PinJoint", body="b").replace(
+            "</objects></MarkerSet>", many + "</objects></MarkerSet>"))
+
+    model, _ = read_osim(model_with(MAX_MARKERS - 2))
+    assert len(model.marker_names) == MAX_MARKERS
+    with pytest.raises(ModelError, match=f"has {MAX_MARKERS + 1} markers, more than the {MAX_MARKERS}") as exc:
+        read_osim(model_with(MAX_MARKERS - 1))
+    assert "\n" not in exc.value.one_line()
+    with pytest.raises(ModelError, match="has 160002 markers"):
+        read_osim(model_with(160_000))

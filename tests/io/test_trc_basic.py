@@ -82,3 +82,11 @@ def test_nul_character_in_utf16_text_is_refused(tmp_path):
     (tmp_path / "u.trc").write_bytes(text.encode("utf-16"))
     with pytest.raises(FormatError, match="NUL character"):
         read_trc(tmp_path / "u.trc")
+
+
+def test_nul_byte_in_a_utf8_cell_is_refused(tmp_path):
+    text = _trc_with_times(tmp_path / "a.trc", ["0.00", "0.01"]).read_text().replace("1.0", "1\x00.0", 1)
+    (tmp_path / "n.trc").write_bytes(text.encode("utf-8"))
+    with pytest.raises(FormatError, match="binary content") as exc:
+        read_trc(tmp_path / "n.trc")
+    assert "\n" not in exc.value.one_line()
