@@ -577,3 +577,22 @@ def test_coordinates_beyond_what_a_fit_accepts_are_not_used_and_said(method):
         assert "frame not used" in after.health
     np.testing.assert_array_equal(after.theta, before.theta)
     assert s.push(trial.data.positions[0]).health == "ok"  # back in range: used again
+
+
+@pytest.mark.parametrize("method", ["gaussian", "grid"])
+def test_a_still_stream_rests_on_placement_and_says_so_until_the_joints_move(method):
+    """Thirty noisy frames of one pose inform the length only through where the model puts the markers:
+    its status is 'placement' (as a batch fit of a static trial says), not 'identified' with an sd of a
+    few hundredths of a millimetre; once the joints have moved, it is 'identified'."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=200, sigma=0.05, rng=np.random.default_rng(2))
+    rng = np.random.default_rng(3)
+    s = Session(model, labels=model.marker_names, method=method)
+    still = [s.push(trial.data.positions[0] + rng.normal(0.0, 0.05, trial.data.positions[0].shape))
+             for _ in range(30)]
+    assert [e.parameters["L2"].status for e in still[1:-1]] == ["placement"] * 28
+    moving = [s.push(f) for f in trial.data.positions]
+    assert all(e.healthy for e in moving[1:])
+    assert moving[-1].parameters["L2"].status == "identified"
+    # an estimate asked after the motion still describes the frames before it
+    assert still[-1].parameters["L2"].status == "placement"

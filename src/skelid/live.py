@@ -192,6 +192,7 @@ from skelid.errors import DataError, ModelError, SettingError
 from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
+from skelid.estimators.marker import STILL_JOINT_DEG
 from skelid.estimators.online import _live_kernel
 from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
 from skelid.live_health import (
@@ -776,8 +777,11 @@ class LiveEstimate:
     parameters : mapping of str to ParameterEstimate
         Mean, sd and 95 % interval of each parameter (model units); status ``'prior'`` where the data
         have added little, ``'on-bound'`` where the estimate sits on its prior's bound (the Gaussian
-        form's mean held there, the grid form's marginal posterior largest at its edge), else
-        ``'identified'``.
+        form's mean held there, the grid form's marginal posterior largest at its edge),
+        ``'placement'`` while no joint has moved more than
+        :data:`~skelid.estimators.marker.STILL_JOINT_DEG` over the frames used (the estimate then
+        rests on where the model places the markers, not on motion, as a batch fit of a static
+        trial says: :meth:`Session._still_now`), else ``'identified'``.
     joint_centres : mapping of str to (D,) float
         World position of each segment's joint (model units); empty without a pose.
     marker_residuals : mapping of str to float
@@ -797,6 +801,7 @@ class LiveEstimate:
     _residuals: np.ndarray | Callable[[], np.ndarray] | None = field(default=None, repr=False)
     _ranges: tuple | None = field(default=None, repr=False)  # (lower, upper, prior sd) of each parameter
     _on_bound: np.ndarray | None = field(default=None, repr=False)  # (P,) bool: the estimate sits on a bound
+    _still: Callable[[], bool] | None = field(default=None, repr=False)  # no joint had moved by then (Session)
 
     @cached_property
     def cov(self) -> np.ndarray:
@@ -809,9 +814,13 @@ class LiveEstimate:
         lo, hi, prior_sd = self._ranges
         params = {}
         on = np.zeros(mean.size, dtype=bool) if self._on_bound is None else self._on_bound
+        still = None
         for k, p in enumerate(model.parameters):
             unit = _unit(model, p)
             status = "prior" if sd[k] > 0.9 * prior_sd[k] else "on-bound" if on[k] else "identified"
+            if status == "identified" and still is None:
+                still = bool(self._still is not None and self._still())
+            status = "placement" if status == "identified" and still else status
             params[p.name] = ParameterEstimate(p.name, unit, float(mean[k]), float(mean[k]), float(sd[k]),
                                                (float(max(mean[k] - _Z95 * sd[k], lo[k])),
                                                 float(min(mean[k] + _Z95 * sd[k], hi[k]))), status=status)
@@ -1050,6 +1059,12 @@ class Session:
         self._marker_cap = self._D * ratio_limit(_FRAME_P, self._D)  # one marker's r^2 / sigma^2 at 1 - _FRAME_P
         self._coincide = max(_COINCIDE * self._size, math.sqrt(self._sigma_floor))
         self._max_coordinate = MAX_FIT_COORDINATE_MM / unit_scale(model.units, "mm")
+        # the joints' motion so far (_still_now): each joint rotation coordinate (the root's left out), and
+        # for each the frame where it was lowest and highest on arrival, (value, frame, pose)
+        self._joint_rot = np.array([k for k, d in enumerate(model.dofs) if d.kind == "R"
+                                    and model.segments[d.segment].parent is not None], dtype=int)
+        self._extreme = [[(np.inf, None, None), (-np.inf, None, None)] for _ in self._joint_rot]
+        self._extreme_version, self._still_memo, self._moved = 0, (-1, True), False
         self._tracks = MarkerTracks(self._M, self._D, self._sigma_floor)  # each marker's path: swapped labels
         self._claim = None  # the evidence on the tracks' present claim of a swap (see _labels_fit)
         self._window = MisfitWindow(self._M, self._D, model.n_pose, self._sigma_floor)  # a lasting misfit
@@ -1643,7 +1658,51 @@ class Session:
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
-                            self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges, on)
+                            self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges, on,
+                            self._motion_seen(y if used else None, q, st.mean))
+
+    def _motion_seen(self, y, q, theta) -> Callable[[], bool] | None:
+        """Count a frame used whole (``y``, its pose ``q``; None: none) in the joints' motion, and return
+        what says, when asked, whether every joint has stayed still so far (:meth:`_still_now`, at
+        ``theta``); None once one has moved."""
+        if self._moved:
+            return None
+        if y is not None and q is not None and self._joint_rot.size:
+            a = np.asarray(q, float)[self._joint_rot]
+            if np.isfinite(a).all():  # each joint coordinate's lowest and highest frame as fitted on arrival
+                for k, v in enumerate(a):
+                    for side, better in ((0, v < self._extreme[k][0][0]), (1, v > self._extreme[k][1][0])):
+                        if better:
+                            self._extreme[k][side] = (v, np.array(y, float), np.array(q, float))
+                            self._extreme_version += 1
+        return partial(self._still_now, np.array(theta, float),
+                       tuple(e for pair in self._extreme for e in pair if e[1] is not None), self._extreme_version)
+
+    def _still_now(self, theta, kept, version: int = -1) -> bool:
+        """Whether every joint had stayed within :data:`~skelid.estimators.marker.STILL_JOINT_DEG` over the
+        frames used up to an estimate (``theta``; ``kept``: the extreme frames then, see below).
+
+        The poses fitted on arrival moved with the estimate (a still frame's pose and a length trade off, so
+        identical frames drift apart as the estimate settles); the frames where each joint coordinate was
+        lowest and highest on arrival are fitted again at ``theta`` and their range taken there. Once a joint
+        has moved, later estimates say so without refitting. Noise large against the pose's determination
+        can pass for motion (the status is then 'identified', as before this check). The answer for one set of
+        extreme frames (``version``) is kept: they change ever more rarely, and a stream that stays still is
+        refitted a few times, not at every frame.
+        """
+        if not self._joint_rot.size:
+            return False
+        if not kept:
+            return True
+        if self._still_memo[0] == version:
+            return self._still_memo[1]
+        y = np.stack([e[1] for e in kept])
+        q = fit_pose(self.model, np.broadcast_to(theta, (len(kept), theta.size)), y, np.stack([e[2] for e in kept]),
+                     ws=self._ws)[0][:, self._joint_rot]
+        moved = bool(np.degrees(np.max(np.ptp(np.unwrap(q, axis=0), axis=0))) >= STILL_JOINT_DEG)
+        self._moved = self._moved or moved
+        self._still_memo = (version, not moved)
+        return not moved
 
     def _gaussian_bound(self, st: GaussianState, s2: float) -> tuple[np.ndarray | None, list[str]]:
         """Which parameters' means are held on a prior bound ``(P,)`` (None: none), and the lines of those
@@ -1862,7 +1921,8 @@ class Session:
         healthy = not problems
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(mean), _frozen(q), sigma,
                             healthy, "ok" if healthy else "; ".join(problems), rejected, model,
-                            partial(self._grid_cov, w, mean), resid, self._ranges, on)
+                            partial(self._grid_cov, w, mean), resid, self._ranges, on,
+                            self._motion_seen(y if not rejected else None, q, mean))
 
     def _grid_cov(self, w, mean) -> np.ndarray:
         """Covariance of the grid posterior with weights ``w (K,)``, plus the grid's quantisation variance
