@@ -189,10 +189,10 @@ from scipy.stats import chi2, norm
 from skelid._linalg import frame_gram
 from skelid.data import MAX_FIT_COORDINATE_MM, unit_scale
 from skelid.errors import DataError, ModelError, SettingError
+from skelid.estimators.checks.misfit import STILL_JOINT_DEG
 from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
-from skelid.estimators.marker import STILL_JOINT_DEG
 from skelid.estimators.online import _live_kernel
 from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
 from skelid.live_health import (
@@ -779,7 +779,7 @@ class LiveEstimate:
         have added little, ``'on-bound'`` where the estimate sits on its prior's bound (the Gaussian
         form's mean held there, the grid form's marginal posterior largest at its edge),
         ``'placement'`` while no joint has moved more than
-        :data:`~skelid.estimators.marker.STILL_JOINT_DEG` over the frames used (the estimate then
+        :data:`~skelid.estimators.checks.misfit.STILL_JOINT_DEG` over the frames used (the estimate then
         rests on where the model places the markers, not on motion, as a batch fit of a static
         trial says: :meth:`Session._still_now`), else ``'identified'``.
     joint_centres : mapping of str to (D,) float
@@ -1679,7 +1679,7 @@ class Session:
                        tuple(e for pair in self._extreme for e in pair if e[1] is not None), self._extreme_version)
 
     def _still_now(self, theta, kept, version: int = -1) -> bool:
-        """Whether every joint had stayed within :data:`~skelid.estimators.marker.STILL_JOINT_DEG` over the
+        """Whether every joint had stayed within :data:`~skelid.estimators.checks.misfit.STILL_JOINT_DEG` over the
         frames used up to an estimate (``theta``; ``kept``: the extreme frames then, see below).
 
         The poses fitted on arrival moved with the estimate (a still frame's pose and a length trade off, so

@@ -46,3 +46,25 @@ def test_noise_free_data_put_the_mode_on_the_truth():
     filt = MarkerGridFilter(model, sigma=1.0, axes=(np.linspace(240, 255, 7),)).fit(trial.data)
     assert filt.posterior_.map[0] == 247.5
     assert filt.map_path_[-1] == 247.5
+
+
+def test_a_still_trial_gives_placement_not_identified():
+    """Two hundred frames of one pose: the grid posterior narrows, but only through where the model puts
+    the markers; the status is 'placement' with a still-joint warning, as the marker method says. A moving
+    trial stays 'identified'."""
+    import warnings
+
+    from skelid.errors import SkelidWarning
+
+    model = builtin_model("case-a")
+    moving = simulate(model, n_frames=300, sigma=5.0, rng=np.random.default_rng(0)).data
+    rng = np.random.default_rng(1)
+    still = moving.replace(positions=np.repeat(moving.positions[:1], 200, 0) + rng.normal(0.0, 1.0, (200, 3, 2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkelidWarning)
+        r_still = MarkerGridFilter(model).fit(still).result()
+        r_moving = MarkerGridFilter(model).fit(moving).result()
+    assert r_still.parameters["L2"].status == "placement"
+    assert "still-joint" in [w.code for w in r_still.warnings]
+    assert r_moving.parameters["L2"].status == "identified"
+    assert "still-joint" not in [w.code for w in r_moving.warnings]

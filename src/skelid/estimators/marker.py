@@ -69,6 +69,7 @@ from skelid.estimators.checks.artefact import artefact_covariance
 from skelid.estimators.checks.misfit import (
     DEFAULT_PLACEMENT_SD_MM,
     PLACEMENT_SHARE,
+    STILL_JOINT_DEG,
     model_misfit,
     placement_information,
     relaxed_estimate,
@@ -121,7 +122,6 @@ MIN_AUTO_CUTOFF = 6.0  # Hz: the usual low-pass cutoff for marker data; raised f
 MOTION_MIN_FRAMES = 3  # the motion model penalises second differences of the poses
 STIFFER = 3.0  # the motion model's cutoff is divided by this for the graduated-smoothing start
 STIFF_ITER = 10  # iterations of that start: it only has to reach the right pose branch
-STILL_JOINT_DEG = 5.0  # a joint that moves less than this gives little functional information
 BIAS_RELIABLE = 1.5  # a second-order bias correction above this many sd is not trusted: bootstrap instead
 CONVERGED_SD = 0.25  # an unconverged fit whose estimate still moves by more than this many sd fails
 CONTINUE_ROUNDS = 2  # ... after this many continuations of n_iter iterations each

@@ -30,6 +30,9 @@ from skelid.model.kinematics import Workspace, forward_kinematics
 
 #: the range of a multi-axis joint is twice this quantile of its rotation angle from the mean
 RANGE_QUANTILE = 0.95
+#: a joint that moves less than this (degrees) gives little functional information: a trial whose joints all
+#: moved less is a static one, whose geometry follows from where the model places the markers
+STILL_JOINT_DEG = 5.0
 
 
 def joint_ranges(model: Model, pose, used=None, theta=None) -> dict[str, list[float]]:

@@ -63,6 +63,7 @@ from skelid.estimators.base import (
     positive_or_none,
     steps,
 )
+from skelid.estimators.checks.misfit import STILL_JOINT_DEG
 from skelid.estimators.fit.joint import usable_frames
 from skelid.estimators.fit.pose import FramePoseFitter, _model_size, initial_pose
 from skelid.estimators.uncertainty.posterior import GridPosterior
@@ -313,6 +314,11 @@ class MarkerGridFilter:
         if (~used).any():
             found.append(Warning("frames-skipped", f"{int((~used).sum())} of {len(y)} frames have too few markers "
                                  "to fix the pose and were skipped"))
+        self.still_ = still_trial(self.model, self.posterior_.mean, y[used], make_rng(self.rng))
+        if self.still_:
+            found.append(Warning("still-joint", f"no joint moved more than {STILL_JOINT_DEG:g} degrees: the "
+                                 "estimate follows from where the model places the markers, not from motion "
+                                 "(status 'placement')", list(self.model.parameter_names)))
         self.warnings_ = emit(found)
         return self
 
@@ -320,6 +326,22 @@ class MarkerGridFilter:
         """The typed result (:class:`~skelid.result.FitResult`)."""
         check_fitted(self)
         used = self.frames_used_
+        status = {n: "placement" for n in self.model.parameter_names} if getattr(self, "still_", False) else None
         return build_result(self, self.posterior_, noise=NoiseEstimate(self.sigma_, fixed=self.sigma is not None),
                             skipped={"too_few_coordinates": int((~used).sum())},
-                            arrays={"map_path": self.map_path_})
+                            arrays={"map_path": self.map_path_}, status=status)
+
+
+def still_trial(model: Model, theta, y, rng) -> bool:
+    """Whether no joint of ``model`` moved more than :data:`~skelid.estimators.checks.misfit.STILL_JOINT_DEG`
+    over the frames ``y (T, M, D)``, their poses fitted at ``theta`` (a model with no joint rotation: False).
+
+    Such a trial informs the geometry only through where the model places the markers on their segments."""
+    from skelid.estimators.checks.misfit import joint_ranges
+    from skelid.estimators.fit.pose import track_poses
+
+    if not len(y) or not any(d.kind == "R" and model.segments[d.segment].parent is not None for d in model.dofs):
+        return False
+    poses = track_poses(model, np.asarray(theta, float), y, rng)[0]
+    ranges = joint_ranges(model, poses, theta=theta)
+    return bool(ranges) and max(max(r) for r in ranges.values()) < STILL_JOINT_DEG
