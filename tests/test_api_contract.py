@@ -562,3 +562,68 @@ def test_osim_fit_refuses_an_unknown_marker_mode(tmp_path):
 
     with pytest.raises(SettingError, match="marker mode"):
         fit_osim(tmp_path / "never_read.osim", [TRIAL.data], markers="offset")
+
+
+# --------------------------------------------------------------------------- live Session
+@st.composite
+def session_args(draw):
+    """A Session's settings, one of them (or none, or all) replaced by something odd."""
+    args = {"labels": list(CASE_A.marker_names), "units": "mm", "rate": 100.0, "method": "gaussian"}
+    odd = {"labels": NAMES | st.dictionaries(st.text(max_size=3), st.text(max_size=3) | ODD, max_size=3),
+           "units": UNITS, "rate": RATES, "sigma": ODD | st.floats(-10, 10), "outlier_sd": ODD,
+           "n_iter": ODD | st.integers(-3, 3), "method": ODD | st.sampled_from(["grid", "gaussian", "paper", ""]),
+           "cutoff": ODD | st.sampled_from(["auto", "none", 6.0, -1.0, 1e9])}
+    which = draw(st.sampled_from(["none", "all", *odd]))
+    for k in odd if which == "all" else [which] if which != "none" else []:
+        args[k] = draw(odd[k])
+    return args
+
+
+@st.composite
+def live_frames(draw):
+    """Frames a stream might send: the model's markers as arrays or mappings, with odd values or shapes."""
+    good = np.asarray(TRIAL.data.positions[draw(st.integers(0, 39))], float)
+    kind = draw(st.sampled_from(["good", "array", "mapping", "odd", "scaled", "partial"]))
+    if kind == "good":
+        return good
+    if kind == "array":
+        return draw(positions())
+    if kind == "scaled":  # the right shape, values anywhere (NaN, inf, huge, zero)
+        return good * draw(st.sampled_from([0.0, 1e-9, 1e3, 1e12, np.nan, np.inf, -1.0]))
+    if kind == "partial":
+        return {n: draw(st.sampled_from([list(v), v * np.nan, [float("inf")] * 2, "1,2", [], [1.0], None]))
+                for n, v in zip(CASE_A.marker_names, good, strict=True)}
+    if kind == "mapping":
+        return draw(st.dictionaries(st.text(max_size=3) | st.sampled_from(CASE_A.marker_names), ODD | positions(),
+                                    max_size=4))
+    return draw(ODD)
+
+
+def check_live_estimate(e, frames_pushed: int) -> None:
+    """What a LiveEstimate promises: the frame count, a finite estimate, one health line, statuses known."""
+    from skelid.result import STATUSES
+
+    assert e.frame == frames_pushed and isinstance(e.health, str) and "\n" not in e.health
+    assert np.all(np.isfinite(e.theta)) and e.theta.shape == (CASE_A.n_params,)
+    for p in e.parameters.values():
+        assert p.status in STATUSES and math.isfinite(p.sd) and p.interval[0] <= p.interval[1]
+
+
+@FAST
+@given(args=session_args(), frames=st.lists(live_frames(), min_size=1, max_size=6))
+def test_a_session_starts_or_refuses_and_every_push_gives_an_estimate_or_refuses(args, frames):
+    """Any settings: a Session or one SkelidError line. Any frames: an estimate (healthy or saying what went
+    wrong) or one DataError line, after which the session goes on as before."""
+    from skelid.live import Session
+
+    kind, s = outcome(Session, CASE_A, **args)
+    if kind == "refused":
+        return
+    pushed = 0
+    for f in [*frames, np.asarray(TRIAL.data.positions[0], float)]:
+        kind, e = outcome(s.push, f)
+        if kind == "refused":
+            assert isinstance(e, DataError), type(e)
+            continue
+        pushed += 1
+        check_live_estimate(e, pushed)
