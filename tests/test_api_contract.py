@@ -609,7 +609,8 @@ def check_live_estimate(e, frames_pushed: int) -> None:
         assert p.status in STATUSES and math.isfinite(p.sd) and p.interval[0] <= p.interval[1]
 
 
-@FAST
+@settings(max_examples=200, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.too_slow])
 @given(args=session_args(), frames=st.lists(live_frames(), min_size=1, max_size=6))
 def test_a_session_starts_or_refuses_and_every_push_gives_an_estimate_or_refuses(args, frames):
     """Any settings: a Session or one SkelidError line. Any frames: an estimate (healthy or saying what went
