@@ -628,3 +628,30 @@ def test_a_session_starts_or_refuses_and_every_push_gives_an_estimate_or_refuses
             continue
         pushed += 1
         check_live_estimate(e, pushed)
+
+
+@pytest.mark.parametrize("method", ["marker", "paper", "marker-grid", "marker-smc"])
+def test_a_nearly_still_noisy_trial_stays_inside_the_prior_with_every_method(tmp_path, method, capsys):
+    """Two hundred frames of one pose with 1 mm noise, through the command line: every method's estimate lies
+    inside the prior's bounds [200, 300] or the fit is refused in one line (exit 2); the marker methods call
+    the length 'placement', not 'identified'."""
+    import json
+
+    from skelid.cli import main
+    from skelid.io.trc import write_trc
+
+    rng = np.random.default_rng(5)
+    pos = np.repeat(np.asarray(TRIAL.data.positions[:1]), 200, axis=0) + rng.normal(0.0, 1.0, (200, 3, 2))
+    path = tmp_path / "still.trc"
+    write_trc(path, TRIAL.data.replace(positions=pos))
+    out = tmp_path / "fit"
+    rc = main(["fit", "case-a", str(path), "--method", method, "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc in (0, 2), err
+    if rc == 2:
+        assert err.count("\n") == 0 and not out.exists()
+        return
+    p = json.loads((out / "result.json").read_text())["results"][method]["parameters"]["L2"]
+    assert 200.0 <= p["map"] <= 300.0 and 200.0 <= p["interval"][0] <= p["interval"][1] <= 300.0, p
+    if method != "paper":  # the paper's method is reproduced as published
+        assert p["status"] == "placement", p["status"]

@@ -112,3 +112,20 @@ def test_the_time_limit_covers_every_trial_of_a_fit_and_of_a_batch(tmp_path):
     assert not (tmp_path / "b.csv").exists()
     r = run_cli(["fit", "case-a", paths[0], "--max-time", limit, "--out", tmp_path / "fit1"], memory_mb=None)
     assert r.returncode == 0, r.stderr  # one trial fits within it
+
+
+def test_a_fit_that_runs_past_its_time_limit_is_stopped_in_one_line(tmp_path, monkeypatch, capsys):
+    """A job the cost estimate lets through but that runs longer (the estimate bypassed here) is stopped at
+    --max-time: exit 2, one line naming the limit, no result folder."""
+    from skelid.cli import main
+    from skelid.io.trc import write_trc
+
+    trial = tmp_path / "long.trc"
+    write_trc(trial, simulate(builtin_model("case-a"), n_frames=20000, sigma=2.0,
+                              rng=np.random.default_rng(0)).data)
+    monkeypatch.setattr(resources, "check", lambda cost, limits=None, what="": cost)
+    out = tmp_path / "fit"
+    assert main(["fit", "case-a", str(trial), "--max-time", "0.5s", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "ran past its time limit of" in err and "--max-time" in err, err
+    assert not out.exists()
