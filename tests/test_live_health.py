@@ -40,6 +40,10 @@ def arm():
     ({"sigma": "1"}, DataError, "sigma must be a number"),
     ({"n_iter": 1.5}, SettingError, "n_iter must be a whole number"),
     ({"n_iter": -3}, SettingError, "n_iter must be a whole number >= 0"),
+    ({"cutoff": False}, SettingError, "cutoff must be a number of Hz, not bool"),
+    ({"cutoff": b""}, SettingError, "cutoff must be a number of Hz, not bytes"),
+    ({"cutoff": {}}, SettingError, "cutoff must be a number of Hz, not dict"),
+    ({"cutoff": float("nan")}, SettingError, "cutoff must be finite"),
     ({"labels": "ABC"}, DataError, "labels must be a sequence"),
     ({"labels": ("A", "B", "C", "A")}, DataError, r"labels name marker 'A' 2 times \(rows 1, 4"),
 ])

@@ -917,9 +917,19 @@ def _check_cutoff(model: Model, cutoff) -> bool:
     auto = isinstance(cutoff, str)
     if auto and cutoff != "auto":
         raise ModelError(f"unknown cutoff {cutoff!r}", "give a cutoff in Hz, 'auto' or None")
-    if not auto and cutoff is not None and np.ndim(cutoff) and np.shape(cutoff) != (model.n_pose,):
-        raise ModelError(f"cutoff has {np.size(cutoff)} values; the model has {model.n_pose} pose coordinates",
-                         "give one cutoff in Hz, one per pose coordinate, 'auto' or None")
+    if auto or cutoff is None:
+        return auto
+    fix = "give one cutoff in Hz, one per pose coordinate, 'auto' or None"
+    try:
+        c = np.asarray(cutoff)
+    except (TypeError, ValueError):
+        c = np.asarray(None, dtype=object)
+    if isinstance(cutoff, bool) or c.dtype.kind not in "iuf":  # True/False, text, bytes, mappings, objects
+        raise SettingError(f"cutoff must be a number of Hz, not {type(cutoff).__name__} {cutoff!r:.40}", fix)
+    if c.ndim and c.shape != (model.n_pose,):
+        raise ModelError(f"cutoff has {c.size} values; the model has {model.n_pose} pose coordinates", fix)
+    if not np.all(np.isfinite(c)):
+        raise SettingError(f"cutoff must be finite, got {cutoff!r:.40}", fix)
     return auto
 
 
