@@ -189,7 +189,7 @@ from scipy.stats import chi2, norm
 from skelid._linalg import frame_gram
 from skelid.data import MAX_FIT_COORDINATE_MM, unit_scale
 from skelid.errors import DataError, ModelError, SettingError
-from skelid.estimators.checks.misfit import STILL_JOINT_DEG
+from skelid.estimators.checks.misfit import STILL_JOINT_DEG, joint_rotations
 from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
@@ -1070,10 +1070,10 @@ class Session:
         self._coincide = max(_COINCIDE * self._size, math.sqrt(self._sigma_floor))
         self._max_coordinate = MAX_FIT_COORDINATE_MM / unit_scale(model.units, "mm")
         # the joints' motion so far (_still_now): each joint rotation coordinate (the root's left out), and
-        # for each the frame where it was lowest and highest on arrival, (value, frame, pose)
-        self._joint_rot = np.array([k for k, d in enumerate(model.dofs) if d.kind == "R"
-                                    and model.segments[d.segment].parent is not None], dtype=int)
-        self._extreme = [[(np.inf, None, None), (-np.inf, None, None)] for _ in self._joint_rot]
+        # for each the frame where it was lowest and highest on arrival (their values, frames and poses)
+        self._joint_rot = joint_rotations(model)
+        self._extreme_at = np.array([[np.inf], [-np.inf]]) * np.ones(self._joint_rot.size)  # (2, K) lowest, highest
+        self._extreme = [[(None, None), (None, None)] for _ in self._joint_rot]  # their (frame, pose)
         self._extreme_version, self._still_memo, self._moved = 0, (-1, True), False
         self._tracks = MarkerTracks(self._M, self._D, self._sigma_floor)  # each marker's path: swapped labels
         self._claim = None  # the evidence on the tracks' present claim of a swap (see _labels_fit)
@@ -1679,14 +1679,15 @@ class Session:
             return None
         if y is not None and q is not None and self._joint_rot.size:
             a = np.asarray(q, float)[self._joint_rot]
-            if np.isfinite(a).all():  # each joint coordinate's lowest and highest frame as fitted on arrival
-                for k, v in enumerate(a):
-                    for side, better in ((0, v < self._extreme[k][0][0]), (1, v > self._extreme[k][1][0])):
-                        if better:
-                            self._extreme[k][side] = (v, np.array(y, float), np.array(q, float))
-                            self._extreme_version += 1
+            beyond = np.stack([a < self._extreme_at[0], a > self._extreme_at[1]])  # a new lowest or highest
+            if np.isfinite(a).all() and beyond.any():  # each joint coordinate's extremes as fitted on arrival
+                self._extreme_at = np.where(beyond, a, self._extreme_at)
+                kept = (np.array(y, float), np.array(q, float))
+                for side, k in zip(*np.nonzero(beyond), strict=True):
+                    self._extreme[k][side] = kept
+                self._extreme_version += 1
         return partial(self._still_now, np.array(theta, float),
-                       tuple(e for pair in self._extreme for e in pair if e[1] is not None), self._extreme_version)
+                       tuple(e for pair in self._extreme for e in pair if e[0] is not None), self._extreme_version)
 
     def _still_now(self, theta, kept, version: int = -1) -> bool:
         """Whether every joint had stayed within :data:`~skelid.estimators.checks.misfit.STILL_JOINT_DEG` over the
@@ -1706,8 +1707,8 @@ class Session:
             return True
         if self._still_memo[0] == version:
             return self._still_memo[1]
-        y = np.stack([e[1] for e in kept])
-        q = fit_pose(self.model, np.broadcast_to(theta, (len(kept), theta.size)), y, np.stack([e[2] for e in kept]),
+        y = np.stack([e[0] for e in kept])
+        q = fit_pose(self.model, np.broadcast_to(theta, (len(kept), theta.size)), y, np.stack([e[1] for e in kept]),
                      ws=self._ws)[0][:, self._joint_rot]
         moved = bool(np.degrees(np.max(np.ptp(np.unwrap(q, axis=0), axis=0))) >= STILL_JOINT_DEG)
         self._moved = self._moved or moved

@@ -35,6 +35,12 @@ RANGE_QUANTILE = 0.95
 STILL_JOINT_DEG = 5.0
 
 
+def joint_rotations(model: Model) -> np.ndarray:
+    """Indices of the pose coordinates that rotate a joint (every rotation but the root's): ``(K,) int``."""
+    return np.array([k for k, d in enumerate(model.dofs)
+                     if d.kind == "R" and model.segments[d.segment].parent is not None], dtype=int)
+
+
 def joint_ranges(model: Model, pose, used=None, theta=None) -> dict[str, list[float]]:
     """Range of every joint rotation but the root's, in degrees.
 

@@ -337,10 +337,10 @@ def still_trial(model: Model, theta, y, rng) -> bool:
     over the frames ``y (T, M, D)``, their poses fitted at ``theta`` (a model with no joint rotation: False).
 
     Such a trial informs the geometry only through where the model places the markers on their segments."""
-    from skelid.estimators.checks.misfit import joint_ranges
+    from skelid.estimators.checks.misfit import joint_ranges, joint_rotations
     from skelid.estimators.fit.pose import track_poses
 
-    if not len(y) or not any(d.kind == "R" and model.segments[d.segment].parent is not None for d in model.dofs):
+    if not len(y) or not joint_rotations(model).size:
         return False
     poses = track_poses(model, np.asarray(theta, float), y, rng)[0]
     ranges = joint_ranges(model, poses, theta=theta)

@@ -254,7 +254,7 @@ def _refit(model, y, theta, pose, R, weights, m, ws=None, held=None):
     that wanders to a bound has found no estimate without the marker); the parameters ``held``
     (``(P,) bool``) already sat on a bound in the fit and may stay there. ``ws``: the model's workspace.
     """
-    lower, upper, span = _prior_box(model)
+    lower, upper, _ = _prior_box(model)
     held = np.zeros(len(theta), bool) if held is None else held
     ym = np.array(y, float)
     ym[:, m] = np.nan
@@ -265,8 +265,7 @@ def _refit(model, y, theta, pose, R, weights, m, ws=None, held=None):
                       weights=weights, tol=REFIT_TOL, step_tol=REFIT_STEP_TOL, ws=ws, summary=False)
         if not np.all(np.isfinite(f.theta)):
             return None
-        on_bound = np.any(((f.theta - lower <= 1e-6 * span) | (upper - f.theta <= 1e-6 * span)) & ~held)
-        if on_bound:
+        if np.any(held_on_bound(model, f.theta) & ~held):
             return None
         if f.converged:
             return f.theta - theta
