@@ -669,6 +669,33 @@ def live_health() -> str:
     return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, d)
 
 
+def live_stopping() -> str:
+    """The stopping rule's study (benchmarks/stopping_rule.py): frames to done and coverage at done."""
+    path = RESULTS / "stopping_rule.json"
+    if not path.exists():
+        return ("*Not measured yet.* `python benchmarks/stopping_rule.py` writes "
+                "`benchmarks/results/stopping_rule.json`.\n")
+    d = load(path)
+
+    def num(v, f="{:.0f}"):
+        return "-" if v is None else f.format(v)
+
+    lines = ["| cell | routine | done | frames to done, median (90 %) | coverage at done | rms z at done |",
+             "|---|---|---|---|---|---|"]
+    for cell, r in d["cells"].items():
+        for routine in ("guided", "fixed"):
+            g = r[routine]
+            lines.append(f"| {cell} | {routine} | {g['done']}/{r['sessions']} | {num(g['frames_median'])} "
+                         f"({num(g['frames_p90'])}) | {num(g['coverage_at_done'], '{:.3f}')} | "
+                         f"{num(g['rms_z_at_done'], '{:.2f}')} |")
+    note = (f"{d['reps']} sessions per cell, geometry drawn from the prior, at most {d['max_frames']} frames (100 Hz). "
+            "`guided`: the user does what `advice()` says first, then asks again; `fixed`: each joint rotation in "
+            "turn through the central 60 % of its range, 1 s each, over and over. Coverage: the 95 % intervals "
+            "of every parameter at the frame that says done (0.95 is right); sessions not done are left out. "
+            "[`benchmarks/results/stopping_rule.md`](/benchmarks/results/stopping_rule.md)")
+    return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, d)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "demo": demo,
     "opensim-scales": opensim_scales,
@@ -688,6 +715,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "speed": speed,
     "live-speed": live_speed,
     "live-health": live_health,
+    "live-stopping": live_stopping,
 }
 
 

@@ -337,7 +337,7 @@ def test_a_walk_whose_markers_the_model_does_not_follow_is_not_ok():
 # ------------------------------------------------------------------ the grid form's own screen
 @pytest.mark.parametrize("pair", [(0, 4), (1, 5), (2, 6)])
 def test_a_swap_just_after_an_occlusion_does_not_pass_into_the_grid_form(pair):
-    """The 3-D forearm (one parameter: the grid form by default), two markers hidden for a frame and then
+    """The 3-D forearm (one parameter) in the grid form, two markers hidden for a frame and then
     swapped for four: their tracks cannot see the swap begin, so the grid took the frames in (its noise sd
     went from 1 to 13 mm and L2 10 sd off). Markers beyond the screen are left out, and where the tracks then
     call the swap's end a swap, the model, which fits the labels as they come, overrules them."""
@@ -347,7 +347,7 @@ def test_a_swap_just_after_an_occlusion_does_not_pass_into_the_grid_form(pair):
     i, j = pair
     y[99, [i, j]] = np.nan
     y[100:104, [i, j]] = y[100:104, [j, i]]
-    ests, clean = _clean_and_glitched(model, trial, y, "auto")
+    ests, clean = _clean_and_glitched(model, trial, y, "grid")
     assert [t for t, e in enumerate(ests) if not e.healthy] == [99, 100, 101, 102, 103]
     assert all(e.rejected for e in ests[100:104])
     sd = np.sqrt(np.diag(clean.cov))
@@ -362,7 +362,7 @@ def test_a_grid_frame_whose_markers_fix_no_pose_is_not_taken_in():
     trial = simulate(model, n_frames=110, sigma=0.001, rng=np.random.default_rng(0))
     y = trial.data.positions.copy()
     y[100, [0, 1, 4]] = np.nan
-    s = Session(model, labels=trial.data.names)
+    s = Session(model, labels=trial.data.names, method="grid")
     ests = [s.push(f) for f in y]
     assert "3 marker(s) missing" in ests[100].health and ests[100].health.endswith("frame not used")
     assert all(e.healthy for e in ests[101:]) and np.all(np.isfinite(ests[-1].theta))

@@ -307,6 +307,10 @@ def test_liblsl_is_kept_quiet_unless_the_user_configured_it(monkeypatch, tmp_pat
     (["--out", "{tmp}"], "is a folder"),
     (["--timeout", "-1"], "timeout must be a positive number"),
     (["--rate", "nan"], "--rate must be a finite number"),
+    (["--target-sd", "abc"], "--target-sd 'abc' is not a number or NAME=SD pairs"),
+    (["--target-sd", "L2=1,=2"], "is not a number or NAME=SD pairs"),
+    (["--target-sd", "L9=1"], "target_sd names 'L9', which 'case_a' does not have"),
+    (["--target-sd", "0"], "target_sd of L2 must be above 0"),
 ])
 def test_live_options_are_refused_before_any_wait_for_the_stream(args, words, tmp_path, capsys):
     import time

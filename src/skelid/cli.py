@@ -630,6 +630,25 @@ def _labels(text):
     return None if text is None else [t.strip() for t in text.split(",") if t.strip()]
 
 
+def _target_sd(text):
+    """``--target-sd``: ``0.5`` (every parameter) or ``L2=0.5,scale_femur_r=0.01``, as Session takes it."""
+    if text is None:
+        return None
+    from skelid.errors import SettingError
+
+    fix = "give --target-sd 0.5 (every parameter) or --target-sd NAME=SD,NAME=SD"
+    parts = [t.strip() for t in text.split(",") if t.strip()]
+    try:
+        if len(parts) == 1 and "=" not in parts[0]:
+            return float(parts[0])
+        pairs = [t.split("=") for t in parts]
+        if not pairs or any(len(pq) != 2 or not pq[0].strip() for pq in pairs):
+            raise ValueError
+        return {k.strip(): float(v) for k, v in pairs}
+    except ValueError:
+        raise SettingError(f"--target-sd {text!r} is not a number or NAME=SD pairs", fix) from None
+
+
 def _live_model(model_path, marker_set, names):
     """The model of a live run; an OpenSim model keeps only the markers the stream carries (``names``)."""
     from skelid.loading import load_model
@@ -660,26 +679,31 @@ def _live_model(model_path, marker_set, names):
 @click.option("--timeout", type=float, default=5.0, show_default=True,
               help="Seconds to wait for the stream, and for each frame.")
 @click.option("--marker-set", default=None, help="OpenSim models: a MarkerSet .xml file for a model without markers.")
+@click.option("--target-sd", default=None, metavar="SD|NAME=SD,...",
+              help="Stopping rule: the sd each parameter (or each one named) should reach; the run ends when "
+                   "every one has (each message's 'done').")
 @click.option("--quiet", is_flag=True, help="No summary line at the end.")
 def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, lsl_out, max_frames, timeout,
-         marker_set, quiet):
+         marker_set, target_sd, quiet):
     """Refine MODEL_PATH's geometry from a live LSL marker stream, sending each estimate on.
 
     Every frame's estimate (parameters with intervals, joint centres, health, advice) goes to --udp,
     --lsl-out and --out as a skelid.live/1 JSON message (docs/live-protocol.md). The run ends after
-    --max-frames, on Ctrl-C, or when the stream stops sending (one line says so; what came is kept).
+    --max-frames, on Ctrl-C, when the stream stops sending (one line says so; what came is kept), or,
+    with --target-sd, when every requested parameter has reached its target sd.
     """
     from skelid.errors import StreamError
     from skelid.io import atomic_write
     from skelid.io.atomic import check_target
     from skelid.io.stream import JsonLines, LslFrames, LslMessages, UdpMessages
-    from skelid.live import Session, run
+    from skelid.live import Session, run, target_sds
 
     _finite("--rate", rate)
     _finite("--sigma", sigma)
     _finite("--timeout", timeout)
+    targets = _target_sd(target_sd)
     # what can be refused without the stream is refused before any wait for it
-    _live_model(model_path, marker_set, None)
+    target_sds(_live_model(model_path, marker_set, None), targets)
     sinks = [UdpMessages(udp)] if udp else []
     if out_path:
         check_target(out_path)
@@ -688,7 +712,8 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
     rate = rate if rate is not None else source.rate
     if rate is None:
         raise SkelidError(f"stream {stream!r} has no nominal rate", "give the frames per second with --rate")
-    session = Session(model, labels=source.labels, units=source.units, rate=rate, method=method, sigma=sigma)
+    session = Session(model, labels=source.labels, units=source.units, rate=rate, method=method, sigma=sigma,
+                      target_sd=targets)
     if lsl_out:
         sinks.append(LslMessages(lsl_out))
     stopped, est = None, None
@@ -696,7 +721,7 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
         if out_path:
             sinks.append(JsonLines(stack.enter_context(atomic_write(out_path))))
         try:
-            est = run(session, source, sinks, max_frames=max_frames)
+            est = run(session, source, sinks, max_frames=max_frames, until_done=targets is not None)
         except StreamError as exc:
             if source.n_frames == 0:
                 raise
@@ -708,6 +733,7 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
         params = ", ".join(f"{p.name} {p.mean:.4g} ± {p.sd:.2g}" + ("" if p.unit == "1" else f" {p.unit}")
                            for p in est.parameters.values())
         click.echo(f"{est.frame} frames; {params}; health: {est.health}"
+                   + ("; done: every requested parameter reached its target sd" if est.done else "")
                    + (f"; messages written to {out_path}" if out_path else ""), err=True)
     if stopped is not None:
         raise stopped

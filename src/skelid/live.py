@@ -220,6 +220,13 @@ from skelid.result import ParameterEstimate
 _Z95 = float(norm.ppf(0.975))
 #: after this many frames, every frame so far is linearised again at the current mean
 _RELINEARISE = (10, 25, 50, 100, 200)
+#: the Gaussian form of a model with at most this many parameters has the grid filter beside it (early frames)
+_SHADOW_PARAMS = 3
+#: the stopping rule says done only once an estimated noise level rests on this many residual degrees of
+#: freedom (its relative sd 1 / sqrt(2 dof) = 7 %): two frames once gave a noise sd of 0.4 mm for 5 mm, and "done"
+DONE_NOISE_DOF = 100
+#: ... and relinearises at the grid's mean where its own lies more than this many of the grid's sds from it
+_ASTRAY = 4.0
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
@@ -786,6 +793,11 @@ class LiveEstimate:
         World position of each segment's joint (model units); empty without a pose.
     marker_residuals : mapping of str to float
         Distance of each model marker from the fitted model in this frame (NaN if missing or left out).
+    done : bool or None
+        With the session's ``target_sd``: True when this frame is healthy, every requested parameter
+        is ``'identified'`` with its sd at or below its target, and a noise level estimated from the
+        residuals rests on at least :data:`DONE_NOISE_DOF` degrees of freedom (the stopping rule);
+        None without targets.
     """
 
     frame: int
@@ -802,6 +814,8 @@ class LiveEstimate:
     _ranges: tuple | None = field(default=None, repr=False)  # (lower, upper, prior sd) of each parameter
     _on_bound: np.ndarray | None = field(default=None, repr=False)  # (P,) bool: the estimate sits on a bound
     _still: Callable[[], bool] | None = field(default=None, repr=False)  # no joint had moved by then (Session)
+    _targets: np.ndarray | None = field(default=None, repr=False)  # (P,) target sd (inf: not requested)
+    _noise_dof: float = math.inf  # residual degrees of freedom of an estimated noise level (inf: stated)
 
     @cached_property
     def cov(self) -> np.ndarray:
@@ -825,6 +839,16 @@ class LiveEstimate:
                                                (float(max(mean[k] - _Z95 * sd[k], lo[k])),
                                                 float(min(mean[k] + _Z95 * sd[k], hi[k]))), status=status)
         return MappingProxyType(params)
+
+    @cached_property
+    def done(self) -> bool | None:
+        if self._targets is None:
+            return None
+        if not self.healthy or self._noise_dof < DONE_NOISE_DOF:
+            return False
+        params = list(self.parameters.values())
+        return all(p.status == "identified" and p.sd <= t for p, t in zip(params, self._targets, strict=True)
+                   if np.isfinite(t))
 
     @cached_property
     def joint_centres(self) -> Mapping[str, np.ndarray]:
@@ -855,12 +879,23 @@ class Advice(NamedTuple):
 
     text: str  # what to do, in words
     joint: str
-    dof: int  # pose coordinate moved
+    dof: int  # pose coordinate moved (-1: "done", the stopping rule's last advice)
     lower_deg: float  # the sweep, in degrees (or model units for a translation)
     upper_deg: float
     parameter: str  # the worst-determined parameter it is judged for
     sd_now: float
     sd_after: float  # expected sd of that parameter after the movement
+
+
+def _done_advice(model: Model, est: LiveEstimate, targets: np.ndarray) -> Advice:
+    """The stopping rule's last advice: every requested parameter is at its target (named with its sd)."""
+    asked = [(p, t) for p, t in zip(est.parameters.values(), targets, strict=True) if np.isfinite(t)]
+    closest, _ = max(asked, key=lambda pt: pt[0].sd / pt[1])
+    unit = lambda p: "" if p.unit == "1" else f" {p.unit}"  # noqa: E731
+    reached = ", ".join(f"{p.name} sd {p.sd:.3g} <= {t:.3g}{unit(p)}" for p, t in asked[:4])
+    more = f" and {len(asked) - 4} more" if len(asked) > 4 else ""
+    return Advice(f"done: every requested parameter has reached its target sd ({reached}{more})", "", -1,
+                  math.nan, math.nan, closest.name, closest.sd, closest.sd)
 
 
 # --------------------------------------------------------------------------- the session
@@ -872,6 +907,34 @@ def _number(name: str, value, fix: str, error=SettingError) -> float:
     if not math.isfinite(v):
         raise error(f"{name} must be finite, got {value!r}", fix)
     return v
+
+
+def target_sds(model: Model, target_sd) -> np.ndarray | None:
+    """The stopping rule's target sd of each parameter ``(P,)`` (inf: not requested), or None."""
+    if target_sd is None:
+        return None
+    fix = "give target_sd as a positive number (every parameter) or a mapping of parameter names to numbers"
+    names = model.parameter_names
+    if not names:
+        raise SettingError(f"target_sd: model {model.name!r} has no parameters to reach a target",
+                           "leave target_sd out")
+    if isinstance(target_sd, Mapping):
+        if not target_sd:
+            raise SettingError("target_sd names no parameter", fix)
+        unknown = [str(n) for n in target_sd if n not in names]
+        if unknown:
+            raise SettingError(f"target_sd names {', '.join(map(repr, unknown))}, which {model.name!r} does not "
+                               "have", f"use one of: {', '.join(names)}")
+        wanted = {str(n): v for n, v in target_sd.items()}
+    else:
+        wanted = dict.fromkeys(names, target_sd)
+    out = np.full(len(names), np.inf)
+    for n, v in wanted.items():
+        v = _number(f"target_sd of {n}", v, fix)
+        if v <= 0:
+            raise SettingError(f"target_sd of {n} must be above 0, got {v!r}", fix)
+        out[names.index(n)] = v
+    return out
 
 
 def _check_session_settings(model: Model, method: str, rate, sigma, outlier_sd=6.0, n_iter=1) -> None:
@@ -934,10 +997,9 @@ def _check_cutoff(model: Model, cutoff) -> bool:
 
 
 def _live_method(model: Model, method: str) -> str:
-    """The form a session runs: ``'auto'`` is the grid filter for 1-3 parameters, the Gaussian for more."""
-    if method != "auto":
-        return method
-    return "grid" if model.n_params <= 3 else "gaussian"
+    """The form a session runs: ``'auto'`` is the Gaussian form (with the grid beside it over the early
+    frames for 1-3 parameters); the grid form alone only when asked for."""
+    return "gaussian" if method == "auto" else method
 
 
 class _Screened(NamedTuple):
@@ -1004,6 +1066,11 @@ class Session:
         (iterated extended Kalman update; 0 is faster and less accurate).
     rng : numpy.random.Generator, optional
         For the random starts of the first pose.
+    target_sd : float or mapping of str to float, optional
+        The stopping rule: the sd (each parameter's own unit) each requested parameter should reach.
+        A number asks it of every parameter; a mapping of parameter names asks it of those. Each
+        estimate then says whether it is ``done`` (:attr:`LiveEstimate.done`), :meth:`advice`
+        aims at the requested parameter farthest from its target and says "done" when all are there.
 
     Raises
     ------
@@ -1014,13 +1081,17 @@ class Session:
     ModelError
         ``method='grid'`` for more than 3 parameters.
     SettingError
-        An ``outlier_sd`` that is not a positive finite number, an ``n_iter`` that is not a count.
+        An ``outlier_sd`` that is not a positive finite number, an ``n_iter`` that is not a count,
+        a ``target_sd`` that is not a positive number or names a parameter the model does not have.
     """
 
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,
                  method: str = "auto", sigma: float | None = None, outlier_sd: float = 6.0,
-                 cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None):
+                 cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None,
+                 target_sd: float | Mapping[str, float] | None = None):
         _check_session_settings(model, method, rate, sigma, outlier_sd, n_iter)
+        self._targets = target_sds(model, target_sd)
+        self.target_sd = target_sd
         self.model = model
         self.rate = float(rate)
         self.method = _live_method(model, method)
@@ -1059,10 +1130,14 @@ class Session:
         self._ranges = (lo, hi, 1.0 / np.sqrt(np.diag(L0)))
         self._M, self._D = len(model.markers), model.dim
         self._min_present = model.n_pose // model.dim + 1  # markers that fix a pose: n * D > Q
-        if self.method == "grid":
+        if self.method == "grid" or model.n_params <= _SHADOW_PARAMS:
             self._grid = MarkerGridFilter(model, sigma=sigma, history_steps=(), rng=self.rng)
             self._grid_shape = tuple(a.size for a in self._grid._points()[0])
         self._state = self._grid.init_state() if self.method == "grid" else empty_state(model, self._prior)
+        # the Gaussian form of a model with few parameters runs the grid filter beside it over the early frames,
+        # and relinearises where the grid puts the posterior when its own mean has gone astray (:meth:`_relinearise`)
+        self._shadow = self._grid.init_state() if self.method == "gaussian" and model.n_params <= _SHADOW_PARAMS \
+            else None
         self._sigma_fallback = (0.01 * _model_size(model)) ** 2  # before the residuals say: 1 % of the model's size
         self._sigma_floor = noise_floor(model)
         self._size = _model_size(model)
@@ -1594,13 +1669,44 @@ class Session:
 
     def _relinearise(self, theta) -> None:
         """Every early frame linearised again at ``theta`` (:func:`relinearise`); with ``cutoff='auto'`` the
-        motion model's cutoff is chosen first (:func:`live_cutoff`) from 50 frames on."""
+        motion model's cutoff is chosen first (:func:`live_cutoff`) from 50 frames on.
+
+        With the grid beside it (a model with few parameters), ``theta`` is the grid's mean instead where the
+        two disagree by more than :data:`_ASTRAY` of the grid's sds: the extended Kalman update
+        linearises at its own mean, and a first guess in another basin keeps it there; the grid has
+        weighed every point of the prior. The grid is left after the last early frame."""
+        if self._shadow is not None:
+            theta = self._shadow_theta(theta)
+            if len(self._early) >= _RELINEARISE[-1]:
+                self._shadow = None
         if self._auto and len(self._early) >= 50:
             self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
         self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
                                   self._sigma_fallback, ws=self._ws,
                                   smoother=(self.rate, self._cutoff_now) if self._motion else None,
                                   floor=self._sigma_floor, check=self._auto)
+
+    def _noise_dof(self, st) -> float:
+        """Residual degrees of freedom behind the noise level (inf where it was stated)."""
+        if self.sigma is not None:
+            return math.inf
+        return float(st.n_obs - self.model.n_pose * st.n_used - self.model.n_params)
+
+    def _shadow_theta(self, theta):
+        """``theta``, or the grid's mean where ``theta`` lies beyond :data:`_ASTRAY` of its sds from it."""
+        st = self._shadow
+        lw = self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used).ravel()
+        if not np.isfinite(lw).any():
+            return theta
+        pts = self._grid._points()[1]
+        w = np.exp(lw - np.nanmax(lw))
+        w = np.where(np.isfinite(w), w, 0.0)
+        w /= w.sum()
+        mean = w @ pts
+        axes = self._grid._points()[0]
+        step = np.array([np.diff(a).mean() if a.size > 1 else 0.0 for a in axes])
+        sd = np.sqrt(np.clip(w @ (pts - mean) ** 2, 0.0, None) + step**2 / 12.0)
+        return mean if np.any(np.abs(np.asarray(theta) - mean) > _ASTRAY * sd) else theta
 
     def _set_weight(self, cutoff) -> None:
         """The motion model's weight of each pose coordinate ``(Q,)`` for ``cutoff`` (Hz: one, one per
@@ -1640,6 +1746,11 @@ class Session:
 
     def _remember(self, y, q, used: bool) -> bool:
         """Keep an early frame for re-linearisation; True when it is time to re-linearise."""
+        if used and self._shadow is not None and not np.isnan(y).any():
+            # frames with every marker only: with some missing, a grid point may fix no pose (log det -inf)
+            st = self._grid.update(self._shadow, y)
+            if np.isfinite(st.rss).all() and np.isfinite(st.logdet).all():
+                self._shadow = st
         n = len(self._early)
         if n >= _RELINEARISE[-1]:
             if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
@@ -1669,7 +1780,8 @@ class Session:
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
                             self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges, on,
-                            self._motion_seen(y if used else None, q, st.mean))
+                            self._motion_seen(y if used else None, q, st.mean), self._targets,
+                            self._noise_dof(st))
 
     def _motion_seen(self, y, q, theta) -> Callable[[], bool] | None:
         """Count a frame used whole (``y``, its pose ``q``; None: none) in the joints' motion, and return
@@ -1933,7 +2045,8 @@ class Session:
         return LiveEstimate(self._frame, self._frame / self.rate, _frozen(mean), _frozen(q), sigma,
                             healthy, "ok" if healthy else "; ".join(problems), rejected, model,
                             partial(self._grid_cov, w, mean), resid, self._ranges, on,
-                            self._motion_seen(y if not rejected else None, q, mean))
+                            self._motion_seen(y if not rejected else None, q, mean), self._targets,
+                            self._noise_dof(st))
 
     def _grid_cov(self, w, mean) -> np.ndarray:
         """Covariance of the grid posterior with weights ``w (K,)``, plus the grid's quantisation variance
@@ -1978,6 +2091,10 @@ class Session:
         of the sweep) to the current posterior precision. The worst-determined
         parameter is the one whose sd is the largest fraction of its prior sd;
         the movements are ranked by that parameter's sd after the movement.
+        With the session's ``target_sd`` it is the requested parameter whose sd is the
+        largest multiple of its target; once the estimate is ``done`` (every requested
+        parameter identified at its target, :attr:`LiveEstimate.done`) the one piece of
+        advice is "done" (``dof`` -1, no sweep).
 
         Returns
         -------
@@ -1991,7 +2108,9 @@ class Session:
         _, L0, _, _ = self._prior
         prior_sd = 1.0 / np.sqrt(np.diag(L0))
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        worst = int(np.argmax(sd / prior_sd))
+        if self._targets is not None and self.estimate.done:
+            return [_done_advice(model, self.estimate, self._targets)]
+        worst = int(np.argmax(sd / (prior_sd if self._targets is None else self._targets)))
         s2 = self._current_sigma2_any()
         q_now = np.asarray(self.estimate.pose, float)
         cands, poses = _sweeps(model, q_now, amplitudes_deg, n_frames)
@@ -2035,7 +2154,8 @@ def message(estimate: LiveEstimate, advice=(), stamp: float | None = None) -> di
     -------
     dict
         ``schema``, ``model``, ``units``, ``frame``, ``time``, ``stamp``, ``healthy``, ``health``,
-        ``rejected``, ``sigma``, ``parameters`` (a list: ``name``, ``unit``, ``mean``, ``sd``, ``lower``,
+        ``done`` (the stopping rule, :attr:`LiveEstimate.done`: null without targets), ``rejected``,
+        ``sigma``, ``parameters`` (a list: ``name``, ``unit``, ``mean``, ``sd``, ``lower``,
         ``upper``, ``status``), ``joint_centres`` (a list: ``joint``, ``position`` as ``[x, y, z]``, z = 0
         for a planar model), ``advice`` (a list: ``text``, ``joint``, ``parameter``, ``sd_now``,
         ``sd_after``). A number that is not finite is ``None`` (JSON ``null``).
@@ -2050,14 +2170,15 @@ def message(estimate: LiveEstimate, advice=(), stamp: float | None = None) -> di
         centres.append({"joint": joint, "position": xyz})
     return {"schema": SCHEMA, "model": model.name, "units": model.units, "frame": int(estimate.frame),
             "time": float(estimate.time), "stamp": None if stamp is None else _json_number(stamp),
-            "healthy": bool(estimate.healthy), "health": estimate.health, "rejected": list(estimate.rejected),
+            "healthy": bool(estimate.healthy), "health": estimate.health, "done": estimate.done,
+            "rejected": list(estimate.rejected),
             "sigma": _json_number(estimate.sigma), "parameters": params, "joint_centres": centres,
             "advice": [{"text": a.text, "joint": a.joint, "parameter": a.parameter,
                         "sd_now": _json_number(a.sd_now), "sd_after": _json_number(a.sd_after)} for a in advice]}
 
 
 def run(session: Session, frames, sinks=(), max_frames: int | None = None, advice_every: int | None = None,
-        n_advice: int = 3) -> LiveEstimate | None:
+        n_advice: int = 3, until_done: bool = False) -> LiveEstimate | None:
     """Run ``session`` over ``frames`` (any iterable, such as an LSL stream) and send each estimate to ``sinks``.
 
     Parameters
@@ -2075,6 +2196,9 @@ def run(session: Session, frames, sinks=(), max_frames: int | None = None, advic
         default one second of frames. 0: no advice.
     n_advice : int
         Movements in each message, best first.
+    until_done : bool
+        Stop at the first estimate that is ``done`` (the session's ``target_sd``), whose message
+        carries the "done" advice.
 
     Returns
     -------
@@ -2085,12 +2209,15 @@ def run(session: Session, frames, sinks=(), max_frames: int | None = None, advic
     advice: list = []
     est = None
     for n, est in enumerate(session.feed(frames, max_frames=max_frames)):
-        if every and n % every == 0:
+        done = until_done and bool(est.done)
+        if done or (every and n % every == 0):
             advice = session.advice()[:n_advice]
         if sinks:
             msg = message(est, advice, getattr(frames, "last_stamp", None))
             for sink in sinks:
                 sink.send(msg)
+        if done:
+            break
     return est
 
 
