@@ -612,7 +612,8 @@ def live_speed() -> str:
     d = load(path)
     rows = [("case A, Gaussian form", "live_case_a_gaussian_ms"), ("case A, grid form", "live_case_a_grid_ms"),
             ("3-D arm, 10 markers, 6 parameters, motion model", "live_arm3d_motion_ms"),
-            ("3-D arm, no motion model", "live_arm3d_free_ms")]
+            ("3-D arm, no motion model", "live_arm3d_free_ms"),
+            ("gait2354 body scales (8), subject01's walk", "live_osim_scales_ms")]
     lines = ["| session | median | 99th percentile |", "|---|---|---|"]
     lines += [f"| {label} | {d[k]['p50']:.2f} ms | {d[k]['p99']:.2f} ms |" for label, k in rows if k in d]
     return "\n".join(lines) + "\n\n" + source(path, d)

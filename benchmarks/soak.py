@@ -1,9 +1,10 @@
 """Soak study: a live session fed one hour of 100 Hz frames (360 000), memory and latency over time.
 
-Two sessions, each with its default settings (the Gaussian form; case A's with the grid beside it over
-the early frames): case A and the 10-marker 3-D arm of the live-latency target (``benchmarks/arm10.toml``). Each is fed one simulated
-hour of frames, one ``Session.push`` at a time, as a capture system would (no waiting between
-frames: the session's own time is what is measured). Recorded per simulated minute: the median
+Two sessions, each with its default settings (the Gaussian form; case A's with the grid beside it
+over the early frames): case A and the 10-marker 3-D arm of the live-latency target
+(``benchmarks/arm10.toml``). Each is fed one simulated hour of frames, one ``Session.push`` at a
+time, as a capture system would (no waiting between frames: the session's own time is what is
+measured). Recorded per simulated minute: the median
 and 99th percentile of the push latency (wall and CPU-thread time, ms) and the process's resident
 memory (``/proc/self/statm``). The claim checked: memory and p99 latency flat, growth at most 5 %
 from the first ten minutes to the last ten (the first minute, when the session settles and its

@@ -545,6 +545,35 @@ def test_the_window_names_the_marker_that_left_out_leaves_the_rest_fitting():
     assert mis.markers.size and mis.markers[0] == 3 and mis.alike.size == 0
 
 
+def test_the_finding_is_refreshed_a_few_frames_a_push_and_lands_as_computed_at_once():
+    """While the same markers stay beyond the bound, the leave-one-out finding is redone every ALIKE_EVERY
+    frames, a chunk of the window a push (a whole window at once cost an OpenSim leg 5 ms on one push);
+    the refreshed answer is what a computation at once gives."""
+    from skelid import live_health
+
+    window, linearise = _window_with_offset(8, 2, 5, 3, np.array([6.0, -6.0]))
+    sizes = []
+
+    def counted(q):
+        sizes.append(len(q))
+        return linearise(q)
+
+    first = window.check(1.0, linearise=counted)
+    assert first.markers[0] == 3 and sum(sizes) == 50  # found at once, the first time
+    at_once, found_at = window._loo[2].copy(), window._loo[1]
+    per_push = []
+    for _ in range(3 * live_health.ALIKE_EVERY):  # pushes with nothing new: the same markers beyond the bound
+        window._n += 1
+        sizes.clear()
+        mis = window.check(1.0, linearise=counted)
+        per_push.append(sum(sizes))
+        assert mis.markers[0] == 3
+    assert max(per_push) <= live_health.ALIKE_CHUNK  # never the whole window on one push
+    assert sum(per_push) >= 50  # but the refresh ran
+    assert window._loo[1] > found_at  # refreshed (the same frames: the same answer)
+    np.testing.assert_array_equal(window._loo[2], at_once)
+
+
 _NAMED = re.compile(r"left out [ABC]\b|do not follow the model over the last \d+ frames \(rms residual [ABC]")
 
 

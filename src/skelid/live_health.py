@@ -147,8 +147,10 @@ EFFECT_MARKER = 4.0
 #: variances: ``2 log 1000``, a likelihood ratio of 1000 (markers closer than that are alike)
 ALIKE_MARGIN = 2.0 * math.log(1000.0)
 #: the markers are left out in turn afresh every this many frames while the same ones stay beyond the bound
-#: (a pass over the window's frames costs a batch of Jacobians)
-ALIKE_EVERY = 25
+#: (a pass over the window's frames costs a batch of Jacobians): once the window has turned over
+ALIKE_EVERY = MISFIT_WINDOW
+#: frames of the window a step of that refresh takes (one step a push)
+ALIKE_CHUNK = 10
 #: a leverage block's eigenvalue below this is a direction the pose absorbs (no residual there)
 _ABSORBED = 1e-8
 #: a scale beyond this factor either way is off: the scale's range already allows for every pose and parameter
@@ -361,6 +363,7 @@ class MisfitWindow:
         self._rss_before = self._dof_before = 0.0  # the frames that have left it
         self._markers = (np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros(0))  # last finding
         self._loo = None  # (markers beyond the bound, frame count, alike): the last leave-one-out finding
+        self._refresh = None  # (markers, frame count, steps): its refresh, a few frames of the window a push
 
     def add(self, r2, seen, rss: float, n_seen: int, y=None, q=None) -> None:
         """Keep a frame's squared residual distances ``r2 (M,)`` (0 where a marker is missing, ``seen``
@@ -407,6 +410,7 @@ class MisfitWindow:
         n = min(self._n, MISFIT_WINDOW)
         if n < MISFIT_MIN:
             return None
+        self._advance_refresh()
         rss, dof = self.sums()
         sd = noise_sd = None
         if dof > 0:
@@ -444,30 +448,70 @@ class MisfitWindow:
         rms = np.sqrt(total / np.maximum(seen, 1))
         if linearise is not None and np.isfinite(self._q[:n]).all():
             key = tuple(bad.tolist())
-            if self._loo is not None and self._loo[0] == key and self._n - self._loo[1] < ALIKE_EVERY:
-                alike = self._loo[2]  # the same markers beyond the bound: the last finding stands a while
+            if self._loo is not None and self._loo[0] == key:
+                alike = self._loo[2]  # the same markers beyond the bound: the last finding stands
+                if self._n - self._loo[1] >= ALIKE_EVERY and self._refresh is None:
+                    # until its refresh, spread over the next pushes, is done
+                    self._refresh = (key, self._n, self._alike_steps(n, s2, tested, lim, linearise))
             else:
-                alike = self._alike(n, s2, tested, lim, linearise)
-                self._loo = (key, self._n, alike)
+                alike = _finished(self._alike_steps(n, s2, tested, lim, linearise))
+                self._loo, self._refresh = (key, self._n, alike), None
             if alike.size > 1:
                 return *none, alike, rms[alike]
             if alike.size:  # the one marker that, left out, leaves the rest fitting best comes first
                 markers = np.concatenate([alike, markers[markers != alike[0]]])
         return markers, rms[markers], *none
 
-    def _alike(self, n: int, s2: float, tested, limit: float, linearise) -> np.ndarray:
+    def _advance_refresh(self) -> None:
+        """One step of the pending refresh of the leave-one-out finding; its answer replaces the finding
+        when it is done and the same markers are still beyond the bound."""
+        if self._refresh is None:
+            return
+        key, at, steps = self._refresh
+        try:
+            next(steps)
+        except StopIteration as done:
+            self._refresh = None
+            if self._loo is not None and self._loo[0] == key:
+                self._loo = (key, at, done.value)
+
+    def _alike_steps(self, n: int, s2: float, tested, limit: float, linearise):
         """:func:`alike_markers` over the window's ``n`` frames (linearised by ``linearise``) where the best
         marker left out explains the misfit: no other marker's mean ``r^2 / (D s2)`` is then beyond
-        ``limit`` (the markers' bound); none where no one marker does (two markers misfit, or all)."""
-        y, seen = self._y[:n], self._seen[:n]
-        x, J = linearise(self._q[:n])
-        rss, drop, _ = leave_one_out(y - x, J, seen)
-        alike = alike_markers((rss[:, None] - drop).sum(axis=0) / s2, tested)
+        ``limit`` (the markers' bound); none where no one marker does (two markers misfit, or all).
+
+        A generator over the window as it is now, :data:`ALIKE_CHUNK` frames a step (the sums are over
+        frames), whose return value is the answer: a refresh runs a step a push, so that no push pays for
+        the whole window (a batch of Jacobians: 5 ms for an OpenSim leg)."""
+        y, seen, q = self._y[:n].copy(), self._seen[:n].copy(), self._q[:n].copy()
+        chunks, left = [], np.zeros(seen.shape[1])
+        for a in range(0, n, ALIKE_CHUNK):
+            sl = slice(a, a + ALIKE_CHUNK)
+            x, J = linearise(q[sl])
+            refitted = _refitted(y[sl] - x, J, seen[sl])
+            rss, drop, _ = leave_one_out(y[sl] - x, J, seen[sl], refitted)
+            left += (rss[:, None] - drop).sum(axis=0)
+            chunks.append((sl, x, J, refitted))
+            yield
+        alike = alike_markers(left / s2, tested)
         if not alike.size:
             return alike
-        rest = left_out(y - x, J, seen, int(alike[0]))
-        m = np.einsum("tmd,tmd->m", rest, rest) / (self.D * s2 * np.maximum(seen.sum(axis=0), 1))
+        total = np.zeros(seen.shape[1])
+        for sl, x, J, refitted in chunks:
+            rest = left_out(y[sl] - x, J, seen[sl], int(alike[0]), refitted)
+            total += np.einsum("tmd,tmd->m", rest, rest)
+            yield
+        m = total / (self.D * s2 * np.maximum(seen.sum(axis=0), 1))
         return alike if not (tested & (m > limit)).any() else alike[:0]
+
+
+def _finished(steps):
+    """Run a generator of steps to its end: its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
 
 
 # --------------------------------------------------------------------------- which marker: leave one out
@@ -486,6 +530,12 @@ def _refitted(r, J, seen):
     return rf.reshape(T, M, D), J, G
 
 
+def _times_g(J, G):
+    """``J G`` per frame: ``(T, M, D, Q)`` from ``J (T, M, D, Q)`` and ``G (T, Q, Q)``, one product a frame."""
+    T, M, D, Q = J.shape
+    return (J.reshape(T, M * D, Q) @ G).reshape(T, M, D, Q)
+
+
 def _pinv_psd(B):
     """Pseudo-inverse of symmetric positive semi-definite blocks ``(..., D, D)`` (the directions the pose
     absorbs, eigenvalues below :data:`_ABSORBED`, left out), and their ranks ``(...)``."""
@@ -495,7 +545,7 @@ def _pinv_psd(B):
     return (V * inv[..., None, :]) @ np.swapaxes(V, -1, -2), keep.sum(axis=-1)
 
 
-def leave_one_out(r, J, seen) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def leave_one_out(r, J, seen, refitted=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each frame's residual sum of squares and how much leaving each marker out would lower it (module notes).
 
     Parameters
@@ -506,6 +556,8 @@ def leave_one_out(r, J, seen) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ``dx/dq`` there.
     seen : (T, M) bool
         Markers present.
+    refitted : tuple, optional
+        :func:`_refitted` of ``(r, J, seen)``, where already computed.
 
     Returns
     -------
@@ -516,15 +568,15 @@ def leave_one_out(r, J, seen) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rank : (T, M) int
         The residual degrees of freedom that go with marker ``k`` (0 where missing).
     """
-    r, J, G = _refitted(r, J, seen)
+    r, J, G = _refitted(r, J, seen) if refitted is None else refitted
     D = r.shape[-1]
-    H = (J @ G[:, None]) @ np.swapaxes(J, -1, -2)  # (T, M, D, D): each marker's block of the hat matrix
+    H = np.einsum("tmdq,tmeq->tmde", _times_g(J, G), J)  # (T, M, D, D): each marker's block of the hat matrix
     Binv, rank = _pinv_psd(np.eye(D) - H)
     drop = ((Binv @ r[..., None])[..., 0] * r).sum(axis=-1)
     return np.einsum("tmd,tmd->t", r, r), drop, np.where(seen, rank, 0)
 
 
-def left_out(r, J, seen, k: int) -> np.ndarray:
+def left_out(r, J, seen, k: int, refitted=None) -> np.ndarray:
     """The residuals ``(T, M, D)`` of the markers with marker ``k`` left out of every frame (its own 0).
 
     With ``B = I - H_{kk}`` (module notes), leaving marker ``k`` out moves each frame's pose by
@@ -532,13 +584,13 @@ def left_out(r, J, seen, k: int) -> np.ndarray:
 
     Parameters
     ----------
-    r, J, seen
+    r, J, seen, refitted
         As for :func:`leave_one_out`.
     k : int
     """
-    r, J, G = _refitted(r, J, seen)
+    r, J, G = _refitted(r, J, seen) if refitted is None else refitted
     D = r.shape[-1]
-    Hk = (J @ G[:, None]) @ np.swapaxes(J[:, k], -1, -2)[:, None]  # (T, M, D, D): H_{ok}
+    Hk = np.einsum("tmdq,teq->tmde", _times_g(J, G), J[:, k])  # (T, M, D, D): H_{ok}
     Binv, _ = _pinv_psd(np.eye(D) - Hk[:, k])
     out = r + (Hk @ (Binv @ r[:, k, :, None])[:, None])[..., 0]
     out[:, k] = 0.0
