@@ -517,7 +517,7 @@ def section_live(args) -> dict:
     from skelid.simulate import builtin_model, simulate
 
     _quiet()
-    for planar in (True, False):  # measure the compiled path, not the numpy one used while it compiles
+    for planar in (True, False, "custom"):  # measure the compiled path, not the numpy one used while it compiles
         _lm_kernel.warm(planar, wait=True)
     _live_kernel.warm(wait=True)  # the live step's compiled linearisation too
     out = {}

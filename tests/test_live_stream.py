@@ -321,3 +321,28 @@ def test_live_options_are_refused_before_any_wait_for_the_stream(args, words, tm
     assert time.perf_counter() - t < 5.0  # refused up front, not after --timeout
     err = capsys.readouterr().err
     assert words in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_live_run_builds_its_compiled_kernels_before_the_session_starts(monkeypatch, capsys):
+    """A session keeps the path it starts on: on a cold cache ``skelid live`` builds the kernels first (one line
+    says so) rather than running the whole session on the numpy path; on a warm one it says nothing."""
+    from skelid.cli import _live_kernels
+    from skelid.estimators.fit import _lm_kernel
+    from skelid.estimators.online import _live_kernel
+
+    if not _lm_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    calls = []
+    monkeypatch.setattr(_lm_kernel, "MODE", "1")
+    monkeypatch.setattr(_lm_kernel, "warm", lambda key, wait=True: calls.append(("pose", key, wait)))
+    monkeypatch.setattr(_live_kernel, "warm", lambda wait=True: calls.append(("live", wait)))
+    monkeypatch.setattr(_lm_kernel, "_cached", lambda key: False)
+    monkeypatch.setattr(_live_kernel, "_cached", lambda: False)
+    _live_kernels(builtin_model("case-a"), quiet=False)
+    assert calls == [("pose", True, True), ("live", True)]
+    assert "building skelid's compiled kernels once" in capsys.readouterr().err
+    calls.clear()
+    monkeypatch.setattr(_lm_kernel, "_cached", lambda key: True)
+    monkeypatch.setattr(_live_kernel, "_cached", lambda: True)
+    _live_kernels(builtin_model("case-a"), quiet=False)
+    assert calls == [] and capsys.readouterr().err == ""

@@ -649,6 +649,26 @@ def _target_sd(text):
         raise SettingError(f"--target-sd {text!r} is not a number or NAME=SD pairs", fix) from None
 
 
+def _live_kernels(model, quiet: bool) -> None:
+    """Build the compiled kernels a live session of ``model`` runs, once (numba's disk cache), before it starts:
+    a session keeps the path it starts on, and the numpy one costs an OpenSim leg about four times as much a
+    frame. Nothing without numba or with ``SKELID_NUMBA=0``."""
+    from skelid.estimators.fit import _lm_kernel
+    from skelid.estimators.online import _live_kernel
+    from skelid.model.kinematics import kinematics_plan
+
+    if not _lm_kernel.AVAILABLE or _lm_kernel.MODE == "0":
+        return
+    key = _lm_kernel.driver_key(kinematics_plan(model))
+    cold = [k for k, ready in ((key, _lm_kernel._cached(key)), ("live", _live_kernel._cached())) if not ready]
+    if not cold:
+        return
+    if not quiet:
+        click.echo("building skelid's compiled kernels once (a minute or two; later runs start at once)", err=True)
+    _lm_kernel.warm(key, wait=True)
+    _live_kernel.warm(wait=True)
+
+
 def _live_model(model_path, marker_set, names):
     """The model of a live run; an OpenSim model keeps only the markers the stream carries (``names``)."""
     from skelid.loading import load_model
@@ -712,6 +732,7 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
     rate = rate if rate is not None else source.rate
     if rate is None:
         raise SkelidError(f"stream {stream!r} has no nominal rate", "give the frames per second with --rate")
+    _live_kernels(model, quiet)
     session = Session(model, labels=source.labels, units=source.units, rate=rate, method=method, sigma=sigma,
                       target_sd=targets)
     if lsl_out:
