@@ -346,3 +346,10 @@ def test_a_live_run_builds_its_compiled_kernels_before_the_session_starts(monkey
     monkeypatch.setattr(_live_kernel, "_cached", lambda: True)
     _live_kernels(builtin_model("case-a"), quiet=False)
     assert calls == [] and capsys.readouterr().err == ""
+    monkeypatch.setattr(_live_kernel, "_cached", lambda: False)  # the live step alone
+    from skelid.live import build_kernels
+
+    assert build_kernels(builtin_model("case-a")) and calls == [("pose", True, True), ("live", True)]
+    monkeypatch.setattr(_lm_kernel, "MODE", "0")
+    calls.clear()
+    assert not build_kernels(builtin_model("case-a")) and calls == []

@@ -650,23 +650,12 @@ def _target_sd(text):
 
 
 def _live_kernels(model, quiet: bool) -> None:
-    """Build the compiled kernels a live session of ``model`` runs, once (numba's disk cache), before it starts:
-    a session keeps the path it starts on, and the numpy one costs an OpenSim leg about four times as much a
-    frame. Nothing without numba or with ``SKELID_NUMBA=0``."""
-    from skelid.estimators.fit import _lm_kernel
-    from skelid.estimators.online import _live_kernel
-    from skelid.model.kinematics import kinematics_plan
+    """Build the compiled kernels a live session of ``model`` runs before it starts (:func:`skelid.live.build_kernels`),
+    saying so on a cold cache."""
+    from skelid.live import build_kernels
 
-    if not _lm_kernel.AVAILABLE or _lm_kernel.MODE == "0":
-        return
-    key = _lm_kernel.driver_key(kinematics_plan(model))
-    cold = [k for k, ready in ((key, _lm_kernel._cached(key)), ("live", _live_kernel._cached())) if not ready]
-    if not cold:
-        return
-    if not quiet:
-        click.echo("building skelid's compiled kernels once (a minute or two; later runs start at once)", err=True)
-    _lm_kernel.warm(key, wait=True)
-    _live_kernel.warm(wait=True)
+    build_kernels(model, lambda: quiet or click.echo(
+        "building skelid's compiled kernels once (a minute or two; later runs start at once)", err=True))
 
 
 def _live_model(model_path, marker_set, names):

@@ -2132,6 +2132,35 @@ class Session:
         return out
 
 
+def build_kernels(model: Model, before: Callable[[], object] | None = None) -> bool:
+    """Build the compiled kernels a :class:`Session` of ``model`` runs, once (numba's disk cache), and wait.
+
+    A session keeps the path it starts on: one made while its kernels are not yet compiled runs numpy's
+    for its whole life (an OpenSim leg about four times slower a frame), while they compile in the
+    background for the next one. ``skelid live`` calls this first; call it before a session from Python
+    on a fresh install. ``before`` is called once if anything has to be built (to say so).
+
+    Returns
+    -------
+    bool
+        Whether anything had to be built (False without numba or with ``SKELID_NUMBA=0``).
+    """
+    from skelid.estimators.fit import _lm_kernel
+    from skelid.estimators.online import _live_kernel
+    from skelid.model.kinematics import kinematics_plan
+
+    if not _lm_kernel.AVAILABLE or _lm_kernel.MODE == "0":
+        return False
+    key = _lm_kernel.driver_key(kinematics_plan(model))
+    if _lm_kernel._cached(key) and _live_kernel._cached():
+        return False
+    if before is not None:
+        before()
+    _lm_kernel.warm(key, wait=True)
+    _live_kernel.warm(wait=True)
+    return True
+
+
 # --------------------------------------------------------------------------- the message a stream carries
 def _json_number(x) -> float | None:
     """A float for JSON: None for NaN or infinity (JSON has neither)."""
