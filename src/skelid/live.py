@@ -222,13 +222,13 @@ _Z95 = float(norm.ppf(0.975))
 _RELINEARISE = (10, 25, 50, 100, 200)
 #: the Gaussian form of a model with at most this many parameters has the grid filter beside it (early frames)
 _SHADOW_PARAMS = 3
+#: ... and relinearises at the grid's mean where its own lies more than this many of the grid's sds from it
+_ASTRAY = 4.0
 #: the stopping rule says done only once an estimated noise level rests on this many residual degrees of
 #: freedom (its relative sd 1 / sqrt(2 dof) = 7 %): two frames once gave a noise sd of 0.4 mm for 5 mm, and "done"
 DONE_NOISE_DOF = 100
 #: ... and, in the Gaussian form, keeps at most this many frames to check "done" with (about 5 MB for 30 markers)
 _DONE_KEEP = 20000
-#: ... and relinearises at the grid's mean where its own lies more than this many of the grid's sds from it
-_ASTRAY = 4.0
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
@@ -892,12 +892,12 @@ class Advice(NamedTuple):
 def _done_advice(model: Model, est: LiveEstimate, targets: np.ndarray) -> Advice:
     """The stopping rule's last advice: every requested parameter is at its target (named with its sd)."""
     asked = [(p, t) for p, t in zip(est.parameters.values(), targets, strict=True) if np.isfinite(t)]
-    closest, _ = max(asked, key=lambda pt: pt[0].sd / pt[1])
+    last, _ = max(asked, key=lambda pt: pt[0].sd / pt[1])  # the nearest its target: the last to reach it
     unit = lambda p: "" if p.unit == "1" else f" {p.unit}"  # noqa: E731
     reached = ", ".join(f"{p.name} sd {p.sd:.3g} <= {t:.3g}{unit(p)}" for p, t in asked[:4])
     more = f" and {len(asked) - 4} more" if len(asked) > 4 else ""
     return Advice(f"done: every requested parameter has reached its target sd ({reached}{more})", "", -1,
-                  math.nan, math.nan, closest.name, closest.sd, closest.sd)
+                  math.nan, math.nan, last.name, last.sd, last.sd)
 
 
 # --------------------------------------------------------------------------- the session
