@@ -187,8 +187,8 @@ from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
 from skelid._linalg import frame_gram
-from skelid.data import MAX_FIT_COORDINATE_MM, unit_scale
-from skelid.errors import DataError, ModelError, SettingError
+from skelid.data import MAX_FIT_COORDINATE_MM, MarkerData, unit_scale
+from skelid.errors import DataError, ModelError, SettingError, SkelidError
 from skelid.estimators.checks.misfit import STILL_JOINT_DEG, joint_rotations
 from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothing_penalty
@@ -229,6 +229,9 @@ _ASTRAY = 4.0
 DONE_NOISE_DOF = 100
 #: ... and, in the Gaussian form, keeps at most this many frames to check "done" with (about 5 MB for 30 markers)
 _DONE_KEEP = 20000
+#: ... and where the batch fit of those frames puts a parameter more than this many of its sds away, the basin
+#: whose frames fit better is taken
+_BATCH_SD = 2.0
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
@@ -889,6 +892,33 @@ class Advice(NamedTuple):
     sd_after: float  # expected sd of that parameter after the movement
 
 
+def _batch_theta(model: Model, frames, rate: float, sigma: float | None):
+    """The batch ``marker`` fit of the frames used (its estimate, covariance and the used frames' poses), or
+    None where it fails.
+
+    The check of the stopping rule: the recursive form follows the basin of its first linearisations, the
+    batch fit starts from its own search of the prior (a 3-D arm once said done 44 batch sd from it, with
+    every frame fitting)."""
+    import warnings
+
+    from skelid.estimators.marker import MarkerEstimator
+
+    used = [f[0] for f in frames if f[2]]
+    if len(used) < 2:
+        return None
+    data = MarkerData(np.stack(used), model.marker_names, rate, model.units)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit = MarkerEstimator(model, sigma=sigma, rng=np.random.default_rng(0)).fit(data)
+    except SkelidError:
+        return None
+    pose = np.asarray(fit.pose_, float)
+    if pose.shape != (len(used), model.n_pose):
+        return None
+    return np.asarray(fit.theta_, float), np.asarray(fit.cov_, float), pose
+
+
 def _done_advice(model: Model, est: LiveEstimate, targets: np.ndarray) -> Advice:
     """The stopping rule's last advice: every requested parameter is at its target (named with its sd)."""
     asked = [(p, t) for p, t in zip(est.parameters.values(), targets, strict=True) if np.isfinite(t)]
@@ -1074,9 +1104,9 @@ class Session:
         estimate then says whether it is ``done`` (:attr:`LiveEstimate.done`), :meth:`advice`
         aims at the requested parameter farthest from its target and says "done" when all are there.
         In the Gaussian form the estimate that would be done is first made again from every frame so
-        far, each linearised at its smoothed pose (the session keeps the frames for it; a pause of
-        about a second per thousand frames of a 3-D arm, once, and again once the frames have grown
-        by half).
+        far, each linearised at its smoothed pose, and checked against the batch fit of the same
+        frames (the session keeps the frames for it; a pause of one to a few seconds per thousand
+        frames of a 3-D arm, once, and again once the frames have grown by half).
 
     Raises
     ------
@@ -1326,7 +1356,8 @@ class Session:
         smoothed pose (:func:`relinearise`). Each frame is otherwise linearised once, at its pose filtered
         from the frames before it, and kept there: where a joint rests while another moves, the remainder
         biases the estimate by many sd over a few hundred frames (the 3-D arm's wrist centre: 6-7 sd at
-        "done", about 1 after this). Done holds from then on until the frames have grown by half again."""
+        "done", about 1 after this). The batch fit of the same frames (:func:`_batch_theta`) checks the
+        basin. Done holds from then on until the frames have grown by half again."""
         if self._frame <= self._verified_until:
             return est
         if not est.done:
@@ -1334,15 +1365,28 @@ class Session:
         frames = self._early + self._kept
         if len(frames) > _DONE_KEEP:  # past the frames kept: done is not checked again
             return est
-        self._state = relinearise(self.model, frames, self._prior, self.sigma, self._weight, self._state.mean,
-                                  self._sigma_fallback, ws=self._ws,
-                                  smoother=(self.rate, self._cutoff_now) if self._motion else None,
-                                  floor=self._sigma_floor, check=self._auto)
+        here = self._relinearised(frames, self._state.mean)
+        batch = _batch_theta(self.model, frames, self.rate, self.sigma)
+        if batch is not None:
+            sd = np.sqrt(np.clip(np.diag(batch[1]), 0.0, None))
+            if np.any(np.abs(here.mean - batch[0]) > _BATCH_SD * np.maximum(sd, 1e-300)):
+                # another basin (its poses too): the one whose frames fit better, each at its own pose
+                poses = iter(batch[2])
+                there = self._relinearised([(y, next(poses) if u else q, u) for y, q, u in frames], batch[0])
+                here = there if there.rss < here.rss else here
+        self._state = here
         self._verified_until = self._frame + self._frame // 2
         new = self._gaussian_estimate(None, [], ())
         problems = list(dict.fromkeys(h for h in (est.health, new.health) if h != "ok"))
         return dataclasses.replace(new, healthy=not problems, health="; ".join(problems) or "ok",
                                    rejected=est.rejected)
+
+    def _relinearised(self, frames, theta) -> GaussianState:
+        """:func:`relinearise` of ``frames`` (a copy of the list) at ``theta`` with the session's settings."""
+        return relinearise(self.model, list(frames), self._prior, self.sigma, self._weight, theta,
+                           self._sigma_fallback, ws=self._ws,
+                           smoother=(self.rate, self._cutoff_now) if self._motion else None,
+                           floor=self._sigma_floor, check=self._auto)
 
     def feed(self, frames, max_frames: int | None = None):
         """Push each frame of ``frames`` (any iterable) in turn, yielding the estimate after each.
