@@ -1778,14 +1778,11 @@ class Session:
         lw = self._grid._log_weights(st.rss, st.logdet, st.n_obs, st.n_used).ravel()
         if not np.isfinite(lw).any():
             return theta
-        pts = self._grid._points()[1]
         w = np.exp(lw - np.nanmax(lw))
         w = np.where(np.isfinite(w), w, 0.0)
         w /= w.sum()
-        mean = w @ pts
-        axes = self._grid._points()[0]
-        step = np.array([np.diff(a).mean() if a.size > 1 else 0.0 for a in axes])
-        sd = np.sqrt(np.clip(w @ (pts - mean) ** 2, 0.0, None) + step**2 / 12.0)
+        mean = w @ self._grid._points()[1]
+        sd = np.sqrt(np.clip(np.diag(self._grid_cov(w, mean)), 0.0, None))
         return mean if np.any(np.abs(np.asarray(theta) - mean) > _ASTRAY * sd) else theta
 
     def _set_weight(self, cutoff) -> None:
