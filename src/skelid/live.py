@@ -1365,7 +1365,7 @@ class Session:
         frames = self._early + self._kept
         if len(frames) > _DONE_KEEP:  # past the frames kept: done is not checked again
             return est
-        here = self._relinearised(frames, self._state.mean)
+        here = self._relinearised(list(frames), self._state.mean)  # a copy: the other basin starts from these poses
         batch = _batch_theta(self.model, frames, self.rate, self.sigma)
         if batch is not None:
             sd = np.sqrt(np.clip(np.diag(batch[1]), 0.0, None))
@@ -1382,8 +1382,8 @@ class Session:
                                    rejected=est.rejected)
 
     def _relinearised(self, frames, theta) -> GaussianState:
-        """:func:`relinearise` of ``frames`` (a copy of the list) at ``theta`` with the session's settings."""
-        return relinearise(self.model, list(frames), self._prior, self.sigma, self._weight, theta,
+        """:func:`relinearise` of ``frames`` (their poses written back) at ``theta`` with the session's settings."""
+        return relinearise(self.model, frames, self._prior, self.sigma, self._weight, theta,
                            self._sigma_fallback, ws=self._ws,
                            smoother=(self.rate, self._cutoff_now) if self._motion else None,
                            floor=self._sigma_floor, check=self._auto)
@@ -1761,10 +1761,7 @@ class Session:
                 self._shadow = None
         if self._auto and len(self._early) >= 50:
             self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
-        self._state = relinearise(self.model, self._early, self._prior, self.sigma, self._weight, theta,
-                                  self._sigma_fallback, ws=self._ws,
-                                  smoother=(self.rate, self._cutoff_now) if self._motion else None,
-                                  floor=self._sigma_floor, check=self._auto)
+        self._state = self._relinearised(self._early, theta)
 
     def _noise_dof(self, st) -> float:
         """Residual degrees of freedom behind the noise level (inf where it was stated)."""
