@@ -191,7 +191,7 @@ from skelid.data import MAX_FIT_COORDINATE_MM, MarkerData, unit_scale
 from skelid.errors import DataError, ModelError, SettingError, SkelidError
 from skelid.estimators.checks.misfit import STILL_JOINT_DEG, joint_rotations
 from skelid.estimators.fit import _lm_kernel
-from skelid.estimators.fit.joint import _gain, smoothing_penalty
+from skelid.estimators.fit.joint import _gain, smoothed_bias_sums, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.estimators.online import _live_kernel
 from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
@@ -232,6 +232,13 @@ _DONE_KEEP = 20000
 #: ... and where the batch fit of those frames puts a parameter more than this many of its sds away, the basin
 #: whose frames fit better is taken
 _BATCH_SD = 2.0
+#: after the early frames, the frames are folded in again at their smoothed poses this many at a time
+#: (:meth:`Session._commit_block`) ...
+_BLOCK = 200
+#: ... each smoothed with this many frames before it and after it
+_LAG = 50
+#: ... and the bias they carry is solved again with the information of every frame at most this many frames apart
+_BIAS_EVERY = 10
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
@@ -543,10 +550,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     full step from there overshoots on the curved Euler-angle surface and lands
     on poses that fit neither the markers nor the motion model.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import spsolve
-
-    from skelid.estimators.fit.joint import _continuous_poses
+    from skelid.estimators.fit.joint import _banded_solver, _continuous_poses
 
     T, Q = q.shape
     m = np.isfinite(y).all(axis=-1) & np.asarray(used, bool)[:, None]
@@ -563,9 +567,8 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     S = objective(x, q)
     for _ in range(n_iter):
         r = ((y0 - x) * m[..., None]).reshape(T, -1)
-        scale = max(float(np.einsum("tii->", Hqq)) / (T * Q), 1e-300)
-        A = (sp.block_diag(list(Hqq), format="csc") + R + sp.identity(T * Q, format="csc") * (1e-10 * scale))
-        dq = spsolve(A.tocsc(), np.einsum("tni,tn->ti", J, r).ravel() - R @ q.ravel()).reshape(T, Q)
+        # blockdiag(Hqq) + R is banded (the motion model links four frames): a banded Cholesky
+        dq = _banded_solver(Hqq, R)(np.einsum("tni,tn->ti", J, r).ravel() - R @ q.ravel()).reshape(T, Q)
         for _ in range(30):  # step halving: S must not increase
             q_new = q + dq
             x_new = marker_positions(model, theta, q_new, ws)
@@ -672,7 +675,8 @@ def _smooth_fits(model: Model, theta, y, q, rss_free: float, sigma2: float, ws: 
 
 def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None,
-                floor: float = 0.0, check: bool = False) -> GaussianState:
+                floor: float = 0.0, check: bool = False, start: GaussianState | None = None,
+                context: int = 0, split: int | None = None):
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
 
     The recursive update linearises each frame at the mean of its time; the
@@ -701,13 +705,26 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
         tens of radians in opposite directions); the frames are then linearised at their free poses
         without the motion model, and its chain starts afresh at the next frame. A fixed cutoff may be
         slower than the movement, and its smoothed poses misfit as the batch fit's do: not checked.
+    start : GaussianState, optional
+        The state the frames are folded into (default: no frame yet). Its held poses, if any, are the
+        frames' before ``frames[context]``, and the motion model's chain goes on from them.
+    context : int
+        The first ``context`` frames are already in ``start``: their poses are fitted and smoothed with the
+        rest, so that the frames after them are smoothed with their past as well as their future, and they
+        are not folded in again.
+    split : int, optional
+        Also return the state after the frames before ``frames[split]`` (``context <= split``), its mean
+        solved: ``(state after all, state at split)``.
+
+    Returns
+    -------
+    GaussianState, or (GaussianState, GaussianState) with ``split``
     """
     Y = np.stack([f[0] for f in frames])
     Q0 = np.stack([f[1] for f in frames])
     used = np.array([f[2] for f in frames])
     present = np.isfinite(Y).all(axis=-1)
     B = len(frames)
-    P, D = model.n_params, model.dim
     state = None
     motion = bool(np.any(np.asarray(weight) > 0))
     for _ in range(n_iter):
@@ -720,37 +737,67 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
             # linearise at the smoothed poses, as the batch fit with this motion model converges to: the
             # per-frame or filtered poses are off by the noise, which biases theta where a pose is poorly fixed
             qs = smoothed_poses(model, theta, Y, q, used, smoother[0], smoother[1], ws)
-            n_obs = int(present[used].sum()) * D
+            n_obs = int(present[used].sum()) * model.dim
             s2 = _sigma2(float(rss_free.sum()), n_obs, int(used.sum()), model, sigma, fallback, floor)
             if not check or _smooth_fits(model, theta, Y[used], qs[used], float(rss_free.sum()), s2, ws):
                 q = qs
             else:
                 chain = False
         w = weight if chain else np.zeros_like(np.asarray(weight, float))
-        x, Jq, Jt = marker_jacobian(model, theta, q, ws)
-        state = empty_state(model, prior)
-        gap = 0
-        for b in range(B):
-            if not used[b]:
-                gap += 1
-                if chain and state.poses.shape[0]:  # the pose goes on by the motion model alone
-                    state = (drop_poses(state) if gap > _BRIDGE else
-                             absorb(state, None, None, None, q[b], theta, w, 0, 0.0))
-                continue
-            gap = 0
-            m = present[b]
-            r = (Y[b, m] - x[b, m]).reshape(-1)
-            state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
-                           w, int(m.sum()) * D, float(rss_free[b]))
-        s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
-        state = solve_mean(state, prior, s2, pose=chain)
-        if not chain:
-            if motion:  # the motion model starts afresh at the next frame
-                state = drop_poses(state)
-            state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
+        state = empty_state(model, prior) if start is None else start
+        if not chain and state.poses.shape[0]:
+            state = drop_poses(state)
+        state, snap = _folded(model, state, Y, q, used, rss_free, theta, w, chain, context, split, ws)
+        state = _solved(model, state, prior, sigma, fallback, floor, chain, motion, q, used)
         theta, Q0 = state.mean, q
     for k, (y, _, u) in enumerate(frames):
         frames[k] = (y, Q0[k], u)
+    if split is None:
+        return state
+    return state, _solved(model, snap, prior, sigma, fallback, floor, chain, motion, q[:split], used[:split])
+
+
+def _folded(model: Model, state: GaussianState, Y, q, used, rss_free, theta, w, chain: bool, first: int,
+            split: int | None, ws: Workspace | None) -> tuple[GaussianState, GaussianState]:
+    """Frames ``first`` on of ``Y (B, M, D)`` folded into ``state``, each linearised at ``(theta, q[b])``
+    (:func:`absorb`): ``(state after all, state before frame split)``.
+
+    A frame not ``used`` lets the pose go on by the motion model alone (``chain``), for at most
+    :data:`_BRIDGE` frames in a row; after a longer gap the held poses are marginalised.
+    """
+    B = len(Y)
+    P, D = model.n_params, model.dim
+    present = np.isfinite(Y).all(axis=-1)
+    x, Jq, Jt = marker_jacobian(model, theta, q, ws)
+    snap = state
+    gap = 0
+    for b in range(first, B):
+        if b == split:
+            snap = state
+        if not used[b]:
+            gap += 1
+            if chain and state.poses.shape[0]:  # the pose goes on by the motion model alone
+                state = (drop_poses(state) if gap > _BRIDGE else
+                         absorb(state, None, None, None, q[b], theta, w, 0, 0.0))
+            continue
+        gap = 0
+        m = present[b]
+        r = (Y[b, m] - x[b, m]).reshape(-1)
+        state = absorb(state, r, Jq[b, m].reshape(r.size, -1), Jt[b, m].reshape(r.size, P), q[b], theta,
+                       w, int(m.sum()) * D, float(rss_free[b]))
+    return state, (state if split is None or split >= B else snap)
+
+
+def _solved(model: Model, state: GaussianState, prior, sigma, fallback: float, floor: float, chain: bool,
+            motion: bool, q, used) -> GaussianState:
+    """``state`` after :func:`relinearise`'s frames ``q``, ``used``: its mean solved (the newest pose too where
+    the motion model's chain holds; else the last used frame's pose, the chain to start afresh)."""
+    s2 = _sigma2(state.rss, state.n_obs, state.n_used, model, sigma, fallback, floor)
+    state = solve_mean(state, prior, s2, pose=chain)
+    if not chain:
+        if motion:  # the motion model starts afresh at the next frame
+            state = drop_poses(state)
+        state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
     return state
 
 
@@ -916,7 +963,9 @@ def _batch_theta(model: Model, frames, rate: float, sigma: float | None):
     pose = np.asarray(fit.pose_, float)
     if pose.shape != (len(used), model.n_pose):
         return None
-    return np.asarray(fit.theta_, float), np.asarray(fit.cov_, float), pose
+    # its estimate before the bias is taken off, as the session's state holds it (the session takes the same
+    # second-order bias off what it reports)
+    return np.asarray(fit.theta_profile_, float), np.asarray(fit.cov_, float), pose
 
 
 def _done_advice(model: Model, est: LiveEstimate, targets: np.ndarray) -> Advice:
@@ -1163,6 +1212,15 @@ class Session:
         self._auto = _check_cutoff(model, cutoff)
         self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
         self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
+        # after the early frames, under a motion model: the state with every frame up to the block's folded in
+        # at its smoothed pose, and the block's frames since (the first _LAG of them already in that state)
+        self._committed: GaussianState | None = None
+        self._block: list = []
+        self._n_new = 0  # frames added to the block since it was last committed
+        # the second-order bias of the frames folded in at their smoothed poses (:meth:`_add_bias`): sum S b at
+        # unit noise (S a block's information, b its bias)
+        self._bias_sum: np.ndarray | None = None
+        self._bias, self._bias_at = np.zeros(model.n_params), 0  # the bias per unit noise variance, and when
         self.n_iter = int(n_iter)
         self._set_weight(self._cutoff_now)
         self._rot = np.array([d.kind == "R" for d in model.dofs])
@@ -1365,28 +1423,37 @@ class Session:
         frames = self._early + self._kept
         if len(frames) > _DONE_KEEP:  # past the frames kept: done is not checked again
             return est
-        here = self._relinearised(list(frames), self._state.mean)  # a copy: the other basin starts from these poses
-        batch = _batch_theta(self.model, frames, self.rate, self.sigma)
+        # the frames of the block not yet committed (:meth:`_commit_block`) are the last ones: the committed
+        # state is taken before them
+        split = None if self._committed is None else len(frames) - (len(self._block) - _LAG)
+        here = self._relinearised(list(frames), self._state.mean, split=split)  # a copy: the other basin starts
+        batch = _batch_theta(self.model, frames, self.rate, self.sigma)           # from these poses
         if batch is not None:
             sd = np.sqrt(np.clip(np.diag(batch[1]), 0.0, None))
-            if np.any(np.abs(here.mean - batch[0]) > _BATCH_SD * np.maximum(sd, 1e-300)):
+            if np.any(np.abs(_live_part(here).mean - batch[0]) > _BATCH_SD * np.maximum(sd, 1e-300)):
                 # another basin (its poses too): the one whose frames fit better, each at its own pose
                 poses = iter(batch[2])
-                there = self._relinearised([(y, next(poses) if u else q, u) for y, q, u in frames], batch[0])
-                here = there if there.rss < here.rss else here
-        self._state = here
+                there = self._relinearised([(y, next(poses) if u else q, u) for y, q, u in frames], batch[0],
+                                           split=split)
+                here = there if _live_part(there).rss < _live_part(here).rss else here
+        if split is None:
+            self._state = here
+        else:
+            self._state, self._committed = here
+        self._bias_at = -_BIAS_EVERY  # the bias solved again with the new state's information
         self._verified_until = self._frame + self._frame // 2
         new = self._gaussian_estimate(None, [], ())
         problems = list(dict.fromkeys(h for h in (est.health, new.health) if h != "ok"))
         return dataclasses.replace(new, healthy=not problems, health="; ".join(problems) or "ok",
                                    rejected=est.rejected)
 
-    def _relinearised(self, frames, theta) -> GaussianState:
-        """:func:`relinearise` of ``frames`` (their poses written back) at ``theta`` with the session's settings."""
+    def _relinearised(self, frames, theta, **how):
+        """:func:`relinearise` of ``frames`` (their poses written back) at ``theta`` with the session's settings
+        (``how``: its other arguments)."""
         return relinearise(self.model, frames, self._prior, self.sigma, self._weight, theta,
                            self._sigma_fallback, ws=self._ws,
                            smoother=(self.rate, self._cutoff_now) if self._motion else None,
-                           floor=self._sigma_floor, check=self._auto)
+                           floor=self._sigma_floor, check=self._auto, **how)
 
     def feed(self, frames, max_frames: int | None = None):
         """Push each frame of ``frames`` (any iterable) in turn, yielding the estimate after each.
@@ -1762,6 +1829,72 @@ class Session:
         if self._auto and len(self._early) >= 50:
             self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
         self._state = self._relinearised(self._early, theta)
+        if len(self._early) >= _RELINEARISE[-1] and self._motion:
+            self._committed, self._block = self._state, list(self._early[-_LAG:])
+            self._add_bias(self._early, self._state.mean)
+
+    def _commit_block(self) -> None:
+        """The block's frames folded in again at their poses smoothed with :data:`_LAG` frames on each side.
+
+        A frame arriving is linearised once, at its pose filtered from the frames before it; where the markers
+        barely fix a pose, the smoothed pose ends elsewhere, and the remainder of that linearisation has one
+        sign frame after frame: over an hour it biased case A at 15 mm by 62 of its sds. Every
+        :data:`_BLOCK` frames (on the frame the cutoff is chosen again), the frames not yet committed but the
+        last :data:`_LAG` are folded into the committed state again at their smoothed poses (poses fitted
+        again at the current mean, smoothed with :data:`_LAG` frames before and after them) and the current
+        mean, and the last :data:`_LAG` frames on top of them: each frame ends linearised where the batch fit
+        with this motion model linearises it, at a cost of about one more fold per frame, in one pause. The
+        block's second-order bias is added (:meth:`_add_bias`)."""
+        theta = self._state.mean
+        split = len(self._block) - _LAG
+        live, committed = self._relinearised(self._block, theta, start=self._committed, context=_LAG,
+                                             split=split, n_iter=1)
+        self._committed, self._state = committed, live
+        self._add_bias(self._block[_LAG:split], theta)
+        self._block = self._block[split - _LAG:]
+        self._n_new = 0
+
+    def _add_bias(self, frames, theta) -> None:
+        """The frames' second-order bias added to the session's (:func:`smoothed_bias_sums`, unit noise).
+
+        Folded in at its smoothed pose, each frame carries the bias of the batch ``marker`` fit with the
+        same motion model, of order sigma^2: it does not shrink as the frames add up, and their sd does
+        (case A at 15 mm: 5 sd after 10 000 frames). The batch fit takes its second-order bias off; so does
+        the session (:meth:`_unbiased`), from the frames' smoothed poses (``frames``: ``(y, pose, used)``) at
+        ``theta``. Each block's expansion takes theta as known (the limit of many frames; the terms of order
+        sigma^2 / T, which the batch fit keeps, are left out), so that a block that alone leaves a parameter
+        unidentified has a bias too."""
+        model = self.model
+        y = np.stack([f[0] if f[2] else np.full_like(f[0], np.nan) for f in frames])
+        q = np.stack([f[1] for f in frames])
+        present = np.isfinite(y).all(axis=-1)
+        Jq = marker_jacobian(model, theta, q, self._ws)[1] * present[..., None, None]
+        R = smoothing_penalty(model, frame_gram(Jq.reshape(len(frames), -1, model.n_pose)), self.rate,
+                              self._cutoff_now)
+        try:
+            num, den = smoothed_bias_sums(model, y, theta, q, 1.0, R, theta_known=True)
+        except np.linalg.LinAlgError:
+            return
+        if not (np.isfinite(num).all() and np.isfinite(den).all()):
+            return
+        self._bias_sum = num if self._bias_sum is None else self._bias_sum + num
+        self._bias_at = -_BIAS_EVERY  # solved again at the next estimate
+
+    def _unbiased(self, st: GaussianState, s2: float) -> np.ndarray:
+        """The mean of ``st`` less the second-order bias of the frames folded in at their smoothed poses
+        (:meth:`_add_bias`) at noise variance ``s2``, within the prior's bounds.
+
+        The bias is ``s2 (sum S)^{-1} sum S b`` with the sum of information over every frame the state holds,
+        the prior's included (at unit noise), not over the blocks alone: a block that leaves a parameter
+        barely identified (a joint still in it) has a large bias along it, which only the frames after it
+        outweigh; the frames not yet folded in again add their information but no bias (at most
+        :data:`_BLOCK` + :data:`_LAG` frames: the bias is then a little short of the batch fit's)."""
+        if self._bias_sum is None:
+            return st.mean
+        if self._frame >= self._bias_at + _BIAS_EVERY:  # the information grows slowly: solved now and then
+            Lam = _theta_information(st, self._prior, s2)[0] * s2  # unit noise
+            self._bias, self._bias_at = np.linalg.solve(Lam, self._bias_sum), self._frame
+        return np.clip(st.mean - s2 * self._bias, self._prior[2], self._prior[3])
 
     def _noise_dof(self, st) -> float:
         """Residual degrees of freedom behind the noise level (inf where it was stated)."""
@@ -1829,6 +1962,11 @@ class Session:
                 self._shadow = st
         n = len(self._early)
         if n >= _RELINEARISE[-1]:
+            if self._committed is not None:
+                self._block.append((y, q, used))
+                self._n_new += 1
+                if self._n_new == _BLOCK:  # on the frame the cutoff is chosen again (one pause, not two)
+                    self._commit_block()
             if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
                 self._recent.append((y, q, used))
                 if len(self._recent) == _RELINEARISE[-1]:
@@ -1853,7 +1991,8 @@ class Session:
         on, lines = self._gaussian_bound(st, s2)
         problems = problems + self._notes(lines)
         healthy = not problems
-        return LiveEstimate(self._frame, self._frame / self.rate, _frozen(st.mean), _frozen(st.pose_mean),
+        return LiveEstimate(self._frame, self._frame / self.rate, _frozen(self._unbiased(st, s2)),
+                            _frozen(st.pose_mean),
                             math.sqrt(s2), healthy, "ok" if healthy else "; ".join(problems), rejected,
                             self.model, partial(theta_cov, st, self._prior, s2), resid, self._ranges, on,
                             self._motion_seen(y if used else None, q, st.mean), self._targets,
@@ -2142,7 +2281,8 @@ class Session:
             w /= w.sum()
             mean = w @ self._grid._points()[1]
             return mean, self._grid_cov(w, mean)
-        return self._state.mean.copy(), theta_cov(self._state, self._prior, self._current_sigma2())
+        s2 = self._current_sigma2()
+        return self._unbiased(self._state, s2).copy(), theta_cov(self._state, self._prior, s2)
 
     def _grid_sigma(self) -> float:
         st = self._state
@@ -2432,6 +2572,11 @@ class _Step:
             ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
         return ses._gaussian_estimate(resid, problems, (), used=True, y=y, q=q)
+
+
+def _live_part(states) -> GaussianState:
+    """The state after every frame, from :func:`relinearise`'s answer with or without ``split``."""
+    return states if isinstance(states, GaussianState) else states[0]
 
 
 def _for_all(cutoffs) -> np.ndarray:

@@ -105,7 +105,7 @@ def test_smoothed_bias_equals_the_dense_formula():
         w += -0.5 * J[rows].T @ d
         w[cols] += np.einsum("ijl,li->j", H, V[np.ix_(cols, np.arange(J.shape[0])[rows])])
     expected = (C @ w)[:P]
-    b, S = _smoothed_bias_dense(model, y, theta, q, 1.0, R, step)
+    b, S, _ = _smoothed_bias_dense(model, y, theta, q, 1.0, R, step)
     np.testing.assert_allclose(b, expected, rtol=1e-6)
     np.testing.assert_allclose(S, np.linalg.inv(C[:P, :P]), rtol=1e-8)
 

@@ -989,28 +989,48 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
     diagonal of the pose blocks of ``sigma2 C``, piece by piece) is appended to it.
     """
     T = len(q)
+    if max_frames is None:
+        max_frames = max(50, 2400 // model.n_pose)
+    if T > max_frames:
+        num, den = smoothed_bias_sums(model, y, theta, q, sigma2, R, step, max_frames, weights, pose_var)
+        return np.linalg.solve(den, num)
+    pieces = None if pose_var is None else []
+    if weights is not None:
+        weights = np.broadcast_to(np.asarray(weights, float), np.asarray(y).shape[:2])
+    b = _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights, pieces)[0]
+    if pieces is not None:
+        pose_var.append(pieces[0])
+    return b
+
+
+def smoothed_bias_sums(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
+                       max_frames: int | None = None, weights=None, pose_var: list | None = None,
+                       theta_known: bool = False):
+    """:func:`smoothed_bias`'s pieces summed: ``(sum_k S_k b_k (P,), sum_k S_k (P, P))``.
+
+    ``S_k`` is piece ``k``'s information about theta (unit noise), ``b_k`` its bias: sums over frames
+    that can be added to (a live session's blocks); the bias of them all is ``solve(sum S, sum S b)``
+    where the sum is definite. With ``theta_known``, each piece's expansion takes theta as known (the
+    limit of many frames besides it, :func:`_arrow_inverse_blocks`): its terms of order ``sigma^2 / T`` are
+    left out, and a piece that alone leaves theta unidentified (a joint still in it) has a bias.
+    """
+    T = len(q)
     pieces = None if pose_var is None else []
     if weights is not None:
         weights = np.broadcast_to(np.asarray(weights, float), np.asarray(y).shape[:2])
     if max_frames is None:
         max_frames = max(50, 2400 // model.n_pose)
-    if T > max_frames:
-        n = int(np.ceil(T / max_frames))
-        edges = np.linspace(0, T, n + 1).astype(int)
-        num, den = 0.0, 0.0
-        for a, b in zip(edges[:-1], edges[1:], strict=True):
-            Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
-            bb, S = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step,
-                                         None if weights is None else weights[a:b], pieces)
-            num = num + S @ bb
-            den = den + S
-        if pieces is not None:
-            pose_var.append(np.concatenate(pieces))
-        return np.linalg.solve(den, num)
-    b = _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights, pieces)[0]
+    edges = np.linspace(0, T, max(1, int(np.ceil(T / max_frames))) + 1).astype(int)
+    num, den = 0.0, 0.0
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
+        _, S, score = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step,
+                                           None if weights is None else weights[a:b], pieces, theta_known)
+        num = num + score
+        den = den + S
     if pieces is not None:
-        pose_var.append(pieces[0])
-    return b
+        pose_var.append(np.concatenate(pieces))
+    return num, den
 
 
 def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
@@ -1018,10 +1038,12 @@ def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
     return R[a * Q:b * Q, a * Q:b * Q]
 
 
-def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
+def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0, theta_known: bool = False):
     """Diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` for the arrow matrix of a smoothed joint fit.
 
-    ``N = s [[Htt, Hqt^T], [Hqt, blockdiag(Hqq)]] + [[0, 0], [0, R]]`` with ``s = scale``.
+    ``N = s [[Htt, Hqt^T], [Hqt, blockdiag(Hqq)]] + [[0, 0], [0, R]]`` with ``s = scale``; with
+    ``theta_known``, the limit of information about theta from elsewhere without bound (``S^{-1} = 0``: the
+    poses' own covariance only).
     Eliminating the poses, ``A = s blockdiag(Hqq) + R`` (banded), ``G = A^{-1} s Hqt``,
     ``S = s Htt - s Hqt^T G``; then ``C_{theta theta} = S^{-1}``,
     ``C_{q_t theta} = -G_t S^{-1}`` and ``C_{q_t q_t} = (A^{-1})_{tt} + G_t S^{-1} G_t^T``,
@@ -1045,8 +1067,11 @@ def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
         except np.linalg.LinAlgError:
             continue
     G = cho_solve_banded((U, False), scale * Hqt.reshape(T * Q, P), check_finite=False).reshape(T, Q, P)
-    S = scale * Htt - scale * summed_gram(Hqt, G)
-    S_inv = np.linalg.inv(0.5 * (S + S.T))
+    if theta_known:
+        S_inv = np.zeros((P, P))
+    else:
+        S = scale * Htt - scale * summed_gram(Hqt, G)
+        S_inv = np.linalg.inv(0.5 * (S + S.T))
     GS = G @ S_inv  # (T, Q, P)
     out = np.empty((T, P + Q, P + Q))
     out[:, :P, :P] = S_inv
@@ -1060,8 +1085,9 @@ def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0):
 _SANDWICH_STEP = 1e-4
 
 
-def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose_var=None):
-    """The bias of one piece of a trial (see :func:`smoothed_bias`) and its information ``S``.
+def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose_var=None,
+                         theta_known: bool = False):
+    """The bias ``b`` of one piece of a trial (see :func:`smoothed_bias`), its information ``S`` and ``S b``.
 
     Linear in frames: only diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` and of
     ``C R C`` are needed. The first come from :func:`_arrow_inverse_blocks`; for
@@ -1080,9 +1106,9 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     Hqt = frame_gram(Jq, Jt)
     Htt = summed_gram(Jt)
     h = _SANDWICH_STEP
-    plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h)
-    minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h)
-    Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R)
+    plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h, theta_known)
+    minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h, theta_known)
+    Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, theta_known=theta_known)
     if pose_var is not None:  # the variance of each pose estimate, for the check of the expansion
         pose_var.append(sigma2 * np.clip(np.diagonal(Cdiag[:, P:, P:], axis1=1, axis2=2), 0.0, None))
     Sig = (minus - plus) / (2.0 * h)  # blocks of C J^T J C (unit noise)
@@ -1110,5 +1136,6 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     u = (DJ.reshape(T, P + Q, -1) @ (v * wmask[..., None]).reshape(T, -1, 1))[..., 0]  # sum_i H_i v_i per block
     wvec = -0.5 * np.einsum("tij,ti->tj", Jfull, d) + u  # (T, P+Q)
     # b = sigma^2 C[:P] w with C[theta, theta] = S^{-1}, C[theta, q_t] = -S^{-1} G_t^T
-    b = sigma2 * (S_inv @ (wvec[:, :P].sum(axis=0) - np.einsum("tqp,tq->p", G, wvec[:, P:])))
-    return b, np.linalg.inv(S_inv)
+    score = sigma2 * (wvec[:, :P].sum(axis=0) - np.einsum("tqp,tq->p", G, wvec[:, P:]))  # = S b
+    S = Htt - summed_gram(Hqt, G) if theta_known else np.linalg.inv(S_inv)
+    return S_inv @ score, S, score
