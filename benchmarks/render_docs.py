@@ -697,6 +697,23 @@ def live_stopping() -> str:
     return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, d)
 
 
+def live_long() -> str:
+    """Long live sessions (benchmarks/live_long.py): coverage as the frames add up."""
+    path = RESULTS / "live_long.json"
+    if not path.exists():
+        return "*Not measured yet.* `python benchmarks/live_long.py` writes `benchmarks/results/live_long.json`.\n"
+    d = load(path)
+    cps = d["checkpoints"]
+    lines = ["| cell | " + " | ".join(f"{c} frames" for c in cps) + " |", "|---|" + "---|" * len(cps)]
+    for cell, r in d["cells"].items():
+        lines.append(f"| {cell} | " + " | ".join(f"{r[str(c)]['coverage']:.2f} ({r[str(c)]['mean_z']:+.2f}, "
+                                                 f"{r[str(c)]['rms_z']:.2f})" for c in cps) + " |")
+    note = (f"Coverage of every parameter's 95 % interval (mean z, rms z); {d['reps']} sessions per cell, geometry "
+            "drawn from the prior, the session's defaults, 100 Hz. "
+            "[`benchmarks/results/live_long.md`](/benchmarks/results/live_long.md)")
+    return "\n".join(lines) + "\n\n" + note + "\n\n" + source(path, d)
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "demo": demo,
     "opensim-scales": opensim_scales,
@@ -717,6 +734,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "live-speed": live_speed,
     "live-health": live_health,
     "live-stopping": live_stopping,
+    "live-long": live_long,
 }
 
 

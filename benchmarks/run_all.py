@@ -133,6 +133,8 @@ BENCHMARKS: tuple[Bench, ...] = (
        "case-a sigma 5 mm"), ("live_agreement_case_a.json", "live_agreement_case_a.md")),
     B("live_health", "live_health.py", (), ("--quick",), ("live_health.json", "live_health.md")),
     B("soak", "soak.py", (), ("--minutes", "2"), ("soak.json", "soak.md")),
+    B("live_long", "live_long.py", ("--reps", "100", "--jobs", "2"),
+      ("--reps", "2", "--jobs", "2", "--checkpoints", "500", "1000"), ("live_long.json", "live_long.md")),
     B("stopping_rule", "stopping_rule.py", ("--reps", "100", "--jobs", "2"), ("--reps", "2", "--jobs", "2"),
       ("stopping_rule.json", "stopping_rule.md")),
     B("batch_faults", "batch_faults.py", (), ("--trials", "20", "--start-trials", "4", "--race-seconds", "1"),
