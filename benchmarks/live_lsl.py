@@ -70,11 +70,12 @@ def _receiver(out: list, done: threading.Event):
 def one_case(case: str, n_frames: int, rate: float, skip: int, seed: int) -> dict:
     from skelid.io import write_trc
     from skelid.io.stream import LslFrames, UdpMessages
-    from skelid.live import Session, run
+    from skelid.live import Session, build_kernels, run
     from skelid.loading import load_model
     from skelid.simulate import builtin_model, simulate
 
     model = builtin_model(case) if case == "case-a" else load_model(CASES[case])
+    build_kernels(model)  # as `skelid live` does: the session runs the compiled path from its first frame
     trial = simulate(model, n_frames=n_frames, rate=rate, sigma=SIGMA[case], rng=np.random.default_rng(seed))
     name = f"skelid-bench-{uuid.uuid4().hex[:8]}"
     with tempfile.TemporaryDirectory() as tmp:

@@ -86,9 +86,10 @@ def _blocks(fed: dict, block: int) -> dict:
 
 
 def run_case(name: str, model, sigma: float, method: str, minutes: int, seed: int) -> dict:
-    from skelid.live import Session
+    from skelid.live import Session, build_kernels
     from skelid.simulate import simulate
 
+    build_kernels(model)  # a session keeps the path it starts on: the compiled one, as `skelid live` makes sure
     n = minutes * MINUTE
     trial = simulate(model, sigma=sigma, n_frames=n, rate=RATE, rng=np.random.default_rng(seed))
     positions = np.asarray(trial.data.positions)
