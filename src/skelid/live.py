@@ -1894,7 +1894,7 @@ class Session:
         if self._frame >= self._bias_at + _BIAS_EVERY:  # the information grows slowly: solved now and then
             Lam = _theta_information(st, self._prior, s2)[0] * s2  # unit noise
             self._bias, self._bias_at = np.linalg.solve(Lam, self._bias_sum), self._frame
-        return np.clip(st.mean - s2 * self._bias, self._prior[2], self._prior[3])
+        return np.minimum(np.maximum(st.mean - s2 * self._bias, self._prior[2]), self._prior[3])  # np.clip, quicker
 
     def _noise_dof(self, st) -> float:
         """Residual degrees of freedom behind the noise level (inf where it was stated)."""
