@@ -1361,13 +1361,14 @@ def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) 
 
 def _summed_terms(q, r, Jq, Jt, y=None, floor=None) -> tuple:
     """:func:`_trial_terms` from the fitted poses, their residuals and both Jacobians."""
-    from skelid.estimators.fit.likelihood import projected_sums
+    from skelid.estimators.fit.likelihood import projected_theta_jacobian
 
+    Kp = projected_theta_jacobian(Jq, Jt)
+    out = (q, summed_gram(Kp), summed_product(Kp, r), float(np.sum(r**2)))
     if floor is None:
-        return (q, *projected_sums(Jq, Jt, r), float(np.sum(r**2)))
+        return out
     var = np.maximum(marker_noise_variances(Jq, r, np.isfinite(y).all(axis=-1)), floor**2)
-    S, g, Sw = projected_sums(Jq, Jt, r, w=np.repeat(var, r.shape[1] // var.size))
-    return q, S, g, float(np.sum(r**2)), Sw, var
+    return out + (summed_gram(Kp, w=np.repeat(var, r.shape[1] // var.size)), var)
 
 
 def _trial_cost(model: Model, theta, y, q, ws, weights, pose_iter) -> tuple:

@@ -1,7 +1,6 @@
 """Normal-equation pieces of the marker likelihood against per-frame loops."""
 
 import numpy as np
-import pytest
 
 from skelid.estimators.fit.likelihood import frame_terms, pose_information, projected_theta_jacobian
 from tests.helpers import tree_3d_functional
@@ -32,22 +31,3 @@ def test_projected_theta_jacobian_is_the_residual_of_a_least_squares_fit_on_the_
     for idx in np.ndindex(Jq.shape[:-2]):
         coef, *_ = np.linalg.lstsq(Jq[idx], Jt[idx], rcond=None)
         np.testing.assert_allclose(Kp[idx], Jt[idx] - Jq[idx] @ coef, atol=1e-6 * np.abs(Jt[idx]).max())
-
-
-@pytest.mark.parametrize("chunk", [1, 7, 64])
-def test_projected_sums_equal_the_sums_of_the_whole_projection(chunk):
-    """The sums a few frames at a time equal those of ``projected_theta_jacobian`` of the whole trial (a frame
-    without rows included: its ridge takes the whole trial's mean scale, as there)."""
-    from skelid._linalg import summed_gram, summed_product
-    from skelid.estimators.fit.likelihood import projected_sums
-
-    rng = np.random.default_rng(4)
-    J, K, r = rng.standard_normal((40, 12, 5)), rng.standard_normal((40, 12, 7)), rng.standard_normal((40, 12))
-    J[3], K[3] = 0.0, 0.0
-    w = rng.random(12) + 0.5
-    Kp = projected_theta_jacobian(J, K)
-    S, g, Sw = projected_sums(J, K, r, w=w, chunk=chunk)
-    np.testing.assert_allclose(S, summed_gram(Kp), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(g, summed_product(Kp, r), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(Sw, summed_gram(Kp, w=w), rtol=1e-12, atol=1e-12)
-    assert len(projected_sums(J, K, r, chunk=chunk)) == 2

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from skelid._linalg import summed_gram, summed_product
+from skelid._linalg import summed_gram
 from skelid.model.description import Model
 from skelid.model.kinematics import marker_jacobian
 
@@ -101,11 +101,8 @@ def log_det_pose_information(J_pose) -> np.ndarray:
     return np.where(sign > 0, logdet, -np.inf)
 
 
-def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12, mean_trace: float | None = None):
+def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12):
     """``(I - P_t) K_t``: the part of ``dx/dtheta`` that no pose change can mimic.
-
-    ``mean_trace``: the mean over frames of ``tr(J^T J) / Q`` where these are some of a trial's frames (the
-    ridge's scale for a frame without rows); by default these frames'.
 
     Returns
     -------
@@ -114,46 +111,11 @@ def projected_theta_jacobian(J_pose, J_theta, ridge: float = 1e-12, mean_trace: 
     H = pose_information(J_pose)
     Q = H.shape[-1]
     tr = np.einsum("...ii->...", H) / max(Q, 1)
-    if mean_trace is None:
-        mean_trace = float(np.mean(tr)) if tr.size else 0.0
     # a frame without rows (skipped) gets the mean scale, so that its projection is 0, not NaN
-    scale = np.maximum(tr, max(mean_trace, 1e-300))
+    scale = np.maximum(tr, max(float(np.mean(tr)) if tr.size else 0.0, 1e-300))
     # J_pose (H + ridge)^-1 first: (m, Q) times (Q, P) is cheaper than a solve with P right-hand sides
     W = J_pose @ np.linalg.inv(H + ridge * scale[..., None, None] * np.eye(Q))
     return J_theta - W @ np.matmul(np.swapaxes(J_pose, -1, -2), J_theta)
-
-
-def projected_sums(J_pose, J_theta, r, w=None, chunk: int = 32) -> tuple:
-    """Sums over frames of :func:`projected_theta_jacobian` ``K_perp``, a few frames at a time.
-
-    ``(sum_t K_perp^T K_perp (P, P), sum_t K_perp^T r_t (P,))``, and with row weights ``w`` (m,) also
-    ``sum_t K_perp^T diag(w) K_perp``: each frame's arithmetic as :func:`projected_theta_jacobian`'s (the
-    same ridge), ``chunk`` frames at a time. ``K_perp`` of a whole trial is a ``(T, m, P)`` array; for a
-    full-body model's long trial that is hundreds of MB made and read through memory several times, and
-    the sums took five times as long as in chunks that stay in the cache (1346 frames, 40 markers, 160
-    parameters: 2.7 s against 0.5 s). (Written as ``sum K^T K - sum B^T H^{-1} B`` the sums need no
-    ``K_perp`` at all, but lose seven digits to cancellation on an OpenSim model.)
-
-    Parameters
-    ----------
-    J_pose : (T, m, Q) float
-    J_theta : (T, m, P) float
-    r : (T, m) float
-    w : (m,) float, optional
-    """
-    T = J_pose.shape[0]
-    tr = np.einsum("tmq,tmq->t", J_pose, J_pose) / max(J_pose.shape[-1], 1)  # the trace of J^T J per frame
-    mean = float(np.mean(tr)) if tr.size else 0.0
-    P = J_theta.shape[-1]
-    S, g = np.zeros((P, P)), np.zeros(P)
-    Sw = None if w is None else np.zeros((P, P))
-    for a in range(0, T, chunk):
-        Kp = projected_theta_jacobian(J_pose[a:a + chunk], J_theta[a:a + chunk], mean_trace=mean)
-        S += summed_gram(Kp)
-        g += summed_product(Kp, r[a:a + chunk])
-        if w is not None:
-            Sw += summed_gram(Kp, w=w)
-    return (S, g) if w is None else (S, g, Sw)
 
 
 def efficient_information(J_pose, J_theta, sigma: float = 1.0) -> np.ndarray:
