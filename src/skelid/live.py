@@ -1838,7 +1838,7 @@ class Session:
 
         A frame arriving is linearised once, at its pose filtered from the frames before it; where the markers
         barely fix a pose, the smoothed pose ends elsewhere, and the remainder of that linearisation has one
-        sign frame after frame: over an hour it biased case A at 15 mm by 62 of its sds. Every
+        sign frame after frame: over an hour it biases case A at 15 mm by many of its sds. Every
         :data:`_BLOCK` frames (on the frame the cutoff is chosen again), the frames not yet committed but the
         last :data:`_LAG` are folded into the committed state again at their smoothed poses (poses fitted
         again at the current mean, smoothed with :data:`_LAG` frames before and after them) and the current
@@ -1859,7 +1859,7 @@ class Session:
 
         Folded in at its smoothed pose, each frame carries the bias of the batch ``marker`` fit with the
         same motion model, of order sigma^2: it does not shrink as the frames add up, and their sd does
-        (case A at 15 mm: 5 sd after 10 000 frames). The batch fit takes its second-order bias off; so does
+        (case A at 15 mm: several sd after ten thousand frames). The batch fit takes its second-order bias off; so does
         the session (:meth:`_unbiased`), from the frames' smoothed poses (``frames``: ``(y, pose, used)``) at
         ``theta``. Each block's expansion takes theta as known (the limit of many frames; the terms of order
         sigma^2 / T, which the batch fit keeps, are left out), so that a block that alone leaves a parameter
