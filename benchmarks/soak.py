@@ -4,13 +4,14 @@ Two sessions, each with its default settings (the Gaussian form; case A's with t
 over the early frames): case A and the 10-marker 3-D arm of the live-latency target
 (``benchmarks/arm10.toml``). Each is fed one simulated hour of frames, one ``Session.push`` at a
 time, as a capture system would (no waiting between frames: the session's own time is what is
-measured). Recorded per simulated minute: the median
-and 99th percentile of the push latency (wall and CPU-thread time, ms) and the process's resident
-memory (``/proc/self/statm``). The claim checked: memory and p99 latency flat, growth at most 5 %
-from the first ten minutes to the last ten (the first minute, when the session settles and its
-compiled kernels are first used, is left out of the first block's latency). The estimate at the
-end is compared with the truth, so that a session that stays fast by no longer estimating would
-show.
+measured), each followed by the session's step of work (``Session.work``, as ``Session.feed`` does
+once the estimate is out). Recorded per simulated minute: the median and 99th percentile of the
+push latency (wall and CPU-thread time, ms), the work's time per frame and its largest step, and
+the process's resident memory (``/proc/self/statm``). The claim checked: memory and p99 latency
+flat, growth at most 5 % from the first ten minutes to the last ten (the first minute, when the
+session settles and its compiled kernels are first used, is left out of the first block's
+latency). The estimate at the end is compared with the truth, so that a session that stays fast
+by no longer estimating would show.
 
     nice python benchmarks/soak.py             # one hour of frames each (about 5 minutes)
     nice python benchmarks/soak.py --minutes 5 # shorter (marked reduced)
@@ -49,25 +50,32 @@ def _rss_mb() -> float:
 
 
 def _feed(session, positions) -> dict:
-    """Push every frame; per minute: latency percentiles and resident memory."""
+    """Push every frame (the estimate's latency), then the session's step of work (:meth:`Session.work`, once
+    the estimate is out, as ``Session.feed`` does); per minute: latency percentiles, the work's share of the
+    time and resident memory."""
     n = len(positions)
-    wall, cpu = np.empty(n), np.empty(n)
+    wall, cpu, work = np.empty(n), np.empty(n), np.empty(n)
     rss = []
     for t in range(n):
         t0, c0 = time.perf_counter(), time.thread_time()
-        session.push(positions[t])
+        session.push(positions[t], defer=True)
         cpu[t] = time.thread_time() - c0
-        wall[t] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        session.work()
+        work[t] = time.perf_counter() - t1
+        wall[t] = t1 - t0
         if (t + 1) % MINUTE == 0:
             rss.append(_rss_mb())
-    wall, cpu = wall * 1e3, cpu * 1e3
+    wall, cpu, work = wall * 1e3, cpu * 1e3, work * 1e3
     minutes = n // MINUTE
     per = [{"minute": m + 1,
             "p50_ms": float(np.median(wall[m * MINUTE:(m + 1) * MINUTE])),
             "p99_ms": float(np.percentile(wall[m * MINUTE:(m + 1) * MINUTE], 99)),
             "p99_cpu_ms": float(np.percentile(cpu[m * MINUTE:(m + 1) * MINUTE], 99)),
+            "work_max_ms": float(work[m * MINUTE:(m + 1) * MINUTE].max()),
+            "work_ms_per_frame": float(work[m * MINUTE:(m + 1) * MINUTE].mean()),
             "rss_mb": rss[m]} for m in range(minutes)]
-    return {"wall": wall, "cpu": cpu, "per_minute": per}
+    return {"wall": wall, "cpu": cpu, "work": work, "per_minute": per}
 
 
 def _blocks(fed: dict, block: int) -> dict:
@@ -79,7 +87,10 @@ def _blocks(fed: dict, block: int) -> dict:
     p99_first, p99_last = float(np.percentile(w[first], 99)), float(np.percentile(w[last], 99))
     rss = [r["rss_mb"] for r in fed["per_minute"]]
     rss_first, rss_last = float(np.mean(rss[:block])), float(np.mean(rss[-block:]))
+    work = fed["work"]
     return {"p99_ms_first": p99_first, "p99_ms_last": p99_last, "p99_growth": p99_last / p99_first - 1.0,
+            "work_ms_per_frame_first": float(work[first].mean()), "work_ms_per_frame_last": float(work[last].mean()),
+            "work_max_ms": float(work.max()),
             "p50_ms_first": float(np.median(w[first])), "p50_ms_last": float(np.median(w[last])),
             "rss_mb_first": rss_first, "rss_mb_last": rss_last, "rss_growth": rss_last / rss_first - 1.0,
             "rss_mb_max": float(max(rss))}
@@ -109,7 +120,9 @@ def run_case(name: str, model, sigma: float, method: str, minutes: int, seed: in
            "z": ((mean - truth) / sd).tolist()}
     row["flat"] = bool(row["p99_growth"] <= FLAT and row["rss_growth"] <= FLAT)
     print(f"{name:8s} {n} frames in {seconds:.0f} s: p99 {row['p99_ms_first']:.3f} -> {row['p99_ms_last']:.3f} ms "
-          f"({100 * row['p99_growth']:+.1f} %), memory {row['rss_mb_first']:.1f} -> {row['rss_mb_last']:.1f} MB "
+          f"({100 * row['p99_growth']:+.1f} %), work {row['work_ms_per_frame_first']:.3f} -> "
+          f"{row['work_ms_per_frame_last']:.3f} ms per frame (largest step {row['work_max_ms']:.1f} ms), "
+          f"memory {row['rss_mb_first']:.1f} -> {row['rss_mb_last']:.1f} MB "
           f"({100 * row['rss_growth']:+.2f} %)", flush=True)
     return row
 
@@ -117,17 +130,22 @@ def run_case(name: str, model, sigma: float, method: str, minutes: int, seed: in
 def markdown(res: dict) -> str:
     lines = ["# Soak: one live session fed an hour of 100 Hz frames", "",
              f"{'REDUCED run. ' if res['reduced'] else ''}Each session is fed its frames one push at a time; "
-             "latency is the wall time of `Session.push` (ms), memory the process's resident set. First and "
+             "latency is the wall time of `Session.push` with `defer=True` (ms), work the wall time of the "
+             "`Session.work` step after it (per frame on average; its largest step), memory the process's "
+             "resident set. First and "
              f"last blocks of {res['rows'][0]['block_minutes']} simulated minutes (the first minute left out of "
              f"the first block's latency). Flat: growth at most {100 * FLAT:.0f} %.", "",
-             "| session | frames | p50 first / last (ms) | p99 first / last (ms) | p99 growth | memory first / last "
+             "| session | frames | p50 first / last (ms) | p99 first / last (ms) | p99 growth | work per frame "
+             "first / last (ms) | largest work step (ms) | memory first / last "
              "(MB) | memory growth | flat | largest \\|z\\| | estimate (truth) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         est = ", ".join(f"{m:.4g} ± {s:.2g} ({t:.4g})" for m, s, t in zip(r["estimate"], r["sd"], r["truth"],
                                                                            strict=True))
         lines.append(f"| {r['case']} ({r['method']}) | {r['frames']} | {r['p50_ms_first']:.3f} / {r['p50_ms_last']:.3f}"
                      f" | {r['p99_ms_first']:.3f} / {r['p99_ms_last']:.3f} | {100 * r['p99_growth']:+.1f} % | "
+                     f"{r['work_ms_per_frame_first']:.3f} / {r['work_ms_per_frame_last']:.3f} | "
+                     f"{r['work_max_ms']:.1f} | "
                      f"{r['rss_mb_first']:.1f} / {r['rss_mb_last']:.1f} | {100 * r['rss_growth']:+.2f} % | "
                      f"{'yes' if r['flat'] else 'NO'} | {max(abs(z) for z in r['z']):.2f} | {est} |")
     lines += ["", f"Machine: shared, 2 cores; load average {res['load_before']} before, {res['load_after']} after. "

@@ -21,7 +21,8 @@ scaling     time against frames, hypotheses and markers
 first_fit   the first case-A fit in a fresh process after installation (cold numba cache) against one with a
             warm cache
 live        skelid.live.Session.push latencies: case A (grid and Gaussian forms) and the 10-marker 3-D arm
-            (benchmarks/arm10.toml, with and without the motion model), >= 10^4 frames
+            (benchmarks/arm10.toml, with and without the motion model), >= 10^4 frames; each frame's push
+            (the estimate's latency) and the step of work after it (Session.work) timed apart
 advice      simulated live sessions: a user who follows Session.advice() against a fixed calibration motion
 osim        the OpenSim route on subject01 (fit, report, ik) beside OpenSim's ScaleTool + IK, and six Subject4 trials
 """
@@ -478,16 +479,22 @@ def section_first_fit_wait(args) -> dict:
     return {name: bool(_kernel_module(which).warm(key, wait=True)) for name, which, key in _FIRST_FIT_KERNELS}
 
 
-def _push_latencies(session, positions) -> tuple[np.ndarray, np.ndarray]:
-    """Wall and CPU (thread) time (ms) of each push after the first ten."""
+def _push_latencies(session, positions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wall and CPU (thread) time (ms) of each push after the first ten, and the wall time of the step of work
+    after it (:meth:`Session.work`, done once the estimate is out, as ``Session.feed`` and ``skelid live`` do;
+    a plain ``push`` does both)."""
     wall = np.empty(len(positions))
     cpu = np.empty(len(positions))
+    work = np.empty(len(positions))
     for t, frame in enumerate(positions):
         t0, c0 = time.perf_counter(), time.thread_time()
-        session.push(frame)
+        session.push(frame, defer=True)
         cpu[t] = time.thread_time() - c0
-        wall[t] = time.perf_counter() - t0
-    return wall[10:] * 1e3, cpu[10:] * 1e3
+        t1 = time.perf_counter()
+        session.work()
+        work[t] = time.perf_counter() - t1
+        wall[t] = t1 - t0
+    return wall[10:] * 1e3, cpu[10:] * 1e3, work[10:] * 1e3
 
 
 def _arm3d():
@@ -504,9 +511,14 @@ def _arm10():
 
 
 def _latency_row(session, positions, **extra) -> dict:
-    wall, cpu = _push_latencies(session, positions)
+    wall, cpu, work = _push_latencies(session, positions)
+    both = wall + work
     return {"p50": float(np.median(wall)), "p99": float(np.percentile(wall, 99)), "max": float(wall.max()),
             "cpu_p50": float(np.median(cpu)), "cpu_p99": float(np.percentile(cpu, 99)), "cpu_max": float(cpu.max()),
+            "work_p99": float(np.percentile(work, 99)), "work_max": float(work.max()),
+            "work_frames": int(np.count_nonzero(work > 0.05)),
+            "with_work_p50": float(np.median(both)), "with_work_p99": float(np.percentile(both, 99)),
+            "with_work_max": float(both.max()),
             "frames": int(wall.size), "loadavg_after": list(os.getloadavg()), **extra}
 
 
@@ -810,8 +822,11 @@ def write_markdown(res: dict, path: Path) -> None:
                 what += (", no motion model" if c is None else ", motion model with its cutoff chosen from the "
                          "frames (cutoff='auto')" if c == "auto" else f", {c:g} Hz motion model (cutoff={c:g})")
             cpu = (f" (CPU p50 {r['cpu_p50']:.3f}, p99 {r['cpu_p99']:.3f} ms)" if "cpu_p50" in r else "")
-            lines.append(f"{what}: p50 {r['p50']:.3f} ms, p99 {r['p99']:.3f} ms, max {r['max']:.1f} ms{cpu} over "
-                         f"{r['frames']} frames.")
+            work = (f"; the work between frames (`Session.work`) p99 {r['work_p99']:.2f} ms, max "
+                    f"{r['work_max']:.1f} ms, and a plain `push` (both) p50 {r['with_work_p50']:.3f} ms, p99 "
+                    f"{r['with_work_p99']:.2f} ms, max {r['with_work_max']:.1f} ms" if "work_p99" in r else "")
+            lines.append(f"{what}: p50 {r['p50']:.3f} ms, p99 {r['p99']:.3f} ms, max {r['max']:.1f} ms{cpu}{work} "
+                         f"over {r['frames']} frames.")
     if "advice_study" in res:
         a = res["advice_study"]
         lines.append(f"Advice study ({a['sessions']} simulated sessions, {a['model']}, "

@@ -375,31 +375,111 @@ def test_the_motion_model_switches_on_near_gimbal_lock():
     assert z.max() < 4.0
 
 
-def test_frames_folded_in_two_parts_equal_them_folded_at_once():
-    """:func:`relinearise` from a start state: the frames after ``context`` folded onto the state of the first
-    part give the state of all of them folded at once (the poses fitted freely, no smoothing, one pass), and
-    ``split`` returns the state before a frame as well."""
+def _case_a_frames(n=120, used_not=(70,)):
     from skelid import live
 
     model = builtin_model("case-a")
-    trial = simulate(model, n_frames=120, sigma=5.0, rng=np.random.default_rng(3))
-    frames = [(y, np.zeros(model.n_pose), True) for y in trial.data.positions]
-    frames[70] = (frames[70][0], frames[70][1], False)  # a frame not used: the motion model bridges it
-    prior = live.prior_moments(model)
+    trial = simulate(model, n_frames=n, sigma=5.0, rng=np.random.default_rng(3))
     q0 = live.initial_pose(model, trial.theta, trial.data.positions[0], np.random.default_rng(0))[0]
-    frames = [(y, q0, u) for y, _, u in frames]
-    weight = live.motion_scale(6.0, 100.0)
-    args = (model, prior, None, weight, np.array(trial.theta, float), 25.0)
-    whole = live.relinearise(*args[:1], [f for f in frames], *args[1:], n_iter=1)
-    first = live.relinearise(*args[:1], [f for f in frames[:80]], *args[1:], n_iter=1)
-    rest, at = live.relinearise(*args[:1], [f for f in frames[60:]], *args[1:], n_iter=1, start=first, context=20,
-                                split=50)
-    s2 = 25.0
-    np.testing.assert_allclose(rest.mean, whole.mean, rtol=1e-9)
-    np.testing.assert_allclose(live.theta_cov(rest, prior, s2), live.theta_cov(whole, prior, s2), rtol=1e-8)
-    assert (rest.n_used, rest.n_obs) == (whole.n_used, whole.n_obs) and rest.rss == pytest.approx(whole.rss)
-    upto = live.relinearise(*args[:1], [f for f in frames[:110]], *args[1:], n_iter=1)
-    np.testing.assert_allclose(live.theta_cov(at, prior, s2), live.theta_cov(upto, prior, s2), rtol=1e-8)
+    frames = [(y, q0, k not in used_not) for k, y in enumerate(trial.data.positions)]
+    return model, trial, frames
+
+
+def test_relinearise_split_gives_the_state_before_a_frame():
+    """``split``: the state after the frames before ``frames[split]`` as well, equal to those frames alone
+    (the poses fitted freely, no smoothing, one pass; a frame not used bridged by the motion model)."""
+    from skelid import live
+
+    model, trial, frames = _case_a_frames()
+    prior = live.prior_moments(model)
+    args = (prior, None, live.motion_scale(6.0, 100.0), np.array(trial.theta, float), 25.0)
+    whole, at = live.relinearise(model, list(frames), *args, n_iter=1, split=110)
+    upto = live.relinearise(model, list(frames[:110]), *args, n_iter=1)
+    alone = live.relinearise(model, list(frames), *args, n_iter=1)
+    np.testing.assert_allclose(whole.mean, alone.mean, rtol=1e-12)
+    np.testing.assert_allclose(live.theta_cov(at, prior, 25.0), live.theta_cov(upto, prior, 25.0), rtol=1e-8)
+    assert (at.n_used, at.n_obs) == (upto.n_used, upto.n_obs)
+
+
+def test_block_information_is_the_frames_folded_in_with_their_poses_marginalised():
+    """:func:`block_information` (one banded solve) equals the frames folded in one at a time (:func:`absorb`)
+    without a motion model, and the dense Schur complement of the joint system with one."""
+    from skelid import live
+    from skelid._linalg import frame_gram
+    from skelid.estimators.fit.joint import smoothing_penalty
+    from skelid.estimators.fit.pose import fit_pose
+    from skelid.model.kinematics import marker_jacobian
+
+    model, trial, frames = _case_a_frames(60, used_not=(20,))
+    Y = np.stack([f[0] for f in frames])
+    used = np.array([f[2] for f in frames])
+    theta = np.array(trial.theta, float) + 3.0
+    q, rss = fit_pose(model, theta, Y, np.stack([f[1] for f in frames]), n_iter=10)
+    st = live.empty_state(model, live.prior_moments(model))
+    st = live.drop_poses(live._folded(model, st, Y, q, used, rss, theta, np.zeros(model.n_pose), False, None,
+                                      None)[0])
+    for a, b in zip(live.theta_marginal(st), live.block_information(model, theta, Y, q, used), strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-7)
+    T, Q, P = len(q), model.n_pose, model.n_params
+    m = np.isfinite(Y).all(-1) & used[:, None]
+    x, Jq, Jt = marker_jacobian(model, theta, q)
+    Jq = (Jq * m[..., None, None]).reshape(T, -1, Q)
+    Jt = (Jt * m[..., None, None]).reshape(T, -1, P)
+    R = smoothing_penalty(model, frame_gram(Jq), 100.0, 6.0)
+    c = np.where(m[..., None], Y - x, 0.0).reshape(T, -1) + np.einsum("tkq,tq->tk", Jq, q) + Jt @ theta
+    J = np.zeros((T, Jq.shape[1], T * Q + P))
+    for t in range(T):
+        J[t, :, t * Q:(t + 1) * Q] = Jq[t]
+        J[t, :, T * Q:] = Jt[t]
+    H = np.einsum("tki,tkj->ij", J, J)
+    H[:T * Q, :T * Q] += R.toarray()
+    g = np.einsum("tki,tk->i", J, c)
+    Hqq, Hqt = H[:T * Q, :T * Q], H[:T * Q, T * Q:]
+    Lam, eta = live.block_information(model, theta, Y, q, used, R)
+    np.testing.assert_allclose(Lam, H[T * Q:, T * Q:] - Hqt.T @ np.linalg.solve(Hqq, Hqt), rtol=1e-8)
+    np.testing.assert_allclose(eta, g[T * Q:] - Hqt.T @ np.linalg.solve(Hqq, g[:T * Q]), rtol=1e-8)
+
+
+def test_information_about_theta_added_to_a_state():
+    """:func:`add_theta_information`: the joint information of (poses, theta) changes by the term in the theta
+    block only (an indefinite term too, where the sum stays definite); a sum that is not definite gives None."""
+    from skelid import live
+
+    model, trial, frames = _case_a_frames(40, used_not=())
+    prior = live.prior_moments(model)
+    st = live.relinearise(model, frames, prior, None, live.motion_scale(6.0, 100.0), np.array(trial.theta, float),
+                          25.0, n_iter=1)
+    P = model.n_params
+    Lam0, _ = live.theta_marginal(st)
+    dL, de = -0.3 * Lam0, np.full(P, 2.0)
+    new = live.add_theta_information(st, dL, de)
+    H0, H1 = st.root.T @ st.root, new.root.T @ new.root
+    b0, b1 = st.root.T @ st.rhs, new.root.T @ new.rhs
+    H0[-P:, -P:] += dL
+    b0[-P:] += de
+    np.testing.assert_allclose(H1, H0, atol=1e-9 * np.abs(H0).max())
+    np.testing.assert_allclose(b1, b0, atol=1e-9 * np.abs(b0).max())
+    assert np.allclose(np.tril(new.root, -1), 0.0)
+    assert live.add_theta_information(st, -2.0 * Lam0, de) is None
+
+
+def test_work_deferred_to_after_the_estimate_gives_the_same_estimates():
+    """A long session pushed with ``defer`` and :meth:`Session.work` called after each estimate (as
+    :meth:`Session.feed` does) gives the estimates of plain pushes, and its blocks are folded in again
+    (steps of work were pending and done)."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=900, sigma=15.0, rng=np.random.default_rng(8))
+    plain = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    deferred = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    fed = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    worked = 0
+    for y, est_fed in zip(trial.data.positions, fed.feed(trial.data.positions), strict=True):
+        a = plain.push(y)
+        b = deferred.push(y, defer=True)
+        worked += deferred.work()
+        np.testing.assert_array_equal(a.theta, b.theta)
+        np.testing.assert_array_equal(a.theta, est_fed.theta)
+    assert worked >= 10 and deferred._bias_sum is not None and plain.work() is False
 
 
 @pytest.mark.parametrize("committed", [True, False])

@@ -51,9 +51,16 @@ the motion model the early re-linearisations use the frames' smoothed poses
 of that bias; the noise level still comes from each frame's freely fitted pose
 (the residual degrees of freedom count a free pose per frame: the smoothed
 poses' misfit doubled sigma, and so the sd, on case A). After the last re-linearisation (200 frames) each frame is
-linearised at its filtered pose, which is off by the noise; where a pose is
-poorly fixed (the tennis arm's hand has one marker) that leaves an
-``O(sigma^2)`` error of its own.
+linearised on arrival at its filtered pose, which is off by the noise; where a pose is poorly fixed (the
+tennis arm's hand has one marker) that leaves an ``O(sigma^2)`` error of one sign, frame after frame. So
+each block of :data:`_BLOCK` frames is folded in again at its poses smoothed with :data:`_LAG` frames on
+either side (:meth:`Session._close_block`): its information about theta at those poses, one banded solve
+(:func:`block_information`), replaces what the block's frames gave the state on arrival (the difference of
+the state's information at the block's two ends, :func:`theta_marginal`), a term in theta alone
+(:func:`add_theta_information`). The frame on hand is never folded again, and the work is done a step at a
+time between frames (:meth:`Session.work`). The second-order bias of the batch fit with this motion
+model, which that fit takes off, is summed block by block at the smoothed poses and taken off what a
+session reports (:meth:`Session._unbiased`).
 
 A fixed cutoff is wrong for fast movements: with ``cutoff=6.0`` and the
 simulated arm motion played five times faster (up to 7.5 Hz) the live
@@ -85,7 +92,7 @@ in a row: after a longer gap (a dropout of the whole marker set) the held
 poses are marginalised (:func:`drop_poses`) and the next pose is found
 afresh, since a constant-velocity prediction run on through a gap pulls the
 geometry (13.6 sd on a tennis-arm trial with a 0.4 s dropout, 0.5 sd with the
-chain let go). No second-order bias correction is applied live.
+chain let go).
 
 **Grid form** (1-3 parameters, or a posterior with several modes): the
 online grid filter :class:`~skelid.estimators.online.grid.MarkerGridFilter`; the pose
@@ -233,12 +240,15 @@ _DONE_KEEP = 20000
 #: whose frames fit better is taken
 _BATCH_SD = 2.0
 #: after the early frames, the frames are folded in again at their smoothed poses this many at a time
-#: (:meth:`Session._commit_block`) ...
-_BLOCK = 200
+#: (:meth:`Session._close_block`) ...
+_BLOCK = 100
 #: ... each smoothed with this many frames before it and after it
-_LAG = 50
+_LAG = 25
 #: ... and the bias they carry is solved again with the information of every frame at most this many frames apart
 _BIAS_EVERY = 10
+#: ... and is found a piece of frames at a time (one step of :meth:`Session.work` each), its cost
+#: (frames x (parameters + pose coordinates)^2) at most this: case A's blocks in one piece, the 10-marker arm's in 8
+_BIAS_COST = 7200
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
 _BRIDGE = 5
@@ -535,7 +545,23 @@ def theta_cov(state: GaussianState, prior, sigma2: float) -> np.ndarray:
 
 def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, ws: Workspace | None = None,
                    n_iter: int = 10, tol: float = 1e-6) -> np.ndarray:
-    """Poses ``(T, Q)`` of frames ``y (T, M, D)`` smoothed by the batch method's motion model at fixed ``theta``.
+    """Poses ``(T, Q)`` of frames ``y (T, M, D)`` smoothed by the batch method's motion model at fixed ``theta``
+    (:func:`smoothing_steps`, run to the end)."""
+    return _to_the_end(smoothing_steps(model, theta, y, q, used, rate, cutoff, ws, n_iter, tol))
+
+
+def _to_the_end(steps):
+    """What a generator of steps returns, every step taken now."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def smoothing_steps(model: Model, theta, y, q, used, rate: float, cutoff: float, ws: Workspace | None = None,
+                    n_iter: int = 10, tol: float = 1e-6):
+    """The steps of :func:`smoothed_poses`.
 
     Minimises ``S(q) = sum_t ||y_t - x(theta, q_t)||^2 + q^T R q`` over the poses
     only, ``R`` the third-difference penalty of
@@ -549,8 +575,11 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     opposite directions by tens of radians while the segment hardly moves); a
     full step from there overshoots on the curved Euler-angle surface and lands
     on poses that fit neither the markers nor the motion model.
+
+    A generator: it yields after each Gauss-Newton step (a live session spreads them over frames) and
+    returns the poses.
     """
-    from skelid.estimators.fit.joint import _banded_solver, _continuous_poses
+    from skelid.estimators.fit.joint import _banded_solver, _continuous_poses, penalty_band
 
     T, Q = q.shape
     m = np.isfinite(y).all(axis=-1) & np.asarray(used, bool)[:, None]
@@ -564,11 +593,13 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
     J = (Jq * m[..., None, None]).reshape(T, -1, Q)
     Hqq = frame_gram(J)
     R = smoothing_penalty(model, Hqq, rate, cutoff)
+    R_band = penalty_band(R, Q)
     S = objective(x, q)
+    yield
     for _ in range(n_iter):
         r = ((y0 - x) * m[..., None]).reshape(T, -1)
         # blockdiag(Hqq) + R is banded (the motion model links four frames): a banded Cholesky
-        dq = _banded_solver(Hqq, R)(np.einsum("tni,tn->ti", J, r).ravel() - R @ q.ravel()).reshape(T, Q)
+        dq = _banded_solver(Hqq, R, R_band)(np.einsum("tni,tn->ti", J, r).ravel() - R @ q.ravel()).reshape(T, Q)
         for _ in range(30):  # step halving: S must not increase
             q_new = q + dq
             x_new = marker_positions(model, theta, q_new, ws)
@@ -585,6 +616,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
         x, Jq, _ = marker_jacobian(model, theta, q, ws)
         J = (Jq * m[..., None, None]).reshape(T, -1, Q)
         Hqq = frame_gram(J)
+        yield
     return q
 
 
@@ -675,8 +707,7 @@ def _smooth_fits(model: Model, theta, y, q, rss_free: float, sigma2: float, ws: 
 
 def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta, fallback: float,
                 n_iter: int = 2, ws: Workspace | None = None, smoother: tuple | None = None,
-                floor: float = 0.0, check: bool = False, start: GaussianState | None = None,
-                context: int = 0, split: int | None = None):
+                floor: float = 0.0, check: bool = False, split: int | None = None):
     """The state recomputed from ``frames`` (every frame so far) linearised at ``theta``.
 
     The recursive update linearises each frame at the mean of its time; the
@@ -705,16 +736,9 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
         tens of radians in opposite directions); the frames are then linearised at their free poses
         without the motion model, and its chain starts afresh at the next frame. A fixed cutoff may be
         slower than the movement, and its smoothed poses misfit as the batch fit's do: not checked.
-    start : GaussianState, optional
-        The state the frames are folded into (default: no frame yet). Its held poses, if any, are the
-        frames' before ``frames[context]``, and the motion model's chain goes on from them.
-    context : int
-        The first ``context`` frames are already in ``start``: their poses are fitted and smoothed with the
-        rest, so that the frames after them are smoothed with their past as well as their future, and they
-        are not folded in again.
     split : int, optional
-        Also return the state after the frames before ``frames[split]`` (``context <= split``), its mean
-        solved: ``(state after all, state at split)``.
+        Also return the state after the frames before ``frames[split]``, its mean solved:
+        ``(state after all, state at split)``.
 
     Returns
     -------
@@ -744,10 +768,7 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
             else:
                 chain = False
         w = weight if chain else np.zeros_like(np.asarray(weight, float))
-        state = empty_state(model, prior) if start is None else start
-        if not chain and state.poses.shape[0]:
-            state = drop_poses(state)
-        state, snap = _folded(model, state, Y, q, used, rss_free, theta, w, chain, context, split, ws)
+        state, snap = _folded(model, empty_state(model, prior), Y, q, used, rss_free, theta, w, chain, split, ws)
         state = _solved(model, state, prior, sigma, fallback, floor, chain, motion, q, used)
         theta, Q0 = state.mean, q
     for k, (y, _, u) in enumerate(frames):
@@ -757,9 +778,9 @@ def relinearise(model: Model, frames, prior, sigma: float | None, weight, theta,
     return state, _solved(model, snap, prior, sigma, fallback, floor, chain, motion, q[:split], used[:split])
 
 
-def _folded(model: Model, state: GaussianState, Y, q, used, rss_free, theta, w, chain: bool, first: int,
+def _folded(model: Model, state: GaussianState, Y, q, used, rss_free, theta, w, chain: bool,
             split: int | None, ws: Workspace | None) -> tuple[GaussianState, GaussianState]:
-    """Frames ``first`` on of ``Y (B, M, D)`` folded into ``state``, each linearised at ``(theta, q[b])``
+    """Frames ``Y (B, M, D)`` folded into ``state``, each linearised at ``(theta, q[b])``
     (:func:`absorb`): ``(state after all, state before frame split)``.
 
     A frame not ``used`` lets the pose go on by the motion model alone (``chain``), for at most
@@ -771,7 +792,7 @@ def _folded(model: Model, state: GaussianState, Y, q, used, rss_free, theta, w, 
     x, Jq, Jt = marker_jacobian(model, theta, q, ws)
     snap = state
     gap = 0
-    for b in range(first, B):
+    for b in range(B):
         if b == split:
             snap = state
         if not used[b]:
@@ -799,6 +820,84 @@ def _solved(model: Model, state: GaussianState, prior, sigma, fallback: float, f
             state = drop_poses(state)
         state = state._replace(pose_mean=q[np.flatnonzero(used)[-1]] if used.any() else None)
     return state
+
+
+def theta_marginal(state: GaussianState) -> tuple[np.ndarray, np.ndarray]:
+    """The information ``(Lambda (P, P), eta (P,))`` about theta that ``state`` holds, its poses marginalised
+    (residual units, without the prior): the objective is ``theta^T Lambda theta - 2 eta^T theta`` + const.
+
+    The square root is ordered poses first, so its trailing block is theta's marginal.
+    """
+    P = state.mean.size
+    Rt = state.root[-P:, -P:]
+    return Rt.T @ Rt, Rt.T @ state.rhs[-P:]
+
+
+def add_theta_information(state: GaussianState, Lam, eta) -> GaussianState | None:
+    """``state`` with ``theta^T Lam theta - 2 eta^T theta`` added to its objective (``Lam`` may be indefinite: a
+    difference of two summaries of the same frames); None where the sum is not positive definite.
+
+    A term in theta alone changes only the trailing ``(P, P)`` block of the square root and of its right-hand
+    side: with ``root = [[R_qq, R_qt], [0, R_tt]]``, ``R_tt' = chol(R_tt^T R_tt + Lam)`` and
+    ``rhs_t' = R_tt'^{-T} (R_tt^T rhs_t + eta)``. The mean is not solved (:func:`solve_mean`).
+    """
+    from scipy.linalg import solve_triangular
+
+    P = state.mean.size
+    Rt = state.root[-P:, -P:]
+    A = Rt.T @ Rt + Lam
+    try:
+        U = np.linalg.cholesky(0.5 * (A + A.T)).T
+    except np.linalg.LinAlgError:
+        return None
+    root, rhs = state.root.copy(), state.rhs.copy()
+    rhs[-P:] = solve_triangular(U, Rt.T @ state.rhs[-P:] + eta, trans="T", check_finite=False)
+    root[-P:, -P:] = U
+    return state._replace(root=root, rhs=rhs)
+
+
+def block_information(model: Model, theta, y, q, used, R=None, ws: Workspace | None = None):
+    """The information about theta of frames ``y (T, M, D)`` linearised at ``(theta, q (T, Q))``, every pose
+    marginalised: ``(Lambda (P, P), eta (P,))`` in :func:`theta_marginal`'s form.
+
+    The frames' rows ``J_t q_t + K_t theta = r_t + J_t q_t0 + K_t theta_0`` (as :func:`absorb` makes them;
+    frames not ``used`` and missing markers give none) and the motion penalty ``q^T R q`` (``R``:
+    :func:`~skelid.estimators.fit.joint.smoothing_penalty` over these frames, or None) make a quadratic in
+    ``(q, theta)`` whose pose block is banded; with ``A = blockdiag(J^T J) + R``,
+    ``Lambda = sum K^T K - H^T A^{-1} H`` and ``eta = sum K^T c - H^T A^{-1} J^T c`` (``H`` the stacked
+    ``J_t^T K_t``, ``c`` the right-hand sides): one banded Cholesky for every frame at once, where
+    :func:`absorb` takes one QR per frame. Where a pose is fixed by nothing (a frame without data and no
+    penalty, too few markers), a ridge of 1e-10 of each coordinate's mean information keeps it definite
+    (:func:`absorb` leaves such a pose's theta information out exactly).
+    """
+    import scipy.sparse as sp
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    from skelid._linalg import summed_gram
+    from skelid.estimators.fit.joint import _banded_system
+
+    P, Q = model.n_params, model.n_pose
+    T = len(q)
+    m = np.isfinite(y).all(axis=-1) & np.asarray(used, bool)[:, None]  # (T, M)
+    x, Jq, Jt = marker_jacobian(model, theta, q, ws)
+    Jq = (Jq * m[..., None, None]).reshape(T, -1, Q)
+    Jt = (Jt * m[..., None, None]).reshape(T, -1, P)
+    r = np.where(m[..., None], y - x, 0.0).reshape(T, -1)
+    c = r + np.einsum("tkq,tq->tk", Jq, q) + Jt @ theta
+    H = frame_gram(Jq, Jt).reshape(T * Q, P)
+    bq = np.einsum("tkq,tk->tq", Jq, c).reshape(T * Q)
+    Hqq = frame_gram(Jq)
+    R = sp.csc_matrix((T * Q, T * Q)) if R is None else R
+    for ridge in (0.0, 1e-10):  # exact unless a pose is fixed by nothing (a frame without data, no penalty)
+        try:
+            U = cholesky_banded(_banded_system(Hqq, R, ridge), lower=False, check_finite=False)
+            break
+        except np.linalg.LinAlgError:
+            continue
+    X = cho_solve_banded((U, False), np.concatenate([H, bq[:, None]], axis=1), check_finite=False)
+    Lam = summed_gram(Jt) - H.T @ X[:, :P]
+    eta = np.einsum("tkp,tk->p", Jt, c) - H.T @ X[:, P]
+    return 0.5 * (Lam + Lam.T), eta
 
 
 # --------------------------------------------------------------------------- what a push returns
@@ -1107,6 +1206,18 @@ def _frame_rows(sc: _Screened, n_markers: int):
     return r, sc.Jq[sc.present].reshape(r.size, -1), sc.Jt[sc.present].reshape(r.size, -1)
 
 
+@dataclass(eq=False)
+class _Refold:
+    """A block of a session's frames to fold in again (:meth:`Session._close_block`): the state's information
+    about theta at its first and last frame (:meth:`Session._raw`), whether its correction still applies, and
+    its work's steps (:meth:`Session._refold_steps`)."""
+
+    start: tuple
+    end: tuple
+    correct: bool = True
+    steps: object = None
+
+
 class Session:
     """A live fit of ``model`` to a stream of labelled frames.
 
@@ -1212,12 +1323,18 @@ class Session:
         self._auto = _check_cutoff(model, cutoff)
         self._cutoff_now = None if self._auto else cutoff  # the motion model's cutoff in force (Hz)
         self._recent: deque = deque()  # frames since the cutoff was last chosen (after the early frames)
-        # after the early frames, under a motion model: the state with every frame up to the block's folded in
-        # at its smoothed pose, and the block's frames since (the first _LAG of them already in that state)
-        self._committed: GaussianState | None = None
+        # after the early frames, under a motion model, each _BLOCK frames are folded in again at their smoothed
+        # poses, a step at a time between frames (:meth:`_close_block`, :meth:`work`): the frames kept for it
+        # (the _LAG before the open block, then the block's), the frames in the open block, and the information
+        # about theta the state had at its start, without the corrections applied since (:meth:`_raw`)
+        self._blocks = False
         self._block: list = []
-        self._n_new = 0  # frames added to the block since it was last committed
-        # the second-order bias of the frames folded in at their smoothed poses (:meth:`_add_bias`): sum S b at
+        self._n_new = 0
+        self._raw_open: tuple | None = None
+        self._applied = (np.zeros((model.n_params, model.n_params)), np.zeros(model.n_params))
+        self._closed: _Refold | None = None  # the block closed, waiting for the _LAG frames after it
+        self._pending: _Refold | None = None  # the block being folded in again
+        # the second-order bias of the frames folded in at their smoothed poses (:meth:`_bias_sum_of`): sum S b at
         # unit noise (S a block's information, b its bias)
         self._bias_sum: np.ndarray | None = None
         self._bias, self._bias_at = np.zeros(model.n_params), 0  # the bias per unit noise variance, and when
@@ -1375,7 +1492,7 @@ class Session:
         return y, False
 
     # ------------------------------------------------------------------ the update
-    def push(self, frame) -> LiveEstimate:
+    def push(self, frame, defer: bool = False) -> LiveEstimate:
         """Fold one frame in and return the estimate after it.
 
         Parameters
@@ -1383,6 +1500,10 @@ class Session:
         frame : mapping of str to (3,) or (D,) float, or (N, 3) array
             Marker positions by name, or as rows in the order of ``labels``. Missing
             markers: absent from the mapping, or NaN (or infinite).
+        defer : bool
+            Leave the step of pending work each push does after its frame (:meth:`work`) to the caller,
+            to call once the estimate is on its way: the frame's latency is then the push alone. The
+            estimates are the same either way, as long as :meth:`work` is called before the next push.
 
         Raises
         ------
@@ -1406,7 +1527,29 @@ class Session:
             self.estimate = self._push_gaussian(y)
             if self._kept is not None and self.estimate.done is not None:
                 self.estimate = self._checked_done(self.estimate)
+        if not defer:
+            self.work()
         return self.estimate
+
+    def work(self) -> bool:
+        """One step of the session's pending work; False when there was none.
+
+        Under the motion model, every :data:`_BLOCK` frames after the early ones a block of frames is
+        folded in again at its smoothed poses (:meth:`_close_block`). That takes several milliseconds, so
+        it is done a step at a time (a step: the block's pose fits, one step of their smoothing, its
+        information about theta, or its second-order bias for a piece of its frames), one step after each frame:
+        :meth:`push` does it after the frame's estimate, or, with ``defer``, the caller does once the
+        estimate is sent (:meth:`feed` and :func:`run` do), in the time until the next frame comes.
+        """
+        p = self._pending
+        if p is None:
+            return False
+        try:
+            next(p.steps)
+        except StopIteration as stop:
+            self._pending = None
+            self._apply(p, *stop.value)
+        return True
 
     def _checked_done(self, est: LiveEstimate) -> LiveEstimate:
         """The stopping rule under the motion model: the first estimate that would be done, and the first
@@ -1423,9 +1566,9 @@ class Session:
         frames = self._early + self._kept
         if len(frames) > _DONE_KEEP:  # past the frames kept: done is not checked again
             return est
-        # the frames of the block not yet committed (:meth:`_commit_block`) are the last ones: the committed
-        # state is taken before them
-        split = None if self._committed is None else len(frames) - (len(self._block) - _LAG)
+        # the frames of the open block are the last ones: the information about theta before them starts it
+        # again (:meth:`_close_block`)
+        split = len(frames) - self._n_new % _BLOCK if self._blocks else None
         here = self._relinearised(list(frames), self._state.mean, split=split)  # a copy: the other basin starts
         batch = _batch_theta(self.model, frames, self.rate, self.sigma)           # from these poses
         if batch is not None:
@@ -1439,7 +1582,12 @@ class Session:
         if split is None:
             self._state = here
         else:
-            self._state, self._committed = here
+            self._state, at = here
+            self._raw_open = theta_marginal(at)
+            self._applied = tuple(np.zeros_like(a) for a in self._applied)
+            for p in (self._closed, self._pending):  # their frames are now folded in at their smoothed poses
+                if p is not None:
+                    p.correct = False
         self._bias_at = -_BIAS_EVERY  # the bias solved again with the new state's information
         self._verified_until = self._frame + self._frame // 2
         new = self._gaussian_estimate(None, [], ())
@@ -1475,10 +1623,11 @@ class Session:
         """
         for frame in itertools.islice(frames, max_frames):  # no frame is asked for beyond max_frames
             try:
-                yield self.push(frame)
+                yield self.push(frame, defer=True)
             except DataError as exc:
                 self.estimate = self._refused(exc)
                 yield self.estimate
+            self.work()  # once the estimate is on its way, before the next frame is asked for
 
     def _refused(self, exc: DataError) -> LiveEstimate:
         """The estimate after a frame that was refused: the last one, flagged with the problem."""
@@ -1830,65 +1979,139 @@ class Session:
             self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
         self._state = self._relinearised(self._early, theta)
         if len(self._early) >= _RELINEARISE[-1] and self._motion:
-            self._committed, self._block = self._state, list(self._early[-_LAG:])
-            self._add_bias(self._early, self._state.mean)
+            self._blocks, self._block, self._raw_open = True, list(self._early[-_LAG:]), theta_marginal(self._state)
+            # the early frames' bias, at their smoothed poses, now: the estimate after them is the batch fit's
+            y, q, used = (np.stack([f[k] for f in self._early]) for k in range(3))
+            num = _to_the_end(self._bias_steps(y, q, used, self._state.mean, self._cutoff_now))
+            self._apply(_Refold(None, None, False), None, None, num)
 
-    def _commit_block(self) -> None:
-        """The block's frames folded in again at their poses smoothed with :data:`_LAG` frames on each side.
+    def _raw(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state's information about theta (:func:`theta_marginal`) without the corrections applied since
+        the last full re-linearisation (:meth:`_apply`): what the frames gave as they were folded in."""
+        Lam, eta = theta_marginal(self._state)
+        return Lam - self._applied[0], eta - self._applied[1]
+
+    def _close_block(self) -> None:
+        """The open block has :data:`_BLOCK` frames: it closes, and the next one opens (called on the frame that
+        fills it, after the frame is folded in).
 
         A frame arriving is linearised once, at its pose filtered from the frames before it; where the markers
         barely fix a pose, the smoothed pose ends elsewhere, and the remainder of that linearisation has one
-        sign frame after frame: over an hour it biases case A at 15 mm by many of its sds. Every
-        :data:`_BLOCK` frames (on the frame the cutoff is chosen again), the frames not yet committed but the
-        last :data:`_LAG` are folded into the committed state again at their smoothed poses (poses fitted
-        again at the current mean, smoothed with :data:`_LAG` frames before and after them) and the current
-        mean, and the last :data:`_LAG` frames on top of them: each frame ends linearised where the batch fit
-        with this motion model linearises it, at a cost of about one more fold per frame, in one pause. The
-        block's second-order bias is added (:meth:`_add_bias`)."""
-        theta = self._state.mean
-        split = len(self._block) - _LAG
-        live, committed = self._relinearised(self._block, theta, start=self._committed, context=_LAG,
-                                             split=split, n_iter=1)
-        self._committed, self._state = committed, live
-        self._add_bias(self._block[_LAG:split], theta)
-        self._block = self._block[split - _LAG:]
-        self._n_new = 0
+        sign frame after frame: over an hour it biases case A at 15 mm by many of its sds. Each block is
+        therefore folded in again at its poses smoothed with :data:`_LAG` frames on each side, once those
+        after it have come (:meth:`_refold`), a step at a time (:meth:`work`). What the state's information
+        about theta gained over the block (:meth:`_raw` at its two ends) is then replaced by the block's
+        information at its smoothed poses (:meth:`_apply`): each frame ends linearised where the batch fit with
+        this motion model linearises it, and the frame on hand is never folded again. The differences of the
+        state's information at the blocks' ends add up to that of the whole stretch, so nothing is counted
+        twice or left out; the motion model's link between the last poses of one block and the first of the
+        next is left out of the blocks' own information (three frames of :data:`_BLOCK`)."""
+        raw = self._raw()
+        self._closed = _Refold(self._raw_open, raw)
+        self._raw_open = raw
 
-    def _add_bias(self, frames, theta) -> None:
-        """The frames' second-order bias added to the session's (:func:`smoothed_bias_sums`, unit noise).
+    def _refold(self) -> None:
+        """The closed block's :data:`_LAG` frames after it have come: its work starts (one block at a time: any
+        still pending is finished first)."""
+        while self._pending is not None:
+            self.work()
+        p, self._closed = self._closed, None
+        p.steps = self._refold_steps(self._block[:_BLOCK + 2 * _LAG], self._state.mean, self._cutoff_now,
+                                     self._motion)
+        self._pending = p
+        self._block = self._block[_BLOCK:]  # the _LAG frames before the open block, and its first _LAG
+        self._n_new = _LAG
+
+    def _refold_steps(self, frames, theta, cutoff, motion: bool):
+        """The steps of :meth:`work` for one block: ``frames`` are its :data:`_LAG` frames before, its own and
+        the :data:`_LAG` after. The poses are fitted again at ``theta`` and smoothed (as :func:`relinearise`
+        does: where the smoothed poses misfit, with ``cutoff='auto'``, the free ones without the motion model);
+        the block's information about theta at them (:func:`block_information`) and its second-order bias
+        (:meth:`_bias_sum_of`) are returned: ``(Lambda, eta, sum S b)``."""
+        model = self.model
+        Y = np.stack([f[0] for f in frames])
+        q = np.stack([f[1] for f in frames])
+        used = np.array([f[2] for f in frames])
+        rss_free = np.zeros(len(frames))
+        if used.any():
+            q[used], rss_free[used] = fit_pose(model, theta, Y[used], q[used], n_iter=10, ws=self._ws)
+        yield
+        R = None
+        if motion and used.sum() >= 8:
+            qs = yield from smoothing_steps(model, theta, Y, q, used, self.rate, cutoff, self._ws)
+            n_obs = int(np.isfinite(Y[used]).all(axis=-1).sum()) * model.dim
+            s2 = _sigma2(float(rss_free.sum()), n_obs, int(used.sum()), model, self.sigma, self._sigma_fallback,
+                         self._sigma_floor)
+            if not self._auto or _smooth_fits(model, theta, Y[used], qs[used], float(rss_free.sum()), s2, self._ws):
+                q = qs
+                R = self._penalty(Y[_LAG:-_LAG], q[_LAG:-_LAG], used[_LAG:-_LAG], theta, cutoff)
+            yield
+        y, q, used = Y[_LAG:-_LAG], q[_LAG:-_LAG], used[_LAG:-_LAG]
+        Lam, eta = block_information(model, theta, y, q, used, R, self._ws)
+        yield
+        num = yield from self._bias_steps(y, q, used, theta, cutoff)
+        return Lam, eta, num
+
+    def _bias_steps(self, y, q, used, theta, cutoff):
+        """Steps of :meth:`work` that sum the second-order bias of frames ``y``, ``q`` (:meth:`_bias_sum_of`), a
+        piece at a time (:func:`_pieces`); the sum is returned."""
+        num = np.zeros(self.model.n_params)
+        for a in _pieces(self.model, len(q)):
+            num = num + self._bias_sum_of(y[a], q[a], used[a], theta, cutoff)
+            yield
+        return num
+
+    def _apply(self, p: _Refold, Lam, eta, num) -> None:
+        """A block's work done (:meth:`_refold_steps`): what its frames gave the state as they came
+        (``p``'s information at the block's two ends) replaced by ``(Lam, eta)``, the mean solved again, and
+        its bias added. A block whose frames a full re-linearisation has folded in since
+        (:meth:`_checked_done`), or the early frames (folded in at their smoothed poses from the start), add
+        their bias only (``Lam`` and ``eta`` unused: None for the early frames)."""
+        if p.correct:
+            dL = Lam - (p.end[0] - p.start[0])
+            de = eta - (p.end[1] - p.start[1])
+            new = add_theta_information(self._state, dL, de)
+            if new is not None:  # not definite: cannot happen for a sum of information; never trust it
+                self._state = solve_mean(new, self._prior, self._current_sigma2(), pose=self._motion)
+                self._applied = (self._applied[0] + dL, self._applied[1] + de)
+        if np.isfinite(num).all():
+            self._bias_sum = num if self._bias_sum is None else self._bias_sum + num
+            self._bias_at = -_BIAS_EVERY  # solved again at the next estimate
+
+    def _penalty(self, y, q, used, theta, cutoff):
+        """The motion model's penalty over frames ``y``, ``q`` (:func:`smoothing_penalty`)."""
+        model = self.model
+        present = np.isfinite(y).all(axis=-1) & np.asarray(used, bool)[:, None]
+        Jq = marker_jacobian(model, theta, q, self._ws)[1] * present[..., None, None]
+        return smoothing_penalty(model, frame_gram(Jq.reshape(len(q), -1, model.n_pose)), self.rate, cutoff)
+
+    def _bias_sum_of(self, y, q, used, theta, cutoff) -> np.ndarray:
+        """The second-order bias of frames ``y``, ``q`` folded in at their smoothed poses: ``S b`` at unit noise
+        (:func:`smoothed_bias_sums`; zero where it cannot be had).
 
         Folded in at its smoothed pose, each frame carries the bias of the batch ``marker`` fit with the
         same motion model, of order sigma^2: it does not shrink as the frames add up, and their sd does
-        (case A at 15 mm: several sd after ten thousand frames). The batch fit takes its second-order bias off; so does
-        the session (:meth:`_unbiased`), from the frames' smoothed poses (``frames``: ``(y, pose, used)``) at
-        ``theta``. Each block's expansion takes theta as known (the limit of many frames; the terms of order
-        sigma^2 / T, which the batch fit keeps, are left out), so that a block that alone leaves a parameter
-        unidentified has a bias too."""
-        model = self.model
-        y = np.stack([f[0] if f[2] else np.full_like(f[0], np.nan) for f in frames])
-        q = np.stack([f[1] for f in frames])
-        present = np.isfinite(y).all(axis=-1)
-        Jq = marker_jacobian(model, theta, q, self._ws)[1] * present[..., None, None]
-        R = smoothing_penalty(model, frame_gram(Jq.reshape(len(frames), -1, model.n_pose)), self.rate,
-                              self._cutoff_now)
+        (case A at 15 mm: several sd after ten thousand frames). The batch fit takes its second-order bias
+        off; so does the session (:meth:`_unbiased`). Each piece's expansion takes theta as known (the limit
+        of many frames; the terms of order sigma^2 / T, which the batch fit keeps, are left out), so that a
+        piece that alone leaves a parameter unidentified has a bias too."""
+        y = np.where(np.asarray(used, bool)[:, None, None], y, np.nan)
         try:
-            num, den = smoothed_bias_sums(model, y, theta, q, 1.0, R, theta_known=True)
+            num, _ = smoothed_bias_sums(self.model, y, theta, q, 1.0, self._penalty(y, q, used, theta, cutoff),
+                                        theta_known=True, max_frames=len(q), ws=self._ws)
         except np.linalg.LinAlgError:
-            return
-        if not (np.isfinite(num).all() and np.isfinite(den).all()):
-            return
-        self._bias_sum = num if self._bias_sum is None else self._bias_sum + num
-        self._bias_at = -_BIAS_EVERY  # solved again at the next estimate
+            return np.zeros(self.model.n_params)
+        return num if np.isfinite(num).all() else np.zeros(self.model.n_params)
 
     def _unbiased(self, st: GaussianState, s2: float) -> np.ndarray:
         """The mean of ``st`` less the second-order bias of the frames folded in at their smoothed poses
-        (:meth:`_add_bias`) at noise variance ``s2``, within the prior's bounds.
+        (:meth:`_bias_sum_of`) at noise variance ``s2``, within the prior's bounds.
 
         The bias is ``s2 (sum S)^{-1} sum S b`` with the sum of information over every frame the state holds,
         the prior's included (at unit noise), not over the blocks alone: a block that leaves a parameter
         barely identified (a joint still in it) has a large bias along it, which only the frames after it
-        outweigh; the frames not yet folded in again add their information but no bias (at most
-        :data:`_BLOCK` + :data:`_LAG` frames: the bias is then a little short of the batch fit's)."""
+        outweigh; the frames not yet folded in again add their information but no bias (the open block and,
+        until its work is done, the one before: the bias is then a little short of the batch fit's)."""
         if self._bias_sum is None:
             return st.mean
         if self._frame >= self._bias_at + _BIAS_EVERY:  # the information grows slowly: solved now and then
@@ -1962,11 +2185,13 @@ class Session:
                 self._shadow = st
         n = len(self._early)
         if n >= _RELINEARISE[-1]:
-            if self._committed is not None:
+            if self._blocks:
                 self._block.append((y, q, used))
                 self._n_new += 1
-                if self._n_new == _BLOCK:  # on the frame the cutoff is chosen again (one pause, not two)
-                    self._commit_block()
+                if self._n_new == _BLOCK:
+                    self._close_block()
+                elif self._n_new == _BLOCK + _LAG:
+                    self._refold()
             if self._auto:  # after the early frames the cutoff follows the motion, every 200 frames
                 self._recent.append((y, q, used))
                 if len(self._recent) == _RELINEARISE[-1]:
@@ -2572,6 +2797,14 @@ class _Step:
             ses._relinearise(mean)
         problems = [] if n_present == ses._M else [f"{ses._M - n_present} marker(s) missing"]
         return ses._gaussian_estimate(resid, problems, (), used=True, y=y, q=q)
+
+
+def _pieces(model: Model, T: int) -> list[slice]:
+    """Frames ``0..T-1`` in pieces for :meth:`Session._bias_sum_of` (:data:`_BIAS_COST`; at least 25 frames each,
+    as even as may be)."""
+    size = max(25, _BIAS_COST // (model.n_params + model.n_pose) ** 2)
+    edges = np.linspace(0, T, -(-T // size) + 1).astype(int)
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 def _live_part(states) -> GaussianState:

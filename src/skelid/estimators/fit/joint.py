@@ -156,7 +156,8 @@ def band_inverse_blocks(ab, Q: int) -> np.ndarray:
 
     u, n = ab.shape[0] - 1, ab.shape[1]
     T = n // Q
-    if n <= 300:  # tiny systems: the dense inverse is quicker than the sweep
+    compiled = Q <= u <= 32 and n % Q == 0 and _fk_kernel.ready("band")
+    if n <= 300 and not compiled:  # tiny systems: the dense inverse is quicker than the numpy sweep
         Z = _spd_inverse(_dense_from_banded(ab))
         idx = np.arange(T)[:, None] * Q + np.arange(Q)
         return Z[idx[:, :, None], idx[:, None, :]]
@@ -167,7 +168,7 @@ def band_inverse_blocks(ab, Q: int) -> np.ndarray:
     if u >= Q and n % Q == 0:
         # the same sweep compiled (same values to rounding): far quicker on narrow bands, where the
         # numpy loop is Python overhead; on wide ones (u > 32) BLAS products of the blocks win
-        if u <= 32 and _fk_kernel.ready("band"):
+        if compiled:
             return _fk_kernel.band_inverse_blocks(Ub, Q, T)
         return _selected_inverse_by_blocks(Ub, Q, T)
     Zb = np.zeros((n, u + 1))  # Zb[i, d] = Z[i, i + d]
@@ -1005,14 +1006,15 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
 
 def smoothed_bias_sums(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
                        max_frames: int | None = None, weights=None, pose_var: list | None = None,
-                       theta_known: bool = False):
+                       theta_known: bool = False, ws: Workspace | None = None):
     """:func:`smoothed_bias`'s pieces summed: ``(sum_k S_k b_k (P,), sum_k S_k (P, P))``.
 
     ``S_k`` is piece ``k``'s information about theta (unit noise), ``b_k`` its bias: sums over frames
     that can be added to (a live session's blocks); the bias of them all is ``solve(sum S, sum S b)``
     where the sum is definite. With ``theta_known``, each piece's expansion takes theta as known (the
     limit of many frames besides it, :func:`_arrow_inverse_blocks`): its terms of order ``sigma^2 / T`` are
-    left out, and a piece that alone leaves theta unidentified (a joint still in it) has a bias.
+    left out, and a piece that alone leaves theta unidentified (a joint still in it) has a bias. ``ws``: the
+    kinematics' workspace (a new one if None).
     """
     T = len(q)
     pieces = None if pose_var is None else []
@@ -1025,7 +1027,7 @@ def smoothed_bias_sums(model: Model, y, theta, q, sigma2: float, R, step: float 
     for a, b in zip(edges[:-1], edges[1:], strict=True):
         Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
         _, S, score = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step,
-                                           None if weights is None else weights[a:b], pieces, theta_known)
+                                           None if weights is None else weights[a:b], pieces, theta_known, ws)
         num = num + score
         den = den + S
     if pieces is not None:
@@ -1038,7 +1040,7 @@ def smoothing_penalty_like(R, T: int, Q: int, a: int, b: int):
     return R[a * Q:b * Q, a * Q:b * Q]
 
 
-def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0, theta_known: bool = False):
+def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0, theta_known: bool = False, R_band=None):
     """Diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` for the arrow matrix of a smoothed joint fit.
 
     ``N = s [[Htt, Hqt^T], [Hqt, blockdiag(Hqq)]] + [[0, 0], [0, R]]`` with ``s = scale``; with
@@ -1060,7 +1062,7 @@ def _arrow_inverse_blocks(Hqq, Hqt, Htt, R, scale: float = 1.0, theta_known: boo
     T, Q = Hqq.shape[:2]
     P = Htt.shape[0]
     for ridge in (0.0, 1e-10):  # exact unless a frame without markers leaves it singular
-        ab = _banded_system(scale * Hqq, R, ridge)
+        ab = _banded_system(scale * Hqq, R, ridge, R_band)
         try:
             U = cholesky_banded(ab, lower=False, check_finite=False)
             break
@@ -1086,7 +1088,7 @@ _SANDWICH_STEP = 1e-4
 
 
 def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose_var=None,
-                         theta_known: bool = False):
+                         theta_known: bool = False, ws: Workspace | None = None):
     """The bias ``b`` of one piece of a trial (see :func:`smoothed_bias`), its information ``S`` and ``S b``.
 
     Linear in frames: only diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` and of
@@ -1098,7 +1100,7 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     """
     P, Q = model.n_params, model.n_pose
     T = len(q)
-    ws = Workspace(model)
+    ws = Workspace(model) if ws is None else ws
     sw = row_weights(weights, np.asarray(y, float))
     _, Jq, Jt = weighted_terms(model, theta, q, y, sw, ws)
     m = Jq.shape[1]
@@ -1106,9 +1108,10 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     Hqt = frame_gram(Jq, Jt)
     Htt = summed_gram(Jt)
     h = _SANDWICH_STEP
-    plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h, theta_known)
-    minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h, theta_known)
-    Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, theta_known=theta_known)
+    R_band = penalty_band(R, Q)  # the same penalty in all three
+    plus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 + h, theta_known, R_band)
+    minus, _, _ = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, 1.0 - h, theta_known, R_band)
+    Cdiag, S_inv, G = _arrow_inverse_blocks(Hqq, Hqt, Htt, R, theta_known=theta_known, R_band=R_band)
     if pose_var is not None:  # the variance of each pose estimate, for the check of the expansion
         pose_var.append(sigma2 * np.clip(np.diagonal(Cdiag[:, P:, P:], axis1=1, axis2=2), 0.0, None))
     Sig = (minus - plus) / (2.0 * h)  # blocks of C J^T J C (unit noise)
