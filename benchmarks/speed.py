@@ -559,13 +559,15 @@ def section_live(args) -> dict:
     if osim is not None:
         out["live_osim_scales_ms"] = osim
         out["live_p99_ms_osim_scales"] = osim["p99"]
+        # with an offset of every marker (three parameters each): slower, so fewer frames
+        out["live_osim_offsets_ms"] = _osim_live_row(min(F, 2000), markers="offsets")
     return out
 
 
-def _osim_live_row(n_frames: int) -> dict | None:
-    """Latency of a live session of gait2354's body scales (the default settings) on subject01's walk, played
-    forwards and backwards in turn (no jump where it starts again) for ``n_frames`` frames; None without the
-    shared data."""
+def _osim_live_row(n_frames: int, markers: str = "none") -> dict | None:
+    """Latency of a live session of gait2354's body scales (the default settings; with ``markers='offsets'`` an
+    offset of every marker too) on subject01's walk, played forwards and backwards in turn (no jump where it
+    starts again) for ``n_frames`` frames; None without the shared data."""
     from skelid.io import read_markers
     from skelid.live import Session
     from skelid.loading import load_model
@@ -574,11 +576,13 @@ def _osim_live_row(n_frames: int) -> dict | None:
     if not (s01 / "subject01_walk1.trc").exists():
         return None
     data = read_markers(s01 / "subject01_walk1.trc")
-    model = load_model(s01 / "gait2354_simbody.osim", s01 / "gait2354_Scale_MarkerSet.xml", marker_names=data.names)
+    model = load_model(s01 / "gait2354_simbody.osim", s01 / "gait2354_Scale_MarkerSet.xml", marker_names=data.names,
+                       markers=markers)
     there_and_back = np.concatenate([data.positions, data.positions[::-1]])
     frames = np.concatenate([there_and_back] * (n_frames // len(there_and_back) + 1))[:n_frames + 10]
     s = Session(model, labels=data.names, units=data.units, rate=data.rate)
-    return _latency_row(s, frames, model="gait2354_simbody.osim (body scales)", parameters=model.n_params,
+    what = "body scales" if markers == "none" else "body scales and marker offsets"
+    return _latency_row(s, frames, model=f"gait2354_simbody.osim ({what})", parameters=model.n_params,
                         markers=len(model.markers), pose=model.n_pose, method=s.method)
 
 
