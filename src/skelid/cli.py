@@ -23,6 +23,7 @@ import click
 import numpy as np
 
 from skelid import __version__, _stop
+from skelid._linalg import one_blas_thread
 from skelid.errors import SkelidError, SkelidWarning
 
 FIT_EXAMPLE = """\b
@@ -782,13 +783,6 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _one_blas_thread():
-    """One BLAS thread for the command: a fit is many small factorisations, which threads only slow down."""
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(1, user_api="blas")
-
-
 #: the line a stop by a signal leaves on stderr, and the exit status
 STOPPED = {signal.SIGINT: ("skelid: interrupted; no partial output was left", 130),
            signal.SIGTERM: ("skelid: terminated (SIGTERM); no partial output was left", 143)}
@@ -819,7 +813,7 @@ def main(argv=None) -> int:
 
 def _main(args) -> int:
     try:
-        with _one_blas_thread():
+        with one_blas_thread():
             cli.main(args=args, prog_name="skelid", standalone_mode=False, obj={"argv": ["skelid", *args]})
     except SkelidError as exc:
         click.echo(f"skelid: error: {exc.one_line()}", err=True)

@@ -193,7 +193,7 @@ from scipy.linalg.lapack import dgeqrf as _dgeqrf
 from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
-from skelid._linalg import frame_gram
+from skelid._linalg import frame_gram, one_blas_thread
 from skelid.data import MAX_FIT_COORDINATE_MM, MarkerData, unit_scale
 from skelid.errors import DataError, ModelError, SettingError, SkelidError
 from skelid.estimators.checks.misfit import STILL_JOINT_DEG, joint_rotations
@@ -1067,6 +1067,37 @@ def _batch_theta(model: Model, frames, rate: float, sigma: float | None):
     return np.asarray(fit.theta_profile_, float), np.asarray(fit.cov_, float), pose
 
 
+def _basin_fit(model: Model, frames, rate: float):
+    """The batch ``marker`` fit's joint estimate of the frames used, without its posterior (its start, screening
+    and motion-model stages: a tenth of the whole fit's time), as :func:`_batch_theta` gives it: the estimate,
+    its Gauss-Newton covariance and the used frames' poses; None where it fails.
+
+    The check of the early frames' basin (:meth:`Session._relinearise`): only which minimum, not the interval."""
+    import warnings
+
+    from skelid.estimators.base import fit_origin, move_root
+    from skelid.estimators.marker import MarkerEstimator, motion_stage, screen_stage, start_stage
+
+    y = np.stack([f[0] for f in frames if f[2]]) if any(f[2] for f in frames) else None
+    if y is None or len(y) < 2:
+        return None
+    est = MarkerEstimator(model, rng=np.random.default_rng(0))
+    ws = workspace(model)
+    origin = fit_origin(model, y)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            st = start_stage(model, y - origin, rate, est, np.random.default_rng(0), ws, origin)
+            sc = screen_stage(model, st, est, ws)
+            fit = motion_stage(model, st, sc, est, ws).fit
+            cov = np.linalg.inv(fit.info) * fit.rss / max(fit.n_obs - fit.pose_dof - model.n_params, 1.0)
+    except (SkelidError, np.linalg.LinAlgError):
+        return None
+    if not (np.isfinite(fit.theta).all() and np.isfinite(cov).all()):
+        return None
+    return fit.theta, cov, move_root(model, fit.pose, origin)
+
+
 def _done_advice(model: Model, est: LiveEstimate, targets: np.ndarray) -> Advice:
     """The stopping rule's last advice: every requested parameter is at its target (named with its sd)."""
     asked = [(p, t) for p, t in zip(est.parameters.values(), targets, strict=True) if np.isfinite(t)]
@@ -1545,7 +1576,8 @@ class Session:
         if p is None:
             return False
         try:
-            next(p.steps)
+            with one_blas_thread():
+                next(p.steps)
         except StopIteration as stop:
             self._pending = None
             self._apply(p, *stop.value)
@@ -1569,16 +1601,9 @@ class Session:
         # the frames of the open block are the last ones: the information about theta before them starts it
         # again (:meth:`_close_block`)
         split = len(frames) - self._n_new % _BLOCK if self._blocks else None
-        here = self._relinearised(list(frames), self._state.mean, split=split)  # a copy: the other basin starts
-        batch = _batch_theta(self.model, frames, self.rate, self.sigma)           # from these poses
-        if batch is not None:
-            sd = np.sqrt(np.clip(np.diag(batch[1]), 0.0, None))
-            if np.any(np.abs(_live_part(here).mean - batch[0]) > _BATCH_SD * np.maximum(sd, 1e-300)):
-                # another basin (its poses too): the one whose frames fit better, each at its own pose
-                poses = iter(batch[2])
-                there = self._relinearised([(y, next(poses) if u else q, u) for y, q, u in frames], batch[0],
-                                           split=split)
-                here = there if _live_part(there).rss < _live_part(here).rss else here
+        with one_blas_thread():
+            here = self._relinearised(list(frames), self._state.mean, split=split)  # a copy: the other basin
+            here = self._basin(frames, here, _batch_theta(self.model, frames, self.rate, self.sigma), split)[0]
         if split is None:
             self._state = here
         else:
@@ -1594,6 +1619,25 @@ class Session:
         problems = list(dict.fromkeys(h for h in (est.health, new.health) if h != "ok"))
         return dataclasses.replace(new, healthy=not problems, health="; ".join(problems) or "ok",
                                    rejected=est.rejected)
+
+    def _basin(self, frames, here, batch, split=None):
+        """``here`` (:meth:`_relinearised` of ``frames``), or, where the batch fit ``batch`` (estimate, covariance,
+        used frames' poses: :func:`_batch_theta`, :func:`_basin_fit`) puts a parameter more than
+        :data:`_BATCH_SD` of its sds away, the frames relinearised from its basin (its poses too), whichever's
+        frames fit better, each at its own pose: ``(state, the frames with its poses)``. The recent residuals
+        the health weighs (:class:`~skelid.live_health.MisfitWindow`) are forgotten with the basin left."""
+        if batch is None:
+            return here, frames
+        sd = np.sqrt(np.clip(np.diag(batch[1]), 0.0, None))
+        if not np.any(np.abs(_live_part(here).mean - batch[0]) > _BATCH_SD * np.maximum(sd, 1e-300)):
+            return here, frames
+        poses = iter(batch[2])
+        other = [(y, next(poses) if u else q, u) for y, q, u in frames]
+        there = self._relinearised(other, batch[0], split=split)
+        if _live_part(there).rss >= _live_part(here).rss:
+            return here, frames
+        self._window = MisfitWindow(self._M, self._D, self.model.n_pose, self._sigma_floor)  # the other basin's
+        return there, other
 
     def _relinearised(self, frames, theta, **how):
         """:func:`relinearise` of ``frames`` (their poses written back) at ``theta`` with the session's settings
@@ -1970,14 +2014,27 @@ class Session:
         With the grid beside it (a model with few parameters), ``theta`` is the grid's mean instead where the
         two disagree by more than :data:`_ASTRAY` of the grid's sds: the extended Kalman update
         linearises at its own mean, and a first guess in another basin keeps it there; the grid has
-        weighed every point of the prior. The grid is left after the last early frame."""
+        weighed every point of the prior. The grid is left after the last early frame. A model with more
+        parameters has no grid beside it: after the last early frame a batch fit of the early frames checks
+        the basin instead (:meth:`_basin`, :func:`_basin_fit`)."""
         if self._shadow is not None:
             theta = self._shadow_theta(theta)
             if len(self._early) >= _RELINEARISE[-1]:
                 self._shadow = None
+        with one_blas_thread():
+            self._relinearise_early(theta)
+
+    def _relinearise_early(self, theta) -> None:
+        """:meth:`_relinearise`'s work (with one BLAS thread)."""
         if self._auto and len(self._early) >= 50:
             self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
         self._state = self._relinearised(self._early, theta)
+        if len(self._early) >= _RELINEARISE[-1] and self.model.n_params > _SHADOW_PARAMS:
+            # the recursive form follows the basin of its first linearisations, made from a few frames: a batch
+            # fit of the early frames searches the prior (the tennis arm's elbow centre once sat 20-140 batch sd
+            # off, every frame fitting, health "ok")
+            self._state, self._early = self._basin(self._early, self._state,
+                                                   _basin_fit(self.model, self._early, self.rate))
         if len(self._early) >= _RELINEARISE[-1] and self._motion:
             self._blocks, self._block, self._raw_open = True, list(self._early[-_LAG:]), theta_marginal(self._state)
             # the early frames' bias, at their smoothed poses, now: the estimate after them is the batch fit's

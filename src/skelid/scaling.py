@@ -65,7 +65,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skelid._linalg import frame_gram, summed_gram, summed_product
+from skelid._linalg import frame_gram, one_blas_thread, summed_gram, summed_product
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, SettingError, SkelidWarning
 from skelid.estimators.checks.pose_artefact import pose_artefact
@@ -258,7 +258,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
     _check_cost(osim_parameters(original, info, scale, "none", present), method, trials, limits)
     t0 = time.perf_counter()
     notes, moved, joint_fit = [], {}, None
-    with warnings.catch_warnings(), _one_blas_thread():
+    with warnings.catch_warnings(), one_blas_thread():
         warnings.simplefilter("ignore", SkelidWarning)  # recorded in the result instead
         if markers == "offsets" and scale != "none":
             moved, note = place_free_markers_first(full, info, scale, trials[0], sigma, seed, settings)
@@ -417,7 +417,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     Returns ``(model, theta, estimator, result dict, JointOffsets)``; the model gains one factor
     per axis for the bodies where the score test contradicts one (``scale='bodies'``).
     """
-    with warnings.catch_warnings(), _one_blas_thread():
+    with warnings.catch_warnings(), one_blas_thread():
         warnings.simplefilter("ignore", SkelidWarning)
         ys = [_select(t, model.marker_names).positions for t in given]
         weights = _marker_weights(model, res) if st.settings.get("noise") == "per_marker" else None
@@ -907,22 +907,6 @@ def _with_marker_positions(model: Model, moved: dict) -> Model:
         return model
     mk = tuple(replace(m, position=moved[m.name]) if m.name in moved else m for m in model.markers)
     return Model(model.name, model.dim, model.units, model.segments, mk)
-
-
-def _one_blas_thread():
-    """One BLAS thread while fitting: the fit is many small factorisations, which threads only slow down.
-
-    Measured on the gait2354 fit on two busy cores: 8.5 s CPU with one thread,
-    84 s with OpenBLAS' default (its threads spin while they wait). A no-op
-    without ``threadpoolctl``.
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(1, user_api="blas")
 
 
 def _select(t: MarkerData, names) -> MarkerData:

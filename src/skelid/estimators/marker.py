@@ -43,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.stats import chi2
 
+from skelid._linalg import one_blas_thread
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError, SettingError, SkelidError
 from skelid.estimators.base import (
@@ -1464,7 +1465,8 @@ class MarkerEstimator:
         """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""
         check_settings(self)
         y, rate = marker_array(self.model, data, self.rate, self.name)
-        f = run_marker_fit(self, y, rate, make_rng(self.rng))
+        with one_blas_thread():
+            f = run_marker_fit(self, y, rate, make_rng(self.rng))
         self._publish(f, emit(marker_warnings(self.model, self, f)))
         if progress is not None:
             progress(len(y))
