@@ -239,6 +239,8 @@ _DONE_KEEP = 20000
 #: ... and where the batch fit of those frames puts a parameter more than this many of its sds away, the basin
 #: whose frames fit better is taken
 _BATCH_SD = 2.0
+#: the early frames' basin is checked by a batch fit where it costs at most this (:func:`_basin_affordable`)
+_BASIN_COST = 1e7
 #: after the early frames, the frames are folded in again at their smoothed poses this many at a time
 #: (:meth:`Session._close_block`) ...
 _BLOCK = 100
@@ -1096,6 +1098,14 @@ def _basin_fit(model: Model, frames, rate: float):
     if not (np.isfinite(fit.theta).all() and np.isfinite(cov).all()):
         return None
     return fit.theta, cov, move_root(model, fit.pose, origin)
+
+
+def _basin_affordable(model: Model, T: int) -> bool:
+    """Whether :func:`_basin_fit` of ``T`` frames costs at most about a second (:data:`_BASIN_COST`): frames x pose
+    coordinates x (pose coordinates + parameters)^2 (about 0.1-0.2 s for the 3-D arms, 0.5 s for gait2354's
+    body scales, 15 s with its 93 marker offsets as well: that session goes without the check)."""
+    Q, P = model.n_pose, model.n_params
+    return T * Q * (Q + P) ** 2 <= _BASIN_COST
 
 
 def _done_advice(model: Model, est: LiveEstimate, targets: np.ndarray) -> Advice:
@@ -2029,7 +2039,8 @@ class Session:
         if self._auto and len(self._early) >= 50:
             self._set_cutoff(_for_all(live_cutoff(self.model, self._early, theta, self.rate, self._ws)))
         self._state = self._relinearised(self._early, theta)
-        if len(self._early) >= _RELINEARISE[-1] and self.model.n_params > _SHADOW_PARAMS:
+        if len(self._early) >= _RELINEARISE[-1] and self.model.n_params > _SHADOW_PARAMS and _basin_affordable(
+                self.model, len(self._early)):
             # the recursive form follows the basin of its first linearisations, made from a few frames: a batch
             # fit of the early frames searches the prior (the tennis arm's elbow centre once sat 20-140 batch sd
             # off, every frame fitting, health "ok")
