@@ -209,6 +209,7 @@ from skelid.live_health import (
     MarkerTracks,
     MisfitWindow,
     ScaleCheck,
+    finish_steps,
     gaussian_bound_z,
     grid_bound_z,
     ratio_limit,
@@ -549,16 +550,7 @@ def smoothed_poses(model: Model, theta, y, q, used, rate: float, cutoff: float, 
                    n_iter: int = 10, tol: float = 1e-6) -> np.ndarray:
     """Poses ``(T, Q)`` of frames ``y (T, M, D)`` smoothed by the batch method's motion model at fixed ``theta``
     (:func:`smoothing_steps`, run to the end)."""
-    return _to_the_end(smoothing_steps(model, theta, y, q, used, rate, cutoff, ws, n_iter, tol))
-
-
-def _to_the_end(steps):
-    """What a generator of steps returns, every step taken now."""
-    while True:
-        try:
-            next(steps)
-        except StopIteration as stop:
-            return stop.value
+    return finish_steps(smoothing_steps(model, theta, y, q, used, rate, cutoff, ws, n_iter, tol))
 
 
 def smoothing_steps(model: Model, theta, y, q, used, rate: float, cutoff: float, ws: Workspace | None = None,
@@ -2050,7 +2042,7 @@ class Session:
             self._blocks, self._block, self._raw_open = True, list(self._early[-_LAG:]), theta_marginal(self._state)
             # the early frames' bias, at their smoothed poses, now: the estimate after them is the batch fit's
             y, q, used = (np.stack([f[k] for f in self._early]) for k in range(3))
-            num = _to_the_end(self._bias_steps(y, q, used, self._state.mean, self._cutoff_now))
+            num = finish_steps(self._bias_steps(y, q, used, self._state.mean, self._cutoff_now))
             self._apply(_Refold(None, None, False), None, None, num)
 
     def _raw(self) -> tuple[np.ndarray, np.ndarray]:

@@ -454,7 +454,7 @@ class MisfitWindow:
                     # until its refresh, spread over the next pushes, is done
                     self._refresh = (key, self._n, self._alike_steps(n, s2, tested, lim, linearise))
             else:
-                alike = _finished(self._alike_steps(n, s2, tested, lim, linearise))
+                alike = finish_steps(self._alike_steps(n, s2, tested, lim, linearise))
                 self._loo, self._refresh = (key, self._n, alike), None
             if alike.size > 1:
                 return *none, alike, rms[alike]
@@ -505,7 +505,7 @@ class MisfitWindow:
         return alike if not (tested & (m > limit)).any() else alike[:0]
 
 
-def _finished(steps):
+def finish_steps(steps):
     """Run a generator of steps to its end: its return value."""
     while True:
         try:
