@@ -480,6 +480,18 @@ def test_work_deferred_to_after_the_estimate_gives_the_same_estimates():
         np.testing.assert_array_equal(a.theta, b.theta)
         np.testing.assert_array_equal(a.theta, est_fed.theta)
     assert worked >= 10 and deferred._bias_sum is not None and plain.work() is False
+    assert np.any(deferred._applied[0] != 0)  # the blocks' corrections are in
+
+
+def test_work_never_called_is_done_when_the_next_block_starts():
+    """Pushed with ``defer`` and :meth:`Session.work` never called, a block's work is done all at once when the
+    next one's starts: the corrections still come in."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=700, sigma=15.0, rng=np.random.default_rng(8))
+    s = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    for y in trial.data.positions:
+        s.push(y, defer=True)
+    assert np.any(s._applied[0] != 0) and s._pending is not None
 
 
 @pytest.mark.parametrize("committed", [True, False])

@@ -1536,7 +1536,8 @@ class Session:
         defer : bool
             Leave the step of pending work each push does after its frame (:meth:`work`) to the caller,
             to call once the estimate is on its way: the frame's latency is then the push alone. The
-            estimates are the same either way, as long as :meth:`work` is called before the next push.
+            estimates are the same either way, as long as :meth:`work` is called before the next push (work
+            left undone is done all at once when the next block's work starts).
 
         Raises
         ------
@@ -2131,7 +2132,7 @@ class Session:
             dL = Lam - (p.end[0] - p.start[0])
             de = eta - (p.end[1] - p.start[1])
             new = add_theta_information(self._state, dL, de)
-            if new is not None:  # not definite: cannot happen for a sum of information; never trust it
+            if new is not None:  # None (not definite) cannot happen for a sum of information: left out if it does
                 self._state = solve_mean(new, self._prior, self._current_sigma2(), pose=self._motion)
                 self._applied = (self._applied[0] + dL, self._applied[1] + de)
         if np.isfinite(num).all():
