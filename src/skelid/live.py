@@ -244,9 +244,9 @@ _BATCH_SD = 2.0
 _BASIN_COST = 1e7
 #: after the early frames, the frames are folded in again at their smoothed poses this many at a time
 #: (:meth:`Session._close_block`) ...
-_BLOCK = 100
+_BLOCK = 200
 #: ... each smoothed with this many frames before it and after it
-_LAG = 25
+_LAG = 50
 #: ... and the bias they carry is solved again with the information of every frame at most this many frames apart
 _BIAS_EVERY = 10
 #: ... and is found a piece of frames at a time (one step of :meth:`Session.work` each), its cost
