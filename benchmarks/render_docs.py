@@ -620,7 +620,7 @@ def live_speed() -> str:
     def work(r):
         if "work_max" not in r:
             return "— | —"
-        return f"{r['work_max']:.1f} ms | {r['with_work_p99']:.2f} ms" if r["work_max"] > 0.05 else "none | same"
+        return f"{r['work_max']:.1f} ms | {r['with_work_p99']:.2f} ms" if r["work_p99"] > 0.05 else "none | same"
 
     lines = ["| session | median | 99th percentile | work between frames: largest step | both (a plain `push`): "
              "99th percentile |", "|---|---|---|---|---|"]
