@@ -1063,7 +1063,7 @@ def _batch_theta(model: Model, frames, rate: float, sigma: float | None):
 
 def _basin_fit(model: Model, frames, rate: float):
     """The batch ``marker`` fit's joint estimate of the frames used, without its posterior (its start, screening
-    and motion-model stages: a tenth of the whole fit's time), as :func:`_batch_theta` gives it: the estimate,
+    and motion-model stages: a fraction of the whole fit's time), as :func:`_batch_theta` gives it: the estimate,
     its Gauss-Newton covariance and the used frames' poses; None where it fails.
 
     The check of the early frames' basin (:meth:`Session._relinearise`): only which minimum, not the interval."""
