@@ -867,7 +867,7 @@ def block_information(model: Model, theta, y, q, used, R=None, ws: Workspace | N
     import scipy.sparse as sp
     from scipy.linalg import cho_solve_banded, cholesky_banded
 
-    from skelid._linalg import summed_gram
+    from skelid._linalg import summed_gram, summed_product
     from skelid.estimators.fit.joint import _banded_system
 
     P, Q = model.n_params, model.n_pose
@@ -890,7 +890,7 @@ def block_information(model: Model, theta, y, q, used, R=None, ws: Workspace | N
             continue
     X = cho_solve_banded((U, False), np.concatenate([H, bq[:, None]], axis=1), check_finite=False)
     Lam = summed_gram(Jt) - H.T @ X[:, :P]
-    eta = np.einsum("tkp,tk->p", Jt, c) - H.T @ X[:, P]
+    eta = summed_product(Jt, c) - H.T @ X[:, P]
     return 0.5 * (Lam + Lam.T), eta
 
 
@@ -1069,21 +1069,18 @@ def _basin_fit(model: Model, frames, rate: float):
     The check of the early frames' basin (:meth:`Session._relinearise`): only which minimum, not the interval."""
     import warnings
 
-    from skelid.estimators.base import fit_origin, move_root
-    from skelid.estimators.marker import MarkerEstimator, motion_stage, screen_stage, start_stage
+    from skelid.estimators.base import move_root
+    from skelid.estimators.marker import MarkerEstimator, joint_stages
 
     y = np.stack([f[0] for f in frames if f[2]]) if any(f[2] for f in frames) else None
     if y is None or len(y) < 2:
         return None
     est = MarkerEstimator(model, rng=np.random.default_rng(0))
-    ws = workspace(model)
-    origin = fit_origin(model, y)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            st = start_stage(model, y - origin, rate, est, np.random.default_rng(0), ws, origin)
-            sc = screen_stage(model, st, est, ws)
-            fit = motion_stage(model, st, sc, est, ws).fit
+            origin, _, _, mo = joint_stages(est, y, rate, np.random.default_rng(0), workspace(model))
+            fit = mo.fit
             cov = np.linalg.inv(fit.info) * fit.rss / max(fit.n_obs - fit.pose_dof - model.n_params, 1.0)
     except (SkelidError, np.linalg.LinAlgError):
         return None

@@ -1229,6 +1229,17 @@ def _motion_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[War
     return out
 
 
+def joint_stages(est: MarkerEstimator, y, rate: float, rng, ws: Workspace | None = None):
+    """The stages up to the joint fit with the motion model: ``(origin, start, screen, motion)``, the data
+    moved by ``origin`` (:func:`~skelid.estimators.base.fit_origin`: the stages see the same numbers wherever
+    the data sit)."""
+    model = est.model
+    origin = fit_origin(model, y)
+    st = start_stage(model, np.asarray(y, float) - origin, rate, est, rng, ws, origin)
+    sc = screen_stage(model, st, est, ws)
+    return origin, st, sc, motion_stage(model, st, sc, est, ws)
+
+
 def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "error",
                    misfit_refit: bool = True) -> MarkerFit:
     """The stages of a marker fit, each returning a small immutable value.
@@ -1240,10 +1251,7 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     """
     model = est.model
     ws = workspace(model)  # one path (compiled or numpy) for every pose fit of this fit
-    origin = fit_origin(model, y)  # the stages see the same numbers wherever the data sit
-    st = start_stage(model, np.asarray(y, float) - origin, rate, est, rng, ws, origin)
-    sc = screen_stage(model, st, est, ws)
-    mo = motion_stage(model, st, sc, est, ws)
+    origin, st, sc, mo = joint_stages(est, y, rate, rng, ws)
     wt = weights_stage(model, st, sc, mo, est, ws)
     wt = converge_stage(model, st, sc, mo, wt, est, ws)
     wt = branch_stage(model, st, sc, wt, est, ws)
