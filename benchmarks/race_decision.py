@@ -62,7 +62,7 @@ def race_curves(model, data) -> list[float]:
     stiff = joint_fit(model, sc.y, sc.fit.theta, sc.fit.pose, n_iter=mk.STIFF_ITER, bounds=st.bounds,
                       frames=sc.fixed, rate=rate, cutoff=cutoff / mk.STIFFER, ws=ws, summary=False)
     sigma2 = sc.fit.rss / max(sc.fit.n_obs, 1)
-    costs = [[mk._penalised_cost(joint_fit(model, sc.y, th, qq, n_iter=k, bounds=st.bounds, frames=sc.fixed,
+    costs = [[mk.penalised_cost(joint_fit(model, sc.y, th, qq, n_iter=k, bounds=st.bounds, frames=sc.fixed,
                                            rate=rate, cutoff=cutoff, ws=ws, summary=False)) for k in KS]
              for th, qq in ((st.theta0, st.pose0), (stiff.theta, stiff.pose))]
     return [(a - b) / sigma2 for a, b in zip(*costs, strict=True)]

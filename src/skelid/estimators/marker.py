@@ -531,8 +531,8 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
         raise DataError(f"{len(sc.y)} frame(s): the motion model (cutoff) smooths second differences of the poses "
                         f"and needs at least {MOTION_MIN_FRAMES} frames", "give a longer trial, or cutoff=None")
     fits = _race(model, st, sc, s, cutoff, ws)
-    best = min(fits, key=_penalised_cost)
-    minima = tuple((f.theta, _penalised_cost(f)) for f in fits if f.converged) if sc.others else ()
+    best = min(fits, key=penalised_cost)
+    minima = tuple((f.theta, penalised_cost(f)) for f in fits if f.converged) if sc.others else ()
     more = s.n_iter - RACE_ITER if not best.converged else 0  # 0: only the information at the estimate
     fit = joint_fit(model, sc.y, best.theta, best.pose, n_iter=max(more, 0), bounds=st.bounds, frames=sc.fixed,
                     penalty=best.penalty, step_tol=FIT_STEP_TOL, ws=ws)
@@ -603,7 +603,10 @@ def _race(model: Model, st: Start, sc: Screen, s: MarkerEstimator, cutoff, ws: W
     return fits
 
 
-def _penalised_cost(f: JointFit) -> float:
+def penalised_cost(f: JointFit) -> float:
+    """A joint fit's cost with its motion-model penalty (without one: its residual sum of squares)."""
+    if f.penalty is None:
+        return float(f.rss)
     return f.rss + float(f.pose.ravel() @ (f.penalty @ f.pose.ravel()))
 
 
@@ -908,7 +911,7 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
         return wt
     new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
                     penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
-    if (new.converged and _penalised_cost(new) < _penalised_cost(fit) * (1.0 - 1e-9)
+    if (new.converged and penalised_cost(new) < penalised_cost(fit) * (1.0 - 1e-9)
             and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws, (fit.theta, fit.pose))):
         return wt._replace(fit=new)
     return wt
