@@ -323,7 +323,7 @@ def test_a_trial_evaluated_for_its_cost_and_completed_gives_the_full_terms(leg):
     assert cheap[1] is None and cheap[2] is None
     np.testing.assert_allclose(cheap[0], full[0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(cheap[3], full[3], rtol=1e-10)
-    done = _summed_terms(cheap[0], *weighted_terms(model, theta, cheap[0], walk.positions, None, ws))
+    done = _summed_terms(model.dim, cheap[0], *weighted_terms(model, theta, cheap[0], walk.positions, None, ws))
     for a, b in zip(done, full, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
     assert full[3] > 0 and np.abs(full[2]).max() > 0

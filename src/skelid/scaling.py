@@ -65,7 +65,7 @@ from pathlib import Path
 
 import numpy as np
 
-from skelid._linalg import frame_gram, one_blas_thread, summed_gram, summed_product
+from skelid._linalg import frame_gram, one_blas_thread
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, SettingError, SkelidWarning
 from skelid.estimators.checks.pose_artefact import pose_artefact
@@ -548,7 +548,7 @@ def _slide_converged(model: Model, jo, art, ys, weights):
             q, r, Jq, Jt = _posed_terms(model, theta, y - d, q, ws, weights)
             sw = row_weights(weights, y)
             seen = np.repeat(np.isfinite(y).all(axis=-1), 3, axis=1)  # the slide back on the residuals seen
-            terms = _summed_terms(q, r + d.reshape(len(d), -1) * seen * (1.0 if sw is None else sw), Jq, Jt)
+            terms = _summed_terms(model.dim, q, r + d.reshape(len(d), -1) * seen * (1.0 if sw is None else sw), Jq, Jt)
             info, score = info + terms[1], score + terms[2]
             new_poses.append(q)
         a = pose_artefact(model, theta, ys, new_poses, jo.sigma, jo.cov, weights, reference=np.zeros(q.shape[1]),
@@ -943,7 +943,9 @@ def _fit_scales(model, parts, data, multi, method, sigma, seed, settings: dict |
     settings = dict(settings or {"sigma": sigma})
     marker = method in ("marker", "marker-multi")
     if marker and checks_only:
-        settings["on_nonconvergence"] = "warn"
+        # the checks' ratios compare the data sd with the plain one; the bias and spread of the estimate that is
+        # reported are the joint fit's own (:func:`bootstrap_check`), not this fit's second-order correction
+        settings |= {"on_nonconvergence": "warn", "bias_correction": "none"}
     try:
         return _fit_scales_once(model, parts, data, multi, method, sigma, seed, settings)
     except ConvergenceError:
@@ -1172,7 +1174,7 @@ def fit_scales_and_offsets(model: Model, ys, theta0, poses0, sigma: float | None
         return [one(model, th, y, q, ws, weights, JOINT_POSE_ITER) for y, q in zip(ys, qs, strict=True)]
 
     def complete(th, tt):  # the information and score of trials evaluated for their cost only
-        return [t if t[1] is not None else _summed_terms(t[0], *weighted_terms(model, th, t[0], y, None, ws))
+        return [t if t[1] is not None else _summed_terms(model.dim, t[0], *weighted_terms(model, th, t[0], y, None, ws))
                 for y, t in zip(ys, tt, strict=True)]
 
     def penalised(th, tt, w):  # the penalised cost at noise weights ``w``
@@ -1283,6 +1285,7 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
     """
     from scipy.stats import chi2
 
+    from skelid.estimators.fit.likelihood import projected_score
     from skelid.estimators.fit.pose import workspace
     from skelid.model.kinematics import marker_positions
 
@@ -1304,7 +1307,8 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
         for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
             x, sd = fitted[k]
             sim = np.where(np.isfinite(y), x + rng.normal(size=x.shape) * sd, np.nan)
-            g = _trial_terms(model, jo.theta, sim, q, ws, weights, BOOTSTRAP_POSE_ITER)[2]
+            _, r, Jq, Jt = _posed_terms(model, jo.theta, sim, q, ws, weights, BOOTSTRAP_POSE_ITER)
+            g = projected_score(Jq, Jt, r)
             score = score + g / jo.sigma[k] ** 2
         steps[b] = solve(score)
     # the steps' variance under a linear fit: the data's part of the interval, without the prior's
@@ -1340,19 +1344,18 @@ def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) 
     (mm) also ``sum_t K_perp^T diag(s^2) K_perp`` with each marker's noise variance
     ``s_m^2`` (:func:`marker_noise_variances`, at least ``floor^2``) and those variances ``(M,)``.
     """
-    return _summed_terms(*_posed_terms(model, theta, y, q, ws, weights, pose_iter), y=y, floor=floor)
+    return _summed_terms(model.dim, *_posed_terms(model, theta, y, q, ws, weights, pose_iter), y=y, floor=floor)
 
 
-def _summed_terms(q, r, Jq, Jt, y=None, floor=None) -> tuple:
-    """:func:`_trial_terms` from the fitted poses, their residuals and both Jacobians."""
-    from skelid.estimators.fit.likelihood import projected_theta_jacobian
+def _summed_terms(dim: int, q, r, Jq, Jt, y=None, floor=None) -> tuple:
+    """:func:`_trial_terms` from the fitted poses, their residuals and both Jacobians (``dim`` rows per marker)."""
+    from skelid.estimators.fit.likelihood import projected_sums
 
-    Kp = projected_theta_jacobian(Jq, Jt)
-    out = (q, summed_gram(Kp), summed_product(Kp, r), float(np.sum(r**2)))
     if floor is None:
-        return out
+        return (q, *projected_sums(Jq, Jt, r, dim), float(np.sum(r**2)))
     var = np.maximum(marker_noise_variances(Jq, r, np.isfinite(y).all(axis=-1)), floor**2)
-    return out + (summed_gram(Kp, w=np.repeat(var, r.shape[1] // var.size)), var)
+    S, Kr, Sw = projected_sums(Jq, Jt, r, dim, np.repeat(var, dim))
+    return q, S, Kr, float(np.sum(r**2)), Sw, var
 
 
 def _trial_cost(model: Model, theta, y, q, ws, weights, pose_iter) -> tuple:
@@ -1844,7 +1847,7 @@ def one_factor_test(model: Model, per_axis: Model, jo: JointOffsets, ys, weights
     from scipy.stats import chi2
 
     from skelid.estimators.fit.joint import row_weights, weighted_terms
-    from skelid.estimators.fit.likelihood import projected_theta_jacobian
+    from skelid.estimators.fit.likelihood import projected_sums
     from skelid.estimators.fit.pose import workspace
 
     ws = workspace(per_axis)
@@ -1853,9 +1856,9 @@ def one_factor_test(model: Model, per_axis: Model, jo: JointOffsets, ys, weights
     for y, q, sig in zip(ys, jo.poses, jo.sigma, strict=True):
         r, Jq, Jt = weighted_terms(per_axis, th, q, y, row_weights(weights, y), ws)
         r = np.where(np.isfinite(r), r, 0.0)
-        Kp = projected_theta_jacobian(Jq, Jt)
-        S = S + summed_gram(Kp) / sig**2
-        g = g + summed_product(Kp, r) / sig**2
+        Sk, gk = projected_sums(Jq, Jt, r, per_axis.dim)
+        S = S + Sk / sig**2
+        g = g + gk / sig**2
     C = np.zeros_like(S) if score_cov is None else np.asarray(score_cov, float)
     L = np.array([[1.0, -1.0, 0.0], [0.0, 1.0, -1.0]])
     out = {}
