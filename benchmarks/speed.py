@@ -676,6 +676,9 @@ def section_osim(args) -> dict:
     from opensim_peer import S04_TRIALS, _ik, run_scaletool
 
     from skelid.io import read_markers
+    from skelid.resources import keep_freed_memory
+
+    keep_freed_memory()  # as the skelid program does (this section runs last: the others keep glibc's default)
 
     out: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -699,7 +702,7 @@ def section_osim(args) -> dict:
                 "osim_note": ("skelid fit gait2354_simbody.osim subject01_static.trc subject01_walk1.trc (every "
                               "frame, intervals included), then skelid report and skelid ik (100 draws, and "
                               "--draws 0: the geometry's first-order effect) on its folder, each in this process after "
-                              "the package's import; OpenSim's ScaleTool "
+                              "the package's import, with the program's memory setting; OpenSim's ScaleTool "
                               "(subject01_Setup_Scale.xml) + IK of the walk in the same run")}
         if (s04 / "Models" / "unscaled_generic.osim").exists():
             trials = [s04 / "MarkerData" / f"{n}.trc" for n in S04_TRIALS]

@@ -802,9 +802,14 @@ def main(argv=None) -> int:
     """Entry point: run the CLI, turning user errors into one line and exit status 2.
 
     Without ``argv`` (the ``skelid`` program itself, whose process ends with it), SIGINT and SIGTERM
-    are ignored once the command is over, while the interpreter shuts down (:func:`skelid._stop.handling`).
+    are ignored once the command is over, while the interpreter shuts down (:func:`skelid._stop.handling`),
+    and freed memory is kept for reuse (:func:`skelid.resources.keep_freed_memory`).
     """
     args = list(sys.argv[1:] if argv is None else argv)
+    if argv is None:  # the process ends with the command: freed arrays may stay for the next ones
+        from skelid.resources import keep_freed_memory
+
+        keep_freed_memory()
     with _stop.handling(process_ends=argv is None):
         code = _main(args)
         request = _stop.pending()  # also one that a library dropped on its way (see skelid._stop)
