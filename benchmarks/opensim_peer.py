@@ -260,7 +260,8 @@ def markdown(res: dict) -> str:
             f"{'REDUCED run (--quick). ' if res['reduced'] else ''}Machine: shared, 2 cores under load; every time "
             "is given as CPU seconds of this one process (time.process_time) and wall seconds, with the load "
             "average (1, 5, 15 min) when the step ended. skelid's fit time excludes Python's import of the "
-            f"package ({res['import_cpu_s']} s CPU). Peak memory of the whole benchmark process (OpenSim "
+            f"package ({res['import_cpu_s']} s CPU); freed memory is kept for reuse, as the skelid program "
+            f"keeps it. Peak memory of the whole benchmark process (OpenSim "
             f"included): {res['peak_memory_mb']:.0f} MB.", ""]
     body4 = _markdown4_peers(s4) if "skelid_fit" in s4 else _markdown4(s4)
     return "\n".join(head) + "\n" + _markdown01(res, s1) + body4
@@ -380,6 +381,9 @@ def main(argv=None):
     c0 = time.process_time()
     import skelid.estimators.multitrial  # noqa: F401  (imports outside the timed fit)
     import skelid.workflows  # noqa: F401
+    from skelid.resources import keep_freed_memory
+
+    keep_freed_memory()  # as the skelid program does
 
     # the commit and load the run starts from (a run of many minutes must not name a later commit)
     res = {"provenance": provenance(None if argv is None else ["benchmarks/opensim_peer.py", *argv]),
