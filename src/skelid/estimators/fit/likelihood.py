@@ -138,13 +138,8 @@ def projected_sums(J_pose, J_theta, r, row_dim: int, w=None, ridge: float = 1e-1
     """
     Jq, Jt = np.asarray(J_pose, float), np.asarray(J_theta, float)
     r = np.asarray(r, float)
-    Q, P = Jq.shape[-1], Jt.shape[-1]
-    H = pose_information(Jq)
-    # H scaled to a unit diagonal, H = D Hs D: translations beside rotations leave H's condition at 1e6-1e7 (a
-    # gait model's frames), and A^T H^-1 A from H itself lost 5e-7 of the information, against 4e-14 scaled
-    d = np.sqrt(np.einsum("...ii->...i", H))
-    d = np.where(d > 0.0, d, 1.0)  # a pose coordinate without rows (or a frame without markers)
-    Hs = H / d[..., :, None] / d[..., None, :] + ridge * np.eye(Q)
+    P = Jt.shape[-1]
+    d, Hs = _unit_diagonal(pose_information(Jq), ridge)
     try:  # Hs^-1 = L^-T L^-1 (L L^T = Hs): A^T H^-1 A = B^T B with B = L^-1 D^-1 A, a symmetric product
         Li = np.linalg.inv(np.linalg.cholesky(Hs))
     except np.linalg.LinAlgError:  # not definite to rounding: its symmetric square root's inverse
@@ -177,14 +172,20 @@ def projected_score(J_pose, J_theta, r) -> np.ndarray:
     """``sum_t K_perp^T r_t`` (``(P,)``) alone: ``sum_t K_t^T (I - P_t) r_t``, the residuals projected off the pose
     (:func:`projected_sums` without the information's cost)."""
     Jq, Jt, r = (np.asarray(a, float) for a in (J_pose, J_theta, r))
-    Q = Jq.shape[-1]
-    H = pose_information(Jq)
-    d = np.sqrt(np.einsum("...ii->...i", H))
-    d = np.where(d > 0.0, d, 1.0)  # scaled to a unit diagonal, as in :func:`projected_sums`
+    d, Hs = _unit_diagonal(pose_information(Jq))
     Jr = np.matmul(np.swapaxes(Jq, -1, -2), r[..., None]) / d[..., None]
-    c = np.linalg.solve(H / d[..., :, None] / d[..., None, :] + 1e-12 * np.eye(Q), Jr) / d[..., None]
+    c = np.linalg.solve(Hs, Jr) / d[..., None]
     rp = r - np.matmul(Jq, c)[..., 0]
     return Jt.reshape(-1, Jt.shape[-1]).T @ rp.reshape(-1)
+
+
+def _unit_diagonal(H, ridge: float = 1e-12) -> tuple:
+    """``(d, Hs)``: the pose information scaled to a unit diagonal, ``H = D Hs D`` with ``D = diag(d)``, plus
+    ``ridge`` times the identity. Translations beside rotations leave ``H``'s condition at 1e6-1e7 (a gait
+    model's frames): ``A^T H^-1 A`` from ``H`` itself lost 5e-7 of the information, against 4e-14 scaled."""
+    d = np.sqrt(np.einsum("...ii->...i", H))
+    d = np.where(d > 0.0, d, 1.0)  # a pose coordinate without rows (or a frame without markers)
+    return d, H / d[..., :, None] / d[..., None, :] + ridge * np.eye(H.shape[-1])
 
 
 def _column_groups(J_theta, row_dim: int) -> tuple:
