@@ -183,7 +183,7 @@ def test_a_direction_no_replicate_moves_is_left_alone_by_the_fold():
     V = np.diag([0.25, 1.0, 1.0 / 9.0])
     jk = jackknife.Jackknife(np.zeros((4, 3)), np.ones(4, bool), np.diag([3.0, 0.5, 0.0]), E0, 2.0,
                              factor=B)
-    folded, lam = jackknife.fold(V, jk)
+    folded, lam, _ = jackknife.fold(V, jk)
     np.testing.assert_allclose(np.diag(folded), [0.25 + 2.0, 1.0, 1.0 / 9.0], atol=1e-12)
     assert lam.shape == (3,)
 
@@ -225,5 +225,52 @@ def test_a_parameter_on_its_bound_is_held_and_the_others_replicated_as_without_i
     np.testing.assert_allclose(jk.cov[1:, 1:], ref.cov, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(jk.null_mean[1:, 1:], ref.null_mean, rtol=1e-8, atol=1e-12)
     cov = np.diag([1.0, 2.0, 3.0])
-    folded, _ = jackknife.fold(cov, jk)
+    folded, _, _ = jackknife.fold(cov, jk)
     assert folded[0, 0] == 1.0 and np.all(folded[0, 1:] == 0)
+
+
+def test_the_markers_artefact_terms_sum_to_the_stated_artefacts_covariance():
+    """Each marker's share of the artefact's covariance (unit rms) sums, times rms^2, to
+    :func:`artefact_covariance`, which a refit checks (``test_artefact_influence_predicts_the_shift_of_a_refit``)."""
+    from skelid.estimators.checks.artefact import artefact_covariance
+
+    model, y, q, _ = _wrist_trial(3)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty)
+    used = np.ones(len(y), bool)
+    ref = artefact_covariance(model, y, fit.theta, fit.pose, fit.penalty, 2.0, used)
+    assert jk.artefact.shape == (6, 3, 3)
+    np.testing.assert_allclose(4.0 * jk.artefact.sum(axis=0), ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+    for A_m in jk.artefact:  # each share a covariance
+        assert np.linalg.eigvalsh(A_m).min() > -1e-10 * np.abs(ref).max()
+
+
+def test_the_fold_adds_the_artefact_the_replicates_imply_to_every_direction_and_marker():
+    """Replicates spread exactly as white noise plus an artefact of rms 2 on the markers with a replicate:
+    the fold finds rms 2, adds 4 times every marker's share (the one without a replicate too), and nothing
+    else; the test's own eigenvalues are those of the spread."""
+    rng = np.random.default_rng(1)
+    P, M = 3, 5
+    terms = np.array([(lambda g: g @ g.T)(rng.normal(size=(P, 2))) for _ in range(M)])
+    replicate = np.array([True, True, True, True, False])
+    E0 = np.diag([1.0, 2.0, 0.5])
+    V_J = E0 + 4.0 * terms[replicate].sum(axis=0)
+    jk = jackknife.Jackknife(np.zeros((M, P)), replicate, V_J, E0, 1e6, artefact=terms)
+    V = np.diag([0.3, 0.4, 0.2])
+    folded, lam, rms = jackknife.fold(V, jk)
+    assert rms == 2.0 or abs(rms - 2.0) < 1e-10
+    np.testing.assert_allclose(folded, V + 4.0 * terms.sum(axis=0), rtol=1e-10)
+    L = np.linalg.cholesky(E0)
+    Li = np.linalg.inv(L)
+    np.testing.assert_allclose(np.sort(lam), np.linalg.eigvalsh(Li @ V_J @ Li.T), rtol=1e-10)
+    # one marker pulls beyond that form: its excess along its own direction is added on top
+    pull = np.array([3.0, 0.0, 0.0])
+    jk2 = jk._replace(cov=V_J + np.outer(pull, pull), null_max=2.0)
+    folded2, _, rms2 = jackknife.fold(V, jk2)
+    assert rms2 > 2.0
+    base = V + rms2**2 * terms.sum(axis=0)
+    assert np.linalg.eigvalsh(folded2 - base).min() > -1e-9 and (folded2 - base)[0, 0] > 1.0
+    # replicates within white noise: nothing of the form is added
+    jk3 = jk._replace(cov=0.8 * E0)
+    assert jackknife.fold(V, jk3)[2] == 0.0
+    np.testing.assert_allclose(jackknife.fold(V, jk3)[0], V)

@@ -1202,7 +1202,9 @@ def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[
     v = jk["parameters"][k]
     return out + [Warning("marker-jackknife", f"the markers disagree beyond their noise (leave-one-marker-out): "
                           f"without marker {v['most_influential_marker']} the estimate of {k} moves by "
-                          f"{v['shift']:.3g}; the interval was widened by the marker jackknife", (k,))]
+                          f"{v['shift']:.3g}; the interval was widened by the marker jackknife"
+                          + (f" (as by a skin artefact of {jk['artefact_rms']:.3g} {model.units} rms on every marker)"
+                             if jk.get("artefact_rms") else ""), (k,))]
 
 
 def _placement_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[Warning]:

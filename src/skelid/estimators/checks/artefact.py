@@ -87,9 +87,39 @@ def artefact_influence(model: Model, y, theta, pose, R, used):
 
     _, Jq, Jt = frame_terms(model, theta, pose, y)
     A, _ = influence_rows(Jq, Jt, R)  # (T, m, P); rows of missing markers are zero
+    return _influence_of_basis(model, A, summed_gram(Jt, A), pose, used)
+
+
+def _influence_of_basis(model: Model, A, S, pose, used, sw=None):
+    """:func:`artefact_influence` from a fit's influence rows ``A (T, M*D, P)`` and information ``S``;
+    ``sw (T, M*D)``: the rows' weights (square roots), None for none. Returns ``g (P, K)``, ``owner (K,)``."""
     funcs, owner = artefact_basis(model, pose, used)
-    S = summed_gram(Jt, A)
-    return np.linalg.pinv(S) @ np.einsum("tjp,tj->pj", A[:, owner, :], funcs), owner
+    if sw is not None:
+        funcs = funcs * sw[:, owner]
+    g = np.empty((A.shape[-1], len(owner)))
+    for j in np.unique(owner):  # one marker coordinate at a time: no (T, K, P) copy of the rows
+        k = np.flatnonzero(owner == j)
+        g[:, k] = A[:, j, :].T @ funcs[:, k]
+    return np.linalg.pinv(S) @ g, owner
+
+
+def marker_artefact_terms(model: Model, A, S, pose, used, sw=None) -> np.ndarray:
+    """Each marker's share of :func:`artefact_covariance` at a unit root-mean-square: ``(M, P, P)``.
+
+    The artefact's coefficients are independent between markers, so the covariance it adds is the sum
+    of these terms times ``rms^2``; the marker jackknife, which sees the markers one at a time, compares
+    its spread with the terms of the markers it could leave out
+    (:func:`skelid.estimators.uncertainty.jackknife.fold`). ``A``, ``S``, ``sw``: as
+    :func:`_influence_of_basis`.
+    """
+    g, owner = _influence_of_basis(model, A, S, pose, used, sw)
+    g = g * np.sqrt(1.0 / np.bincount(owner)[owner])  # the coordinate's unit rms shared by its functions
+    marker = owner // model.dim
+    out = np.zeros((len(model.markers), g.shape[0], g.shape[0]))
+    for m in np.unique(marker):
+        gm = g[:, marker == m]
+        out[m] = gm @ gm.T
+    return out
 
 
 def artefact_covariance(model: Model, y, theta, pose, R, rms: float, used) -> np.ndarray:
