@@ -264,7 +264,7 @@ def test_the_fold_adds_the_artefact_the_replicates_imply_to_every_direction_and_
     Li = np.linalg.inv(L)
     np.testing.assert_allclose(np.sort(lam), np.linalg.eigvalsh(Li @ V_J @ Li.T), rtol=1e-10)
     # one marker pulls beyond that form: its excess along its own direction is added on top
-    pull = np.array([3.0, 0.0, 0.0])
+    pull = np.array([30.0, 0.0, 0.0])
     jk2 = jk._replace(cov=V_J + np.outer(pull, pull), null_max=2.0)
     folded2, _, rms2 = jackknife.fold(V, jk2)
     assert rms2 > 2.0

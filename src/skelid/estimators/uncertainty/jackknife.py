@@ -114,11 +114,13 @@ A fit that passes is widened in two parts.
   ``a^2 = (tr W - r)_+ / tr(E_0^{-1/2} sum_{m replicated} A_m E_0^{-1/2})`` (``r`` the
   rank of ``E_0``), and ``a^2 sum_m A_m`` over *every* marker is added: a marker that has
   no replicate (one the fit cannot do without) carries the same artefact as the others.
-* *What that form does not explain.* In the eigen-directions of
-  ``W - a^2 E_0^{-1/2} (sum_{m replicated} A_m) E_0^{-1/2}`` whose eigenvalue ``mu``
-  exceeds the test's 95 % point, ``(mu - 1)`` times ``E_0``'s variance in that
-  direction is added: one marker whose artefact pulls the estimate more than the
-  others' adds what its deletion reveals.
+* *What that form does not explain.* Under that artefact the replicates' expected spread
+  is ``M = I + a^2 E_0^{-1/2} (sum_{m replicated} A_m) E_0^{-1/2}`` (in ``W``'s units), and
+  a sample of a dozen markers scatters about it as white noise's does about ``I``. In the
+  eigen-directions of ``M^{-1/2} W M^{-1/2}`` whose eigenvalue ``mu`` exceeds the test's
+  95 % point, ``(mu - 1)`` times ``M``'s variance in that direction is added: one marker
+  whose artefact pulls the estimate more than the others' adds what its deletion reveals,
+  and the artefact's own sampling scatter is not counted twice.
 
 The estimated ``a`` is reported (``artefact_rms`` of the summary).
 """
@@ -526,9 +528,9 @@ def fold(cov, jack: Jackknife) -> tuple[np.ndarray, np.ndarray, float]:
     Returns
     -------
     cov_folded : (P, P) float
-        ``V + a^2 sum_m A_m + E_0^{1/2} U diag((mu - 1) [mu > null_max]) U^T E_0^{1/2}`` (see the module
-        notes), with ``E_0^{1/2}`` the factor of ``E_0`` on its range (:func:`null_factor`); without
-        ``artefact``, ``a = 0``.
+        ``V + a^2 sum_m A_m + E_0^{1/2} M^{1/2} U diag((mu - 1) [mu > null_max]) U^T M^{1/2} E_0^{1/2}``
+        (see the module notes), with ``E_0^{1/2}`` the factor of ``E_0`` on its range
+        (:func:`null_factor`); without ``artefact``, ``a = 0`` and ``M = I``.
     lam : (P,) float
         Eigenvalues of ``W = E_0^{-1/2} V_J E_0^{-1/2}`` on that range (the test's); 1 for the directions off it.
     rms : float
@@ -545,17 +547,20 @@ def fold(cov, jack: Jackknife) -> tuple[np.ndarray, np.ndarray, float]:
     W = Li @ jack.cov @ Li.T
     W = 0.5 * (W + W.T)
     lam = np.linalg.eigvalsh(W)
-    rms2, shared = 0.0, np.zeros_like(cov)
+    rms2, shared, K = 0.0, np.zeros_like(cov), np.eye(len(W))
     if jack.artefact is not None:
         seen = Li @ jack.artefact[jack.replicate].sum(axis=0) @ Li.T  # what the replicated markers' artefact adds
+        seen = 0.5 * (seen + seen.T)
         reach = float(np.trace(seen))
         rms2 = max(float(np.trace(W)) - len(W), 0.0) / reach if reach > 0 else 0.0
         shared = rms2 * jack.artefact.sum(axis=0)
-        W = W - rms2 * 0.5 * (seen + seen.T)
-    mu, U = np.linalg.eigh(W)
+        # the replicates' expected spread under that artefact: W is compared with it, not with white noise's
+        K = psd_sqrt(np.eye(len(W)) + rms2 * seen)
+    Ki = np.linalg.inv(K)
+    mu, U = np.linalg.eigh(Ki @ W @ Ki)
     add = np.where(mu > jack.null_max, mu - 1.0, 0.0)
     lam = np.concatenate([lam, np.ones(len(cov) - len(lam))])  # no replicate moves the other directions
-    return cov + shared + L @ (U * add) @ U.T @ L.T, lam, float(np.sqrt(rms2))
+    return cov + shared + L @ K @ (U * add) @ U.T @ K @ L.T, lam, float(np.sqrt(rms2))
 
 
 def _inv_sqrt(S):
