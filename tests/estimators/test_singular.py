@@ -8,6 +8,7 @@ from skelid.estimators.marker import MarkerEstimator
 from skelid.estimators.uncertainty.singular import (
     _N_CUTOFFS,
     POSE_SENSITIVE,
+    assigned_branch_start,
     branch_joints,
     branch_settled,
     branch_side,
@@ -328,3 +329,57 @@ def test_a_motion_from_near_straight_to_near_folded_is_on_no_wrong_branch():
     before[near_straight, elbow.dof] = np.radians(165.0)
     assert branch_settled(model, trial.theta, trial.pose, branch_joints(model), used, before=(trial.theta, trial.pose))
     assert not branch_settled(model, trial.theta, trial.pose, branch_joints(model), used, before=(trial.theta, before))
+
+
+def test_every_frame_of_a_joint_is_put_on_the_branch_asked_for():
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
+    theta, q, y = trial.theta, trial.pose, trial.clean
+    joints = branch_joints(model)
+    used = np.ones(len(q), dtype=bool)
+    signs = tuple(float(np.sign(branch_side(model, theta, q, j)[0])) for j in joints)
+    assert assigned_branch_start(model, theta, q, y, joints, signs, used) is None  # already there
+    # the whole trial on the other branch of both joints: no minority stretch to mirror back
+    wrong = q.copy()
+    for joint in joints:
+        wrong[:, joint.dof] -= 2 * branch_side(model, theta, q, joint)
+    assert branch_settled(model, theta, wrong, joints, used)
+    assert mirrored_start(model, theta, wrong, y, joints, used) is None
+    start = assigned_branch_start(model, theta, wrong, y, joints, signs, used)
+    np.testing.assert_allclose(start, q, atol=1e-6)  # noise-free markers: back to the true poses exactly
+
+
+def test_a_frame_within_the_angle_noise_of_the_singular_pose_is_on_neither_branch():
+    model = builtin_model("case-a")
+    trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
+    theta, q = trial.theta, trial.pose
+    joints = branch_joints(model)
+    used = np.ones(len(q), dtype=bool)
+    wrong = q.copy()
+    j = joints[1]
+    psi = branch_side(model, theta, q, j)
+    b = float(np.linalg.norm(model.markers[j.child_marker].position))
+    wrong[7, j.dof] -= psi[7] + 0.3 * np.sign(psi[7]) * 2.0 / b  # just across the singular pose: 0.3 sd at 2 mm
+    assert np.sign(branch_side(model, theta, wrong, j)[7]) == -np.sign(psi[7])
+    assert not branch_settled(model, theta, wrong, joints, used)
+    assert branch_settled(model, theta, wrong, joints, used, sigma=2.0)
+    assert not branch_settled(model, theta, wrong, joints, used, sigma=0.3)
+
+
+def test_a_trial_settled_on_the_mirrored_branch_as_a_whole_reaches_the_better_minimum():
+    # near the folded pose on a drawn geometry (the accuracy study's near-folded cell, sigma 15 mm, trial
+    # 29), the first fit's poses sit on the mirrored branch of both joints in every frame, 21 sd from the
+    # truth; the minimum a fit from the true poses reaches has a penalised cost lower by 38 sigma^2
+    from pathlib import Path
+
+    from skelid.estimators.marker import penalised_cost
+    from tests.helpers import load_script
+
+    acc = load_script(Path(__file__).resolve().parents[2] / "benchmarks" / "accuracy.py", "accuracy_study")
+    seed = [0, 15, 0, (acc.NOISES + tuple(acc.POSTURES) + ("coupled",)).index("folded"), 29]
+    trial = acc.singular_trial("case-a", 500, 15.0, "folded", np.random.default_rng(seed))
+    est = MarkerEstimator(trial.model).fit(trial.data)
+    fit = est.fit_info_
+    ref = joint_fit(trial.model, est.y_, trial.theta, trial.pose, n_iter=300, penalty=fit.penalty)
+    assert penalised_cost(fit) == pytest.approx(penalised_cost(ref), rel=1e-6)
+    assert abs(est.theta_[0] - trial.theta[0]) < 1.96 * est.posterior_.sd[0]

@@ -38,6 +38,7 @@ True
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import numpy as np
@@ -100,11 +101,13 @@ from skelid.estimators.uncertainty.singular import (
     POSE_SENSITIVE,
     PROFILE_CHECK,
     SECOND_ORDER_SPREAD,
+    assigned_branch_start,
     branch_joints,
     branch_settled,
     expansion_consistent,
     fallback_covariance,
     indirect_bias,
+    keeps_near_singular,
     mirrored_start,
     pose_check,
     profile_covariance,
@@ -143,6 +146,8 @@ RACE_ITER = 10  # iterations each start of the motion-model fit gets before the 
 N_STARTS = 9  # starting geometries under 'auto' where a joint has two pose branches: the centre and 8 more
 SEARCH_MARGIN = 0.05  # those starts keep this share of each prior interval from either bound
 SEARCH_DISTINCT = 0.01  # screening fits that end closer than this share of the prior's width are one
+#: at most this many branch joints get the starts with every joint's side given (2^J motion-model fits)
+MAX_ASSIGNED_JOINTS = 3
 MODE_RATIO = 0.05  # another minimum whose likelihood is at least this share of the best's is held in the interval
 MODE_SD = 2.0  # ... where it lies more than this many sd from the estimate
 #: a parameter whose sd exceeds this fraction of its prior width is poorly identified (CRLB or final sd)
@@ -906,15 +911,24 @@ def branch_stage(model: Model, st: Start, sc: Screen, wt: Weights, s: MarkerEsti
     joints = branch_joints(model)
     if fit.penalty is None or not joints:
         return wt
-    start = mirrored_start(model, fit.theta, fit.pose, sc.y, joints, fit.frames_used, ws)
-    if start is None:
-        return wt
-    new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
-                    penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
-    if (new.converged and penalised_cost(new) < penalised_cost(fit) * (1.0 - 1e-9)
-            and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws, (fit.theta, fit.pose))):
-        return wt._replace(fit=new)
-    return wt
+    starts = [mirrored_start(model, fit.theta, fit.pose, sc.y, joints, fit.frames_used, ws)]
+    # the joints that stay near one singular pose throughout, each put on either branch in every frame
+    near = [j for j in joints if keeps_near_singular(model, fit.theta, fit.pose, j, fit.frames_used, ws)]
+    if len(near) <= MAX_ASSIGNED_JOINTS:  # 2^J starts
+        starts += [assigned_branch_start(model, fit.theta, fit.pose, sc.y, near, signs, fit.frames_used, ws)
+                   for signs in itertools.product((1.0, -1.0), repeat=len(near))]
+    best = fit
+    sigma = float(np.sqrt(fit.rss / max(fit.n_obs - fit.pose_dof - model.n_params, 1.0)))
+    for start in starts:
+        if start is None:
+            continue
+        new = joint_fit(model, sc.y, fit.theta, start, n_iter=s.n_iter, bounds=st.bounds, frames=sc.fixed,
+                        penalty=fit.penalty, weights=wt.weights, step_tol=FIT_STEP_TOL, ws=ws)
+        if (new.converged and penalised_cost(new) < penalised_cost(best) * (1.0 - 1e-9)
+                and branch_settled(model, new.theta, new.pose, joints, new.frames_used, ws, (fit.theta, fit.pose),
+                                   sigma)):
+            best = new
+    return wt if best is fit else wt._replace(fit=best)
 
 
 def placement_stage(est: MarkerEstimator, y_used, fit: JointFit, used, w, ident: dict, cov):

@@ -472,12 +472,15 @@ def _branch_angle(model: Model, theta, q, joint: BranchJoint, ws=None) -> np.nda
     return ang
 
 
-def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None):
+def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None, tol: float = 0.0):
     """Frames (of those ``used``) on the side of their nearest singular pose that fewer of its frames take.
 
     The frames nearer the folded pose (the markers on one side of the joint) and those nearer the
     straight pose are taken apart: a motion that swings from one to the other changes the sign of
     ``psi`` where it passes 90 degrees from both, on no wrong branch.
+
+    A frame within ``tol`` (radians) of the singular pose is on neither side: there the noise
+    decides the sign of ``psi``.
 
     Returns
     -------
@@ -488,7 +491,7 @@ def minority_branch(model: Model, theta, q, joint: BranchJoint, used, ws=None):
     """
     psi, straight = _fold(_branch_angle(model, theta, q, joint, ws))
     side = np.sign(psi)
-    used = np.asarray(used, bool) & (side != 0)
+    used = np.asarray(used, bool) & (np.abs(psi) > tol)
     flip = np.zeros(len(psi), dtype=bool)
     for near in (straight, ~straight):
         u = used & near
@@ -537,7 +540,46 @@ def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
     return start
 
 
-def branch_settled(model: Model, theta, q, joints, used, ws=None, before=None) -> bool:
+def keeps_near_singular(model: Model, theta, q, joint: BranchJoint, used, ws=None,
+                        limit: float = np.pi / 4) -> bool:
+    """Whether every used frame of ``joint`` lies within ``limit`` (radians) of one and the same singular pose.
+
+    Only such a joint can sit on its mirrored branch as a whole: a motion that takes the joint far from
+    its singular poses has one branch that fits (:func:`assigned_branch_start`).
+    """
+    psi, straight = _fold(_branch_angle(model, theta, q, joint, ws))
+    used = np.asarray(used, bool)
+    return bool(used.any() and np.all(np.abs(psi[used]) <= limit)
+                and (straight[used].all() or not straight[used].any()))
+
+
+def assigned_branch_start(model: Model, theta, q, y, joints, signs, used, ws=None):
+    """Poses with every used frame of each joint on the branch ``signs`` names, or None where none moves.
+
+    :func:`mirrored_start` mirrors each joint's minority stretch, toward the branch most frames already
+    take. A trial can sit on the mirrored branch as a whole (near the folded pose the chain can zig-zag
+    the other way, and the geometry that fits that best lies tens of sd from the truth), or take the
+    wrong side for most of its frames: here each joint's side is given, ``signs[i]`` (+1 or -1) the sign
+    of :func:`branch_side` for ``joints[i]``, and every used frame on the other side gets the mirrored
+    angle ``q_k - 2 psi`` and a per-frame pose fit at ``theta`` from there.
+    """
+    from skelid.estimators.fit.pose import fit_pose
+
+    used = np.asarray(used, bool)
+    start = np.array(q, float)
+    changed = np.zeros(len(start), dtype=bool)
+    for joint, sign in zip(joints, signs, strict=True):
+        psi = branch_side(model, theta, q, joint, ws)
+        flip = used & (np.sign(psi) == -sign)
+        start[flip, joint.dof] -= 2.0 * psi[flip]
+        changed |= flip
+    if not changed.any():
+        return None
+    start[changed] = fit_pose(model, theta, y[changed], start[changed], ws=ws)[0]
+    return start
+
+
+def branch_settled(model: Model, theta, q, joints, used, ws=None, before=None, sigma: float = 0.0) -> bool:
     """Whether every used frame is on one side of its nearest singular pose, at each joint.
 
     A refit from :func:`mirrored_start` that lowers the penalised cost and settles so is kept: the
@@ -555,11 +597,16 @@ def branch_settled(model: Model, theta, q, joints, used, ws=None, before=None) -
         pose as there (a mirrored stretch does not swing frames across to the other singular pose;
         near-straight, sigma 15 mm, a refit that swung 11 frames of the wrist 90 degrees, to the
         folded side, settled 47 mm from the truth).
+    sigma : float
+        The markers' noise level: a frame within ``sigma / |b|`` of the singular pose (``|b|`` the child's
+        marker's distance from the joint centre), one angular noise sd, is on neither branch
+        (:func:`minority_branch`).
     """
     joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
     used = np.asarray(used, bool)
     for j in joints:
-        if minority_branch(model, theta, q, j, used, ws)[0].any():
+        tol = sigma / max(float(np.linalg.norm(model.markers[j.child_marker].position)), 1e-300)
+        if minority_branch(model, theta, q, j, used, ws, tol)[0].any():
             return False
         if before is not None:
             now, was = (_nearest_straight(model, th, qq, j, ws) for th, qq in ((theta, q), before))
