@@ -557,6 +557,28 @@ def soft_tissue() -> str:
     return head + "\n".join(lines) + "\n\n" + source(path, d)
 
 
+def soft_tissue_arm() -> str:
+    """A 3-D arm with skin artefact, size not stated: each centre's per-axis and region coverage, and width."""
+    path = RESULTS / "soft_tissue_arm.json"
+    d = load(path)
+    cells, regions = d["cells"], d.get("regions", {})
+    rows = [("one trial", "single/default"), ("one trial, placement sd stated", "single/placement-stated")]
+    rows += [(f"{k} trials, between-trial prior", f"multi-prior/{k}") for k in range(2, d["trials"] + 1)]
+    lines = ["| fit | centre | coverage per axis (x, y, z) | coverage as a 3-D region | median half-width ÷ RMSE |",
+             "|---|---|---|---|---|"]
+    for label, key in rows:
+        for centre, r in regions.get(key, {}).items():
+            axes = [cells[key][f"{centre}_{a}"] for a in "xyz"]
+            cover = ", ".join(f"{c['coverage95']:.2f}" for c in axes)
+            ratio = [c["median_width"] / 2.0 / c["rmse"] for c in axes]
+            width = f"{min(ratio):.1f}–{max(ratio):.1f}"
+            lines.append(f"| {label} | {centre} | {cover} | {r['coverage95']:.2f} | {width} |")
+    head = (f"`{d['case']}`, σ {d['sigma']:g}, artefact amplitude {d['amplitude']:g}, {d['frames']} frames per "
+            f"trial, {d['reps']} subjects, markers misplaced by {d.get('placement_sd', 0):g} mm sd"
+            + (" (a reduced run)" if d.get("reduced") else "") + ":\n\n")
+    return head + "\n".join(lines) + "\n\n" + source(path, d)
+
+
 def model_mismatch() -> str:
     """A coupled knee fitted with a hinge: how often the misfit check flags it, and coverage before and after."""
     path = RESULTS / "model_mismatch.json"
@@ -738,6 +760,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "accuracy-frames": accuracy_frames,
     "real-calibration": real_calibration,
     "soft-tissue": soft_tissue,
+    "soft-tissue-arm": soft_tissue_arm,
     "model-mismatch": model_mismatch,
     "screens": screens,
     "speed": speed,
