@@ -252,12 +252,15 @@ def test_a_second_order_correction_above_half_an_sd_widens_the_interval_by_its_s
     assert wide.cov_[0, 0] > plain.cov_[0, 0]
 
 
-def test_the_minority_branch_of_every_joint_is_mirrored_back_at_once():
+def _folded_case_a():
+    """Case A near the folded pose, noise-free: model, truth, poses, markers, branch joints, every frame used."""
     model = builtin_model("case-a")
     trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
-    theta, q, y = trial.theta, trial.pose, trial.clean
-    joints = branch_joints(model)
-    used = np.ones(len(q), dtype=bool)
+    return model, trial.theta, trial.pose, trial.clean, branch_joints(model), np.ones(len(trial.pose), dtype=bool)
+
+
+def test_the_minority_branch_of_every_joint_is_mirrored_back_at_once():
+    model, theta, q, y, joints, used = _folded_case_a()
     assert branch_settled(model, theta, q, joints, used)
     assert mirrored_start(model, theta, q, y, joints, used) is None
     wrong = q.copy()
@@ -332,11 +335,7 @@ def test_a_motion_from_near_straight_to_near_folded_is_on_no_wrong_branch():
 
 
 def test_every_frame_of_a_joint_is_put_on_the_branch_asked_for():
-    model = builtin_model("case-a")
-    trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
-    theta, q, y = trial.theta, trial.pose, trial.clean
-    joints = branch_joints(model)
-    used = np.ones(len(q), dtype=bool)
+    model, theta, q, y, joints, used = _folded_case_a()
     signs = tuple(float(np.sign(branch_side(model, theta, q, j)[0])) for j in joints)
     assert assigned_branch_start(model, theta, q, y, joints, signs, used) is None  # already there
     # the whole trial on the other branch of both joints: no minority stretch to mirror back
@@ -350,11 +349,7 @@ def test_every_frame_of_a_joint_is_put_on_the_branch_asked_for():
 
 
 def test_a_frame_within_the_angle_noise_of_the_singular_pose_is_on_neither_branch():
-    model = builtin_model("case-a")
-    trial = simulate_posture(model, [250.0], 100, 0.0, (150.0, 172.0), np.random.default_rng(5))
-    theta, q = trial.theta, trial.pose
-    joints = branch_joints(model)
-    used = np.ones(len(q), dtype=bool)
+    model, theta, q, _, joints, used = _folded_case_a()
     wrong = q.copy()
     j = joints[1]
     psi = branch_side(model, theta, q, j)

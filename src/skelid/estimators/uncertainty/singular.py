@@ -525,13 +525,19 @@ def mirrored_start(model: Model, theta, q, y, joints, used, ws=None):
     -------
     (T, Q) float or None
     """
+    joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
+    return _mirror_frames(model, theta, q, y, [(j, *minority_branch(model, theta, q, j, used, ws)) for j in joints],
+                          ws)
+
+
+def _mirror_frames(model: Model, theta, q, y, chosen, ws=None):
+    """``q`` with each ``(joint, flip (T,) bool, psi (T,))`` of ``chosen`` mirrored in its flipped frames
+    (``q_k - 2 psi``), and every changed frame a per-frame pose fit at ``theta`` from there; None if none."""
     from skelid.estimators.fit.pose import fit_pose
 
-    joints = (joints,) if isinstance(joints, BranchJoint) else tuple(joints)
     start = np.array(q, float)
     changed = np.zeros(len(start), dtype=bool)
-    for joint in joints:
-        flip, psi = minority_branch(model, theta, q, joint, used, ws)
+    for joint, flip, psi in chosen:
         start[flip, joint.dof] -= 2.0 * psi[flip]
         changed |= flip
     if not changed.any():
@@ -563,20 +569,12 @@ def assigned_branch_start(model: Model, theta, q, y, joints, signs, used, ws=Non
     of :func:`branch_side` for ``joints[i]``, and every used frame on the other side gets the mirrored
     angle ``q_k - 2 psi`` and a per-frame pose fit at ``theta`` from there.
     """
-    from skelid.estimators.fit.pose import fit_pose
-
     used = np.asarray(used, bool)
-    start = np.array(q, float)
-    changed = np.zeros(len(start), dtype=bool)
+    chosen = []
     for joint, sign in zip(joints, signs, strict=True):
         psi = branch_side(model, theta, q, joint, ws)
-        flip = used & (np.sign(psi) == -sign)
-        start[flip, joint.dof] -= 2.0 * psi[flip]
-        changed |= flip
-    if not changed.any():
-        return None
-    start[changed] = fit_pose(model, theta, y[changed], start[changed], ws=ws)[0]
-    return start
+        chosen.append((joint, used & (np.sign(psi) == -sign), psi))
+    return _mirror_frames(model, theta, q, y, chosen, ws)
 
 
 def branch_settled(model: Model, theta, q, joints, used, ws=None, before=None, sigma: float = 0.0) -> bool:
