@@ -75,6 +75,16 @@ def test_a_minimum_far_less_likely_or_within_the_interval_adds_nothing():
         assert not modes.kept and not np.any(modes.cov)
 
 
+def test_the_race_minima_are_weighed_against_a_lower_minimum_found_after_the_race():
+    # the race settled at 210 and 250 with equal costs, and a later stage moved the estimate to 250 at a
+    # cost lower by 8 sigma^2: the race's minimum at 210 is e^-4 as likely as the estimate, not e^0
+    sigma, cov = 3.0, np.array([[4.0]])
+    mo = _motion([((250.0,), 1000.0), ((210.0,), 1000.0)])
+    assert M.modes_stage(_model_with(1), mo, _Fit([250.0]), sigma, cov).kept
+    modes = M.modes_stage(_model_with(1), mo, _Fit([250.0]), sigma, cov, own_cost=1000.0 - 8 * sigma**2)
+    assert not modes.kept and not np.any(modes.cov)
+
+
 def test_in_two_parameters_only_the_line_to_the_other_minimum_widens():
     sigma, cov = 1.0, np.diag([1.0, 1.0])
     mo = _motion([((0.0, 0.0), 10.0), ((10.0, 0.0), 10.5)])

@@ -546,7 +546,7 @@ def motion_stage(model: Model, st: Start, sc: Screen, s: MarkerEstimator, ws: Wo
     return Motion(fit, cutoff, minima)
 
 
-def modes_stage(model: Model, mo: Motion, fit: JointFit, sigma: float, cov) -> Modes:
+def modes_stage(model: Model, mo: Motion, fit: JointFit, sigma: float, cov, own_cost: float = np.inf) -> Modes:
     """Other minima of the penalised cost that fit almost as well, held inside the interval.
 
     The race of :func:`motion_stage` settles each start in a minimum. Where one lies more than
@@ -554,12 +554,14 @@ def modes_stage(model: Model, mo: Motion, fit: JointFit, sigma: float, cov) -> M
     ``exp(-(C_k - C_min) / (2 sigma^2))``, is at least ``MODE_RATIO``, the data do not rule that geometry
     out: a Gaussian interval about the estimate cannot hold two modes, so the variance along the line
     to that minimum is raised until the interval reaches beyond it by its own half-width (the
-    estimate's sd along that line standing in for the other minimum's).
+    estimate's sd along that line standing in for the other minimum's). ``own_cost``: the estimate's
+    own penalised cost where it is comparable (the same cost, unweighted): a later stage (the branch
+    check) can find a lower minimum than every start of the race, and the ratios are then to it.
     """
     extra = np.zeros((model.n_params, model.n_params))
     if not mo.minima:
         return Modes(extra, ())
-    lowest = min(c for _, c in mo.minima)
+    lowest = min(min(c for _, c in mo.minima), own_cost)
     sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     kept = []
     for theta, c in mo.minima:
@@ -1283,7 +1285,8 @@ def run_marker_fit(est: MarkerEstimator, y, rate: float, rng, on_bound: str = "e
     bias = bias_stage(est, st, sc, mo, wt, fr.used, noise, res, rng)
     bias = profile_stage(est, sc, wt, fr.used, noise, bias)
     cov = covariance_stage(est, sc, wt, fr.used, noise, res, ident, rng)
-    modes = modes_stage(model, mo, fit, noise.sigma, cov.data + bias.cov)
+    modes = modes_stage(model, mo, fit, noise.sigma, cov.data + bias.cov,
+                        penalised_cost(fit) if wt.weights is None else np.inf)
     estimate = Estimate(*_combine_normal_priors(model, fit.theta - bias.bias, cov.data + bias.cov + modes.cov))
     mis = misfit_stage(est, st, sc, wt, res, estimate) if misfit_refit else None
     estimate = mis.estimate if mis is not None else estimate
