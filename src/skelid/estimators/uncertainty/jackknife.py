@@ -374,7 +374,8 @@ def _free_jackknife(model, y, theta, pose, R, sigma, rng, weights, held) -> Jack
     # every parameter free for the artefact's effect (a held one too: the artefact moves it as well); the
     # pose solve is column by column, so the free parameters' rows are these rows' columns
     A_all, S_all, _ = _influence(r, Jq, Jt_all, pose, R, R_band)
-    A, S = np.ascontiguousarray(A_all[..., free]), S_all[np.ix_(free, free)]
+    # nothing held (the usual case): the same arrays, no copy
+    A, S = (A_all, S_all) if free.all() else (np.ascontiguousarray(A_all[..., free]), S_all[np.ix_(free, free)])
     S_isqrt = _inv_sqrt(S)
     S_sqrt = psd_sqrt(S)
     rng = np.random.default_rng(0) if rng is None else rng
