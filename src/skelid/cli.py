@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import signal
 import sys
 import traceback
@@ -803,7 +804,9 @@ def main(argv=None) -> int:
 
     Without ``argv`` (the ``skelid`` program itself, whose process ends with it), SIGINT and SIGTERM
     are ignored once the command is over, while the interpreter shuts down (:func:`skelid._stop.handling`),
-    and freed memory is kept for reuse (:func:`skelid.resources.keep_freed_memory`).
+    freed memory is kept for reuse (:func:`skelid.resources.keep_freed_memory`), and a command stopped by
+    a signal or its time limit ends the process at once, with its line and status, without the
+    interpreter's shutdown.
     """
     args = list(sys.argv[1:] if argv is None else argv)
     if argv is None:  # the process ends with the command: freed arrays may stay for the next ones
@@ -813,7 +816,16 @@ def main(argv=None) -> int:
     with _stop.handling(process_ends=argv is None):
         code = _main(args)
         request = _stop.pending()  # also one that a library dropped on its way (see skelid._stop)
-        return code if request is None else _stopped(request)
+        if request is None:
+            return code
+        code = _stopped(request)
+    if argv is None:
+        # stopped part-way, the program ends here: its outputs are already removed, and the interpreter's
+        # shutdown is skipped (an extension interrupted mid-call can abort it: "Fatal Python error")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 def _main(args) -> int:
