@@ -545,10 +545,11 @@ def test_the_window_names_the_marker_that_left_out_leaves_the_rest_fitting():
     assert mis.markers.size and mis.markers[0] == 3 and mis.alike.size == 0
 
 
-def test_the_finding_is_refreshed_a_few_frames_a_push_and_lands_as_computed_at_once():
+def test_the_finding_is_refreshed_between_frames_a_chunk_a_step_and_lands_as_computed_at_once():
     """While the same markers stay beyond the bound, the leave-one-out finding is redone every ALIKE_EVERY
-    frames, a chunk of the window a push (a whole window at once cost an OpenSim leg 5 ms on one push);
-    the refreshed answer is what a computation at once gives."""
+    frames, a chunk of the window a step of :meth:`advance` (called between frames, never by the check a frame
+    waits for: a whole window at once cost an OpenSim leg 5 ms on one push); the refreshed answer is what a
+    computation at once gives."""
     from skelid import live_health
 
     window, linearise = _window_with_offset(8, 2, 5, 3, np.array([6.0, -6.0]))
@@ -560,18 +561,36 @@ def test_the_finding_is_refreshed_a_few_frames_a_push_and_lands_as_computed_at_o
 
     first = window.check(1.0, linearise=counted)
     assert first.markers[0] == 3 and sum(sizes) == 50  # found at once, the first time
+    assert window.advance() is False  # nothing to refresh yet
     at_once, found_at = window._loo[2].copy(), window._loo[1]
-    per_push = []
+    in_check, per_step = [], []
     for _ in range(3 * live_health.ALIKE_EVERY):  # pushes with nothing new: the same markers beyond the bound
         window._n += 1
         sizes.clear()
         mis = window.check(1.0, linearise=counted)
-        per_push.append(sum(sizes))
+        in_check.append(sum(sizes))
         assert mis.markers[0] == 3
-    assert max(per_push) <= live_health.ALIKE_CHUNK  # never the whole window on one push
-    assert sum(per_push) >= 50  # but the refresh ran
+        sizes.clear()
+        window.advance()
+        per_step.append(sum(sizes))
+    assert max(in_check) == 0  # the frame's check computes no Jacobian
+    assert max(per_step) <= live_health.ALIKE_CHUNK  # never the whole window in one step
+    assert sum(per_step) >= 50  # but the refresh ran
     assert window._loo[1] > found_at  # refreshed (the same frames: the same answer)
     np.testing.assert_array_equal(window._loo[2], at_once)
+
+
+def test_a_session_takes_the_windows_refresh_between_frames():
+    """``Session.work`` takes the health window's refresh steps, so a deferred push never pays for them."""
+    model = builtin_model("case-a")
+    s = Session(model, rate=100.0)
+    calls = []
+    s._window.advance = lambda: calls.append(1) or False
+    frame = simulate(model, sigma=1.0, n_frames=1, rng=np.random.default_rng(0)).data.positions[0]
+    s.push(frame, defer=True)
+    assert not calls
+    s.work()
+    assert calls == [1]
 
 
 _NAMED = re.compile(r"left out [ABC]\b|do not follow the model over the last \d+ frames \(rms residual [ABC]")

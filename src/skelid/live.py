@@ -1585,10 +1585,13 @@ class Session:
         information about theta, or its second-order bias for a piece of its frames), one step after each frame:
         :meth:`push` does it after the frame's estimate, or, with ``defer``, the caller does once the
         estimate is sent (:meth:`feed` and :func:`run` do), in the time until the next frame comes.
+        A step of the health window's refresh of which marker misfits (:meth:`MisfitWindow.advance
+        <skelid.live_health.MisfitWindow.advance>`) is taken the same way.
         """
+        refreshed = self._window.advance()  # the health window's refresh, a step at a time
         p = self._pending
         if p is None:
-            return False
+            return refreshed
         try:
             with one_blas_thread():
                 next(p.steps)

@@ -340,7 +340,8 @@ class MisfitWindow:
     The window as a whole is tested at every frame from running totals; the markers, from sums over the
     window, every :data:`MISFIT_EVERY` frames (their last finding stands in between), so that a frame costs
     a few ``(M,)`` writes; markers beyond the bound are left out in turn when they change, and every
-    :data:`ALIKE_EVERY` frames while they do not.
+    :data:`ALIKE_EVERY` frames while they do not: that refresh is taken a step at a time by
+    :meth:`advance`, which the session calls in the time between frames, not while a frame waits.
 
     Parameters
     ----------
@@ -410,7 +411,6 @@ class MisfitWindow:
         n = min(self._n, MISFIT_WINDOW)
         if n < MISFIT_MIN:
             return None
-        self._advance_refresh()
         rss, dof = self.sums()
         sd = noise_sd = None
         if dof > 0:
@@ -462,11 +462,11 @@ class MisfitWindow:
                 markers = np.concatenate([alike, markers[markers != alike[0]]])
         return markers, rms[markers], *none
 
-    def _advance_refresh(self) -> None:
-        """One step of the pending refresh of the leave-one-out finding; its answer replaces the finding
-        when it is done and the same markers are still beyond the bound."""
+    def advance(self) -> bool:
+        """One step of the pending refresh of the leave-one-out finding (False when none is pending); its
+        answer replaces the finding when it is done and the same markers are still beyond the bound."""
         if self._refresh is None:
-            return
+            return False
         key, at, steps = self._refresh
         try:
             next(steps)
@@ -474,6 +474,7 @@ class MisfitWindow:
             self._refresh = None
             if self._loo is not None and self._loo[0] == key:
                 self._loo = (key, at, done.value)
+        return True
 
     def _alike_steps(self, n: int, s2: float, tested, limit: float, linearise):
         """:func:`alike_markers` over the window's ``n`` frames (linearised by ``linearise``) where the best
@@ -481,8 +482,8 @@ class MisfitWindow:
         ``limit`` (the markers' bound); none where no one marker does (two markers misfit, or all).
 
         A generator over the window as it is now, :data:`ALIKE_CHUNK` frames a step (the sums are over
-        frames), whose return value is the answer: a refresh runs a step a push, so that no push pays for
-        the whole window (a batch of Jacobians: 5 ms for an OpenSim leg)."""
+        frames), whose return value is the answer: a refresh runs a step between two frames (:meth:`advance`),
+        so that no frame pays for the whole window (a batch of Jacobians: 5 ms for an OpenSim leg)."""
         y, seen, q = self._y[:n].copy(), self._seen[:n].copy(), self._q[:n].copy()
         chunks, left = [], np.zeros(seen.shape[1])
         for a in range(0, n, ALIKE_CHUNK):
