@@ -111,6 +111,37 @@ def test_a_sliding_marker_widens_the_interval_and_white_noise_does_not():
     assert clean.jackknife_["available"] and not clean.jackknife_["folded"]
 
 
+def test_a_widening_too_small_to_move_an_estimate_by_half_its_sd_is_made_but_not_named():
+    """The markers' disagreement is added to the interval whenever the white-noise test finds it; it is named in
+    a warning only where its systematic part could move an estimate by half an sd or more (exactly fitting
+    data: a disagreement significant against the rounding moved an estimate by 5e-11)."""
+    model, y, q, _ = _wrist_trial(4, slide=5.0)
+    fit = joint_fit(model, y, model.theta_center, q, n_iter=50, rate=100.0, cutoff=6.0)
+    cov = np.linalg.inv(fit.info) * fit.rss / fit.n_obs
+    new, out, msg = jackknife.jackknife_stage(model, y, fit, np.sqrt(fit.rss / fit.n_obs), cov, fold_in=True)
+    assert out["folded"] and out["warn"] and out["effect_sd"] >= jackknife.JACKKNIFE_EFFECT and msg
+    wide = 400.0 * cov  # the same disagreement beside an interval 20 times wider
+    new_w, out_w, msg_w = jackknife.jackknife_stage(model, y, fit, np.sqrt(fit.rss / fit.n_obs), wide, fold_in=True)
+    assert out_w["folded"] and not out_w["warn"] and msg_w is None
+    assert out_w["effect_sd"] < jackknife.JACKKNIFE_EFFECT
+    assert np.all(np.diag(new_w) > np.diag(wide))  # still widened
+
+
+def test_noise_free_markers_that_differ_in_their_last_digits_are_not_an_artefact():
+    """Markers written by another program's kinematics agree with skelid's to the last digits only: their
+    disagreement (1e-8 mm, and structured) is tested against rounding, not against a noise level of 1e-9 mm,
+    and neither widens the interval nor warns."""
+    model, _, q, truth = _wrist_trial(4)
+    y = marker_positions(model, truth, q)
+    wrist = [k for k, d in enumerate(model.dofs) if d.segment == 1]
+    y[:, 3] += 1e-8 * q[:, wrist]
+    est = MarkerEstimator(model, cutoff=None, rng=np.random.default_rng(0)).fit(
+        MarkerData(y, model.marker_names, 100.0, "mm"))
+    assert est.sigma_ < 1e-6
+    assert est.jackknife_["available"] and not est.jackknife_["folded"]
+    assert not any("leave-one-marker-out" in w.message for w in est.warnings_)
+
+
 def test_no_jackknife_when_every_marker_is_needed():
     """Case A: each of the three markers is needed to fix the pose; no replicate exists."""
     model = builtin_model("case-a")

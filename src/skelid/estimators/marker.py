@@ -859,8 +859,11 @@ def covariance_stage(est: MarkerEstimator, sc: Screen, wt: Weights, used, noise:
     jack = {"available": False, "folded": False}
     own = cov
     if est.jackknife:
-        cov, jack, _ = jackknife_stage(model, y_used, fit, noise.sigma, cov, fold_in=not est.artefact_rms,
-                                       rng=rng, weights=w)
+        # the markers' disagreement is tested against white noise no smaller than rounding (noise-free data:
+        # their disagreement is the last digits of two kinematics, not an artefact)
+        rounding = NUMERICAL_RESIDUAL * float(np.abs(model.nominal_geometry).max())
+        cov, jack, _ = jackknife_stage(model, y_used, fit, max(noise.sigma, rounding), cov,
+                                       fold_in=not est.artefact_rms, rng=rng, weights=w)
     cov, place = placement_stage(est, y_used, fit, used, w, ident or {}, cov)
     return Covariance(info_inv, plain, cov, artefact, widened, crlb, np.sqrt(np.diag(plain)), jack, place, info_eff,
                       cov - own)
@@ -1212,7 +1215,7 @@ def _jackknife_warnings(model: Model, s: MarkerEstimator, f: MarkerFit) -> list[
         out.append(Warning("marker-jackknife", "leave-one-marker-out: without marker(s) "
                            f"{', '.join(jk['markers_refit_failed'])} the refit found no estimate (it did not "
                            "converge or ended on a prior bound); they have no replicate"))
-    if not jk.get("folded"):
+    if not jk.get("warn"):  # not widened, or by too little to move an estimate by half its sd
         return out
     k = max(jk["parameters"], key=lambda n: jk["parameters"][n]["sd_added"])
     v = jk["parameters"][k]

@@ -146,6 +146,11 @@ ESSENTIAL = 0.05
 MIN_MARKERS = 3
 #: level of the test of the markers' disagreement against white noise
 FOLD_LEVEL = 0.05
+#: the widening is named in a warning only where its systematic part could move some estimate by at least
+#: this many of its sd (the misfit test's effect size, :data:`skelid.estimators.checks.misfit.MISFIT_EFFECT`):
+#: on exactly fitting data the markers' disagreement was significant against the rounding and moved an
+#: estimate by 5e-11
+JACKKNIFE_EFFECT = 0.5
 #: white-noise draws that give the jackknife's null distribution
 N_NULL = 100
 #: a one-step replicate is kept when the cost, with the marker deleted, falls along the step by this
@@ -611,10 +616,14 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
     new, lam, rms = fold(cov, jk)
     added = np.sqrt(np.clip(np.diag(new), 0, None)) - np.sqrt(np.clip(np.diag(cov), 0, None))
     folded = bool(fold_in and np.any(lam > jk.null_max))
+    # the disagreement's size against the interval: the sd of the systematic part the fold adds, in sd
+    base = np.clip(np.diag(cov), 1e-300, None)
+    effect = float(np.sqrt(np.max(np.clip(np.diag(new) - base, 0.0, None) / base, initial=0.0)))
     ok = np.flatnonzero(jk.replicate)
     worst = ok[np.argmax(np.abs(jk.shifts[ok]), axis=0)]
     out.update(folded=folded, largest_eigenvalue=float(lam.max()), null_95=jk.null_max,
-               artefact_rms=rms if folded else 0.0,
+               artefact_rms=rms if folded else 0.0, effect_sd=effect if folded else 0.0,
+               warn=bool(folded and effect >= JACKKNIFE_EFFECT),
                parameters={n: {"sd": float(np.sqrt(jk.cov[k, k])), "sd_white_noise": float(np.sqrt(jk.null_mean[k, k])),
                                # the uncorrected jackknife (CR3), for comparison
                                "sd_uncorrected": float(np.sqrt(np.sum(jk.shifts[ok, k] ** 2))),
@@ -624,6 +633,8 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
                            for k, n in enumerate(names)})
     if not folded:
         return cov, out, None
+    if not out["warn"]:  # widened, but by too little to move an estimate by half its sd: no warning
+        return new, out, None
     failed = out["markers_refit_failed"]
     k = int(np.argmax(added / np.sqrt(np.diag(cov))))
     msg = (f"the markers disagree beyond their noise (leave-one-marker-out): without marker "
