@@ -164,3 +164,54 @@ def test_sigterm_during_a_batch_keeps_a_valid_table(tmp_path):
     if p.returncode == 143:
         _assert_one_line(err)
         assert len(rows) < 40
+
+
+def _numba_style(stop):
+    """What compiled code raises when a stop lands while it calls back into Python."""
+    def raiser(*args, **kwargs):
+        try:
+            raise stop
+        except BaseException as exc:
+            raise SystemError("<numba dispatcher> returned a result with an exception set") from exc
+    return raiser
+
+
+@pytest.mark.parametrize("where", ["fit", "push"])
+def test_a_ctrl_c_that_compiled_code_turned_into_a_system_error_reaches_an_api_caller_as_such(monkeypatch, where):
+    """From Python, a Ctrl-C during a fit or a live push is a KeyboardInterrupt, as everywhere else, even when
+    numba's dispatcher reported it as a ``SystemError``; a ``SystemError`` of its own passes unchanged."""
+    from skelid.estimators import MarkerEstimator
+    from skelid.estimators.fit import pose
+    from skelid.live import Session
+
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=60, sigma=1.0, rng=np.random.default_rng(0))
+
+    def call():
+        if where == "fit":
+            MarkerEstimator(model, rng=0).fit(trial.data)
+        else:
+            s = Session(model, labels=trial.data.names, rate=100.0)
+            for frame in trial.data.positions:
+                s.push(frame)
+
+    monkeypatch.setattr(pose, "fit_pose", _numba_style(KeyboardInterrupt()))
+    monkeypatch.setattr(pose, "_fit", _numba_style(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        call()
+    monkeypatch.setattr(pose, "_fit", lambda *a, **k: (_ for _ in ()).throw(SystemError("a real one")))
+    monkeypatch.setattr(pose, "fit_pose", lambda *a, **k: (_ for _ in ()).throw(SystemError("a real one")))
+    with pytest.raises(SystemError, match="a real one"):
+        call()
+
+
+def test_the_stop_inside_a_system_error_is_found_through_its_cause_and_context():
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("returned a result with an exception set")  # noqa: B904 - the context is the point
+    except SystemError as exc:
+        assert isinstance(_stop.stop_in(exc), KeyboardInterrupt)
+    assert _stop.stop_in(SystemError("alone")) is None
+    assert isinstance(_stop.stop_in(SystemExit(143)), SystemExit) and _stop.stop_in(SystemExit(0)) is None

@@ -41,6 +41,7 @@ True
 from __future__ import annotations
 
 import contextlib
+import functools
 import signal
 import sys
 import threading
@@ -132,6 +133,36 @@ def _on_alarm(signum, frame):
 def _is_stop(exc) -> bool:
     return isinstance(exc, KeyboardInterrupt | DeadlineExceeded) or \
         isinstance(exc, SystemExit) and exc.code in EXIT_CODES.values()
+
+
+def stop_in(exc: BaseException | None) -> BaseException | None:
+    """The stop (Ctrl-C, ``SIGTERM``, the time limit) that ``exc`` is, or was raised from or during; None if
+    none. Compiled code reports a stop raised while it called back into Python as a ``SystemError`` whose
+    cause is the stop."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if _is_stop(exc):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def interruptible(func):
+    """``func`` as a Python caller expects it to stop: a Ctrl-C that compiled code turned into a
+    ``SystemError`` on its way out reaches the caller as the :class:`KeyboardInterrupt` it was (likewise
+    the other stops of the module docstring). Any other ``SystemError`` passes unchanged."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except SystemError as exc:
+            stop = stop_in(exc)
+            if stop is None:
+                raise
+            raise stop from None
+    return wrapper
 
 
 def _unraisable(previous):

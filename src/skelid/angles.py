@@ -88,6 +88,7 @@ from pathlib import Path
 import numpy as np
 
 from skelid._linalg import frame_gram
+from skelid._stop import interruptible
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, FormatError, SettingError
 from skelid.io.osim import OsimCoordinate
@@ -413,6 +414,7 @@ def _wrap(dq, rot):
     return np.where(rot, (dq + np.pi) % (2.0 * np.pi) - np.pi, dq)
 
 
+@interruptible
 def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
                  rng: np.random.Generator | None = None, batch: int = BATCH_POSES) -> JointAngles:
     """Every OpenSim coordinate of ``data``'s frames on the fitted geometry, with sd and geometry share.

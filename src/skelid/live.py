@@ -194,6 +194,7 @@ from scipy.linalg.lapack import dpbsv as _dpbsv
 from scipy.stats import chi2, norm
 
 from skelid._linalg import frame_gram, one_blas_thread
+from skelid._stop import interruptible
 from skelid.data import MAX_FIT_COORDINATE_MM, MarkerData, unit_scale
 from skelid.errors import DataError, ModelError, SettingError, SkelidError
 from skelid.estimators.checks.misfit import STILL_JOINT_DEG, joint_rotations
@@ -1536,6 +1537,7 @@ class Session:
         return y, False
 
     # ------------------------------------------------------------------ the update
+    @interruptible
     def push(self, frame, defer: bool = False) -> LiveEstimate:
         """Fold one frame in and return the estimate after it.
 
@@ -1576,6 +1578,7 @@ class Session:
             self.work()
         return self.estimate
 
+    @interruptible
     def work(self) -> bool:
         """One step of the session's pending work; False when there was none.
 

@@ -66,6 +66,7 @@ from pathlib import Path
 import numpy as np
 
 from skelid._linalg import frame_gram, one_blas_thread
+from skelid._stop import interruptible
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import DataError, SettingError, SkelidWarning
 from skelid.estimators.checks.pose_artefact import pose_artefact
@@ -190,6 +191,7 @@ def thin_trial(data: MarkerData, max_frames: int | None, uniform: bool = True) -
     return MarkerData(data.positions[idx], data.names, data.rate, data.units, data.source, data.meta)
 
 
+@interruptible
 def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers: str = "offsets",
              method: str = "marker", seed: int = 0, sigma: float | None = None,
              static_frames: int | None = STATIC_FRAMES, movement_frames: int | None = MOVEMENT_FRAMES,

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from skelid._linalg import one_blas_thread
+from skelid._stop import interruptible
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, ModelError, SettingError, SkelidError
 from skelid.estimators.base import (
@@ -1494,6 +1495,7 @@ class MarkerEstimator:
         self.on_nonconvergence = on_nonconvergence
         self.n_starts = n_starts
 
+    @interruptible
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerEstimator:
         """Fit a whole trial: the stages of :func:`run_marker_fit`, then the warnings from their values."""
         check_settings(self)

@@ -117,6 +117,7 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 
 from skelid._linalg import psd_sqrt
+from skelid._stop import interruptible
 from skelid.data import MarkerData
 from skelid.errors import ConvergenceError, DataError, IdentifiabilityError, SkelidError
 from skelid.estimators.base import (
@@ -800,6 +801,7 @@ class MultiTrialEstimator:
     def _trial_settings(self) -> dict:
         return {s.name: getattr(self, s.name) for s in MarkerEstimator.settings}
 
+    @interruptible
     def fit(self, trials, *, progress=None) -> MultiTrialEstimator:
         """Fit every trial alone, then all of them at once with one geometry.
 

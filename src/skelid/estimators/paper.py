@@ -49,6 +49,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid._stop import interruptible
 from skelid.data import MarkerData, unit_scale
 from skelid.errors import IdentifiabilityError, ModelError
 from skelid.estimators.base import (
@@ -362,6 +363,7 @@ class PaperFilter:
                 progress(1)
         return state, measured, path
 
+    @interruptible
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> PaperFilter:
         """Fold :meth:`update` over a whole trial (``progress``: called with 1 after each frame)."""
         check_settings(self)

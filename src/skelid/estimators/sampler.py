@@ -120,6 +120,7 @@ from scipy.special import logsumexp
 from scipy.stats import norm
 
 from skelid._linalg import frame_gram
+from skelid._stop import interruptible
 from skelid.data import MarkerData
 from skelid.estimators.base import (
     Setting,
@@ -656,6 +657,7 @@ class SamplerEstimator:
         self.on_nonconvergence = on_nonconvergence
         self.n_starts = n_starts
 
+    @interruptible
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> SamplerEstimator:
         """Fit the default estimator, then sample the posterior."""
         check_settings(self)

@@ -43,6 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from skelid._stop import interruptible
 from skelid.data import MarkerData
 from skelid.errors import DataError, ModelError, SettingError
 from skelid.estimators.base import (
@@ -285,6 +286,7 @@ class MarkerGridFilter:
         return GridPosterior(self.model.parameter_names, axes, lw, state.n_frames, state.history)
 
     # --------------------------------------------------------------- batch
+    @interruptible
     def fit(self, data: MarkerData | np.ndarray, *, progress=None) -> MarkerGridFilter:
         """Fold :meth:`update` over every frame (the one loop over frames)."""
         check_settings(self)
