@@ -494,7 +494,9 @@ def _sd(cov) -> np.ndarray:
 
 
 def _slide_fit(model: Model, jo, art):
-    """The joint fit with the artefact's slopes estimated beside the geometry (None where none is present)."""
+    """The joint fit with the artefact's slopes estimated beside the geometry (None where none is present, or
+    where the slopes cannot be told from the geometry: :func:`~skelid.estimators.checks.pose_artefact.joint_slide`
+    raises)."""
     from skelid.estimators.checks.pose_artefact import joint_slide
 
     if art.slide is None or not jo.info_trials:
@@ -503,7 +505,10 @@ def _slide_fit(model: Model, jo, art):
     info = sum(s * info_k for s, info_k in zip(s2, jo.info_trials, strict=True))
     score = sum(s * g for s, g in zip(s2, jo.score_trials, strict=True))
     grad, curv = _prior_terms(model, jo.theta)
-    return joint_slide(art.slide, info, score, grad, curv, float(np.sum(jo.dof)))
+    try:
+        return joint_slide(art.slide, info, score, grad, curv, float(np.sum(jo.dof)))
+    except np.linalg.LinAlgError:  # the slopes cannot be told from the geometry: the artefact's term instead
+        return None
 
 
 #: Gauss-Newton steps of the geometry with the slide's slopes (:func:`_slide_converged`) at most, and the
@@ -558,8 +563,11 @@ def _slide_converged(model: Model, jo, art, ys, weights):
         if a.slide is None:
             break
         grad, curv = _prior_terms(model, theta)
-        nxt = joint_slide(a.slide, info, score, grad, curv, float(np.sum(jo.dof)), None if phase == 1 else sizes,
-                          start=sizes)
+        try:
+            nxt = joint_slide(a.slide, info, score, grad, curv, float(np.sum(jo.dof)), None if phase == 1 else sizes,
+                              start=sizes)
+        except np.linalg.LinAlgError:  # the slopes no longer told from the geometry: the last step stands
+            break
         size = float(np.max(np.abs(nxt.shift) / _sd(nxt.cov)))
         if size > SLIDE_CONTRACTION * last and size >= SLIDE_STEP_SD:  # not settling: stay, with this point's cov
             return replace(nxt, shift=theta - jo.theta, slopes=slide.slopes), replace(art, slide=sl), steps, False

@@ -344,6 +344,10 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
                 start=None) -> SlideFit:
     """The fit's geometry and covariance with the slide's slopes as random effects (a linear mixed model).
 
+    Raises ``numpy.linalg.LinAlgError`` where the slopes' posterior precision, a Schur complement of terms of
+    size ``1 / sigma^2`` that nearly cancel, comes out indefinite in floating point (noise-free data that one
+    factor per body cannot fit, sigma 0.008 mm): the slopes cannot then be told from the geometry.
+
     Linearised at the fit, with the poses profiled out, the residuals are
     ``r = K dtheta + Z v + e``: ``Z v`` the slide (its columns ``R_b(t) (x) Delta q(t)``, the
     pose's distance from the reference in its main directions), ``v`` the slopes shared by a
@@ -373,7 +377,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
         the moment fit of residuals whose slide has been taken out may find none, and a search started
         only from none stays there).
     """
-    from scipy.linalg import cho_solve
+    from scipy.linalg import cho_factor, cho_solve
 
     M, P, _, C = sl.G.shape
     n_own = M * 3 * C
@@ -397,7 +401,7 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     S = Oi + A / s2 - (Gf / s2).T @ HB
     S = 0.5 * (S + S.T)
     Hg = np.linalg.solve(H, score_raw / s2 - prior_grad)  # the geometry's own step at this noise level
-    Sc = _psd_cho_factor(S)  # the slopes' posterior precision, once for both solves
+    Sc = cho_factor(S, check_finite=False)  # the slopes' posterior precision, once for both solves
     u = cho_solve(Sc, sl.b.reshape(n_own) / s2 - (Gf / s2).T @ Hg, check_finite=False)
     cov = np.linalg.inv(H) + HB @ cho_solve(Sc, HB.T, check_finite=False)
     shared = float(np.sum([len(idx) * t for idx, t in zip(sl.bodies, ts2, strict=True)])
@@ -405,20 +409,6 @@ def joint_slide(sl: SlideTerms, info_raw, score_raw, prior_grad, prior_curv, dof
     return SlideFit(Hg - HB @ u, 0.5 * (cov + cov.T), float(np.sqrt(s2)), float(np.sqrt(shared)),
                     float(np.sqrt(to2)), float(np.sqrt((shared + to2) * sl.pose_spread)), u.reshape(M, 3, C),
                     np.sqrt(ts2))
-
-
-def _psd_cho_factor(S):
-    """``cho_factor`` of a matrix positive definite in exact arithmetic: where rounding has left it indefinite (a
-    Schur complement of terms of size ``1 / sigma^2`` that nearly cancel: noise-free data, sigma 0.008 mm), its
-    eigenvalues below ``1e-12`` of the largest are raised to that level first."""
-    from scipy.linalg import LinAlgError, cho_factor
-
-    try:
-        return cho_factor(S, check_finite=False)
-    except LinAlgError:
-        w, V = np.linalg.eigh(S)
-        w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
-        return cho_factor((V * w) @ V.T, check_finite=False)
 
 
 def _slide_sizes(sl: SlideTerms, info_raw, score_raw, dof, Gf, A, n_own, start=None) -> tuple:
