@@ -598,10 +598,12 @@ def jackknife_stage(model: Model, y, fit, sigma: float, cov, fold_in: bool, rng=
     -------
     cov : (P, P) float
     summary : dict
-        ``available``, ``folded``, and per parameter ``sd`` (jackknife), ``sd_white_noise``
+        ``available``, ``folded``, ``effect_sd`` (the sd of the systematic part the fold adds, in each
+        parameter's sd before it: the largest), ``warn`` (folded, with an effect of at least
+        :data:`JACKKNIFE_EFFECT`), and per parameter ``sd`` (jackknife), ``sd_white_noise``
         (its white-noise expectation), ``sd_added`` and the marker whose deletion moves it most.
     message : str or None
-        A warning when the interval was widened.
+        A warning when the interval was widened enough to move an estimate by half its sd.
     """
     names = model.parameter_names
     jk = marker_jackknife(model, y, fit.theta, fit.pose, fit.penalty, sigma=sigma, rng=rng, weights=weights)
