@@ -246,7 +246,7 @@ _BASIN_COST = 1e7
 #: after the early frames, the frames are folded in again at their smoothed poses this many at a time
 #: (:meth:`Session._close_block`): the frames not yet folded in again (a block and the lag after it) keep
 #: their first linearisation, whose remainder has one sign (case A at 15 mm, 1000 frames: mean z -0.85 and
-#: coverage 0.80 with blocks of 200, -0.35 and 0.92 with blocks of 100, the bias of each piece found within
+#: coverage 0.80 with blocks of 200, -0.34 and 0.92 with blocks of 100, the bias of each piece found within
 #: its neighbours too) ...
 _BLOCK = 100
 #: ... each smoothed with this many frames before it and after it
@@ -254,8 +254,8 @@ _LAG = 50
 #: ... and the bias they carry is solved again with the information of every frame at most this many frames apart
 _BIAS_EVERY = 10
 #: ... and each piece of frames whose bias is summed has its poses smoothed with up to this many frames on either
-#: side (:meth:`Session._bias_steps`; case A at 15 mm: 20 and 50 alike, coverage at 1000 frames 0.92)
-_BIAS_MARGIN = 20
+#: side (:meth:`Session._bias_steps`)
+_BIAS_MARGIN = 50
 #: ... and is found a piece of frames at a time (one step of :meth:`Session.work` each), its cost
 #: (frames x (parameters + pose coordinates)^2) at most this: case A's blocks in one piece, the 10-marker arm's in 4
 _BIAS_COST = 7200
@@ -2142,7 +2142,7 @@ class Session:
         smoothed with up to :data:`_BIAS_MARGIN` frames of ``y`` on either side: its frames' bias is then what
         it is within the whole stretch, where a piece cut off at its ends gave its first and last frames a
         wider pose posterior and a larger bias (case A at 15 mm, blocks of 100 frames, 1000 frames: the live
-        estimate 0.51 sd low on average with the pieces cut off, 0.35 within their neighbours)."""
+        estimate 0.51 sd low on average with the pieces cut off, 0.34 within their neighbours)."""
         num = np.zeros(self.model.n_params)
         start, stop, _ = own.indices(len(q))
         for a in _pieces(self.model, stop - start):
