@@ -244,20 +244,14 @@ _BATCH_SD = 2.0
 #: the early frames' basin is checked by a batch fit where it costs at most this (:func:`_basin_affordable`)
 _BASIN_COST = 1e7
 #: after the early frames, the frames are folded in again at their smoothed poses this many at a time
-#: (:meth:`Session._close_block`): the frames not yet folded in again (a block and the lag after it) keep
-#: their first linearisation, whose remainder has one sign (case A at 15 mm, 1000 frames: mean z -0.85 and
-#: coverage 0.80 with blocks of 200, -0.34 and 0.92 with blocks of 100, the bias of each piece found within
-#: its neighbours too) ...
-_BLOCK = 100
+#: (:meth:`Session._close_block`) ...
+_BLOCK = 200
 #: ... each smoothed with this many frames before it and after it
 _LAG = 50
 #: ... and the bias they carry is solved again with the information of every frame at most this many frames apart
 _BIAS_EVERY = 10
-#: ... and each piece of frames whose bias is summed has its poses smoothed with up to this many frames on either
-#: side (:meth:`Session._bias_steps`)
-_BIAS_MARGIN = 50
 #: ... and is found a piece of frames at a time (one step of :meth:`Session.work` each), its cost
-#: (frames x (parameters + pose coordinates)^2) at most this: case A's blocks in one piece, the 10-marker arm's in 4
+#: (frames x (parameters + pose coordinates)^2) at most this: case A's blocks in one piece, the 10-marker arm's in 8
 _BIAS_COST = 7200
 #: the motion model carries the pose through at most this many frames without data in a row; after a longer
 #: gap the held poses are marginalised and the next frame's pose is found afresh
@@ -2131,25 +2125,18 @@ class Session:
                 q = qs
                 R = self._penalty(Y[_LAG:-_LAG], q[_LAG:-_LAG], used[_LAG:-_LAG], theta, cutoff)
             yield
-        Lam, eta = block_information(model, theta, Y[_LAG:-_LAG], q[_LAG:-_LAG], used[_LAG:-_LAG], R, self._ws)
+        y, q, used = Y[_LAG:-_LAG], q[_LAG:-_LAG], used[_LAG:-_LAG]
+        Lam, eta = block_information(model, theta, y, q, used, R, self._ws)
         yield
-        num = yield from self._bias_steps(Y, q, used, theta, cutoff, slice(_LAG, len(q) - _LAG))
+        num = yield from self._bias_steps(y, q, used, theta, cutoff)
         return Lam, eta, num
 
-    def _bias_steps(self, y, q, used, theta, cutoff, own: slice = slice(None)):
-        """Steps of :meth:`work` that sum the second-order bias of frames ``y[own]``, ``q[own]``
-        (:meth:`_bias_sum_of`), a piece at a time (:func:`_pieces`); the sum is returned. Each piece's poses are
-        smoothed with up to :data:`_BIAS_MARGIN` frames of ``y`` on either side: its frames' bias is then what
-        it is within the whole stretch, where a piece cut off at its ends gave its first and last frames a
-        wider pose posterior and a larger bias (case A at 15 mm, blocks of 100 frames, 1000 frames: the live
-        estimate 0.51 sd low on average with the pieces cut off, 0.34 within their neighbours)."""
+    def _bias_steps(self, y, q, used, theta, cutoff):
+        """Steps of :meth:`work` that sum the second-order bias of frames ``y``, ``q`` (:meth:`_bias_sum_of`), a
+        piece at a time (:func:`_pieces`); the sum is returned."""
         num = np.zeros(self.model.n_params)
-        start, stop, _ = own.indices(len(q))
-        for a in _pieces(self.model, stop - start):
-            lo, hi = max(0, start + a.start - _BIAS_MARGIN), min(len(q), start + a.stop + _BIAS_MARGIN)
-            count = np.zeros(hi - lo, bool)
-            count[start + a.start - lo:start + a.stop - lo] = True
-            num = num + self._bias_sum_of(y[lo:hi], q[lo:hi], used[lo:hi], theta, cutoff, count)
+        for a in _pieces(self.model, len(q)):
+            num = num + self._bias_sum_of(y[a], q[a], used[a], theta, cutoff)
             yield
         return num
 
@@ -2177,7 +2164,7 @@ class Session:
         Jq = marker_jacobian(model, theta, q, self._ws)[1] * present[..., None, None]
         return smoothing_penalty(model, frame_gram(Jq.reshape(len(q), -1, model.n_pose)), self.rate, cutoff)
 
-    def _bias_sum_of(self, y, q, used, theta, cutoff, count=None) -> np.ndarray:
+    def _bias_sum_of(self, y, q, used, theta, cutoff) -> np.ndarray:
         """The second-order bias of frames ``y``, ``q`` folded in at their smoothed poses: ``S b`` at unit noise
         (:func:`smoothed_bias_sums`; zero where it cannot be had).
 
@@ -2190,7 +2177,7 @@ class Session:
         y = np.where(np.asarray(used, bool)[:, None, None], y, np.nan)
         try:
             num, _ = smoothed_bias_sums(self.model, y, theta, q, 1.0, self._penalty(y, q, used, theta, cutoff),
-                                        theta_known=True, max_frames=len(q), ws=self._ws, count=count)
+                                        theta_known=True, max_frames=len(q), ws=self._ws)
         except np.linalg.LinAlgError:
             return np.zeros(self.model.n_params)
         return num if np.isfinite(num).all() else np.zeros(self.model.n_params)

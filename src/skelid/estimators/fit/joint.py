@@ -1006,7 +1006,7 @@ def smoothed_bias(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-
 
 def smoothed_bias_sums(model: Model, y, theta, q, sigma2: float, R, step: float = 1e-4,
                        max_frames: int | None = None, weights=None, pose_var: list | None = None,
-                       theta_known: bool = False, ws: Workspace | None = None, count=None):
+                       theta_known: bool = False, ws: Workspace | None = None):
     """:func:`smoothed_bias`'s pieces summed: ``(sum_k S_k b_k (P,), sum_k S_k (P, P))``.
 
     ``S_k`` is piece ``k``'s information about theta (unit noise), ``b_k`` its bias: sums over frames
@@ -1014,10 +1014,7 @@ def smoothed_bias_sums(model: Model, y, theta, q, sigma2: float, R, step: float 
     where the sum is definite. With ``theta_known``, each piece's expansion takes theta as known (the
     limit of many frames besides it, :func:`_arrow_inverse_blocks`): its terms of order ``sigma^2 / T`` are
     left out, and a piece that alone leaves theta unidentified (a joint still in it) has a bias. ``ws``: the
-    kinematics' workspace (a new one if None). ``count`` ``(T,)`` bool: the frames whose terms ``S b`` sums
-    (default all); the others only smooth the poses of their neighbours (with ``theta_known``, the terms are
-    a sum over frames: a frame near the end of the frames given has a wider pose posterior than inside a
-    longer stretch, and a larger bias).
+    kinematics' workspace (a new one if None).
     """
     T = len(q)
     pieces = None if pose_var is None else []
@@ -1030,8 +1027,7 @@ def smoothed_bias_sums(model: Model, y, theta, q, sigma2: float, R, step: float 
     for a, b in zip(edges[:-1], edges[1:], strict=True):
         Rp = smoothing_penalty_like(R, T, model.n_pose, a, b)
         _, S, score = _smoothed_bias_dense(model, y[a:b], theta, q[a:b], sigma2, Rp, step,
-                                           None if weights is None else weights[a:b], pieces, theta_known, ws,
-                                           None if count is None else np.asarray(count, bool)[a:b])
+                                           None if weights is None else weights[a:b], pieces, theta_known, ws)
         num = num + score
         den = den + S
     if pieces is not None:
@@ -1092,7 +1088,7 @@ _SANDWICH_STEP = 1e-4
 
 
 def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose_var=None,
-                         theta_known: bool = False, ws: Workspace | None = None, count=None):
+                         theta_known: bool = False, ws: Workspace | None = None):
     """The bias ``b`` of one piece of a trial (see :func:`smoothed_bias`), its information ``S`` and ``S b``.
 
     Linear in frames: only diagonal ``(theta, q_t)`` blocks of ``C = N^{-1}`` and of
@@ -1142,8 +1138,6 @@ def _smoothed_bias_dense(model, y, theta, q, sigma2, R, step, weights=None, pose
     v = np.einsum("tkl,til->tik", CRC, Jfull)  # (T, m, P+Q): v_i restricted to the frame block
     u = (DJ.reshape(T, P + Q, -1) @ (v * wmask[..., None]).reshape(T, -1, 1))[..., 0]  # sum_i H_i v_i per block
     wvec = -0.5 * np.einsum("tij,ti->tj", Jfull, d) + u  # (T, P+Q)
-    if count is not None:  # the terms of these frames only (see smoothed_bias_sums)
-        wvec = wvec * np.asarray(count, float)[:, None]
     # b = sigma^2 C[:P] w with C[theta, theta] = S^{-1}, C[theta, q_t] = -S^{-1} G_t^T
     score = sigma2 * (wvec[:, :P].sum(axis=0) - np.einsum("tqp,tq->p", G, wvec[:, P:]))  # = S b
     S = Htt - summed_gram(Hqt, G) if theta_known else np.linalg.inv(S_inv)
