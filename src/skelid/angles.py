@@ -102,8 +102,14 @@ GEOMETRY_VERSION = 1
 N_DRAWS = 100
 #: most pose fits (draws x frames) in one batch: bounds the memory of the Jacobians
 BATCH_POSES = 4000
-#: Levenberg-Marquardt iterations of a draw's pose fit (it starts at the MAP pose, a small step away)
+#: Levenberg-Marquardt iterations of a draw's pose fit (it starts at the MAP pose, a small step away) ...
 DRAW_ITER = 15
+#: ... taken this many at a time, after which the fits that have converged are set aside (:func:`_refit_draws`)
+DRAW_ROUND = 3
+#: ... converged: the residual sum of squares fell by at most this share of it over a round. The draws' spread is
+#: what is wanted, known to 7 % at 100 draws: on subject01's walk (100 draws) every coordinate's geometry sd is
+#: within 0.25 % of the fits run to a fall of 1e-10, in 0.55 of the time
+DRAW_TOL = 1e-4
 MM_PER_M = 1000.0
 
 _REFIT = "fit the model again with 'skelid fit MODEL.osim STATIC.trc TRIAL.trc --out DIR' (a current skelid)"
@@ -507,14 +513,39 @@ def _draw_variance(model, draws, y, q, fixed, rot, ws, batch, fit_pose) -> np.nd
         th = draws[a:a + per_draws, None, :]
         for b in range(0, idx.size, per_frames):
             f = idx[b:b + per_frames]
-            qd, _ = fit_pose(model, th, y[None, f], np.broadcast_to(q[f], (th.shape[0], f.size, Q)),
-                             n_iter=DRAW_ITER, ws=ws)
+            qd = _refit_draws(model, th, y[None, f], np.broadcast_to(q[f], (th.shape[0], f.size, Q)), ws, fit_pose)
             dq = _wrap(qd - q[f], rot)
             total[f] += dq.sum(axis=0)
             square[f] += (dq**2).sum(axis=0)
     if D == 1:
         return square
     return np.maximum(square - total**2 / D, 0.0) / (D - 1)
+
+
+def _refit_draws(model, theta, y, q0, ws, fit_pose) -> np.ndarray:
+    """Each draw's pose fitted from ``q0`` (``(D, F, Q)``; ``theta (D, 1, P)``, ``y (1, F, M, 3)``).
+
+    A batch of pose fits runs until its slowest member has converged, so one draw that needs all
+    :data:`DRAW_ITER` iterations holds back every other. The fits run :data:`DRAW_ROUND` iterations at a time,
+    and after each round those whose residual sum of squares fell by at most :data:`DRAW_TOL` of it over the
+    round are set aside.
+    """
+    from skelid.model.kinematics import marker_positions
+
+    shape = q0.shape[:-1]
+    th = np.broadcast_to(theta, shape + theta.shape[-1:])
+    yy = np.broadcast_to(y, shape + y.shape[-2:])
+    q = np.array(q0, dtype=float)
+    cost = np.nansum((yy - marker_positions(model, th, q, ws)) ** 2, axis=(-1, -2))
+    active = np.ones(shape, bool)
+    done = 0
+    while done < DRAW_ITER and active.any():
+        idx = np.nonzero(active)
+        q[idx], new = fit_pose(model, th[idx], yy[idx], q[idx], n_iter=min(DRAW_ROUND, DRAW_ITER - done), ws=ws)
+        done += DRAW_ROUND
+        active[idx] = cost[idx] - new > DRAW_TOL * new
+        cost[idx] = new
+    return q
 
 
 def _to_coordinates(geom, data, q, var_pose, var_geo, var_lin, fixed, sigma, n_draws) -> JointAngles:
