@@ -108,7 +108,7 @@ DRAW_ITER = 15
 DRAW_ROUND = 3
 #: ... converged: the residual sum of squares fell by at most this share of it over a round. The draws' spread is
 #: what is wanted, known to 7 % at 100 draws: on subject01's walk (100 draws) every coordinate's geometry sd is
-#: within 0.25 % of the fits run to a fall of 1e-10, in 0.55 of the time
+#: within 0.25 % of the fits run to a fall of 1e-10 all together, and `skelid ik` took 1.02 s CPU against 1.60
 DRAW_TOL = 1e-4
 MM_PER_M = 1000.0
 
