@@ -655,3 +655,54 @@ def test_a_nearly_still_noisy_trial_stays_inside_the_prior_with_every_method(tmp
     assert 200.0 <= p["map"] <= 300.0 and 200.0 <= p["interval"][0] <= p["interval"][1] <= 300.0, p
     if method != "paper":  # the paper's method is reproduced as published
         assert p["status"] == "placement", p["status"]
+
+
+# --------------------------------------------------------------------------- joint angles
+@pytest.fixture(scope="module")
+def leg_geometry(tmp_path_factory):
+    """The OpenSim leg of the scaling tests at its nominal geometry, with a small covariance."""
+    from skelid import angles
+    from skelid.io.osim import osim_coordinates, osim_parameters, read_osim
+    from tests.test_scaling import MODEL, marker_xml
+
+    path = tmp_path_factory.mktemp("api-leg") / "leg.osim"
+    path.write_text(MODEL.format(markers=marker_xml()))
+    base, info = read_osim(path)
+    model = osim_parameters(base, info, "bodies", "offsets")
+    sd = np.array([p.prior.sd for p in model.parameters])
+    return angles.FittedGeometry(model, model.theta_nominal.copy(), np.diag((0.02 * sd) ** 2), "joint",
+                                 osim_coordinates(path), None, str(path))
+
+
+@settings(max_examples=40, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frames=st.integers(0, 4), kept=st.integers(0, 12), spoil=st.sampled_from(["none", "nan", "inf", "huge", "one"]),
+       units=st.sampled_from(["mm", "cm", "m"]), n_draws=st.sampled_from([0, 3, -1, 2.5, None, "x", True]))
+def test_joint_angles_give_every_coordinate_or_refuse(leg_geometry, frames, kept, spoil, units, n_draws):
+    """Any trial (any number of frames, some or none of the model's markers, NaN, inf, huge values, any unit)
+    and any number of draws: the joint angles with finite sds where a frame's pose is fixed, or one line."""
+    from skelid import angles
+    from skelid.model.kinematics import marker_positions
+
+    model = leg_geometry.model
+    q = np.zeros((frames, model.n_pose))
+    q[:, 3:6] = [100.0, 900.0, 50.0]
+    y = marker_positions(model, leg_geometry.theta, q) + np.random.default_rng(frames).normal(0, 0.5, (frames, 12, 3))
+    if spoil == "nan" and frames:
+        y[0, 0] = np.nan
+    elif spoil == "inf" and frames:
+        y[-1, 2, 1] = np.inf
+    elif spoil == "huge" and frames:
+        y[0] = 1e12
+    elif spoil == "one" and frames:
+        y[:, 1:] = np.nan
+    y = y / {"mm": 1.0, "cm": 10.0, "m": 1000.0}[units]
+    names = model.marker_names[:kept]
+    kind, value = outcome(lambda: angles.joint_angles(
+        leg_geometry, MarkerData(y[:, :kept], names, 60.0, units), n_draws=n_draws, rng=np.random.default_rng(0)))
+    if kind == "ok":
+        a = value
+        assert a.value.shape == (frames, len(a.names)) and a.sd.shape == a.value.shape
+        fitted = np.array([s == "fitted" for s in a.status])
+        assert np.all(np.isfinite(a.sd[np.ix_(a.fixed, fitted)]))
+        assert np.all(np.isnan(a.value[np.ix_(~a.fixed, fitted)]))

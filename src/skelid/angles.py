@@ -82,6 +82,8 @@ the rotation in radians (degrees in the ``.mot`` file).
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -444,8 +446,9 @@ def joint_angles(geom: FittedGeometry, data: MarkerData, n_draws: int = N_DRAWS,
     from skelid.estimators.fit.likelihood import pose_fixed
     from skelid.estimators.fit.pose import fit_pose, pose_determined, track_poses, workspace
 
-    if n_draws < 0 or int(n_draws) != n_draws:
-        raise SettingError(f"draws must be a whole number, at least 0; got {n_draws}", "give --draws 100")
+    if (isinstance(n_draws, bool) or not isinstance(n_draws, numbers.Real) or not math.isfinite(n_draws)
+            or n_draws < 0 or int(n_draws) != n_draws):
+        raise SettingError(f"draws must be a whole number, at least 0; got {n_draws!r}", "give --draws 100")
     rng = np.random.default_rng(0) if rng is None else rng
     model, theta = geom.model, geom.theta
     y = _markers_mm(model, data)
