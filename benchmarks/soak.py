@@ -10,8 +10,9 @@ push latency (wall and CPU-thread time, ms), the work's time per frame and its l
 the process's resident memory (``/proc/self/statm``). The claim checked: memory and p99 latency
 flat, growth at most 5 %: memory from the first ten minutes to the last ten, latency side by side
 (below). The first and last ten minutes' latencies are reported too (the first minute, when the
-session settles and its compiled kernels are first used, is left out of the first block's). The estimate at the end is compared with the truth, so that a session that stays fast
-by no longer estimating would show.
+session settles and its compiled kernels are first used, is left out of the first block's). The
+estimate at the end is compared with the truth, so that a session that stays fast by no longer
+estimating would show.
 
 On a shared machine a minute's p99 moves by 30 % with the load of other processes, more than the 5 %
 the claim allows, so the first and last blocks are reported but do not decide it. What decides it is a
