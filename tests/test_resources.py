@@ -161,3 +161,26 @@ def test_freed_arrays_stay_in_the_heap_for_the_next_ones_with_the_programs_setti
         pytest.skip("not glibc")
     assert float(runs["default"][1]) < 16.0
     assert float(runs["keep"][1]) > 120.0
+
+
+def test_one_blas_thread_holds_every_blas_library_loaded_after_the_first_use(tmp_path):
+    """The command line's start loads numpy's BLAS but not scipy's; the limit must reach both, whichever loads
+    first (with scipy's left at its default, the gait2354 fit spent 60 % more CPU than wall on two cores)."""
+    import os
+    import subprocess
+
+    pytest.importorskip("threadpoolctl")
+    code = (
+        "from skelid._linalg import one_blas_thread\n"
+        "with one_blas_thread():\n"
+        "    import scipy.linalg\n"
+        "    from threadpoolctl import threadpool_info\n"
+        "    print(sorted({(i['filepath'], i['num_threads']) for i in threadpool_info()"
+        " if i['user_api'] == 'blas'}))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    env["OPENBLAS_NUM_THREADS"] = "4"  # a default above one, whatever the machine's cores
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    libs = eval(r.stdout)  # noqa: S307  (our own printout of a list of tuples)
+    assert libs and all(n == 1 for _, n in libs), libs
