@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from skelid.cli import main
 from tests.conftest import EXAMPLES
 
@@ -31,6 +33,11 @@ def test_several_trials_alternatives_and_per_marker_noise(tmp_path, capsys):
     assert res["context"]["data"] == paths
     spread = diag["model_sensitivity"]["spread"]["L2"]
     assert set(spread["values"]) == {"case_b", "case_b_alt"} and spread["spread"] < 1e-6
+    # the same model twice predicts every block equally: equal weights, and its own estimate as the average
+    avg = diag["model_sensitivity"]["average"]
+    assert avg["method"] == "stacking" and avg["weights"] == pytest.approx({"case_b": 0.5, "case_b_alt": 0.5})
+    assert avg["quantities"]["L2"]["value"] == pytest.approx(diag["model_sensitivity"]["estimates"]["case_b"]["L2"]
+                                                             ["value"])
     # another method with several trials is refused in one line
     assert main(["fit", str(EXAMPLES / "case_b.toml"), *paths, "--method", "paper"]) == 2
     # the text output shows each trial's own estimate and the consistency test
@@ -54,3 +61,26 @@ def test_trials_text_closed_form():
     text = trials_text(FitResult("marker", p, diagnostics=diag))
     assert "a.trc" in text and "± 0.2" in text and "0.7" in text and "disagree" in text
     assert trials_text(FitResult("marker", p)) == ""
+
+
+def test_the_models_average_weighs_a_misplaced_marker_model_out_and_shows_each_model(tmp_path, capsys):
+    """Data of case B; the alternative holds marker D 10 mm off its place: it predicts every second of the
+    trials worse, so the average is the right model's fit, with each model's estimate beside it."""
+    p = tmp_path / "t.trc"
+    assert main(["simulate", "case-b", "--sigma", "5", "--frames", "300", "--seed", "4", "--out", str(p)]) == 0
+    wrong = tmp_path / "wrong.toml"
+    text = (EXAMPLES / "case_b.toml").read_text()
+    wrong.write_text(text.replace('name = "case_b"', 'name = "case_b_d"').replace("position = [180.0, -35.0]",
+                                                                                   "position = [180.0, -25.0]"))
+    assert wrong.read_text() != text.replace('name = "case_b"', 'name = "case_b_d"')
+    capsys.readouterr()
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), str(p), "--alternative", str(wrong), "--json"]) == 0
+    sens = json.loads(capsys.readouterr().out)["results"]["marker"]["diagnostics"]["model_sensitivity"]
+    avg = sens["average"]
+    assert avg["blocks"] >= 3 and avg["weights"]["case_b"] > 0.99
+    right, off = (sens["estimates"][m]["L2"]["value"] for m in ("case_b", "case_b_d"))
+    assert abs(off - right) > 1.0  # the misplaced marker moves the answer
+    assert avg["quantities"]["L2"]["value"] == pytest.approx(right, abs=0.01 * abs(off - right))
+    assert main(["fit", str(EXAMPLES / "case_b.toml"), str(p), "--alternative", str(wrong)]) == 0
+    out = capsys.readouterr().out
+    assert "the models' average (stacking weights" in out and "case_b_d" in out

@@ -10,7 +10,7 @@ from skelid.errors import SkelidWarning
 
 MODULES = ["skelid.result", "skelid.io.results", "skelid.registry", "skelid.estimators.paper",
            "skelid.estimators.online.grid", "skelid.estimators.marker", "skelid.estimators.sampler", "skelid.live",
-           "skelid.live_health", "skelid.angles"]
+           "skelid.live_health", "skelid.angles", "skelid.estimators.uncertainty.stacking"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -516,7 +516,11 @@ def test_summary_shows_model_spread_and_noise_per_marker(tmp_path):
                       "largest_sd": 1.0}}
     sens = {"models": ["main", "other"], "estimates": {m: {k: {"value": v["values"][m], "sd": 1.0}
                                                            for k, v in spread.items()} for m in ("main", "other")},
-            "spread": spread}
+            "spread": spread,
+            "average": {"method": "stacking", "unit": "1 s of a trial's frames", "blocks": 12,
+                        "weights": {"main": 0.75, "other": 0.25},
+                        "quantities": {"L": {"value": 251.5, "sd": 3.0, "interval": [248.0, 257.5],
+                                             "models": ["main", "other"]}}}}
     r = FitResult("marker", {"L": est("L", 250.0), "off": est("off", 10.0)},
                   noise=NoiseEstimate(2.0, (1.9, 2.1), per_marker={"KNE": 1.5, "<ANK>": 4.5, "HIP": 2.0}),
                   diagnostics={"model_sensitivity": sens})
@@ -528,6 +532,8 @@ def test_summary_shows_model_spread_and_noise_per_marker(tmp_path):
     row = summary[summary.index('<td class="l">L</td>'):]
     row = row[:row.index("</tr>")]
     assert 'class="warn" title="main: 250, other: 256">6<' in row  # wider than any model's own sd
+    assert "average 251.5 [248, 257.5]" in row  # the models' average under the spread
+    assert "stacking over 12 blocks" in summary and "main 0.75, other 0.25" in summary
     row = summary[summary.index('<td class="l">off</td>'):]
     assert 'class="" title="main: 10, other: 10.5">0.5<' in row[:row.index("</tr>")]
     noise = summary[summary.index("Marker noise per marker"):]
@@ -538,6 +544,11 @@ def test_summary_shows_model_spread_and_noise_per_marker(tmp_path):
     doc["results"]["marker"]["diagnostics"]["model_sensitivity"]["spread"]["L"]["spread"] = "wide"
     (tmp_path / "fit" / "result.json").write_text(json.dumps(doc))
     with pytest.raises(SkelidError, match=r"model_sensitivity\.spread\.L\.spread: expected a number"):
+        write_report(tmp_path / "fit")
+    doc["results"]["marker"]["diagnostics"]["model_sensitivity"]["spread"]["L"]["spread"] = 6.0
+    doc["results"]["marker"]["diagnostics"]["model_sensitivity"]["average"]["weights"]["main"] = "most"
+    (tmp_path / "fit" / "result.json").write_text(json.dumps(doc))
+    with pytest.raises(SkelidError, match=r"model_sensitivity\.average\.weights\.main: expected a number"):
         write_report(tmp_path / "fit")
 
 

@@ -139,8 +139,17 @@ def check_alternative(d, base):
     r = _run(d, ["--alternative", str(alt)])
     sens = r["table"]["model_sensitivity"]
     assert sens["models"] == ["leg.osim", "leg_low_hip.osim"] and base["table"]["model_sensitivity"] is None
-    assert set(sens["spread"]) == {f"scale_{b}_{a}" for b in ("pelvis", "thigh", "shank") for a in "xyz"}
+    scales = {f"scale_{b}_{a}" for b in ("pelvis", "thigh", "shank") for a in "xyz"}
+    lengths = {f"length {n}" for n in base["table"]["lengths_mm"]}
+    assert lengths and set(sens["spread"]) == scales | lengths
     assert max(e["spread"] for e in sens["spread"].values()) > 1e-3
+    # the trials were made with leg.osim: stacking gives it the weight, and the average is its fit
+    avg = sens["average"]
+    assert avg["weights"]["leg.osim"] > 0.9 and set(avg["quantities"]) == set(sens["spread"])
+    for n, q in avg["quantities"].items():
+        assert q["interval"][0] <= q["value"] <= q["interval"][1]
+        assert q["value"] == pytest.approx(sens["estimates"]["leg.osim"][n]["value"], rel=1e-3)
+    assert "average [95 % interval]" in (r["dir"] / "scaled_report.md").read_text()
     assert "alternative models" in (r["dir"] / "scaled_report.md").read_text()
     toml = d / "leg.toml"
     toml.write_text("")

@@ -252,7 +252,8 @@ def simulate(model_name, sigma, frames, rate, seed, hard_poses, noise, sta_ampli
                    "used as weights).")
 @click.option("--alternative", "alternatives", multiple=True,
               help="Another model of the same body (repeat for several; another .osim for an .osim model): the "
-                   "data are refitted under each and the spread of the shared quantities is reported.")
+                   "data are refitted under each; the spread of the shared quantities and the models' average "
+                   "(stacking weights over blocks of frames) are reported.")
 @click.option("--seed", type=SEED, default=0, show_default=True)
 @click.option("--quiet", is_flag=True, help="No progress bar, no table, no warnings: only errors (the warnings are "
               "kept in --out's result.json and in --json).")
@@ -324,10 +325,12 @@ def fit(ctx, model_path, data_paths, method_names, sigma, cutoff, artefact_rms, 
         _echo_json(run_to_dict(run))
     elif not quiet:
         click.echo(workflows.table(run))
-        if len(data_paths) > 1 and "marker" in run.results:
-            from skelid.sensitivity import trials_text
+        if (len(data_paths) > 1 or alternatives) and "marker" in run.results:
+            from skelid.sensitivity import average_text, trials_text
 
-            click.echo(trials_text(run.results["marker"]))
+            for text in (trials_text(run.results["marker"]), average_text(run.results["marker"])):
+                if text:
+                    click.echo(text)
         if out_dir:
             click.echo(f"result.json, arrays.npz and figures written to {out_dir}; "
                        f"next: skelid report {out_dir}")
@@ -449,12 +452,23 @@ def _check_osim_fit(model_path, data_paths, method_names, sigma, out_dir, marker
 def _echo_scaling(table: dict, out_dir, ik: bool) -> None:
     """The scale factors with their intervals (ScaleTool's beside them where it ran), and what was written where."""
     peer = {(r["body"], r["axis"]): r for r in (table.get("scaletool") or {}).get("compared", [])}
+    avg = ((table.get("model_sensitivity") or {}).get("average") or {})
+    if avg:
+        click.echo("the models' average beside each factor (stacking weights over "
+                   f"{avg['blocks']} blocks of {avg['unit']}: "
+                   + ", ".join(f"{m} {w:.2f}" for m, w in avg["weights"].items()) + ")")
     for body, s in table["scales"].items():
         for ax, e in s.items():
             lo, hi = e["ci95"]
             r = peer.get((body, ax))
             beside = "" if r is None else f"  ScaleTool {r['scaletool']:.4f}{'' if r['inside'] else ' (outside)'}"
+            a = avg.get("quantities", {}).get(f"scale_{body}" if ax == "xyz" else f"scale_{body}_{ax}")
+            if a:
+                beside += f"  average {a['value']:.4f} [{a['interval'][0]:.4f}, {a['interval'][1]:.4f}]"
             click.echo(f"scale {body:<12} {ax:<3} {e['value']:.4f}  [{lo:.4f}, {hi:.4f}]{beside}")
+    for q, a in avg.get("quantities", {}).items():
+        if q.startswith("length "):
+            click.echo(f"{q} (mm): average {a['value']:.1f}  [{a['interval'][0]:.1f}, {a['interval'][1]:.1f}]")
     click.echo(f"{len(table['marker_offsets_mm'])} marker offsets; {table['seconds']:.1f} s")
     if out_dir:
         click.echo(f"scaled model, ScaleSet, scaling.json and report written to {out_dir}")

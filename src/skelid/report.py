@@ -885,7 +885,10 @@ def _model_spread(r) -> dict | None:
     """``{quantity: spread record}`` of ``skelid fit --alternative`` (see :mod:`skelid.sensitivity`), or None."""
     sens = r.diagnostics.get("model_sensitivity")
     spread = sens.get("spread") if isinstance(sens, Mapping) else None
-    return dict(spread) if isinstance(spread, Mapping) and spread else None
+    if not (isinstance(spread, Mapping) and spread):
+        return None
+    avg = (sens.get("average") or {}).get("quantities") or {}
+    return {k: {**v, "average": avg.get(k)} if isinstance(v, Mapping) else v for k, v in spread.items()}
 
 
 def _spread_cell(rec) -> str:
@@ -895,7 +898,11 @@ def _spread_cell(rec) -> str:
         return '<span class="na">–</span>'
     values = ", ".join(f"{k}: {_fmt(v)}" for k, v in (rec.get("values") or {}).items())
     wide = _finite(rec.get("spread")) > _finite(rec.get("largest_sd"), math.inf)
-    return f'<span class="{"warn" if wide else ""}" title="{_e(values)}">{_fmt(rec.get("spread"))}</span>'
+    cell = f'<span class="{"warn" if wide else ""}" title="{_e(values)}">{_fmt(rec.get("spread"))}</span>'
+    avg = rec.get("average")
+    if isinstance(avg, Mapping) and isinstance(avg.get("interval"), list | tuple):
+        cell += f"<br><small>average {_fmt(avg.get('value'))} {_interval(avg['interval'])}</small>"
+    return cell
 
 
 def _finite(x, default: float = math.nan) -> float:
@@ -908,10 +915,17 @@ def _finite(x, default: float = math.nan) -> float:
 
 def _spread_note(sens: Mapping) -> str:
     models = ", ".join(_e(m) for m in sens.get("models") or [])
+    avg = sens.get("average") if isinstance(sens.get("average"), Mapping) else {}
+    weights = ", ".join(f"{_e(m)} {_finite(w):.2f}" for m, w in (avg.get("weights") or {}).items())
+    average = (f" Under it, the models' average: each model weighted by stacking over {avg.get('blocks')} blocks "
+               f"of {_e(str(avg.get('unit')))} ({weights}), the share of the data it predicts best, and the "
+               "interval the mixture of the models' own, which holds the choice of model where the data cannot "
+               "settle it." if weights else "")
     return (f"<p>Model sensitivity: the data were fitted again under each model ({models}); the spread is the "
             "range of an estimate over them (hover for each model's value). It measures how much the answer "
             "depends on modelling choices the data cannot settle, which no interval from one model contains; "
-            'a spread <span class="warn">in colour</span> exceeds the largest of the models\' own sds.</p>')
+            'a spread <span class="warn">in colour</span> exceeds the largest of the models\' own sds.'
+            f"{average}</p>")
 
 
 def _per_marker_noise(noise, units: str, show: int = 12) -> str:

@@ -811,36 +811,79 @@ def _check_cost(model: Model, method: str, trials, limits) -> None:
 
 
 def with_alternatives(fit: ScalingFit, alternatives, trials, **options) -> ScalingFit:
-    """``fit`` with the spread of its scale factors over alternative OpenSim models of the same body.
+    """``fit`` with the spread and the average of its scale factors and lengths over alternative OpenSim
+    models of the same body.
 
     The trials are refitted under each alternative ``.osim`` model (another joint model, another
     generic model) with the same ``options`` (the keywords of :func:`fit_osim`), and every scale
-    factor that at least two models share (by name) gets its spread
-    (:func:`skelid.sensitivity.model_spread`), in ``fit.result["model_sensitivity"]``.
+    factor and length that at least two models share (by name) gets its spread
+    (:func:`skelid.sensitivity.model_spread`), in ``fit.result["model_sensitivity"]``. Under
+    ``"average"``, the models' average (:func:`skelid.sensitivity.average_of`): each model weighted by
+    stacking over one-second blocks of the trials' frames, its log density there that of the joint fit's
+    residuals over the markers every model has; a scale factor's mixture taken in log space.
 
     Raises
     ------
     DataError
         An alternative that is not an ``.osim`` model, or two models of one file name.
     """
-    from skelid.sensitivity import model_spread
+    from skelid.sensitivity import average_of, block_log_density, model_spread
 
     def scales(f):
-        return {p.name: {"value": float(f.result[p.name]["map"]), "sd": float(f.result[p.name]["sd"])}
-                for p in f.model.parameters if p.kind == "scale"}
+        """Each scale factor (relative to its model's own generic geometry) and each joint-to-joint length
+        (mm, the same quantity whatever the model's generic geometry)."""
+        out = {p.name: {"value": float(f.result[p.name]["map"]), "sd": float(f.result[p.name]["sd"])}
+               for p in f.model.parameters if p.kind == "scale"}
+        return out | {f"length {n}": {"value": float(e["value"]), "sd": float(e["sd"])}
+                      for n, e in (f.result.get("lengths") or {}).items()}
 
-    fits = {Path(fit.source).name: scales(fit)}
+    done = {Path(fit.source).name: fit}
     for path in alternatives:
         name = Path(path).name
         if not name.lower().endswith(".osim"):
             raise DataError(f"--alternative {path}: an OpenSim model's alternative must be an .osim model",
                             "give another .osim model of the same body")
-        if name in fits:
+        if name in done:
             raise DataError(f"model alternatives need distinct file names; {name} is given twice",
                             "rename one of the model files")
-        fits[name] = scales(fit_osim(path, trials, **options))
-    sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+        done[name] = fit_osim(path, trials, **options)
+    fits = {name: scales(f) for name, f in done.items()}
+    shared = [n for n in fit.model.marker_names if all(n in f.model.marker_names for f in done.values())]
+    if not shared:
+        raise DataError(f"the model alternatives share no marker with {Path(fit.source).name}, so their fits "
+                        "cannot be weighed", "give alternatives of the same body with the same markers")
+    frames = [_fit_frames(f, shared) for f in done.values()]
+    lp = block_log_density([f for f, _ in frames], frames[0][1], [f.model.n_params for f in done.values()])
+    sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits),
+            "average": average_of(lp, fits, log=[q for f in fits.values() for q in f if q.startswith("scale")])}
     return replace(fit, result={**fit.result, "model_sensitivity": sens})
+
+
+def _fit_frames(fit: ScalingFit, names) -> tuple[list[np.ndarray], list[float]]:
+    """:func:`skelid.sensitivity.frame_log_density` of every trial of an OpenSim fit over the markers
+    ``names``, and the rate of those frames: the joint fit's residuals at every frame at each trial's
+    noise level; where the scales and offsets were not fitted together, the scale fit's on the frames
+    it used (every k-th)."""
+    from skelid.model.kinematics import forward_kinematics
+    from skelid.sensitivity import frame_log_density
+
+    model = fit.model
+    idx = [model.marker_names.index(n) for n in names]
+    out, rates = [], []
+    if fit.joint is None:
+        for e, t in zip(getattr(fit.estimator, "trials_", None) or [fit.estimator], fit.trials, strict=True):
+            r = np.asarray(e.residuals_)
+            out.append(np.where(e.frames_used_, frame_log_density(r[:, idx], float(e.sigma_), model.dim,
+                                                                  model.n_pose), np.nan))
+            rates.append(float(t.rate) * r.shape[0] / max(1, t.positions.shape[0]))
+        return out, rates
+    for k, t in enumerate(fit.trials):
+        x = forward_kinematics(model, fit.joint.theta, fit.joint.poses[k]).markers[:, idx]
+        y = t.positions[:, [t.names.index(n) for n in names]] * unit_scale(t.units, model.units)
+        out.append(frame_log_density(np.linalg.norm(y - x, axis=-1), float(fit.joint.sigma[k]), model.dim,
+                                     model.n_pose))
+        rates.append(float(t.rate))
+    return out, rates
 
 
 def place_free_markers_first(full: Model, info: OsimInfo, scale: str, static: MarkerData, sigma=None,
@@ -2249,11 +2292,23 @@ def _sensitivity_markdown(fit: ScalingFit, table: dict, files) -> list[str]:
     sens = table.get("model_sensitivity")
     if not (sens and sens["spread"]):
         return []
-    lines = ["## Scale factors under alternative models", "",
-             "| scale | " + " | ".join(sens["models"]) + " | spread |", "|---|" + "---|" * (len(sens["models"]) + 1)]
+    avg = sens.get("average") or {}
+    q = avg.get("quantities") or {}
+    lines = ["## Scale factors and lengths under alternative models", "",
+             "A scale factor is relative to its own model's generic geometry; a length (joint centre to joint "
+             "centre, mm) is the same quantity under every model.", ""]
+    if avg:
+        lines += [f"The models' average weighs each model by stacking over {avg['blocks']} blocks of "
+                  f"{avg['unit']} (" + ", ".join(f"{m} {w:.2f}" for m, w in avg["weights"].items())
+                  + "): the share of the data each predicts best; its interval is the weighted mixture of "
+                  "the models' own, so it holds the choice of model where the data cannot settle it.", ""]
+    lines += ["| quantity | average [95 % interval] | " + " | ".join(sens["models"]) + " | spread |",
+              "|---|---|" + "---|" * (len(sens["models"]) + 1)]
     for n, e in sens["spread"].items():
         cells = [f"{e['values'][m]:.4f}" if m in e["values"] else "-" for m in sens["models"]]
-        lines.append(f"| {n} | " + " | ".join(cells) + f" | {e['spread']:.4f} |")
+        a = q.get(n)
+        mean = f"{a['value']:.4f} [{a['interval'][0]:.4f}, {a['interval'][1]:.4f}]" if a else "-"
+        lines.append(f"| {n} | {mean} | " + " | ".join(cells) + f" | {e['spread']:.4f} |")
     return lines + [""]
 
 

@@ -110,6 +110,149 @@ def model_spread(estimates: Mapping[str, Mapping[str, Mapping[str, float]]]) -> 
     return out
 
 
+#: a held-out unit of the stacking weights: this long a stretch of a trial's frames (residuals of
+#: neighbouring frames are correlated; a second of movement is roughly one independent piece of it)
+BLOCK_SECONDS = 1.0
+#: below this many blocks the weights rest on too few independent stretches of data to split models: said so
+FEW_BLOCKS = 5
+
+
+def frame_log_density(residuals, sigma, dim: int, n_pose: int) -> np.ndarray:
+    """Each frame's log density under a fitted model: ``(T,)``, NaN where no marker is seen.
+
+    The Gaussian density of the frame's residual distances ``residuals (T, M)`` (NaN: missing) at
+    the noise levels ``sigma`` (a scalar or one per marker) in ``dim`` coordinates, less the
+    ``n_pose`` pose coordinates fitted to the frame: the in-sample optimism of the log density
+    (Akaike's correction), so that a model with more joint freedom does not win by fitting each
+    frame's noise.
+    """
+    r = np.asarray(residuals, dtype=float)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=float), r.shape[1:])
+    seen = np.isfinite(r)
+    term = -0.5 * dim * np.log(2 * np.pi * sig**2) - 0.5 * (np.where(seen, r, 0.0) / sig) ** 2
+    return np.where(seen.any(axis=1), np.where(seen, term, 0.0).sum(axis=1) - n_pose, np.nan)
+
+
+def block_log_density(frames, rates, n_params) -> np.ndarray:
+    """Each model's log predictive density of each block of frames: the units that stacking weighs.
+
+    A block is :data:`BLOCK_SECONDS` of one trial's frames that every model fitted; it also pays
+    its share of each model's geometry parameters (the optimism of the geometry's fit).
+
+    Parameters
+    ----------
+    frames : [K][n_trials] of (T_t,) float
+        :func:`frame_log_density` of each trial under each model (NaN: a frame the model did not
+        fit).
+    rates : (n_trials,) float
+        Each trial's frame rate (Hz) in those arrays; not finite: blocks of 100 frames.
+    n_params : (K,) int
+        Each model's number of geometry parameters.
+
+    Returns
+    -------
+    (n_blocks, K) float
+
+    Raises
+    ------
+    DataError
+        No frame is fitted by every model.
+    """
+    out = []
+    for t, rate in enumerate(rates):
+        lp = np.stack([np.asarray(f[t], dtype=float) for f in frames], axis=1)  # (T, K)
+        used = np.isfinite(lp).all(axis=1)
+        size = max(1, int(round(float(rate) * BLOCK_SECONDS))) if np.isfinite(rate) and rate > 0 else 100
+        block = np.arange(lp.shape[0]) // size
+        out.extend(lp[used & (block == b)].sum(axis=0) for b in np.unique(block[used]))
+    if not out:
+        raise DataError("the model alternatives share no fitted frame, so their fits cannot be weighed",
+                        "fit trials whose frames every model can follow")
+    lp = np.array(out)
+    return lp - np.asarray(n_params, dtype=float) / lp.shape[0]
+
+
+def estimator_frames(model: Model, est) -> list[np.ndarray]:
+    """:func:`frame_log_density` of every trial of a fitted marker estimator (each trial's own fit
+    for a several-trial one), at its noise level (each marker's own with ``noise='per_marker'``)."""
+    out = []
+    for e in list(getattr(est, "trials_", None) or [est]):
+        ms = getattr(e, "marker_sigma_", None)
+        sig = np.full(np.shape(e.residuals_)[1], float(e.sigma_))
+        if ms is not None:
+            sig = np.where(np.isfinite(ms) & (np.asarray(ms) > 0), ms, sig)
+        lp = frame_log_density(e.residuals_, sig, model.dim, model.n_pose)
+        out.append(np.where(np.asarray(e.frames_used_, bool), lp, np.nan))
+    return out
+
+
+def model_average(models: Sequence[Model], ests: Sequence, datas: Sequence[MarkerData],
+                  estimates: Mapping[str, Mapping[str, Mapping[str, float]]]) -> dict:
+    """The models' average: stacking weights over blocks of frames and each quantity's mixture.
+
+    Parameters
+    ----------
+    models, ests, datas
+        The models, their fitted estimators (:func:`fit_trials`) and the trials they were fitted to.
+    estimates : {model name: {quantity: {"value", "sd"}}}
+        :func:`quantities` of each fit.
+
+    Returns
+    -------
+    dict : ``{"method": "stacking", "unit": ..., "blocks": n, "weights": {model: w},
+    "quantities": {quantity: {"value", "sd", "interval", "models"}}}``: every quantity of the
+    first (main) model, averaged over the models that have it (their weights renormalised).
+    """
+    lp = block_log_density([estimator_frames(m, e) for m, e in zip(models, ests, strict=True)],
+                           [d.rate for d in datas], [m.n_params for m in models])
+    return average_of(lp, estimates)
+
+
+def average_of(log_density, estimates: Mapping[str, Mapping[str, Mapping[str, float]]],
+               log: Sequence[str] = ()) -> dict:
+    """:func:`model_average` from the blocks' log densities ``(n_blocks, K)`` of the models of
+    ``estimates`` (in its order); the quantities in ``log`` are mixed in log space (ratios)."""
+    from skelid.estimators.uncertainty.stacking import mixture_summary, stacking_weights
+
+    lp = np.asarray(log_density, dtype=float)
+    w = dict(zip(list(estimates), map(float, stacking_weights(lp)), strict=True))
+    first = next(iter(estimates))
+    out = {}
+    for q in estimates[first]:
+        have = [n for n in estimates if q in estimates[n] and w[n] > 0]
+        mu = np.array([estimates[n][q]["value"] for n in have])
+        sd = np.array([estimates[n][q]["sd"] for n in have])
+        if q in log:  # a ratio: its interval is log-normal, the sd of its log by the delta method
+            mu, sd = np.log(np.where(mu > 0, mu, np.nan)), sd / mu
+        if not (np.isfinite(mu).all() and np.isfinite(sd).all()):
+            continue
+        out[q] = {**mixture_summary(mu, sd, [w[n] for n in have], log=q in log), "models": have}
+    return {"method": "stacking", "unit": f"{BLOCK_SECONDS:g} s of a trial's frames", "blocks": int(lp.shape[0]),
+            "weights": w, "quantities": out}
+
+
+def average_text(result: FitResult) -> str:
+    """The models' average of ``skelid fit --alternative`` as text (empty without alternatives)."""
+    avg = (result.diagnostics.get("model_sensitivity") or {}).get("average")
+    if not avg or not avg.get("quantities"):
+        return ""
+    weights = ", ".join(f"{k} {v:.2f}" for k, v in avg["weights"].items())
+    est = result.diagnostics["model_sensitivity"]["estimates"]
+    models = list(avg["weights"])
+    width = max(len(q) for q in [*avg["quantities"], "quantity"]) + 2
+    head = (f"{'quantity':<{width}}{'average':>12}  {'95 % interval':<24}{'sd':>10}"
+            + "".join(f"{m[:14]:>16}" for m in models))
+    few = (f"; only {avg['blocks']} of them, too few to tell how the data divide between the models, so the "
+           "weights go to the model that fits them best" if avg["blocks"] < FEW_BLOCKS else "")
+    lines = ["", f"the models' average (stacking weights over {avg['blocks']} blocks of "
+             f"{avg['unit']}{few}: {weights}):", head, "-" * len(head)]
+    for q, r in avg["quantities"].items():
+        lo, hi = r["interval"]
+        each = "".join(f"{est[m][q]['value']:>16.5g}" if q in est.get(m, {}) else f"{'-':>16}" for m in models)
+        lines.append(f"{q:<{width}}{r['value']:>12.5g}  {f'[{lo:.5g}, {hi:.5g}]':<24}{r['sd']:>10.3g}" + each)
+    return "\n".join(lines)
+
+
 def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings) -> dict:
     """Fit every model alternative to the same data and report the spread (see :func:`model_spread`).
 
@@ -122,8 +265,10 @@ def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings
     if len(set(seen)) != len(seen):
         raise DataError(f"model alternatives need distinct names, got {', '.join(seen)}",
                         "give each model file its own [model] name")
-    fits = {m.name: quantities(m, fit_trials(m, datas, **settings)) for m in models}
-    return {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+    ests = [fit_trials(m, datas, **settings) for m in models]
+    fits = {m.name: quantities(m, e) for m, e in zip(models, ests, strict=True)}
+    return {"models": list(fits), "estimates": fits, "spread": model_spread(fits),
+            "average": model_average(models, ests, datas, fits)}
 
 
 def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None = None, seed: int = 0,
@@ -181,11 +326,14 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
     result = trials_result(model, est, data_paths, sum(d.n_frames for d in datas))
     if others:
         with workflows.collect_warnings():
-            fits = {model.name: quantities(model, est)}
+            ests = [est]
             for m in others:
                 # the same random stream as the main fit, so that the spread holds no Monte-Carlo noise
-                fits[m.name] = quantities(m, fit_trials(m, datas, **{**settings, "rng": np.random.default_rng(seed)}))
-        sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits)}
+                ests.append(fit_trials(m, datas, **{**settings, "rng": np.random.default_rng(seed)}))
+        models = [model, *others]
+        fits = {m.name: quantities(m, e) for m, e in zip(models, ests, strict=True)}
+        sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits),
+                "average": model_average(models, ests, datas, fits)}
         result = result.replace(diagnostics={**result.diagnostics, "model_sensitivity": sens})
     data = str(data_paths[0]) if len(datas) == 1 else [str(p) for p in data_paths]
     arrays = workflows.run_arrays(model, datas[0]) if len(datas) == 1 else {}

@@ -554,7 +554,10 @@ CONTEXT_KEYS = {
 #: the model-sensitivity record of ``skelid fit --alternative`` (see :mod:`skelid.sensitivity`)
 SENSITIVITY = {"models": [str], "estimates": _MapOf((_MapOf(({"value": _NUMBER, "sd": _NUMBER},)),)),
                "spread": _MapOf(({"values": _MapOf((_NUMBER,)), "spread": _NUMBER, "sd_over_models": _NUMBER,
-                                  "largest_sd": _NUMBER},))}
+                                  "largest_sd": _NUMBER},)),
+               "average": {"method": str, "unit": str, "blocks": int, "weights": _MapOf((_NUMBER,)),
+                           "quantities": _MapOf(({"value": _NUMBER, "sd": _NUMBER, "interval": [_NUMBER],
+                                                  "models": [str]},))}}
 DIAGNOSTIC_KEYS = {
     "identifiability": [{"parameter": str, "status": str, "crlb_sd": _NUMBER}],
     "model_sensitivity": SENSITIVITY,

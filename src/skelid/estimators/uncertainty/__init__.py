@@ -6,6 +6,7 @@
 * :mod:`.normal` -- the joint fit's normal equations with the poses eliminated.
 * :mod:`.posterior` -- the typed posteriors (``GridPosterior``, ``GaussianPosterior``, ``SamplePosterior``).
 * :mod:`.smc` -- tempered sequential Monte Carlo (knows nothing about skeletons).
+* :mod:`.stacking` -- several models of one body averaged: stacking weights and their mixture.
 
 The estimators that assemble these stages (``MarkerEstimator``, ``MultiTrialEstimator`` for
 several trials, ``SamplerEstimator`` for posterior samples) sit one level up, in
