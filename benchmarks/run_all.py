@@ -109,6 +109,8 @@ BENCHMARKS: tuple[Bench, ...] = (
       ("--frames", "1000", "--reps", "2"), ("bias_trigger.json", "bias_trigger.md")),
     B("outlier_screen", "outlier_screen.py", ("--reps", "100", "--jobs", "2"), ("--reps", "4", "--jobs", "2"),
       ("outlier_screen.json", "outlier_screen.md")),
+    B("model_average", "model_average.py", ("--reps", "100", "--jobs", "2"),
+      ("--reps", "2", "--jobs", "2", "--sigmas", "15"), ("model_average.json", "model_average.md")),
     B("race_decision", "race_decision.py", ("--reps", "4"), ("--reps", "1"), ("race_decision.json",)),
     B("model_mismatch", "model_mismatch.py", ("--reps", "100", "--jobs", "2", "--replace"),
       ("--reps", "2", "--null-reps", "4", "--sigmas", "5", "--jobs", "2", "--replace"),
