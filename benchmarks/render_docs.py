@@ -596,6 +596,21 @@ def model_mismatch() -> str:
     return "\n".join(lines) + "\n\n" + source(path, d)
 
 
+def model_average() -> str:
+    """The models' average beside each model's own interval (case B, marker D placed two ways)."""
+    path = RESULTS / "model_average.json"
+    d = load(path)
+    lines = ["| cell | σ (mm) | repetitions | coverage 95 %: main / alternative / average | mean width (mm) | "
+             "RMSE (mm) | alternative's weight |", "|---|---|---|---|---|---|---|"]
+    for s in d["summary"]:
+        three = ("main", "alt", "average")
+        lines.append(f"| {s['cell']} | {s['sigma']:g} | {s['reps']} | "
+                     + " / ".join(f"{s[k]['coverage']:.2f}" for k in three) + " | "
+                     + " / ".join(f"{s[k]['mean_width']:.1f}" for k in three) + " | "
+                     + " / ".join(f"{s[k]['rmse']:.2f}" for k in three) + f" | {s['weight_alt']:.2f} |")
+    return "\n".join(lines) + "\n\n" + source(path, d)
+
+
 def screens() -> str:
     """The outlier screen's false alarms and the second-order correction on long trials."""
     o_path, b_path = RESULTS / "outlier_screen.json", RESULTS / "bias_trigger.json"
@@ -763,6 +778,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "soft-tissue": soft_tissue,
     "soft-tissue-arm": soft_tissue_arm,
     "model-mismatch": model_mismatch,
+    "model-average": model_average,
     "screens": screens,
     "speed": speed,
     "live-speed": live_speed,
