@@ -10,7 +10,8 @@ from skelid.errors import SkelidWarning
 
 MODULES = ["skelid.result", "skelid.io.results", "skelid.registry", "skelid.estimators.paper",
            "skelid.estimators.online.grid", "skelid.estimators.marker", "skelid.estimators.sampler", "skelid.live",
-           "skelid.live_health", "skelid.angles", "skelid.estimators.uncertainty.stacking"]
+           "skelid.live_health", "skelid.angles", "skelid.estimators.uncertainty.stacking",
+           "skelid.estimators.checks.trial_motion"]
 
 
 @pytest.mark.parametrize("name", MODULES)

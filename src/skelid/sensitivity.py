@@ -51,6 +51,11 @@ def trials_text(result: FitResult) -> str:
     if het:
         lines.append(f"{'between-trial sd':<{width}}" + "".join(
             f"{het[n]['tau']:>24.3g}" for n in names if n in het))
+    trend = d.get("motion_trend") or {}
+    if trend:
+        lines.append(f"{'per degree of its joint':<{width}}" + "".join(_trend_cell(trend.get(n)) for n in names))
+        lines.append("(each trial's estimate against the range through which it moves the parameter's joint: "
+                     "slope and p value of the random-effects meta-regression)")
     if cons.get("p_value") is None:
         lines.append("consistency of the trials with the joint estimate: not tested (fewer than one degree of "
                      "freedom)")
@@ -59,6 +64,13 @@ def trials_text(result: FitResult) -> str:
     lines.append(f"consistency of the trials with the joint estimate: chi-square {cons['statistic']:.1f} on "
                  f"{cons['dof']} degrees of freedom, p = {cons['p_value']:.2g} ({verdict})")
     return "\n".join(lines)
+
+
+def _trend_cell(r) -> str:
+    """One parameter's trend with its joint's range, for :func:`trials_text`."""
+    if not r:
+        return f"{'-':>24}"
+    return f"{r['slope']:+.3g} (p {r['p_value']:.2g})".rjust(24)
 
 
 def fit_trials(model: Model, datas: Sequence[MarkerData], **settings):

@@ -133,6 +133,8 @@ from skelid.estimators.base import (
     one_of,
 )
 from skelid.estimators.checks.artefact import artefact_covariance
+from skelid.estimators.checks.misfit import MISFIT_ALPHA, MISFIT_EFFECT, joint_ranges
+from skelid.estimators.checks.trial_motion import MIN_TRIALS, motion_trend
 from skelid.estimators.fit.joint import joint_fit
 from skelid.estimators.fit.likelihood import crlb_sd
 from skelid.estimators.marker import MarkerEstimator, _combine_normal_priors, marker_warnings, run_marker_fit
@@ -772,6 +774,11 @@ class MultiTrialEstimator:
         ``p_value`` None below one degree of freedom).
     heterogeneity_ : dict
         Per parameter: Cochran's ``Q``, ``I^2``, ``tau`` and the degrees of freedom.
+    motion_trend_ : dict
+        Per parameter of a joint, with at least four trials that inform it: the meta-regression of
+        their estimates on the range of that joint's motion in each trial
+        (:func:`~skelid.estimators.checks.trial_motion.motion_trend`); a significant trend of at least
+        half an sd is named in a warning (``trend-with-motion``).
     lengths_ : dict
         Derived lengths of the joint estimate.
     fit_info_ : JointFit or None
@@ -990,6 +997,7 @@ class MultiTrialEstimator:
             self.trial_dof_ = satterthwaite_dof(trial_var, np.broadcast_to(tau2, var.shape), np.maximum(df, 1))
             self.trial_sd_ = np.sqrt(np.clip(trial_var, 0.0, None)) * t_factor(self.trial_dof_)
         self._checks(theta_k, cov_k, informs, theta, q, df, dof, f)
+        self.motion_trend_ = self._motion_trends(theta_k, var[keep], informs, keep)
         self.theta_data_, self.cov_data_ = theta, cov
         self.status_ = dict(zip(self.model.parameter_names, joint_status(self.trial_status_[keep]), strict=True))
         return fit
@@ -1030,6 +1038,44 @@ class MultiTrialEstimator:
                                    "tau": float(np.sqrt(self.tau2_[k])), "t_dof": float(dof[k]),
                                    "t_factor": float(f[k])}
                                for k, n in enumerate(self.model.parameter_names)}
+
+    def _motion_trends(self, theta_k, var_k, informs, keep) -> dict:
+        """Each parameter's per-trial estimates against the range of its joint's motion in each trial
+        (:func:`~skelid.estimators.checks.trial_motion.motion_trend`, the trials that inform it, each with
+        its own variance): ``{parameter: {"joint", "slope", ..., "p_value"}}``, empty with too few trials."""
+        model = self.model
+        ests = [e for e, k in zip(self.trials_, keep, strict=True) if k]
+        if len(ests) < MIN_TRIALS:
+            return {}
+        ranges = [joint_ranges(model, e.pose_, e.frames_used_, e.theta_) for e in ests]
+        out = {}
+        for p, par in enumerate(model.parameters):
+            if par.kind == "marker_position":
+                continue
+            x = np.array([max(r.get(par.target) or [np.nan]) for r in ranges])
+            use = informs[:, p] & np.isfinite(x)
+            trend = motion_trend(theta_k[use, p], var_k[use, p], x[use])
+            if trend is not None:
+                out[par.name] = {"joint": par.target, "trials": int(use.sum()), **trend}
+        return out
+
+    def _trend_warnings(self) -> list[Warning]:
+        """A parameter whose trials' estimates change with the range of its joint's motion (Bonferroni over the
+        parameters tested at :data:`MISFIT_ALPHA`), by at least :data:`MISFIT_EFFECT` of its sd over the trials."""
+        trends = getattr(self, "motion_trend_", None) or {}
+        sd = dict(zip(self.model.parameter_names, np.sqrt(np.clip(np.diag(self.cov_), 0.0, None)), strict=True))
+        unit = self.model.units
+        new = []
+        for n, r in trends.items():
+            if r["p_value"] >= MISFIT_ALPHA / len(trends) or abs(r["change"]) < MISFIT_EFFECT * sd[n]:
+                continue
+            new.append(Warning("trend-with-motion", (
+                f"{n}: the trials' own estimates change with the range through which each trial moves joint "
+                f"{r['joint']} ({r['slope']:+.3g} {unit} per degree, t = {r['t']:.1f} on {r['dof']} degrees of "
+                f"freedom, p = {r['p_value']:.2g}; {r['change']:+.3g} {unit} from the trial that moves it least to "
+                f"the one that moves it most): the model does not follow that joint (a centre that rolls or "
+                "slides with it, skin that slides with it), so the estimate depends on the activity recorded"), (n,)))
+        return new
 
     def _tau_prior_scale(self, ests) -> np.ndarray:
         """Half-normal scale of each parameter's between-trial sd: what the prior artefact does to one trial.
@@ -1091,6 +1137,7 @@ class MultiTrialEstimator:
             new.append(Warning("trials-set-aside", f"{', '.join(self.trials_not_converged_)}: the trial's own "
                                "fit did not converge (no interval of its own), so the joint estimate combines the "
                                "other trials only"))
+        new += self._trend_warnings()
         c = self.consistency_
         if c["tested"] and c["p_value"] < 0.01:
             how = ("was added to the interval" if self.between_trial != "none" else "is not in the interval")
@@ -1170,7 +1217,8 @@ class MultiTrialEstimator:
                                            "t quantile with Satterthwaite degrees of freedom"),
                               "prior_scale": {n: float(v) for n, v in zip(model.parameter_names,
                                                                           self.tau_prior_scale_, strict=True)}},
-            "converged": self.converged_, "stacked_fit_iterations": self.n_iter_}
+            "converged": self.converged_, "stacked_fit_iterations": self.n_iter_,
+            "motion_trend": getattr(self, "motion_trend_", {})}
         return build_result(self, self.posterior_, crlb_sd=self.crlb_sd_, extra=extra, noise=noise, skipped=skipped,
                             diagnostics=diagnostics, derived=self.lengths_, status=self.status_,
                             arrays={"pose": self.pose_, "trial_theta": self.trial_theta_,
