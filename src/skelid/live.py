@@ -202,6 +202,7 @@ from skelid.estimators.fit import _lm_kernel
 from skelid.estimators.fit.joint import _gain, smoothed_bias_sums, smoothing_penalty
 from skelid.estimators.fit.pose import _kernel_tables, _model_size, _tilts_batch_last, fit_pose, initial_pose, workspace
 from skelid.estimators.online import _live_kernel
+from skelid.estimators.online._live_kernel import RELINEARISE_TOL
 from skelid.estimators.online.grid import NOISE_FLOOR, MarkerGridFilter, noise_floor
 from skelid.live_health import (
     BOUND_Z,
@@ -1299,8 +1300,9 @@ class Session:
         biases the estimate when the movement is fast for it. See the module
         notes.
     n_iter : int
-        Gaussian form: times each frame is linearised again at its filtered pose
-        (iterated extended Kalman update; 0 is faster and less accurate).
+        Gaussian form: at most this many times each frame is linearised again at its filtered pose
+        (iterated extended Kalman update), until that pose moves the frame's markers by less than
+        :data:`RELINEARISE_TOL` (0.1) of their noise; 0 is faster and less accurate.
     rng : numpy.random.Generator, optional
         For the random starts of the first pose.
     target_sd : float or mapping of str to float, optional
@@ -1328,7 +1330,7 @@ class Session:
 
     def __init__(self, model: Model, labels=None, units: str | None = None, rate: float = 100.0,
                  method: str = "auto", sigma: float | None = None, outlier_sd: float = 6.0,
-                 cutoff: float | str | None = "auto", n_iter: int = 1, rng: np.random.Generator | None = None,
+                 cutoff: float | str | None = "auto", n_iter: int = 4, rng: np.random.Generator | None = None,
                  target_sd: float | Mapping[str, float] | None = None):
         _check_session_settings(model, method, rate, sigma, outlier_sd, n_iter)
         self._targets = target_sds(model, target_sd)
@@ -2023,8 +2025,11 @@ class Session:
             ql = new.pose_mean
             x2, Jq, Jt = self._linearise(theta, ql)
             r2 = (y[present] - x2[present]).reshape(-1)
-            new = solve_mean(absorb(st, r2, Jq[present].reshape(r2.size, -1), Jt[present].reshape(r2.size, -1), ql,
+            Jq2 = Jq[present].reshape(r2.size, -1)
+            new = solve_mean(absorb(st, r2, Jq2, Jt[present].reshape(r2.size, -1), ql,
                                     theta, self._weight, r.size, rr), self._prior, s2)
+            if float(np.sum((Jq2 @ (new.pose_mean - ql)) ** 2)) <= RELINEARISE_TOL**2 * s2:
+                break  # the filtered pose has settled: it moves the markers by less than a tenth of their noise
         return new
 
     def _relinearise(self, theta) -> None:

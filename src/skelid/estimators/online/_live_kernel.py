@@ -29,7 +29,8 @@ of the frame and of the motion model stacked under the square-root
 information and triangularised again by Householder reflections
 (:func:`skelid.live.absorb`), and the mean of theta and of the newest pose
 (:func:`skelid.live.solve_mean`), linearised again at the filtered pose
-``n_iter`` times with a motion model. Its numbers equal the numpy path's to
+up to ``n_iter`` times with a motion model, until the filtered pose moves the
+markers by less than :data:`RELINEARISE_TOL` of their noise. Its numbers equal the numpy path's to
 rounding (the square root's rows may differ in sign from LAPACK's; the
 information they carry does not).
 
@@ -49,6 +50,10 @@ import numpy as np
 
 from skelid._numba import AVAILABLE  # the path switch shared by every compiled kernel
 from skelid.estimators.fit import _lm_kernel
+
+#: the re-linearisations at the filtered pose stop once that pose moves the frame's markers by less than this
+#: share of their noise (root sum of squares over the frame's coordinates): an iterated extended Kalman update
+RELINEARISE_TOL = 0.1
 
 
 def tables(ws) -> tuple | None:
@@ -188,7 +193,8 @@ if AVAILABLE:  # pragma: no branch
         weight : (Q,) float
             The motion model's weight of each pose coordinate (all 0: none).
         n_iter : int
-            Re-linearisations at the filtered pose (with a motion model).
+            Re-linearisations at the filtered pose at most (with a motion model; they stop once the pose
+            moves the markers by less than :data:`RELINEARISE_TOL` of their noise).
         sigma : float
             Marker noise, or negative to estimate it from the residuals.
         fallback : float
@@ -316,6 +322,14 @@ if AVAILABLE:  # pragma: no branch
             root1, rhs1, poses1, hdiag1 = _absorb(root, rhs, poses, hdiag, n_used, r2, Jq2, Jt2, ql, theta,
                                                   weight)
             mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, True)
+            moved = 0.0  # how far the pose's change moves the markers, squared (first order)
+            for i in range(N):
+                acc = 0.0
+                for k in range(Q):
+                    acc += Jq2[i, k] * (pose_mean[k] - ql[k])
+                moved += acc * acc
+            if moved <= RELINEARISE_TOL * RELINEARISE_TOL * s2:
+                break
         return (-1, root1, rhs1, mean, pose_mean, poses1, hdiag1, rss1, n_obs1, n_used1, q, resid, jump)
 
     @_lm_kernel._inline
