@@ -1302,7 +1302,8 @@ class Session:
     n_iter : int
         Gaussian form: at most this many times each frame is linearised again at its filtered pose
         (iterated extended Kalman update), until that pose moves the frame's markers by less than
-        :data:`RELINEARISE_TOL` (0.1) of their noise; 0 is faster and less accurate.
+        :data:`RELINEARISE_TOL` (0.1) of their noise; a pass that moves it further than the one before
+        is not taken (the passes diverge). 0 is faster and less accurate.
     rng : numpy.random.Generator, optional
         For the random starts of the first pose.
     target_sd : float or mapping of str to float, optional
@@ -2021,15 +2022,21 @@ class Session:
         if not motion:  # every pose free: the frame's own fit is its pose
             return new._replace(pose_mean=q)
         y, present = sc.y, sc.present
+        last = np.inf
         for _ in range(self.n_iter):
             ql = new.pose_mean
             x2, Jq, Jt = self._linearise(theta, ql)
             r2 = (y[present] - x2[present]).reshape(-1)
             Jq2 = Jq[present].reshape(r2.size, -1)
-            new = solve_mean(absorb(st, r2, Jq2, Jt[present].reshape(r2.size, -1), ql,
-                                    theta, self._weight, r.size, rr), self._prior, s2)
-            if float(np.sum((Jq2 @ (new.pose_mean - ql)) ** 2)) <= RELINEARISE_TOL**2 * s2:
+            again = solve_mean(absorb(st, r2, Jq2, Jt[present].reshape(r2.size, -1), ql,
+                                      theta, self._weight, r.size, rr), self._prior, s2)
+            moved = float(np.sum((Jq2 @ (again.pose_mean - ql)) ** 2))
+            if moved > last:  # each pass moves the pose further: they diverge, the last one is kept
+                break
+            new = again
+            if moved <= RELINEARISE_TOL**2 * s2:
                 break  # the filtered pose has settled: it moves the markers by less than a tenth of their noise
+            last = moved
         return new
 
     def _relinearise(self, theta) -> None:

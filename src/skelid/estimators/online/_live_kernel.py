@@ -30,7 +30,8 @@ information and triangularised again by Householder reflections
 (:func:`skelid.live.absorb`), and the mean of theta and of the newest pose
 (:func:`skelid.live.solve_mean`), linearised again at the filtered pose
 up to ``n_iter`` times with a motion model, until the filtered pose moves the
-markers by less than :data:`RELINEARISE_TOL` of their noise. Its numbers equal the numpy path's to
+markers by less than :data:`RELINEARISE_TOL` of their noise (a pass that moves
+them further than the one before is not taken: the passes diverge). Its numbers equal the numpy path's to
 rounding (the square root's rows may differ in sign from LAPACK's; the
 information they carry does not).
 
@@ -310,6 +311,7 @@ if AVAILABLE:  # pragma: no branch
         mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, motion)
         if not motion:
             pose_mean = q.copy()
+        last = np.inf
         for _ in range(n_iter if motion else 0):  # iterated: linearised again at the filtered pose
             ql = pose_mean
             for k in range(Q):
@@ -319,17 +321,21 @@ if AVAILABLE:  # pragma: no branch
             _linearise_into(g, qq, D, S, M, parent, dof_start, is_t, axis, skew, skew2, ms, moves, nz, tilt,
                             planar, jpar, A_joint, anc, mslot, A_marker, x, J, K)
             r2, Jq2, Jt2 = _rows(y, x, J, K, mask, N)
-            root1, rhs1, poses1, hdiag1 = _absorb(root, rhs, poses, hdiag, n_used, r2, Jq2, Jt2, ql, theta,
+            root2, rhs2, poses2, hdiag2 = _absorb(root, rhs, poses, hdiag, n_used, r2, Jq2, Jt2, ql, theta,
                                                   weight)
-            mean, pose_mean = _solve_mean(root1, rhs1, poses1.shape[0], Q, mu0, L0, lo, hi, s2, True)
+            mean2, pose_mean2 = _solve_mean(root2, rhs2, poses2.shape[0], Q, mu0, L0, lo, hi, s2, True)
             moved = 0.0  # how far the pose's change moves the markers, squared (first order)
             for i in range(N):
                 acc = 0.0
                 for k in range(Q):
-                    acc += Jq2[i, k] * (pose_mean[k] - ql[k])
+                    acc += Jq2[i, k] * (pose_mean2[k] - ql[k])
                 moved += acc * acc
+            if moved > last:  # the passes move further each time: they diverge, the last one is kept
+                break
+            root1, rhs1, poses1, hdiag1, mean, pose_mean = root2, rhs2, poses2, hdiag2, mean2, pose_mean2
             if moved <= RELINEARISE_TOL * RELINEARISE_TOL * s2:
                 break
+            last = moved
         return (-1, root1, rhs1, mean, pose_mean, poses1, hdiag1, rss1, n_obs1, n_used1, q, resid, jump)
 
     @_lm_kernel._inline
