@@ -168,11 +168,16 @@ def block_log_density(frames, rates, n_params) -> np.ndarray:
     Raises
     ------
     DataError
-        No frame is fitted by every model.
+        No frame is fitted by every model, or the models were fitted to different frames of a trial.
     """
     out = []
     for t, rate in enumerate(rates):
-        lp = np.stack([np.asarray(f[t], dtype=float) for f in frames], axis=1)  # (T, K)
+        each = [np.asarray(f[t], dtype=float) for f in frames]
+        if len({a.shape for a in each}) > 1:
+            raise DataError(f"the model alternatives were fitted to different frames of trial {t + 1} "
+                            f"({', '.join(str(a.size) for a in each)}), so their fits cannot be weighed",
+                            "fit every alternative the same way (the same marker placement: --markers)")
+        lp = np.stack(each, axis=1)  # (T, K)
         used = np.isfinite(lp).all(axis=1)
         size = max(1, int(round(float(rate) * BLOCK_SECONDS))) if np.isfinite(rate) and rate > 0 else 100
         block = np.arange(lp.shape[0]) // size
@@ -232,6 +237,8 @@ def average_of(log_density, estimates: Mapping[str, Mapping[str, Mapping[str, fl
     out = {}
     for q in estimates[first]:
         have = [n for n in estimates if q in estimates[n] and w[n] > 0]
+        if not have:  # only models the data give no weight have it
+            continue
         mu = np.array([estimates[n][q]["value"] for n in have])
         sd = np.array([estimates[n][q]["sd"] for n in have])
         if q in log:  # a ratio: its interval is log-normal, the sd of its log by the delta method
@@ -277,7 +284,11 @@ def sensitivity(models: Sequence[Model], datas: Sequence[MarkerData], **settings
     if len(set(seen)) != len(seen):
         raise DataError(f"model alternatives need distinct names, got {', '.join(seen)}",
                         "give each model file its own [model] name")
-    ests = [fit_trials(m, datas, **settings) for m in models]
+    return _sensitivity_record(models, [fit_trials(m, datas, **settings) for m in models], datas)
+
+
+def _sensitivity_record(models: Sequence[Model], ests: Sequence, datas: Sequence[MarkerData]) -> dict:
+    """The ``model_sensitivity`` record of fitted estimators: each model's quantities, their spread and average."""
     fits = {m.name: quantities(m, e) for m, e in zip(models, ests, strict=True)}
     return {"models": list(fits), "estimates": fits, "spread": model_spread(fits),
             "average": model_average(models, ests, datas, fits)}
@@ -342,10 +353,7 @@ def run_fit_trials(model_path, data_paths, method_names=(), sigma: float | None 
             for m in others:
                 # the same random stream as the main fit, so that the spread holds no Monte-Carlo noise
                 ests.append(fit_trials(m, datas, **{**settings, "rng": np.random.default_rng(seed)}))
-        models = [model, *others]
-        fits = {m.name: quantities(m, e) for m, e in zip(models, ests, strict=True)}
-        sens = {"models": list(fits), "estimates": fits, "spread": model_spread(fits),
-                "average": model_average(models, ests, datas, fits)}
+        sens = _sensitivity_record([model, *others], ests, datas)
         result = result.replace(diagnostics={**result.diagnostics, "model_sensitivity": sens})
     data = str(data_paths[0]) if len(datas) == 1 else [str(p) for p in data_paths]
     arrays = workflows.run_arrays(model, datas[0]) if len(datas) == 1 else {}

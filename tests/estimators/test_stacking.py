@@ -90,6 +90,8 @@ def test_blocks_hold_the_frames_every_model_fitted_and_pay_a_share_of_the_geomet
     assert lp == pytest.approx(want - np.array([2, 6]) / 3)
     with pytest.raises(DataError):
         block_log_density([[np.full(4, np.nan)], [a[:4]]], rates=[10.0], n_params=[1, 1])
+    with pytest.raises(DataError, match="different frames of trial 1"):  # every frame against every k-th
+        block_log_density([[a], [a[::4]]], rates=[10.0], n_params=[1, 1])
 
 
 def test_the_average_of_two_models_that_split_the_data_covers_both():
@@ -102,3 +104,11 @@ def test_the_average_of_two_models_that_split_the_data_covers_both():
     assert q["value"] == pytest.approx(105.0) and q["interval"][0] < 100.0 and q["interval"][1] > 110.0
     assert avg["quantities"]["only_one"]["models"] == ["one"]  # a quantity of one model is that model's
     assert avg["quantities"]["only_one"]["value"] == pytest.approx(1.0)
+
+
+def test_a_quantity_only_models_without_weight_have_is_left_out_of_the_average():
+    est = {"one": {"L": {"value": 100.0, "sd": 1.0}}, "two": {"L": {"value": 101.0, "sd": 1.0}}}
+    est["one"]["only_one"] = {"value": 1.0, "sd": 0.1}
+    avg = average_of([[-500.0, 0.0]] * 3, est)  # the second model predicts every block better
+    assert avg["weights"]["one"] == pytest.approx(0.0, abs=1e-12)
+    assert "only_one" not in avg["quantities"] and avg["quantities"]["L"]["value"] == pytest.approx(101.0)

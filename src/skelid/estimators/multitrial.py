@@ -1045,13 +1045,15 @@ class MultiTrialEstimator:
         its own variance): ``{parameter: {"joint", "slope", ..., "p_value"}}``, empty with too few trials."""
         model = self.model
         ests = [e for e, k in zip(self.trials_, keep, strict=True) if k]
-        if len(ests) < MIN_TRIALS:
+        joints = {s.joint.name for s in model.segments if s.parent is not None}
+        tested = [p for p, par in enumerate(model.parameters)  # a body's scale or a marker's place has no one joint
+                  if par.kind not in ("marker_position", "marker_offset", "scale") and par.target in joints]
+        if len(ests) < MIN_TRIALS or not tested:
             return {}
         ranges = [joint_ranges(model, e.pose_, e.frames_used_, e.theta_) for e in ests]
         out = {}
-        for p, par in enumerate(model.parameters):
-            if par.kind == "marker_position":
-                continue
+        for p in tested:
+            par = model.parameters[p]
             x = np.array([max(r.get(par.target) or [np.nan]) for r in ranges])
             use = informs[:, p] & np.isfinite(x)
             trend = motion_trend(theta_k[use, p], var_k[use, p], x[use])
