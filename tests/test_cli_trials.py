@@ -84,3 +84,4 @@ def test_the_models_average_weighs_a_misplaced_marker_model_out_and_shows_each_m
     assert main(["fit", str(EXAMPLES / "case_b.toml"), str(p), "--alternative", str(wrong)]) == 0
     out = capsys.readouterr().out
     assert "the models' average (stacking weights" in out and "case_b_d" in out
+    assert "too few to tell how the data divide" in out  # 3 s of frames: 3 blocks, under the 5 that can
