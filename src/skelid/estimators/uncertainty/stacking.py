@@ -69,12 +69,11 @@ def stacking_weights(log_density) -> np.ndarray:
     K = p.shape[1]
     w = np.full(K, 1.0 / K)
     for _ in range(MAX_ITER):
-        share = p * w / (p @ w)[:, None]  # the responsibility of each model for each unit
-        new = share.mean(axis=0)
-        if np.max(np.abs(new - w)) <= WEIGHT_TOL:
-            w = new
-            break
+        new = (p * w / (p @ w)[:, None]).mean(axis=0)  # the mean responsibility of each model for the units
+        settled = np.max(np.abs(new - w)) <= WEIGHT_TOL
         w = new
+        if settled:
+            break
     return w / w.sum()
 
 
