@@ -180,10 +180,10 @@ def _joint_by_joint(model, theta, q0, n_frames, sigma, rng):
 
 @pytest.mark.parametrize("checked", [True, False])
 def test_done_under_the_motion_model_is_made_again_from_every_frame_at_its_smoothed_pose(monkeypatch, checked):
-    """The 3-D arm turned one joint at a time: the frames linearised at their filtered poses, as the Gaussian
-    form does until a block of them is folded in again, leave a wrist coordinate more than 3 sd off when the sd
-    reaches the target; the estimate that says done is made from every frame linearised at its smoothed pose,
-    and holds the truth (without that check it does not)."""
+    """The 3-D arm turned one joint at a time: each frame linearised once, at the mean of its time, leaves a
+    wrist coordinate 2.8 sd off when the sd reaches the target (3.6 sd where the estimate also held the frames
+    linearised at their filtered poses); the estimate that says done is made from every frame linearised at its
+    smoothed pose at the current mean, and holds the truth (under 1 sd here; without that check it does not)."""
     from skelid import live
     from skelid.estimators.sampler import sample_prior
     from skelid.simulate import simulate_motion
@@ -204,10 +204,10 @@ def test_done_under_the_motion_model_is_made_again_from_every_frame_at_its_smoot
     assert est.done
     z = np.abs(est.theta - theta) / np.sqrt(np.diag(est.cov))
     if checked:
-        assert z.max() < 3.0, z
+        assert z.max() < 1.5, z
         assert s._verified_until > est.frame
     else:
-        assert z.max() > 3.0, z  # the bias the check removes
+        assert z.max() > 2.5, z  # the bias the check removes
 
 
 @pytest.mark.parametrize("check", ["at done", "early", "none"])
@@ -262,7 +262,8 @@ def test_the_early_basin_check_compares_minima_not_a_minimum_with_the_estimate(m
     """The 3-D arm turned one joint at a time, no target: after 200 frames the batch fit's minimum fits those
     frames better than the session's estimate does, yet lies in another basin (the estimate taken there ends
     more than 10 sd off at frame 260). Settled by the same joint fit, the session's own basin fits better still,
-    and the session keeps it."""
+    and the session keeps it: under 6 sd at frame 260, where the estimate holds the 200 early frames only
+    (the next block is folded in from frame 350), in which the last joints have barely moved."""
     from skelid import live
     from skelid.estimators.sampler import sample_prior
     from skelid.simulate import simulate_motion
@@ -279,6 +280,6 @@ def test_the_early_basin_check_compares_minima_not_a_minimum_with_the_estimate(m
         est = s.push(f)
     z = np.abs(est.theta - theta) / np.sqrt(np.diag(est.cov))
     if settled:
-        assert z.max() < 4.0, z
+        assert z.max() < 6.0, z
     else:
         assert z.max() > 10.0, z
