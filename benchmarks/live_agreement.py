@@ -1,7 +1,8 @@
 """Live Gaussian form against the batch ``marker`` estimate: with and without the motion model.
 
-For each cell (a model and a noise level) and each simulated trial, the last
-estimate of a live :class:`skelid.live.Session` (Gaussian form) is compared
+For each cell (a model and a noise level) and each simulated trial, the
+estimate of a live :class:`skelid.live.Session` (Gaussian form) after the last
+frame, every frame folded in (:meth:`~skelid.live.Session.finish`), is compared
 with the batch :class:`~skelid.estimators.marker.MarkerEstimator` on the same
 frames, as ``|live - batch| / sd_batch`` per parameter, for the session
 without a motion model (``cutoff=None``) and with the batch method's motion
@@ -106,7 +107,7 @@ def one(args):
             for frame in y:
                 est = s.push(frame)
                 flags.append(est.healthy)
-            ests[kind] = est
+            ests[kind] = s.finish()  # every frame folded in, as the batch fit has them
             if kind == "glitched":
                 bad = np.flatnonzero(~np.array(flags))
                 expected = set(range(a, a + 10)) | set(range(b, b + 4)) | set(range(c, c + 3))
@@ -167,7 +168,8 @@ def write(res, reps, cpu_s, wall_s, load, command, tag: str = "") -> None:
              + (" (**reduced**: fewer than 100)" if reduced else "")
              + f"; {cpu_s:.0f} CPU s (this process and its workers), load average after {load[0]:.1f}. "
              f"Command: `{command}`.", "",
-             "`|live - batch| / sd` per parameter (batch: `MarkerEstimator`, its sd); within 1 / 2 sd: trials whose "
+             "`|live - batch| / sd` per parameter (live: `Session.finish()` after the last frame; batch: "
+             "`MarkerEstimator`, its sd); within 1 / 2 sd: trials whose "
              "every parameter is that close; live sd / batch sd: median over trials and parameters; coverage: "
              "fraction of parameters whose live 95 % interval holds the truth (binomial se beside it). Glitched: one "
              "marker missing for 10 frames, two labels swapped for 4, 3 empty frames, compared with the clean replay "

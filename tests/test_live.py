@@ -541,6 +541,43 @@ def test_the_early_frames_basin_is_checked_by_a_batch_fit(monkeypatch, checked):
         assert z.max() > 10.0, z
 
 
+def test_finish_folds_in_the_last_frames_as_the_batch_fit_does():
+    """Case A at 5 mm, 300 frames: the last estimate holds the 200 early frames (the block after them waits for
+    the frames after it), its sd 15-25 % above the batch fit's; finish() folds the last frames in at their
+    smoothed poses, and gives the batch estimate and sd."""
+    import warnings
+
+    model = builtin_model("case-a")
+    for seed in (1, 2):
+        trial = simulate(model, n_frames=300, sigma=5.0, rng=np.random.default_rng(seed))
+        s = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+        est = _run(s, trial.data.positions)
+        fin = s.finish()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            batch = MarkerEstimator(model).fit(trial.data)
+        sd = float(np.sqrt(batch.cov_[0, 0]))
+        assert est.parameters["L2"].sd > 1.1 * sd
+        assert abs(fin.parameters["L2"].sd / sd - 1.0) < 0.05
+        assert abs(fin.theta[0] - batch.theta_[0]) < 0.2 * sd
+        assert fin.frame == est.frame and fin.healthy
+
+
+def test_finish_leaves_the_session_as_it_was():
+    """finish() mid-stream: the frames after it give the estimates of a session that never called it."""
+    model = builtin_model("case-a")
+    trial = simulate(model, n_frames=600, sigma=5.0, rng=np.random.default_rng(3))
+    plain = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    asked = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    for t, y in enumerate(trial.data.positions):
+        a, b = plain.push(y), asked.push(y)
+        if t in (250, 380, 470):
+            asked.finish()
+    np.testing.assert_allclose(b.theta, a.theta, rtol=0, atol=1e-9 * a.parameters["L2"].sd)
+    np.testing.assert_allclose(b.cov, a.cov, rtol=1e-9)
+    assert Session(model, labels=trial.data.names).finish() is None
+
+
 def test_the_iterated_update_stops_once_the_filtered_pose_settles():
     """Each frame is linearised again at its filtered pose until that pose moves the markers by less than a
     tenth of their noise. Before the blocks (199 frames of case A at 15 mm, where a frame's pose is poorly

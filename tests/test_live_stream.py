@@ -167,7 +167,8 @@ def test_replay_to_live_to_udp_and_lsl(trial, trc, tmp_path, capsys):
     assert len(udp) == n and udp[-1] == lines[-1]
     assert lsl[0] == "skelid.live" and len(lsl) == 6 and all(m["schema"] == SCHEMA for m in lsl[1:])
     assert {m["frame"] for m in lsl[1:]} <= set(range(1, n + 1))
-    assert f"{n} frames; L2 " in capsys.readouterr().err
+    fin = direct.finish().parameters["L2"]  # the last line: every frame folded in
+    assert f"{n} frames; L2 {fin.mean:.4g} ± {fin.sd:.2g} mm" in capsys.readouterr().err
     sender.join(0)  # the looping sender is a daemon: it goes with the test process
 
 

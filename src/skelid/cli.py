@@ -754,7 +754,7 @@ def live(model_path, stream, labels, units, rate, sigma, method, out_path, udp, 
             stopped = exc
         except KeyboardInterrupt:
             pass  # Ctrl-C ends a live run; what came is kept
-        est = session.estimate
+        est = session.finish()  # the line at the end: every frame folded in
     if not quiet and est is not None:
         params = ", ".join(f"{p.name} {p.mean:.4g} ± {p.sd:.2g}" + ("" if p.unit == "1" else f" {p.unit}")
                            for p in est.parameters.values())

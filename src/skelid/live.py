@@ -2156,14 +2156,14 @@ class Session:
         self._block = self._block[_BLOCK:]  # the _LAG frames before the open block, and its first _LAG
         self._n_new = _LAG
 
-    def _refold_steps(self, frames, theta, cutoff, motion: bool):
+    def _refold_steps(self, frames, theta, cutoff, motion: bool, after: int = _LAG):
         """The steps of :meth:`work` for one block: ``frames`` are its :data:`_LAG` frames before, its own and
-        the :data:`_LAG` after. The poses are fitted again at ``theta`` and smoothed (as :func:`relinearise`
+        the ``after`` after. The poses are fitted again at ``theta`` and smoothed (as :func:`relinearise`
         does: where the smoothed poses misfit, with ``cutoff='auto'``, the free ones without the motion model);
         the block's information about theta at them (:func:`block_information`) and its second-order bias
         (:meth:`_bias_sum_of`) are returned: ``(Lambda, eta, sum S b)``."""
         model = self.model
-        own = slice(_LAG, len(frames) - _LAG)
+        own = slice(_LAG, len(frames) - after)
         Y = np.stack([f[0] for f in frames])
         q = np.stack([f[1] for f in frames])
         used = np.array([f[2] for f in frames])
@@ -2658,6 +2658,45 @@ class Session:
         return (d * w[:, None]).T @ d + np.diag(steps**2 / 12.0)
 
     # ------------------------------------------------------------------ the result
+    def finish(self) -> LiveEstimate | None:
+        """The estimate of every frame so far, as at the end of a stream (None before the first frame).
+
+        Under the motion model the estimate holds the frames folded in again at their smoothed poses only
+        (:meth:`_folded_state`): the last :data:`_BLOCK` to :data:`_BLOCK` + :data:`_LAG` frames wait for the
+        frames after them. Here the block being folded in is finished, and the frames after it are folded in
+        at their poses smoothed with the frames there are, their information and bias added to a copy of the
+        state: the session goes on as before, and a later frame is folded in as it would have been.
+
+        Returns
+        -------
+        LiveEstimate
+            With the last estimate's health.
+        """
+        if self.estimate is None or self.method != "gaussian" or not self._blocks:
+            return self.estimate
+        while self._pending is not None:
+            self.work()
+        start = self._closed.start if self._closed is not None and self._closed.correct else self._raw_open
+        with one_blas_thread():
+            Lam, eta, num = finish_steps(self._refold_steps(self._block, self._state.mean, self._cutoff_now,
+                                                            self._motion, after=0))
+        raw = self._raw()
+        s2 = self._current_sigma2()
+        new = add_theta_information(self._state, Lam - (raw[0] - start[0]), eta - (raw[1] - start[1]))
+        if new is None or not np.isfinite(num).all():
+            return self.estimate
+        saved = (self._folded, self._bias_sum, self._bias, self._bias_at)
+        try:
+            self._folded = solve_mean(new, self._prior, s2, pose=False)
+            self._bias_sum = num if self._bias_sum is None else self._bias_sum + num
+            self._bias_at = -_BIAS_EVERY
+            est = self._gaussian_estimate(None, [], ())
+        finally:
+            self._folded, self._bias_sum, self._bias, self._bias_at = saved
+        problems = list(dict.fromkeys(h for h in (self.estimate.health, est.health) if h != "ok"))
+        return dataclasses.replace(est, healthy=not problems, health="; ".join(problems) or "ok",
+                                   rejected=self.estimate.rejected)
+
     def posterior(self) -> tuple[np.ndarray, np.ndarray]:
         """Current ``(mean (P,), cov (P, P))`` of theta (a Gaussian summary of the grid posterior)."""
         if self.method == "grid":
