@@ -2368,9 +2368,10 @@ class Session:
 
         A frame folded in on arrival is linearised at its pose filtered from the frames before it, which
         the noise moves; where the markers barely fix a pose that biases theta, and not as the smoothed
-        pose does, whose bias the session takes off (:meth:`_unbiased`): case A at 15 mm, the filtered
-        frames of the open and pending blocks (a quarter to a half of 1000 frames) held the estimate 0.9 of
-        its sd low, coverage 0.77. Their information waits until their block is folded in again: the
+        pose does, whose bias the session takes off (:meth:`_unbiased`): case A at 15 mm, with blocks of 200
+        frames, the filtered frames of the open and pending blocks (a quarter to a half of 1000 frames) held
+        the estimate 0.9 of its sd low (coverage 0.80 over 100 sessions; ``benchmarks/live_long.py``). Their
+        information waits until their block is folded in again (:meth:`finish` folds them in): the
         estimate is at most :data:`_BLOCK` + :data:`_LAG` frames, and its work, behind the stream. Made
         once after each block's work (and each re-linearisation), at the noise level of that time."""
         if not self._blocks:
