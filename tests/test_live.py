@@ -576,6 +576,10 @@ def test_finish_leaves_the_session_as_it_was():
     np.testing.assert_allclose(b.theta, a.theta, rtol=0, atol=1e-9 * a.parameters["L2"].sd)
     np.testing.assert_allclose(b.cov, a.cov, rtol=1e-9)
     assert Session(model, labels=trial.data.names).finish() is None
+    # right after the early frames no frame waits: the estimate is the last one's
+    early = Session(model, labels=trial.data.names, units="mm", rate=100.0)
+    est = _run(early, trial.data.positions[:200])
+    np.testing.assert_array_equal(early.finish().theta, est.theta)
 
 
 def test_the_iterated_update_stops_once_the_filtered_pose_settles():

@@ -2677,6 +2677,8 @@ class Session:
             return self.estimate
         while self._pending is not None:
             self.work()
+        if len(self._block) <= _LAG:  # every frame is folded in again already
+            return self.estimate
         start = self._closed.start if self._closed is not None and self._closed.correct else self._raw_open
         with one_blas_thread():
             Lam, eta, num = finish_steps(self._refold_steps(self._block, self._state.mean, self._cutoff_now,
