@@ -1657,7 +1657,7 @@ class Session:
         basin. Done holds from then on until the frames have grown by half again."""
         if self._frame <= self._verified_until:
             return est
-        if not est.done:
+        if not (est.done or (est.healthy and self._done_with_every_frame())):
             return est
         frames = self._early + self._kept
         if len(frames) > _DONE_KEEP:  # past the frames kept: done is not checked again
@@ -1679,11 +1679,22 @@ class Session:
                     p.correct = False
         self._bias_at = -_BIAS_EVERY  # the bias solved again with the new state's information
         self._verified_until = self._frame + self._frame // 2
-        self._folded = None
+        self._folded = self._state  # every frame at its smoothed pose: the estimate holds them all
         new = self._gaussian_estimate(None, [], ())
         problems = list(dict.fromkeys(h for h in (est.health, new.health) if h != "ok"))
         return dataclasses.replace(new, healthy=not problems, health="; ".join(problems) or "ok",
                                    rejected=est.rejected)
+
+    def _done_with_every_frame(self) -> bool:
+        """Whether the estimate of every frame held, the frames still at their filtered poses included (which
+        the estimate leaves out: :meth:`_folded_state`), would say done: the check of :meth:`_checked_done`
+        then folds them in at their smoothed poses, and done comes when the frames say so, not a block later."""
+        saved = (self._folded, self._bias, self._bias_at)
+        try:
+            self._folded = self._state
+            return bool(self._gaussian_estimate(None, [], ()).done)
+        finally:
+            self._folded, self._bias, self._bias_at = saved
 
     def _basin(self, frames, here, batch, split=None):
         """``here`` (:meth:`_relinearised` of ``frames``), or, where the batch fit ``batch`` (estimate, covariance,
