@@ -66,8 +66,11 @@ def test_a_session_says_done_once_the_target_is_reached_and_not_before(case_a, m
     assert not any(e.done for e in ests[:-1])
     # case A leaves one residual degree of freedom a frame for the noise level: done waits for DONE_NOISE_DOF
     assert done.frame >= DONE_NOISE_DOF
-    assert all(e.parameters["L2"].sd > target or not e.healthy or e.parameters["L2"].status != "identified"
-               for e in ests[:-1])
+    # done comes once the target is reached, verified at every frame's smoothed pose: a check that finds the sd
+    # still above it is made again once the frames have grown by an eighth
+    reached = [e.frame for e in ests if e.parameters["L2"].sd <= target and e.healthy
+               and e.parameters["L2"].status == "identified" and e.frame >= DONE_NOISE_DOF]
+    assert reached and done.frame - reached[0] <= max(50, reached[0] // 8) + 1, (reached[0], done.frame)
     (advice,) = s.advice()
     assert advice.text.startswith("done: every requested parameter has reached its target sd")
     assert "L2 sd" in advice.text and "<= 1 mm" in advice.text

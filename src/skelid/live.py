@@ -1002,6 +1002,7 @@ class LiveEstimate:
     _still: Callable[[], bool] | None = field(default=None, repr=False)  # no joint had moved by then (Session)
     _targets: np.ndarray | None = field(default=None, repr=False)  # (P,) target sd (inf: not requested)
     _noise_dof: float = math.inf  # residual degrees of freedom of an estimated noise level (inf: stated)
+    _done_held: bool | None = None  # what the session's last check of done said, held until the next (None: none)
 
     @cached_property
     def cov(self) -> np.ndarray:
@@ -1032,6 +1033,8 @@ class LiveEstimate:
             return None
         if not self.healthy or self._noise_dof < DONE_NOISE_DOF:
             return False
+        if self._done_held is not None:
+            return self._done_held
         params = list(self.parameters.values())
         return all(p.status == "identified" and p.sd <= t for p, t in zip(params, self._targets, strict=True)
                    if np.isfinite(t))
@@ -1380,6 +1383,7 @@ class Session:
         self._kept: list | None = [] if self._targets is not None and _live_method(model, method) == "gaussian" \
             else None
         self._verified_until = 0
+        self._held_done = False  # the last check of done said done (held until _verified_until)
         self.model = model
         self.rate = float(rate)
         self.method = _live_method(model, method)
@@ -1654,9 +1658,12 @@ class Session:
         from the frames before it, and kept there: where a joint rests while another moves, the remainder
         biases the estimate by many sd over a few hundred frames (the 3-D arm's wrist centre: 6-7 sd at
         "done", about 1 after this). The batch fit of the same frames (:func:`_batch_theta`) checks the
-        basin. Done holds from then on until the frames have grown by half again."""
+        basin. Done holds from then on until the frames have grown by half again; a check that does not say
+        done holds that until they have grown by an eighth."""
         if self._frame <= self._verified_until:
-            return est
+            # between checks done is what the last one said: the estimate's information grows a block at a
+            # time, and the noise level it is scaled by moves frame by frame
+            return est if est.done == self._held_done else dataclasses.replace(est, _done_held=self._held_done)
         if not (est.done or (est.healthy and self._done_with_every_frame())):
             return est
         frames = self._early + self._kept
@@ -1678,9 +1685,12 @@ class Session:
                 if p is not None:
                     p.correct = False
         self._bias_at = -_BIAS_EVERY  # the bias solved again with the new state's information
-        self._verified_until = self._frame + self._frame // 2
         self._folded = self._state  # every frame at its smoothed pose: the estimate holds them all
         new = self._gaussian_estimate(None, [], ())
+        self._held_done = bool(new.done)
+        # done holds until the frames have grown by half; not done is checked again once they have grown by an
+        # eighth (at least _LAG frames)
+        self._verified_until = self._frame + (self._frame // 2 if self._held_done else max(_LAG, self._frame // 8))
         problems = list(dict.fromkeys(h for h in (est.health, new.health) if h != "ok"))
         return dataclasses.replace(new, healthy=not problems, health="; ".join(problems) or "ok",
                                    rejected=est.rejected)
@@ -2214,8 +2224,9 @@ class Session:
         its bias added. A block whose frames a full re-linearisation has folded in since
         (:meth:`_checked_done`), or the early frames (folded in at their smoothed poses from the start), add
         their bias only (``Lam`` and ``eta`` unused: None for the early frames)."""
-        self._folded = None
         if p.correct:
+            self._folded = None  # the frames folded in again change: a block whose frames a full
+            # re-linearisation folded in since (:meth:`_checked_done`) changes only the bias
             dL = Lam - (p.end[0] - p.start[0])
             de = eta - (p.end[1] - p.start[1])
             new = add_theta_information(self._state, dL, de)
@@ -2690,9 +2701,14 @@ class Session:
             self.work()
         if len(self._block) <= _LAG:  # every frame is folded in again already
             return self.estimate
-        start = self._closed.start if self._closed is not None and self._closed.correct else self._raw_open
+        start, frames = self._raw_open, self._block
+        if self._closed is not None:
+            if self._closed.correct:
+                start = self._closed.start
+            else:  # its frames are at their smoothed poses since the check of done: the open block's only
+                frames = frames[_BLOCK:]
         with one_blas_thread():
-            Lam, eta, num = finish_steps(self._refold_steps(self._block, self._state.mean, self._cutoff_now,
+            Lam, eta, num = finish_steps(self._refold_steps(frames, self._state.mean, self._cutoff_now,
                                                             self._motion, after=0))
         raw = self._raw()
         s2 = self._current_sigma2()
