@@ -1699,12 +1699,19 @@ class Session:
         """Whether the estimate of every frame held, the frames still at their filtered poses included (which
         the estimate leaves out: :meth:`_folded_state`), would say done: the check of :meth:`_checked_done`
         then folds them in at their smoothed poses, and done comes when the frames say so, not a block later."""
-        saved = (self._folded, self._bias, self._bias_at)
+        return bool(self._estimate_from(self._state).done)
+
+    def _estimate_from(self, folded: GaussianState, bias_sum=None) -> LiveEstimate:
+        """The estimate read from ``folded`` (and with ``bias_sum``, its bias solved again from that sum), the
+        session's own state for the estimate left as it was."""
+        saved = (self._folded, self._bias_sum, self._bias, self._bias_at)
         try:
-            self._folded = self._state
-            return bool(self._gaussian_estimate(None, [], ()).done)
+            self._folded = folded
+            if bias_sum is not None:
+                self._bias_sum, self._bias_at = bias_sum, -_BIAS_EVERY
+            return self._gaussian_estimate(None, [], ())
         finally:
-            self._folded, self._bias, self._bias_at = saved
+            self._folded, self._bias_sum, self._bias, self._bias_at = saved
 
     def _basin(self, frames, here, batch, split=None):
         """``here`` (:meth:`_relinearised` of ``frames``), or, where the batch fit ``batch`` (estimate, covariance,
@@ -2715,14 +2722,8 @@ class Session:
         new = add_theta_information(self._state, Lam - (raw[0] - start[0]), eta - (raw[1] - start[1]))
         if new is None or not np.isfinite(num).all():
             return self.estimate
-        saved = (self._folded, self._bias_sum, self._bias, self._bias_at)
-        try:
-            self._folded = solve_mean(new, self._prior, s2, pose=False)
-            self._bias_sum = num if self._bias_sum is None else self._bias_sum + num
-            self._bias_at = -_BIAS_EVERY
-            est = self._gaussian_estimate(None, [], ())
-        finally:
-            self._folded, self._bias_sum, self._bias, self._bias_at = saved
+        est = self._estimate_from(solve_mean(new, self._prior, s2, pose=False),
+                                  num if self._bias_sum is None else self._bias_sum + num)
         problems = list(dict.fromkeys(h for h in (self.estimate.health, est.health) if h != "ok"))
         return dataclasses.replace(est, healthy=not problems, health="; ".join(problems) or "ok",
                                    rejected=self.estimate.rejected)
