@@ -777,12 +777,13 @@ def live_iterated() -> str:
             lines.append(f"| {cell} | {label} | " + " | ".join(
                 f"{r[str(c)]['coverage']:.2f} ({r[str(c)]['mean_z']:+.2f}, {r[str(c)]['rms_z']:.2f})" for c in cps)
                 + " |")
-    stop = load(ROOT / "benchmarks" / "experiments" / "stopping_rule_iterated.json")
+    stop_path = exp / "stopping_rule_iterated.json"
+    stop = load(stop_path)
     worst = max(max(abs(z) for z in r["fixed"]["z"]) for r in stop["rows"] if "tennis" in r["cell"] and r["fixed"])
     note = (f"Coverage (mean z, rms z), {a['reps']} sessions per cell. With up to 4 passes, the stopping study's "
             f"tennis-arm fixed routine ended one session {worst:.0f} sd off.")
     return ("\n".join(lines) + "\n\n" + note + "\n\n" + source(base, a) + source(before, u)
-            + source(it, b) + source(ROOT / "benchmarks" / "experiments" / "stopping_rule_iterated.json", stop))
+            + source(it, b) + source(stop_path, stop))
 
 
 RENDERERS: dict[str, Callable[[], str]] = {
