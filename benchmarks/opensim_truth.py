@@ -79,6 +79,7 @@ import tempfile
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -92,18 +93,69 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _common import provenance, write_results  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data" / "opensim-subject01"
-GENERIC = DATA / "gait2354_simbody.osim"
-MARKER_SET = DATA / "gait2354_Scale_MarkerSet.xml"
+SHARED = ROOT.parent / "shared" / "data"
 OUT = ROOT / "benchmarks" / "results" / "opensim_truth"
 CACHE = Path(tempfile.gettempdir()) / "skelid-opensim-truth"
-RATE = 60.0
 STATIC_SECONDS = 1.0
-SCALED = ("pelvis", "torso", "femur_r", "femur_l", "tibia_r", "tibia_l", "calcn_r", "calcn_l")
 SCALE_RANGE = (0.85, 1.15)
 OFFSET_RANGE_MM = (1.0, 20.0)
-LENGTHS = {"thigh_r (hip-knee)": ("femur_r", "tibia_r"), "thigh_l (hip-knee)": ("femur_l", "tibia_l"),
-           "shank_r (knee-ankle)": ("tibia_r", "talus_r"), "shank_l (knee-ankle)": ("tibia_l", "talus_l")}
+
+
+@dataclass(frozen=True)
+class Setup:
+    """A generic model, its trials and what is scored: one per ``--model``."""
+
+    key: str
+    title: str
+    generic: Path
+    #: a separate MarkerSet file, or None where the model holds its markers
+    marker_set: Path | None
+    #: trials: (file, time range or None): the walk, another walk, the standing trial (its mean pose held)
+    walk: tuple
+    walk2: tuple
+    static: tuple
+    rate: float
+    #: (name, parent body, child body): distances between joint centres at the zero pose
+    lengths: dict
+    #: ScaleTool's setup and the files it names (copied beside it), or None: no peer for this model
+    scaletool: tuple | None = None
+    #: the model whose IK of the trials gives the motions (default the generic one); a scaled one where the
+    #: generic model is too far from the subject for IK to track the walk
+    ik_model: Path | None = None
+
+
+SETUPS = {
+    "gait2354": Setup(
+        "gait2354", "gait2354 (subject01's walks)", SHARED / "opensim-subject01" / "gait2354_simbody.osim",
+        SHARED / "opensim-subject01" / "gait2354_Scale_MarkerSet.xml",
+        (SHARED / "opensim-subject01" / "subject01_walk1.trc", None),
+        (SHARED / "opensim-subject01" / "walk_free_01.trc", None),
+        (SHARED / "opensim-subject01" / "subject01_static.trc", (1.0, 2.0)), 60.0,
+        {"thigh_r (hip-knee)": ("femur_r", "tibia_r"), "thigh_l (hip-knee)": ("femur_l", "tibia_l"),
+         "shank_r (knee-ankle)": ("tibia_r", "talus_r"), "shank_l (knee-ankle)": ("tibia_l", "talus_l")},
+        ("subject01_Setup_Scale.xml", ("gait2354_simbody.osim", "gait2354_Scale_MarkerSet.xml"))),
+    "rajagopal": Setup(
+        "rajagopal", "the full-body Rajagopal-type model of addbio-subject4 (its walks)",
+        SHARED / "addbio-subject4" / "Models" / "unscaled_generic.osim", None,
+        (SHARED / "addbio-subject4" / "MarkerData" / "walking1.trc", None),
+        (SHARED / "addbio-subject4" / "MarkerData" / "walking2.trc", None),
+        (SHARED / "addbio-subject4" / "MarkerData" / "static1.trc", (0.5, 1.5)), 100.0,
+        {"thigh_r (hip-knee)": ("femur_r", "tibia_r"), "thigh_l (hip-knee)": ("femur_l", "tibia_l"),
+         "shank_r (knee-ankle)": ("tibia_r", "talus_r"), "shank_l (knee-ankle)": ("tibia_l", "talus_l"),
+         "upper arm_r (shoulder-elbow)": ("humerus_r", "ulna_r"),
+         "upper arm_l (shoulder-elbow)": ("humerus_l", "ulna_l")},
+        ik_model=SHARED / "addbio-subject4" / "Models" / "manually_scaled.osim"),
+}
+#: the model of this run (:func:`use_model`); gait2354 unless ``--model`` says otherwise
+SETUP = SETUPS["gait2354"]
+
+
+def use_model(key: str) -> Setup:
+    global SETUP
+    SETUP = SETUPS[key]
+    return SETUP
+
+
 NOISES = (0.0, 2.0, 5.0, 10.0)
 # truth, fit, design
 CONFIGS = (("bodies", "bodies"), ("axes", "bodies"), ("axes", "axes"), ("axes", "linked"), ("bodies", "linked"))
@@ -123,26 +175,41 @@ def _osim():
 
 def generic_model():
     osim = _osim()
-    model = osim.Model(str(GENERIC))
-    model.updateMarkerSet(osim.MarkerSet(str(MARKER_SET)))
+    model = osim.Model(str(SETUP.generic))
+    if SETUP.marker_set is not None:
+        model.updateMarkerSet(osim.MarkerSet(str(SETUP.marker_set)))
     model.initSystem()
     return model
 
 
+def scaled_bodies(truth: str) -> tuple[str, ...]:
+    """The bodies a truth scales: those carrying markers (the bodies skelid scales), or with ``truth='every'``
+    every body of the model (talus, toes, patella, forearm and hand bones as well, as OpenSim's scale setups do)."""
+    model = generic_model()
+    ms, bs = model.getMarkerSet(), model.getBodySet()
+    marked = {ms.get(i).getParentFrame().findBaseFrame().getName() for i in range(ms.getSize())}
+    return tuple(bs.get(i).getName() for i in range(bs.getSize())
+                 if truth == "every" or bs.get(i).getName() in marked)
+
+
 def _ik(trc: Path, name: str, t_range=None) -> tuple[list[str], np.ndarray]:
     """OpenSim IK of ``trc`` on the generic model: coordinate names and values (F, C) in rad / m (cached)."""
-    cache = CACHE / f"{name}.npz"
+    cache = CACHE / f"{SETUP.key}_{name}.npz"
     if cache.exists():
         z = np.load(cache, allow_pickle=False)
         return [str(n) for n in z["names"]], z["q"]
     osim = _osim()
     CACHE.mkdir(parents=True, exist_ok=True)
-    model = generic_model()
+    model = generic_model() if SETUP.ik_model is None else osim.Model(str(SETUP.ik_model))
+    model.initSystem()
     tool = osim.InverseKinematicsTool()
     tool.setModel(model)
     tool.setMarkerDataFileName(str(trc))
     tasks = tool.getIKTaskSet()
+    in_trial = set(osim.TimeSeriesTableVec3(str(trc)).getColumnLabels())
     for i in range(model.getMarkerSet().getSize()):
+        if model.getMarkerSet().get(i).getName() not in in_trial:
+            continue
         t = osim.IKMarkerTask()
         t.setName(model.getMarkerSet().get(i).getName())
         t.setApply(True)
@@ -153,9 +220,9 @@ def _ik(trc: Path, name: str, t_range=None) -> tuple[list[str], np.ndarray]:
     tool.setStartTime(float(lo))
     tool.setEndTime(float(hi))
     tool.setResultsDir(str(CACHE))
-    tool.setOutputMotionFileName(str(CACHE / f"{name}.mot"))
+    tool.setOutputMotionFileName(str(CACHE / f"{SETUP.key}_{name}.mot"))
     tool.run()
-    table = osim.TimeSeriesTable(str(CACHE / f"{name}.mot"))
+    table = osim.TimeSeriesTable(str(CACHE / f"{SETUP.key}_{name}.mot"))
     cs = model.getCoordinateSet()
     names, cols = [], []
     for i in range(cs.getSize()):
@@ -172,10 +239,10 @@ def _ik(trc: Path, name: str, t_range=None) -> tuple[list[str], np.ndarray]:
 
 def motions() -> dict:
     """The coordinates of the walks (F, C) and of the standing pose held (T, C)."""
-    names, walk = _ik(DATA / "subject01_walk1.trc", "walk1")
-    _, walk2 = _ik(DATA / "walk_free_01.trc", "walk_free_01")
-    _, stand = _ik(DATA / "subject01_static.trc", "static", (1.0, 2.0))
-    hold = np.repeat(stand.mean(axis=0, keepdims=True), int(RATE * STATIC_SECONDS), axis=0)
+    names, walk = _ik(*SETUP.walk[:1], "walk", *SETUP.walk[1:])
+    _, walk2 = _ik(*SETUP.walk2[:1], "walk2", *SETUP.walk2[1:])
+    _, stand = _ik(*SETUP.static[:1], "static", *SETUP.static[1:])
+    hold = np.repeat(stand.mean(axis=0, keepdims=True), int(SETUP.rate * STATIC_SECONDS), axis=0)
     return {"names": names, "walk": walk, "walk2": walk2, "static": hold}
 
 
@@ -264,12 +331,12 @@ def draw_truth(rng, truth: str, marker_names) -> dict:
     """
     if truth == "prior":
         sd_log, sd_off = fit_priors()
-        scales = {b: np.exp(rng.normal(0.0, sd_log, 3)) for b in SCALED}
+        scales = {b: np.exp(rng.normal(0.0, sd_log, 3)) for b in scaled_bodies(truth)}
         d = rng.normal(0.0, sd_off, (len(marker_names), 3))
         return {"scales": scales, "offsets": dict(zip(marker_names, d, strict=True))}
     scales = {}
-    for b in SCALED:
-        s = rng.uniform(*SCALE_RANGE, 3 if truth == "axes" else 1)
+    for b in scaled_bodies(truth):
+        s = rng.uniform(*SCALE_RANGE, 1 if truth == "bodies" else 3)
         scales[b] = np.broadcast_to(s, 3).astype(float).copy()
     d = rng.normal(size=(len(marker_names), 3))
     d *= (rng.uniform(*OFFSET_RANGE_MM, len(marker_names)) / np.linalg.norm(d, axis=1))[:, None]
@@ -317,23 +384,35 @@ def marker_trajectories(model, coord_names, q) -> tuple[list[str], np.ndarray]:
     return names, out * 1000.0
 
 
+def joint_centres(model, state) -> dict:
+    """Body name -> the ground position (m) of its joint's centre: the origin of the joint's child frame.
+
+    Where a joint's child frame sits away from its body's origin (the Rajagopal knee and ankle), the
+    body's origin is not the joint centre; skelid's segments have their origin at the joint centre.
+    """
+    js = model.getJointSet()
+    out = {}
+    for i in range(js.getSize()):
+        f = js.get(i).getChildFrame()
+        v = f.getPositionInGround(state)
+        out[f.findBaseFrame().getName()] = np.array([v.get(0), v.get(1), v.get(2)])
+    return out
+
+
 def opensim_lengths(model, coord_names) -> dict:
-    """Distances (mm) between the joint centres of ``LENGTHS`` at the zero pose."""
+    """Distances (mm) between the joint centres of ``SETUP.lengths`` at the zero pose."""
     state = model.initSystem()
     cs = model.getCoordinateSet()
     for n in coord_names:
         cs.get(n).setValue(state, 0.0, False)
     model.realizePosition(state)
-    bs = model.getBodySet()
-
-    def p(b):
-        v = bs.get(b).getPositionInGround(state)
-        return np.array([v.get(0), v.get(1), v.get(2)])
-    return {k: float(np.linalg.norm(p(a) - p(b)) * 1000.0) for k, (a, b) in LENGTHS.items()}
+    c = joint_centres(model, state)
+    return {k: float(np.linalg.norm(c[a] - c[b]) * 1000.0) for k, (a, b) in SETUP.lengths.items()}
 
 
 def opensim_points(model, moved=None) -> dict:
-    """Each joint centre in its parent body's frame and each marker in its own body's frame (mm), zero pose.
+    """Each joint centre in its parent body's frame (from the parent's own joint centre) and each marker in its
+    own body's frame (from the body's joint centre), in mm at the zero pose.
 
     Quantities that mean the same whatever a fit's parametrisation (one factor per body or one per
     axis, offsets measured from differently scaled nominal places): where the body's joints and
@@ -345,10 +424,11 @@ def opensim_points(model, moved=None) -> dict:
         cs.get(i).setValue(state, 0.0, False)
     model.realizePosition(state)
 
+    centre = joint_centres(model, state)
+
     def frame(b):
-        T = b.getTransformInGround(state)
-        return (np.array([[T.R().get(i, j) for j in range(3)] for i in range(3)]),
-                np.array([T.p().get(i) for i in range(3)]))
+        R = b.getTransformInGround(state).R()
+        return np.array([[R.get(i, j) for j in range(3)] for i in range(3)]), centre[b.getName()]
     out = {}
     js = model.getJointSet()
     for i in range(js.getSize()):
@@ -379,17 +459,17 @@ def skelid_lengths(fit) -> tuple[dict, dict]:
     def lengths(th):
         kin = forward_kinematics(model, th, zero)
         return np.array([np.linalg.norm(kin.p_world_seg[idx[a]] - kin.p_world_seg[idx[b]])
-                         for a, b in LENGTHS.values()])
+                         for a, b in SETUP.lengths.values()])
     ks = [k for k, p in enumerate(model.parameters) if p.kind == "scale"]
     L0 = lengths(theta)
-    G = np.zeros((len(LENGTHS), len(ks)))
+    G = np.zeros((len(SETUP.lengths), len(ks)))
     for j, k in enumerate(ks):
         th = theta.copy()
         th[k] += 1e-6
         G[:, j] = (lengths(th) - L0) / 1e-6
     cov = scale_covariance(fit, ks)
     sd = np.sqrt(np.clip(np.einsum("lp,pq,lq->l", G, cov, G), 0, None))
-    names = list(LENGTHS)
+    names = list(SETUP.lengths)
     return dict(zip(names, L0, strict=True)), dict(zip(names, sd, strict=True))
 
 
@@ -453,11 +533,11 @@ def skelid_fit(trials, fit: str, angles=None) -> dict:
     scale, _, extra = fit.partition("+")
     noise = "per_marker" if extra == "pm" else "pooled"
 
-    data = [MarkerData(y, tuple(names), RATE, "mm", src) for src, names, y in trials]
+    data = [MarkerData(y, tuple(names), SETUP.rate, "mm", src) for src, names, y in trials]
     t0 = time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fit = fit_osim(GENERIC, data, marker_set=MARKER_SET, scale=scale, markers="offsets", noise=noise)
+        fit = fit_osim(SETUP.generic, data, marker_set=SETUP.marker_set, scale=scale, markers="offsets", noise=noise)
     cpu = time.process_time() - t0
     est = fit.estimator
     crlb = getattr(est, "crlb_sd_", None)
@@ -503,7 +583,7 @@ def angle_scores(fit, trials, n_draws: int, coord_names, true_q: dict) -> dict:
     for src, names, y in trials:
         if src not in true_q:
             continue
-        ja = joint_angles(geom, MarkerData(y, tuple(names), RATE, "mm", src), n_draws, np.random.default_rng(0))
+        ja = joint_angles(geom, MarkerData(y, tuple(names), SETUP.rate, "mm", src), n_draws, np.random.default_rng(0))
         for c, name in enumerate(ja.names):
             if ja.status[c] != "fitted" or name not in coord_names:
                 continue
@@ -549,16 +629,17 @@ def scaletool(names, static: np.ndarray, work: Path, coord_names) -> dict:
     from skelid.io import write_trc
 
     work.mkdir(parents=True, exist_ok=True)
-    for f in ("gait2354_simbody.osim", "gait2354_Scale_MarkerSet.xml", "subject01_Setup_Scale.xml"):
+    setup, files = SETUP.scaletool
+    for f in (setup, *files):
         if not (work / f).exists():
-            shutil.copy(DATA / f, work / f)
-    write_trc(work / "static.trc", MarkerData(static, tuple(names), RATE, "mm", "static"))
+            shutil.copy(SETUP.generic.parent / f, work / f)
+    write_trc(work / "static.trc", MarkerData(static, tuple(names), SETUP.rate, "mm", "static"))
     cwd = os.getcwd()
     os.chdir(work)
     t0 = time.process_time()
     try:
-        tool = osim.ScaleTool("subject01_Setup_Scale.xml")
-        t_end = (static.shape[0] - 1) / RATE
+        tool = osim.ScaleTool(setup)
+        t_end = (static.shape[0] - 1) / SETUP.rate
         times = osim.ArrayDouble()
         times.append(0.0)
         times.append(t_end)
@@ -595,7 +676,9 @@ def scaletool(names, static: np.ndarray, work: Path, coord_names) -> dict:
 
 # ----------------------------------------------------------------------------- one draw
 def run_draw(args) -> dict:
-    truth_kind, noise, seed, designs, fits, peer, work, n_angle_draws = args
+    model_key, truth_kind, noise, seed, designs, fits, peer, work, n_angle_draws = args
+    use_model(model_key)
+    peer = peer and SETUP.scaletool is not None
     mo = motions()
     rng = np.random.default_rng(seed)
     generic = generic_model()
@@ -637,7 +720,7 @@ def run_draw(args) -> dict:
         try:
             p = scaletool(names, static, Path(work) / f"st_{os.getpid()}", mo["names"])
             err = {}
-            for b in SCALED:
+            for b in truth["scales"]:
                 if b in p["scales"]:
                     err[f"scale {b}"] = [float(v - t) for v, t in zip(p["scales"][b], truth["scales"][b],
                                                                        strict=True)]
@@ -801,7 +884,9 @@ def _points_summary(c: dict) -> dict:
 
 def markdown(res: dict) -> str:
     p = res["provenance"]
+    setup = SETUPS[res.get("model", "gait2354")]
     lines = ["# OpenSim-generated truth: skelid's OpenSim scaling against known geometry", "",
+             f"Model: {setup.title}, `{setup.generic.relative_to(SHARED.parent.parent)}`.", "",
              f"{'REDUCED run (--quick). ' if res['quick'] else ''}{res['draws_done']} of {res['draws_planned']} "
              f"planned draws done ({res['reps']} planned per cell; each cell's own count is in its heading; "
              f"geometry drawn per draw). Commit `{p['commit'][:10]}`, {p['date']}, {p['cpu']}, "
@@ -813,7 +898,9 @@ def markdown(res: dict) -> str:
              "skelid's slide does not hold; a sliding marker's true offset and place are where the artefact "
              "puts it at the zero pose)."
              " Truth `bodies`: one factor per body; `axes`: one per "
-             "axis (both uniform in [0.85, 1.15], offsets 1-20 mm long); `prior`: per axis, factors and offsets "
+             "axis (both uniform in [0.85, 1.15], offsets 1-20 mm long, for the bodies that carry markers); `every`: "
+             "one per axis for every body, those without markers (talus, toes, patella, forearm, hand) "
+             "included, as OpenSim's scale setups scale them; `prior`: per axis, factors and offsets "
              "drawn from the fit's own priors (log-normal sd 0.15, normal 10 mm), where a right posterior "
              "covers 95 % of every quantity, also of those the data leave to the prior. Fit on the generic "
              "model: `linked`, `fit_osim(scale='linked')` (the default), three factors per body whose logs are "
@@ -954,7 +1041,12 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="3 draws, noise 0 and 5 mm only")
     ap.add_argument("--no-peer", action="store_true", help="skip OpenSim's ScaleTool")
-    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--model", choices=sorted(SETUPS), default="gait2354",
+                    help="the generic model and its trials (default gait2354; rajagopal: addbio-subject4's "
+                         "full-body model)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="results path without suffix (default benchmarks/results/opensim_truth, with _MODEL for "
+                         "a model other than gait2354)")
     ap.add_argument("--seed", type=int, default=20261202)
     ap.add_argument("--angles", type=int, default=None, metavar="DRAWS",
                     help="also score skelid's joint angles of each walk against the true coordinates, with this "
@@ -962,6 +1054,9 @@ def main(argv=None):
     ap.add_argument("--rescore", action="store_true",
                     help="recompute the true values of the results at --out from each draw's seed; no fit is run")
     args = ap.parse_args(argv)
+    use_model(args.model)
+    if args.out is None:
+        args.out = OUT if args.model == "gait2354" else OUT.with_name(f"{OUT.name}_{args.model}")
     if args.rescore:
         rescore(args.out)
         return
@@ -981,8 +1076,8 @@ def main(argv=None):
         for r in range(reps):
             for gi, ((t, n), g) in enumerate(sorted(groups.items())):
                 seed = args.seed + 1000 * r + gi
-                tasks.append((t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer, work,
-                              args.angles))
+                tasks.append((args.model, t, n, seed, tuple(g["designs"]), tuple(g["fits"]), not args.no_peer,
+                              work, args.angles))
         keep = {f"{t}/{f}/{d}/{n}" for t, f, d, n in cells}
         draws = []
 
@@ -991,7 +1086,8 @@ def main(argv=None):
             draws.append(draw)
             print(f"draw {k + 1}/{len(tasks)} {draw['truth_kind']} noise {draw['noise']}: "
                   f"{time.perf_counter() - w0:.0f} s", flush=True)
-            res = {"provenance": prov, "quick": bool(args.quick), "reps": reps, "draws_done": len(draws),
+            res = {"provenance": prov, "model": args.model, "quick": bool(args.quick), "reps": reps,
+                   "draws_done": len(draws),
                    "draws_planned": len(tasks), "wall_s": time.perf_counter() - w0, "cells": summarise(draws),
                    "draws": draws}
             write_results(args.out, _finite(res), markdown, quiet=k + 1 < len(tasks))
@@ -1014,6 +1110,7 @@ def rescore(path: Path) -> None:
     import json
 
     res = json.loads(path.with_suffix(".json").read_text())
+    use_model(res.get("model", "gait2354"))
     g = generic_model()
     mnames = [g.getMarkerSet().get(i).getName() for i in range(g.getMarkerSet().getSize())]
     for d in res["draws"]:

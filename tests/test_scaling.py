@@ -11,7 +11,7 @@ from skelid.data import MarkerData
 from skelid.errors import DataError
 from skelid.io.osim import osim_parameters, read_osim
 from skelid.model.kinematics import marker_positions
-from skelid.scaling import fit_osim, join_trials, write_outputs
+from skelid.scaling import PLACED_OFFSET_SD, fit_osim, join_trials, write_outputs
 
 MODEL = """<?xml version="1.0" encoding="UTF-8" ?>
 <OpenSimDocument Version="40000"><Model name="leg"><length_units>meters</length_units>
@@ -261,7 +261,7 @@ def test_the_first_example_runs_as_written_on_a_few_frames(shared_data, tmp_path
     err = capsys.readouterr().err
     assert "gait2354_Scale_MarkerSet.xml" in err
     assert {"scaled.osim", "scaled_scale_set.xml", "scaled_report.md"} <= {p.name for p in out.iterdir()}
-    assert osim.ScaleSet(str(out / "scaled_scale_set.xml")).getSize() == 8
+    assert osim.ScaleSet(str(out / "scaled_scale_set.xml")).getSize() == 10  # 8 marked bodies and the tali
     assert "femur_r" in (out / "scaled_report.md").read_text()
     ik = opensim_ik(out / "scaled.osim", tmp_path / "walk.trc", tmp_path / "ik")
     assert ik["frames"] == 12 and ik["markers"] == 31 and ik["rmse_mm"] < 60.0
@@ -295,6 +295,51 @@ def test_free_markers_at_a_placeholder_are_placed_before_they_can_drive_the_scal
     for name, r in moved.items():  # the true place (mm, from the body's joint centre) up to the noise
         expected = true_model.markers[true_model.marker_names.index(name)].position
         np.testing.assert_allclose(r, expected, atol=0.5, err_msg=name)
+
+
+def test_a_fixed_marker_off_its_landmark_is_fitted_not_taken_as_exact(tmp_path):
+    """OpenSim's ``fixed`` flag (a palpated landmark its MarkerPlacer leaves alone) is no proof of the place: a
+    landmark marker 9 mm off the generic model's landmark gets its offset fitted, and the noise stays the noise."""
+    fixed = {"pelvis0", "pelvis1", "pelvis2", "pelvis3", "thigh0", "thigh3", "shank0", "shank3"}
+    moved = {"thigh3": (0.006, -0.004, 0.005)}
+
+    def write(path, markers):
+        path.write_text(MODEL.format(markers="\n".join(
+            f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+            f'<location>{" ".join(map(str, np.add(loc, markers.get(f"{b}{i}", 0.0))))}</location>'
+            f'<fixed>{str(f"{b}{i}" in fixed).lower()}</fixed></Marker>'
+            for b, locs in MARKERS.items() for i, loc in enumerate(locs))))
+        return path
+
+    truth = {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}
+    trials = _trials(write(tmp_path / "true.osim", moved), truth)
+    generic = write(tmp_path / "generic.osim", {})
+    base, info = read_osim(generic)
+    assert info.fixed_markers == fixed
+    assert {p.target for p in osim_parameters(base, info, "bodies", "offsets").parameters
+            if p.kind == "marker_offset"} == set(base.marker_names)
+    fit = fit_osim(generic, trials, scale="bodies", markers="offsets")
+    assert fit.result["sigma"]["value"] < 0.05  # simulated at 0.01 mm; held at its landmark, about 1 mm
+    got = [fit.result[f"offset_thigh3_{a}"]["mean"] for a in "xyz"]
+    np.testing.assert_allclose(got, np.multiply(moved["thigh3"], 1000.0), atol=0.3)
+    # the free markers, placed on the static trial first, have a wide prior about their generic place
+    sd = {p.target: p.prior.sd for p in fit.model.parameters if p.kind == "marker_offset"}
+    assert {m for m, v in sd.items() if v == PLACED_OFFSET_SD} == set(base.marker_names) - fixed
+    assert all(sd[m] == 10.0 for m in fixed)
+
+
+def test_an_unmarked_body_that_holds_a_marked_ones_joint_is_scaled_in_the_joint_fit(shared_data):
+    """gait2354's talus carries no marker but holds the foot's joint 65 mm from its own: the joint fit (under
+    the scales' priors) scales it; a fit without priors, where the data alone cannot, does not."""
+    from skelid.io.osim import scaled_bodies
+
+    s01 = shared_data / "opensim-subject01"
+    base, info = read_osim(s01 / "gait2354_simbody.osim", s01 / "gait2354_Scale_MarkerSet.xml")
+    assert set(scaled_bodies(base, base.marker_names)) - {m.segment for m in base.markers} == {"talus_r", "talus_l"}
+    joint = {p.target for p in osim_parameters(base, info, "linked", "offsets", holders=True).parameters
+             if p.kind == "scale"}
+    plain = {p.target for p in osim_parameters(base, info, "linked", "offsets").parameters if p.kind == "scale"}
+    assert joint - plain == {"talus_r", "talus_l"}
 
 
 def test_batch_and_other_commands_read_an_osim_model_with_body_scales(shared_data):

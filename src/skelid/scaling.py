@@ -74,12 +74,12 @@ from skelid.estimators.checks.trial_placement import trial_placement
 from skelid.io.osim import (
     OsimInfo,
     body_scales,
-    centred_offset_priors,
     keep_markers,
     marker_locations,
     mean_places,
     osim_parameters,
     read_osim,
+    widened_offset_priors,
     write_scale_set,
     write_scaled_osim,
 )
@@ -267,7 +267,7 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
             notes += [note] if note else []
         model = osim_parameters(_with_marker_positions(original, moved), info, scale, "none", present)
         parts = [_select(t, model.marker_names) for t in trials]
-        starts = _starts_joint_fit(markers == "offsets" and joint, scale, method, info, present)
+        starts = _starts_joint_fit(markers == "offsets" and joint, scale, method, present)
         est, res, theta, poses = _fit_scales(model, parts, data, multi, method, sigma, seed,
                                              dict(settings, **START_ONLY) if starts else settings)
     if markers == "offsets":
@@ -291,12 +291,11 @@ def fit_osim(osim_path, trials, marker_set=None, scale: str = "linked", markers:
 START_ONLY = {"bias_correction": "none", "jackknife": False}
 
 
-def _starts_joint_fit(joint: bool, scale: str, method: str, info, present) -> bool:
+def _starts_joint_fit(joint: bool, scale: str, method: str, present) -> bool:
     """Whether the scale fit only starts the joint fit of scales and offsets (``joint``: offsets asked for and
-    fitted jointly; some marker free): its checks are then rerun on the joint fit's markers, and its own
+    fitted jointly; some marker present): its checks are then rerun on the joint fit's markers, and its own
     interval stages (:data:`START_ONLY`) are skipped."""
-    return (joint and scale != "none" and method in ("marker", "marker-multi")
-            and any(n not in info.fixed_markers for n in present))
+    return joint and scale != "none" and method in ("marker", "marker-multi") and bool(present)
 
 
 def checked_trials(trials) -> list[MarkerData]:
@@ -361,17 +360,23 @@ def _present_markers(full: Model, trials, data, multi: bool, osim_path) -> list[
     return present
 
 
+#: the prior sd (mm) of the offset of a marker the first placement moved: about its generic place, which is a
+#: placeholder (a cluster held at one point) and says little of where the marker sits on this subject
+PLACED_OFFSET_SD = 50.0
+
+
 def _placed_offsets(model, theta, pose, static, original, info, scale, present, moved, res):
     """Step 2: the free markers placed on the first trial; the model with offsets and its ``theta``.
 
     Each offset's entry is written into ``res``. A free marker that the first placement moved
     (:func:`place_free_markers_first`: a marker set's ``fixed=false`` markers, clusters whose
-    place in the generic model is a placeholder) gets its offset's prior centred on that
-    placement: its generic place says nothing of where it sits on this subject, and a prior
-    of 10 mm around it held thigh clusters placed 50-100 mm away at the prior's bound
-    (Subject4: noise 32 mm, where OpenSim's IK of the expert's model tracks at 8-18 mm).
-    The static trial then informs that prior and the likelihood both: in the directions only
-    the prior fixes, such an offset's sd is too small by up to ``sqrt(2)``.
+    place in the generic model is a placeholder) starts from that placement, and its offset's
+    prior is :data:`PLACED_OFFSET_SD` wide about its generic place: that place says little of
+    where it sits on this subject (a prior of 10 mm around it held thigh clusters placed
+    50-100 mm away at the prior's bound: Subject4, noise 32 mm). Centred on the placement
+    instead, the trial informed the prior and the likelihood both: on OpenSim-generated
+    walks of the Rajagopal model a femur's x and z scales, which only the clusters' placement
+    held, came out 0.3-0.6 off with an sd of 0.04.
     """
     offsets, sd, n_eff = place_markers(model, theta, pose, static.positions, (0, static.positions.shape[0]),
                                        [m.name not in info.fixed_markers for m in model.markers])
@@ -383,8 +388,10 @@ def _placed_offsets(model, theta, pose, static, original, info, scale, present, 
                 r0 = np.asarray(original.markers[original.marker_names.index(m.name)].position)
                 centre[m.name] = s_body.get(m.segment, np.ones(3)) * (np.asarray(m.position) - r0)
                 offsets[i] += centre[m.name]
-    model = centred_offset_priors(osim_parameters(original, info, scale, "offsets", present), centre)
-    theta = np.concatenate([theta, np.zeros(model.n_params - theta.size)])
+    start = dict(zip([p.name for p in model.parameters], theta, strict=True))
+    model = widened_offset_priors(osim_parameters(original, info, scale, "offsets", present, holders=True),
+                                  centre, PLACED_OFFSET_SD)
+    theta = np.array([start.get(p.name, 1.0 if p.kind == "scale" else 0.0) for p in model.parameters])
     for k, p in enumerate(model.parameters):
         if p.kind == "marker_offset":
             i = model.marker_names.index(p.target)
@@ -430,7 +437,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
             model, jo, tests, axes_notes = _per_axis_where_contradicted(st, model, jo, ys, weights)
         # the checks (misfit, serial correlation, marker jackknife) of the scale fit with every marker
         # where the joint fit put it: they widen the joint interval, never narrow it
-        m3 = _scales_only(model, _with_marker_positions(st.original, _placed_positions(model, jo.theta)))
+        m3 = _scales_only(model, _with_marker_positions(st.original, _placed_positions(model, jo.theta)),
+                          marked_only=True)
         est, res3, _, _ = _fit_scales(m3, [_select(t, m3.marker_names) for t in st.trials], st.data, st.multi,
                                       st.method, st.sigma, st.seed, st.settings, checks_only=True)
         res3 = _without_carried_warnings(res3, est)
@@ -453,7 +461,8 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     if slide is not None:
         bound = _sd(slide.cov)
     if not settled:  # settled, the slide the scale fit's checks widen for is in the slide's covariance already
-        widen[:m3.n_params] = deflated_widening(before, _prior_terms(model, before.theta)[1], check_ratios(est, m3))
+        ratios = _on_scales(model, m3, check_ratios(est, m3))
+        widen[:ratios.shape[1]] = deflated_widening(before, _prior_terms(model, before.theta)[1], ratios)
     bias, boot, boot_entry = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
                                              st.sigma if slide is None else None, weights, st.seed)
     base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
@@ -700,7 +709,7 @@ def _per_axis_where_contradicted(st: _ScaleStage, model, jo, ys, weights):
     """
     from skelid.estimators.checks.pose_artefact import pose_artefact
 
-    per_axis = osim_parameters(st.original, st.info, "axes", "offsets", st.present)
+    per_axis = osim_parameters(st.original, st.info, "axes", "offsets", st.present, holders=True)
     th = _map_theta(jo.theta, model, per_axis)
     art = pose_artefact(per_axis, th, ys, jo.poses, jo.sigma, np.eye(per_axis.n_params), weights)
     tests = one_factor_test(model, per_axis, jo, ys, weights, art.score_cov if art.present else None)
@@ -1999,10 +2008,24 @@ def _mixed_scales(model: Model, per_axis: Model, bodies) -> Model:
                  model.description)
 
 
-def _scales_only(model: Model, placed: Model) -> Model:
-    """The scale parameters of ``model`` on ``placed``'s markers (the scale fit's model)."""
+def _scales_only(model: Model, placed: Model, marked_only: bool = False) -> Model:
+    """The scale parameters of ``model`` on ``placed``'s markers (the scale fit's model); with ``marked_only``,
+    those of the bodies that carry markers (a body that only holds another's joint is known to the data
+    through where that body sits, often not at all: a fit without the scales' priors cannot have it)."""
+    marked = {m.segment for m in placed.markers}
     return Model(placed.name, placed.dim, placed.units, placed.segments, placed.markers,
-                 tuple(p for p in model.parameters if p.kind == "scale"), model.description)
+                 tuple(p for p in model.parameters if p.kind == "scale" and (not marked_only or p.target in marked)),
+                 model.description)
+
+
+def _on_scales(model: Model, sub: Model, ratios) -> np.ndarray:
+    """``ratios (K, P_sub)`` of ``sub``'s scale parameters spread over every scale parameter of ``model`` (its
+    first ones), 1 for those ``sub`` lacks."""
+    names = [p.name for p in model.parameters if p.kind == "scale"]
+    out = np.ones((ratios.shape[0], len(names)))
+    for j, p in enumerate(sub.parameters):
+        out[:, names.index(p.name)] = ratios[:, j]
+    return out
 
 
 def place_markers(model: Model, theta, pose, y, frames, movable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

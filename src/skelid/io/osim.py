@@ -813,22 +813,34 @@ def _scaled(f: CoordinateFunction, factor: float) -> CoordinateFunction:
 
 # ----------------------------------------------------------------------------- parameters
 def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers: str = "offsets",
-                    marker_names=None, scale_sd_log: float = 0.15, offset_sd: float = 10.0) -> Model:
+                    marker_names=None, scale_sd_log: float = 0.15, offset_sd: float = 10.0,
+                    holders: bool = False) -> Model:
     """The model with identification parameters for an imported OpenSim model.
 
     Parameters
     ----------
     scale : {'bodies', 'axes', 'linked', 'none'}
-        One log-normal scale factor per body that carries markers (median 1,
-        ``scale_sd_log``), three per axis, three per axis whose logs are correlated
+        One log-normal scale factor per body that carries markers (with
+        ``holders``, also per body that holds the joint of one: :func:`scaled_bodies`;
+        median 1, ``scale_sd_log``), three per axis, three per axis whose logs are correlated
         (:data:`AXIS_CORRELATION`: a body's proportions lean towards one common
         factor without being held to it), or none.
     markers : {'offsets', 'none'}
         A normal ``marker_offset`` (mean 0, ``offset_sd`` mm) per axis of every
-        marker not marked ``fixed`` in the model, or none.
+        marker, or none. A marker OpenSim marks ``fixed`` (a palpated bony
+        landmark, which its MarkerPlacer does not move) gets one too: a
+        landmark is found on the skin to within millimetres to centimetres, and
+        a generic model's landmark sits where this subject's does only as far as
+        the body scales linearly; held exact, such markers' placement errors
+        went into the scales with intervals that did not hold them.
     marker_names : iterable of str, optional
         Markers present in the data: only those get offsets, and only the
         markers among them count as carrying a body. Default: all.
+    holders : bool
+        Scale the unmarked bodies that hold a marked one's joint too. Their
+        factors are known to the data only through where the bodies below them
+        sit, often not at all: only a fit under the scales' priors (the joint
+        fit of scales and offsets) can have them.
 
     Returns
     -------
@@ -839,17 +851,35 @@ def osim_parameters(model: Model, info: OsimInfo, scale: str = "bodies", markers
     if markers not in ("offsets", "none"):
         raise ModelError(f"unknown marker setting {markers!r}", "use offsets or none")
     present = set(model.marker_names if marker_names is None else marker_names)
-    seg_with = [s.name for s in model.segments
-                if sum(1 for m in model.markers if m.segment == s.name and m.name in present) >= 1]
-    params = _scale_parameters(seg_with, scale, info, scale_sd_log)
+    bodies = (scaled_bodies(model, present) if holders else
+              [b.name for b in model.segments if any(m.segment == b.name and m.name in present for m in model.markers)])
+    params = _scale_parameters(bodies, scale, info, scale_sd_log)
     if markers == "offsets":
         oprior = Prior("normal", -5 * offset_sd, 5 * offset_sd, 0.0, offset_sd)
         for m in model.markers:
-            if m.name in present and m.name not in info.fixed_markers:
+            if m.name in present:
                 params += [Parameter(f"offset_{m.name}_{a}", "marker_offset", m.name, i, oprior, offset_sd / 20)
                            for i, a in enumerate("xyz")]
     return Model(model.name, model.dim, model.units, model.segments, model.markers, tuple(params),
                  model.description)
+
+
+def scaled_bodies(model: Model, present) -> list[str]:
+    """The bodies that get scale factors: those that carry a marker of ``present``, and those that carry
+    none but hold the joint of a body below them that does, away from their own joint centre.
+
+    A body between two marked ones (the talus between the shank and the foot, the ulna between the
+    upper arm and the radius) places everything below it by its size: held at the generic size, its
+    true scale would go into the foot's scales and markers with intervals that do not hold it.
+    """
+    marked = {m.segment for m in model.markers if m.name in present}
+    below = set(marked)  # bodies with a marked body at or below them
+    for s in reversed(model.segments):  # children come after their parents
+        if s.name in below and s.parent is not None:
+            below.add(s.parent)
+    holds = {s.parent for s in model.segments
+             if s.parent is not None and s.name in below and np.linalg.norm(s.joint.position) > 1e-9}
+    return [s.name for s in model.segments if s.name in marked or (s.name in below and s.name in holds)]
 
 
 def _scale_parameters(bodies, scale: str, info: OsimInfo, sd_log: float) -> list[Parameter]:
@@ -938,6 +968,18 @@ def marker_locations(model: Model, info: OsimInfo, theta, moved=None) -> dict[st
         p_bm = info.child_offset[m.segment][1] * scales.get(m.segment, np.ones(3))
         out[m.name] = p_bm + r[i] + np.asarray((moved or {}).get(m.name, np.zeros(3)), float) / M_TO_MM
     return out
+
+
+def widened_offset_priors(model: Model, names, sd: float) -> Model:
+    """``model`` with the offset priors of the markers ``names`` widened to ``sd`` (mm) about the same centre."""
+    names = set(names)
+    params = []
+    for p in model.parameters:
+        if p.kind == "marker_offset" and p.target in names:
+            pr = p.prior
+            p = replace(p, prior=replace(pr, lower=pr.mean - 5.0 * sd, upper=pr.mean + 5.0 * sd, sd=sd))
+        params.append(p)
+    return replace(model, parameters=tuple(params))
 
 
 def centred_offset_priors(model: Model, centre: dict) -> Model:
