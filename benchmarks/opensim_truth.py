@@ -1,15 +1,21 @@
 """skelid's OpenSim scaling on data whose truth OpenSim itself generated.
 
-Each draw builds a subject with the ``opensim`` package from the generic
-gait2354 model (``../shared/data/opensim-subject01/gait2354_simbody.osim``
-with ``gait2354_Scale_MarkerSet.xml``):
+Each draw builds a subject with the ``opensim`` package from a generic model
+(``--model``): gait2354 (``../shared/data/opensim-subject01/gait2354_simbody.osim``
+with ``gait2354_Scale_MarkerSet.xml``, subject01's walks), or ``rajagopal``, the
+full-body Rajagopal-type model of ``addbio-subject4`` (``Models/unscaled_generic.osim``,
+49 markers, 31 of them ``fixed`` landmarks, thigh and shank clusters held at one
+placeholder point; its walks, 100 Hz, IK on the expert's scaled model because IK
+on the unscaled one tracks them at 84 mm):
 
 1. scale factors drawn per draw, uniform in [0.85, 1.15], left and right drawn
-   independently, for the eight bodies that carry markers (pelvis, torso,
+   independently, for the bodies that carry markers (gait2354: pelvis, torso,
    femur, tibia, calcaneus per side; talus and toes carry none and stay at 1):
-   ``truth=bodies`` one factor per body, ``truth=axes`` one per body axis;
+   ``truth=bodies`` one factor per body, ``truth=axes`` one per body axis,
+   ``truth=every`` one per axis for every body of the model (talus, toes,
+   patella, ulna, hand too, as OpenSim's scale setups scale them);
    applied with OpenSim's own ``Model.scale(state, ScaleSet, ...)``;
-2. every marker moved by a known offset in its body frame, a random direction
+2. every marker (``fixed`` ones too) moved by a known offset in its body frame, a random direction
    of length uniform in [1, 20] mm; ``truth=prior`` instead draws both from
    the fit's own priors (per axis, the factor log-normal with sd 0.15, each
    offset coordinate normal with sd 10 mm): there a right posterior covers
@@ -17,9 +23,9 @@ with ``gait2354_Scale_MarkerSet.xml``):
    the uniform truths are narrower than the priors and a prior-dominated
    interval covers them more often;
 3. the motion: OpenSim's InverseKinematicsTool solution of ``subject01_walk1.trc``
-   on the generic model (151 frames, 60 Hz), and a standing pose (its IK of
-   the first second of ``subject01_static.trc``, averaged) held for 1 s (60
-   frames); computed once and cached under the system's temporary folder
+   on the generic model (151 frames, 60 Hz; rajagopal: ``walking1.trc``, 131 frames),
+   and a standing pose (its IK of a second of the static trial, averaged) held for
+   1 s; computed once and cached under the system's temporary folder
    (``skelid-opensim-truth``), never committed;
 4. markers from OpenSim's kinematics of the scaled model at those coordinates
    (``Marker.getLocationInGround``), plus noise of one of three kinds, named
@@ -45,12 +51,14 @@ with ``gait2354_Scale_MarkerSet.xml``):
 Designs: ``static+walk`` (the static trial first, as the command line takes
 it), ``walk`` (one dynamic trial alone) and ``walk+walk2`` (two dynamic trials:
 the walk and the IK of ``walk_free_01.trc``, 73 frames, another walk of the
-same subject, as two trials of one fit). skelid fits the generic model with
+same subject, as two trials of one fit; rajagopal: ``walking2.trc``). skelid fits the generic model with
 :func:`skelid.scaling.fit_osim` with ``scale="linked"`` (the default, the
 user's case: three factors per body, their logs correlated a priori), with
 ``scale="bodies"`` (one factor per body), and, where the truth is per axis,
 with ``scale="axes"`` (the exact structure). Reported per cell for every scale factor, segment length
-(hip-knee, knee-ankle per side at the zero pose, joint centre to joint centre),
+(hip-knee, knee-ankle per side, rajagopal also shoulder-elbow, at the zero pose, joint centre to
+joint centre: the origins of the joints' child frames, which in the Rajagopal knee and ankle are not
+the bodies' origins),
 marker offset, and every joint centre in its parent body's frame and marker in its
 own body's frame (the same quantities whatever the fit's parametrisation): bias,
 bias/CRLB (skelid's Cramér-Rao sd where it reports one, else its sd), RMSE/mean
@@ -61,8 +69,8 @@ body-frame rows are the ones that compare its answer with the truth.
 
 Peer in the same draw: OpenSim's ScaleTool (measurement-based scaling with the
 marker pairs of ``subject01_Setup_Scale.xml``, then its MarkerPlacer) on the
-same static trial (``static+walk`` design only); its scale and length errors
-beside skelid's.
+same static trial (``static+walk`` design only, gait2354 only: no measurement
+setup comes with the Rajagopal model); its scale and length errors beside skelid's.
 
 Run: ``nice -n 10 python benchmarks/opensim_truth.py [--quick] [--reps N] [--cells ...] [--jobs J]
 [--out PATH]`` -> ``benchmarks/results/opensim_truth.{json,md}``. A cell is
