@@ -224,8 +224,48 @@ def opensim_truth() -> str:
             "[`benchmarks/results/opensim_truth_default.md`](/benchmarks/results/opensim_truth_default.md).")
     out = "\n".join(lines) + "\n\n" + note + "\n\n" + _angles_table(cells) + sources
     exact, prior = RESULTS / "opensim_truth_exact.json", RESULTS / "opensim_truth_prior.json"
+    raj = RESULTS / "opensim_truth_rajagopal.json"
+    out += ("\n" + opensim_truth_rajagopal(raj) if raj.exists() else "")
     out += ("\n" + opensim_truth_prior(prior) if prior.exists() else "")
     return out + ("\n" + opensim_truth_exact(exact) if exact.exists() else "")
+
+
+RAJAGOPAL = "the full-body Rajagopal-type model of `addbio-subject4`"
+
+
+def _rajagopal_cells(doc: dict) -> list:
+    """The fitted cells of the Rajagopal run: ``(key, cell, length coverages, mean length RMSE)``."""
+    out = []
+    for key, c in doc["cells"].items():
+        if key.split("/")[1] == "scaletool" or not c["rows"]:
+            continue
+        ln = _truth_values(c["rows"], "length", "coverage95")
+        lr = _truth_values(c["rows"], "length", "rmse")
+        out.append((key, c, ln, sum(lr) / len(lr)))
+    return out
+
+
+def opensim_truth_rajagopal(path: Path) -> str:
+    """The same study on the Rajagopal model: landmark (fixed) markers, placeholder clusters, unmarked bodies."""
+    doc = load(path)
+    lines = [f"| {RAJAGOPAL}: cell | draws | mean σ (mm) | lengths: coverage (min-max), RMSE (mm) "
+             "| pooled, data-determined: scales | prior-dominated | offsets "
+             "| joint centres in body frames: per axis / region | markers: per axis / region | CPU s per fit |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for key, c, ln, lr in _rajagopal_cells(doc):
+        lines.append(f"| {key} | {c['n']}" + (f" ({c['failed']} failed)" if c["failed"] else "")
+                     + f" | {c.get('sigma_mean') or float('nan'):.2f} | {min(ln):.2f}-{max(ln):.2f}, {lr:.1f} | "
+                     f"{_pooled_text(c, 'scales')} | {_pooled_text(c, 'scales', 'prior-dominated')} | "
+                     f"{_pooled_text(c, 'offsets')} | {_points_text(c, JOINTS_KIND)} | "
+                     f"{_points_text(c, MARKERS_KIND)} | {c['cpu_s_per_fit']:.0f} |")
+    return ("\n".join(lines) + "\n\nThe model of `Models/unscaled_generic.osim`: 49 markers, 31 of them `fixed` "
+            "landmarks, the thigh and shank clusters held at one placeholder point per body; motion from its walks "
+            "(OpenSim IK on the expert's scaled model), 100 Hz. Truth `axes`: the bodies with markers scaled per "
+            "axis; `every`: every body (talus, toes, patella, ulna, hand too), as OpenSim's scale setups do. Every "
+            "marker, landmarks included, moved 1-20 mm. Lengths: hip-knee, knee-ankle and shoulder-elbow per side. "
+            "No ScaleTool peer: the model comes without a measurement setup. Per quantity: "
+            "[`benchmarks/results/opensim_truth_rajagopal.md`](/benchmarks/results/opensim_truth_rajagopal.md)."
+            "\n\n" + source(path, doc))
 
 
 def opensim_truth_prior(path: Path) -> str:
@@ -324,8 +364,17 @@ def opensim_truth_summary() -> str:
                          + _angles_text(c) + f", {c['n']} draws")
         if shown:
             lines.append(f"- {what}, hip-knee and knee-ankle intervals: " + "; ".join(shown))
-    prior = RESULTS / "opensim_truth_prior.json"
+    prior, raj = RESULTS / "opensim_truth_prior.json", RESULTS / "opensim_truth_rajagopal.json"
     tail = ""
+    if raj.exists():
+        rd = load(raj)
+        shown = [f"{key.split('/')[0]} truth, {key.split('/')[2].replace('+', ' + ')}: lengths cover "
+                 f"{min(ln):.2f}-{max(ln):.2f}, RMSE {lr:.1f} mm; joint centres "
+                 f"{_points_text(c, JOINTS_KIND)}, markers {_points_text(c, MARKERS_KIND)} (per axis / region), "
+                 f"{c['n']} draws" for key, c, ln, lr in _rajagopal_cells(rd)]
+        lines.append(f"- {RAJAGOPAL} (landmark and cluster markers, the talus and ulna unmarked), the default, "
+                     "i.i.d. 5 mm: " + "; ".join(shown))
+        tail += "\n" + source(raj, rd)
     if prior.exists():
         pd = load(prior)
         cls = [v for c in pd["cells"].values() for k, v in (c.get("classes") or {}).items()]
@@ -335,7 +384,7 @@ def opensim_truth_summary() -> str:
                          f"scale and offset, those the prior decides included, pooled by kind: cover "
                          f"{min(v['coverage95'] for v in cls):.2f}-{max(v['coverage95'] for v in cls):.2f}, rms z "
                          f"{min(v['rms_z'] for v in cls):.2f}-{max(v['rms_z'] for v in cls):.2f}, {n} draws")
-            tail = "\n" + source(prior, pd)
+            tail += "\n" + source(prior, pd)
     # the files' lines one under the other in one paragraph: the README stays a few screens long
     files = "<br>".join(line.strip() for line in (sources + tail).splitlines() if line.strip())
     return ("\n".join(lines) + "\n\nEvery cell, scale and offset: "
