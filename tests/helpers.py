@@ -158,7 +158,8 @@ def run_cli(args, cwd=None, memory_mb: int | None = 3000, timeout: float = 120, 
                           text=True, timeout=timeout, preexec_fn=limit, env=full_env, stdin=subprocess.DEVNULL)
 
 
-def opensim_marker_gap(model, osim_model, rng, n_poses: int = 100, limit: float = 3.141592653589793) -> float:
+def opensim_marker_gap(model, osim_model, rng, n_poses: int = 100, limit: float = 3.141592653589793,
+                       theta=None) -> float:
     """Largest distance (mm) between skelid's and OpenSim's markers over random poses.
 
     ``model`` is the skelid import of ``osim_model`` (an ``opensim.Model`` whose
@@ -166,7 +167,8 @@ def opensim_marker_gap(model, osim_model, rng, n_poses: int = 100, limit: float 
     uniformly in its OpenSim range (clipped to +-``limit`` rad, +-0.1 m for a
     translation), sets it in the state without enforcing constraints, assembles
     the model when it has constraints and reads the coordinates back, so both
-    sides use the values OpenSim's markers are computed at.
+    sides use the values OpenSim's markers are computed at. ``theta``: the
+    parameters of ``model`` (none by default).
     """
     import numpy as np
 
@@ -188,7 +190,7 @@ def opensim_marker_gap(model, osim_model, rng, n_poses: int = 100, limit: float 
         osim_model.realizePosition(state)
         q = np.array([coords.get(n).getValue(state) * (1000.0 if is_t else 1.0)
                       for n, is_t in zip(names, translational, strict=True)])
-        x = marker_positions(model, np.zeros(0), q)
+        x = marker_positions(model, np.zeros(0) if theta is None else np.asarray(theta, float), q)
         ref = np.array([[markers.get(m.name).getLocationInGround(state).get(i) for i in range(3)]
                         for m in model.markers]) * 1000.0
         worst = max(worst, float(np.abs(x - ref).max()))
