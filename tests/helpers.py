@@ -1,6 +1,7 @@
 """Models built in Python for tests, and the shared ways tests run skelid and its scripts."""
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -144,7 +145,6 @@ def run_cli(args, cwd=None, memory_mb: int | None = 3000, timeout: float = 120, 
     import os
     import resource
     import subprocess
-    import sys
 
     def limit():  # pragma: no cover - runs in the child
         if memory_mb is not None:
@@ -215,5 +215,6 @@ def load_script(path, name: str | None = None):
     path = Path(path)
     spec = importlib.util.spec_from_file_location(name or path.stem, path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # a dataclass of the script looks its module up there
     spec.loader.exec_module(mod)
     return mod

@@ -268,27 +268,34 @@ def test_the_first_example_runs_as_written_on_a_few_frames(shared_data, tmp_path
     assert not list(s01.glob("*.log"))
 
 
+#: the leg's markers marked ``fixed`` (landmarks) in :func:`_write_fixed`
+FIXED = {"pelvis0", "pelvis1", "pelvis2", "pelvis3", "thigh0", "thigh3", "shank0", "shank3"}
+
+
+def _write_fixed(path, places=None):
+    """The leg model with the markers of :data:`FIXED` marked fixed, each marker at ``places`` (name -> (3,) m)
+    or its own place."""
+    places = places or {}
+    path.write_text(MODEL.format(markers="\n".join(
+        f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
+        f'<location>{" ".join(map(str, places.get(f"{b}{i}", loc)))}</location>'
+        f'<fixed>{str(f"{b}{i}" in FIXED).lower()}</fixed></Marker>'
+        for b, locs in MARKERS.items() for i, loc in enumerate(locs))))
+    return path
+
+
 def test_free_markers_at_a_placeholder_are_placed_before_they_can_drive_the_scales(tmp_path):
     """Cluster markers a generic model holds at one placeholder point: the static trial's fixed markers scale
     the bodies first, and the free markers go where the static trial saw them."""
     from skelid.scaling import place_free_markers_first
 
-    fixed = {"pelvis0", "pelvis1", "pelvis2", "pelvis3", "thigh0", "thigh3", "shank0", "shank3"}
     placeholder = {"thigh": (0.0, -0.2, 0.05), "shank": (0.0, -0.2, 0.05)}
-
-    def write(path, true_places):
-        path.write_text(MODEL.format(markers="\n".join(
-            f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-            f'<location>{" ".join(map(str, loc if true_places or f"{b}{i}" in fixed else placeholder[b]))}'
-            f'</location><fixed>{str(f"{b}{i}" in fixed).lower()}</fixed></Marker>'
-            for b, locs in MARKERS.items() for i, loc in enumerate(locs))))
-        return path
-
+    at_placeholder = {f"{b}{i}": placeholder[b] for b in placeholder for i in range(4) if f"{b}{i}" not in FIXED}
     truth = {"pelvis": 1.05, "thigh": 1.1, "shank": 0.95}
-    static, _ = _trials(write(tmp_path / "true.osim", True), truth, frames=(6, 2))
-    generic = write(tmp_path / "generic.osim", False)
+    static, _ = _trials(_write_fixed(tmp_path / "true.osim"), truth, frames=(6, 2))
+    generic = _write_fixed(tmp_path / "generic.osim", places=at_placeholder)
     full, info = read_osim(generic)
-    assert info.fixed_markers == fixed
+    assert info.fixed_markers == FIXED
     moved, note = place_free_markers_first(full, info, "bodies", static)
     assert set(moved) == {"thigh1", "thigh2", "shank1", "shank2"} and "8 fixed markers" in note
     true_model, _ = read_osim(tmp_path / "true.osim")
@@ -300,20 +307,11 @@ def test_free_markers_at_a_placeholder_are_placed_before_they_can_drive_the_scal
 def test_a_fixed_marker_off_its_landmark_is_fitted_not_taken_as_exact(tmp_path):
     """OpenSim's ``fixed`` flag (a palpated landmark its MarkerPlacer leaves alone) is no proof of the place: a
     landmark marker 9 mm off the generic model's landmark gets its offset fitted, and the noise stays the noise."""
-    fixed = {"pelvis0", "pelvis1", "pelvis2", "pelvis3", "thigh0", "thigh3", "shank0", "shank3"}
-    moved = {"thigh3": (0.006, -0.004, 0.005)}
-
-    def write(path, markers):
-        path.write_text(MODEL.format(markers="\n".join(
-            f'<Marker name="{b}{i}"><socket_parent_frame>/bodyset/{b}</socket_parent_frame>'
-            f'<location>{" ".join(map(str, np.add(loc, markers.get(f"{b}{i}", 0.0))))}</location>'
-            f'<fixed>{str(f"{b}{i}" in fixed).lower()}</fixed></Marker>'
-            for b, locs in MARKERS.items() for i, loc in enumerate(locs))))
-        return path
-
+    fixed = FIXED
     truth = {"pelvis": 1.0, "thigh": 1.0, "shank": 1.0}
-    trials = _trials(write(tmp_path / "true.osim", moved), truth)
-    generic = write(tmp_path / "generic.osim", {})
+    thigh3 = np.add(MARKERS["thigh"][3], (0.006, -0.004, 0.005))
+    trials = _trials(_write_fixed(tmp_path / "true.osim", places={"thigh3": thigh3}), truth)
+    generic = _write_fixed(tmp_path / "generic.osim")
     base, info = read_osim(generic)
     assert info.fixed_markers == fixed
     assert {p.target for p in osim_parameters(base, info, "bodies", "offsets").parameters
@@ -321,7 +319,7 @@ def test_a_fixed_marker_off_its_landmark_is_fitted_not_taken_as_exact(tmp_path):
     fit = fit_osim(generic, trials, scale="bodies", markers="offsets")
     assert fit.result["sigma"]["value"] < 0.05  # simulated at 0.01 mm; held at its landmark, about 1 mm
     got = [fit.result[f"offset_thigh3_{a}"]["mean"] for a in "xyz"]
-    np.testing.assert_allclose(got, np.multiply(moved["thigh3"], 1000.0), atol=0.3)
+    np.testing.assert_allclose(got, (0.006e3, -0.004e3, 0.005e3), atol=0.3)
     # the free markers, placed on the static trial first, have a wide prior about their generic place
     sd = {p.target: p.prior.sd for p in fit.model.parameters if p.kind == "marker_offset"}
     assert {m for m, v in sd.items() if v == PLACED_OFFSET_SD} == set(base.marker_names) - fixed

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -10,8 +12,9 @@ from skelid.io.osim import osim_parameters, read_osim
 from skelid.model import model_from_dict
 from skelid.model.functions import CoordinateFunction
 from skelid.model.kinematics import forward_kinematics, marker_jacobian, marker_positions
-from tests.helpers import opensim_marker_gap
+from tests.helpers import load_script, opensim_marker_gap
 
+ROOT = Path(__file__).resolve().parents[2]
 SUBJECT01 = "opensim-subject01"
 MODELS = [
     (f"{SUBJECT01}/gait2354_simbody.osim", f"{SUBJECT01}/gait2354_Scale_MarkerSet.xml"),
@@ -42,34 +45,22 @@ def test_markers_equal_opensim_at_random_poses(shared_data, path, marker_set):
     assert worst <= 1e-6, f"largest marker difference {worst:.2e} mm"
 
 
-@pytest.mark.parametrize("path,marker_set", MODELS[:1] + MODELS[2:3], ids=["gait2354", "rajagopal"])
-def test_scales_per_axis_of_every_body_equal_opensims_own_scaling(shared_data, path, marker_set):
-    """OpenSim's ``Model.scale`` with a factor per axis for every body, talus and ulna (no markers) too, against
-    skelid's parameters at those factors (the joint fit's, with the bodies that hold a marked one's joint):
-    the same markers at random poses. The Rajagopal knee's joint frames are turned against the femur's, so
-    its coupled translations are scaled by OpenSim's own rule (their axis in the joint frame . the factors)."""
-    osim = pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
-    osim.Logger.removeFileSink()
+@pytest.mark.parametrize("key", ["gait2354", "rajagopal"])
+def test_scales_per_axis_of_every_body_equal_opensims_own_scaling(shared_data, key):
+    """OpenSim's ``Model.scale`` with a factor per axis for every body, talus and ulna (no markers) too, as the
+    OpenSim-truth benchmark makes its subjects, against skelid's parameters at those factors (the joint fit's,
+    with the bodies that hold a marked one's joint): the same markers at random poses. The Rajagopal knee's
+    joint frames are turned against the femur's, so its coupled translations are scaled by OpenSim's own rule
+    (their axis in the joint frame . the factors)."""
+    pytest.importorskip("opensim", reason="the opensim package is not installed (pip install opensim)")
+    truth_study = load_script(ROOT / "benchmarks" / "opensim_truth.py", "opensim_truth_for_tests")
+    setup = truth_study.use_model(key)
     rng = np.random.default_rng(11)
-    ms = None if marker_set is None else str(shared_data / marker_set)
-    base, info = read_osim(shared_data / path, ms)
+    base, info = read_osim(setup.generic, setup.marker_set)
     model = osim_parameters(base, info, "axes", "none", holders=True)
     assert {"talus_r", "talus_l"} <= {p.target for p in model.parameters}
-    om = osim.Model(str(shared_data / path))
-    if ms is not None:
-        mset = osim.MarkerSet(ms)
-        for i in range(mset.getSize()):
-            om.addMarker(mset.get(i).clone())
-    state = om.initSystem()
-    factors = {om.getBodySet().get(i).getName(): rng.uniform(0.85, 1.15, 3) for i in range(om.getBodySet().getSize())}
-    ss = osim.ScaleSet()
-    for b, f in factors.items():
-        sc = osim.Scale()
-        sc.setSegmentName(b)
-        sc.setScaleFactors(osim.Vec3(*map(float, f)))
-        sc.setApply(True)
-        ss.cloneAndAppend(sc)
-    om.scale(state, ss, False, -1.0)
+    factors = {b: rng.uniform(0.85, 1.15, 3) for b in truth_study.scaled_bodies("every")}
+    om = truth_study.subject({"scales": factors, "offsets": dict.fromkeys(base.marker_names, np.zeros(3))})
     theta = np.array([factors[p.target][p.axis] for p in model.parameters])
     worst = opensim_marker_gap(model, om, rng, 100, theta=theta)
     assert worst <= 1e-6, f"largest marker difference {worst:.2e} mm"
