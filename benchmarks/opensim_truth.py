@@ -247,9 +247,9 @@ def _ik(trc: Path, name: str, t_range=None) -> tuple[list[str], np.ndarray]:
 
 def motions() -> dict:
     """The coordinates of the walks (F, C) and of the standing pose held (T, C)."""
-    names, walk = _ik(*SETUP.walk[:1], "walk", *SETUP.walk[1:])
-    _, walk2 = _ik(*SETUP.walk2[:1], "walk2", *SETUP.walk2[1:])
-    _, stand = _ik(*SETUP.static[:1], "static", *SETUP.static[1:])
+    names, walk = _ik(SETUP.walk[0], "walk", SETUP.walk[1])
+    _, walk2 = _ik(SETUP.walk2[0], "walk2", SETUP.walk2[1])
+    _, stand = _ik(SETUP.static[0], "static", SETUP.static[1])
     hold = np.repeat(stand.mean(axis=0, keepdims=True), int(SETUP.rate * STATIC_SECONDS), axis=0)
     return {"names": names, "walk": walk, "walk2": walk2, "static": hold}
 
