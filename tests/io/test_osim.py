@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from skelid.errors import FormatError, ModelError, SkelidError
-from skelid.io.osim import osim_parameters, read_osim
+from skelid.io.osim import osim_parameters, read_osim, scales_held
 from skelid.model import model_from_dict
 from skelid.model.functions import CoordinateFunction
 from skelid.model.kinematics import forward_kinematics, marker_jacobian, marker_positions
@@ -64,6 +64,31 @@ def test_scales_per_axis_of_every_body_equal_opensims_own_scaling(shared_data, k
     theta = np.array([factors[p.target][p.axis] for p in model.parameters])
     worst = opensim_marker_gap(model, om, rng, 100, theta=theta)
     assert worst <= 1e-6, f"largest marker difference {worst:.2e} mm"
+
+
+@pytest.mark.parametrize("path", [MODELS[0][0], MODELS[2][0]])
+def test_bodies_scaled_into_the_geometry_put_every_marker_where_their_factors_do(shared_data, path):
+    """A model with some bodies' factors written into its geometry (their parameters gone) against the model
+    with those factors as parameters: the same markers at random poses. The femurs carry the knees' coupled
+    translations; the tali and ulnas hold a marked body's joint and carry no marker."""
+    base, info = read_osim(shared_data / path)
+    model = osim_parameters(base, info, "axes", "offsets", holders=True)
+    rng = np.random.default_rng(3)
+    theta = np.array([rng.uniform(0.85, 1.15) if p.kind == "scale" else rng.normal(0.0, 10.0)
+                      for p in model.parameters])
+    held = {b for b in ("femur_r", "femur_l", "talus_r", "talus_l", "ulna_r", "ulna_l")
+            if b in {p.target for p in model.parameters}}
+    assert {"femur_r", "talus_r"} <= held
+    factors = {b: np.array([theta[k] for k, p in enumerate(model.parameters) if p.kind == "scale" and p.target == b])
+               for b in held}
+    fixed = scales_held(model, factors)
+    assert not {p.target for p in fixed.parameters if p.kind == "scale"} & held
+    kept = [model.parameter_names.index(n) for n in fixed.parameter_names]
+    lo, hi = np.array([[-1.0, 1.0]] * model.n_pose).T
+    q = rng.uniform(lo, hi, (100, model.n_pose))
+    gap = np.abs(marker_positions(fixed, theta[kept], q) - marker_positions(model, theta, q)).max()
+    assert gap <= 1e-9, f"largest marker difference {gap:.2e} mm"
+    assert np.abs(marker_positions(scales_held(model, {}), theta, q) - marker_positions(model, theta, q)).max() == 0
 
 
 def test_welded_toes_with_markers_equal_opensim(shared_data, tmp_path):

@@ -954,6 +954,38 @@ def body_scales(model: Model, theta) -> dict[str, np.ndarray]:
     return out
 
 
+def scales_held(model: Model, scales: dict) -> Model:
+    """``model`` with the bodies of ``scales`` (name -> three factors) scaled into its geometry, their scale
+    parameters gone: the same marker positions at every pose as ``model`` at those factors.
+
+    A body's factors scale its markers, the joint places of the bodies it carries and the translations of
+    their custom joints that scale with it (by ``w . s`` over ``w . 1``, ``w`` the motion's scale weights,
+    :attr:`skelid.model.description.Model.coupled_translations`).
+    """
+    s = {b: np.broadcast_to(np.asarray(v, float), (3,)) for b, v in scales.items()}
+    if not s:
+        return model
+
+    def motion(m: Motion, f: np.ndarray) -> Motion:
+        if m.kind == "R" or (m.kind == "T" and (m.function.is_identity or m.function.is_constant)):
+            return m
+        w = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
+        return m if not w.sum() else replace(m, function=_scaled(m.function, float(w @ f / w.sum())))
+
+    segments = []
+    for seg in model.segments:
+        f = s.get(seg.parent)
+        if f is not None:
+            j = seg.joint
+            seg = replace(seg, joint=replace(j, position=tuple(float(v) for v in np.asarray(j.position) * f),
+                                             motions=tuple(motion(m, f) for m in j.motions)))
+        segments.append(seg)
+    markers = tuple(replace(m, position=tuple(float(v) for v in np.asarray(m.position) * s[m.segment]))
+                    if m.segment in s else m for m in model.markers)
+    params = tuple(p for p in model.parameters if not (p.kind == "scale" and p.target in s))
+    return Model(model.name, model.dim, model.units, tuple(segments), markers, params, model.description)
+
+
 def marker_locations(model: Model, info: OsimInfo, theta, moved=None) -> dict[str, np.ndarray]:
     """Each marker's location in its body frame (metres) after scaling and offsets (and ``moved``: a
     marker's further displacement in its body frame, mm, by name)."""
