@@ -457,10 +457,10 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     # the interval with each marker's own noise level (the sandwich), widened by the checks and by the
     # fit's errors on data simulated from its own answer (whichever asks for more)
     held = _on_bounds(model, jo.theta)  # the fit's own optimum, before the correction moves it off a bound
-    jo, checked, base, slide, art, progress = _with_slide(model, jo, art, ys, weights)
+    jo, checked, base, slide, art, steps, settled = _with_slide(model, jo, art, ys, weights)
     if slide is not None:
         bound = _sd(slide.cov)
-    if not progress[1]:  # settled, the slide the scale fit's checks widen for is in the slide's covariance already
+    if not settled:  # settled, the slide the scale fit's checks widen for is in the slide's covariance already
         ratios = _on_scales(model, m3, check_ratios(est, m3))
         widen[:ratios.shape[1]] = deflated_widening(before, _prior_terms(model, before.theta)[1], ratios)
     bias, boot, boot_entry = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
@@ -473,7 +473,7 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     jo = replace(jo, cov=base * np.outer(widen, widen) + (art.cov if slide is None else 0.0) + placed.cov)
     out = _joint_result(model, jo, res3, widen, bound, st.sigma, weights, held)
     ratio = _artefact_ratio(art, bound) if slide is None else np.abs(slide.shift) / _sd(slide.cov)
-    out["artefact"] = _artefact_entry(art, ratio, slide, model, progress)
+    out["artefact"] = _artefact_entry(art, ratio, slide, model, (steps, settled))
     if out["artefact"]["warn"]:
         out["warnings"] = list(out.get("warnings", [])) + [_artefact_warning(model, art, ratio, slide,
                                                                              out["artefact"])]
@@ -527,9 +527,6 @@ SLIDE_STEP_SD = 0.05
 #: ... and a step is taken only if at most this share of the one before (the steps settle geometrically, not
 #: always fast at first: 11.6, 9.4, 1.6, 0.27 sd on an OpenSim-generated walk, whose second step 0.7 refused)
 SLIDE_CONTRACTION = 0.9
-#: a slide whose steps stop unsettled is kept only where the step that ended them is at most this many sd
-#: (:func:`_with_slide`)
-SLIDE_KEEP_SD = 1.0
 
 
 def _slide_converged(model: Model, jo, art, ys, weights):
@@ -545,11 +542,9 @@ def _slide_converged(model: Model, jo, art, ys, weights):
     of the one before is not taken, and the fit stays where it was (on subject01's walk, whose
     slopes come out near 100 mm per radian, the steps stay at 7-19 sd and the slide grows without end).
 
-    Returns ``(SlideFit, artefact, steps, settled, left)``: the fit's ``shift`` is from ``jo.theta``, its
+    Returns ``(SlideFit, artefact, steps, settled)``: the fit's ``shift`` is from ``jo.theta``, its
     covariance that of the last linearisation; ``artefact`` is ``art`` with that step's slide terms
-    (the directions its slopes are in); ``settled`` whether the steps fell below :data:`SLIDE_STEP_SD`;
-    ``left`` the size of the step that ended them unsettled (the one refused, else the last one taken), in
-    its sd, 0 where settled.
+    (the directions its slopes are in); ``settled`` whether the steps fell below :data:`SLIDE_STEP_SD`.
     """
     from skelid.estimators.checks.pose_artefact import joint_slide, slide_displacement
     from skelid.estimators.fit.joint import row_weights
@@ -557,7 +552,7 @@ def _slide_converged(model: Model, jo, art, ys, weights):
 
     slide = _slide_fit(model, jo, art)
     if slide is None:
-        return None, art, 0, False, 0.0
+        return None, art, 0, False
     lo, hi = _prior_bounds(model)
     theta, poses, sl, ws = np.clip(jo.theta + slide.shift, lo, hi), jo.poses, art.slide, workspace(model)
     sizes, phase, steps = slide.sizes, 0, 1
@@ -584,36 +579,22 @@ def _slide_converged(model: Model, jo, art, ys, weights):
             break
         size = float(np.max(np.abs(nxt.shift) / _sd(nxt.cov)))
         if size > SLIDE_CONTRACTION * last and size >= SLIDE_STEP_SD:  # not settling: stay, with this point's cov
-            return (replace(nxt, shift=theta - jo.theta, slopes=slide.slopes), replace(art, slide=sl), steps, False,
-                    size)
+            return replace(nxt, shift=theta - jo.theta, slopes=slide.slopes), replace(art, slide=sl), steps, False
         steps += 1
         theta, poses, sl, slide, last = np.clip(theta + nxt.shift, lo, hi), new_poses, a.slide, nxt, size
         if phase == 1:  # the sizes estimated where the fit has arrived: kept from here
             sizes, phase = slide.sizes, 2
         if size < SLIDE_STEP_SD:
             if phase == 2:
-                return replace(slide, shift=theta - jo.theta), replace(art, slide=sl), steps, True, 0.0
+                return replace(slide, shift=theta - jo.theta), replace(art, slide=sl), steps, True
             phase, last = 1, np.inf
-    left = last if np.isfinite(last) else 0.0  # infinite: the last step was below SLIDE_STEP_SD
-    return replace(slide, shift=theta - jo.theta), replace(art, slide=sl), steps, False, left
+    return replace(slide, shift=theta - jo.theta), replace(art, slide=sl), steps, False
 
 
 def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
-    """The joint fit moved to the slide's estimate (:func:`_slide_converged`), where there is one near its optimum.
+    """The joint fit moved to the slide's estimate (:func:`_slide_converged`), where there is one.
 
-    A slide whose steps stopped unsettled with a step of more than :data:`SLIDE_KEEP_SD` left is not kept:
-    the fit stays where it was and the artefact's term widens its intervals (``art.cov``), as where no slide
-    can be told from the geometry. One that stopped closer (the steps had fallen to a few tenths of an sd
-    when the sizes, estimated again where the fit had arrived, asked for a step no shorter than the last:
-    on a simulated leg whose markers slide exactly as the model says, three fits of four) is kept. Kept far
-    from settling, it turned
-    with the pose nearly as much as the markers did and moved the geometry by whatever its last step
-    reached: on both real subjects of the shared data (a slide of 45 mm rms on addbio-subject4, slopes
-    near 100 mm per radian on subject01), OpenSim's IK on the written model tracked addbio-subject4's
-    static, walk and squat trials 5-7 mm worse than without it. On OpenSim-generated walks with a skin
-    artefact that follows each body, the slide settled in 199 fits of 200.
-
-    Returns ``(jo, checked, base, slide, artefact, progress)``: ``jo`` at the slide's geometry with
+    Returns ``(jo, checked, base, slide, artefact, steps, settled)``: ``jo`` at the slide's geometry with
     its poses there; ``base`` the interval before any widening (the slide's covariance, else the fit's
     with each marker's own noise level); ``checked`` what data simulated from the fit
     (:func:`bootstrap_check`) start from: with a slide, ``jo`` with the white noise level the slide
@@ -621,13 +602,10 @@ def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
     so that the simulated data carry the noise that is left, not the slide taken for noise (a pelvis
     scale's "bias" at the slide-blind fit's marker levels reached 6 sd on an OpenSim-generated walk,
     and moved it 7 sd from the truth; with the information of the fit before the slide, 157 sd).
-    ``progress``: ``(steps, settled, left)`` of :func:`_slide_converged`.
     """
-    slide, moved, steps, settled, left = _slide_converged(model, jo, art, ys, weights)
-    progress = (steps, settled, left)
-    if slide is None or left > SLIDE_KEEP_SD:  # far from settling: not kept, the artefact's term instead
-        return jo, jo, (jo.cov if jo.cov_noise is None else jo.cov_noise), None, art, progress
-    art = moved
+    slide, art, steps, settled = _slide_converged(model, jo, art, ys, weights)
+    if slide is None:
+        return jo, jo, (jo.cov if jo.cov_noise is None else jo.cov_noise), None, art, steps, settled
     from skelid.estimators.fit.pose import workspace
 
     lo, hi = _prior_bounds(model)
@@ -639,7 +617,7 @@ def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
     checked = replace(jo, cov=_posterior(model, sum(info), _prior_terms(model, theta)[1])[1], info_trials=info,
                       sigma=np.full(len(ys), white),
                       marker_sd=None if jo.marker_sd is None else np.full_like(jo.marker_sd, white))
-    return jo, checked, slide.cov, slide, art, progress
+    return jo, checked, slide.cov, slide, art, steps, settled
 
 
 def _artefact_ratio(art, bound) -> np.ndarray:
@@ -647,7 +625,7 @@ def _artefact_ratio(art, bound) -> np.ndarray:
     return _sd(art.cov) / np.maximum(bound, 1e-300)
 
 
-def _artefact_entry(art, ratio, slide=None, model: Model | None = None, progress=(0, False, 0.0)) -> dict:
+def _artefact_entry(art, ratio, slide=None, model: Model | None = None, steps=(0, False)) -> dict:
     """The result's ``artefact`` entry: what the residuals show of a pose-dependent artefact.
 
     With ``slide`` (its slopes estimated with the geometry) the sizes are the joint fit's,
@@ -655,9 +633,7 @@ def _artefact_entry(art, ratio, slide=None, model: Model | None = None, progress
     where each of the ``model``'s markers sits on average over the trials from its offset's place
     (the slide at the trials' mean pose, body frame: the place the written model takes), and
     ``by_body`` each body's shared slope sd and the rms its markers slide by over the trials'
-    poses; else the sd the artefact's term adds over the residuals' own, and where a slide was tried but not
-    kept (:func:`_with_slide`), its ``steps`` and ``settled`` (False). ``progress``: ``(steps, settled, left)``
-    of :func:`_slide_converged`; an unsettled slide's ``last_step_sd`` is ``left``.
+    poses; else the sd the artefact's term adds over the residuals' own.
     """
     entry = {"present": bool(art.present), "p_value": float(art.p_value),
              "rms": float(art.rms if slide is None else slide.rms),
@@ -671,38 +647,31 @@ def _artefact_entry(art, ratio, slide=None, model: Model | None = None, progress
                        "pose_artefact)"}
     if slide is not None:
         entry["method"] += "; its slopes estimated with the geometry (joint_slide), iterated to the optimum"
-        entry["steps"], entry["settled"] = int(progress[0]), bool(progress[1])
+        entry["steps"], entry["settled"] = int(steps[0]), bool(steps[1])
         mean = np.einsum("mac,c->ma", slide.slopes, art.slide.mean_dr)
         entry["mean_place_mm"] = {n: [float(v) for v in mean[i]] for i, n in enumerate(model.marker_names)}
         entry["by_body"] = {
             model.segments[model.marker_segment[idx[0]]].name: {
                 "slope_sd_shared": float(t), "rms": float(np.sqrt((t**2 + slide.tau_own**2) * art.slide.pose_spread))}
             for idx, t in zip(art.slide.bodies, slide.tau_bodies, strict=True)}
-    elif progress[0]:
-        entry["steps"], entry["settled"] = int(progress[0]), bool(progress[1])
-    if progress[0] and not progress[1]:
-        entry["last_step_sd"] = float(progress[2])
     return entry
 
 
 def _artefact_warning(model: Model, art, ratio, slide=None, entry=None) -> str:
     """One line naming the artefact the residuals show and what it does to the intervals."""
     k = int(np.argmax(ratio))
-    settled = (entry or {}).get("settled", True)
     if slide is not None:
-        near = "" if settled else (f"; its steps stopped {entry['last_step_sd']:.2g} sd short of settling, "
-                                   "within what its interval holds")
+        held = "" if (entry or {}).get("settled", True) else (
+            f"; its estimate did not settle and was kept after {entry['steps']} step(s): the slide turns with the "
+            "pose nearly as much as the markers do, more than a linear slide holds")
         return (f"the residuals follow the pose: a soft-tissue artefact of about {slide.rms:.2g} {model.units} rms "
                 f"per marker coordinate (F test p = {art.p_value:.1e}), its slopes estimated with the geometry "
                 f"and integrated out of the intervals; it moved {model.parameter_names[k]} by {ratio[k]:.1f} sd "
-                f"(white noise left: {slide.sigma_white:.2g} {model.units}){near}")
-    unsettled = "" if settled else (
-        f"; a slide estimated with the geometry did not settle (its last step {entry['last_step_sd']:.2g} sd: it "
-        "turns with the pose nearly as much as the markers do, more than a linear slide holds) and is not used")
+                f"(white noise left: {slide.sigma_white:.2g} {model.units}){held}")
     return (f"the residuals follow the pose: a soft-tissue artefact of about {art.rms:.2g} {model.units} rms per "
             f"marker coordinate (F test p = {art.p_value:.1e}); the part of it that looks like a change of the "
             f"geometry is in the intervals (the largest effect: {model.parameter_names[k]}, "
-            f"{ratio[k]:.1f} times the sd the residuals alone give){unsettled}")
+            f"{ratio[k]:.1f} times the sd the residuals alone give)")
 
 
 def _placement_entry(placed, bound) -> dict:
