@@ -282,10 +282,10 @@ FOOT_JOINTS = """<PinJoint name="ankle"><socket_parent_frame>shank_offset</socke
 
 
 def test_the_checks_test_the_joint_fits_own_geometry_with_an_unmarked_body_at_its_fitted_size(tmp_path):
-    """A talus scaled to 0.8 that carries no marker, exact data with 1 mm noise: the joint fit scales the talus
-    (under its prior), and its checks, rerun on a scale fit with every marker where the joint fit put it, hold
-    the talus at that size too. At the generic size they saw misfit at the hip, knee and subtalar joints on
-    exact data and widened the thigh's and shank's sd 6.6 and 7.3 times."""
+    """A talus scaled to 0.8 that carries no marker, data of the exact model with 1 mm noise: the joint fit
+    scales the talus (under its prior), and its checks, rerun on a scale fit with every marker where the joint
+    fit put it, hold the talus at that size too. At the generic size they saw misfit at the hip, knee and
+    subtalar joints and widened the thigh's and shank's sd 6.6 and 7.3 times."""
     from skelid.data import MarkerData
     from skelid.model.kinematics import marker_positions
     from tests.helpers import leg_walk_poses
