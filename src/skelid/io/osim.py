@@ -66,6 +66,7 @@ from skelid.model.description import (
     Parameter,
     Prior,
     Segment,
+    _scales_with_parent,
 )
 from skelid.model.functions import CoordinateFunction
 
@@ -966,11 +967,11 @@ def scales_held(model: Model, scales: dict) -> Model:
     if not s:
         return model
 
-    def motion(m: Motion, f: np.ndarray) -> Motion:
-        if m.kind == "R" or (m.kind == "T" and (m.function.is_identity or m.function.is_constant)):
+    def motion(m: Motion, f: np.ndarray) -> Motion:  # the weights as Model._translation_factor takes them
+        if not _scales_with_parent(m):
             return m
         w = np.asarray(m.scale_weights or np.asarray(m.axis, float) ** 2, float)
-        return m if not w.sum() else replace(m, function=_scaled(m.function, float(w @ f / w.sum())))
+        return replace(m, function=_scaled(m.function, float(w @ f / w.sum())))
 
     segments = []
     for seg in model.segments:
