@@ -133,12 +133,14 @@ def check_noise(d, base):
 
 
 def check_alternative(d, base):
-    # another model of the leg (the hip 2 cm lower on the pelvis): the spread of every scale factor over both
-    alt = d / "leg_low_hip.osim"
-    alt.write_text(MODEL.replace("0.05 -0.08 0.09", "0.05 -0.10 0.09").format(markers=marker_xml()))
+    # another model of the leg (the knee's axis tilted 17 degrees, which no scale or offset can mimic; a hip
+    # placed lower on the pelvis they can, and both models then fit alike): the spread of every scale factor
+    alt = d / "leg_tilted_knee.osim"
+    alt.write_text(MODEL.replace("<coordinates>k</coordinates><axis>0 0 1</axis>",
+                                 "<coordinates>k</coordinates><axis>0.3 0 1</axis>").format(markers=marker_xml()))
     r = _run(d, ["--alternative", str(alt)])
     sens = r["table"]["model_sensitivity"]
-    assert sens["models"] == ["leg.osim", "leg_low_hip.osim"] and base["table"]["model_sensitivity"] is None
+    assert sens["models"] == ["leg.osim", "leg_tilted_knee.osim"] and base["table"]["model_sensitivity"] is None
     scales = {f"scale_{b}_{a}" for b in ("pelvis", "thigh", "shank") for a in "xyz"}
     lengths = {f"length {n}" for n in base["table"]["lengths_mm"]}
     assert lengths and set(sens["spread"]) == scales | lengths

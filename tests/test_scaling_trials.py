@@ -50,7 +50,9 @@ def test_three_trials_give_each_trials_scales_the_spread_the_test_the_bound_and_
     assert c["tested"] and c["dof"] == (3 - 1) * 9 and 0.0 <= c["p_value"] <= 1.0 and _finite(c["statistic"])
     for body, axes in table["scales"].items():
         for e in axes.values():
-            assert _finite(e["crlb_sd"]) and 0 < e["crlb_sd"] <= e["sd"], body
+            # the bound at one noise level per trial; the sd is the sandwich of each marker's own level,
+            # which may fall below it by that level's estimation noise (a few per cent with 12 markers)
+            assert _finite(e["crlb_sd"]) and 0 < e["crlb_sd"] <= 1.05 * e["sd"], body
             assert _finite(e["sd_between_trials"]) and _finite(e["sd_within_trials"])
     noise = table["sigma_mm"]
     lo, hi = noise["ci95"]
