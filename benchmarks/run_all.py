@@ -68,6 +68,9 @@ OPENSIM_TRUTH_CELLS = ("axes/axes/static+walk/5", "axes/linked/walk/5", "axes/li
 #: the default i.i.d. cells with the joint angles of their walk scored; opensim_truth_pm100 `--noise per-marker`;
 #: opensim_truth_stalab100 the slide in the laboratory's frame; opensim_truth_bodies100 the other
 #: OPENSIM_DEFAULT_CELLS
+#: the full-body model of the six-trial subject, scaled per axis (only its marked bodies, or every body as
+#: OpenSim's setups do), walks only and with a static trial
+RAJAGOPAL_CELLS = ("axes/linked/walk/5", "every/linked/walk/5", "every/linked/static+walk/5")
 OPENSIM_100_CELLS = ("axes/axes/static+walk/5", "axes/linked/static+walk/pm")
 
 
@@ -121,6 +124,12 @@ BENCHMARKS: tuple[Bench, ...] = (
                                             "--jobs", "2", "--out", "{results}/soft_tissue_arm"),
       ("--case", "examples/arm.toml", "--trials", "1", "--reps", "2", "--jobs", "2",
        "--out", "{results}/soft_tissue_arm"), ("soft_tissue_arm.json", "soft_tissue_arm.md")),
+    B("soft_tissue_leg", "soft_tissue.py", ("--case", "examples/lower_limb.toml", "--trials", "2", "--reps", "100",
+                                            "--jobs", "2", "--placement-sd", "5", "--out", "{results}/soft_tissue_leg"),
+      ("--case", "examples/lower_limb.toml", "--trials", "2", "--reps", "2", "--jobs", "2", "--placement-sd", "5",
+       "--out", "{results}/soft_tissue_leg"), ("soft_tissue_leg.json", "soft_tissue_leg.md")),
+    B("shift_invariance", "shift_invariance.py", (), ("--shifts", "1"),
+      ("shift_invariance.json", "shift_invariance.md")),
     B("live_agreement", "live_agreement.py", ("--reps", "100", "--jobs", "2"),
       ("--reps", "2", "--jobs", "2", "--no-glitch", "--cutoffs", "auto"), ("live_agreement.json", "live_agreement.md")),
     B("live_agreement_arms", "live_agreement.py",
@@ -135,6 +144,7 @@ BENCHMARKS: tuple[Bench, ...] = (
        "case-a sigma 5 mm"), ("live_agreement_case_a.json", "live_agreement_case_a.md")),
     B("live_health", "live_health.py", (), ("--quick",), ("live_health.json", "live_health.md")),
     B("soak", "soak.py", (), ("--minutes", "2"), ("soak.json", "soak.md")),
+    B("live_lsl", "live_lsl.py", (), ("--frames", "400", "--skip", "100"), ("live_lsl.json", "live_lsl.md")),
     B("live_long", "live_long.py", ("--reps", "100", "--jobs", "2"),
       ("--reps", "2", "--jobs", "2", "--checkpoints", "500", "1000"), ("live_long.json", "live_long.md")),
     B("stopping_rule", "stopping_rule.py", ("--reps", "100", "--jobs", "2"), ("--reps", "2", "--jobs", "2"),
@@ -189,6 +199,12 @@ BENCHMARKS: tuple[Bench, ...] = (
        "axes/axes/walk/0", "--out", "{results}/opensim_truth_exact"),
       ("--reps", "1", "--no-peer", "--cells", "axes/axes/walk/0", "--out", "{results}/opensim_truth_exact"),
       ("opensim_truth_exact.json", "opensim_truth_exact.md"), needs_data=True),
+    B("opensim_truth_rajagopal", "opensim_truth.py",
+      ("--model", "rajagopal", "--reps", "100", "--jobs", "2", "--no-peer", "--cells", *RAJAGOPAL_CELLS,
+       "--out", "{results}/opensim_truth_rajagopal"),
+      ("--model", "rajagopal", "--reps", "1", "--no-peer", "--cells", RAJAGOPAL_CELLS[0], "--out",
+       "{results}/opensim_truth_rajagopal"),
+      ("opensim_truth_rajagopal.json", "opensim_truth_rajagopal.md"), needs_data=True),
     B("ik_angles", "ik_angles.py", (), ("--quick",), ("ik_angles.json", "ik_angles.md"), needs_data=True),
 )
 
