@@ -501,7 +501,7 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
     errors, seen = {}, {}
     check = scaling.bootstrap_check
 
-    def spy(model, jo, ys, cov, *args, **kwargs):  # what the bias check of the iterated fit starts from
+    def spy(model, jo, ys, cov, *args, **kwargs):  # what the simulated-data check of the iterated fit starts from
         seen.update(model=model, jo=jo, ys=ys)
         out = check(model, jo, ys, cov, *args, **kwargs)
         seen.update(boot=out[0])
@@ -533,7 +533,7 @@ def test_the_slide_is_estimated_at_the_joint_optimum_not_one_step_from_the_fit_t
 
 
 def _check_after_the_slide(scaling, fit, seen):
-    """The bias check of a fit with a slide simulates the white noise the slide leaves (not the slide taken
+    """The simulated-data check of a fit with a slide simulates the white noise the slide leaves (not the slide taken
     for noise), and its steps use the information at the slide's geometry and poses (with the information
     of the fit before the slide, a pelvis scale's "bias" reached 157 sd on an OpenSim walk); the result and
     the report give each body's slide (the leg's bodies share slopes of sd 15 mm per radian)."""

@@ -597,8 +597,8 @@ def _with_slide(model: Model, jo, art, ys, weights) -> tuple:
     (:func:`bootstrap_check`) start from: with a slide, ``jo`` with the white noise level the slide
     leaves for every trial and marker and the information and Laplace covariance at that level there,
     so that the simulated data carry the noise that is left, not the slide taken for noise (a pelvis
-    scale's "bias" at the slide-blind fit's marker levels reached 6 sd on an OpenSim-generated walk,
-    and moved it 7 sd from the truth; with the information of the fit before the slide, 157 sd).
+    scale's mean simulated step at the slide-blind fit's marker levels reached 6 sd on an
+    OpenSim-generated walk; with the information of the fit before the slide, 157 sd).
     """
     slide, art, steps, settled = _slide_converged(model, jo, art, ys, weights)
     if slide is None:
