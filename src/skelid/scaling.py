@@ -496,7 +496,7 @@ def _corrected(model: Model, jo: JointOffsets, bias, ys, weights) -> JointOffset
     lo, hi = _prior_bounds(model)
     theta = np.clip(jo.theta - bias, lo, hi)
     ws = workspace(model)
-    poses = [_posed_terms(model, theta, y, q, ws, weights, POSE_ITER)[0] for y, q in zip(ys, jo.poses, strict=True)]
+    poses = [_trial_cost(model, theta, y, q, ws, weights, POSE_ITER)[0] for y, q in zip(ys, jo.poses, strict=True)]
     return replace(jo, theta=theta, poses=poses)
 
 
