@@ -463,9 +463,9 @@ def _joint_stage(st: _ScaleStage, model, theta, given, scale, res):
     if not settled:  # settled, the slide the scale fit's checks widen for is in the slide's covariance already
         ratios = _on_scales(model, m3, check_ratios(est, m3))
         widen[:ratios.shape[1]] = deflated_widening(before, _prior_terms(model, before.theta)[1], ratios)
-    bias, boot, boot_entry = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
-                                             st.sigma if slide is None else None, weights, st.seed)
-    base = base * (1.0 + boot_entry["variance_added_by_correction"])  # the correction's own noise
+    bias, boot, boot_entry, bias_var = bootstrap_check(model, checked, ys, base if slide is None else checked.cov,
+                                                       st.sigma if slide is None else None, weights, st.seed)
+    base = base + np.diag(bias_var)  # the correction's own noise
     jo = _corrected(model, jo, bias, ys, weights)
     psd = prior_sd(_prior_terms(model, jo.theta)[1])
     widen = np.maximum(np.minimum(np.maximum(widen, boot), psd / np.maximum(bound, 1e-300)), 1.0)
@@ -1328,7 +1328,7 @@ BOOTSTRAP_POOLED_EFFECT = 1.1
 
 
 def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights=None,
-                    seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
     """The joint fit's bias and the widening its errors ask for, from data simulated from its answer.
 
     :data:`BOOTSTRAP_SETS` data sets: every trial's markers where the MAP ``theta`` and poses
@@ -1338,23 +1338,23 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
     the MAP with the fit's information, ``d_b = (S/sigma^2 + Lambda)^-1 g_b`` (``g_b`` the
     data's score with those poses; the prior's pull is the posterior's own). A linear fit would
     give ``E[d_b] = 0`` and ``Cov(d_b) = cov``; the poses, fitted frame by frame from noisy
-    markers, are not linear in the noise, and ``mean(d_b)`` estimates the fit's bias, which is
-    taken off the estimate. With per-marker noise of 1-10 mm and one noise level fitted, that
-    lowered the rms error of the four leg lengths of OpenSim-generated gait2354 walks from
-    3.4-4.6 to 2.8-3.8 mm (40 draws, the same draws uncorrected). It is not right everywhere: on
-    the full-body model with i.i.d. noise it puts +1.5-1.7 mm into a right thigh whose
-    uncorrected bias is +0.2-0.4 mm; a second step on each data set (the geometry's own
-    curvature) changed neither. The cause is the simulation's own noise: over ten seeds of one
-    such fit the right femur's length factor's bias ranged from -0.64 to +0.41 sd (mean -0.12),
-    and every fit of one model and motion draws the same seed's noise, so the error of seed 0
-    (-0.64 sd) recurs in every draw.
+    markers, are not linear in the noise, and ``mean(d_b - l_b)`` estimates the fit's bias,
+    which is taken off the estimate: ``l_b`` is the step a linear fit takes on the same noise
+    (the poses and Jacobians held at the fitted ones), whose expectation is exactly zero, so
+    the difference keeps the nonlinear part only (a control variate). The plain ``mean(d_b)``
+    carried the noise of the linear part: over ten seeds of one full-body fit a right femur's
+    length factor's "bias" ranged from -0.64 to +0.41 sd, and every fit of one model and
+    motion draws the same seed, so one seed's error recurred in every draw (+1.7 mm in the
+    right thigh, +0.4 mm with the control variate, 24 draws). With per-marker noise of 1-10 mm
+    and one noise level fitted, the correction lowered the rms error of the four leg lengths
+    of OpenSim-generated gait2354 walks against the same draws uncorrected.
 
     Where the steps' variance exceeds what a linear fit gives them (``cov`` less the prior's
     part, ``C Lambda C``) by the upper 10 % point of chi-square(B-1)/(B-1), the sd is widened to
     cover it; where the same ratio pooled over the scales (or the offsets) that the data
     determine exceeds its own 10 % point and :data:`BOOTSTRAP_POOLED_EFFECT` squared, all of
-    them are. The correction's own noise, ``1/B`` of the variance, is added to every parameter
-    by the caller.
+    them are. The correction's own noise, the variance of ``mean(d_b - l_b)``, is returned for
+    the caller to add to each parameter's variance.
 
     Returns
     -------
@@ -1364,15 +1364,18 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
         At least 1.
     entry : dict
         The result's ``bootstrap`` entry.
+    bias_var : (P,) float
+        The variance of ``bias`` from the simulation.
     """
     from scipy.stats import chi2
 
     _, hp = _prior_terms(model, jo.theta)
     B = BOOTSTRAP_SETS
-    steps = _simulated_steps(model, jo, ys, hp, sigma, weights, np.random.default_rng(seed))
+    steps, linear = _simulated_steps(model, jo, ys, hp, sigma, weights, np.random.default_rng(seed))
     # the steps' variance under a linear fit: the data's part of the interval, without the prior's
     var = np.clip(np.diag(cov) - np.einsum("ip,pq,iq->i", jo.cov, prior_matrix(hp), jo.cov), 1e-300, None)
-    bias = steps.mean(axis=0)
+    bias = (steps - linear).mean(axis=0)
+    bias_var = (steps - linear).var(axis=0, ddof=1) / B
     ratio = steps.var(axis=0, ddof=1) / var
     widen = np.where(ratio > chi2.ppf(0.9, B - 1) / (B - 1), np.sqrt(ratio), 1.0)
     determined = np.sqrt(np.clip(np.diag(jo.cov), 0.0, None)) <= AXES_IDENTIFIED * prior_sd(hp)
@@ -1387,26 +1390,35 @@ def bootstrap_check(model: Model, jo: JointOffsets, ys, cov, sigma=None, weights
                 widen[g] = np.maximum(widen[g], np.sqrt(pooled[str(kind)]))
     z = bias / np.sqrt(var)
     k = int(np.argmax(np.abs(z))) if z.size else 0
-    entry = {"sets": B, "variance_added_by_correction": 1.0 / B, "largest_bias_sd": float(z[k]) if z.size else 0.0,
+    entry = {"sets": B, "correction_sd_share": float(np.sqrt(np.max(bias_var / var))) if z.size else 0.0,
+             "largest_bias_sd": float(z[k]) if z.size else 0.0,
              "largest_bias_parameter": model.parameter_names[k] if z.size else None,
              "pooled_sd_ratio": {kk: float(np.sqrt(v)) for kk, v in pooled.items()},
              "widened": [n for n, w in zip(model.parameter_names, widen, strict=True) if w > 1.0],
              "method": "data simulated from the fit with each marker's noise level; one Gauss-Newton step "
-                       "from the fit on each: their mean is the bias taken off, their spread widens the sd "
-                       "where it exceeds it"}
-    return bias, widen, entry
+                       "from the fit on each: their mean less that of a linear fit's steps on the same noise "
+                       "(a control variate) is the bias taken off, their spread widens the sd where it "
+                       "exceeds it"}
+    return bias, widen, entry, bias_var
 
 
-def _simulated_steps(model: Model, jo: JointOffsets, ys, hp, sigma, weights, rng) -> np.ndarray:
-    """:func:`bootstrap_check`'s step on each simulated data set ``(B, P)``: one Gauss-Newton step from the
-    MAP, every pose fitted afresh from the fitted one."""
+def _simulated_steps(model: Model, jo: JointOffsets, ys, hp, sigma, weights, rng) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`bootstrap_check`'s steps on each simulated data set: ``(steps, linear)``, each ``(B, P)``.
+
+    ``steps``: one Gauss-Newton step from the MAP, every pose fitted afresh from the fitted one;
+    ``linear``: the step a linear fit takes on the same noise (the poses held at the fitted ones,
+    the Jacobians there), whose expectation is exactly zero. The noise is drawn data set by data
+    set, trial by trial (the stream of a given seed does not depend on how the steps are
+    summed), and held for all sets (``B`` times the markers), so that each trial's Jacobians at
+    the fitted poses are built once.
+    """
+    from skelid.estimators.fit.joint import row_weights, weighted_terms
     from skelid.estimators.fit.likelihood import projected_score
     from skelid.estimators.fit.pose import workspace
     from skelid.model.kinematics import marker_positions
 
     ws = workspace(model)
     solve = _posterior_solver(sum(jo.info_trials), hp)[0]
-    steps = np.empty((BOOTSTRAP_SETS, model.n_params))
     fitted = []  # each trial's fitted markers and each marker's noise sd, the same for every data set
     for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
         if jo.marker_sd is not None:
@@ -1414,15 +1426,21 @@ def _simulated_steps(model: Model, jo: JointOffsets, ys, hp, sigma, weights, rng
         else:
             sd = np.full(y.shape[1], float(sigma if sigma is not None else jo.sigma[k]))
         fitted.append((marker_positions(model, jo.theta, q), sd[None, :, None]))
-    for b in range(BOOTSTRAP_SETS):
-        score = np.zeros(model.n_params)  # the data's part: the prior's pull is the posterior's, not a bias
-        for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
-            x, sd = fitted[k]
-            sim = np.where(np.isfinite(y), x + rng.normal(size=x.shape) * sd, np.nan)
-            _, r, Jq, Jt = _posed_terms(model, jo.theta, sim, q, ws, weights, BOOTSTRAP_POSE_ITER)
-            score = score + projected_score(Jq, Jt, r) / jo.sigma[k] ** 2
-        steps[b] = solve(score)
-    return steps
+    noise = [[rng.normal(size=x.shape) * sd for x, sd in fitted] for _ in range(BOOTSTRAP_SETS)]
+    score = np.zeros((BOOTSTRAP_SETS, model.n_params))  # the data's part: the prior's pull is the posterior's
+    linear = np.zeros((BOOTSTRAP_SETS, model.n_params))
+    for k, (y, q) in enumerate(zip(ys, jo.poses, strict=True)):
+        x, seen = fitted[k][0], np.isfinite(y)
+        sw = row_weights(weights, y)
+        _, Jq, Jt = weighted_terms(model, jo.theta, q, y, sw, ws)
+        for b in range(BOOTSTRAP_SETS):
+            e = np.where(seen, noise[b][k], 0.0)
+            _, r, Jq_b, Jt_b = _posed_terms(model, jo.theta, np.where(seen, x + e, np.nan), q, ws, weights,
+                                            BOOTSTRAP_POSE_ITER)
+            score[b] += projected_score(Jq_b, Jt_b, r) / jo.sigma[k] ** 2
+            lin = e.reshape(e.shape[0], -1)
+            linear[b] += projected_score(Jq, Jt, lin if sw is None else lin * sw) / jo.sigma[k] ** 2
+    return np.array([solve(g) for g in score]), np.array([solve(g) for g in linear])
 
 
 def _trial_terms(model: Model, theta, y, q, ws, weights, pose_iter, floor=None) -> tuple:
