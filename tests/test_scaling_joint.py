@@ -399,7 +399,8 @@ def test_data_simulated_from_the_fit_spread_as_its_interval_says_where_the_fit_i
     assert np.all(np.abs(bias) < 1.0 * sd) and abs(entry["largest_bias_sd"]) < 1.0
     for kind, r in entry["pooled_sd_ratio"].items():
         assert 0.8 < r < 1.25, (kind, r)
-    assert np.mean(widen > 1.0) < 0.3
+    # the steps' variance over the linear fit's on the same noise: no parameter widened by the chance of 12 sets
+    assert widen.max() < 1.1, (widen.max(), entry["largest_widening_parameter"])
 
 
 # ----------------------------------------------------------------------------- linked axis factors
