@@ -211,7 +211,9 @@ BENCHMARKS: tuple[Bench, ...] = (
 
 def command(b: Bench, mode: str, results: Path, scratch: Path) -> list[str]:
     """The command line of ``b`` in ``mode`` ("full" or "quick"), placeholders filled in."""
-    args = [a.format(results=results, scratch=scratch) for a in (b.full if mode == "full" else b.quick)]
+    # the results folder as the recorded command line can be rerun from the checkout's root (its working folder)
+    shown = results.relative_to(ROOT) if results.is_absolute() and results.is_relative_to(ROOT) else results
+    args = [a.format(results=shown, scratch=scratch) for a in (b.full if mode == "full" else b.quick)]
     if b.script == "skelid":
         return [sys.executable, "-m", "skelid.cli", *args]
     return [sys.executable, str(Path("benchmarks") / b.script), *args]
