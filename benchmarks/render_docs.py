@@ -190,7 +190,6 @@ def opensim_truth() -> str:
         return ("*Not measured yet.* `benchmarks/opensim_truth.py` (markers simulated on OpenSim models of known "
                 "scale) writes `benchmarks/results/opensim_truth.json`; `python benchmarks/run_all.py --full` then "
                 "`python benchmarks/render_docs.py` put its coverage here.\n")
-    doc = load(path)
     cells, sources = _truth_cells()
     lines = ["| cell (truth/fit/design/noise) | draws | coverage 95 %: scales, median (min) | lengths | offsets "
              "| pooled, data-determined: scales | offsets | joint centres in body frames: per axis / region "
@@ -214,14 +213,13 @@ def opensim_truth() -> str:
                      f"{sum(lr) / len(lr):.1f} | " + (f"{sum(pr) / len(pr):.1f}" if pr else "—")
                      + f" | {_share_text(c, 'share_artefact_term')} / {_share_text(c, 'share_artefact_named')}"
                      + f" | {c['cpu_s_per_fit']:.0f} |")
-    note = (f"{doc['draws_done']} of {doc['draws_planned']} planned draws done; geometry drawn per draw. "
+    note = ("Geometry drawn per draw; each cell from the last of the files below that holds it (the 100-draw runs "
+            "after the 24-draw ones). "
             "Lengths: hip-knee and knee-ankle per side; RMSE averaged over the four. Body frames: every joint "
             "centre in its parent body's frame and every marker in its own, at the zero pose, pooled over them "
             "and the draws: the coverage of each coordinate's interval, and of the 3-D 95 % region (chi-square, "
-            "3 degrees of freedom); '—' where the results predate them. Per quantity: "
-            "[`benchmarks/results/opensim_truth.md`](/benchmarks/results/opensim_truth.md) and, for the default "
-            "fit beside one factor per body, "
-            "[`benchmarks/results/opensim_truth_default.md`](/benchmarks/results/opensim_truth_default.md).")
+            "3 degrees of freedom); '—' where the results predate them. Per quantity: the Markdown file beside "
+            "each cell's JSON file below.")
     out = "\n".join(lines) + "\n\n" + note + "\n\n" + _angles_table(cells) + sources
     exact, prior = RESULTS / "opensim_truth_exact.json", RESULTS / "opensim_truth_prior.json"
     raj = RESULTS / "opensim_truth_rajagopal.json"
